@@ -1,0 +1,29 @@
+"""jaxsync: differentiable, distributed explicit finite elements for linear
+elastodynamics on tetrahedra, with LSTM surrogates that replace synchronization.
+
+The solver runs in float64: call ``jax.config.update("jax_enable_x64", True)`` before
+creating arrays (the command line does this for you). Importing jaxsync changes no
+global configuration.
+"""
+
+from .errors import (CheckpointError, ConfigError, JaxsyncError, MaterialError, MeshError,
+                     ProblemError, StabilityError)
+from .loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
+from .material import LinearElastic
+from .mesh import Mesh, MeshWarning, box_beam, read_mesh
+from .problem import Dirichlet, Problem, cantilever
+from .solver import simulate, steady_state
+from .timestep import cfl_dt, mass_scaling, max_stable_dt
+from .trajectory import Trajectory
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
+    "CheckpointError", "ConfigError",
+    "Mesh", "MeshWarning", "read_mesh", "box_beam",
+    "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
+    "Dirichlet", "Problem", "cantilever",
+    "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling",
+    "Trajectory",
+]

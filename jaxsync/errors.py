@@ -1,0 +1,35 @@
+"""Exception types of jaxsync.
+
+Every error the package raises on bad input derives from :class:`JaxsyncError`, so a
+caller can catch the whole family at once; each message names the problem and the fix.
+"""
+
+from __future__ import annotations
+
+
+class JaxsyncError(Exception):
+    """Base class of every error jaxsync raises on purpose."""
+
+
+class MeshError(JaxsyncError, ValueError):
+    """The mesh cannot be used: no tetrahedra, NaN coordinates, degenerate elements..."""
+
+
+class MaterialError(JaxsyncError, ValueError):
+    """Material parameters outside their physical range."""
+
+
+class ProblemError(JaxsyncError, ValueError):
+    """A problem definition that is inconsistent (unknown facet tag, bad shapes...)."""
+
+
+class StabilityError(JaxsyncError, RuntimeError):
+    """A time step above the stability bound, or a run that diverged (NaN/Inf, blow-up)."""
+
+
+class CheckpointError(JaxsyncError, RuntimeError):
+    """A checkpoint or data file that does not fit the run that tries to use it."""
+
+
+class ConfigError(JaxsyncError, ValueError):
+    """A configuration file (TOML) or command-line option that cannot be used."""

@@ -1,0 +1,147 @@
+"""External loads and their time functions.
+
+A load is a spatial part (a body force per unit volume, or a pressure on a tagged
+surface) times a scalar time function ``g(t)``. Time functions are pytrees evaluated
+with ``jax.numpy`` inside the compiled time loop; they compose with ``*``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import ProblemError
+from .pytree import is_traced, pytree_dataclass, static_field
+
+__all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product",
+           "BodyForce", "Pressure"]
+
+
+class TimeFunction:
+    """Scalar function of time g(t), dimensionless. ``f * g`` is their product."""
+
+    def __call__(self, t):  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def __mul__(self, other: "TimeFunction") -> "Product":
+        if not isinstance(other, TimeFunction):
+            return NotImplemented
+        return Product((self, other))
+
+
+@pytree_dataclass
+class Constant(TimeFunction):
+    """g(t) = 1: the load acts at full magnitude from t = 0."""
+
+    def __call__(self, t):
+        return jnp.ones_like(jnp.asarray(t, dtype=float))
+
+
+@pytree_dataclass
+class Ramp(TimeFunction):
+    """The paper's ramp R(t, t_end) = t / t_end for t <= t_end, else 1 (t_end [s] > 0)."""
+
+    t_end: float = 1.0
+
+    def __post_init__(self):
+        if not is_traced(self.t_end) and not float(self.t_end) > 0:
+            raise ProblemError(f"Ramp needs t_end > 0, got {self.t_end}; use Constant() for no ramp")
+
+    def __call__(self, t):
+        return jnp.clip(jnp.asarray(t, dtype=float) / self.t_end, 0.0, 1.0)
+
+
+@pytree_dataclass
+class StepOff(TimeFunction):
+    """``inner(t)`` while t < t_off [s], zero afterwards (the paper's load switched off)."""
+
+    t_off: float
+    inner: Any = Constant()
+
+    def __call__(self, t):
+        t = jnp.asarray(t, dtype=float)
+        return jnp.where(t < self.t_off, self.inner(t), 0.0)
+
+
+@pytree_dataclass
+class Periodic(TimeFunction):
+    """Periodic waveform given by samples over one period, linearly interpolated.
+
+    Attributes:
+        times: (n_samples,) increasing sample times within [0, period] [s].
+        values: (n_samples,) waveform values (dimensionless factor, or the pressure
+            itself with a load magnitude of 1).
+        period: [s]. The waveform repeats: g(t) = interp(t mod period).
+    """
+
+    times: Any
+    values: Any
+    period: float
+
+    def __post_init__(self):
+        if is_traced(self.times, self.values, self.period):
+            return
+        times, values = np.asarray(self.times, float), np.asarray(self.values, float)
+        if times.ndim != 1 or times.shape != values.shape or len(times) < 2:
+            raise ProblemError("Periodic needs 1-D times and values of the same length >= 2, "
+                               f"got shapes {times.shape} and {values.shape}")
+        if np.any(np.diff(times) <= 0):
+            raise ProblemError("Periodic sample times must be strictly increasing")
+        if not float(self.period) > 0 or times[0] < 0 or times[-1] > float(self.period) + 1e-12:
+            raise ProblemError(f"Periodic sample times must lie in [0, period={self.period}] "
+                               "and the period must be positive")
+        object.__setattr__(self, "times", times)
+        object.__setattr__(self, "values", values)
+
+    def __call__(self, t):
+        tau = jnp.mod(jnp.asarray(t, dtype=float), self.period)
+        # Close the period so that the value wraps from the last sample to the first.
+        times = jnp.concatenate([jnp.asarray(self.times), jnp.asarray([self.times[0] + self.period])])
+        values = jnp.concatenate([jnp.asarray(self.values), jnp.asarray(self.values[:1])])
+        tau = jnp.where(tau < times[0], tau + self.period, tau)
+        return jnp.interp(tau, times, values)
+
+
+@pytree_dataclass
+class Product(TimeFunction):
+    """Product of time functions, e.g. ``Ramp(1.0) * Periodic(...)``."""
+
+    factors: tuple
+
+    def __call__(self, t):
+        out = self.factors[0](t)
+        for g in self.factors[1:]:
+            out = out * g(t)
+        return out
+
+
+@pytree_dataclass
+class BodyForce:
+    """Body force per unit volume b(x, t) = vector * time(t) [dyn/cm^3].
+
+    Attributes:
+        vector: (3,) force density components.
+        time: the time function (default: the paper's 1 s ramp).
+    """
+
+    vector: Any = (0.0, 0.0, -0.5)
+    time: Any = Ramp(1.0)
+
+    def __post_init__(self):
+        if not is_traced(self.vector) and np.shape(self.vector) != (3,):
+            raise ProblemError(f"BodyForce.vector must have 3 components, got {self.vector!r}")
+
+
+@pytree_dataclass
+class Pressure:
+    """Pressure p(t) = magnitude * time(t) [barye] on the facet set ``surface``.
+
+    The traction is -p n with n the outward normal, so a positive pressure pushes into
+    the solid (a lumen pressure inflates a vessel).
+    """
+
+    magnitude: Any
+    time: Any = Constant()
+    surface: str = static_field(default="pressure")

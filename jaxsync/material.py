@@ -1,0 +1,60 @@
+"""Isotropic linear elastic material (small strain)."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .errors import MaterialError
+from .pytree import is_traced, pytree_dataclass
+
+__all__ = ["LinearElastic"]
+
+
+@pytree_dataclass
+class LinearElastic:
+    """Isotropic linear elastic material, CGS units as in the paper.
+
+    Attributes:
+        E: Young's modulus [dyn/cm^2] (> 0).
+        nu: Poisson ratio (-1 < nu < 0.5).
+        rho: density [g/cm^3] (> 0).
+
+    The fields may be JAX tracers (for ``jax.grad`` with respect to them); range checks
+    run only on concrete values.
+    """
+
+    E: float = 1.0e6
+    nu: float = 0.3
+    rho: float = 1.0
+
+    def __post_init__(self):
+        if is_traced(self.E, self.nu, self.rho):
+            return
+        try:
+            E, nu, rho = float(self.E), float(self.nu), float(self.rho)
+        except (TypeError, ValueError) as exc:
+            raise MaterialError(f"material parameters must be numbers, got E={self.E!r}, "
+                                f"nu={self.nu!r}, rho={self.rho!r}") from exc
+        if not E > 0:
+            raise MaterialError(f"Young's modulus must be positive, got E={E}")
+        if not rho > 0:
+            raise MaterialError(f"density must be positive, got rho={rho}")
+        if not -1.0 < nu < 0.5:
+            raise MaterialError(
+                f"Poisson ratio must satisfy -1 < nu < 0.5, got nu={nu} "
+                "(nu = 0.5 is incompressible, which linear P1 elements cannot represent)")
+
+    @property
+    def mu(self):
+        """Shear modulus E / (2 (1 + nu)) [dyn/cm^2]."""
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    @property
+    def lam(self):
+        """First Lame parameter E nu / ((1 + nu)(1 - 2 nu)) [dyn/cm^2]."""
+        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+    @property
+    def wave_speed(self):
+        """sqrt(E / (rho (1 - nu^2))) [cm/s], the speed in the paper's CFL rule."""
+        return jnp.sqrt(self.E / (self.rho * (1.0 - self.nu**2)))

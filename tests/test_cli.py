@@ -1,0 +1,118 @@
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.cli import build_parser, main
+
+
+def option_strings(parser):
+    return {s for action in parser._actions for s in action.option_strings}
+
+
+def test_every_option_is_documented():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    assert {"demo", "simulate"} <= set(sub.choices)
+    for name, p in sub.choices.items():
+        text = p.format_help()
+        for action in p._actions:
+            if action.option_strings and "-h" not in action.option_strings:
+                assert action.help, f"{name} {action.option_strings} has no help"
+                assert action.option_strings[0] in text
+
+
+def test_console_script_help():
+    out = subprocess.run([sys.executable, "-m", "jaxsync.cli", "--help"], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0
+    assert "simulate" in out.stdout and "demo" in out.stdout
+
+
+def test_simulate_from_the_packaged_config(tmp_path, capsys):
+    out = tmp_path / "c.h5"
+    assert main(["simulate", "--steps", "400", "--save-every", "100", "-o", str(out),
+                 "--xdmf", str(tmp_path / "c.xdmf"), "--no-progress"]) == 0
+    traj = jaxsync.Trajectory.load(out)
+    assert traj.displacement.shape == (5, 104, 3)
+    expected = jaxsync.simulate(jaxsync.cantilever(), 400, save_every=100)
+    np.testing.assert_array_equal(traj.displacement, expected.displacement)
+    assert (tmp_path / "c.xdmf").exists()
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_simulate_general_problem_from_toml(tmp_path):
+    cfg = tmp_path / "bar.toml"
+    cfg.write_text("""
+[mesh]
+length = 4.0
+divisions = [4, 1, 1]
+[material]
+E = 1.0e3
+nu = 0.0
+rho = 1.0
+[problem]
+kind = "general"
+damping = 5.0
+[[dirichlet]]
+facet = "x0"
+[[pressure]]
+surface = "x1"
+magnitude = 2.0
+t_ramp = 0.5
+[run]
+n_steps = 200
+save_every = 100
+""")
+    out = tmp_path / "bar.h5"
+    assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 0
+    traj = jaxsync.Trajectory.load(out)
+    assert traj.n_saved == 3 and np.all(np.isfinite(traj.displacement))
+    assert traj.displacement[-1, :, 0].min() < 0  # pushed in -x
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[mesh]\nfoo = 1\n", "unknown key"),
+    ("[meshes]\n", "unknown table"),
+    ("[problem]\nkind = 'tube'\n", "kind must be"),
+    ("[material]\nnu = 0.7\n", "Poisson"),
+    ("[run]\nn_steps = 101\nsave_every = 10\n", "multiple of save_every"),
+    ("this is = = not toml", "invalid TOML"),
+    ("[problem]\nkind = 'general'\n[[pressure]]\nsurface = 'lumen'\n", "no facet set named 'lumen'"),
+])
+def test_bad_configuration_gives_a_one_line_error(tmp_path, capsys, text, message):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(text)
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "x.h5"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error:") and message in err
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_diverging_run_keeps_what_was_saved(tmp_path, capsys):
+    out = tmp_path / "run.h5"
+    out.write_bytes(b"previous good result")
+    code = main(["simulate", "--steps", "20000", "--save-every", "100", "--dt", "2e-3",
+                 "-o", str(out), "--no-progress"])
+    assert code == 2
+    assert "above the stability bound" in capsys.readouterr().err
+    assert out.read_bytes() == b"previous good result"
+
+
+def test_demo_writes_summary(tmp_path, capsys):
+    assert main(["demo", "--steps", "2000", "--save-every", "100", "--out", str(tmp_path),
+                 "--no-progress"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["n_steps"] == 2000 and summary["n_predicted"] == 0
+    assert summary["tip_z_final"] < 0
+    assert os.path.exists(tmp_path / "trajectory.h5") and os.path.exists(tmp_path / "trajectory.xdmf")
+    assert "tip z" in capsys.readouterr().out
+
+
+def test_print_config(capsys):
+    assert main(["simulate", "--print-config"]) == 0
+    assert "[material]" in capsys.readouterr().out

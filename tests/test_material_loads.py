@@ -1,0 +1,74 @@
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync import MaterialError, ProblemError
+
+
+def test_lame_parameters():
+    m = jaxsync.LinearElastic(1.0e6, 0.3, 1.0)
+    assert m.mu == pytest.approx(1.0e6 / 2.6)
+    assert m.lam == pytest.approx(1.0e6 * 0.3 / (1.3 * 0.4))
+    assert float(m.wave_speed) == pytest.approx(np.sqrt(1.0e6 / 0.91))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(E=0.0), "Young"), (dict(E=-1.0), "Young"), (dict(rho=0.0), "density"),
+    (dict(nu=0.5), "Poisson"), (dict(nu=-1.0), "Poisson"), (dict(nu=float("nan")), "Poisson"),
+])
+def test_material_validation(kwargs, match):
+    base = dict(E=1.0e6, nu=0.3, rho=1.0)
+    base.update(kwargs)
+    with pytest.raises(MaterialError, match=match):
+        jaxsync.LinearElastic(**base)
+
+
+def test_material_is_a_pytree():
+    import jax
+
+    m = jaxsync.LinearElastic(2.0, 0.25, 3.0)
+    leaves, tree = jax.tree_util.tree_flatten(m)
+    assert leaves == [2.0, 0.25, 3.0]
+    assert jax.tree_util.tree_unflatten(tree, leaves) == m
+
+
+def test_ramp():
+    g = jaxsync.Ramp(2.0)
+    t = np.array([0.0, 0.5, 2.0, 5.0])
+    np.testing.assert_allclose(g(t), [0.0, 0.25, 1.0, 1.0])
+    with pytest.raises(ProblemError):
+        jaxsync.Ramp(0.0)
+
+
+def test_step_off():
+    g = jaxsync.StepOff(3.0, jaxsync.Ramp(1.0))
+    np.testing.assert_allclose(g(np.array([0.5, 2.0, 2.999, 3.0, 4.0])), [0.5, 1, 1, 0, 0])
+
+
+def test_periodic_matches_numpy_interp():
+    times = np.array([0.0, 0.2, 0.5, 0.8])
+    values = np.array([1.0, 3.0, 2.0, 1.5])
+    period = 1.0
+    g = jaxsync.Periodic(times, values, period)
+    t = np.linspace(0, 3.3, 71)
+    ref = np.interp(np.mod(t, period), np.append(times, period), np.append(values, values[0]))
+    np.testing.assert_allclose(g(t), ref, rtol=1e-12)
+
+
+def test_periodic_validation():
+    with pytest.raises(ProblemError, match="increasing"):
+        jaxsync.Periodic([0.0, 0.5, 0.4], [1, 2, 3], 1.0)
+    with pytest.raises(ProblemError, match="period"):
+        jaxsync.Periodic([0.0, 2.0], [1, 2], 1.0)
+
+
+def test_product_of_time_functions():
+    g = jaxsync.Ramp(1.0) * jaxsync.Periodic([0.0, 0.5], [1.0, 3.0], 1.0)
+    t = jnp.array([0.25, 0.5, 1.5])
+    np.testing.assert_allclose(g(t), [0.25 * 2.0, 0.5 * 3.0, 3.0])
+
+
+def test_body_force_needs_three_components():
+    with pytest.raises(ProblemError, match="3 components"):
+        jaxsync.BodyForce((0.0, 1.0))

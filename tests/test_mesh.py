@@ -1,0 +1,219 @@
+import os
+import warnings
+
+import meshio
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync import MeshError, MeshWarning
+from jaxsync.mesh import tet_volumes, validated_mesh
+
+REFERENCE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "reference", "beam_coarse.vtk")
+
+
+def unit_cube_tets():
+    """Two cells of a structured mesh written by hand (6 tets per cube, Kuhn split)."""
+    return jaxsync.box_beam(2.0, 1.0, 1.0, (2, 1, 1))
+
+
+def test_box_beam_default_is_coarse_cantilever():
+    mesh = jaxsync.box_beam()
+    assert mesh.n_nodes == 104 and mesh.n_elements == 150
+    assert mesh.points.dtype == np.float64 and mesh.tets.shape == (150, 4)
+    vol = mesh.volumes()
+    assert np.all(vol > 0)
+    assert vol.sum() == pytest.approx(25.0, rel=1e-12)
+    lo, hi = mesh.bounding_box
+    np.testing.assert_allclose(lo, 0.0)
+    np.testing.assert_allclose(hi, [25.0, 1.0, 1.0])
+
+
+def test_box_beam_facet_sets_cover_the_faces():
+    mesh = jaxsync.box_beam(3.0, 2.0, 1.0, (3, 2, 1))
+    for name, axis, value, area in (("x0", 0, 0.0, 2.0), ("x1", 0, 3.0, 2.0), ("y0", 1, 0.0, 3.0),
+                                    ("y1", 1, 2.0, 3.0), ("z0", 2, 0.0, 6.0), ("z1", 2, 1.0, 6.0)):
+        tri = mesh.facet_set(name)
+        np.testing.assert_allclose(mesh.points[tri][:, :, axis], value)
+        p = mesh.points[tri]
+        areas = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        assert areas.sum() == pytest.approx(area)
+    # the six sets together are the whole boundary
+    total = sum(len(v) for v in mesh.facet_sets.values())
+    assert total == len(mesh.boundary_facets())
+
+
+def test_boundary_facets_point_outward():
+    mesh = jaxsync.box_beam(2.0, 1.0, 1.0, (2, 2, 2))
+    faces = mesh.boundary_facets()
+    p = mesh.points[faces]
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    outward = p.mean(axis=1) - mesh.points.mean(axis=0)
+    assert np.all(np.einsum("ij,ij->i", normal, outward) > 0)
+
+
+def test_box_beam_rejects_bad_divisions():
+    with pytest.raises(MeshError, match="divisions"):
+        jaxsync.box_beam(divisions=(0, 1, 1))
+
+
+def write_mixed_vtk(path, mesh):
+    """Legacy VTK with vertex, line, triangle and tetra blocks, as gmsh writes it."""
+    cells = [("vertex", np.array([[0], [1]])), ("line", np.array([[0, 1], [1, 2]])),
+             ("triangle", mesh.facet_set("x0")), ("tetra", mesh.tets)]
+    meshio.write_points_cells(path, mesh.points, cells, file_format="vtk", binary=False)
+
+
+def test_read_mixed_legacy_vtk(tmp_path):
+    mesh = unit_cube_tets()
+    path = tmp_path / "mixed.vtk"
+    write_mixed_vtk(str(path), mesh)
+    read = jaxsync.read_mesh(path)
+    np.testing.assert_array_equal(read.tets, mesh.tets)
+    np.testing.assert_allclose(read.points, mesh.points)
+    # untagged triangles are kept as the "boundary" facet set
+    np.testing.assert_array_equal(read.facet_sets["boundary"], mesh.facet_set("x0"))
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".xdmf"])
+def test_read_vtu_and_xdmf(tmp_path, suffix):
+    mesh = unit_cube_tets()
+    path = str(tmp_path / f"m{suffix}")
+    meshio.write_points_cells(path, mesh.points, [("tetra", mesh.tets)])
+    read = jaxsync.read_mesh(path)
+    np.testing.assert_array_equal(read.tets, mesh.tets)
+    np.testing.assert_allclose(read.points, mesh.points)
+
+
+def test_read_gmsh_with_physical_groups(tmp_path):
+    gmsh = pytest.importorskip("gmsh")
+    path = str(tmp_path / "box.msh")
+    gmsh.initialize(["", "-noenv"])
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("box")
+        gmsh.model.occ.addBox(0, 0, 0, 4, 1, 1)
+        gmsh.model.occ.synchronize()
+        left = [tag for dim, tag in gmsh.model.getEntities(2)
+                if abs(gmsh.model.occ.getCenterOfMass(dim, tag)[0]) < 1e-9]
+        right = [tag for dim, tag in gmsh.model.getEntities(2)
+                 if abs(gmsh.model.occ.getCenterOfMass(dim, tag)[0] - 4) < 1e-9]
+        gmsh.model.addPhysicalGroup(2, left, 11, name="clamp")
+        gmsh.model.addPhysicalGroup(2, right, 12, name="tip")
+        gmsh.model.addPhysicalGroup(3, [1], 1, name="solid")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.5)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(path)
+    finally:
+        gmsh.finalize()
+    mesh = jaxsync.read_mesh(path)
+    assert mesh.volumes().sum() == pytest.approx(4.0, rel=1e-10)
+    assert set(mesh.facet_sets) >= {"clamp", "tip"}
+    np.testing.assert_allclose(mesh.points[mesh.facet_set("clamp")][..., 0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(mesh.points[mesh.facet_set("tip")][..., 0], 4.0, atol=1e-12)
+    p = mesh.points[mesh.facet_set("tip")]
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1).sum()
+    assert area == pytest.approx(1.0)
+
+
+def test_no_tetra_is_an_error(tmp_path):
+    path = str(tmp_path / "surface.vtk")
+    mesh = unit_cube_tets()
+    meshio.write_points_cells(path, mesh.points, [("triangle", mesh.boundary_facets())])
+    with pytest.raises(MeshError, match="no tetrahedra"):
+        jaxsync.read_mesh(path)
+
+
+def test_missing_file_is_an_error(tmp_path):
+    with pytest.raises(MeshError, match="does not exist"):
+        jaxsync.read_mesh(tmp_path / "nope.msh")
+
+
+def test_nan_coordinates_name_the_node():
+    mesh = unit_cube_tets()
+    points = mesh.points.copy()
+    points[5, 1] = np.nan
+    with pytest.raises(MeshError, match="node 5"):
+        validated_mesh(points, mesh.tets)
+
+
+def test_out_of_range_index_names_the_element():
+    mesh = unit_cube_tets()
+    tets = mesh.tets.copy()
+    tets[3, 2] = mesh.n_nodes + 7
+    with pytest.raises(MeshError, match="element 3"):
+        validated_mesh(mesh.points, tets)
+
+
+def test_zero_volume_element_is_named():
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0]], float)
+    tets = np.array([[0, 1, 2, 3], [0, 1, 4, 2]])  # second one is flat (z = 0)
+    with pytest.raises(MeshError, match="element 1"):
+        validated_mesh(points, tets)
+
+
+def test_repeated_node_is_an_error():
+    points = np.eye(4, 3)
+    with pytest.raises(MeshError, match="element 0"):
+        validated_mesh(points, np.array([[0, 1, 1, 3]]))
+
+
+def test_inverted_elements_are_reoriented_and_reported():
+    mesh = unit_cube_tets()
+    tets = mesh.tets.copy()
+    tets[[1, 4]] = tets[[1, 4]][:, [1, 0, 2, 3]]
+    assert np.sum(tet_volumes(mesh.points, tets) < 0) == 2
+    with pytest.warns(MeshWarning, match="2 inverted"):
+        fixed = validated_mesh(mesh.points, tets)
+    assert np.all(fixed.volumes() > 0)
+    np.testing.assert_allclose(fixed.volumes(), mesh.volumes())
+
+
+def test_unused_nodes_are_dropped_and_reported():
+    mesh = unit_cube_tets()
+    extra = np.vstack([[9.0, 9.0, 9.0], mesh.points])  # node 0 is unused
+    with pytest.warns(MeshWarning, match="1 nodes are used by no element"):
+        fixed = validated_mesh(extra, mesh.tets + 1, {"x0": mesh.facet_set("x0") + 1})
+    np.testing.assert_allclose(fixed.points, mesh.points)
+    np.testing.assert_array_equal(fixed.tets, mesh.tets)
+    np.testing.assert_array_equal(fixed.source_node_ids, np.arange(1, mesh.n_nodes + 1))
+    np.testing.assert_array_equal(fixed.facet_set("x0"), mesh.facet_set("x0"))
+
+
+def test_unknown_facet_set_lists_known_names():
+    with pytest.raises(MeshError, match="known: x0, x1"):
+        jaxsync.box_beam().facet_set("lumen")
+
+
+def test_clean_mesh_reads_without_warnings(tmp_path):
+    mesh = unit_cube_tets()
+    path = str(tmp_path / "m.vtu")
+    meshio.write_points_cells(path, mesh.points, [("tetra", mesh.tets)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jaxsync.read_mesh(path)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not os.path.exists(REFERENCE), reason="paper's reference mesh not available")
+def test_paper_reference_mesh():
+    """The paper's own coarse cantilever mesh (shared/reference): CFL dt, mass, static tip
+    deflection and first frequency as computed independently (see its README)."""
+    import scipy.sparse.linalg as spla
+
+    mesh = jaxsync.read_mesh(REFERENCE)
+    assert mesh.n_nodes == 110 and mesh.n_elements == 256
+    problem = jaxsync.cantilever(mesh)
+    assert problem.dt == pytest.approx(2.4784e-4, rel=1e-4)
+    assert float(np.sum(problem.lumped_mass())) == pytest.approx(25.0, rel=1e-12)
+    u = jaxsync.steady_state(problem)
+    assert u[:, 2].min() == pytest.approx(-0.0739, rel=0.01)
+    m = problem.material
+    K = problem.operators.stiffness(m.lam, m.mu)
+    fixed, _ = problem.dirichlet_dofs()
+    free = np.setdiff1d(np.arange(K.shape[0]), fixed)
+    M = np.repeat(np.asarray(problem.lumped_mass()), 3)[free]
+    import scipy.sparse as sp
+
+    w2 = spla.eigsh(K[free][:, free].tocsc(), k=1, M=sp.diags(M).tocsc(), sigma=0, which="LM")[0][0]
+    assert np.sqrt(w2) / (2 * np.pi) == pytest.approx(0.483, rel=0.01)

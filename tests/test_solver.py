@@ -1,0 +1,297 @@
+import os
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.linalg
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+import jaxsync
+from jaxsync import CheckpointError, ProblemError, StabilityError
+
+import fem_reference as ref
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return jaxsync.cantilever()
+
+
+def tip_node(mesh):
+    p = mesh.points
+    return int(np.argmax(np.where(np.isclose(p[:, 0], p[:, 0].max()), p[:, 1] + p[:, 2], -np.inf)))
+
+
+def free_dofs(problem):
+    fixed, _ = problem.dirichlet_dofs()
+    return fixed, np.setdiff1d(np.arange(problem.mesh.n_dofs), fixed)
+
+
+def test_step_equals_scipy_reference_over_1000_steps():
+    """Constant load (so f(0) != 0) and an initial velocity exercise the paper's start."""
+    mesh = jaxsync.box_beam(6.0, 1.0, 1.0, (6, 1, 1))
+    rng = np.random.default_rng(1)
+    v0 = 0.01 * rng.standard_normal((mesh.n_nodes, 3))
+    d0 = 1e-3 * rng.standard_normal((mesh.n_nodes, 3))
+    b = np.array([0.1, -0.2, -0.5])
+    problem = jaxsync.Problem(
+        mesh, jaxsync.LinearElastic(1.0e6, 0.3, 1.0),
+        dirichlet=(jaxsync.Dirichlet("x0"),),
+        loads=(jaxsync.BodyForce(b, jaxsync.Constant()),), damping=0.7,
+        initial_displacement=d0, initial_velocity=v0)
+    dt = problem.dt
+    traj = jaxsync.simulate(problem, 1000, dt=dt)
+    # reference, written independently
+    K = ref.stiffness(mesh.points, mesh.tets, 1.0e6, 0.3)
+    M = ref.consistent_mass(mesh.points, mesh.tets, 1.0)
+    m = ref.lumped_mass(mesh.points, mesh.tets, 1.0)
+    f = ref.body_force(mesh.points, mesh.tets, b)
+    fixed, free = free_dofs(problem)
+    d0f, v0f = d0.ravel().copy(), v0.ravel().copy()
+    d0f[fixed] = 0.0
+    rhs = f - 0.7 * (M @ v0f) - K @ d0f
+    a0 = np.zeros_like(d0f)
+    a0[free] = spla.spsolve(M[free][:, free].tocsc(), rhs[free])
+    dm1 = d0f - dt * v0f + 0.5 * dt**2 * a0
+    dm1[fixed] = 0.0
+    expected = ref.central_difference(K, m, lambda t: f, 0.7, dt, d0f, dm1, fixed,
+                                      np.zeros(len(fixed)), 1000)
+    got = traj.displacement.reshape(1001, -1)
+    scale = np.abs(expected).max()
+    assert np.abs(got - expected).max() <= 1e-11 * scale
+
+
+def test_steady_state_matches_scipy_solve(problem):
+    mat = problem.material
+    K = ref.stiffness(problem.mesh.points, problem.mesh.tets, mat.E, mat.nu)
+    f = ref.body_force(problem.mesh.points, problem.mesh.tets, [0.0, 0.0, -0.5])
+    fixed, free = free_dofs(problem)
+    u = np.zeros(problem.mesh.n_dofs)
+    u[free] = spla.spsolve(K[free][:, free].tocsc(), f[free])
+    np.testing.assert_allclose(jaxsync.steady_state(problem).ravel(), u, rtol=1e-10,
+                               atol=1e-12 * np.abs(u).max())
+
+
+def test_damped_run_converges_to_steady_state(problem):
+    # alpha = 4/s damps the first bending mode (omega ~ 2.5 rad/s) within ~8 s
+    damped = problem.replace(damping=4.0)
+    traj = jaxsync.simulate(damped, 40000, save_every=40000)
+    u = jaxsync.steady_state(damped)
+    err = np.linalg.norm(traj.displacement[-1] - u) / np.linalg.norm(u)
+    assert err < 1e-6
+
+
+def energies(problem, dt, n_steps):
+    """(total energy with centred velocities, the scheme's exactly conserved discrete
+    energy 1/2 v_{n+1/2} M v_{n+1/2} + 1/2 d_n K d_{n+1}) over the run."""
+    traj = jaxsync.simulate(problem, n_steps, dt=dt)
+    d = traj.displacement.reshape(n_steps + 1, -1)
+    mat = problem.material
+    K = ref.stiffness(problem.mesh.points, problem.mesh.tets, mat.E, mat.nu)
+    m = ref.lumped_mass(problem.mesh.points, problem.mesh.tets, mat.rho)
+    v = (d[2:] - d[:-2]) / (2 * dt)
+    Kd = (K @ d.T).T
+    total = 0.5 * np.einsum("ti,i,ti->t", v, m, v) + 0.5 * np.einsum("ti,ti->t", d[1:-1], Kd[1:-1])
+    vh = (d[1:] - d[:-1]) / dt
+    discrete = 0.5 * np.einsum("ti,i,ti->t", vh, m, vh) + 0.5 * np.einsum("ti,ti->t", d[:-1], Kd[1:])
+    return total, discrete
+
+
+def test_energy_is_conserved_to_second_order(problem):
+    """Undamped, unloaded run from a static deflection over 10^4 steps: the energy
+    deviates by O(dt^2) (halving dt quarters it) and the scheme's discrete energy does not
+    drift at all (round-off)."""
+    u = jaxsync.steady_state(problem)
+    free = problem.replace(loads=(), damping=0.0, initial_displacement=u)
+    dt = 0.5 * problem.dt
+    e1, h1 = energies(free, dt, 10000)
+    e2, _ = energies(free, dt / 2, 20000)
+    dev1 = np.abs(e1 - e1[0]).max() / e1[0]
+    dev2 = np.abs(e2 - e2[0]).max() / e2[0]
+    assert dev1 < 1e-5
+    assert 3.0 < dev1 / dev2 < 5.0  # halving dt divides the deviation by ~4
+    # round-off in the velocity differences limits this to ~1e-11; a drift of the
+    # scheme would show at the O(dt^2) level of dev1 (~1e-7)
+    assert np.abs(h1 - h1[0]).max() / h1[0] < 1e-3 * dev1
+
+
+def test_first_bending_frequency_matches_eigenvalue(problem):
+    """Released from the static deflection under a load along the lowest mode's bending
+    direction, the tip oscillates at the lowest eigenfrequency of K x = w^2 M_lumped x."""
+    mat = problem.material
+    K = ref.stiffness(problem.mesh.points, problem.mesh.tets, mat.E, mat.nu)
+    m = ref.lumped_mass(problem.mesh.points, problem.mesh.tets, mat.rho)
+    fixed, free = free_dofs(problem)
+    w2, modes = spla.eigsh(K[free][:, free].tocsc(), k=1, M=sp.diags(m[free]).tocsc(),
+                           sigma=0, which="LM")
+    f_expected = np.sqrt(w2[0]) / (2 * np.pi)
+    mode = np.zeros(problem.mesh.n_dofs)
+    mode[free] = modes[:, 0]
+    tip = tip_node(problem.mesh)
+    # the mesh's tetrahedral split makes the principal bending axes oblique: load along
+    # the lowest mode's tip direction so that it alone is excited
+    direction = mode.reshape(-1, 3)[tip] / np.linalg.norm(mode.reshape(-1, 3)[tip])
+    load = 0.5 * direction
+    loaded = problem.replace(loads=(jaxsync.BodyForce(load),))
+    u = jaxsync.steady_state(loaded)
+    free_vibration = loaded.replace(loads=(), damping=0.0, initial_displacement=u)
+    n_steps = int(4.5 / f_expected / problem.dt)
+    traj = jaxsync.simulate(free_vibration, n_steps)
+    s = traj.displacement[:, tip, :] @ direction
+    t = traj.times
+    idx = np.flatnonzero((s[:-1] < 0) & (s[1:] >= 0))  # upward zero crossings
+    crossings = t[idx] - s[idx] * (t[idx + 1] - t[idx]) / (s[idx + 1] - s[idx])
+    assert len(crossings) >= 4
+    period = np.mean(np.diff(crossings))
+    assert 1 / period == pytest.approx(f_expected, rel=0.01)
+
+
+def test_grad_matches_finite_differences(problem):
+    tip = tip_node(problem.mesh)
+    dt = problem.dt
+
+    def tip_z(E, alpha):
+        p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
+        traj = jaxsync.simulate(p, 400, dt=dt, save_every=400)
+        return traj.displacement[-1, tip, 2]
+
+    E0, a0 = 1.0e6, 0.5
+    gE, ga = jax.grad(tip_z, argnums=(0, 1))(E0, a0)
+    hE, ha = 1e-4 * E0, 1e-4
+    fdE = (tip_z(E0 + hE, a0) - tip_z(E0 - hE, a0)) / (2 * hE)
+    fda = (tip_z(E0, a0 + ha) - tip_z(E0, a0 - ha)) / (2 * ha)
+    assert float(gE) == pytest.approx(float(fdE), rel=1e-5)
+    assert float(ga) == pytest.approx(float(fda), rel=1e-5)
+
+
+def test_grad_with_respect_to_nu_rho_and_load_is_finite_and_matches_fd(problem):
+    tip = tip_node(problem.mesh)
+    dt = problem.dt
+
+    def tip_z(nu, rho, load):
+        p = problem.replace(material=jaxsync.LinearElastic(1.0e6, nu, rho),
+                            loads=(jaxsync.BodyForce(jnp.array([0.0, 0.0, -1.0]) * load),))
+        return jaxsync.simulate(p, 300, dt=dt, save_every=300).displacement[-1, tip, 2]
+
+    grads = jax.grad(tip_z, argnums=(0, 1, 2))(0.3, 1.0, 0.5)
+    # linear in the load: d(tip)/d(load) = tip / load
+    assert float(grads[2]) == pytest.approx(float(tip_z(0.3, 1.0, 0.5)) / 0.5, rel=1e-10)
+    for i, (x, h) in enumerate(((0.3, 1e-5), (1.0, 1e-5))):
+        args = [0.3, 1.0, 0.5]
+        plus, minus = list(args), list(args)
+        plus[i] += h
+        minus[i] -= h
+        fd = (tip_z(*plus) - tip_z(*minus)) / (2 * h)
+        assert float(grads[i]) == pytest.approx(float(fd), rel=1e-5)
+
+
+def test_save_every_and_times(problem):
+    full = jaxsync.simulate(problem, 600)
+    thinned = jaxsync.simulate(problem, 600, save_every=200)
+    assert thinned.displacement.shape == (4, problem.mesh.n_nodes, 3)
+    np.testing.assert_array_equal(thinned.displacement, full.displacement[::200])
+    np.testing.assert_allclose(thinned.times, np.arange(4) * 200 * problem.dt)
+    with pytest.raises(ProblemError, match="multiple of save_every"):
+        jaxsync.simulate(problem, 601, save_every=200)
+
+
+def test_chunking_does_not_change_the_result(problem):
+    a = jaxsync.simulate(problem, 3000, save_every=10, chunk_steps=3000)
+    b = jaxsync.simulate(problem, 3000, save_every=10, chunk_steps=700)
+    np.testing.assert_array_equal(a.displacement, b.displacement)
+
+
+def test_resumed_run_equals_uninterrupted_bit_for_bit(problem, tmp_path):
+    ckpt = tmp_path / "run.ckpt.h5"
+    full = jaxsync.simulate(problem, 6000, save_every=20, chunk_steps=1000)
+    first = jaxsync.simulate(problem, 2000, save_every=20, chunk_steps=1000, checkpoint=ckpt)
+    assert os.path.exists(ckpt)
+    np.testing.assert_array_equal(first.displacement, full.displacement[:101])
+    resumed = jaxsync.simulate(problem, 6000, save_every=20, chunk_steps=1000, checkpoint=ckpt)
+    np.testing.assert_array_equal(resumed.displacement, full.displacement)
+    np.testing.assert_array_equal(resumed.times, full.times)
+
+
+def test_interrupted_run_resumes(problem, tmp_path, monkeypatch):
+    """A run killed mid-way (here: an exception after the third chunk) resumes from its
+    last checkpoint and matches the uninterrupted run."""
+    import jaxsync.solver as solver
+
+    ckpt = tmp_path / "run.ckpt.h5"
+    full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
+    real = solver._save_checkpoint
+    calls = []
+
+    def save_then_die(*args, **kwargs):
+        real(*args, **kwargs)
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(solver, "_save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
+    monkeypatch.setattr(solver, "_save_checkpoint", real)
+    resumed = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
+    np.testing.assert_array_equal(resumed.displacement, full.displacement)
+
+
+def test_foreign_or_corrupt_checkpoint_is_refused(problem, tmp_path):
+    ckpt = tmp_path / "run.ckpt.h5"
+    jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
+    with pytest.raises(CheckpointError, match="different problem"):
+        jaxsync.simulate(problem.replace(damping=0.1), 2000, save_every=10, checkpoint=ckpt)
+    with pytest.raises(CheckpointError, match="beyond n_steps"):
+        jaxsync.simulate(problem, 500, save_every=10, checkpoint=ckpt)
+    ckpt.write_bytes(b"not an hdf5 file")
+    with pytest.raises(CheckpointError, match="cannot read"):
+        jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
+
+
+def test_diverging_run_stops_with_the_stability_error_and_keeps_snapshots(problem):
+    dt = 1.5 * jaxsync.max_stable_dt(problem)
+    with pytest.raises(StabilityError, match="diverged") as info:
+        jaxsync.simulate(problem, 20000, dt=dt, save_every=10, check_stability=False,
+                         chunk_steps=1000)
+    partial = info.value.trajectory
+    assert partial.n_saved >= 1
+    assert np.all(np.isfinite(partial.displacement))
+    np.testing.assert_allclose(partial.times, np.arange(partial.n_saved) * 10 * dt)
+
+
+def test_pressure_and_prescribed_displacement():
+    """A bar pulled by a prescribed end displacement reaches the uniform-strain solution;
+    a pressure on the free end compresses it as E A u / L = p A predicts."""
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 2, 2))
+    mat = jaxsync.LinearElastic(1.0e3, 0.0, 1.0)
+    x0 = jaxsync.Dirichlet("x0", components=(0,))
+    pin_y = jaxsync.Dirichlet(lambda p: (p[:, 1] == 0), components=(1,))
+    pin_z = jaxsync.Dirichlet(lambda p: (p[:, 2] == 0), components=(2,))
+    pulled = jaxsync.Problem(mesh, mat, dirichlet=(x0, pin_y, pin_z,
+                                                   jaxsync.Dirichlet("x1", (0.04, 0, 0), (0,))))
+    u = jaxsync.steady_state(pulled)
+    np.testing.assert_allclose(u[:, 0], 0.01 * mesh.points[:, 0], atol=1e-12)
+    pushed = jaxsync.Problem(mesh, mat, dirichlet=(x0, pin_y, pin_z),
+                             loads=(jaxsync.Pressure(2.0, surface="x1"),))
+    u = jaxsync.steady_state(pushed)
+    np.testing.assert_allclose(u[:, 0], -2.0 / 1.0e3 * mesh.points[:, 0], atol=1e-12)
+
+
+def test_problem_validation(problem):
+    with pytest.raises(ProblemError, match="damping"):
+        problem.replace(damping=-1.0)
+    with pytest.raises(ProblemError, match="initial_displacement"):
+        problem.replace(initial_displacement=np.zeros((3, 3)))
+    with pytest.raises(jaxsync.MeshError, match="no facet set named 'lumen'"):
+        jaxsync.Problem(problem.mesh, loads=(jaxsync.Pressure(1.0, surface="lumen"),))
+    with pytest.raises(ProblemError, match="selects no node"):
+        jaxsync.Problem(problem.mesh, dirichlet=(jaxsync.Dirichlet(lambda p: p[:, 0] < -1),))
+    with pytest.raises(ProblemError, match="singular"):
+        jaxsync.steady_state(jaxsync.Problem(problem.mesh, loads=problem.loads))
+
+
+def test_replace_reuses_the_assembled_operators(problem):
+    other = problem.replace(material=jaxsync.LinearElastic(2.0e6, 0.3, 1.0))
+    assert other.operators is problem.operators
