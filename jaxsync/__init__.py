@@ -7,10 +7,11 @@ global configuration.
 """
 
 from .errors import (CheckpointError, ConfigError, JaxsyncError, MaterialError, MeshError,
-                     ProblemError, StabilityError)
+                     PartitionError, ProblemError, StabilityError)
 from .loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .material import LinearElastic
 from .mesh import Mesh, MeshWarning, box_beam, read_mesh
+from .partition import Partition, partition
 from .problem import Dirichlet, Problem, cantilever
 from .solver import simulate, steady_state
 from .timestep import cfl_dt, mass_scaling, max_stable_dt
@@ -20,7 +21,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
-    "CheckpointError", "ConfigError",
+    "CheckpointError", "ConfigError", "PartitionError", "Partition", "partition",
     "Mesh", "MeshWarning", "read_mesh", "box_beam",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever",

@@ -98,6 +98,12 @@ def _add_simulate(subparsers) -> None:
                    help="resumable run: store the state here and continue from it if present")
     p.add_argument("--checkpoint-every", type=int, default=None,
                    help="steps between checkpoints (default: every compiled chunk)")
+    p.add_argument("--partitions", type=int, default=None,
+                   help="distributed run over this many METIS parts (default: single device)")
+    p.add_argument("--mode", choices=("preassembled", "recompute"), default="preassembled",
+                   help="internal force: stored sparse K, or element quantities formed every "
+                        "step (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="METIS seed (default: %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--print-config", action="store_true",
                    help="print the packaged default configuration and exit")
@@ -124,6 +130,7 @@ def _run_simulate(args) -> int:
     try:
         trajectory = simulate(problem, n_steps, dt=args.dt if args.dt is not None else run.dt,
                               save_every=save_every, progress=not args.no_progress,
+                              partitions=args.partitions, mode=args.mode, seed=args.seed,
                               checkpoint=checkpoint,
                               checkpoint_every=args.checkpoint_every or run.checkpoint_every)
     except StabilityError as exc:

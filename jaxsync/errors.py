@@ -33,3 +33,7 @@ class CheckpointError(JaxsyncError, RuntimeError):
 
 class ConfigError(JaxsyncError, ValueError):
     """A configuration file (TOML) or command-line option that cannot be used."""
+
+
+class PartitionError(JaxsyncError, ValueError):
+    """A partition that cannot be made or used (bad part count, empty parts...)."""

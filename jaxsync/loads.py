@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import ProblemError
-from .pytree import is_traced, pytree_dataclass, static_field
+from .pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
 
 __all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product",
            "BodyForce", "Pressure"]
@@ -46,7 +46,8 @@ class Ramp(TimeFunction):
     t_end: float = 1.0
 
     def __post_init__(self):
-        if not is_traced(self.t_end) and not float(self.t_end) > 0:
+        t_end = concrete_scalar(self.t_end)
+        if t_end is not None and not t_end > 0:
             raise ProblemError(f"Ramp needs t_end > 0, got {self.t_end}; use Constant() for no ramp")
 
     def __call__(self, t):
@@ -81,7 +82,7 @@ class Periodic(TimeFunction):
     period: float
 
     def __post_init__(self):
-        if is_traced(self.times, self.values, self.period):
+        if concrete_scalar(self.period) is None or is_traced(self.times, self.values):
             return
         times, values = np.asarray(self.times, float), np.asarray(self.values, float)
         if times.ndim != 1 or times.shape != values.shape or len(times) < 2:
@@ -130,7 +131,7 @@ class BodyForce:
     time: Any = Ramp(1.0)
 
     def __post_init__(self):
-        if not is_traced(self.vector) and np.shape(self.vector) != (3,):
+        if isinstance(self.vector, (tuple, list)) and len(self.vector) != 3:
             raise ProblemError(f"BodyForce.vector must have 3 components, got {self.vector!r}")
 
 

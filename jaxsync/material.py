@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .errors import MaterialError
-from .pytree import is_traced, pytree_dataclass
+from .pytree import concrete_scalar, pytree_dataclass
 
 __all__ = ["LinearElastic"]
 
@@ -20,7 +20,7 @@ class LinearElastic:
         rho: density [g/cm^3] (> 0).
 
     The fields may be JAX tracers (for ``jax.grad`` with respect to them); range checks
-    run only on concrete values.
+    run on concrete scalar values.
     """
 
     E: float = 1.0e6
@@ -28,21 +28,18 @@ class LinearElastic:
     rho: float = 1.0
 
     def __post_init__(self):
-        if is_traced(self.E, self.nu, self.rho):
-            return
-        try:
-            E, nu, rho = float(self.E), float(self.nu), float(self.rho)
-        except (TypeError, ValueError) as exc:
-            raise MaterialError(f"material parameters must be numbers, got E={self.E!r}, "
-                                f"nu={self.nu!r}, rho={self.rho!r}") from exc
-        if not E > 0:
+        E, nu, rho = (concrete_scalar(v) for v in (self.E, self.nu, self.rho))
+        if E is not None and not E > 0:
             raise MaterialError(f"Young's modulus must be positive, got E={E}")
-        if not rho > 0:
+        if rho is not None and not rho > 0:
             raise MaterialError(f"density must be positive, got rho={rho}")
-        if not -1.0 < nu < 0.5:
+        if nu is not None and not -1.0 < nu < 0.5:
             raise MaterialError(
                 f"Poisson ratio must satisfy -1 < nu < 0.5, got nu={nu} "
                 "(nu = 0.5 is incompressible, which linear P1 elements cannot represent)")
+        for name, value in (("E", self.E), ("nu", self.nu), ("rho", self.rho)):
+            if isinstance(value, str):
+                raise MaterialError(f"material parameter {name} must be a number, got {value!r}")
 
     @property
     def mu(self):

@@ -32,3 +32,21 @@ def is_traced(*values) -> bool:
     """True when any leaf of ``values`` is a JAX tracer (inside jit/grad/vmap)."""
     leaves = jax.tree_util.tree_leaves(values)
     return any(isinstance(x, jax.core.Tracer) for x in leaves)
+
+
+def concrete_scalar(value):
+    """``value`` as a Python float when it is a concrete scalar, else None.
+
+    Validation in ``__post_init__`` uses it to check user input while letting JAX
+    rebuild pytrees with tracers, stacked arrays or placeholder leaves."""
+    import numpy as np
+
+    if isinstance(value, jax.core.Tracer):
+        return None
+    if isinstance(value, (bool, np.bool_)):
+        return None
+    if isinstance(value, (int, float, np.integer, np.floating)):
+        return float(value)
+    if isinstance(value, (np.ndarray, jax.Array)) and value.shape == ():
+        return float(value)
+    return None

@@ -45,8 +45,8 @@ class ExplicitSystem:
         dt: time step [s].
         load_vectors: (n_loads, n_nodes, 3) full-magnitude nodal loads [dyn].
         load_times: tuple of time functions g_l(t), one per load.
-        dirichlet_dofs: (k,) flat dof indices (3 * node + component).
-        dirichlet_values: (k,) prescribed values [cm].
+        fixed: (n_nodes, 3) bool, True on prescribed dofs.
+        fixed_values: (n_nodes, 3) prescribed values there [cm] (zero elsewhere).
     """
 
     stiffness: BlockEll
@@ -55,8 +55,8 @@ class ExplicitSystem:
     dt: Any
     load_vectors: Any
     load_times: tuple
-    dirichlet_dofs: Any
-    dirichlet_values: Any
+    fixed: Any
+    fixed_values: Any
 
 
 @pytree_dataclass
@@ -74,24 +74,44 @@ class SolverState:
     step: Any
 
 
-def build_system(problem, dt) -> ExplicitSystem:
+def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
     """Assemble the JAX-side system of ``problem`` for time step ``dt`` [s].
 
+    ``mode`` selects the internal force: ``"preassembled"`` (K stored in node-blocked
+    ELL form) or ``"recompute"`` (element quantities formed every step, paper Remark 2).
     Traceable in the material, damping, load magnitudes and dt (differentiable)."""
-    adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
+    from .element_force import MODES, ElementStiffness
+
+    if mode not in MODES:
+        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
     m = problem.material
-    blocks = m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu)
+    if mode == "preassembled":
+        adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
+        stiffness = BlockEll(jnp.asarray(adjacency),
+                             m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu))
+    else:
+        mesh = problem.mesh
+        stiffness = ElementStiffness(jnp.asarray(mesh.points), jnp.asarray(mesh.tets, dtype=jnp.int32),
+                                     jnp.ones(mesh.n_elements), m.lam, m.mu)
     mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
     vectors, times = problem.load_vectors()
     n = problem.mesh.n_nodes
     load_vectors = jnp.stack(vectors) if vectors else jnp.zeros((0, n, 3))
-    dofs, values = problem.dirichlet_dofs()
+    fixed, fixed_values = dirichlet_arrays(problem)
     return ExplicitSystem(
-        stiffness=BlockEll(jnp.asarray(adjacency), blocks), mass=mass,
+        stiffness=stiffness, mass=mass,
         damping=jnp.asarray(problem.damping, dtype=float), dt=jnp.asarray(dt, dtype=float),
         load_vectors=load_vectors, load_times=tuple(times),
-        dirichlet_dofs=jnp.asarray(dofs, dtype=jnp.int32),
-        dirichlet_values=jnp.asarray(values, dtype=float))
+        fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values))
+
+
+def dirichlet_arrays(problem) -> tuple[np.ndarray, np.ndarray]:
+    """(mask (n_nodes, 3) bool, values (n_nodes, 3)) of the prescribed dofs."""
+    dofs, values = problem.dirichlet_dofs()
+    mask = np.zeros(problem.mesh.n_dofs, dtype=bool)
+    full = np.zeros(problem.mesh.n_dofs)
+    mask[dofs], full[dofs] = True, values
+    return mask.reshape(-1, 3), full.reshape(-1, 3)
 
 
 def external_force(system: ExplicitSystem, t):
@@ -113,13 +133,18 @@ def central_difference(system: ExplicitSystem, state: SolverState, internal_forc
 
 def apply_dirichlet(system: ExplicitSystem, displacement):
     """``displacement`` (n_nodes, 3) with the prescribed values written in."""
-    flat = displacement.reshape(-1).at[system.dirichlet_dofs].set(system.dirichlet_values)
-    return flat.reshape(displacement.shape)
+    return jnp.where(system.fixed, system.fixed_values, displacement)
 
 
-def step(system: ExplicitSystem, state: SolverState) -> SolverState:
-    """One central-difference step: (d(n), d(n-1), n) -> (d(n+1), d(n), n + 1)."""
-    new = central_difference(system, state, system.stiffness.matvec(state.displacement))
+def step(system: ExplicitSystem, state: SolverState, synchronize=None) -> SolverState:
+    """One central-difference step: (d(n), d(n-1), n) -> (d(n+1), d(n), n + 1).
+
+    ``synchronize``, when given, maps the (partial) internal force K d of a part to the
+    full one (the distributed solver's psum); the single-device solver needs none."""
+    internal = system.stiffness.matvec(state.displacement)
+    if synchronize is not None:
+        internal = synchronize(internal)
+    new = central_difference(system, state, internal)
     return SolverState(apply_dirichlet(system, new), state.displacement, state.step + 1)
 
 
@@ -136,7 +161,7 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     v0 = jnp.zeros((n, 3)) if problem.initial_velocity is None else jnp.asarray(
         problem.initial_velocity, dtype=float)
     d0 = apply_dirichlet(system, d0)
-    free = jnp.ones(3 * n).at[system.dirichlet_dofs].set(0.0).reshape(n, 3)
+    free = 1.0 - system.fixed.astype(float)
     adjacency, _, _, M_1 = problem.operators.block_ell
     if problem.density_scale is not None:
         M_1 = block_ell_values(consistent_mass(problem.mesh, problem.density_scale), adjacency)
@@ -154,12 +179,13 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32))
 
 
-def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int):
+def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
+            synchronize=None):
     """Run ``n_saves * save_every`` steps; returns (final state, (n_saves, n_nodes, 3)
     displacements after every ``save_every`` steps). Pure; jit it at the call site."""
 
     def inner(s, _):
-        return step(system, s), None
+        return step(system, s, synchronize), None
 
     def outer(s, _):
         s, _ = jax.lax.scan(inner, s, None, length=save_every)
@@ -220,9 +246,30 @@ def _fingerprint(problem, dt: float, save_every: int) -> str:
     return h.hexdigest()
 
 
-def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, progress: bool | None = None,
-             checkpoint: str | os.PathLike | None = None, checkpoint_every: int | None = None,
-             chunk_steps: int = 5000, blowup_factor: float = 1e3, check_stability: bool = True):
+class SingleDeviceRunner:
+    """Advances a global :class:`SolverState` on one device (the driver's interface:
+    ``advance(state, n_saves) -> (state, saved (n_saves, n_nodes, 3) numpy)``,
+    ``to_global(state)`` / ``from_global(state)`` for checkpoints)."""
+
+    def __init__(self, system: ExplicitSystem, save_every: int):
+        self.system, self.save_every = system, save_every
+
+    def advance(self, state, n_saves):
+        state, saved = _advance_jit(self.system, state, n_saves, self.save_every)
+        return state, np.asarray(saved)
+
+    def to_global(self, state) -> SolverState:
+        return state
+
+    def from_global(self, state: SolverState):
+        return state
+
+
+def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=None,
+             mode: str = "preassembled", seed: int = 0, devices=None,
+             progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
+             checkpoint_every: int | None = None, chunk_steps: int = 5000,
+             blowup_factor: float = 1e3, check_stability: bool = True):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -231,6 +278,14 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, progress: b
         dt: time step [s]; default ``problem.dt`` (the paper's CFL rule). A dt above the
             CFL step is checked against the exact bound 2/omega_max and refused above it.
         save_every: keep the displacement every this many steps (and at t = 0).
+        partitions: None for the single-device solver; an int n_parts or a
+            :class:`jaxsync.Partition` for the distributed solver (paper Algorithm 1,
+            ``jax.shard_map`` over ``devices`` with a psum of shared-node forces).
+        mode: ``"preassembled"`` (sparse K, stored once) or ``"recompute"`` (element
+            quantities formed every step), paper Remark 2.
+        seed: METIS seed when ``partitions`` is an int.
+        devices: devices for the distributed solver (default: as many of
+            ``jax.devices()`` as divide n_parts).
         progress: show a tqdm progress bar (default: when n_steps >= 20000).
         checkpoint: HDF5 path for resumable runs: the state is stored there every
             ``checkpoint_every`` steps (rounded up to whole chunks), and a run started
@@ -241,16 +296,18 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, progress: b
         check_stability: set False to force a dt through without the bound check.
 
     Returns:
-        :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots.
+        :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots (and,
+        for distributed runs, the per-part shared-node histories in ``parts``).
 
     Raises:
         StabilityError: dt above the bound, or the run diverged (NaN/Inf or blow-up); the
             error's ``trajectory`` attribute holds the snapshots saved before divergence.
         CheckpointError: the checkpoint file belongs to another problem or is corrupt.
+        PartitionError: a partition that cannot be made or does not fit the mesh.
 
     Differentiable: when the material, damping, loads or dt are JAX tracers (inside
     ``jax.grad``), the whole run is one ``lax.scan`` without progress, divergence checks or
-    checkpoints, and the trajectory holds JAX arrays.
+    checkpoints, and the trajectory holds JAX arrays (single-device solver).
     """
     from .trajectory import Trajectory
 
@@ -267,68 +324,93 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, progress: b
         from .timestep import check_dt
 
         check_dt(problem, dt)
-    system = build_system(problem, dt)
+    system = build_system(problem, dt, mode)
     state = initial_state(problem, system)
-    n_saves = n_steps // save_every
     if traced:
+        if partitions is not None:
+            raise ProblemError("differentiating through the distributed solver is not supported; "
+                               "use partitions=None (the single-device solver) under jax.grad")
+        n_saves = n_steps // save_every
         _, saved = advance(system, state, n_saves, save_every)
         displacement = jnp.concatenate([state.displacement[None], saved])
         times = jnp.arange(n_saves + 1) * save_every * system.dt
         return Trajectory(times=times, displacement=displacement, mesh=problem.mesh,
                           dt=dt, save_every=save_every, parameters=_parameters(problem))
+    part_info = None
+    if partitions is None:
+        runner = SingleDeviceRunner(system, save_every)
+    else:
+        from .distributed import DistributedRunner
 
-    dt = float(dt)
+        runner = DistributedRunner(problem, system, partitions, save_every=save_every,
+                                   mode=mode, seed=seed, devices=devices)
+        part_info = runner.partition
+    return drive(problem, runner, state, n_steps, float(dt), save_every, partition=part_info,
+                 progress=progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
+                 chunk_steps=chunk_steps, blowup_factor=blowup_factor)
+
+
+def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_every: int, *,
+          partition=None, progress=None, checkpoint=None, checkpoint_every=None,
+          chunk_steps=5000, blowup_factor=1e3, label="simulate"):
+    """The host loop shared by all solvers: compiled chunks of ``runner.advance``, a
+    progress bar, divergence checks and checkpoints between chunks."""
+    from tqdm import tqdm
+
     saves_per_chunk = max(1, int(chunk_steps) // save_every)
     snapshots = [np.asarray(state.displacement)[None]]
     fingerprint = _fingerprint(problem, dt, save_every)
     if checkpoint is not None and os.path.exists(checkpoint):
         state, snapshots = _load_checkpoint(checkpoint, fingerprint, n_steps)
+    run_state = runner.from_global(state)
+    step_now = int(state.step)
     checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
     limit = blowup_factor * float(np.linalg.norm(np.ptp(problem.mesh.points, axis=0)))
     show = progress if progress is not None else n_steps >= 20000
-    from tqdm import tqdm
-
-    bar = tqdm(total=n_steps, initial=int(state.step), disable=not show, unit="step",
-               desc="simulate", dynamic_ncols=True)
+    bar = tqdm(total=n_steps, initial=step_now, disable=not show, unit="step", desc=label,
+               dynamic_ncols=True)
     chunks_done = 0
     try:
-        while int(state.step) < n_steps:
-            remaining_saves = (n_steps - int(state.step)) // save_every
-            k = min(saves_per_chunk, remaining_saves)
-            new_state, saved = _advance_jit(system, state, k, save_every)
-            saved = np.asarray(saved)
-            finite = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
-            if not finite.all():
-                first_bad = int(np.argmin(finite))
+        while step_now < n_steps:
+            k = min(saves_per_chunk, (n_steps - step_now) // save_every)
+            new_state, saved = runner.advance(run_state, k)
+            ok = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
+            if not ok.all():
+                first_bad = int(np.argmin(ok))
                 snapshots.append(saved[:first_bad])
-                bad_step = int(state.step) + (first_bad + 1) * save_every
-                partial = _trajectory(problem, snapshots, dt, save_every)
+                bad_step = step_now + (first_bad + 1) * save_every
+                partial = _trajectory(problem, snapshots, dt, save_every, partition)
                 err = StabilityError(
                     f"the run diverged by step {bad_step} (t = {bad_step * dt:.6g} s): displacement "
                     f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {problem.dt:.4e} s; "
-                    f"reduce dt. The {partial.times.size} snapshots saved before are kept "
+                    f"reduce dt. The {partial.n_saved} snapshots saved before are kept "
                     "(error.trajectory)")
                 err.trajectory = partial
                 raise err
             snapshots.append(saved)
-            state = new_state
+            run_state = new_state
+            step_now += k * save_every
             chunks_done += 1
             bar.update(k * save_every)
-            if checkpoint is not None and (chunks_done % checkpoint_chunks == 0
-                                           or int(state.step) == n_steps):
-                _save_checkpoint(checkpoint, fingerprint, state, snapshots)
+            if checkpoint is not None and (chunks_done % checkpoint_chunks == 0 or step_now == n_steps):
+                _save_checkpoint(checkpoint, fingerprint, runner.to_global(run_state), snapshots)
     finally:
         bar.close()
-    return _trajectory(problem, snapshots, dt, save_every)
+    return _trajectory(problem, snapshots, dt, save_every, partition)
 
 
-def _trajectory(problem, snapshots, dt, save_every):
+def _trajectory(problem, snapshots, dt, save_every, partition=None):
     from .trajectory import Trajectory
 
     displacement = np.concatenate(snapshots, axis=0)
     times = np.arange(len(displacement)) * save_every * dt
+    parts = ()
+    if partition is not None:
+        parts = tuple({"shared_nodes": part.shared_nodes,
+                       "shared_displacement": displacement[:, part.shared_nodes].reshape(len(displacement), -1)}
+                      for part in partition.parts)
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt,
-                      save_every=save_every, parameters=_parameters(problem))
+                      save_every=save_every, parameters=_parameters(problem), parts=parts)
 
 
 def _parameters(problem) -> dict:

@@ -116,3 +116,32 @@ def test_demo_writes_summary(tmp_path, capsys):
 def test_print_config(capsys):
     assert main(["simulate", "--print-config"]) == 0
     assert "[material]" in capsys.readouterr().out
+
+
+def test_simulate_distributed(tmp_path):
+    out = tmp_path / "d.h5"
+    assert main(["simulate", "--steps", "200", "--save-every", "1", "--partitions", "2",
+                 "--mode", "recompute", "-o", str(out), "--no-progress"]) == 0
+    traj = jaxsync.Trajectory.load(out)
+    assert len(traj.parts) == 2
+    single = jaxsync.simulate(jaxsync.cantilever(), 200, mode="recompute")
+    np.testing.assert_allclose(traj.displacement, single.displacement, rtol=0, atol=1e-14)
+
+
+def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
+    """When a run diverges, the snapshots before are written next to the output."""
+    import jaxsync.solver
+
+    def diverging(problem, n_steps, **kwargs):
+        err = jaxsync.StabilityError("the run diverged by step 7")
+        err.trajectory = jaxsync.simulate(problem, 10, save_every=5)
+        raise err
+
+    monkeypatch.setattr(jaxsync.solver, "simulate", diverging)
+    out = tmp_path / "run.h5"
+    assert main(["simulate", "--steps", "100", "--save-every", "5", "-o", str(out),
+                 "--no-progress"]) == 2
+    assert not out.exists()
+    partial = jaxsync.Trajectory.load(tmp_path / "run.partial.h5")
+    assert partial.n_saved == 3
+    assert "diverged" in capsys.readouterr().err

@@ -1,0 +1,247 @@
+"""Distributed explicit solver (paper Algorithm 1) with ``jax.shard_map``.
+
+Each part computes the internal force of its own elements at its local nodes, so at
+shared nodes it holds a partial sum. Synchronization sums the partials: every part
+scatters its shared-node forces into one interface vector (global shared numbering),
+``jax.lax.psum`` adds the vectors of all parts, and each part gathers the sums back.
+After that every part holds the full force at all its local nodes, and the update of a
+shared node is identical on every part that holds it.
+
+Parts are padded to equal sizes (nodes, elements, neighbours, shared nodes) so that one
+SPMD program serves all; padding nodes have unit mass, zero stiffness and are fixed at
+zero. With n_parts a multiple of the device count, each device carries several parts
+(a vmapped axis); the psum then runs over both the local part axis and the devices.
+
+Two ways to form the internal force (paper Remark 2): ``"preassembled"``, the part's
+sparse stiffness stored once (node-blocked ELL), and ``"recompute"``, where the element
+geometry, strains and stresses are formed every step (standing in for nonlinear
+materials).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+from jax.sharding import Mesh as DeviceMesh
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from .errors import PartitionError, ProblemError
+from .partition import Partition, partition as make_partition
+from .pytree import pytree_dataclass
+from .element_force import MODES, ElementStiffness
+from .solver import ExplicitSystem, SolverState, advance
+from .sparse import BlockEll, block_ell_values, node_adjacency
+
+__all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "MODES", "AXIS"]
+
+AXIS = "parts"  # the device axis of the shard_map
+LOCAL_AXIS = "local_parts"  # the vmapped axis of several parts on one device
+
+
+@pytree_dataclass
+class PartSystems:
+    """Per-part explicit systems stacked on a leading part axis (all arrays (n_parts, ...)).
+
+    Attributes:
+        system: :class:`ExplicitSystem` in local numbering, padded to n_local_max nodes.
+        shared_local: (n_parts, n_shared_max) local index of each shared node (padding:
+            n_local_max, out of range, so that scatters drop it).
+        shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
+    """
+
+    system: ExplicitSystem
+    shared_local: Any
+    shared_interface: Any
+
+
+def _pad_to(arrays, length, fill, axis=0):
+    out = []
+    for a in arrays:
+        pad = [(0, 0)] * a.ndim
+        pad[axis] = (0, length - a.shape[axis])
+        out.append(np.pad(a, pad, constant_values=fill))
+    return np.stack(out)
+
+
+def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mode: str) -> PartSystems:
+    """Split the global ``system`` into padded, stacked per-part systems (numpy-backed)."""
+    from .assembly import element_blocks
+
+    if mode not in MODES:
+        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    if partition.mesh is not problem.mesh and not (
+            partition.mesh.n_nodes == problem.mesh.n_nodes
+            and np.array_equal(partition.mesh.tets, problem.mesh.tets)):
+        raise PartitionError("the partition was made for another mesh: partition problem.mesh")
+    parts = partition.parts
+    n_parts = len(parts)
+    n_local = max(p.n_local for p in parts)
+    n_shared = max(max(p.n_shared for p in parts), 1)
+    mass = np.asarray(system.mass)
+    loads = np.asarray(system.load_vectors)
+    fixed, fixed_values = np.asarray(system.fixed), np.asarray(system.fixed_values)
+    m = problem.material
+    lam, mu = float(m.lam), float(m.mu)
+
+    if mode == "preassembled":
+        k_lambda, k_mu = element_blocks(problem.mesh)
+        columns, blocks = [], []
+        for part in parts:
+            dofs = (3 * part.local_tets[:, :, None] + np.arange(3)).reshape(-1, 12)
+            rows, cols = np.repeat(dofs, 12, axis=1).ravel(), np.tile(dofs, (1, 12)).ravel()
+            values = (lam * k_lambda[part.elements] + mu * k_mu[part.elements]).ravel()
+            K = sp.coo_matrix((values, (rows, cols)), shape=(3 * part.n_local,) * 2).tocsr()
+            adjacency = node_adjacency(part.local_tets, part.n_local)
+            columns.append(adjacency)
+            blocks.append(block_ell_values(K, adjacency))
+        width = max(c.shape[1] for c in columns)
+        # padding slots and padding rows point at the row's own node (zero blocks)
+        columns = np.stack([np.pad(np.pad(c, ((0, 0), (0, width - c.shape[1])), mode="edge"),
+                                   ((0, n_local - len(c)), (0, 0)))
+                            for c in columns])
+        for p, part in enumerate(parts):
+            columns[p, part.n_local:] = np.arange(part.n_local, n_local)[:, None]
+        blocks = np.stack([np.pad(b, ((0, n_local - len(b)), (0, width - b.shape[1]), (0, 0), (0, 0)))
+                           for b in blocks])
+        stiffness = BlockEll(columns.astype(np.int32), blocks)
+    else:
+        n_elem = max(len(p.elements) for p in parts)
+        tets = _pad_to([p.local_tets for p in parts], n_elem, 0).astype(np.int32)
+        for p, part in enumerate(parts):  # padding elements repeat element 0, with weight 0
+            tets[p, len(part.elements):] = part.local_tets[0]
+        weight = _pad_to([np.ones(len(p.elements)) for p in parts], n_elem, 0.0)
+        points = _pad_to([problem.mesh.points[p.nodes] for p in parts], n_local, 0.0)
+        stiffness = ElementStiffness(points, tets, weight, np.full(n_parts, lam), np.full(n_parts, mu))
+
+    def local(array, fill):
+        return _pad_to([array[p.nodes] for p in parts], n_local, fill)
+
+    local_loads = np.stack([_pad_to([loads[l, p.nodes]], n_local, 0.0)[0] for p in parts
+                            for l in range(loads.shape[0])]).reshape(n_parts, loads.shape[0], n_local, 3)
+    stacked = ExplicitSystem(
+        stiffness=stiffness, mass=local(mass, 1.0),
+        damping=np.full(n_parts, float(system.damping)), dt=np.full(n_parts, float(system.dt)),
+        load_vectors=local_loads,
+        load_times=jax.tree_util.tree_map(lambda x: np.full((n_parts,) + np.shape(x), x),
+                                          system.load_times),
+        fixed=local(fixed, True), fixed_values=local(fixed_values, 0.0))
+    shared_local = _pad_to([p.shared_local for p in parts], n_shared, n_local).astype(np.int32)
+    shared_interface = _pad_to([p.shared_interface for p in parts], n_shared,
+                               partition.n_interface).astype(np.int32)
+    return PartSystems(stacked, shared_local, shared_interface)
+
+
+def _synchronize(internal, shared_local, shared_interface, n_interface: int):
+    """Sum the parts' partial forces at shared nodes (scatter -> psum -> gather)."""
+    # one spare slot at the end receives the padding entries (index n_interface)
+    interface = jnp.zeros((n_interface + 1, 3), internal.dtype)
+    interface = interface.at[shared_interface].add(internal[shared_local], mode="clip")
+    # parts on this device (the vmapped axis) first, then across devices
+    total = jax.lax.psum(jax.lax.psum(interface, LOCAL_AXIS), AXIS)
+    return internal.at[shared_local].set(total[shared_interface], mode="drop")
+
+
+def _default_devices(n_parts: int, devices=None):
+    available = list(jax.devices() if devices is None else devices)
+    n = max(d for d in range(1, min(len(available), n_parts) + 1) if n_parts % d == 0)
+    return available[:n]
+
+
+class DistributedRunner:
+    """Advances per-part states under ``shard_map`` (the driver interface of
+    :class:`jaxsync.solver.SingleDeviceRunner`)."""
+
+    def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
+                 mode: str = "preassembled", seed: int = 0, devices=None):
+        if isinstance(partitions, Partition):
+            self.partition = partitions
+        else:
+            self.partition = make_partition(problem.mesh, partitions, seed=seed)
+        n_parts = self.partition.n_parts
+        devices = _default_devices(n_parts, devices)
+        if n_parts % len(devices):
+            raise PartitionError(f"n_parts={n_parts} must be a multiple of the number of devices "
+                                 f"({len(devices)})")
+        self.devices = devices
+        self.device_mesh = DeviceMesh(np.array(devices), (AXIS,))
+        self.sharding = NamedSharding(self.device_mesh, P(AXIS))
+        self.save_every = save_every
+        self.mode = mode
+        host = build_part_systems(problem, system, self.partition, mode)
+        self.n_local = host.system.mass.shape[1]
+        self.parts = self._put(host)
+        self._advance = {}
+        self._global_index = np.concatenate([p.nodes for p in self.partition.parts])
+        self._local_index = np.concatenate(
+            [p.index * self.n_local + np.arange(p.n_local) for p in self.partition.parts])
+
+    def _put(self, tree):
+        """Place stacked host arrays on the devices, sharded on the part axis (works in
+        multi-process runs too: each process supplies only its addressable shards)."""
+        def put(x):
+            x = np.asarray(x)
+            return jax.make_array_from_callback(x.shape, self.sharding, lambda index: x[index])
+
+        return jax.tree_util.tree_map(put, tree)
+
+    def _compiled(self, n_saves: int):
+        if n_saves not in self._advance:
+            n_interface = self.partition.n_interface
+            save_every = self.save_every
+
+            def one_part(part: PartSystems, state: SolverState):
+                sync = functools.partial(_synchronize, shared_local=part.shared_local,
+                                         shared_interface=part.shared_interface,
+                                         n_interface=n_interface)
+                return advance(part.system, state, n_saves, save_every, synchronize=sync)
+
+            body = jax.vmap(one_part, axis_name=LOCAL_AXIS)
+            mapped = jax.shard_map(body, mesh=self.device_mesh, in_specs=(P(AXIS), P(AXIS)),
+                                   out_specs=(P(AXIS), P(AXIS)), check_vma=False)
+            self._advance[n_saves] = jax.jit(mapped)
+        return self._advance[n_saves]
+
+    def advance(self, state, n_saves):
+        state, saved = self._compiled(n_saves)(self.parts, state)
+        return state, self._merge(_to_host(saved), axis=1)
+
+    def _merge(self, local, axis):
+        """Per-part local arrays (n_parts, ..., n_local, 3) -> global (..., n_nodes, 3)."""
+        local = np.moveaxis(local, 0, axis - 1) if axis > 1 else local
+        lead = local.shape[1:-2]
+        flat = local.reshape(local.shape[0], *lead, self.n_local, 3)
+        flat = np.moveaxis(flat, 0, -3).reshape(*lead, -1, 3)  # (..., n_parts * n_local, 3)
+        out = np.zeros((*lead, self.partition.mesh.n_nodes, 3), dtype=flat.dtype)
+        out[..., self._global_index, :] = flat[..., self._local_index, :]
+        return out
+
+    def to_global(self, state) -> SolverState:
+        return SolverState(self._merge(_to_host(state.displacement), axis=1),
+                           self._merge(_to_host(state.previous), axis=1),
+                           int(_to_host(state.step)[0]))
+
+    def from_global(self, state: SolverState):
+        def split(x):
+            x = np.asarray(x)
+            return np.stack([np.pad(x[p.nodes], ((0, self.n_local - p.n_local), (0, 0)))
+                             for p in self.partition.parts])
+
+        n_parts = self.partition.n_parts
+        host = SolverState(split(state.displacement), split(state.previous),
+                           np.full(n_parts, int(state.step), dtype=np.int32))
+        return self._put(host)
+
+
+def _to_host(x) -> np.ndarray:
+    """A (possibly multi-process) global array as one host numpy array."""
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
