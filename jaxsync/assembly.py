@@ -42,7 +42,7 @@ class UnitOperators:
     @functools.cached_property
     def block_ell(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Node-blocked ELL form (adjacency (n_nodes, width) int32, and the blocks
-        (n_nodes, width, 3, 3) of K_lambda, K_mu and M_1 on it), built once."""
+        (n_nodes, 3, width, 3) of K_lambda, K_mu and M_1 on it), built once."""
         from .sparse import block_ell_values, node_adjacency
 
         adjacency = node_adjacency(self.mesh.tets, self.mesh.n_nodes)

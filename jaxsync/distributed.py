@@ -36,7 +36,7 @@ from .partition import Partition, partition as make_partition
 from .pytree import pytree_dataclass
 from .element_force import MODES, ElementStiffness
 from .solver import ExplicitSystem, SolverState, advance
-from .sparse import BlockEll, block_ell_values, node_adjacency
+from .sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 
 __all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "MODES", "AXIS"]
 
@@ -101,14 +101,9 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
             columns.append(adjacency)
             blocks.append(block_ell_values(K, adjacency))
         width = max(c.shape[1] for c in columns)
-        # padding slots and padding rows point at the row's own node (zero blocks)
-        columns = np.stack([np.pad(np.pad(c, ((0, 0), (0, width - c.shape[1])), mode="edge"),
-                                   ((0, n_local - len(c)), (0, 0)))
-                            for c in columns])
-        for p, part in enumerate(parts):
-            columns[p, part.n_local:] = np.arange(part.n_local, n_local)[:, None]
-        blocks = np.stack([np.pad(b, ((0, n_local - len(b)), (0, width - b.shape[1]), (0, 0), (0, 0)))
-                           for b in blocks])
+        padded = [pad_block_ell(c, b, n_local, width) for c, b in zip(columns, blocks)]
+        columns = np.stack([c for c, _ in padded])
+        blocks = np.stack([b for _, b in padded])
         stiffness = BlockEll(columns.astype(np.int32), blocks)
     else:
         n_elem = max(len(p.elements) for p in parts)
