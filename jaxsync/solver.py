@@ -136,15 +136,20 @@ def apply_dirichlet(system: ExplicitSystem, displacement):
     return jnp.where(system.fixed, system.fixed_values, displacement)
 
 
-def step(system: ExplicitSystem, state: SolverState, synchronize=None) -> SolverState:
+def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None) -> SolverState:
     """One central-difference step: (d(n), d(n-1), n) -> (d(n+1), d(n), n + 1).
 
     ``synchronize``, when given, maps the (partial) internal force K d of a part to the
-    full one (the distributed solver's psum); the single-device solver needs none."""
+    full one (the distributed solver's psum); the single-device solver needs none.
+    ``overwrite``, when given, maps the updated displacement to the one kept before the
+    Dirichlet values are imposed (the synchronization-avoiding solver writes its
+    predicted shared-node displacements there)."""
     internal = system.stiffness.matvec(state.displacement)
     if synchronize is not None:
         internal = synchronize(internal)
     new = central_difference(system, state, internal)
+    if overwrite is not None:
+        new = overwrite(new)
     return SolverState(apply_dirichlet(system, new), state.displacement, state.step + 1)
 
 

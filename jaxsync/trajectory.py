@@ -63,7 +63,10 @@ class Trajectory:
         save_every: steps between saved snapshots.
         parameters: problem parameters (E, nu, rho, damping...) for the record.
         parts: per-part data of a distributed run (shared node ids and their
-            displacement history), or empty.
+            displacement history, and for synchronization-avoiding runs the part's own
+            predictions), or empty.
+        synchronized: (n_saved,) bool, False where the snapshot's step was predicted
+            by surrogates instead of synchronized (None: all synchronized).
     """
 
     times: Any
@@ -73,6 +76,7 @@ class Trajectory:
     save_every: int = 1
     parameters: dict = dataclasses.field(default_factory=dict)
     parts: tuple = ()
+    synchronized: Any = None
 
     @property
     def n_saved(self) -> int:
@@ -100,6 +104,8 @@ class Trajectory:
             for key, value in self.parameters.items():
                 f.attrs[f"param_{key}"] = value
             f.create_dataset("times", data=np.asarray(self.times))
+            if self.synchronized is not None:
+                f.create_dataset("synchronized", data=np.asarray(self.synchronized, dtype=bool))
             f.create_dataset("displacement", data=np.asarray(self.displacement), chunks=True,
                              compression="gzip", compression_opts=1, shuffle=True)
             g = f.create_group("mesh")
@@ -143,9 +149,10 @@ class Trajectory:
                 if "parts" in f:
                     parts = tuple({k: v[...] for k, v in f["parts"][str(p)].items()}
                                   for p in range(int(f.attrs["n_parts"])))
+                synchronized = f["synchronized"][...] if "synchronized" in f else None
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
                            dt=float(f.attrs["dt"]), save_every=int(f.attrs["save_every"]),
-                           parameters=params, parts=parts)
+                           parameters=params, parts=parts, synchronized=synchronized)
         except CheckpointError:
             raise
         except Exception as exc:

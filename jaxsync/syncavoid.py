@@ -1,0 +1,333 @@
+"""Synchronization-avoiding explicit solver (paper Algorithm 3).
+
+Synchronized steps run up to ``n_cri`` (>= n_p n_s + 1). Then, in cycles: (a) one
+batched refill prediction per part of its shared-node displacements for the next
+n_s n_f steps, from the last n_p n_s steps of its history; (b) n_s n_f solver steps with
+no psum, each followed by overwriting the part's shared dofs with its prediction and
+imposing the Dirichlet values. Each part's predictor parameters live on its device (a
+stacked pytree sharded on the parts axis); the whole predicted phase is one compiled
+loop per chunk of cycles with no cross-device collective in it.
+
+A shared node is held, and predicted, by every part that touches it, so after the
+switch the parts' values there differ; the returned global trajectory takes the mean
+over the parts, and each part's own predictions are kept in ``trajectory.parts`` for
+the error estimates of :mod:`jaxsync.metrics`.
+
+Predictors are pytrees with a method ``predict(buffer, cycle) -> (n_s n_f, n_dof)`` for
+one part (``buffer`` (n_s n_p, n_dof) of the last known steps, ``cycle`` the cycle
+index): :class:`SurrogatePredictor` (trained LSTM replicas) and :class:`OraclePredictor`
+(replays known displacements; pins the coupling independently of network error).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import PartitionSpec as P
+
+from .distributed import AXIS, DistributedRunner, PartSystems
+from .errors import CheckpointError, ProblemError, StabilityError
+from .pytree import pytree_dataclass, static_field
+from .solver import SolverState, build_system, drive, initial_state, step
+
+__all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "shared_dof_layout"]
+
+
+@pytree_dataclass
+class SurrogatePredictor:
+    """Trained LSTM replicas as a predictor (stacked on a leading part axis).
+
+    Attributes:
+        params: stacked network parameters.
+        mean, std: (n_parts, n_dof) normalization [cm].
+        dof_mask: (n_parts, n_dof) 1 on real dofs, 0 on padding.
+        cond: (n_parts,) load parameter of conditional networks (ignored otherwise).
+        arch: the architecture (static).
+        n_s: the sampling stride the replicas were trained with (static).
+    """
+
+    params: Any
+    mean: Any
+    std: Any
+    dof_mask: Any
+    cond: Any
+    arch: Any = static_field(default=None)
+    n_s: int = static_field(default=1)
+
+    @property
+    def n_past(self) -> int:
+        return self.arch.n_past
+
+    @property
+    def n_future(self) -> int:
+        return self.arch.n_future
+
+    def predict(self, buffer, cycle):
+        """(n_s n_f, n_dof) predictions of the next steps for one part."""
+        from .surrogate.evaluate import refill_predict
+
+        cond = self.cond if self.arch.conditional else None
+        out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s,
+                             cond, self.dof_mask)
+        return out * self.dof_mask
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint, cond: float | None = None) -> "SurrogatePredictor":
+        """Predictor of a :class:`jaxsync.surrogate.SurrogateCheckpoint` (or its path)."""
+        from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
+
+        if not isinstance(checkpoint, SurrogateCheckpoint):
+            checkpoint = load_checkpoint(checkpoint)
+        n = checkpoint.n_parts
+        if checkpoint.arch.conditional and cond is None:
+            raise CheckpointError("the surrogates are conditional on a load parameter: pass cond=")
+        return cls(params=checkpoint.params, mean=np.asarray(checkpoint.mean),
+                   std=np.asarray(checkpoint.std), dof_mask=checkpoint.dof_mask.astype(np.asarray(checkpoint.mean).dtype),
+                   cond=np.full(n, 0.0 if cond is None else float(cond), dtype=np.float32),
+                   arch=checkpoint.arch, n_s=int(checkpoint.n_s))
+
+
+@pytree_dataclass
+class OraclePredictor:
+    """Replays known shared displacements: ``future[p, k]`` is part p's shared dofs at
+    step n_cri + 1 + k (padded to whole cycles). With the synchronized run's values the
+    predicted phase must reproduce that run to round-off.
+
+    Attributes:
+        future: (n_parts, n_cycles * n_s * n_f, n_dof) [cm].
+        n_s, n_past, n_future: the refill geometry it stands in for (static).
+    """
+
+    future: Any
+    n_s: int = static_field(default=1)
+    n_past: int = static_field(default=1)
+    n_future: int = static_field(default=1)
+
+    def predict(self, buffer, cycle):
+        length = self.n_s * self.n_future
+        return jax.lax.dynamic_slice_in_dim(self.future, cycle * length, length, axis=0)
+
+
+def shared_dof_layout(partition) -> tuple[int, np.ndarray]:
+    """(n_dof padded = 3 * max shared nodes, (n_parts,) real shared-dof counts)."""
+    counts = np.array([3 * p.n_shared for p in partition.parts])
+    return max(int(counts.max()), 3), counts
+
+
+def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, first_cycle,
+                      n_cycles: int, steps: int, save_every: int):
+    """One part: ``n_cycles`` refill cycles of ``steps`` unsynchronized steps each.
+
+    Returns (state, buffer, saved displacement (n_cycles, steps // save_every, n_local, 3),
+    saved predictions (n_cycles, steps // save_every, n_dof))."""
+    history = buffer.shape[0]
+    n_dof = buffer.shape[1]
+
+    def cycle(carry, c):
+        state, buffer = carry
+        pred = predictor.predict(buffer, first_cycle + c).astype(buffer.dtype)  # (L, n_dof)
+        nodes = pred.reshape(pred.shape[0], -1, 3)
+
+        def one_step(st, j):
+            overwrite = lambda new: new.at[part.shared_local].set(nodes[j], mode="drop")  # noqa: E731
+            return step(part.system, st, overwrite=overwrite), None
+
+        def saved_block(st, k):
+            st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every))
+            return st, (st.displacement, pred[(k + 1) * save_every - 1])
+
+        state, (disp, kept) = jax.lax.scan(saved_block, state, jnp.arange(steps // save_every))
+        buffer = jnp.concatenate([buffer, pred])[-history:]
+        return (state, buffer), (disp, kept)
+
+    (state, buffer), (disp, kept) = jax.lax.scan(cycle, (state, buffer), jnp.arange(n_cycles))
+    return state, buffer, disp, kept.reshape(n_cycles, -1, n_dof)
+
+
+class _OnlineRunner:
+    """Compiles and runs the predicted phase under ``shard_map`` (no collectives)."""
+
+    def __init__(self, runner: DistributedRunner, predictor, save_every: int):
+        self.runner = runner
+        self.predictor = runner._put(predictor)
+        self.save_every = save_every
+        self._compiled = {}
+
+    def program(self, n_cycles: int, steps: int):
+        key = (n_cycles, steps)
+        if key not in self._compiled:
+            body = functools.partial(_predicted_cycles, n_cycles=n_cycles, steps=steps,
+                                     save_every=self.save_every)
+            # first_cycle is a per-part copy of the cycle counter (sharded like the rest)
+            mapped = jax.shard_map(jax.vmap(body), mesh=self.runner.device_mesh,
+                                   in_specs=(P(AXIS),) * 5, out_specs=(P(AXIS),) * 4,
+                                   check_vma=False)
+            self._compiled[key] = jax.jit(mapped)
+        return self._compiled[key]
+
+    def lowered_text(self, state, buffer, n_cycles: int, steps: int) -> str:
+        """The compiled program's HLO text (to check that it has no collective)."""
+        first = self._first(0)
+        return self.program(n_cycles, steps).lower(self.runner.parts, self.predictor, state,
+                                                   buffer, first).compile().as_text()
+
+    def _first(self, cycle: int):
+        return self.runner._put(np.full(self.runner.partition.n_parts, cycle, dtype=np.int32))
+
+    def run(self, state, buffer, first_cycle: int, n_cycles: int, steps: int):
+        return self.program(n_cycles, steps)(self.runner.parts, self.predictor, state, buffer,
+                                             self._first(first_cycle))
+
+
+def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_cri: int,
+                           dt=None, mode: str = "preassembled", save_every: int = 1,
+                           seed: int = 0, devices=None, cond: float | None = None,
+                           progress: bool | None = None, cycles_per_chunk: int | None = None):
+    """Run paper Algorithm 3: synchronized up to ``n_cri``, then surrogate-predicted.
+
+    Args:
+        problem: the problem.
+        n_steps: total steps; steps n_cri + 1 .. n_steps are predicted.
+        partitions: n_parts or a :class:`jaxsync.Partition` (the surrogates' partition).
+        surrogates: a surrogate checkpoint (path or
+            :class:`jaxsync.surrogate.SurrogateCheckpoint`), a :class:`SurrogatePredictor`
+            or an :class:`OraclePredictor`.
+        n_cri: last synchronized step; at least n_p n_s + 1.
+        save_every: snapshot stride; must divide n_cri and n_s n_f.
+        cond: load parameter for conditional surrogates.
+        cycles_per_chunk: refill cycles per compiled call (default: about 20 000 steps).
+
+    Returns:
+        :class:`jaxsync.Trajectory` with ``synchronized`` flags and, per part,
+        ``predicted_shared_displacement`` (n_predicted_saved, 3 n_shared_p): the part's own
+        predictions at the saved predicted steps.
+
+    Raises:
+        ProblemError: n_cri too small, or save_every not dividing n_cri and n_s n_f.
+        CheckpointError: surrogates made for another partition.
+        StabilityError: a prediction turned NaN/Inf (the message names the step and the
+            part; ``error.trajectory`` keeps the snapshots saved before).
+    """
+    from .surrogate.checkpoint import SurrogateCheckpoint, check_compatible, load_checkpoint
+
+    n_steps, n_cri, save_every = int(n_steps), int(n_cri), int(save_every)
+    dt = problem.dt if dt is None else float(dt)
+    if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
+        surrogates = load_checkpoint(surrogates)
+    system = build_system(problem, dt, mode)
+    runner = DistributedRunner(problem, system, partitions, save_every=1, mode=mode, seed=seed,
+                               devices=devices)
+    partition = runner.partition
+    n_dof, counts = shared_dof_layout(partition)
+    if isinstance(surrogates, SurrogateCheckpoint):
+        check_compatible(surrogates, [p.shared_nodes for p in partition.parts])
+        predictor = SurrogatePredictor.from_checkpoint(surrogates, cond)
+    else:
+        predictor = surrogates
+    n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future
+    if isinstance(predictor, SurrogatePredictor) and predictor.arch.n_dof != n_dof:
+        raise CheckpointError(f"the surrogates predict {predictor.arch.n_dof} dofs per part but this "
+                              f"partition needs {n_dof}: retrain on this partition")
+    history, cycle_steps = n_s * n_p, n_s * n_f
+    if n_cri < history + 1:
+        raise ProblemError(f"n_cri={n_cri} is too small: the first refill needs n_p * n_s + 1 = "
+                           f"{history + 1} synchronized steps (n_p={n_p}, n_s={n_s})")
+    if n_cri > n_steps:
+        raise ProblemError(f"n_cri={n_cri} is beyond n_steps={n_steps}")
+    if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
+        raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
+                           f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
+
+    # synchronized phase: every step kept (the refill history), thinned afterwards
+    state0 = initial_state(problem, system)
+    synced = drive(problem, runner, state0, n_cri, dt, 1, partition=partition, progress=progress,
+                   label="synchronized")
+    sync_disp = synced.displacement
+    last = SolverState(jnp.asarray(sync_disp[-1]), jnp.asarray(sync_disp[-2]),
+                       jnp.asarray(n_cri, dtype=jnp.int32))
+    state = runner.from_global(last)
+    buffer = np.zeros((partition.n_parts, history, n_dof))
+    for p, part in enumerate(partition.parts):
+        buffer[p, :, :counts[p]] = sync_disp[-history:, part.shared_nodes].reshape(history, -1)
+    buffer = runner._put(buffer)
+
+    online = _OnlineRunner(runner, predictor, save_every)
+    n_predicted = n_steps - n_cri
+    n_full, rest = divmod(n_predicted, cycle_steps)
+    per_chunk = cycles_per_chunk or max(1, 20000 // cycle_steps)
+    saved_disp, saved_pred = [], []
+    from tqdm import tqdm
+
+    show = progress if progress is not None else n_predicted >= 20000
+    bar = tqdm(total=n_predicted, disable=not show, unit="step", desc="predicted", dynamic_ncols=True)
+    cycle = 0
+    try:
+        while cycle < n_full or (rest and cycle == n_full):
+            if cycle < n_full:
+                k, steps = min(per_chunk, n_full - cycle), cycle_steps
+            else:
+                k, steps = 1, rest
+            state, buffer, disp, pred = online.run(state, buffer, cycle, k, steps)
+            disp, pred = _host(disp), _host(pred)  # (P, k, steps/save, ...)
+            bad = ~np.isfinite(pred).all(axis=-1)  # (P, k, n_saved)
+            if bad.any():
+                p, c, s = (int(i[0]) for i in np.nonzero(bad))
+                bad_step = n_cri + (cycle + c) * cycle_steps + (s + 1) * save_every
+                partial = _assemble(problem, partition, synced, saved_disp, saved_pred, counts,
+                                    dt, save_every, n_cri)
+                err = StabilityError(
+                    f"the surrogate of part {p} predicted NaN/Inf for step {bad_step} "
+                    f"(t = {bad_step * dt:.6g} s): the network diverged; retrain it or raise n_cri. "
+                    f"The {partial.n_saved} snapshots saved before are kept (error.trajectory)")
+                err.trajectory = partial
+                raise err
+            saved_disp.append(disp.reshape(disp.shape[0], -1, *disp.shape[3:]))
+            saved_pred.append(pred.reshape(pred.shape[0], -1, pred.shape[-1]))
+            bar.update(k * steps)
+            cycle += k
+    finally:
+        bar.close()
+    return _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri)
+
+
+def _host(x) -> np.ndarray:
+    from .distributed import _to_host
+
+    return _to_host(x)
+
+
+def _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri):
+    """The global trajectory: synchronized snapshots, then predicted ones (mean over the
+    parts that hold each node), with per-part predictions and flags."""
+    from .trajectory import Trajectory
+
+    sync_disp = synced.displacement[::save_every]
+    n_nodes = problem.mesh.n_nodes
+    if saved_disp:
+        local = np.concatenate(saved_disp, axis=1)  # (P, n_pred_saved, n_local, 3)
+        pred = np.concatenate(saved_pred, axis=1)  # (P, n_pred_saved, n_dof)
+        total = np.zeros((local.shape[1], n_nodes, 3))
+        count = np.zeros(n_nodes)
+        for p, part in enumerate(partition.parts):
+            total[:, part.nodes] += local[p, :, :part.n_local]
+            count[part.nodes] += 1
+        predicted = total / count[None, :, None]
+    else:
+        pred = np.zeros((partition.n_parts, 0, max(counts.max(), 3)))
+        predicted = np.zeros((0, n_nodes, 3))
+    displacement = np.concatenate([sync_disp, predicted])
+    n_saved = len(displacement)
+    synchronized = np.arange(n_saved) * save_every <= n_cri
+    parts = []
+    for p, part in enumerate(partition.parts):
+        shared = displacement[:, part.shared_nodes].reshape(n_saved, -1)
+        parts.append({"shared_nodes": part.shared_nodes, "shared_displacement": shared,
+                      "predicted_shared_displacement": pred[p, :, :counts[p]]})
+    return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
+                      mesh=problem.mesh, dt=dt, save_every=save_every,
+                      parameters={**synced.parameters, "n_cri": n_cri}, parts=tuple(parts),
+                      synchronized=synchronized)
