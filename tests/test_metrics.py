@@ -1,0 +1,51 @@
+import numpy as np
+import pytest
+
+from jaxsync import ProblemError
+from jaxsync.metrics import l2_error, shared_node_errors
+
+
+def test_l2_error_equals_formula():
+    ref = np.zeros((2, 2, 3))
+    pred = np.array([[[3.0, 0, 0], [0, 4.0, 0]], [[1.0, 1.0, 1.0], [1.0, 0, 0]]])
+    np.testing.assert_allclose(l2_error(ref, pred), [5.0, 2.0])
+
+
+def test_shared_node_errors_by_hand():
+    # one time step, two shared nodes, three parts: node 0 held by parts 0 and 1,
+    # node 1 held by parts 0, 1 and 2
+    truth = np.zeros((1, 2, 3))
+    predictions = np.zeros((3, 1, 2, 3))
+    predictions[0, 0, 0] = [3.0, 0, 0]     # |err| mean over components = 1
+    predictions[1, 0, 0] = [0.0, 0, 0]     # 0
+    predictions[0, 0, 1] = [0.0, 3.0, 3.0]  # 2
+    predictions[1, 0, 1] = [0.0, 0, 0]     # 0
+    predictions[2, 0, 1] = [6.0, 0, 0]     # 2
+    predictions[2, 0, 0] = [99.0, 99, 99]  # not held: ignored
+    holds = np.array([[True, True], [True, True], [False, True]])
+    out = shared_node_errors(truth, predictions, holds)
+    # node 0: (1 + 0) / 2 = 0.5; node 1: (2 + 0 + 2) / 3 = 4/3
+    np.testing.assert_allclose(out.et, [0.5, 4 / 3])
+    np.testing.assert_allclose(out.es, [(0.5 + 4 / 3) / 2])
+    # es_hat: node 0 pair (0,1): |[3,0,0]| mean = 1; node 1 pairs (0,1): 2, (0,2): (6+3+3)/3=4,
+    # (1,2): 2 -> mean 8/3
+    np.testing.assert_allclose(out.et_hat, [1.0, 8 / 3])
+    np.testing.assert_allclose(out.es_hat, [(1.0 + 8 / 3) / 2])
+
+
+def test_time_average():
+    truth = np.zeros((4, 1, 3))
+    predictions = np.zeros((2, 4, 1, 3))
+    predictions[0, :, 0, 0] = [0.0, 3.0, 6.0, 3.0]  # errors 0, 1, 2, 1
+    holds = np.ones((2, 1), bool)
+    out = shared_node_errors(truth, predictions, holds)
+    np.testing.assert_allclose(out.es, [0.0, 0.5, 1.0, 0.5])
+    np.testing.assert_allclose(out.et, [0.5])
+    np.testing.assert_allclose(out.es_hat, [0.0, 1.0, 2.0, 1.0])
+
+
+def test_bad_inputs():
+    with pytest.raises(ProblemError, match="at least two parts"):
+        shared_node_errors(np.zeros((1, 1, 3)), np.zeros((2, 1, 1, 3)), np.array([[True], [False]]))
+    with pytest.raises(ProblemError, match="equal shapes"):
+        l2_error(np.zeros((2, 3)), np.zeros((3, 3)))
