@@ -31,8 +31,8 @@ from jax.sharding import Mesh as DeviceMesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .errors import PartitionError, ProblemError
-from .partition import Partition, partition as make_partition
+from .errors import ConfigError, PartitionError, ProblemError
+from .partition import Partition, partition as make_partition, partition_from_elements
 from .pytree import pytree_dataclass
 from .element_force import MODES, ElementStiffness
 from .solver import ExplicitSystem, SolverState, advance
@@ -132,18 +132,43 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
     return PartSystems(stacked, shared_local, shared_interface)
 
 
-def _synchronize(internal, shared_local, shared_interface, n_interface: int):
-    """Sum the parts' partial forces at shared nodes (scatter -> psum -> gather)."""
+def _synchronize(internal, shared_local, shared_interface, n_interface: int, across=None):
+    """Sum the parts' partial forces at shared nodes (scatter -> sum -> gather).
+
+    ``internal`` is a part's (n_local_max, 3) partial force [dyn]; the interface vector is
+    (n_interface + 1, 3). The sum runs over the parts on this device (the vmapped axis),
+    then across devices: ``jax.lax.psum`` over the mesh axis when ``across`` is None, else
+    ``across(interface)`` (the MPI Allreduce of :func:`jaxsync.multiprocess.make_allreduce`,
+    with one device per process)."""
     # one spare slot at the end receives the padding entries (index n_interface)
     interface = jnp.zeros((n_interface + 1, 3), internal.dtype)
     interface = interface.at[shared_interface].add(internal[shared_local], mode="clip")
-    # parts on this device (the vmapped axis) first, then across devices
-    total = jax.lax.psum(jax.lax.psum(interface, LOCAL_AXIS), AXIS)
+    total = jax.lax.psum(interface, LOCAL_AXIS)  # parts on this device first
+    total = jax.lax.psum(total, AXIS) if across is None else across(total)
     return internal.at[shared_local].set(total[shared_interface], mode="drop")
 
 
-def _default_devices(n_parts: int, devices=None):
+def _default_devices(n_parts: int, devices=None, sync: str = "psum"):
+    """Devices of this run's mesh.
+
+    ``"psum"``: the given devices or, by default, as many of ``jax.devices()`` as divide
+    n_parts; across processes, all devices of all processes (each process must hold
+    parts). ``"mpi"``: one device of this process (the others are reached through MPI)."""
+    if sync == "mpi":
+        local = list(jax.local_devices() if devices is None else devices)
+        if len(local) != 1 or local[0].process_index != jax.process_index():
+            raise ConfigError(
+                f"sync='mpi' runs each process's parts on one device of that process, got "
+                f"{len(local)} devices; pass devices=[one local device], start one process "
+                "per device (mpiexec -n N_devices), or use sync='psum'")
+        return local
     available = list(jax.devices() if devices is None else devices)
+    if jax.process_count() > 1:
+        if n_parts % len(available):
+            raise PartitionError(
+                f"n_parts={n_parts} must be a multiple of the {len(available)} devices of the "
+                f"{jax.process_count()} processes; use a multiple of {len(available)} parts")
+        return available
     n = max(d for d in range(1, min(len(available), n_parts) + 1) if n_parts % d == 0)
     return available[:n]
 
@@ -153,16 +178,67 @@ class DistributedRunner:
     :class:`jaxsync.solver.SingleDeviceRunner`)."""
 
     def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
-                 mode: str = "preassembled", seed: int = 0, devices=None):
+                 mode: str = "preassembled", seed: int = 0, devices=None, sync: str | None = None,
+                 allreduce: str = "auto", comm=None):
+        """
+        Args:
+            problem, system: the problem and its global :class:`ExplicitSystem`.
+            partitions: an int n_parts (METIS; in a multi-process run rank 0's partition is
+                broadcast) or a :class:`Partition`.
+            save_every: steps between saved snapshots.
+            mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2).
+            seed: METIS seed.
+            devices: devices of the mesh (see :func:`_default_devices`).
+            sync: how shared-node forces are summed across devices and processes:
+                ``"psum"`` (XLA collective over all devices: emulated devices in one
+                process, gloo between CPU processes, NCCL between GPUs) or ``"mpi"`` (one
+                device per process, MPI Allreduce called from inside the compiled step).
+                Default: :func:`jaxsync.multiprocess.default_sync` (``"mpi"`` across
+                processes, measured faster; ``"psum"`` in one process).
+            allreduce: with ``sync="mpi"``, ``"mpi4jax"``, ``"callback"`` or ``"auto"``
+                (see :func:`jaxsync.multiprocess.make_allreduce`).
+            comm: with ``sync="mpi"``, the mpi4py communicator (default a duplicate of
+                ``COMM_WORLD``); rank r runs parts [r k, (r + 1) k), k = n_parts / size.
+        """
+        from . import multiprocess
+
+        sync = multiprocess.default_sync() if sync is None else sync
+        if sync not in multiprocess.SYNC_METHODS:
+            raise ConfigError(f"sync must be one of {multiprocess.SYNC_METHODS}, got {sync!r}")
+        self.sync = sync
         if isinstance(partitions, Partition):
             self.partition = partitions
         else:
             self.partition = make_partition(problem.mesh, partitions, seed=seed)
+            if jax.process_count() > 1:  # every rank must use rank 0's parts
+                from jax.experimental import multihost_utils
+
+                reference = np.asarray(multihost_utils.broadcast_one_to_all(
+                    self.partition.element_part))
+                if not np.array_equal(reference, self.partition.element_part):
+                    self.partition = partition_from_elements(problem.mesh, reference, seed=seed)
         n_parts = self.partition.n_parts
-        devices = _default_devices(n_parts, devices)
+        devices = _default_devices(n_parts, devices, sync)
         if n_parts % len(devices):
             raise PartitionError(f"n_parts={n_parts} must be a multiple of the number of devices "
                                  f"({len(devices)})")
+        self._part_slice = slice(None)
+        self._allreduce = None
+        if sync == "mpi":
+            if comm is None:
+                comm = multiprocess.world().Dup()  # the step's collectives, apart from others
+            size, rank = comm.Get_size(), comm.Get_rank()
+            if size > 1 and jax.process_count() != size:
+                raise ConfigError(
+                    f"sync='mpi' over {size} MPI ranks needs jax.distributed joined across them "
+                    f"(JAX sees {jax.process_count()} process); call "
+                    "jaxsync.multiprocess.initialize() at the start of every rank")
+            if n_parts % size:
+                raise PartitionError(f"n_parts={n_parts} must be a multiple of the {size} MPI "
+                                     f"ranks; use a multiple of {size} parts")
+            per_rank = n_parts // size
+            self._part_slice = slice(rank * per_rank, (rank + 1) * per_rank)
+            self._allreduce = multiprocess.make_allreduce(comm, allreduce)
         self.devices = devices
         self.device_mesh = DeviceMesh(np.array(devices), (AXIS,))
         self.sharding = NamedSharding(self.device_mesh, P(AXIS))
@@ -177,10 +253,11 @@ class DistributedRunner:
             [p.index * self.n_local + np.arange(p.n_local) for p in self.partition.parts])
 
     def _put(self, tree):
-        """Place stacked host arrays on the devices, sharded on the part axis (works in
-        multi-process runs too: each process supplies only its addressable shards)."""
+        """Place stacked host arrays (all parts) on the devices, sharded on the part axis.
+        Multi-process: with ``"psum"`` each process supplies only its addressable shards of
+        the global array; with ``"mpi"`` each process places its own parts on its device."""
         def put(x):
-            x = np.asarray(x)
+            x = np.asarray(x)[self._part_slice]
             return jax.make_array_from_callback(x.shape, self.sharding, lambda index: x[index])
 
         return jax.tree_util.tree_map(put, tree)
@@ -189,11 +266,12 @@ class DistributedRunner:
         if n_saves not in self._advance:
             n_interface = self.partition.n_interface
             save_every = self.save_every
+            across = self._allreduce
 
             def one_part(part: PartSystems, state: SolverState):
                 sync = functools.partial(_synchronize, shared_local=part.shared_local,
                                          shared_interface=part.shared_interface,
-                                         n_interface=n_interface)
+                                         n_interface=n_interface, across=across)
                 return advance(part.system, state, n_saves, save_every, synchronize=sync)
 
             body = jax.vmap(one_part, axis_name=LOCAL_AXIS)
@@ -234,7 +312,11 @@ class DistributedRunner:
 
 
 def _to_host(x) -> np.ndarray:
-    """A (possibly multi-process) global array as one host numpy array."""
+    """A (possibly multi-process) array as one host numpy array with all parts.
+
+    One process: ``np.asarray``. Several processes: ``process_allgather`` returns a global
+    array (``"psum"`` runs) whole, and concatenates the processes' local arrays (``"mpi"``
+    runs: rank r's parts follow rank r - 1's) along the part axis."""
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 

@@ -16,7 +16,7 @@ import numpy as np
 from .errors import PartitionError
 from .mesh import Mesh
 
-__all__ = ["Part", "Partition", "partition"]
+__all__ = ["Part", "Partition", "partition", "partition_from_elements", "partition_of"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -167,3 +167,17 @@ def partition_from_elements(mesh: Mesh, element_part: np.ndarray, seed: int = 0)
                           shared_interface=interface_of[nodes[shared_local]]))
     return Partition(mesh=mesh, element_part=element_part, parts=tuple(parts),
                      shared_nodes=shared_nodes, sharing_parts=sharing_parts, seed=int(seed))
+
+
+def partition_of(trajectory) -> Partition:
+    """The partition a distributed :class:`jaxsync.Trajectory` was computed on (rebuilt
+    from the element lists it stores per part)."""
+    if not trajectory.parts or "elements" not in trajectory.parts[0]:
+        raise PartitionError("the trajectory holds no partition: it was not computed by the "
+                             "distributed solver (simulate(..., partitions=n))")
+    element_part = np.full(trajectory.mesh.n_elements, -1, dtype=np.int64)
+    for p, part in enumerate(trajectory.parts):
+        element_part[np.asarray(part["elements"])] = p
+    if np.any(element_part < 0):
+        raise PartitionError("the trajectory's parts do not cover every element")
+    return partition_from_elements(trajectory.mesh, element_part)

@@ -16,9 +16,11 @@ steps, shows progress, checks for divergence and checkpoints between chunks.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
+import time
 from typing import Any
 
 import jax
@@ -274,7 +276,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
              mode: str = "preassembled", seed: int = 0, devices=None,
              progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
              checkpoint_every: int | None = None, chunk_steps: int = 5000,
-             blowup_factor: float = 1e3, check_stability: bool = True):
+             blowup_factor: float = 1e3, check_stability: bool = True, sync: str | None = None):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -299,6 +301,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         blowup_factor: a displacement larger than this times the mesh's bounding-box
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
+        sync: distributed only: ``"psum"`` or ``"mpi"`` (see
+            :class:`jaxsync.distributed.DistributedRunner`; default: the faster measured).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots (and,
@@ -348,7 +352,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         from .distributed import DistributedRunner
 
         runner = DistributedRunner(problem, system, partitions, save_every=save_every,
-                                   mode=mode, seed=seed, devices=devices)
+                                   mode=mode, seed=seed, devices=devices, sync=sync)
         part_info = runner.partition
     return drive(problem, runner, state, n_steps, float(dt), save_every, partition=part_info,
                  progress=progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
@@ -375,10 +379,13 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     bar = tqdm(total=n_steps, initial=step_now, disable=not show, unit="step", desc=label,
                dynamic_ncols=True)
     chunks_done = 0
+    chunk_times = []  # (steps, seconds) of each chunk, for the per-step cost
     try:
         while step_now < n_steps:
             k = min(saves_per_chunk, (n_steps - step_now) // save_every)
+            start = time.perf_counter()
             new_state, saved = runner.advance(run_state, k)
+            chunk_times.append((k, k * save_every, time.perf_counter() - start))
             ok = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
             if not ok.all():
                 first_bad = int(np.argmin(ok))
@@ -398,10 +405,30 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
             chunks_done += 1
             bar.update(k * save_every)
             if checkpoint is not None and (chunks_done % checkpoint_chunks == 0 or step_now == n_steps):
-                _save_checkpoint(checkpoint, fingerprint, runner.to_global(run_state), snapshots)
+                global_state = runner.to_global(run_state)  # collective in multi-process runs
+                if jax.process_index() == 0:  # one writer
+                    _save_checkpoint(checkpoint, fingerprint, global_state, snapshots)
     finally:
         bar.close()
-    return _trajectory(problem, snapshots, dt, save_every, partition)
+    traj = _trajectory(problem, snapshots, dt, save_every, partition)
+    if chunk_times:
+        traj = dataclasses.replace(traj, parameters={**traj.parameters, "us_per_step": us_per_step(chunk_times)})
+    return traj
+
+
+def us_per_step(chunk_times) -> float:
+    """Microseconds per step from (program key, steps, seconds) chunk timings.
+
+    The first call of each compiled program includes its compilation, so only chunks
+    that re-run an already used program count (key None: compiled ahead, always counts);
+    when there are none, all chunks count (and the figure includes compilation)."""
+    seen, timed = set(), []
+    for key, steps, seconds in chunk_times:
+        if key is None or key in seen:
+            timed.append((steps, seconds))
+        seen.add(key)
+    timed = timed or [(steps, seconds) for _, steps, seconds in chunk_times]
+    return 1e6 * sum(t for _, t in timed) / max(sum(n for n, _ in timed), 1)
 
 
 def _trajectory(problem, snapshots, dt, save_every, partition=None):
@@ -411,7 +438,7 @@ def _trajectory(problem, snapshots, dt, save_every, partition=None):
     times = np.arange(len(displacement)) * save_every * dt
     parts = ()
     if partition is not None:
-        parts = tuple({"shared_nodes": part.shared_nodes,
+        parts = tuple({"shared_nodes": part.shared_nodes, "elements": part.elements,
                        "shared_displacement": displacement[:, part.shared_nodes].reshape(len(displacement), -1)}
                       for part in partition.parts)
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt,

@@ -21,7 +21,9 @@ index): :class:`SurrogatePredictor` (trained LSTM replicas) and :class:`OraclePr
 
 from __future__ import annotations
 
+import dataclasses
 import functools
+import time
 from typing import Any
 
 import jax
@@ -32,7 +34,7 @@ from jax.sharding import PartitionSpec as P
 from .distributed import AXIS, DistributedRunner, PartSystems
 from .errors import CheckpointError, ProblemError, StabilityError
 from .pytree import pytree_dataclass, static_field
-from .solver import SolverState, build_system, drive, initial_state, step
+from .solver import SolverState, build_system, drive, initial_state, step, us_per_step
 
 __all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "shared_dof_layout"]
 
@@ -158,7 +160,7 @@ class _OnlineRunner:
         self._compiled = {}
 
     def program(self, n_cycles: int, steps: int):
-        key = (n_cycles, steps)
+        key = ("jit", n_cycles, steps)
         if key not in self._compiled:
             body = functools.partial(_predicted_cycles, n_cycles=n_cycles, steps=steps,
                                      save_every=self.save_every)
@@ -178,9 +180,17 @@ class _OnlineRunner:
     def _first(self, cycle: int):
         return self.runner._put(np.full(self.runner.partition.n_parts, cycle, dtype=np.int32))
 
+    def prepare(self, state, buffer, n_cycles: int, steps: int):
+        """Compile (ahead of time, once) the program for ``n_cycles`` cycles of ``steps``."""
+        key = ("compiled", n_cycles, steps)
+        if key not in self._compiled:
+            self._compiled[key] = self.program(n_cycles, steps).lower(
+                self.runner.parts, self.predictor, state, buffer, self._first(0)).compile()
+        return self._compiled[key]
+
     def run(self, state, buffer, first_cycle: int, n_cycles: int, steps: int):
-        return self.program(n_cycles, steps)(self.runner.parts, self.predictor, state, buffer,
-                                             self._first(first_cycle))
+        return self.prepare(state, buffer, n_cycles, steps)(
+            self.runner.parts, self.predictor, state, buffer, self._first(first_cycle))
 
 
 def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_cri: int,
@@ -265,14 +275,18 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     show = progress if progress is not None else n_predicted >= 20000
     bar = tqdm(total=n_predicted, disable=not show, unit="step", desc="predicted", dynamic_ncols=True)
     cycle = 0
+    chunk_times = []
     try:
         while cycle < n_full or (rest and cycle == n_full):
             if cycle < n_full:
                 k, steps = min(per_chunk, n_full - cycle), cycle_steps
             else:
                 k, steps = 1, rest
+            online.prepare(state, buffer, k, steps)  # compilation is not timed
+            start = time.perf_counter()
             state, buffer, disp, pred = online.run(state, buffer, cycle, k, steps)
             disp, pred = _host(disp), _host(pred)  # (P, k, steps/save, ...)
+            chunk_times.append((None, k * steps, time.perf_counter() - start))
             bad = ~np.isfinite(pred).all(axis=-1)  # (P, k, n_saved)
             if bad.any():
                 p, c, s = (int(i[0]) for i in np.nonzero(bad))
@@ -291,7 +305,10 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             cycle += k
     finally:
         bar.close()
-    return _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri)
+    traj = _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri)
+    if chunk_times:
+        traj = dataclasses.replace(traj, parameters={**traj.parameters, "us_per_step_predicted": us_per_step(chunk_times)})
+    return traj
 
 
 def _host(x) -> np.ndarray:
@@ -325,7 +342,8 @@ def _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, sa
     parts = []
     for p, part in enumerate(partition.parts):
         shared = displacement[:, part.shared_nodes].reshape(n_saved, -1)
-        parts.append({"shared_nodes": part.shared_nodes, "shared_displacement": shared,
+        parts.append({"shared_nodes": part.shared_nodes, "elements": part.elements,
+                      "shared_displacement": shared,
                       "predicted_shared_displacement": pred[p, :, :counts[p]]})
     return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, dt=dt, save_every=save_every,

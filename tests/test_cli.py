@@ -103,14 +103,60 @@ def test_diverging_run_keeps_what_was_saved(tmp_path, capsys):
     assert out.read_bytes() == b"previous good result"
 
 
-def test_demo_writes_summary(tmp_path, capsys):
-    assert main(["demo", "--steps", "2000", "--save-every", "100", "--out", str(tmp_path),
-                 "--no-progress"]) == 0
-    summary = json.loads((tmp_path / "summary.json").read_text())
-    assert summary["n_steps"] == 2000 and summary["n_predicted"] == 0
-    assert summary["tip_z_final"] < 0
-    assert os.path.exists(tmp_path / "trajectory.h5") and os.path.exists(tmp_path / "trajectory.xdmf")
-    assert "tip z" in capsys.readouterr().out
+def test_demo_end_to_end_reduced(tmp_path, capsys):
+    """The whole pipeline (synchronized run, training, online run, report) in a reduced
+    mode; the summary has the documented keys and the figures exist."""
+    from jaxsync.demo import SUMMARY_KEYS
+
+    out = tmp_path / "demo"
+    assert main(["demo", "--steps", "1500", "--epochs", "2", "--hidden", "8", "--n-s", "5",
+                 "--n-past", "5", "--n-future", "5", "--out", str(out), "--no-progress"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    for key in SUMMARY_KEYS:
+        assert key in summary and np.isfinite(summary[key]), key
+    assert summary["n_steps"] == 1500
+    assert summary["n_synchronized"] == 26 and summary["n_predicted"] == 1474
+    assert summary["speedup"] == pytest.approx(summary["us_per_step_synchronized"]
+                                               / summary["us_per_step_predicted"])
+    for name in ("displacement_nodes.png", "l2_error.png", "shared_errors.png", "et_histogram.png"):
+        assert (out / "report" / name).stat().st_size > 1000
+    online = jaxsync.Trajectory.load(out / "online.h5")
+    assert online.synchronized.sum() == 27 and not online.synchronized[-1]
+    text = capsys.readouterr().out
+    assert "speed-up" in text and "time per step, predicted" in text
+
+    # the same online run from the command line, and its report
+    assert main(["predict", str(out / "synchronized.h5"), str(out / "surrogate" / "surrogate.h5"),
+                 "-o", str(tmp_path / "again.h5"), "--no-progress"]) == 0
+    again = jaxsync.Trajectory.load(tmp_path / "again.h5")
+    np.testing.assert_allclose(again.displacement, online.displacement, rtol=0, atol=1e-12)
+    assert main(["report", str(out / "synchronized.h5"), str(tmp_path / "again.h5"),
+                 "-o", str(tmp_path / "report")]) == 0
+    again_summary = json.loads((tmp_path / "report" / "summary.json").read_text())
+    assert again_summary["tip_max_abs_error"] == pytest.approx(summary["tip_max_abs_error"], rel=1e-9)
+
+
+def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
+    from jaxsync.surrogate import SurrogateCheckpoint, save_checkpoint
+
+    problem = jaxsync.cantilever()
+    sync = jaxsync.simulate(problem, 200, partitions=2)
+    sync.save(tmp_path / "s.h5")
+    other = jaxsync.partition(problem.mesh, 4)
+    import jax
+
+    from jaxsync.surrogate import LSTMArchitecture, init_replicas
+    counts = tuple(3 * p.n_shared for p in other.parts)
+    arch = LSTMArchitecture(n_dof=max(counts), n_hidden=4, n_layers=1, n_past=2, n_future=2)
+    params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
+    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((4, arch.n_dof), np.float32),
+                               std=np.ones((4, arch.n_dof), np.float32), dof_counts=counts, n_s=2,
+                               shared_nodes=tuple(p.shared_nodes for p in other.parts))
+    save_checkpoint(tmp_path / "c.h5", ckpt)
+    assert main(["predict", str(tmp_path / "s.h5"), str(tmp_path / "c.h5"), "-o",
+                 str(tmp_path / "o.h5"), "--no-progress"]) == 2
+    assert "partition has 2 parts" in capsys.readouterr().err
+    assert not (tmp_path / "o.h5").exists()
 
 
 def test_print_config(capsys):

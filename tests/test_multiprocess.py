@@ -1,0 +1,235 @@
+"""Multi-process runs under ``mpiexec -n 2`` (loopback only, every run under a timeout).
+
+The runs start real processes: this file doubles as their worker script
+(``mpiexec -n 2 python tests/test_multiprocess.py WORKER ...``). Each process gets one CPU
+device; the coordinator of ``jax.distributed`` listens on 127.0.0.1 and hydra starts the
+ranks with its ``fork`` launcher on localhost, so nothing leaves the machine.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import sys
+
+TIMEOUT_S = 120  # per mpiexec run; a hang fails the test instead of blocking the suite
+STEPS, SAVE_EVERY = 2000, 100
+
+
+# ---------------------------------------------------------------------------------------
+# worker side (runs under mpiexec; no pytest, no conftest)
+
+def _worker_sync(out_path: str) -> None:
+    """Run the cantilever on 2 parts with each synchronization; rank 0 writes the
+    trajectories as .npz."""
+    from jaxsync import multiprocess
+
+    with multiprocess.abort_on_error():
+        multiprocess.initialize()
+        import jax
+        import numpy as np
+
+        jax.config.update("jax_enable_x64", True)
+        import jaxsync
+        from jaxsync.distributed import DistributedRunner
+        from jaxsync.solver import build_system, drive, initial_state
+
+        problem = jaxsync.cantilever()
+        system = build_system(problem, problem.dt)
+        configs = {"psum": dict(sync="psum"), "mpi-callback": dict(sync="mpi", allreduce="callback")}
+        if multiprocess.mpi4jax_available():
+            configs["mpi-mpi4jax"] = dict(sync="mpi", allreduce="mpi4jax")
+        results = {"default": DistributedRunner(problem, system, 2, save_every=SAVE_EVERY).sync}
+        for name, kwargs in configs.items():
+            runner = DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, **kwargs)
+            traj = drive(problem, runner, initial_state(problem, system), STEPS, float(problem.dt),
+                         SAVE_EVERY, partition=runner.partition)
+            results[name] = traj.displacement
+        if multiprocess.is_main_process():
+            default = results.pop("default")
+            np.savez(out_path, default=default, **results)
+
+
+def _worker_fail(kind: str) -> None:
+    """Rank 1 fails while rank 0 waits in a collective that rank 1 never joins."""
+    from jaxsync import multiprocess
+
+    with multiprocess.abort_on_error():
+        multiprocess.initialize()
+        comm = multiprocess.world()
+        if comm.Get_rank() == 1:
+            if kind == "package":
+                from jaxsync.errors import ConfigError
+
+                raise ConfigError("rank-one config is broken; fix it")
+            raise RuntimeError("rank-one bug")
+        comm.Barrier()  # would wait forever without the abort
+
+
+if __name__ == "__main__" and len(sys.argv) > 1:
+    if sys.argv[1] == "sync":
+        _worker_sync(sys.argv[2])
+    elif sys.argv[1] == "fail":
+        _worker_fail(sys.argv[2])
+    sys.exit(0)
+
+
+# ---------------------------------------------------------------------------------------
+# test side
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import jaxsync  # noqa: E402
+from jaxsync import multiprocess  # noqa: E402
+
+MPIEXEC = shutil.which("mpiexec")
+needs_mpiexec = pytest.mark.skipif(MPIEXEC is None,
+                                   reason="mpiexec not found on PATH (pip install mpich)")
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _mpiexec(*command, n: int = 2, cwd=None) -> subprocess.CompletedProcess:
+    """``mpiexec -n n ...`` on localhost only, with one CPU device per rank."""
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # no emulated devices
+    env["JAX_PLATFORMS"] = "cpu"
+    env["JAX_COORDINATOR_ADDRESS"] = f"127.0.0.1:{_free_port()}"
+    version = subprocess.run([MPIEXEC, "--version"], capture_output=True, text=True, timeout=30)
+    if "HYDRA" in version.stdout:  # MPICH / Intel MPI: no ssh, ranks on this host
+        launcher = [MPIEXEC, "-launcher", "fork", "-hosts", "localhost"]
+    else:
+        launcher = [MPIEXEC]
+    if isinstance(command[0], list):  # MPMD: one command per rank, ':'-separated
+        args = launcher[:]
+        for i, rank_command in enumerate(command[0]):
+            args += ([":"] if i else []) + ["-n", "1", *rank_command]
+    else:
+        args = [*launcher, "-n", str(n), *command]
+    try:
+        return subprocess.run(args, capture_output=True, text=True, timeout=TIMEOUT_S, env=env,
+                              cwd=cwd)
+    except subprocess.TimeoutExpired as exc:
+        pytest.fail(f"mpiexec run hung for {TIMEOUT_S} s: {' '.join(args)}\n"
+                    f"stdout: {exc.stdout}\nstderr: {exc.stderr}")
+
+
+def _jaxsync_cli() -> list[str]:
+    return [sys.executable, "-m", "jaxsync.cli"]
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return jaxsync.simulate(jaxsync.cantilever(), STEPS, save_every=SAVE_EVERY)
+
+
+def relative_error(a, b):
+    return np.abs(a - b).max() / np.abs(b).max()
+
+
+@pytest.mark.mpi
+@needs_mpiexec
+def test_cli_two_processes_equal_the_single_process_run(tmp_path, reference):
+    out = _mpiexec(*_jaxsync_cli(), "simulate", "--steps", str(STEPS), "--save-every",
+                   str(SAVE_EVERY), "-o", "run.h5", "--no-progress", cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    traj = jaxsync.Trajectory.load(tmp_path / "run.h5")
+    assert relative_error(traj.displacement, reference.displacement) <= 1e-12
+    assert len(traj.parts) == 2  # one part per process
+    # only rank 0 printed and wrote
+    assert out.stdout.count("wrote") == 1 and out.stdout.count("2 processes, 2 parts") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]
+
+
+@pytest.mark.mpi
+@needs_mpiexec
+def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
+    path = tmp_path / "sync.npz"
+    out = _mpiexec(sys.executable, __file__, "sync", str(path))
+    assert out.returncode == 0, out.stderr
+    with np.load(path) as runs:
+        assert str(runs["default"]) == "mpi"  # the faster one across processes
+        names = set(runs.files) - {"default"}
+        assert {"psum", "mpi-callback"} <= names
+        for name in names:
+            assert relative_error(runs[name], reference.displacement) <= 1e-12, name
+
+
+@pytest.mark.mpi
+@needs_mpiexec
+def test_failing_rank_ends_the_cli_run(tmp_path):
+    """Rank 1 cannot read its mesh while rank 0 goes on into the collectives."""
+    common = ["simulate", "--steps", str(STEPS), "-o", "run.h5", "--no-progress"]
+    out = _mpiexec([_jaxsync_cli() + common,
+                    _jaxsync_cli() + common + ["--mesh", str(tmp_path / "missing.msh")]],
+                   cwd=tmp_path)
+    assert out.returncode != 0
+    assert "[rank 1/2] error: mesh file" in out.stderr, (out.stdout, out.stderr)
+    assert not (tmp_path / "run.h5").exists()
+
+
+@pytest.mark.mpi
+@needs_mpiexec
+@pytest.mark.parametrize("kind", ["package", "bug"])
+def test_failing_rank_aborts_the_job_with_its_error(kind):
+    out = _mpiexec(sys.executable, __file__, "fail", kind)
+    assert out.returncode != 0
+    if kind == "package":
+        assert "[rank 1/2] error: rank-one config is broken; fix it" in out.stderr
+    else:  # a bug keeps its traceback, each line tagged with the rank
+        assert "[rank 1/2] Traceback" in out.stderr
+        assert "[rank 1/2] RuntimeError: rank-one bug" in out.stderr
+
+
+# ---------------------------------------------------------------------------------------
+# in-process checks (no mpiexec)
+
+def test_launcher_environment_is_detected():
+    assert multiprocess.launched_size({}) == 1 and not multiprocess.launched_by_mpi({})
+    assert multiprocess.launched_size({"PMI_SIZE": "4", "PMI_RANK": "1"}) == 4
+    assert multiprocess.launched_by_mpi({"OMPI_COMM_WORLD_SIZE": "2"})
+    assert not multiprocess.launched_by_mpi({"PMI_SIZE": "1"})
+
+
+def test_single_process_defaults_to_psum():
+    assert multiprocess.default_sync() == "psum"
+
+
+@pytest.mark.mpi
+def test_mpi_sync_in_one_process_equals_psum(reference):
+    """One MPI rank (singleton): the Allreduce is the identity, both parts on one device."""
+    pytest.importorskip("mpi4py")
+    import jax
+
+    from jaxsync.distributed import DistributedRunner
+    from jaxsync.solver import build_system, drive, initial_state
+
+    problem = jaxsync.cantilever()
+    system = build_system(problem, problem.dt)
+    backends = ["callback"] + (["mpi4jax"] if multiprocess.mpi4jax_available() else [])
+    for backend in backends:
+        runner = DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, sync="mpi",
+                                   allreduce=backend, devices=jax.devices()[:1])
+        traj = drive(problem, runner, initial_state(problem, system), STEPS, float(problem.dt),
+                     SAVE_EVERY, partition=runner.partition)
+        assert relative_error(traj.displacement, reference.displacement) <= 1e-12, backend
+    with pytest.raises(jaxsync.ConfigError, match="one device"):
+        DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, sync="mpi")
+    with pytest.raises(jaxsync.ConfigError, match="sync must be"):
+        DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, sync="nccl")
+
+
+@pytest.mark.mpi
+def test_initialize_after_jax_use_is_refused():
+    pytest.importorskip("mpi4py")
+    import jax
+
+    jax.devices()  # JAX is in use in this test process
+    with pytest.raises(jaxsync.ConfigError, match="before"):
+        multiprocess.initialize()
