@@ -1,0 +1,303 @@
+"""Checkpoint files of a set of trained replicas (one file per set, HDF5).
+
+Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`)::
+
+    /params/<path>          stacked, padded parameters, e.g. params/encoder/0/forward/w_d
+                            with shape (n_parts, 4 n_H, n_dof)
+    /normalization/mean     (n_parts, n_dof) float64, solver units
+    /normalization/std      (n_parts, n_dof) float64
+    /dof_counts             (n_parts,) int64, real dofs of each part
+    /shared_nodes/<p>       (n_shared_p,) int64 global node ids of part p (optional group)
+    attrs: format, format_version, architecture (JSON), n_s, metadata (JSON),
+           checksum_sha256
+
+The checksum is SHA-256 over every dataset (name, dtype, shape, bytes; sorted by name)
+and every other attribute (canonical JSON), so any change to stored values is detected.
+Files are written under a temporary name and moved into place with ``os.replace``: a
+failed write never clobbers an existing good checkpoint.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import h5py
+import jax
+import numpy as np
+
+from jaxsync.errors import CheckpointError
+from jaxsync.surrogate.data import padding_mask
+from jaxsync.surrogate.lstm import LSTMArchitecture, Params, init_params
+from jaxsync.surrogate.train import TrainResult
+
+FORMAT_NAME = "jaxsync-lstm-surrogate"
+FORMAT_VERSION = 1
+_CHECKSUM_ATTR = "checksum_sha256"
+
+
+@dataclasses.dataclass(frozen=True)
+class SurrogateCheckpoint:
+    """Everything needed to run a set of trained replicas.
+
+    Attributes:
+        arch: architecture; ``arch.n_dof`` is the padded width.
+        params: stacked parameters (leading part axis), numpy arrays.
+        mean, std: (n_parts, n_dof) normalization, solver units (padding: 0 and 1).
+        dof_counts: real dofs per part.
+        n_s: sampling stride the replicas were trained with.
+        shared_nodes: per part, global ids of its shared nodes (dofs node-interleaved),
+            or None for histories that are not tied to a partition.
+        metadata: JSON-serializable extras (training configuration, losses...).
+    """
+
+    arch: LSTMArchitecture
+    params: Params
+    mean: np.ndarray
+    std: np.ndarray
+    dof_counts: tuple[int, ...]
+    n_s: int
+    shared_nodes: tuple[np.ndarray, ...] | None = None
+    metadata: dict[str, Any] = dataclasses.field(default_factory=dict)
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.dof_counts)
+
+    @property
+    def dof_mask(self) -> np.ndarray:
+        """(n_parts, n_dof) float32, 1 on real dofs."""
+        return padding_mask(self.dof_counts, self.arch.n_dof)
+
+    @classmethod
+    def from_result(
+        cls,
+        result: TrainResult,
+        n_s: int,
+        shared_nodes: Sequence[np.ndarray] | None = None,
+        metadata: dict[str, Any] | None = None,
+    ) -> "SurrogateCheckpoint":
+        """Checkpoint of the replicas returned by :func:`~jaxsync.surrogate.train.train_replicas`."""
+        return cls(
+            arch=result.arch, params=result.params, mean=result.mean, std=result.std,
+            dof_counts=result.dof_counts, n_s=int(n_s),
+            shared_nodes=None if shared_nodes is None else tuple(np.asarray(n, np.int64) for n in shared_nodes),
+            metadata={"training": result.config.to_dict(), **(metadata or {})},
+        )
+
+
+def _param_paths(arch: LSTMArchitecture):
+    """(path string, shape, dtype) of every parameter leaf of one replica, in tree order."""
+    template = jax.eval_shape(init_params, jax.random.key(0), arch)
+    leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
+    paths = []
+    for keypath, leaf in leaves:
+        parts = [str(getattr(k, "key", getattr(k, "idx", k))) for k in keypath]
+        paths.append(("/".join(parts), leaf.shape, leaf.dtype))
+    return paths, treedef
+
+
+def _checksum(datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
+    digest = hashlib.sha256()
+    for name in sorted(datasets):
+        array = np.ascontiguousarray(datasets[name])
+        digest.update(name.encode())
+        digest.update(array.dtype.str.encode())
+        digest.update(repr(array.shape).encode())
+        digest.update(array.tobytes())
+    meta = {k: v for k, v in attrs.items() if k != _CHECKSUM_ATTR}
+    digest.update(json.dumps(meta, sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
+    paths, _ = _param_paths(ckpt.arch)
+    leaves = jax.tree_util.tree_leaves(ckpt.params)
+    if len(leaves) != len(paths):
+        raise CheckpointError(
+            f"parameters have {len(leaves)} arrays but the architecture expects {len(paths)}; "
+            "save the parameters that train_replicas returned for this architecture"
+        )
+    datasets = {}
+    for (path, shape, dtype), leaf in zip(paths, leaves):
+        leaf = np.asarray(leaf)
+        if leaf.shape != (ckpt.n_parts,) + tuple(shape) or leaf.dtype != dtype:
+            raise CheckpointError(
+                f"parameter {path} has shape {leaf.shape} {leaf.dtype}; expected "
+                f"{(ckpt.n_parts,) + tuple(shape)} {dtype} for {ckpt.n_parts} parts"
+            )
+        datasets[f"params/{path}"] = leaf
+    datasets["normalization/mean"] = np.asarray(ckpt.mean, np.float64)
+    datasets["normalization/std"] = np.asarray(ckpt.std, np.float64)
+    datasets["dof_counts"] = np.asarray(ckpt.dof_counts, np.int64)
+    if ckpt.shared_nodes is not None:
+        if len(ckpt.shared_nodes) != ckpt.n_parts:
+            raise CheckpointError(f"{len(ckpt.shared_nodes)} shared-node lists for {ckpt.n_parts} parts")
+        for p, nodes in enumerate(ckpt.shared_nodes):
+            datasets[f"shared_nodes/{p}"] = np.asarray(nodes, np.int64)
+    return datasets
+
+
+def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
+    """Write ``ckpt`` to ``path`` atomically (temporary file, then ``os.replace``)."""
+    path = os.fspath(path)
+    datasets = _to_datasets(ckpt)
+    if ckpt.mean.shape != (ckpt.n_parts, ckpt.arch.n_dof) or ckpt.std.shape != ckpt.mean.shape:
+        raise CheckpointError(
+            f"normalization has shapes {ckpt.mean.shape}, {ckpt.std.shape}; expected {(ckpt.n_parts, ckpt.arch.n_dof)}"
+        )
+    try:
+        metadata = json.dumps(ckpt.metadata, sort_keys=True)
+    except TypeError as err:
+        raise CheckpointError(f"checkpoint metadata must be JSON-serializable: {err}") from err
+    attrs = {
+        "format": FORMAT_NAME,
+        "format_version": FORMAT_VERSION,
+        "architecture": json.dumps(ckpt.arch.to_dict(), sort_keys=True),
+        "n_s": int(ckpt.n_s),
+        "metadata": metadata,
+    }
+    attrs[_CHECKSUM_ATTR] = _checksum(datasets, attrs)
+    directory = os.path.dirname(os.path.abspath(path))
+    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp{os.getpid()}")
+    try:
+        with h5py.File(tmp, "w") as fh:
+            for name, array in datasets.items():
+                fh.create_dataset(name, data=array)
+            for name, value in attrs.items():
+                fh.attrs[name] = value
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+        raise
+
+
+def _read(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    datasets: dict[str, np.ndarray] = {}
+
+    def visit(name, obj):
+        if isinstance(obj, h5py.Dataset):
+            datasets[name] = obj[()]
+
+    try:
+        with h5py.File(path, "r") as fh:
+            attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in fh.attrs.items()}
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in attrs.items()}
+            fh.visititems(visit)
+    except FileNotFoundError as err:
+        raise CheckpointError(f"checkpoint {path} does not exist; train one with `jaxsync train`") from err
+    except (OSError, KeyError, ValueError) as err:
+        raise CheckpointError(
+            f"checkpoint {path} cannot be read ({err}); the file is truncated or not HDF5: "
+            "restore it or retrain with `jaxsync train`"
+        ) from err
+    return datasets, attrs
+
+
+def load_checkpoint(
+    path: str | os.PathLike, shared_nodes_per_part: Sequence[np.ndarray] | None = None
+) -> SurrogateCheckpoint:
+    """Read and verify a checkpoint.
+
+    Args:
+        path: file written by :func:`save_checkpoint`.
+        shared_nodes_per_part: if given, also run :func:`check_compatible` against it.
+
+    Raises:
+        CheckpointError: unreadable or truncated file, another format or a newer version,
+            checksum mismatch, inconsistent contents, or (with ``shared_nodes_per_part``)
+            a checkpoint made for another partition.
+    """
+    path = os.fspath(path)
+    datasets, attrs = _read(path)
+    if attrs.get("format") != FORMAT_NAME:
+        raise CheckpointError(f"{path} is not a jaxsync surrogate checkpoint (format={attrs.get('format')!r})")
+    version = attrs.get("format_version")
+    if version != FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path} has checkpoint format version {version}; this jaxsync reads version {FORMAT_VERSION}: "
+            "retrain with this version or use the jaxsync that wrote it"
+        )
+    stored = attrs.get(_CHECKSUM_ATTR)
+    actual = _checksum(datasets, attrs)
+    if stored != actual:
+        raise CheckpointError(
+            f"checksum mismatch in {path} (stored {stored}, computed {actual}): the file was modified or "
+            "corrupted; restore it or retrain with `jaxsync train`"
+        )
+    try:
+        arch = LSTMArchitecture.from_dict(json.loads(attrs["architecture"]))
+        metadata = json.loads(attrs["metadata"])
+        n_s = int(attrs["n_s"])
+        dof_counts = tuple(int(c) for c in datasets["dof_counts"])
+        mean, std = datasets["normalization/mean"], datasets["normalization/std"]
+    except (KeyError, ValueError, TypeError) as err:
+        raise CheckpointError(f"checkpoint {path} is incomplete ({err!r}); retrain with `jaxsync train`") from err
+    paths, treedef = _param_paths(arch)
+    leaves = []
+    for name, shape, dtype in paths:
+        leaf = datasets.get(f"params/{name}")
+        if leaf is None or leaf.shape != (len(dof_counts),) + tuple(shape) or leaf.dtype != dtype:
+            raise CheckpointError(
+                f"checkpoint {path}: parameter {name} is missing or has the wrong shape/dtype for its architecture"
+            )
+        leaves.append(leaf)
+    shared = None
+    if any(name.startswith("shared_nodes/") for name in datasets):
+        try:
+            shared = tuple(datasets[f"shared_nodes/{p}"] for p in range(len(dof_counts)))
+        except KeyError as err:
+            raise CheckpointError(f"checkpoint {path} lacks shared node ids of a part ({err})") from err
+    ckpt = SurrogateCheckpoint(
+        arch=arch, params=jax.tree_util.tree_unflatten(treedef, leaves), mean=mean, std=std,
+        dof_counts=dof_counts, n_s=n_s, shared_nodes=shared, metadata=metadata,
+    )
+    if shared_nodes_per_part is not None:
+        check_compatible(ckpt, shared_nodes_per_part)
+    return ckpt
+
+
+def check_compatible(
+    checkpoint: SurrogateCheckpoint, shared_nodes_per_part: Sequence[np.ndarray], dofs_per_node: int = 3
+) -> None:
+    """Check that ``checkpoint`` was trained for this partition.
+
+    Args:
+        checkpoint: loaded checkpoint.
+        shared_nodes_per_part: per part, the global ids of its shared nodes, in the order
+            its shared dofs are laid out (node-interleaved).
+        dofs_per_node: dofs per shared node (3 for the displacement field).
+
+    Raises:
+        CheckpointError: different number of parts, a part with a different shared-dof
+            count, different node ids, or a checkpoint without node ids.
+    """
+    n_parts = len(shared_nodes_per_part)
+    if checkpoint.n_parts != n_parts:
+        raise CheckpointError(
+            f"checkpoint holds {checkpoint.n_parts} replicas but the partition has {n_parts} parts; "
+            "retrain the surrogates on a trajectory of this partition"
+        )
+    for p, nodes in enumerate(shared_nodes_per_part):
+        nodes = np.asarray(nodes, np.int64)
+        if checkpoint.dof_counts[p] != dofs_per_node * nodes.size:
+            raise CheckpointError(
+                f"part {p}: checkpoint replica predicts {checkpoint.dof_counts[p]} shared dofs but the partition "
+                f"has {dofs_per_node * nodes.size} ({nodes.size} shared nodes); retrain on this partition"
+            )
+    if checkpoint.shared_nodes is None:
+        raise CheckpointError(
+            "checkpoint stores no shared node ids, so it cannot be matched to a partition; "
+            "train it from a trajectory file with `jaxsync train`"
+        )
+    for p, nodes in enumerate(shared_nodes_per_part):
+        if not np.array_equal(np.asarray(nodes, np.int64), checkpoint.shared_nodes[p]):
+            raise CheckpointError(
+                f"part {p}: checkpoint was trained for other shared nodes than this partition has "
+                "(different partition or numbering); retrain on this partition"
+            )

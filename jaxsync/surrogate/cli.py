@@ -1,0 +1,208 @@
+"""``jaxsync train``: train the per-part LSTM surrogates on distributed trajectory files.
+
+Writes, into the output directory: the checkpoint (``surrogate.h5`` by default), the loss
+curves (``loss_curves.png``) and a JSON summary (``train_summary.json``).  Every file is
+written under a temporary name and moved into place, so a failed run leaves earlier
+results intact.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+
+import jax
+import numpy as np
+
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
+from jaxsync.surrogate.data import build_dataset, read_shared_histories, stack_replicas
+from jaxsync.surrogate.evaluate import evaluate_result, max_applications
+from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
+from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
+
+
+def add_train_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``train`` subcommand to an argparse subparsers object.
+
+    ``args.func(args)`` runs it (see :func:`run_train`).
+    """
+    parser = subparsers.add_parser(
+        "train",
+        help="train the per-part LSTM surrogates on trajectory files",
+        description="Train one LSTM encoder-decoder per part on the shared-dof histories of one or more "
+        "distributed trajectory files (saved every step), all parts together.",
+    )
+    parser.add_argument("trajectories", nargs="+", help="trajectory HDF5 files (one run each, same partition)")
+    parser.add_argument("-o", "--output", default="surrogate_out", help="output directory (default: %(default)s)")
+    parser.add_argument("--checkpoint-name", default="surrogate.h5",
+                        help="checkpoint file name inside the output directory (default: %(default)s)")
+    parser.add_argument("--load-parameter", type=float, nargs="+", default=None,
+                        help="load parameter alpha_f of each trajectory, in order (default: the files' "
+                        "'load_parameter' attribute); needed with --cond-repeat > 0")
+    parser.add_argument("--n-s", type=int, default=80, help="sampling stride n_s in steps (default: %(default)s)")
+    parser.add_argument("--n-past", type=int, default=20, help="input snapshots n_p (default: %(default)s)")
+    parser.add_argument("--n-future", type=int, default=20, help="predicted snapshots n_f (default: %(default)s)")
+    parser.add_argument("--train-fraction", type=float, default=0.5,
+                        help="leading fraction n_ts of each run used for training (default: %(default)s)")
+    parser.add_argument("--val-fraction", type=float, default=0.25,
+                        help="fraction of windows held out for validation (default: %(default)s)")
+    parser.add_argument("--hidden", type=int, default=100, help="encoder hidden size n_H (default: %(default)s)")
+    parser.add_argument("--layers", type=int, default=2, help="bidirectional encoder layers k (default: %(default)s)")
+    parser.add_argument("--cond-repeat", type=int, default=0,
+                        help="copies q of the load parameter fed to the decoder; 0 = unconditional "
+                        "(default: %(default)s; paper: 12)")
+    parser.add_argument("--batch-size", type=int, default=5, help="mini-batch size n_B (default: %(default)s)")
+    parser.add_argument("--eta0", type=float, default=5e-4, help="initial learning rate (default: %(default)s)")
+    parser.add_argument("--gamma", type=float, default=0.9995,
+                        help="per-epoch learning-rate decay (default: %(default)s)")
+    parser.add_argument("--eta-min", type=float, default=5e-7,
+                        help="final learning rate of the epoch rule (default: %(default)s)")
+    parser.add_argument("--epochs", type=int, default=None,
+                        help="number of epochs (default: floor(log_gamma(eta_min/eta0)), the paper's rule)")
+    parser.add_argument("--epochs-per-call", type=int, default=10,
+                        help="epochs per compiled call between progress updates (default: %(default)s)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of initialization, shuffling and the train/validation split (default: %(default)s)")
+    parser.add_argument("--emse-applications", type=int, default=60,
+                        help="refill cycles N for the E_mse of the summary, clipped to what the first "
+                        "trajectory holds; 0 skips it (default: %(default)s)")
+    parser.add_argument("--devices", type=int, default=None,
+                        help="local devices to spread the parts over (default: as many as divide the part count)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.set_defaults(func=run_train)
+    return parser
+
+
+def _load_runs(args):
+    runs = [read_shared_histories(path) for path in args.trajectories]
+    first = runs[0]
+    for path, run in zip(args.trajectories[1:], runs[1:]):
+        same = len(run.shared_nodes) == len(first.shared_nodes) and all(
+            np.array_equal(a, b) for a, b in zip(run.shared_nodes, first.shared_nodes)
+        )
+        if not same:
+            raise CheckpointError(
+                f"{path} belongs to another partition than {args.trajectories[0]} (different shared nodes); "
+                "train on runs of one partition"
+            )
+    if args.load_parameter is not None:
+        if len(args.load_parameter) != len(runs):
+            raise ConfigError(
+                f"--load-parameter got {len(args.load_parameter)} values for {len(runs)} trajectories; give one each"
+            )
+        loads = list(args.load_parameter)
+    elif all(run.load_parameter is not None for run in runs):
+        loads = [run.load_parameter for run in runs]
+    else:
+        loads = None
+    if args.cond_repeat > 0 and loads is None:
+        raise ConfigError(
+            "--cond-repeat > 0 trains the conditional network, which needs a load parameter per trajectory: "
+            "pass --load-parameter or store a 'load_parameter' attribute in the files"
+        )
+    return runs, (loads if args.cond_repeat > 0 else None)
+
+
+def _atomic_write_text(path: str, text: str) -> None:
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as fh:
+        fh.write(text)
+    os.replace(tmp, path)
+
+
+def plot_loss_curves(result: TrainResult, path: str) -> None:
+    """Write the per-part training and validation loss curves to a PNG (atomically)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(7, 4.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    epochs = np.arange(1, result.train_loss.shape[0] + 1)
+    for p in range(result.train_loss.shape[1]):
+        line, = ax.semilogy(epochs, result.train_loss[:, p], label=f"part {p} train")
+        ax.semilogy(epochs, result.val_loss[:, p], "--", color=line.get_color(), label=f"part {p} validation")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("MSE (normalized)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    tmp = f"{path}.tmp{os.getpid()}.png"
+    fig.savefig(tmp, dpi=120)
+    os.replace(tmp, path)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    """Run ``jaxsync train`` with parsed arguments; returns the exit status 0.
+
+    Raises:
+        ConfigError, CheckpointError: unusable options or trajectory files.
+    """
+    runs, loads = _load_runs(args)
+    n_parts = len(runs[0].histories)
+    datasets = [
+        build_dataset([run.histories[p] for run in runs], args.n_s, args.n_past, args.n_future,
+                      args.train_fraction, args.val_fraction, args.seed, loads)
+        for p in range(n_parts)
+    ]
+    data = stack_replicas(datasets)
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.hidden, n_layers=args.layers,
+                            n_past=args.n_past, n_future=args.n_future, n_cond_repeat=args.cond_repeat)
+    config = TrainConfig(batch_size=args.batch_size, eta0=args.eta0, gamma=args.gamma, eta_min=args.eta_min,
+                         n_epochs=args.epochs, epochs_per_call=args.epochs_per_call)
+    os.makedirs(args.output, exist_ok=True)
+    started = time.perf_counter()
+    result = train_replicas(data, arch, config, jax.random.key(args.seed), progress=not args.no_progress,
+                            devices=args.devices)
+    train_seconds = time.perf_counter() - started
+
+    first = runs[0]
+    n_app = min(args.emse_applications,
+                max_applications(first.histories[0].shape[0], args.n_s, args.n_past, args.n_future))
+    sqrt_e_mse = None
+    if n_app > 0:
+        histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
+        err = evaluate_result(result, histories, args.n_s, n_app, cond=None if loads is None else loads[0])
+        sqrt_e_mse = [float(v) for v in np.sqrt(err)]
+
+    summary = {
+        "trajectories": [os.path.abspath(p) for p in args.trajectories],
+        "load_parameters": loads,
+        "n_parts": n_parts,
+        "dof_counts": list(result.dof_counts),
+        "architecture": arch.to_dict(),
+        "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
+        "training": {**config.to_dict(), "n_epochs_run": int(result.train_loss.shape[0])},
+        "sampling": {"n_s": args.n_s, "train_fraction": args.train_fraction, "val_fraction": args.val_fraction,
+                     "seed": args.seed, "n_train_windows": int(data.x_train.shape[1]),
+                     "n_val_windows": int(data.x_val.shape[1])},
+        "initial_val_loss": result.initial_val_loss.tolist(),
+        "final_train_loss": result.train_loss[-1].tolist(),
+        "final_val_loss": result.val_loss[-1].tolist(),
+        "seconds_per_epoch": result.seconds_per_epoch,
+        "gradient_steps_per_second": result.steps_per_epoch / result.seconds_per_epoch,
+        "compile_seconds": result.compile_seconds,
+        "train_seconds": train_seconds,
+        "e_mse_applications": n_app if sqrt_e_mse is not None else None,
+        "sqrt_e_mse": sqrt_e_mse,
+    }
+    checkpoint_path = os.path.join(args.output, args.checkpoint_name)
+    ckpt = SurrogateCheckpoint.from_result(
+        result, args.n_s, first.shared_nodes,
+        metadata={k: summary[k] for k in ("training", "sampling", "load_parameters", "final_val_loss", "sqrt_e_mse")},
+    )
+    save_checkpoint(checkpoint_path, ckpt)
+    plot_path = os.path.join(args.output, "loss_curves.png")
+    plot_loss_curves(result, plot_path)
+    summary.update(checkpoint=os.path.abspath(checkpoint_path), loss_curves=os.path.abspath(plot_path),
+                   loss_history={"train": result.train_loss.tolist(), "val": result.val_loss.tolist()})
+    _atomic_write_text(os.path.join(args.output, "train_summary.json"), json.dumps(summary, indent=2))
+    print(f"wrote {checkpoint_path}, {plot_path} and train_summary.json; "
+          f"final validation MSE per part: {', '.join(f'{v:.3e}' for v in result.val_loss[-1])}")
+    return 0
+
+
+__all__ = ["add_train_parser", "run_train", "plot_loss_curves"]

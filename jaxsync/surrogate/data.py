@@ -1,0 +1,438 @@
+"""Sample-refill training data for the LSTM surrogates (paper sections 3-4, Algorithm 3).
+
+A *history* is an array (n_steps, n_dof) of one part's shared-dof displacements saved at
+every time step (step k is row k; units of the solver, cm in the paper).  From it:
+
+1. only the first ``train_fraction`` (n_ts) of the steps feed training;
+2. one snapshot every ``n_s`` steps is kept (:func:`subsample`);
+3. windows of ``n_past`` inputs followed by ``n_future`` targets slide over the kept
+   snapshots one snapshot at a time (:func:`make_windows`);
+4. the windows are split 75/25 into training and validation with a seeded permutation;
+5. a per-dof normalization (mean, std) is fitted on the training windows and applied to
+   everything; it is stored with the model.
+
+Several runs (different initial conditions or loads, each with its scalar load parameter
+for the conditional network) are combined by pooling their windows before the split.
+
+Refill index sets (Algorithm 3)
+-------------------------------
+At the current step ``n`` (the last step whose displacements are known), the network is
+applied ``n_s`` times, ``i = 0 .. n_s - 1``, with
+
+    N_p^i = { n + 1 + i - n_s (n_p - j) : j = 0 .. n_p - 1 }   (inputs)
+    N_f^i = { n + 1 + i + n_s j         : j = 0 .. n_f - 1 }   (targets)
+
+Inputs and targets are both spaced n_s steps apart, the last input lies one stride
+before the first target, and the union of the N_f^i over i is exactly
+n + 1 .. n + n_s n_f, each step once.  The inputs span the last n_s n_p steps
+n + 1 - n_s n_p .. n, so refill needs n + 1 >= n_s n_p (steps counted from 0).  With
+``buffer`` the rows of those last n_s n_p steps, :func:`refill_windows` gathers the
+inputs of all applications by a reshape and :func:`refill_scatter` lays their outputs out
+in step order (application i fills rows i, i + n_s, ... of the next n_s n_f steps).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+
+import h5py
+import numpy as np
+
+from jaxsync.errors import CheckpointError, ConfigError
+
+# ----------------------------------------------------------------------------- refill
+
+
+def refill_input_steps(n: int, n_s: int, n_p: int, i: int) -> np.ndarray:
+    """N_p^i: steps whose snapshots are the inputs of refill application ``i``.
+
+    ``N_p^i = { n + 1 + i - n_s (n_p - j) : j = 0 .. n_p - 1 }`` (increasing).
+
+    Args:
+        n: current step (last known).
+        n_s: sampling stride.
+        n_p: input snapshots per window.
+        i: application index, 0 <= i < n_s.
+    """
+    _check_refill_args(n, n_s, n_p, 1, i)
+    return n + 1 + i - n_s * (n_p - np.arange(n_p, dtype=np.int64))
+
+
+def refill_target_steps(n: int, n_s: int, n_f: int, i: int) -> np.ndarray:
+    """N_f^i: steps that refill application ``i`` predicts.
+
+    ``N_f^i = { n + 1 + i + n_s j : j = 0 .. n_f - 1 }`` (increasing).
+    """
+    _check_refill_args(n, n_s, 1, n_f, i)
+    return n + 1 + i + n_s * np.arange(n_f, dtype=np.int64)
+
+
+def refill_index_sets(n: int, n_s: int, n_p: int, n_f: int) -> tuple[np.ndarray, np.ndarray]:
+    """All refill index sets at step ``n``.
+
+    Returns:
+        ``(inputs (n_s, n_p), targets (n_s, n_f))``: row i is N_p^i, respectively N_f^i.
+    """
+    inputs = np.stack([refill_input_steps(n, n_s, n_p, i) for i in range(n_s)])
+    targets = np.stack([refill_target_steps(n, n_s, n_f, i) for i in range(n_s)])
+    return inputs, targets
+
+
+def refill_windows(buffer, n_s: int, n_p: int):
+    """Inputs of the n_s refill applications from the last n_s n_p steps.
+
+    Args:
+        buffer: (n_s n_p, ...) rows of steps n + 1 - n_s n_p .. n (NumPy or JAX array).
+
+    Returns:
+        (n_s, n_p, ...): entry [i, j] is row ``i + j n_s``, i.e. step N_p^i[j].
+    """
+    return buffer.reshape((n_p, n_s) + buffer.shape[1:]).swapaxes(0, 1)
+
+
+def refill_scatter(predictions, n_s: int):
+    """Lay the outputs of the n_s refill applications out in step order.
+
+    Args:
+        predictions: (n_s, n_f, ...), entry [i, j] predicting step N_f^i[j].
+
+    Returns:
+        (n_s n_f, ...): row k is step n + 1 + k; row ``i + j n_s`` is entry [i, j].
+    """
+    n_f = predictions.shape[1]
+    return predictions.swapaxes(0, 1).reshape((n_f * n_s,) + predictions.shape[2:])
+
+
+def _check_refill_args(n, n_s, n_p, n_f, i):
+    if min(n_s, n_p, n_f) < 1:
+        raise ConfigError(f"n_s, n_p, n_f must be >= 1, got {n_s}, {n_p}, {n_f}")
+    if not 0 <= i < n_s:
+        raise ConfigError(f"refill application index i must be in [0, n_s={n_s}), got {i}")
+    if n + 1 < n_s * n_p:
+        raise ConfigError(
+            f"refill at step n={n} needs n + 1 >= n_s * n_p = {n_s * n_p} known steps; "
+            "run more synchronized steps first"
+        )
+
+
+# ----------------------------------------------------------------------------- windows
+
+
+def subsample(history: np.ndarray, n_s: int, offset: int = 0) -> np.ndarray:
+    """Keep one snapshot every ``n_s`` steps, starting at step ``offset``.
+
+    Args:
+        history: (n_steps, n_dof) displacements at every step.
+
+    Returns:
+        (ceil((n_steps - offset) / n_s), n_dof) snapshots of steps offset, offset + n_s, ...
+    """
+    if n_s < 1:
+        raise ConfigError(f"sampling stride n_s must be >= 1, got {n_s}")
+    return np.asarray(history)[offset::n_s]
+
+
+def make_windows(snapshots: np.ndarray, n_past: int, n_future: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sliding windows over consecutive snapshots (stride one snapshot).
+
+    Args:
+        snapshots: (n_snap, n_dof).
+        n_past: n_p input snapshots.
+        n_future: n_f target snapshots.
+
+    Returns:
+        ``(x (n_w, n_p, n_dof), y (n_w, n_f, n_dof))`` with n_w = n_snap - n_p - n_f + 1;
+        window w has inputs snapshots w .. w + n_p - 1 and targets w + n_p .. w + n_p + n_f - 1.
+    """
+    snapshots = np.asarray(snapshots)
+    length = n_past + n_future
+    if snapshots.shape[0] < length:
+        raise ConfigError(
+            f"{snapshots.shape[0]} snapshots cannot make one window of n_p + n_f = {length}; "
+            "use a longer run, a larger train fraction or a smaller n_s"
+        )
+    windows = np.lib.stride_tricks.sliding_window_view(snapshots, length, axis=0)  # (n_w, n_dof, L)
+    windows = np.moveaxis(windows, -1, 1)
+    return np.ascontiguousarray(windows[:, :n_past]), np.ascontiguousarray(windows[:, n_past:])
+
+
+def split_indices(n_windows: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded random split of window indices into training and validation.
+
+    Returns:
+        ``(train, val)`` sorted index arrays; ``len(val) = round(val_fraction * n_windows)``,
+        at least one of each.
+    """
+    if not 0.0 < val_fraction < 1.0:
+        raise ConfigError(f"validation fraction must be in (0, 1), got {val_fraction}")
+    if n_windows < 2:
+        raise ConfigError(f"need at least 2 windows to split train/validation, got {n_windows}")
+    n_val = min(max(int(round(val_fraction * n_windows)), 1), n_windows - 1)
+    perm = np.random.default_rng(seed).permutation(n_windows)
+    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+
+
+# ----------------------------------------------------------------------------- normalization
+
+
+@dataclasses.dataclass(frozen=True)
+class Normalization:
+    """Per-dof affine normalization ``z = (d - mean) / std``.
+
+    Attributes:
+        mean: (n_dof,) float64, solver units.
+        std: (n_dof,) float64, solver units; dofs that never move get std 1.
+    """
+
+    mean: np.ndarray
+    std: np.ndarray
+
+    @classmethod
+    def fit(cls, snapshots: np.ndarray) -> "Normalization":
+        """Fit on (..., n_dof) snapshots; constant dofs get std 1 (avoids 0/0)."""
+        flat = np.asarray(snapshots, dtype=np.float64).reshape(-1, np.shape(snapshots)[-1])
+        mean = flat.mean(axis=0)
+        std = flat.std(axis=0)
+        scale = max(float(np.max(std, initial=0.0)), float(np.max(np.abs(mean), initial=0.0)))
+        # A dof whose spread is at round-off level relative to the data is treated as fixed.
+        std = np.where(std > 1e-12 * scale, std, 1.0) if scale > 0 else np.ones_like(std)
+        return cls(mean=mean, std=std)
+
+    def apply(self, values):
+        return (values - self.mean) / self.std
+
+    def invert(self, values):
+        return values * self.std + self.mean
+
+
+# ----------------------------------------------------------------------------- datasets
+
+
+@dataclasses.dataclass(frozen=True)
+class WindowDataset:
+    """Normalized training/validation windows of one part.
+
+    Attributes:
+        x_train, y_train: (n_train, n_p, n_dof), (n_train, n_f, n_dof) float32.
+        cond_train: (n_train,) float32 load parameter of each window's run (0 if none).
+        x_val, y_val, cond_val: the validation counterparts.
+        normalization: fitted on the training windows.
+    """
+
+    x_train: np.ndarray
+    y_train: np.ndarray
+    cond_train: np.ndarray
+    x_val: np.ndarray
+    y_val: np.ndarray
+    cond_val: np.ndarray
+    normalization: Normalization
+
+    @property
+    def n_dof(self) -> int:
+        return self.x_train.shape[-1]
+
+
+def build_dataset(
+    runs: Sequence[np.ndarray],
+    n_s: int,
+    n_past: int,
+    n_future: int,
+    train_fraction: float = 0.5,
+    val_fraction: float = 0.25,
+    split_seed: int = 0,
+    load_parameters: Sequence[float] | None = None,
+) -> WindowDataset:
+    """Windows of one part from one or several runs.
+
+    Args:
+        runs: per run, the (n_steps, n_dof) history at every step (same n_dof for all).
+        n_s: sampling stride (steps between kept snapshots).
+        n_past, n_future: n_p and n_f.
+        train_fraction: n_ts, the leading fraction of each run's steps that may be used.
+        val_fraction: fraction of windows held out for validation (paper: 0.25).
+        split_seed: seed of the train/validation permutation. Parts built with the same
+            runs and seed get the same split (their windows are aligned in time).
+        load_parameters: one scalar per run for the conditional network, or None.
+
+    Returns:
+        The normalized :class:`WindowDataset`.
+    """
+    if len(runs) == 0:
+        raise ConfigError("build_dataset needs at least one run")
+    if load_parameters is not None and len(load_parameters) != len(runs):
+        raise ConfigError(f"got {len(load_parameters)} load parameters for {len(runs)} runs; give one per run")
+    if not 0.0 < train_fraction <= 1.0:
+        raise ConfigError(f"train fraction n_ts must be in (0, 1], got {train_fraction}")
+    n_dof = np.shape(runs[0])[-1]
+    xs, ys, conds = [], [], []
+    for r, run in enumerate(runs):
+        run = np.asarray(run, dtype=np.float64)
+        if run.ndim != 2 or run.shape[1] != n_dof:
+            raise ConfigError(f"run {r} has shape {run.shape}; expected (n_steps, {n_dof})")
+        if not np.all(np.isfinite(run)):
+            raise ConfigError(f"run {r} holds NaN or Inf displacements; it cannot be used for training")
+        n_used = int(np.floor(train_fraction * run.shape[0]))
+        x, y = make_windows(subsample(run[:n_used], n_s), n_past, n_future)
+        xs.append(x)
+        ys.append(y)
+        conds.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
+    x, y, cond = np.concatenate(xs), np.concatenate(ys), np.concatenate(conds)
+    train, val = split_indices(x.shape[0], val_fraction, split_seed)
+    norm = Normalization.fit(np.concatenate([x[train], y[train]], axis=1))
+
+    def prep(a):
+        return norm.apply(a).astype(np.float32)
+
+    return WindowDataset(
+        x_train=prep(x[train]), y_train=prep(y[train]), cond_train=cond[train].astype(np.float32),
+        x_val=prep(x[val]), y_val=prep(y[val]), cond_val=cond[val].astype(np.float32),
+        normalization=norm,
+    )
+
+
+@dataclasses.dataclass(frozen=True)
+class ReplicaData:
+    """Windows of all parts, padded to a common dof count and stacked on a leading part axis.
+
+    Attributes:
+        x_train, y_train: (n_parts, n_train, n_p|n_f, n_dof_max) float32, zero padding.
+        cond_train: (n_parts, n_train) float32.
+        x_val, y_val, cond_val: validation counterparts.
+        dof_mask: (n_parts, n_dof_max) float32, 1 on real dofs.
+        dof_counts: real dofs per part.
+        mean, std: (n_parts, n_dof_max) float64 normalization (0 and 1 on padding).
+    """
+
+    x_train: np.ndarray
+    y_train: np.ndarray
+    cond_train: np.ndarray
+    x_val: np.ndarray
+    y_val: np.ndarray
+    cond_val: np.ndarray
+    dof_mask: np.ndarray
+    dof_counts: tuple[int, ...]
+    mean: np.ndarray
+    std: np.ndarray
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.dof_counts)
+
+    @property
+    def n_dof_max(self) -> int:
+        return self.dof_mask.shape[1]
+
+
+def padding_mask(dof_counts: Sequence[int], n_dof: int) -> np.ndarray:
+    """(n_parts, n_dof) float32 mask, 1 on the first ``dof_counts[p]`` dofs of part p."""
+    return (np.arange(n_dof)[None, :] < np.asarray(dof_counts)[:, None]).astype(np.float32)
+
+
+def stack_replicas(datasets: Sequence[WindowDataset]) -> ReplicaData:
+    """Pad every part's windows to the largest dof count and stack them.
+
+    All parts must have the same number of windows (true when they come from the same
+    runs with the same sampling and split seed).
+    """
+    if len(datasets) == 0:
+        raise ConfigError("stack_replicas needs at least one dataset")
+    shapes = {(d.x_train.shape[:2], d.y_train.shape[:2], d.x_val.shape[:2]) for d in datasets}
+    if len(shapes) != 1:
+        raise ConfigError(
+            f"parts have different window counts {sorted(shapes)}; build every part from the same runs, "
+            "sampling and split seed"
+        )
+    counts = tuple(int(d.n_dof) for d in datasets)
+    width = max(counts)
+
+    def pad(a, fill=0.0):
+        widths = [(0, 0)] * (a.ndim - 1) + [(0, width - a.shape[-1])]
+        return np.pad(a, widths, constant_values=fill)
+
+    return ReplicaData(
+        x_train=np.stack([pad(d.x_train) for d in datasets]),
+        y_train=np.stack([pad(d.y_train) for d in datasets]),
+        cond_train=np.stack([d.cond_train for d in datasets]),
+        x_val=np.stack([pad(d.x_val) for d in datasets]),
+        y_val=np.stack([pad(d.y_val) for d in datasets]),
+        cond_val=np.stack([d.cond_val for d in datasets]),
+        dof_mask=padding_mask(counts, width),
+        dof_counts=counts,
+        mean=np.stack([pad(d.normalization.mean) for d in datasets]),
+        std=np.stack([pad(d.normalization.std, 1.0) for d in datasets]),
+    )
+
+
+# ----------------------------------------------------------------------------- trajectory files
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedHistories:
+    """Per-part shared-dof histories read from a distributed trajectory file.
+
+    Attributes:
+        histories: per part, (n_steps, 3 n_shared_p) displacements at every step, float64.
+        shared_nodes: per part, (n_shared_p,) int64 global node ids.
+        dt: time step (s).
+        load_parameter: the file's root attribute ``load_parameter`` if present, else None.
+    """
+
+    histories: tuple[np.ndarray, ...]
+    shared_nodes: tuple[np.ndarray, ...]
+    dt: float
+    load_parameter: float | None
+
+
+def read_shared_histories(path) -> SharedHistories:
+    """Read ``/parts/<p>/shared_displacement`` and ``shared_nodes`` of a trajectory file.
+
+    The file must have been saved at every step (root attribute ``save_every == 1``).
+
+    Raises:
+        CheckpointError: missing file, groups or attributes, inconsistent shapes, or a
+            trajectory saved with ``save_every != 1``.
+    """
+    try:
+        fh = h5py.File(path, "r")
+    except FileNotFoundError as err:
+        raise CheckpointError(f"trajectory file {path} does not exist") from err
+    except OSError as err:
+        raise CheckpointError(f"trajectory file {path} cannot be read ({err}); is it a complete HDF5 file?") from err
+    with fh:
+        try:
+            n_parts = int(fh.attrs["n_parts"])
+            save_every = int(fh.attrs["save_every"])
+            dt = float(fh.attrs["dt"])
+        except KeyError as err:
+            raise CheckpointError(
+                f"trajectory file {path} lacks root attribute {err}; write it with the distributed solver"
+            ) from err
+        if save_every != 1:
+            raise CheckpointError(
+                f"trajectory file {path} was saved every {save_every} steps; surrogate training needs every step: "
+                "rerun the solver with save_every=1"
+            )
+        histories, nodes = [], []
+        for p in range(n_parts):
+            try:
+                group = fh[f"parts/{p}"]
+                disp = np.asarray(group["shared_displacement"][()], np.float64)
+                ids = np.asarray(group["shared_nodes"][()], np.int64)
+            except (KeyError, OSError) as err:
+                raise CheckpointError(
+                    f"trajectory file {path}: part {p} lacks shared_displacement or shared_nodes ({err}); "
+                    "was the run distributed, and did it finish?"
+                ) from err
+            if disp.ndim != 2 or disp.shape[1] != 3 * ids.size:
+                raise CheckpointError(
+                    f"trajectory file {path}: part {p} has shared_displacement {disp.shape} for {ids.size} shared nodes; "
+                    f"expected (n_saved, {3 * ids.size})"
+                )
+            histories.append(disp)
+            nodes.append(ids)
+        lengths = {h.shape[0] for h in histories}
+        if len(lengths) > 1:
+            raise CheckpointError(f"trajectory file {path}: parts hold different numbers of steps {sorted(lengths)}")
+        load = fh.attrs.get("load_parameter")
+    return SharedHistories(tuple(histories), tuple(nodes), dt, None if load is None else float(load))

@@ -1,0 +1,313 @@
+"""LSTM encoder-decoder written by hand in JAX (Tong & Schiavazzi 2022, section 3).
+
+The network maps a window of ``n_past`` snapshots of a part's shared degrees of freedom
+to the next ``n_future`` snapshots.  Everything here is unbatched (one window); callers
+``jax.vmap`` over windows and over replicas.
+
+Cell (Hochreiter & Schmidhuber), for input ``d`` and previous state ``(h, c)``::
+
+    f = sigmoid(W_fd d + W_fh h + b_f)         forget gate
+    i = sigmoid(W_id d + W_ih h + b_i)         input gate
+    g = tanh   (W_gd d + W_gh h + b_g)         candidate cell update
+    o = sigmoid(W_od d + W_oh h + b_o)         output gate
+    c' = f * c + i * g
+    h' = o * tanh(c')
+
+The four gate blocks are stacked in the order (f, i, g, o) along the first axis of
+``w_d`` (4 n_H, n_in), ``w_h`` (4 n_H, n_H) and ``b`` (4 n_H,).
+
+Parameters are a plain pytree of arrays::
+
+    {"encoder": [{"forward": cell, "backward": cell}, ...],   # n_layers entries
+     "decoder": cell,                                          # hidden size 2 n_H
+     "dense": {"w": (n_dof, 2 n_H), "b": (n_dof,)}}
+
+Initialization (the defaults of PyTorch's ``nn.LSTM`` and ``nn.Linear``): every LSTM
+weight and bias ~ U(-1/sqrt(H), 1/sqrt(H)) with H the hidden size of that cell (n_H in
+the encoder, 2 n_H in the decoder); the dense layer's weight and bias
+~ U(-1/sqrt(2 n_H), 1/sqrt(2 n_H)).  Forget-gate biases get no special offset.
+
+Conditional variant: the decoder input is ``[y_prev, alpha_f repeated q times]``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync.errors import ConfigError
+
+Params = dict[str, Any]
+
+_DTYPES = ("float32", "float64")
+
+
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class LSTMArchitecture:
+    """Shape of one encoder-decoder (static: it never carries arrays).
+
+    Attributes:
+        n_dof: degrees of freedom per snapshot (input and output width). For a set of
+            replicas trained together this is the padded width (largest part).
+        n_hidden: n_H, hidden size of each encoder direction; the decoder has 2 n_H.
+        n_layers: k, number of stacked bidirectional encoder layers.
+        n_past: n_p, snapshots in an input window.
+        n_future: n_f, snapshots the decoder predicts (fed its own output).
+        n_cond_repeat: q, copies of the load parameter appended to every decoder input;
+            0 gives the unconditional network.
+        dtype: "float32" (default) or "float64" for the parameters and computation.
+    """
+
+    n_dof: int
+    n_hidden: int = 100
+    n_layers: int = 2
+    n_past: int = 20
+    n_future: int = 20
+    n_cond_repeat: int = 0
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        for name in ("n_dof", "n_hidden", "n_layers", "n_past", "n_future"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"LSTMArchitecture.{name} must be a positive integer, got {value!r}")
+        if not isinstance(self.n_cond_repeat, (int, np.integer)) or self.n_cond_repeat < 0:
+            raise ConfigError(
+                f"LSTMArchitecture.n_cond_repeat must be an integer >= 0, got {self.n_cond_repeat!r}"
+            )
+        if self.dtype not in _DTYPES:
+            raise ConfigError(f"LSTMArchitecture.dtype must be one of {_DTYPES}, got {self.dtype!r}")
+
+    @property
+    def conditional(self) -> bool:
+        """True when the decoder input carries the load parameter."""
+        return self.n_cond_repeat > 0
+
+    @property
+    def decoder_hidden(self) -> int:
+        """Hidden size of the decoder, 2 n_H (forward and backward states concatenated)."""
+        return 2 * self.n_hidden
+
+    def to_dict(self) -> dict[str, Any]:
+        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
+                for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - names
+        if unknown:
+            raise ConfigError(f"unknown LSTMArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
+        return cls(**values)
+
+
+# ----------------------------------------------------------------------------- init
+
+
+def _param_shapes(arch: LSTMArchitecture) -> Params:
+    """Pytree of ``(shape, init_bound)`` with the structure of the parameters."""
+    def cell(n_in, n_h):
+        bound = 1.0 / math.sqrt(n_h)
+        return {"w_d": ((4 * n_h, n_in), bound), "w_h": ((4 * n_h, n_h), bound), "b": ((4 * n_h,), bound)}
+
+    encoder = [
+        {"forward": cell(n_in, arch.n_hidden), "backward": cell(n_in, arch.n_hidden)}
+        for n_in in [arch.n_dof] + [2 * arch.n_hidden] * (arch.n_layers - 1)
+    ]
+    n_dec = arch.decoder_hidden
+    dense_bound = 1.0 / math.sqrt(n_dec)
+    return {
+        "encoder": encoder,
+        "decoder": cell(arch.n_dof + arch.n_cond_repeat, n_dec),
+        "dense": {"w": ((arch.n_dof, n_dec), dense_bound), "b": ((arch.n_dof,), dense_bound)},
+    }
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def init_params(key: jax.Array, arch: LSTMArchitecture) -> Params:
+    """Random parameters for one encoder-decoder (initialization in the module docstring).
+
+    Args:
+        key: PRNG key.
+        arch: the architecture; ``arch.n_dof`` sets the input and output widths.
+
+    Returns:
+        The parameter pytree, arrays of dtype ``arch.dtype``.
+    """
+    spec = _param_shapes(arch)
+    is_spec = lambda x: isinstance(x, tuple) and len(x) == 2 and isinstance(x[0], tuple)  # noqa: E731
+    leaves, treedef = jax.tree_util.tree_flatten(spec, is_leaf=is_spec)
+    sizes = [math.prod(shape) for shape, _ in leaves]
+    # One draw for all leaves, cut into pieces: a single PRNG call compiles much faster
+    # than one per array.
+    unit = jax.random.uniform(key, (sum(sizes),), dtype=jnp.dtype(arch.dtype), minval=-1.0, maxval=1.0)
+    pieces = jnp.split(unit, np.cumsum(sizes)[:-1])
+    arrays = [piece.reshape(shape) * bound for piece, (shape, bound) in zip(pieces, leaves)]
+    return jax.tree_util.tree_unflatten(treedef, arrays)
+
+
+# ----------------------------------------------------------------------------- cell
+
+
+def _cell_update(w_h: jax.Array, carry: tuple[jax.Array, jax.Array], z_in: jax.Array):
+    """Cell step given the input projection ``z_in = W_d d + b`` (4 n_H,)."""
+    h, c = carry
+    z = z_in + w_h @ h
+    f, i, g, o = jnp.split(z, 4, axis=-1)
+    c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
+    h = jax.nn.sigmoid(o) * jnp.tanh(c)
+    return h, c
+
+
+def lstm_cell(cell: Params, carry: tuple[jax.Array, jax.Array], d: jax.Array):
+    """One LSTM step (unbatched).
+
+    Args:
+        cell: ``{"w_d": (4H, n_in), "w_h": (4H, H), "b": (4H,)}``, gates ordered (f, i, g, o).
+        carry: ``(h, c)``, each (H,).
+        d: input (n_in,).
+
+    Returns:
+        The new ``(h, c)``.
+    """
+    return _cell_update(cell["w_h"], carry, cell["w_d"] @ d + cell["b"])
+
+
+def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
+    """Run one direction over a sequence with ``lax.scan``.
+
+    Args:
+        cell: cell parameters.
+        xs: inputs (T, n_in), processed in the given order.
+        carry: initial ``(h, c)``, each (H,).
+
+    Returns:
+        ``(hs, (h_T, c_T))``: the hidden states (T, H) and the final state.
+    """
+    # The input projection does not depend on the recursion: one matmul for all steps.
+    z_in = xs @ cell["w_d"].T + cell["b"]
+
+    def step(carry, z_t):
+        carry = _cell_update(cell["w_h"], carry, z_t)
+        return carry, carry[0]
+
+    final, hs = jax.lax.scan(step, carry, z_in)
+    return hs, final
+
+
+def _bidirectional_layer(layer: Params, xs: jax.Array, n_hidden: int):
+    """One encoder layer: the forward cell reads ``xs``, the backward cell ``xs[::-1]``.
+
+    Returns:
+        ``(outputs (T, 2H) in time order [forward | backward], ((h_f, c_f), (h_b, c_b)))``
+        where the backward final state summarizes the window read from its last snapshot
+        back to its first.
+    """
+    # Derived from the input, not a constant, so that it has the input's type (varying
+    # over the mesh axis) when called under shard_map.
+    zeros = jnp.zeros_like(xs[0, :1], shape=(n_hidden,))
+    hs_f, final_f = run_lstm(layer["forward"], xs, (zeros, zeros))
+    hs_b, final_b = run_lstm(layer["backward"], xs[::-1], (zeros, zeros))
+    return jnp.concatenate([hs_f, hs_b[::-1]], axis=-1), (final_f, final_b)
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def encode(params: Params, arch: LSTMArchitecture, xs: jax.Array):
+    """Stacked bidirectional encoder.
+
+    Args:
+        params: network parameters.
+        arch: architecture.
+        xs: normalized input window (n_p, n_dof).
+
+    Returns:
+        The decoder's initial state ``(h0, c0)``, each (2 n_H,): the last layer's final
+        forward and backward states concatenated ``[forward, backward]``.
+    """
+    layer_in = xs
+    final = None
+    for layer in params["encoder"]:
+        layer_in, final = _bidirectional_layer(layer, layer_in, arch.n_hidden)
+    (h_f, c_f), (h_b, c_b) = final
+    return jnp.concatenate([h_f, h_b]), jnp.concatenate([c_f, c_b])
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def decode(
+    params: Params,
+    arch: LSTMArchitecture,
+    state: tuple[jax.Array, jax.Array],
+    first_input: jax.Array,
+    cond: jax.Array | None = None,
+    dof_mask: jax.Array | None = None,
+) -> jax.Array:
+    """Decoder fed its own predictions for ``n_future`` steps.
+
+    Args:
+        params: network parameters.
+        arch: architecture.
+        state: initial ``(h, c)``, each (2 n_H,).
+        first_input: the last input snapshot d(n_p) (n_dof,).
+        cond: scalar load parameter (conditional networks only).
+        dof_mask: (n_dof,) 1 for real dofs, 0 for padding; padded outputs are zeroed
+            before being fed back so that padding never influences real dofs.
+
+    Returns:
+        Predictions (n_f, n_dof).
+    """
+    if arch.conditional:
+        if cond is None:
+            raise ConfigError("this network is conditional (n_cond_repeat > 0): pass the load parameter cond")
+        cond_vec = jnp.full((arch.n_cond_repeat,), cond, dtype=first_input.dtype)
+    dense = params["dense"]
+
+    def step(carry, _):
+        hc, y_prev = carry
+        d = jnp.concatenate([y_prev, cond_vec]) if arch.conditional else y_prev
+        hc = lstm_cell(params["decoder"], hc, d)
+        y = dense["w"] @ hc[0] + dense["b"]
+        if dof_mask is not None:
+            y = y * dof_mask.astype(y.dtype)
+        return (hc, y), y
+
+    _, ys = jax.lax.scan(step, (state, first_input), None, length=arch.n_future)
+    return ys
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def forward(
+    params: Params,
+    arch: LSTMArchitecture,
+    xs: jax.Array,
+    cond: jax.Array | None = None,
+    dof_mask: jax.Array | None = None,
+) -> jax.Array:
+    """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
+
+    Args:
+        params: network parameters.
+        arch: architecture.
+        xs: normalized window (n_p, n_dof).
+        cond: scalar load parameter (conditional networks only).
+        dof_mask: optional (n_dof,) padding mask, see :func:`decode`.
+
+    Returns:
+        Normalized predictions (n_f, n_dof).
+    """
+    if xs.ndim != 2 or xs.shape[1] != arch.n_dof:
+        raise ConfigError(f"input window must have shape (n_past, {arch.n_dof}), got {xs.shape}")
+    xs = xs.astype(arch.dtype)
+    state = encode(params, arch, xs)
+    return decode(params, arch, state, xs[-1], cond, dof_mask)
+
+
+def count_parameters(params: Params) -> int:
+    """Number of scalar parameters in a pytree."""
+    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params)))

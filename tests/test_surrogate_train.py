@@ -1,0 +1,221 @@
+"""Training (optax, replicas together), refill rollouts, E_mse and the grid search."""
+
+import csv
+import dataclasses
+import io
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxsync.errors import ConfigError
+from jaxsync.surrogate.data import build_dataset, refill_index_sets, stack_replicas
+from jaxsync.surrogate.evaluate import (
+    e_mse,
+    evaluate_result,
+    grid_search,
+    max_applications,
+    rollout_replicas,
+)
+from jaxsync.surrogate.lstm import LSTMArchitecture, forward, init_params
+from jaxsync.surrogate.train import (
+    TrainConfig,
+    init_replicas,
+    learning_rate_schedule,
+    n_epoch_rule,
+    replica_params,
+    stack_params,
+    train_replicas,
+    unpad_params,
+)
+
+
+def damped_oscillators(n_steps, freqs, dt=0.05, zeta=0.02, scale=1.0):
+    """Free vibration x_k(t) = exp(-zeta w_k t) cos(w_k t), one dof per frequency (Hz)."""
+    t = np.arange(n_steps)[:, None] * dt
+    w = 2 * np.pi * np.asarray(freqs)[None, :]
+    return scale * np.exp(-zeta * w * t) * np.cos(w * t)
+
+
+def test_epoch_rule_and_per_epoch_decay():
+    assert n_epoch_rule(5e-4, 0.9995, 5e-7) == 13812  # the paper's defaults
+    assert n_epoch_rule(1e-2, 0.5, 1e-3) == 3  # 1e-2 * 0.5**3 = 1.25e-3 > 1e-3 > 0.5**4 * 1e-2
+    assert TrainConfig().resolved_epochs == 13812 and TrainConfig(n_epochs=7).resolved_epochs == 7
+    schedule = learning_rate_schedule(TrainConfig(eta0=1e-3, gamma=0.9), steps_per_epoch=4)
+    for step, expected in [(0, 1e-3), (3, 1e-3), (4, 9e-4), (7, 9e-4), (8, 8.1e-4), (41, 1e-3 * 0.9**10)]:
+        assert float(schedule(step)) == pytest.approx(expected, rel=1e-6)
+    with pytest.raises(ConfigError, match="gamma"):
+        TrainConfig(gamma=1.5)
+    with pytest.raises(ConfigError, match="eta_min"):
+        TrainConfig(eta_min=1e-2)
+    with pytest.raises(ConfigError, match="batch_size"):
+        TrainConfig(batch_size=0)
+
+
+def test_training_on_damped_oscillators_lowers_validation_mse_100_fold_and_rollout_stays_bounded():
+    n_s, n_p, n_f = 2, 8, 8
+    history = damped_oscillators(1000, [1.0, 1.3, 0.8])
+    data = stack_replicas([build_dataset([history], n_s, n_p, n_f, train_fraction=0.5)])
+    arch = LSTMArchitecture(n_dof=3, n_hidden=24, n_layers=1, n_past=n_p, n_future=n_f)
+    config = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.99, n_epochs=250, epochs_per_call=50)
+    result = train_replicas(data, arch, config, jax.random.key(0), progress=False)
+    assert result.train_loss.shape == (250, 1) and result.val_loss.shape == (250, 1)
+    assert result.initial_val_loss[0] / result.val_loss[-1, 0] >= 100.0
+    assert jax.tree_util.tree_leaves(result.params)[0].dtype == np.float32
+
+    n_app = 60
+    assert max_applications(history.shape[0], n_s, n_p, n_f) >= n_app
+    pred = np.asarray(rollout_replicas(result.params, arch, result.mean, result.std,
+                                       history[None, :n_s * n_p], n_s, n_app))
+    assert pred.shape == (1, n_app * n_s * n_f, 3)
+    assert np.all(np.isfinite(pred))
+    assert np.max(np.abs(pred)) <= 1.5 * np.max(np.abs(history))
+    # Well below the error of predicting zero displacement over the same steps.
+    err = np.sqrt(evaluate_result(result, history[None], n_s, n_app))
+    truth = history[n_s * n_p:n_s * n_p + n_app * n_s * n_f]
+    assert err[0] < 0.25 * np.sqrt(np.mean(truth**2))
+
+
+def _two_part_runs():
+    """Two parts (2 and 3 dofs), each with two runs scaled by their load parameter."""
+    loads = [1.0, 0.5]
+    part0 = [damped_oscillators(300, [1.0, 1.3], scale=a) for a in loads]
+    part1 = [damped_oscillators(300, [0.7, 0.9, 1.1], scale=a) for a in loads]
+    return part0, part1, loads
+
+
+def test_replicas_trained_together_equal_each_trained_alone():
+    part0, part1, loads = _two_part_runs()
+    kw = dict(n_s=2, n_past=6, n_future=5, train_fraction=0.8, load_parameters=loads)
+    datasets = [build_dataset(part0, **kw), build_dataset(part1, **kw)]
+    # One encoder layer keeps compilation short: padding only touches the first layer's input.
+    arch = LSTMArchitecture(n_dof=3, n_hidden=8, n_layers=1, n_past=6, n_future=5, n_cond_repeat=2)
+    config = TrainConfig(batch_size=7, eta0=1e-2, gamma=0.9, n_epochs=6, epochs_per_call=6)
+    key = jax.random.key(3)
+    together = train_replicas(stack_replicas(datasets), arch, config, key, progress=False)
+    assert together.val_loss[-1].max() < 0.5 * together.initial_val_loss.min()  # it did learn
+
+    init_key = jax.random.split(key)[0]  # train_replicas' documented key use
+    for part, count in enumerate((2, 3)):
+        own = dataclasses.replace(arch, n_dof=count)
+        init = stack_params([init_params(jax.random.fold_in(init_key, part), own)])
+        alone = train_replicas(stack_replicas([datasets[part]]), own, config, key, init=init, progress=False)
+        np.testing.assert_allclose(together.val_loss[:, part], alone.val_loss[:, 0], rtol=2e-5)
+        np.testing.assert_allclose(together.train_loss[:, part], alone.train_loss[:, 0], rtol=2e-5)
+        mine = unpad_params(replica_params(together.params, part), arch, count)
+        ref = replica_params(alone.params, 0)
+        for a, b in zip(jax.tree_util.tree_leaves(mine), jax.tree_util.tree_leaves(ref)):
+            assert a.shape == b.shape
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=2e-6)
+
+    # Parameters acting on padding never move from zero.
+    p0 = replica_params(together.params, 0)
+    assert np.all(p0["encoder"][0]["forward"]["w_d"][:, 2] == 0)
+    assert np.all(p0["decoder"]["w_d"][:, 2] == 0) and np.any(p0["decoder"]["w_d"][:, 3:] != 0)
+    assert np.all(p0["dense"]["w"][2] == 0) and p0["dense"]["b"][2] == 0
+
+    # Same seed: identical run; another seed: another run.
+    again = train_replicas(stack_replicas(datasets), arch, config, key, progress=False)
+    for a, b in zip(jax.tree_util.tree_leaves(together.params), jax.tree_util.tree_leaves(again.params)):
+        np.testing.assert_array_equal(a, b)
+    other = train_replicas(stack_replicas(datasets), arch, config, jax.random.key(4), progress=False)
+    assert not np.array_equal(other.params["dense"]["w"], together.params["dense"]["w"])
+
+
+def test_train_rejects_mismatched_architecture():
+    data = stack_replicas([build_dataset([damped_oscillators(200, [1.0, 2.0])], 2, 4, 3)])
+    with pytest.raises(ConfigError, match="padded"):
+        train_replicas(data, LSTMArchitecture(n_dof=3, n_past=4, n_future=3), TrainConfig(n_epochs=1),
+                       jax.random.key(0), progress=False)
+    with pytest.raises(ConfigError, match="n_past"):
+        train_replicas(data, LSTMArchitecture(n_dof=2, n_past=5, n_future=3), TrainConfig(n_epochs=1),
+                       jax.random.key(0), progress=False)
+    arch = LSTMArchitecture(n_dof=2, n_hidden=3, n_layers=1, n_past=4, n_future=3)
+    wrong = init_replicas(jax.random.key(0), dataclasses.replace(arch, n_hidden=4), (2,))
+    with pytest.raises(ConfigError, match="init parameters"):
+        train_replicas(data, arch, TrainConfig(n_epochs=1), jax.random.key(0), init=wrong, progress=False)
+    with pytest.raises(ConfigError, match="devices"):
+        train_replicas(data, arch, TrainConfig(n_epochs=1), jax.random.key(0), progress=False,
+                       devices=len(jax.local_devices()) + 1)
+
+
+def _normalize_and_forward(params, arch, mean, std, window, mask):
+    z = jnp.asarray((window - mean) / std, jnp.float32)
+    return np.asarray(forward(params, arch, z, None, jnp.asarray(mask, jnp.float32)), np.float64) * std + mean
+
+
+def test_rollout_applies_the_network_on_the_refill_index_sets():
+    n_s, n_p, n_f, n_cycles = 3, 4, 2, 3
+    arch = LSTMArchitecture(n_dof=3, n_hidden=5, n_layers=1, n_past=n_p, n_future=n_f)
+    params = init_replicas(jax.random.key(9), arch, (2, 3))
+    history = np.stack([np.pad(damped_oscillators(60, [1.0, 2.0]), ((0, 0), (0, 1))),
+                        damped_oscillators(60, [0.5, 1.5, 1.0])])
+    mean = np.array([[0.1, -0.2, 0.0], [0.0, 0.3, -0.1]])
+    std = np.array([[0.5, 0.7, 1.0], [0.8, 0.6, 0.4]])
+    mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    n0 = n_s * n_p + 5  # current step; the refill buffer holds steps n0 + 1 - n_s n_p .. n0
+    pred = np.asarray(rollout_replicas(params, arch, mean, std, history[:, n0 + 1 - n_s * n_p:n0 + 1], n_s,
+                                       n_cycles, None, mask))
+    assert pred.shape == (2, n_cycles * n_s * n_f, 3)
+    for part in range(2):
+        p = replica_params(params, part)
+        series = {k: history[part, k] for k in range(n0 + 1)}  # known steps, then predictions
+        for cycle in range(n_cycles):
+            n = n0 + cycle * n_s * n_f
+            inputs, targets = refill_index_sets(n, n_s, n_p, n_f)
+            new = {}
+            for i in range(n_s):
+                window = np.stack([series[k] for k in inputs[i]])
+                out = _normalize_and_forward(p, arch, mean[part], std[part], window, mask[part])
+                new.update(zip(targets[i].tolist(), out))
+            series.update(new)
+        expected = np.stack([series[k] for k in range(n0 + 1, n0 + 1 + n_cycles * n_s * n_f)])
+        np.testing.assert_allclose(pred[part], expected, rtol=1e-5, atol=1e-6)
+        assert np.all(pred[part][:, mask[part] == 0] == 0)
+
+
+def test_e_mse_is_the_mean_squared_rollout_error_over_real_dofs():
+    n_s, n_p, n_f = 2, 3, 2
+    arch = LSTMArchitecture(n_dof=3, n_hidden=4, n_layers=1, n_past=n_p, n_future=n_f)
+    params = init_replicas(jax.random.key(1), arch, (2, 3))
+    history = np.stack([np.pad(damped_oscillators(50, [1.0, 2.0]), ((0, 0), (0, 1))),
+                        damped_oscillators(50, [0.5, 1.5, 1.0])])
+    mean, std = np.zeros((2, 3)), np.ones((2, 3))
+    start, n_app = 9, 4
+    got = e_mse(params, arch, mean, std, history, n_s, n_app, start=start, dof_counts=(2, 3))
+    mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    pred = np.asarray(rollout_replicas(params, arch, mean, std, history[:, start + 1 - n_s * n_p:start + 1],
+                                       n_s, n_app, None, mask))
+    truth = history[:, start + 1:start + 1 + n_app * n_s * n_f]
+    np.testing.assert_allclose(got[0], np.mean((pred[0] - truth[0])[:, :2] ** 2), rtol=1e-12)
+    np.testing.assert_allclose(got[1], np.mean((pred[1] - truth[1]) ** 2), rtol=1e-12)
+    assert max_applications(50, n_s, n_p, n_f, start) == 10
+    with pytest.raises(ConfigError, match="at most 10 applications"):
+        e_mse(params, arch, mean, std, history, n_s, 11, start=start, dof_counts=(2, 3))
+
+
+def test_grid_search_tabulates_every_combination_and_chooses_the_best(tmp_path):
+    part0, part1, _ = _two_part_runs()
+    arch = LSTMArchitecture(n_dof=1, n_hidden=4, n_layers=1, n_past=5, n_future=4)
+    config = TrainConfig(eta0=1e-2, gamma=0.9, n_epochs=4, epochs_per_call=4)
+    # Each combination compiles its own program: keep the grid at two points here.
+    result = grid_search([part0, part1], 2, arch, config, batch_sizes=[16], hidden_sizes=[4, 8],
+                         learning_rates=[1e-2], key=jax.random.key(0), n_applications=10)
+    assert [(p.batch_size, p.n_hidden, p.eta0) for p in result.points] == [(16, 4, 1e-2), (16, 8, 1e-2)]
+    for p in result.points:
+        assert len(p.sqrt_e_mse) == 2 and all(np.isfinite(p.sqrt_e_mse))
+        assert p.spread == pytest.approx(max(p.sqrt_e_mse) - min(p.sqrt_e_mse))
+    worst = [max(p.sqrt_e_mse) for p in result.points]
+    assert result.best is result.points[int(np.argmin(worst))]
+
+    path = tmp_path / "grid.csv"
+    result.write(path)
+    rows = list(csv.DictReader(io.StringIO(path.read_text())))
+    assert len(rows) == 2 and sum(int(r["chosen"]) for r in rows) == 1
+    chosen = next(r for r in rows if r["chosen"] == "1")
+    assert int(chosen["n_H"]) == result.best.n_hidden and float(chosen["eta0"]) == result.best.eta0
+    assert float(rows[1]["sqrt_e_mse_part1"]) == pytest.approx(result.points[1].sqrt_e_mse[1], rel=1e-6)
+    summary = json.loads((tmp_path / "grid.json").read_text())
+    assert summary["chosen"]["n_hidden"] == result.best.n_hidden and len(summary["points"]) == 2
