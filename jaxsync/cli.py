@@ -144,6 +144,8 @@ def _add_report(subparsers) -> None:
 def _run_report(args) -> int:
     import dataclasses
 
+    import numpy as np
+
     from .errors import CheckpointError
     from .partition import partition_of
     from .plots import write_report
@@ -163,8 +165,10 @@ def _run_report(args) -> int:
     reference = dataclasses.replace(reference, times=reference.times[:(n - 1) * stride + 1:stride],
                                     displacement=reference.displacement[:(n - 1) * stride + 1:stride],
                                     save_every=online.save_every)
+    # nodes that never move (clamped) are left out of the node figure
+    still = np.flatnonzero(np.all(np.asarray(reference.displacement) == 0.0, axis=(0, 2)))
     summary = write_report(reference, online, partition_of(online), args.out,
-                           component=args.component,
+                           component=args.component, fixed_nodes=still,
                            extra={k: v for k, v in online.parameters.items() if k.startswith("us_")})
     print(f"wrote figures and summary.json to {os.path.abspath(args.out)}; free-end max |error| "
           f"{summary['tip_max_abs_error']:.3e} cm, e_l2 at the end {summary['l2_error_final']:.3e} cm")
@@ -202,6 +206,10 @@ def _add_simulate(subparsers) -> None:
                    help="internal force: stored sparse K, or element quantities formed every "
                         "step (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0, help="METIS seed (default: %(default)s)")
+    p.add_argument("--timings", nargs="?", const="", default=None, metavar="JSON",
+                   help="instead of running, measure the per-step breakdown t_e, t_m, t_s, t_t "
+                        "(paper section 7; max-average over parts), print the table and write it "
+                        "as JSON (default file: <output>.timings.json)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.add_argument("--print-config", action="store_true",
                    help="print the packaged default configuration and exit")
@@ -223,6 +231,17 @@ def _run_simulate(args) -> int:
     output = args.output or run.output
     xdmf = args.xdmf or run.xdmf
     checkpoint = args.checkpoint or run.checkpoint
+    if args.timings is not None:
+        from .timing import timing_breakdown
+
+        report = timing_breakdown(problem, args.partitions or 1, mode=args.mode,
+                                  dt=args.dt if args.dt is not None else run.dt, seed=args.seed)
+        if _is_main_process():
+            print(report.table())
+            path = args.timings or os.path.splitext(output)[0] + ".timings.json"
+            report.save_json(path)
+            print(f"wrote {path}")
+        return 0
     main_rank = _is_main_process()
     n_processes = _process_count()
     partitions = args.partitions

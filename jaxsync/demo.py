@@ -78,7 +78,9 @@ def run_demo(out: str, *, n_steps: int = 20000, n_parts: int = 2, n_s: int = 10,
              "training_seconds": training["train_seconds"],
              "final_val_loss": training["final_val_loss"],
              "wall_seconds": time.perf_counter() - started}
-    summary = write_report(reference, online, parts, os.path.join(out, "report"), extra=extra)
+    fixed_nodes = np.unique(problem.dirichlet_dofs()[0] // 3)
+    summary = write_report(reference, online, parts, os.path.join(out, "report"),
+                           fixed_nodes=fixed_nodes, extra=extra)
     summary["report"] = os.path.abspath(os.path.join(out, "report"))
     with atomic_path(os.path.join(out, "summary.json")) as tmp:
         with open(tmp, "w") as f:

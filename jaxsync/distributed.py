@@ -38,7 +38,8 @@ from .element_force import MODES, ElementStiffness
 from .solver import ExplicitSystem, SolverState, advance
 from .sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 
-__all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "MODES", "AXIS"]
+__all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "synchronize_forces",
+           "MODES", "AXIS"]
 
 AXIS = "parts"  # the device axis of the shard_map
 LOCAL_AXIS = "local_parts"  # the vmapped axis of several parts on one device
@@ -132,7 +133,7 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
     return PartSystems(stacked, shared_local, shared_interface)
 
 
-def _synchronize(internal, shared_local, shared_interface, n_interface: int, across=None):
+def synchronize_forces(internal, shared_local, shared_interface, n_interface: int, across=None):
     """Sum the parts' partial forces at shared nodes (scatter -> sum -> gather).
 
     ``internal`` is a part's (n_local_max, 3) partial force [dyn]; the interface vector is
@@ -262,22 +263,31 @@ class DistributedRunner:
 
         return jax.tree_util.tree_map(put, tree)
 
-    def _compiled(self, n_saves: int):
-        if n_saves not in self._advance:
-            n_interface = self.partition.n_interface
-            save_every = self.save_every
-            across = self._allreduce
+    def program(self, n_saves: int, *, save_every: int | None = None, synchronize: bool = True):
+        """The jitted SPMD program: ``(parts, state) -> (state, saved)`` advancing
+        ``n_saves * save_every`` steps (``shard_map`` over the devices, the parts of one
+        device vmapped). ``synchronize=False`` leaves the force synchronization out (used
+        to time it, paper section 7)."""
+        n_interface = self.partition.n_interface
+        save_every = self.save_every if save_every is None else save_every
+        across = self._allreduce
 
-            def one_part(part: PartSystems, state: SolverState):
-                sync = functools.partial(_synchronize, shared_local=part.shared_local,
+        def one_part(part: PartSystems, state: SolverState):
+            sync = None
+            if synchronize:
+                sync = functools.partial(synchronize_forces, shared_local=part.shared_local,
                                          shared_interface=part.shared_interface,
                                          n_interface=n_interface, across=across)
-                return advance(part.system, state, n_saves, save_every, synchronize=sync)
+            return advance(part.system, state, n_saves, save_every, synchronize=sync)
 
-            body = jax.vmap(one_part, axis_name=LOCAL_AXIS)
-            mapped = jax.shard_map(body, mesh=self.device_mesh, in_specs=(P(AXIS), P(AXIS)),
-                                   out_specs=(P(AXIS), P(AXIS)), check_vma=False)
-            self._advance[n_saves] = jax.jit(mapped)
+        body = jax.vmap(one_part, axis_name=LOCAL_AXIS)
+        mapped = jax.shard_map(body, mesh=self.device_mesh, in_specs=(P(AXIS), P(AXIS)),
+                               out_specs=(P(AXIS), P(AXIS)), check_vma=False)
+        return jax.jit(mapped)
+
+    def _compiled(self, n_saves: int):
+        if n_saves not in self._advance:
+            self._advance[n_saves] = self.program(n_saves)
         return self._advance[n_saves]
 
     def advance(self, state, n_saves):

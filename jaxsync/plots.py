@@ -45,16 +45,19 @@ def tip_node(mesh) -> int:
     return int(np.argmax(np.where(at_end, p[:, 1] + p[:, 2], -np.inf)))
 
 
-def report_nodes(mesh, partition) -> dict[str, int]:
-    """Nodes shown in the displacement figure: the free end, the first shared node, and
-    for each part the non-shared node farthest from the interface."""
+def report_nodes(mesh, partition, fixed_nodes=()) -> dict[str, int]:
+    """Nodes shown in the displacement figure: the free end, the shared node farthest
+    from the clamp, and for each part the free (not shared, not clamped) node farthest
+    from the interface."""
     nodes = {"free end": tip_node(mesh)}
+    excluded = set(np.asarray(fixed_nodes).tolist())
     if partition.n_interface:
-        nodes["shared"] = int(partition.shared_nodes[0])
-    shared = set(partition.shared_nodes.tolist())
+        candidates = [n for n in partition.shared_nodes if n not in excluded] or list(partition.shared_nodes)
+        nodes["shared"] = int(max(candidates, key=lambda n: mesh.points[n, 0]))
+    excluded |= set(partition.shared_nodes.tolist())
     interface_points = mesh.points[partition.shared_nodes] if partition.n_interface else mesh.points[:1]
     for part in partition.parts:
-        own = np.array([n for n in part.nodes if n not in shared])
+        own = np.array([n for n in part.nodes if n not in excluded])
         if own.size:
             dist = np.min(np.linalg.norm(mesh.points[own][:, None] - interface_points[None], axis=2), axis=1)
             nodes[f"part {part.index} interior"] = int(own[np.argmax(dist)])
@@ -62,7 +65,7 @@ def report_nodes(mesh, partition) -> dict[str, int]:
 
 
 def write_report(reference, online, partition, out_dir, *, component: int = 2,
-                 extra: dict | None = None) -> dict:
+                 fixed_nodes=(), extra: dict | None = None) -> dict:
     """Write the figures and ``summary.json`` into ``out_dir``; return the summary.
 
     Args:
@@ -70,6 +73,7 @@ def write_report(reference, online, partition, out_dir, *, component: int = 2,
         online: synchronization-avoiding :class:`jaxsync.Trajectory`.
         partition: the partition of the online run.
         component: displacement component shown in the node figure (2 = z).
+        fixed_nodes: Dirichlet nodes, left out of the node figure (their motion is zero).
         extra: more entries for ``summary.json`` (timings...).
     """
     os.makedirs(out_dir, exist_ok=True)
@@ -80,7 +84,7 @@ def write_report(reference, online, partition, out_dir, *, component: int = 2,
     times = np.asarray(online.times)
     synchronized = np.asarray(online.synchronized, bool)
     t_switch = times[synchronized][-1] if synchronized.any() else times[0]
-    nodes = report_nodes(online.mesh, partition)
+    nodes = report_nodes(online.mesh, partition, fixed_nodes)
 
     fig = _figure(7.0, 2.2 * len(nodes))
     for k, (label, node) in enumerate(nodes.items()):

@@ -36,7 +36,8 @@ from .errors import CheckpointError, ProblemError, StabilityError
 from .pytree import pytree_dataclass, static_field
 from .solver import SolverState, build_system, drive, initial_state, step, us_per_step
 
-__all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "shared_dof_layout"]
+__all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "simulate_full_system",
+           "shared_dof_layout"]
 
 
 @pytree_dataclass
@@ -349,3 +350,78 @@ def _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, sa
                       mesh=problem.mesh, dt=dt, save_every=save_every,
                       parameters={**synced.parameters, "n_cri": n_cri}, parts=tuple(parts),
                       synchronized=synchronized)
+
+
+def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps: int | None = None,
+                         cond: float | None = None):
+    """Full-system modeling (paper "Full system modeling"): one surrogate predicts every dof.
+
+    The synchronized ``reference`` (saved at every step) supplies the first ``n_cri``
+    steps; after that no solver step runs: refill cycles of the single surrogate,
+    each consuming earlier predictions, produce all displacements. The network does not
+    know the Dirichlet conditions; their predicted values are reported, not enforced.
+
+    Args:
+        problem: the problem (for its Dirichlet dofs).
+        reference: :class:`jaxsync.Trajectory` saved at every step, at least n_cri + 1 long.
+        surrogates: a one-replica checkpoint (path or object) over all 3 n_nodes dofs, a
+            :class:`SurrogatePredictor` or an :class:`OraclePredictor` (one part).
+        n_cri: last step taken from the reference (>= n_p n_s + 1).
+        n_steps: total steps (default: the reference's length).
+
+    Returns:
+        :class:`jaxsync.Trajectory` (saved every step) with ``synchronized`` flags and
+        ``parameters["dirichlet_max_abs_predicted"]``, the largest |predicted value| on the
+        Dirichlet dofs, whose prescribed values the network does not enforce.
+    """
+    from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
+    from .trajectory import Trajectory
+
+    if reference.save_every != 1:
+        raise ProblemError("full-system modeling needs the reference saved at every step")
+    n_steps = reference.n_saved - 1 if n_steps is None else int(n_steps)
+    if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
+        surrogates = load_checkpoint(surrogates)
+    n_dof = problem.mesh.n_dofs
+    if isinstance(surrogates, SurrogateCheckpoint):
+        if surrogates.n_parts != 1 or surrogates.dof_counts[0] != n_dof:
+            raise CheckpointError(f"full-system modeling needs one surrogate over all {n_dof} dofs; "
+                                  f"the checkpoint has {surrogates.n_parts} replicas with "
+                                  f"{list(surrogates.dof_counts)} dofs")
+        predictor = SurrogatePredictor.from_checkpoint(surrogates, cond)
+    else:
+        predictor = surrogates
+    history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
+    if n_cri < history + 1:
+        raise ProblemError(f"n_cri={n_cri} is too small: the first refill needs n_p * n_s + 1 = "
+                           f"{history + 1} known steps")
+    if reference.n_saved < n_cri + 1:
+        raise ProblemError(f"the reference holds {reference.n_saved} snapshots, fewer than n_cri + 1")
+    known = np.asarray(reference.displacement[:n_cri + 1]).reshape(n_cri + 1, -1)
+    n_cycles = -(-(n_steps - n_cri) // cycle_steps)
+    one = jax.tree_util.tree_map(lambda x: jnp.asarray(x)[0], predictor)
+
+    @jax.jit
+    def rollout(buffer):
+        def cycle(buf, c):
+            pred = one.predict(buf, c).astype(buf.dtype)
+            return jnp.concatenate([buf, pred])[-history:], pred
+
+        _, blocks = jax.lax.scan(cycle, buffer, jnp.arange(n_cycles))
+        return blocks.reshape(-1, buffer.shape[1])
+
+    start = time.perf_counter()
+    predicted = np.asarray(rollout(jnp.asarray(known[-history:])))[:n_steps - n_cri]
+    seconds = time.perf_counter() - start
+    if not np.all(np.isfinite(predicted)):
+        bad = n_cri + 1 + int(np.argmin(np.isfinite(predicted).all(axis=1)))
+        raise StabilityError(f"the full-system surrogate predicted NaN/Inf for step {bad}; retrain it")
+    displacement = np.concatenate([known, predicted]).reshape(n_steps + 1, -1, 3)
+    fixed, values = problem.dirichlet_dofs()
+    dirichlet_error = float(np.abs(predicted[:, fixed] - values).max()) if len(predicted) else 0.0
+    return Trajectory(times=np.arange(n_steps + 1) * reference.dt, displacement=displacement,
+                      mesh=problem.mesh, dt=reference.dt, save_every=1,
+                      parameters={**reference.parameters, "n_cri": n_cri,
+                                  "dirichlet_max_abs_predicted": dirichlet_error,
+                                  "us_per_step_predicted": 1e6 * seconds / max(n_steps - n_cri, 1)},
+                      synchronized=np.arange(n_steps + 1) <= n_cri)

@@ -191,3 +191,12 @@ def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
     partial = jaxsync.Trajectory.load(tmp_path / "run.partial.h5")
     assert partial.n_saved == 3
     assert "diverged" in capsys.readouterr().err
+
+
+def test_simulate_timings(tmp_path, capsys):
+    path = tmp_path / "t.json"
+    assert main(["simulate", "--partitions", "2", "--timings", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "t_s" in out
+    data = json.loads(path.read_text())
+    assert data["n_parts"] == 2 and len(data["rows"]) == 2

@@ -124,3 +124,81 @@ def test_nan_prediction_names_step_and_part(problem, partition, reference):
     # the synchronized part and the first (clean) cycle are kept
     assert partial.n_saved == N_CRI + 1 + N_S * N_F
     assert np.all(np.isfinite(partial.displacement))
+
+
+def test_full_system_oracle_reproduces_the_reference(problem):
+    from jaxsync.syncavoid import simulate_full_system
+
+    reference = jaxsync.simulate(problem, N_STEPS)
+    n_dof = problem.mesh.n_dofs
+    length = N_S * N_F
+    n_cycles = -(-(N_STEPS - N_CRI) // length)
+    future = np.zeros((1, n_cycles * length, n_dof))
+    future[0, :N_STEPS - N_CRI] = reference.displacement[N_CRI + 1:].reshape(N_STEPS - N_CRI, -1)
+    future[0, :, :3] += 1e-3  # node 0 is clamped: the network's values there are reported
+    oracle_all = OraclePredictor(future, n_s=N_S, n_past=N_P, n_future=N_F)
+    traj = simulate_full_system(problem, reference, oracle_all, n_cri=N_CRI)
+    assert traj.n_saved == N_STEPS + 1
+    np.testing.assert_array_equal(traj.displacement[:, 1:], reference.displacement[:, 1:])
+    assert traj.parameters["dirichlet_max_abs_predicted"] == pytest.approx(1e-3)
+    assert traj.synchronized.sum() == N_CRI + 1
+
+
+def test_full_system_needs_one_replica_over_all_dofs(problem, partition, reference, tmp_path):
+    import jax
+
+    from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint, init_replicas
+    from jaxsync.syncavoid import simulate_full_system
+
+    counts = (12, 12)
+    arch = LSTMArchitecture(n_dof=12, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
+    params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
+    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((2, 12), np.float32),
+                               std=np.ones((2, 12), np.float32), dof_counts=counts, n_s=N_S)
+    with pytest.raises(CheckpointError, match="one surrogate over all 312 dofs"):
+        simulate_full_system(problem, jaxsync.simulate(problem, N_STEPS), ckpt, n_cri=N_CRI)
+
+
+def test_surrogates_of_another_partition_are_refused(problem, reference):
+    import jax
+
+    from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint, init_replicas
+
+    other = jaxsync.partition(problem.mesh, 4)
+    counts = tuple(3 * p.n_shared for p in other.parts)
+    arch = LSTMArchitecture(n_dof=max(counts), n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
+    params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
+    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((4, arch.n_dof), np.float32),
+                               std=np.ones((4, arch.n_dof), np.float32), dof_counts=counts, n_s=N_S,
+                               shared_nodes=tuple(p.shared_nodes for p in other.parts))
+    with pytest.raises(CheckpointError, match="partition has 2 parts"):
+        simulate_sync_avoiding(problem, N_STEPS, partitions=2, surrogates=ckpt, n_cri=N_CRI)
+
+
+def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, partition, reference):
+    """Tiny replicas trained on the synchronized run drive the online solver; the error
+    metrics computed from the run agree with their definitions."""
+    import jax
+
+    from jaxsync.metrics import l2_error, predictions_by_node, shared_node_errors
+    from jaxsync.surrogate import (LSTMArchitecture, SurrogateCheckpoint, TrainConfig,
+                                   build_dataset, stack_replicas, train_replicas)
+
+    long_ref = jaxsync.simulate(problem, 400, partitions=partition)
+    data = stack_replicas([build_dataset([long_ref.parts[p]["shared_displacement"]], N_S, N_P, N_F,
+                                         train_fraction=1.0) for p in range(2)])
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=8, n_layers=1, n_past=N_P, n_future=N_F)
+    result = train_replicas(data, arch, TrainConfig(n_epochs=3), jax.random.key(0), progress=False)
+    ckpt = SurrogateCheckpoint.from_result(result, N_S, [p.shared_nodes for p in partition.parts])
+    online = simulate_sync_avoiding(problem, 400, partitions=partition, surrogates=ckpt, n_cri=N_CRI)
+    assert np.all(np.isfinite(online.displacement))
+    np.testing.assert_array_equal(online.displacement[:N_CRI + 1], long_ref.displacement[:N_CRI + 1])
+    predictions, holds, steps = predictions_by_node(online, partition)
+    assert steps[0] == N_CRI + 1 and len(steps) == 400 - N_CRI
+    errs = shared_node_errors(long_ref.displacement[steps][:, partition.shared_nodes], predictions, holds)
+    # the global displacement at a shared node is the mean of the parts' predictions
+    node = partition.shared_nodes[0]
+    np.testing.assert_allclose(online.displacement[steps, node],
+                               predictions[holds[:, 0], :, 0].mean(axis=0), rtol=1e-12)
+    assert np.all(errs.es >= 0) and errs.es.shape == (len(steps),)
+    assert l2_error(long_ref.displacement, online.displacement)[:N_CRI + 1].max() == 0.0

@@ -1,0 +1,488 @@
+"""Per-part, per-step timing breakdown of the distributed explicit solver (paper section 7).
+
+Quantities, all in seconds per step (tables print microseconds):
+
+    t_e  element quantities. ``"recompute"`` mode: forming the element geometry, strains,
+         stresses and element force vectors (:func:`jaxsync.element_force.element_forces`,
+         including the gather of the element displacements): the internal force minus
+         t_m. ``"preassembled"`` mode: 0 per step; K is assembled once before the run,
+         and that one-off cost is reported apart as ``TimingReport.setup_s`` (the wall
+         time of building the part systems), never amortized into t_e.
+    t_m  the product K d. ``"preassembled"``: the node-blocked ELL mat-vec.
+         ``"recompute"``: the assembly of the product, i.e. the scatter-add of the
+         (n_elements, 4, 3) element forces (times the padding weight) into the nodes,
+         timed on its own.
+    t_s  synchronization: scatter of the shared-node forces into the interface vector,
+         psum over the parts, gather back (``jaxsync.distributed.synchronize_forces``).
+    t_o  everything else in a step: external force, central-difference update,
+         Dirichlet values, and the loop itself (carry, counter).
+    t_t  total: the part's own step without synchronization, measured, plus t_s.
+    r_*  = t_* / t_t. r_e + r_m + r_s + r_o equals 1 up to measurement error, because
+         t_e, t_m and t_o are measured separately from the whole local step.
+
+"Max-average" (paper): each quantity is averaged per step over a run, and the part with
+the largest t_t is reported (:func:`max_average`).
+
+Method. Inside one compiled SPMD step there is nowhere to put a timer between stages, so
+each stage is timed as a separately compiled *variant* of the stepper with the same loop
+structure (``lax.scan`` over ``n_steps`` steps, the same :class:`SolverState` carry),
+built from the solver's public pieces (:func:`jaxsync.solver.step`, ``advance``,
+``central_difference``, ``apply_dirichlet``). Each variant is compiled and run once
+(warm-up), then timed ``repeats`` times round-robin with ``block_until_ready`` (so slow
+drifts of the machine's load hit all variants alike), and the best repeat is kept. A
+variant ``T_call`` that does no step at all measures the cost of a call (dispatch,
+argument handling); it is subtracted from every variant's time before dividing by
+``n_steps``. On a shared machine, short calls (about 1 ms: small ``n_steps``) and many
+repeats work best: the best repeat is then a call that the OS did not interrupt.
+Per part, on one device and at the part's own (unpadded) size:
+
+    T_full   :func:`jaxsync.solver.step` without synchronization: the real local step.
+    T_other  the step with the internal force replaced by zero.
+    T_force  d <- d + c K d with c = 0 passed at run time (XLA cannot fold it away):
+             the internal force alone plus one fused axpy.
+    T_scat   (recompute) d <- d + c segment_sum(weight (F + c d_0)) for a given array F
+             of element forces: the scatter alone (c d_0 keeps it inside the loop).
+    T_empty  d <- d + c d(n-1): the loop, the carry and the same axpy, no work.
+
+    recompute:    t_m = T_scat - T_empty,   t_e = T_force - T_empty - t_m
+    preassembled: t_m = T_force - T_empty,  t_e = 0
+    t_o = T_other,  t_local = T_full     (each T per step, with T_call removed).
+
+The synchronization cannot be timed on one device: the padded SPMD program of all parts
+(``jax.shard_map`` over the devices, parts of one device vmapped, exactly as in
+:class:`jaxsync.distributed.DistributedRunner`) is timed with and without
+``synchronize_forces``, and t_s = T_dist(sync) - T_dist(no sync) is given to every part (the
+psum is collective; every part waits for it). With one part there is nothing to
+synchronize (no shared nodes) and t_s = 0 without measuring. Both distributed timings
+are in the report (``t_step``, ``t_step_nosync``): t_step is the real per-step cost of
+the whole program.
+
+Limits. Differences of variants assume that stage costs add; XLA fuses the mat-vec
+output with the update in the real step, so the whole step may cost a few percent more
+or less than its measured parts (the ``r_sum`` of a row shows how far; on this kind of
+machine, unloaded, within 10 %). In recompute mode the real step may overlap the scatter
+with the element computation; the split of the internal force into t_e and t_m is the
+convention above (scatter timed alone), their sum is measured. Stage times are clipped
+at 0 when noise makes a difference negative. Per-part numbers are measured at each part's own
+size, while the SPMD program pads every part to the largest, so there every part costs
+about as much as the largest. With emulated CPU devices
+(``--xla_force_host_platform_device_count``) all "devices" share the machine's cores:
+t_step is then close to the sum of the parts' work divided by the core count rather than
+the largest part's, and t_s includes the cost of the device threads meeting at a barrier
+every step on oversubscribed cores, so it overstates what separate machines would pay.
+Timings from a loaded machine vary; ``TimingReport.loadavg`` records the load.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import time
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .errors import CheckpointError, ProblemError
+
+__all__ = ["PartTiming", "TimingReport", "timing_breakdown", "max_average", "STAGES"]
+
+STAGES = ("t_e", "t_m", "t_s", "t_o")  # the additive stages of t_t
+
+
+@dataclasses.dataclass(frozen=True)
+class PartTiming:
+    """Per-step times of one part [s] (see the module docstring for the definitions).
+
+    Attributes:
+        part: part index p.
+        n_nodes: local nodes of the part.
+        n_elements: elements of the part.
+        n_shared: shared nodes of the part.
+        t_e, t_m, t_s, t_o: stage times per step [s].
+        t_local: the part's whole step without synchronization, measured [s].
+        t_t: total per step, t_local + t_s [s].
+    """
+
+    part: int
+    n_nodes: int
+    n_elements: int
+    n_shared: int
+    t_e: float
+    t_m: float
+    t_s: float
+    t_o: float
+    t_local: float
+    t_t: float
+
+    def __post_init__(self):
+        for name in (*STAGES, "t_local", "t_t"):
+            value = getattr(self, name)
+            if not (np.isfinite(value) and value >= 0):
+                raise ProblemError(f"PartTiming.{name} must be a finite time >= 0 s, got {value!r}")
+
+    def ratio(self, name: str) -> float:
+        """r_* = t_* / t_t for ``name`` in ``t_e, t_m, t_s, t_o`` (0 when t_t is 0)."""
+        if name not in STAGES:
+            raise ProblemError(f"ratio of {name!r}: use one of {STAGES}")
+        return getattr(self, name) / self.t_t if self.t_t > 0 else 0.0
+
+    @property
+    def ratios(self) -> dict:
+        """{"r_e": ..., "r_m": ..., "r_s": ..., "r_o": ...}."""
+        return {"r" + name[1:]: self.ratio(name) for name in STAGES}
+
+    @property
+    def r_sum(self) -> float:
+        """(t_e + t_m + t_s + t_o) / t_t: 1 when the separately measured stages add up."""
+        return sum(self.ratios.values())
+
+
+def max_average(rows) -> PartTiming:
+    """The paper's "max-average" row: of per-step averages, the part with the largest t_t
+    (the first such part on ties)."""
+    rows = tuple(rows)
+    if not rows:
+        raise ProblemError("max_average needs at least one PartTiming row")
+    return max(rows, key=lambda r: r.t_t)
+
+
+@dataclasses.dataclass(frozen=True)
+class TimingReport:
+    """Timing breakdown of one configuration (one mesh, partition and mode).
+
+    Attributes:
+        mode: ``"preassembled"`` or ``"recompute"``.
+        n_parts: n_c.
+        n_shared_nodes: N_a, the number of shared (interface) nodes of the partition.
+        n_nodes, n_elements: size of the mesh.
+        n_steps: steps per timed call; repeats: timed calls per variant (best kept).
+        dt: time step [s].
+        device: description of the devices (platform, count, whether emulated).
+        n_devices: devices the distributed program ran on.
+        rows: one :class:`PartTiming` per part, in part order.
+        t_step: measured per-step time of the whole synchronized SPMD program [s]
+            (for one part: the single-part local step).
+        t_step_nosync: the same program without synchronization [s].
+        setup_s: one-off wall time to build the per-part systems (assembly) [s].
+        loadavg: ``os.getloadavg()`` (1, 5, 15 min) when the timing ended.
+    """
+
+    mode: str
+    n_parts: int
+    n_shared_nodes: int
+    n_nodes: int
+    n_elements: int
+    n_steps: int
+    repeats: int
+    dt: float
+    device: str
+    n_devices: int
+    rows: tuple
+    t_step: float
+    t_step_nosync: float
+    setup_s: float
+    loadavg: tuple = ()
+
+    def __post_init__(self):
+        rows = tuple(r if isinstance(r, PartTiming) else PartTiming(**r) for r in self.rows)
+        object.__setattr__(self, "rows", rows)
+        object.__setattr__(self, "loadavg", tuple(float(x) for x in self.loadavg))
+        if len(rows) != self.n_parts:
+            raise ProblemError(f"TimingReport has {len(rows)} rows for n_parts={self.n_parts}")
+
+    @property
+    def max_average(self) -> PartTiming:
+        """The row of the part with the largest t_t (paper's max-average)."""
+        return max_average(self.rows)
+
+    def table(self) -> str:
+        """A printable table in microseconds per step: one line per part, then the
+        max-average line and the measured whole-program step."""
+        head = (f"Timing breakdown, mode={self.mode}: n_c={self.n_parts} parts, "
+                f"N_a={self.n_shared_nodes} shared nodes, mesh {self.n_nodes} nodes / "
+                f"{self.n_elements} tetrahedra; {self.n_steps} steps x best of {self.repeats}; "
+                f"{self.device}")
+        cols = (f"{'part':>7} {'nodes':>7} {'elems':>7} {'shared':>6} "
+                f"{'t_e':>9} {'t_m':>9} {'t_s':>9} {'t_o':>9} {'t_t':>9}  "
+                f"{'r_e':>5} {'r_m':>5} {'r_s':>5} {'r_o':>5} {'sum':>5}")
+        lines = [head, "times in us per step", cols]
+
+        def line(label, r):
+            ratios = r.ratios
+            return (f"{label:>7} {r.n_nodes:>7} {r.n_elements:>7} {r.n_shared:>6} "
+                    + " ".join(f"{1e6 * getattr(r, k):>9.2f}" for k in (*STAGES, "t_t"))
+                    + "  " + " ".join(f"{v:>5.3f}" for v in ratios.values())
+                    + f" {r.r_sum:>5.3f}")
+
+        for r in self.rows:
+            lines.append(line(str(r.part), r))
+        top = self.max_average
+        lines.append(line(f"max@{top.part}", top))
+        lines.append(f"whole SPMD program: {1e6 * self.t_step:.2f} us/step synchronized, "
+                     f"{1e6 * self.t_step_nosync:.2f} us/step without synchronization; "
+                     f"setup (assembly) {self.setup_s:.3f} s; load average "
+                     + ", ".join(f"{x:.2f}" for x in self.loadavg))
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dict: every field, rows as dicts with their ratios, and the
+        max-average row under ``"max_average"``."""
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["rows"] = [dict(dataclasses.asdict(r), **r.ratios) for r in self.rows]
+        out["loadavg"] = list(self.loadavg)
+        top = self.max_average
+        out["max_average"] = dict(dataclasses.asdict(top), **top.ratios)
+        out["kind"] = "jaxsync-timing-report"
+        return out
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TimingReport":
+        """Inverse of :meth:`to_dict` (derived entries are recomputed, not read)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        row_names = {f.name for f in dataclasses.fields(PartTiming)}
+        try:
+            fields = {k: v for k, v in data.items() if k in names}
+            fields["rows"] = tuple(PartTiming(**{k: v for k, v in r.items() if k in row_names})
+                                   for r in data["rows"])
+            return cls(**fields)
+        except (KeyError, TypeError) as exc:
+            raise CheckpointError(f"not a jaxsync timing report: {exc}") from exc
+
+    def save_json(self, path: str | os.PathLike) -> None:
+        """Write :meth:`to_dict` as JSON; the file appears only when complete."""
+        from .trajectory import atomic_path
+
+        with atomic_path(path) as tmp:
+            with open(tmp, "w") as f:
+                json.dump(self.to_dict(), f, indent=2)
+                f.write("\n")
+
+    @classmethod
+    def load_json(cls, path: str | os.PathLike) -> "TimingReport":
+        """Read a report written by :meth:`save_json`."""
+        try:
+            with open(path) as f:
+                data = json.load(f)
+        except (OSError, ValueError) as exc:
+            raise CheckpointError(f"cannot read timing report {path}: {exc}") from exc
+        if data.get("kind") != "jaxsync-timing-report":
+            raise CheckpointError(f"{path} is not a jaxsync timing report")
+        return cls.from_dict(data)
+
+
+# ---------------------------------------------------------------------------------------
+# Variants of the stepper: all carry a SolverState through lax.scan(length=n_steps).
+
+
+def _scan(body, state, n_steps):
+    return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps)[0]
+
+
+def _full(system, state, zero, n_steps):
+    from .solver import step
+
+    return _scan(lambda s: step(system, s), state, n_steps)
+
+
+def _other(system, state, zero, n_steps):
+    from .solver import SolverState, apply_dirichlet, central_difference
+
+    def body(s):
+        new = central_difference(system, s, jnp.zeros_like(s.displacement))
+        return SolverState(apply_dirichlet(system, new), s.displacement, s.step + 1)
+
+    return _scan(body, state, n_steps)
+
+
+def _force(system, state, zero, n_steps):
+    from .solver import SolverState
+
+    def body(s):
+        internal = system.stiffness.matvec(s.displacement)
+        return SolverState(s.displacement + zero * internal, s.displacement, s.step + 1)
+
+    return _scan(body, state, n_steps)
+
+
+def _scatter(system, state, zero, n_steps, forces):
+    """Recompute mode: only the sum of given (n_elements, 4, 3) element forces into the
+    nodes, as :meth:`jaxsync.element_force.ElementStiffness.matvec` does it."""
+    from .solver import SolverState
+
+    k = system.stiffness
+
+    def body(s):
+        element = (forces + zero * s.displacement[0, 0]) * k.weight[:, None, None]  # not loop-invariant
+        nodal = jax.ops.segment_sum(element.reshape(-1, 3), k.tets.reshape(-1),
+                                    num_segments=s.displacement.shape[0])
+        return SolverState(s.displacement + zero * nodal, s.displacement, s.step + 1)
+
+    return _scan(body, state, n_steps)
+
+
+def _empty(system, state, zero, n_steps):
+    from .solver import SolverState
+
+    def body(s):
+        return SolverState(s.displacement + zero * s.previous, s.displacement, s.step + 1)
+
+    return _scan(body, state, n_steps)
+
+
+def _call(system, state, zero, n_steps):
+    from .solver import SolverState
+
+    return SolverState(state.displacement + zero, state.previous, state.step)
+
+
+_LOCAL_VARIANTS = {"full": _full, "other": _other, "force": _force, "scatter": _scatter,
+                   "empty": _empty, "call": _call}
+
+
+def _distributed_program(runner, n_steps: int, synchronize: bool | None):
+    """The padded SPMD program of ``runner`` advancing ``n_steps`` steps with or without
+    synchronization (``synchronize=None``: no step at all, the cost of a call)."""
+    from jax.sharding import PartitionSpec as P
+
+    from .distributed import AXIS, LOCAL_AXIS
+
+    if synchronize is not None:
+        return runner.program(1, save_every=n_steps, synchronize=synchronize)
+
+    def no_step(part, state):
+        return _call(part.system, state, jnp.zeros(()), 0)
+
+    body = jax.vmap(no_step, axis_name=LOCAL_AXIS)
+    return jax.jit(jax.shard_map(body, mesh=runner.device_mesh, in_specs=(P(AXIS), P(AXIS)),
+                                 out_specs=P(AXIS), check_vma=False))
+
+
+def _best_times(calls: dict, repeats: int) -> dict:
+    """{name: best wall time [s]} of ``calls`` {name: (fn, args)}: one warm-up call each
+    (compilation), then ``repeats`` timed calls, round-robin over the variants."""
+    for fn, args in calls.values():
+        jax.block_until_ready(fn(*args))
+    best = {name: np.inf for name in calls}
+    for _ in range(repeats):
+        for name, (fn, args) in calls.items():
+            start = time.perf_counter()
+            jax.block_until_ready(fn(*args))
+            best[name] = min(best[name], time.perf_counter() - start)
+    return best
+
+
+def _per_step(best: dict, n_steps: int) -> dict:
+    """Per-step times [s] from best call times: the cost of a call (dispatch, argument
+    handling; the ``"call"`` variant) removed, then divided by ``n_steps``."""
+    call = best.pop("call")
+    return {name: max(t - call, 0.0) / n_steps for name, t in best.items()}
+
+
+def _describe_devices(devices) -> str:
+    d = devices[0]
+    text = f"{len(devices)} x {d.platform} device ({getattr(d, 'device_kind', d.platform)})"
+    if d.platform == "cpu" and "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        text += (f", emulated host devices sharing {os.cpu_count()} CPU cores "
+                 "(XLA_FLAGS=--xla_force_host_platform_device_count)")
+    return text
+
+
+def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_steps: int | None = None,
+                     repeats: int = 100, dt=None, devices=None, seed: int = 0) -> TimingReport:
+    """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
+
+    Args:
+        problem: a :class:`jaxsync.Problem` (concrete, not traced).
+        partitions: int n_parts (METIS, ``seed``) or a :class:`jaxsync.Partition`.
+        mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2).
+        n_steps: steps per timed call; about 1 ms per call is a good choice (the per-call
+            cost is measured and removed, so short calls lose no accuracy). Default
+            (None): 20000 / (nodes of the largest part), clipped to [5, 400].
+        repeats: timed calls per variant after the warm-up; the best is kept. The time
+            taken is about 5 * repeats * n_steps * (per-step cost) per part, plus the
+            compilation of 5-6 small programs per part.
+        dt: time step [s] of the timed steps, which start from the paper's initial
+            state; default ``problem.dt`` (the speed does not depend on it).
+        devices: devices for the distributed program (default as in
+            :func:`jaxsync.simulate`); each part's own program runs on the first.
+        seed: METIS seed when ``partitions`` is an int.
+
+    Returns:
+        :class:`TimingReport`, times in seconds per step.
+
+    Raises:
+        ProblemError: bad ``mode``, ``n_steps`` or ``repeats``.
+        PartitionError: a partition that cannot be made or does not fit the mesh.
+    """
+    from .distributed import DistributedRunner, build_part_systems
+    from .element_force import MODES
+    from .partition import Partition, partition as make_partition
+    from .solver import SolverState, build_system, initial_state
+
+    if mode not in MODES:
+        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    for name, value in (("n_steps", n_steps), ("repeats", repeats)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, np.integer))
+                                  or value < 1):
+            raise ProblemError(f"{name} must be a positive integer, got {value!r}")
+    dt = float(problem.dt if dt is None else dt)
+    part_info = partitions if isinstance(partitions, Partition) else make_partition(
+        problem.mesh, partitions, seed=seed)
+    if n_steps is None:
+        n_steps = int(np.clip(round(20000 / max(p.n_local for p in part_info.parts)), 5, 400))
+    n_steps, repeats = int(n_steps), int(repeats)
+    system = build_system(problem, dt, mode)
+    state = initial_state(problem, system)
+    d0, dm1 = np.asarray(state.displacement), np.asarray(state.previous)
+
+    # The distributed program (padded parts on all devices); also places the devices.
+    runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
+                               devices=devices)
+    local_device = runner.devices[0]
+    zero = jax.device_put(jnp.zeros(()), local_device)
+
+    # Each part alone, at its own size, on one device.
+    setup_s = 0.0
+    local_times = []
+    for part in part_info.parts:
+        start = time.perf_counter()
+        stacked = build_part_systems(problem, system, dataclasses.replace(part_info, parts=(part,)), mode)
+        setup_s += time.perf_counter() - start
+        part_system = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[0], stacked.system),
+                                     local_device)
+        part_state = jax.device_put(SolverState(d0[part.nodes], dm1[part.nodes],
+                                                jnp.asarray(0, dtype=jnp.int32)), local_device)
+        names = ["full", "other", "force", "empty", "call"] + (["scatter"] if mode == "recompute" else [])
+        calls = {name: (jax.jit(_LOCAL_VARIANTS[name], static_argnums=3),
+                        (part_system, part_state, zero, n_steps)) for name in names}
+        if mode == "recompute":
+            forces = jax.device_put(jnp.ones((len(part.elements), 4, 3)), local_device)
+            calls["scatter"] = (calls["scatter"][0], (part_system, part_state, zero, n_steps, forces))
+        local_times.append(_per_step(_best_times(calls, repeats), n_steps))
+
+    if part_info.n_parts > 1:
+        dist_state = runner.from_global(SolverState(d0, dm1, 0))
+        calls = {name: (_distributed_program(runner, n_steps, synchronize=sync), (runner.parts, dist_state))
+                 for name, sync in (("sync", True), ("nosync", False), ("call", None))}
+        dist = _per_step(_best_times(calls, repeats), n_steps)
+        t_step, t_step_nosync = dist["sync"], dist["nosync"]
+        t_s = max(t_step - t_step_nosync, 0.0)
+    else:
+        t_step = t_step_nosync = local_times[0]["full"]
+        t_s = 0.0
+
+    rows = []
+    for part, t in zip(part_info.parts, local_times):
+        t_force = max(t["force"] - t["empty"], 0.0)
+        t_m = min(max(t["scatter"] - t["empty"], 0.0), t_force) if mode == "recompute" else t_force
+        rows.append(PartTiming(part=part.index, n_nodes=part.n_local, n_elements=len(part.elements),
+                               n_shared=part.n_shared, t_e=t_force - t_m, t_m=t_m,
+                               t_s=t_s, t_o=t["other"], t_local=t["full"], t_t=t["full"] + t_s))
+    return TimingReport(mode=mode, n_parts=part_info.n_parts, n_shared_nodes=part_info.n_interface,
+                        n_nodes=problem.mesh.n_nodes, n_elements=problem.mesh.n_elements,
+                        n_steps=n_steps, repeats=repeats, dt=dt,
+                        device=_describe_devices(runner.devices), n_devices=len(runner.devices),
+                        rows=tuple(rows), t_step=t_step, t_step_nosync=t_step_nosync,
+                        setup_s=setup_s, loadavg=os.getloadavg())
