@@ -14,6 +14,7 @@ from .mesh import Mesh, MeshWarning, box_beam, read_mesh
 from .partition import Partition, partition
 from .problem import Dirichlet, Problem, cantilever
 from .solver import simulate, steady_state
+from .syncavoid import simulate_full_system, simulate_sync_avoiding
 from .timestep import cfl_dt, mass_scaling, max_stable_dt
 from .trajectory import Trajectory
 
@@ -26,5 +27,6 @@ __all__ = [
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever",
     "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling",
+    "simulate_sync_avoiding", "simulate_full_system",
     "Trajectory",
 ]
