@@ -25,15 +25,15 @@ def reference(problem, partition):
     return jaxsync.simulate(problem, N_STEPS, partitions=partition)
 
 
-def oracle(reference, partition, shift=0, poison_step=None):
+def oracle(reference, partition, shift=0, poison_step=None, n_steps=N_STEPS):
     """Replays the synchronized run's shared displacements after N_CRI (optionally shifted
     by some steps, or with NaN from a step on)."""
     n_dof, counts = shared_dof_layout(partition)
     length = N_S * N_F
-    n_cycles = -(-(N_STEPS - N_CRI) // length)
+    n_cycles = -(-(n_steps - N_CRI) // length)
     future = np.zeros((partition.n_parts, n_cycles * length, n_dof))
     for p, part in enumerate(partition.parts):
-        values = reference.displacement[N_CRI + 1:, part.shared_nodes].reshape(N_STEPS - N_CRI, -1)
+        values = reference.displacement[N_CRI + 1:, part.shared_nodes].reshape(n_steps - N_CRI, -1)
         future[p, :len(values), :counts[p]] = values
     future = np.roll(future, shift, axis=1)
     if poison_step is not None:
@@ -67,21 +67,10 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
     part4 = jaxsync.partition(problem.mesh, 4)
     ref4 = jaxsync.simulate(problem, N_STEPS - 10, partitions=part4)
     traj = simulate_sync_avoiding(problem, N_STEPS - 10, partitions=part4, save_every=10,
-                                  surrogates=_oracle_for(ref4, part4, N_STEPS - 10), n_cri=N_CRI)
+                                  surrogates=oracle(ref4, part4, n_steps=N_STEPS - 10), n_cri=N_CRI)
     np.testing.assert_allclose(traj.displacement, ref4.displacement[::10], rtol=0,
                                atol=1e-13 * np.abs(ref4.displacement).max())
     assert traj.parts[0]["predicted_shared_displacement"].shape[0] == (N_STEPS - 10 - N_CRI) // 10
-
-
-def _oracle_for(reference, partition, n_steps):
-    n_dof, counts = shared_dof_layout(partition)
-    length = N_S * N_F
-    n_cycles = -(-(n_steps - N_CRI) // length)
-    future = np.zeros((partition.n_parts, n_cycles * length, n_dof))
-    for p, part in enumerate(partition.parts):
-        values = reference.displacement[N_CRI + 1:, part.shared_nodes].reshape(n_steps - N_CRI, -1)
-        future[p, :len(values), :counts[p]] = values
-    return OraclePredictor(future, n_s=N_S, n_past=N_P, n_future=N_F)
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
