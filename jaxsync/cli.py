@@ -33,12 +33,13 @@ def _add_demo(subparsers) -> None:
                     "trajectories, the checkpoint, figures and summary.json into --out. The "
                     "default schedule takes a few minutes on a 2-core laptop.")
     p.add_argument("--out", default="jaxsync-demo", help="output folder (default: %(default)s)")
-    p.add_argument("--steps", type=int, default=20000,
-                   help="time steps of both runs (default: %(default)s, about 7 s of physical time)")
+    p.add_argument("--steps", type=int, default=100000,
+                   help="time steps of both runs (default: %(default)s, 35 s of physical time as "
+                        "in the paper)")
     p.add_argument("--parts", type=int, default=2, help="number of parts (default: %(default)s)")
-    p.add_argument("--n-s", type=int, default=10, help="sampling stride n_s (default: %(default)s)")
-    p.add_argument("--n-past", type=int, default=10, help="input snapshots n_p (default: %(default)s)")
-    p.add_argument("--n-future", type=int, default=10,
+    p.add_argument("--n-s", type=int, default=80, help="sampling stride n_s (default: %(default)s)")
+    p.add_argument("--n-past", type=int, default=20, help="input snapshots n_p (default: %(default)s)")
+    p.add_argument("--n-future", type=int, default=20,
                    help="predicted snapshots n_f (default: %(default)s)")
     p.add_argument("--hidden", type=int, default=32, help="LSTM hidden size n_H (default: %(default)s)")
     p.add_argument("--layers", type=int, default=2,
