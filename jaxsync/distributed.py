@@ -118,8 +118,8 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
     def local(array, fill):
         return _pad_to([array[p.nodes] for p in parts], n_local, fill)
 
-    local_loads = np.stack([_pad_to([loads[l, p.nodes]], n_local, 0.0)[0] for p in parts
-                            for l in range(loads.shape[0])]).reshape(n_parts, loads.shape[0], n_local, 3)
+    # (n_loads, n_nodes, 3) -> (n_parts, n_loads, n_local_max, 3)
+    local_loads = np.moveaxis(local(np.moveaxis(loads, 0, 1), 0.0), 2, 1)
     stacked = ExplicitSystem(
         stiffness=stiffness, mass=local(mass, 1.0),
         damping=np.full(n_parts, float(system.damping)), dt=np.full(n_parts, float(system.dt)),

@@ -34,6 +34,7 @@ from jaxsync.errors import CheckpointError
 from jaxsync.surrogate.data import padding_mask
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, init_params
 from jaxsync.surrogate.train import TrainResult
+from jaxsync.trajectory import atomic_h5
 
 FORMAT_NAME = "jaxsync-lstm-surrogate"
 FORMAT_VERSION = 1
@@ -143,7 +144,7 @@ def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
 
 
 def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
-    """Write ``ckpt`` to ``path`` atomically (temporary file, then ``os.replace``)."""
+    """Write ``ckpt`` to ``path`` atomically (:func:`jaxsync.trajectory.atomic_h5`)."""
     path = os.fspath(path)
     datasets = _to_datasets(ckpt)
     if ckpt.mean.shape != (ckpt.n_parts, ckpt.arch.n_dof) or ckpt.std.shape != ckpt.mean.shape:
@@ -162,19 +163,11 @@ def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
         "metadata": metadata,
     }
     attrs[_CHECKSUM_ATTR] = _checksum(datasets, attrs)
-    directory = os.path.dirname(os.path.abspath(path))
-    tmp = os.path.join(directory, f".{os.path.basename(path)}.tmp{os.getpid()}")
-    try:
-        with h5py.File(tmp, "w") as fh:
-            for name, array in datasets.items():
-                fh.create_dataset(name, data=array)
-            for name, value in attrs.items():
-                fh.attrs[name] = value
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-        raise
+    with atomic_h5(path) as fh:
+        for name, array in datasets.items():
+            fh.create_dataset(name, data=array)
+        for name, value in attrs.items():
+            fh.attrs[name] = value
 
 
 def _read(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

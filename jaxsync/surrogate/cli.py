@@ -17,6 +17,7 @@ import jax
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.trajectory import atomic_path
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
 from jaxsync.surrogate.data import build_dataset, read_shared_histories, stack_replicas
 from jaxsync.surrogate.evaluate import evaluate_result, max_applications
@@ -107,10 +108,9 @@ def _load_runs(args):
 
 
 def _atomic_write_text(path: str, text: str) -> None:
-    tmp = f"{path}.tmp{os.getpid()}"
-    with open(tmp, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as fh:
+            fh.write(text)
 
 
 def plot_loss_curves(result: TrainResult, path: str) -> None:
@@ -130,9 +130,8 @@ def plot_loss_curves(result: TrainResult, path: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     fig.tight_layout()
-    tmp = f"{path}.tmp{os.getpid()}.png"
-    fig.savefig(tmp, dpi=120)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")
 
 
 def run_train(args: argparse.Namespace) -> int:

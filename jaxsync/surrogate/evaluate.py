@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
+from jaxsync.trajectory import atomic_path
 from jaxsync.surrogate.data import build_dataset, padding_mask, refill_scatter, refill_windows, stack_replicas
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
 from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
@@ -222,10 +223,9 @@ class GridSearchResult:
         path = os.fspath(path)
         stem = os.path.splitext(path)[0]
         for target, text in ((path, self.to_csv()), (stem + ".json", json.dumps(self.to_dict(), indent=2))):
-            tmp = target + ".tmp"
-            with open(tmp, "w") as fh:
-                fh.write(text)
-            os.replace(tmp, target)
+            with atomic_path(target) as tmp:
+                with open(tmp, "w") as fh:
+                    fh.write(text)
 
 
 def grid_search(
