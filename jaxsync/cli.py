@@ -198,11 +198,12 @@ def _add_simulate(subparsers) -> None:
     p.add_argument("--partitions", type=int, default=None,
                    help="distributed run over this many METIS parts (default: single device; "
                         "under mpiexec -n N: N parts, one per process)")
-    p.add_argument("--sync", choices=("psum", "mpi"), default=None,
-                   help="how parts sum shared-node forces every step: XLA psum (emulated "
-                        "devices, gloo between processes, NCCL between GPUs) or an MPI "
-                        "Allreduce inside the compiled step, one device per process (default: "
-                        "mpi across processes, psum in one process)")
+    p.add_argument("--sync", choices=("psum", "ppermute", "mpi"), default=None,
+                   help="how parts sum shared-node forces every step: XLA psum of the whole "
+                        "interface (emulated devices, gloo between processes, NCCL between "
+                        "GPUs), XLA ppermute exchange of the nodes neighbouring devices share, "
+                        "or an MPI Allreduce inside the compiled step, one device per process "
+                        "(default: mpi across processes, psum in one process)")
     p.add_argument("--mode", choices=("preassembled", "recompute"), default="preassembled",
                    help="internal force: stored sparse K, or element quantities formed every "
                         "step (default: %(default)s)")

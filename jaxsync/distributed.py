@@ -33,13 +33,13 @@ from jax.sharding import PartitionSpec as P
 
 from .errors import ConfigError, PartitionError, ProblemError
 from .partition import Partition, partition as make_partition, partition_from_elements
-from .pytree import pytree_dataclass
+from .pytree import pytree_dataclass, static_field
 from .element_force import MODES, ElementStiffness
 from .solver import ExplicitSystem, SolverState, advance
 from .sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 
 __all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "synchronize_forces",
-           "MODES", "AXIS"]
+           "NeighbourExchange", "neighbour_exchange", "MODES", "AXIS"]
 
 AXIS = "parts"  # the device axis of the shard_map
 LOCAL_AXIS = "local_parts"  # the vmapped axis of several parts on one device
@@ -139,14 +139,85 @@ def synchronize_forces(internal, shared_local, shared_interface, n_interface: in
     ``internal`` is a part's (n_local_max, 3) partial force [dyn]; the interface vector is
     (n_interface + 1, 3). The sum runs over the parts on this device (the vmapped axis),
     then across devices: ``jax.lax.psum`` over the mesh axis when ``across`` is None, else
-    ``across(interface)`` (the MPI Allreduce of :func:`jaxsync.multiprocess.make_allreduce`,
-    with one device per process)."""
+    ``across(interface)`` (the MPI Allreduce of :func:`jaxsync.multiprocess.make_allreduce`
+    with one device per process, or a :class:`NeighbourExchange`)."""
     # one spare slot at the end receives the padding entries (index n_interface)
     interface = jnp.zeros((n_interface + 1, 3), internal.dtype)
     interface = interface.at[shared_interface].add(internal[shared_local], mode="clip")
     total = jax.lax.psum(interface, LOCAL_AXIS)  # parts on this device first
     total = jax.lax.psum(total, AXIS) if across is None else across(total)
     return internal.at[shared_local].set(total[shared_interface], mode="drop")
+
+
+@pytree_dataclass
+class NeighbourExchange:
+    """Device-to-device exchange of shared-node forces with ``jax.lax.ppermute``: the
+    cheaper alternative to a psum of the whole interface when each device shares nodes
+    with a few others (a chain of parts along a beam: 2 neighbours, whatever n_c).
+
+    For each device offset k in ``offsets``, device d sends to device (d + k) mod D the
+    sums of its own parts at the nodes the two devices share, and adds what it receives
+    from device (d - k) mod D. Offsets at which no two devices share a node are left out.
+    Interface indices of padding slots are n_interface, the interface vector's spare
+    slot, which is never read back.
+
+    Attributes:
+        send: (n_offsets, n_devices, width) int32 interface index of each value that
+            device d sends at offset ``offsets[i]``.
+        receive: (n_offsets, n_devices, width) int32 interface index at which device e
+            adds each value received at offset ``offsets[i]`` (the same nodes, in the same
+            order, as ``send[i, e - k]``).
+        offsets: the device offsets k used (static).
+    """
+
+    send: Any
+    receive: Any
+    offsets: tuple = static_field(default=())
+
+    def __call__(self, local_total):
+        """(n_interface + 1, 3) sum over this device's parts -> sum over all parts."""
+        n_devices = self.send.shape[1]
+        device = jax.lax.axis_index(AXIS)
+        send, receive = jnp.asarray(self.send), jnp.asarray(self.receive)
+        total = local_total
+        for i, k in enumerate(self.offsets):
+            outgoing = local_total[send[i, device]]  # (width, 3)
+            incoming = jax.lax.ppermute(outgoing, AXIS,
+                                        perm=[(d, (d + k) % n_devices) for d in range(n_devices)])
+            total = total.at[receive[i, device]].add(incoming)
+        return total
+
+    @property
+    def values_sent(self) -> int:
+        """Padded number of node values (3 dofs each) a device sends per step."""
+        return int(self.send.shape[0] * self.send.shape[2])
+
+
+def neighbour_exchange(partition: Partition, n_devices: int) -> NeighbourExchange:
+    """The :class:`NeighbourExchange` of ``partition`` with its parts spread over
+    ``n_devices`` devices in order (device d holds parts [d k, (d + 1) k), k = n_parts /
+    n_devices, as :class:`DistributedRunner` places them)."""
+    n_parts, n_interface = partition.n_parts, partition.n_interface
+    if n_parts % n_devices:
+        raise PartitionError(f"n_parts={n_parts} must be a multiple of n_devices={n_devices}")
+    per_device = n_parts // n_devices
+    on_device = [np.unique(np.concatenate(
+        [partition.parts[p].shared_interface for p in range(d * per_device, (d + 1) * per_device)]
+        + [np.zeros(0, dtype=np.int64)])) for d in range(n_devices)]
+    offsets, pairs = [], []
+    for k in range(1, n_devices):
+        common = [np.intersect1d(on_device[d], on_device[(d + k) % n_devices]) for d in range(n_devices)]
+        if any(len(c) for c in common):
+            offsets.append(k)
+            pairs.append(common)
+    width = max([len(c) for common in pairs for c in common] + [1])
+    send = np.full((len(offsets), n_devices, width), n_interface, dtype=np.int32)
+    receive = np.full_like(send, n_interface)
+    for i, (k, common) in enumerate(zip(offsets, pairs)):
+        for d, nodes in enumerate(common):
+            send[i, d, :len(nodes)] = nodes
+            receive[i, (d + k) % n_devices, :len(nodes)] = nodes
+    return NeighbourExchange(send, receive, tuple(offsets))
 
 
 def _default_devices(n_parts: int, devices=None, sync: str = "psum"):
@@ -192,8 +263,10 @@ class DistributedRunner:
             devices: devices of the mesh (see :func:`_default_devices`).
             sync: how shared-node forces are summed across devices and processes:
                 ``"psum"`` (XLA collective over all devices: emulated devices in one
-                process, gloo between CPU processes, NCCL between GPUs) or ``"mpi"`` (one
-                device per process, MPI Allreduce called from inside the compiled step).
+                process, gloo between CPU processes, NCCL between GPUs), ``"ppermute"``
+                (each device exchanges only the nodes it shares with each neighbouring
+                device: :class:`NeighbourExchange`) or ``"mpi"`` (one device per
+                process, MPI Allreduce called from inside the compiled step).
                 Default: :func:`jaxsync.multiprocess.default_sync` (``"mpi"`` across
                 processes, measured faster; ``"psum"`` in one process).
             allreduce: with ``sync="mpi"``, ``"mpi4jax"``, ``"callback"`` or ``"auto"``
@@ -240,6 +313,8 @@ class DistributedRunner:
             per_rank = n_parts // size
             self._part_slice = slice(rank * per_rank, (rank + 1) * per_rank)
             self._allreduce = multiprocess.make_allreduce(comm, allreduce)
+        if sync == "ppermute":
+            self._allreduce = neighbour_exchange(self.partition, len(devices))
         self.devices = devices
         self.device_mesh = DeviceMesh(np.array(devices), (AXIS,))
         self.sharding = NamedSharding(self.device_mesh, P(AXIS))

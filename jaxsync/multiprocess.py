@@ -39,8 +39,10 @@ __all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "launched_size", "launched_by_m
            "abort_on_error", "world", "make_allreduce", "mpi4jax_available",
            "default_sync"]
 
-SYNC_METHODS = ("psum", "mpi")
-"""Per-step synchronization across processes: XLA ``psum`` (gloo/NCCL) or MPI Allreduce."""
+SYNC_METHODS = ("psum", "ppermute", "mpi")
+"""Per-step synchronization across devices and processes: XLA ``psum`` of the whole
+interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of only the
+nodes two devices share, or MPI Allreduce."""
 
 ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "callback")
 """How the MPI Allreduce is called from the compiled step: ``mpi4jax`` (an XLA FFI custom

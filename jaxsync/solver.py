@@ -301,7 +301,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         blowup_factor: a displacement larger than this times the mesh's bounding-box
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
-        sync: distributed only: ``"psum"`` or ``"mpi"`` (see
+        sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
             :class:`jaxsync.distributed.DistributedRunner`; default: the faster measured).
 
     Returns:

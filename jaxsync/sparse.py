@@ -1,13 +1,14 @@
 """Node-blocked ELL sparse layout for the stiffness mat-vec in JAX.
 
 Row i of the block matrix holds the 3x3 blocks K[i, j] for the (padded) list of nodes j
-adjacent to node i. The mat-vec gathers whole 3-vectors ``u[j]`` (24 contiguous bytes)
-instead of scalars, which is what makes XLA:CPU gathers affordable; padding slots point at
-the row's own node with a zero block.
+adjacent to node i. The mat-vec reads the three components of ``u[j]`` (24 contiguous
+bytes, one cache line) for each block; padding slots point at the row's own node with a
+zero block.
 
 The blocks are stored as (n_rows, 3, width, 3) -- row component, slot, column component --
 and the product is an unrolled sum over (slot, column component), which XLA:CPU fuses
-with the gathers into a single loop. Chosen by measurement (benchmarks/bench_stepper.py):
+with the gathers into a single loop (see :meth:`BlockEll.matvec` for the form of the
+gather that makes this fusion happen). Chosen by measurement (benchmarks/bench_stepper.py):
 a reduction over a gathered (n, width, 3) array materializes the gather (1.4x slower at
 250k dofs), the (n, width, 3, 3) order with an einsum is lowered to a batched dot (3x
 slower), BCOO is 3-4x slower.
@@ -40,15 +41,22 @@ class BlockEll:
     def matvec(self, u):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3).
 
-        Written as an unrolled sum over (slot, column component) of gathered rows times
-        block columns, so that XLA fuses the gathers, products and sums into one loop
-        that streams the blocks once; a ``sum`` over a gathered (n, width, 3) array
-        instead materializes the gather (+60 % memory traffic at 250k dofs)."""
+        Written as an unrolled sum over (slot, column component) of gathered values times
+        block columns. Each gather has the output's own shape (n_rows, 3) -- the column
+        index broadcast over the row component -- so that XLA fuses every gather, product
+        and sum into one loop that streams the blocks once. Gathering a (n_rows, 3) row
+        and broadcasting its columns instead makes XLA materialize each of the ``width``
+        gathers (its fusion heuristics refuse to duplicate a broadcast gather): 1.6x
+        slower at 250k dofs (benchmarks/bench_stepper.py)."""
+        u = jnp.asarray(u)
+        n_rows = self.columns.shape[0]
         y = None
         for s in range(self.columns.shape[1]):
-            row = u[self.columns[:, s]]  # (n_rows, 3)
+            index = jnp.broadcast_to(self.columns[:, s, None], (n_rows, 3))
             for j in range(3):
-                term = self.blocks[:, :, s, j] * row[:, j:j + 1]
+                # Padding slots point at the row's own node, so every index is in bounds.
+                gathered = u[:, j].at[index].get(mode="promise_in_bounds")
+                term = self.blocks[:, :, s, j] * gathered
                 y = term if y is None else y + term
         return y
 
