@@ -34,7 +34,7 @@ from jax.sharding import PartitionSpec as P
 from .distributed import AXIS, DistributedRunner, PartSystems
 from .errors import CheckpointError, ProblemError, StabilityError
 from .pytree import pytree_dataclass, static_field
-from .solver import SolverState, build_system, drive, initial_state, step, us_per_step
+from .solver import STEP_UNROLL, SolverState, build_system, drive, initial_state, step, us_per_step
 
 __all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "simulate_full_system",
            "shared_dof_layout"]
@@ -140,7 +140,8 @@ def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, 
             return step(part.system, st, overwrite=overwrite), None
 
         def saved_block(st, k):
-            st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every))
+            st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every),
+                                 unroll=STEP_UNROLL)
             return st, (st.displacement, pred[(k + 1) * save_every - 1])
 
         state, (disp, kept) = jax.lax.scan(saved_block, state, jnp.arange(steps // save_every))

@@ -277,7 +277,12 @@ class TimingReport:
 
 
 def _scan(body, state, n_steps):
-    return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps)[0]
+    # the solver's own loop structure (jaxsync.solver.advance), so that every variant
+    # pays the same loop costs as the real step
+    from .solver import STEP_UNROLL
+
+    return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps,
+                        unroll=STEP_UNROLL)[0]
 
 
 def _full(system, state, zero, n_steps):

@@ -1,0 +1,474 @@
+"""Bytes and flops of each stage of an explicit step, and the achieved rates (roofline).
+
+For a part (or a whole mesh) of n nodes, m elements, ELL width w (slots per node row),
+L load vectors, n_sh shared nodes of the part and N_a interface nodes of the partition,
+the counts per explicit step are below (float64 = 8 bytes, int32 = 4 bytes, a boolean
+mask 1 byte per dof). Bytes are the traffic of the arrays each stage reads and writes
+as written in jaxsync; flops are a count of the written floating-point operations (a
+division, a negation or a transcendental function counts as one flop; a contraction of
+length k as 2 k flops, multiply and add, as for matrix products). Each stage is counted
+as if it ran alone, as :mod:`jaxsync.timing` measures it: the fused real step reads d(n)
+once and never stores K d, so its traffic is the sum below minus 2 * 24 n bytes.
+
+``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.sparse`, columns (n, w) int32,
+blocks (n, 3, w, 3) float64)::
+
+    bytes = n w (9 * 8 + 4)      the blocks and column indices, streamed once
+          + 24 n                 u read once (the gathers of u are assumed to hit cache)
+          + 24 n                 y = K u written
+    flops = 18 n w               multiply + add per stored block entry (9 n w entries)
+
+``"t_e"`` is 0 in the preassembled mode (K is assembled once, before the run).
+
+``"t_e"``, recompute mode (:func:`jaxsync.element_force.element_forces`), per element::
+
+    bytes = 4 * 4 (node ids) + 12 * 8 (coordinates gathered) + 12 * 8 (displacements
+            gathered) = 208
+    flops = 264, as written (:data:`ELEMENT_FLOPS`): edge vectors 9, three cross
+            products 27, det 5, gradients / det 9, grad N_0 9, H = u^T grad 72,
+            eps 18, trace 2, sigma 28, volume 1, sigma grad 72, times volume 12
+
+``"t_m"``, recompute mode (the weight and the scatter-add of the element forces into the
+nodes, :meth:`jaxsync.element_force.ElementStiffness.matvec`), per element::
+
+    bytes = 8 (weight) + 12 * 8 (forces scatter-added) = 104
+    flops = 12 (times weight) + 12 (scatter-add) = 24
+
+The per-element gathers and scatters are counted every time an element touches a node
+(each node has about 20 elements): an upper bound on the memory traffic when they hit
+cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
+
+``"t_o"``, the update (:func:`jaxsync.solver.external_force`, ``central_difference``,
+``apply_dirichlet``), per dof (3 per node)::
+
+    bytes = 8 * (3 + L + 1 + 1) + 1   read d(n), d(n-1), lumped mass, L load vectors,
+                                      fixed values; write d(n+1); read the fixed mask
+    flops = 8 + 2 L                   f = sum_l g_l(t) F_l (multiply + add per load);
+                                      (f - Kd), * dt^2, / m, 2 d, +, (1 - a) d_prev, -,
+                                      / (1 + a); the Dirichlet select is no flop
+
+``"t_s"``, synchronization (:func:`jaxsync.distributed.synchronize_forces`, as written;
+the bytes on the network are :mod:`jaxsync.costmodel`'s)::
+
+    bytes = 2 * 4 n_sh                index arrays shared_local, shared_interface
+          + 24 N_a                    the zeroed interface vector written
+          + 24 n_sh + 24 n_sh         partial forces read, added into the interface
+          + 24 N_a + 24 N_a           the interface vector reduced: read, result written
+          + 24 n_sh + 24 n_sh         the summed values gathered and written back
+    flops = 3 n_sh + 3 N_a            scatter-adds; one reduction add per interface dof
+
+``"t_d"``, the surrogate: one refill prediction of n_s windows
+(:func:`jaxsync.surrogate.evaluate.refill_predict`; :func:`surrogate_costs`), with
+H = n_H, H_d = 2 n_H, D = n_dof, q = n_cond_repeat, T = n_p, F = n_f, n_in of encoder
+layer l (D for the first, 2 H after). A cell step given its input projection costs
+8 H^2 (w_h h) + 4 H (add the projection) + 4 H (gate products and sum) + 5 H (3 sigmoid,
+2 tanh) = 8 H^2 + 13 H flops. Per window::
+
+    encoder, per layer and direction (both directions run: the layers are bidirectional):
+        input projection of all T steps at once: 8 H n_in T + 4 H T (bias)
+        T cell steps: T (8 H^2 + 13 H)
+    decoder, F steps, input y_prev (+ q copies of the load parameter):
+        8 H_d (D + q) + 4 H_d (projection and bias) + 8 H_d^2 + 13 H_d (cell)
+        + 2 D H_d + D (dense) + D (padding mask, when given)
+    normalization: 2 D T (input), 2 D F (output)
+
+all times n_s windows (one batched program: ``jax.vmap`` over the windows). Bytes: the
+parameters (itemsize of ``arch.dtype``) are read once per sequential matrix product, for
+all n_s windows together: per encoder layer and direction w_d and b once (one projection
+for all steps) and w_h T times; the decoder's w_d, w_h, b and the dense w, b F times;
+plus the input buffer n_s T D, mean and std 2 D, mask D and output n_s F D values in the
+solver's float64. Intermediate activations (projections, hidden sequences, states) are
+not counted: they are small and stay in cache for the paper's sizes. Per solver step:
+divide by the n_s n_f steps one prediction serves (:func:`surrogate_step_cost`).
+
+Achieved rates (:func:`achieved`): bytes / t, flops / t, arithmetic intensity
+flops / bytes, fraction of the machine's measured memory bandwidth
+(:func:`measure_copy_bandwidth`, read + write bytes of a large numpy copy), and the time
+the roofline predicts, max(bytes / bandwidth, flops / peak flops), with the ratio
+measured / predicted (the distance to the roofline, >= 1 when the model holds).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Mapping
+
+import numpy as np
+
+from .errors import ProblemError
+
+__all__ = ["StageCost", "STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
+           "surrogate_flop_breakdown", "surrogate_costs", "surrogate_step_cost",
+           "RooflinePoint", "achieved", "achieved_stages", "roofline_table",
+           "measure_copy_bandwidth"]
+
+STAGES = ("t_e", "t_m", "t_s", "t_o")
+
+F64, I32, MASK = 8, 4, 1  # bytes per float64, int32, boolean
+
+# Flops per element of jaxsync.element_force.element_forces, operation by operation as
+# written (the t_e of the recompute mode).
+ELEMENT_FLOPS = {
+    "edge vectors r1, r2, r3": 9,
+    "cross products c1, c2, c3": 27,  # 6 multiplications + 3 subtractions each
+    "det = sum(r1 * c1)": 5,  # 3 multiplications + 2 additions
+    "gradients c / det": 9,
+    "grad N_0 = -(sum of the others)": 9,  # 2 additions + 1 negation per component
+    "H = u^T grad": 72,  # 9 entries, contraction over 4 nodes
+    "eps = (H + H^T) / 2": 18,
+    "trace": 2,
+    "sigma = 2 mu eps + lam tr I": 28,  # 9 + 1 + 9 (times eye) + 9
+    "volume = det / 6": 1,
+    "sigma grad": 72,  # 12 entries, contraction over 3
+    "times volume": 12,
+}
+SCATTER_FLOPS = 24  # recompute t_m per element: 12 times the weight, 12 scatter-adds
+
+
+@dataclasses.dataclass(frozen=True)
+class StageCost:
+    """Memory traffic and floating-point work of one stage.
+
+    Attributes:
+        stage: the stage (``"t_e"``, ``"t_m"``, ``"t_s"``, ``"t_o"``, ``"t_d"``).
+        bytes: bytes read + written [bytes].
+        flops: floating-point operations [flop].
+    """
+
+    stage: str
+    bytes: float
+    flops: float
+
+    def __post_init__(self):
+        for name in ("bytes", "flops"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not (math.isfinite(value) and value >= 0):
+                raise ProblemError(f"StageCost.{name} of {self.stage!r} must be a finite number >= 0, "
+                                   f"got {value!r}")
+            object.__setattr__(self, name, float(value))
+
+    @property
+    def intensity(self) -> float:
+        """Arithmetic intensity flops / bytes [flop/byte] (inf when no bytes move but
+        flops are done, 0 when nothing is done)."""
+        if self.bytes == 0:
+            return math.inf if self.flops > 0 else 0.0
+        return self.flops / self.bytes
+
+    def scaled(self, factor: float) -> "StageCost":
+        """The cost times ``factor`` (e.g. 1 / (n_s n_f) to spread a prediction over steps)."""
+        return StageCost(self.stage, self.bytes * factor, self.flops * factor)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _count(value, name: str, minimum: int = 0) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ProblemError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = None,
+               n_load_vectors: int = 1, mode: str = "preassembled", n_shared: int = 0,
+               n_interface: int = 0) -> dict:
+    """Bytes and flops of each stage of one explicit step (formulas: module docstring).
+
+    Args:
+        n_nodes: n, nodes of the part (or mesh).
+        width: w, ELL slots per node row (``"preassembled"``; the second dimension of
+            :func:`jaxsync.sparse.node_adjacency`).
+        n_elements: m, elements of the part (``"recompute"``).
+        n_load_vectors: L, load vectors of the problem.
+        mode: ``"preassembled"`` or ``"recompute"``.
+        n_shared: n_sh, shared nodes of the part (0: no synchronization).
+        n_interface: N_a, shared nodes of the whole partition.
+
+    Returns:
+        ``{"t_e": StageCost, "t_m": ..., "t_s": ..., "t_o": ...}``.
+
+    Raises:
+        ProblemError: unknown mode, a missing ``width`` / ``n_elements``, negative counts,
+            n_shared > n_interface or n_shared > n_nodes.
+    """
+    from .element_force import MODES
+
+    if mode not in MODES:
+        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    n = _count(n_nodes, "n_nodes", 1)
+    loads = _count(n_load_vectors, "n_load_vectors")
+    n_sh = _count(n_shared, "n_shared")
+    n_a = _count(n_interface, "n_interface")
+    if n_sh > n_a or n_sh > n:
+        raise ProblemError(f"n_shared={n_sh} cannot exceed n_interface={n_a} or n_nodes={n}")
+    if mode == "preassembled":
+        if width is None:
+            raise ProblemError("the preassembled mode needs the ELL width (slots per row): pass width=")
+        w = _count(width, "width", 1)
+        t_e = StageCost("t_e", 0, 0)
+        t_m = StageCost("t_m", n * w * (9 * F64 + I32) + 2 * 3 * F64 * n, 18 * n * w)
+    else:
+        if n_elements is None:
+            raise ProblemError("the recompute mode needs the number of elements: pass n_elements=")
+        m = _count(n_elements, "n_elements", 1)
+        t_e = StageCost("t_e", m * (4 * I32 + 12 * F64 + 12 * F64), m * sum(ELEMENT_FLOPS.values()))
+        t_m = StageCost("t_m", m * (F64 + 12 * F64), m * SCATTER_FLOPS)
+    dofs = 3 * n
+    t_o = StageCost("t_o", dofs * (F64 * (3 + loads + 1 + 1) + MASK), dofs * (8 + 2 * loads))
+    vec = 3 * F64  # bytes of one node's 3 components
+    t_s = StageCost("t_s", 2 * I32 * n_sh + vec * n_a + 2 * vec * n_sh + 2 * vec * n_a + 2 * vec * n_sh,
+                    3 * n_sh + 3 * n_a)
+    return {"t_e": t_e, "t_m": t_m, "t_s": t_s, "t_o": t_o}
+
+
+def step_costs_for(problem, partition=None, mode: str = "preassembled"):
+    """:func:`step_costs` of a :class:`jaxsync.Problem`, whole or per part.
+
+    Args:
+        problem: the problem (mesh size, ELL width, load vectors).
+        partition: None for the whole mesh on one device (no synchronization), or a
+            :class:`jaxsync.Partition` of ``problem.mesh``: then each part at its own
+            (unpadded) size, as :func:`jaxsync.timing.timing_breakdown` measures it (the
+            SPMD program pads every part to the largest).
+        mode: ``"preassembled"`` or ``"recompute"``.
+
+    Returns:
+        One dict of stage costs, or for a partition a tuple of them (one per part).
+    """
+    from .sparse import node_adjacency
+
+    n_loads = len(problem.load_vectors()[0])
+    mesh = problem.mesh
+    if partition is None:
+        width = node_adjacency(mesh.tets, mesh.n_nodes).shape[1] if mode == "preassembled" else None
+        return step_costs(mesh.n_nodes, width, mesh.n_elements, n_loads, mode)
+    if partition.mesh.n_nodes != mesh.n_nodes or partition.mesh.n_elements != mesh.n_elements:
+        raise ProblemError("the partition was made for another mesh: partition problem.mesh")
+    out = []
+    for part in partition.parts:
+        width = node_adjacency(part.local_tets, part.n_local).shape[1] if mode == "preassembled" else None
+        out.append(step_costs(part.n_local, width, len(part.elements), n_loads, mode,
+                              part.n_shared, partition.n_interface))
+    return tuple(out)
+
+
+# ----------------------------------------------------------------------------- surrogate
+
+
+def _check_arch(arch, n_s):
+    from .surrogate.lstm import LSTMArchitecture
+
+    if not isinstance(arch, LSTMArchitecture):
+        raise ProblemError(f"expected a jaxsync.surrogate.lstm.LSTMArchitecture, got {arch!r}")
+    return _count(n_s, "n_s", 1)
+
+
+def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
+    """Flops of one refill prediction (n_s windows), by kind (formulas: module docstring).
+
+    Returns:
+        ``{"matmul": ..., "bias": ..., "cell": ..., "normalize": ..., "mask": ...}``:
+        ``"matmul"`` the matrix products (2 flops per weight entry per use), ``"bias"``
+        the bias additions, ``"cell"`` the gate arithmetic (13 per hidden unit per
+        step), ``"normalize"`` the input and output scaling, ``"mask"`` the padding mask.
+    """
+    n_s = _check_arch(arch, n_s)
+    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
+    t, f = arch.n_past, arch.n_future
+    matmul = bias = cell = 0
+    for layer in range(arch.n_layers):
+        n_in = d if layer == 0 else 2 * h
+        # two directions, each: projection of all T inputs, then T recursive steps
+        matmul += 2 * (2 * 4 * h * n_in * t + t * 2 * 4 * h * h)
+        bias += 2 * 4 * h * t
+        cell += 2 * t * 13 * h
+    matmul += f * (2 * 4 * hd * (d + q) + 2 * 4 * hd * hd + 2 * d * hd)
+    bias += f * (4 * hd + d)
+    cell += f * 13 * hd
+    per_window = {"matmul": matmul, "bias": bias, "cell": cell, "normalize": 2 * d * (t + f),
+                  "mask": f * d if masked else 0}
+    return {k: float(n_s * v) for k, v in per_window.items()}
+
+
+def surrogate_costs(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> StageCost:
+    """Bytes and flops of one refill prediction (n_s windows of one part), stage ``"t_d"``.
+
+    Args:
+        arch: the :class:`jaxsync.surrogate.lstm.LSTMArchitecture`.
+        n_s: sampling stride: windows per prediction.
+        masked: the padding mask is applied (the synchronization-avoiding solver does).
+        io_bytes_per_value: bytes per value of the solver-side buffer, mean, std, mask
+            and output (8: float64).
+    """
+    n_s = _check_arch(arch, n_s)
+    p_item = np.dtype(arch.dtype).itemsize
+    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
+    t, f = arch.n_past, arch.n_future
+    params = 0
+    for layer in range(arch.n_layers):
+        n_in = d if layer == 0 else 2 * h
+        params += 2 * ((4 * h * n_in + 4 * h) + t * 4 * h * h)  # w_d, b once; w_h per step
+    params += f * (4 * hd * (d + q) + 4 * hd * hd + 4 * hd)  # decoder cell per step
+    params += f * (d * hd + d)  # dense per step
+    io = n_s * t * d + 2 * d + n_s * f * d + (d if masked else 0)
+    flops = sum(surrogate_flop_breakdown(arch, n_s, masked).values())
+    return StageCost("t_d", p_item * params + io_bytes_per_value * io, flops)
+
+
+def surrogate_step_cost(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> StageCost:
+    """:func:`surrogate_costs` spread over the n_s n_f solver steps one prediction serves."""
+    return surrogate_costs(arch, n_s, masked, io_bytes_per_value).scaled(1.0 / (n_s * arch.n_future))
+
+
+# ----------------------------------------------------------------------------- roofline
+
+
+@dataclasses.dataclass(frozen=True)
+class RooflinePoint:
+    """A stage's measured time against its counted cost and the machine's peaks.
+
+    Attributes:
+        stage: the stage.
+        bytes, flops: counted cost [bytes], [flop].
+        seconds: measured time [s].
+        peak_bandwidth_Bps: memory bandwidth of the machine [bytes/s].
+        peak_flops: peak floating-point rate [flop/s], or None (bandwidth roof only).
+    """
+
+    stage: str
+    bytes: float
+    flops: float
+    seconds: float
+    peak_bandwidth_Bps: float
+    peak_flops: float | None = None
+
+    @property
+    def achieved_Bps(self) -> float:
+        """bytes / seconds [bytes/s]."""
+        return self.bytes / self.seconds
+
+    @property
+    def achieved_flops(self) -> float:
+        """flops / seconds [flop/s]."""
+        return self.flops / self.seconds
+
+    @property
+    def intensity(self) -> float:
+        """flops / bytes [flop/byte]."""
+        return StageCost(self.stage, self.bytes, self.flops).intensity
+
+    @property
+    def bandwidth_fraction(self) -> float:
+        """achieved_Bps / peak_bandwidth_Bps."""
+        return self.achieved_Bps / self.peak_bandwidth_Bps
+
+    @property
+    def roofline_s(self) -> float:
+        """The time the roofline predicts [s]: max(bytes / bandwidth, flops / peak_flops)."""
+        t = self.bytes / self.peak_bandwidth_Bps
+        return max(t, self.flops / self.peak_flops) if self.peak_flops else t
+
+    @property
+    def distance(self) -> float:
+        """seconds / roofline_s: how many times slower than the roofline (>= 1 expected)."""
+        return self.seconds / self.roofline_s
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the fields and the derived rates (GB/s, GFlop/s)."""
+        return dict(dataclasses.asdict(self), GB_per_s=self.achieved_Bps / 1e9,
+                    GFlop_per_s=self.achieved_flops / 1e9, intensity=self.intensity,
+                    bandwidth_fraction=self.bandwidth_fraction, roofline_s=self.roofline_s,
+                    distance=self.distance)
+
+
+def achieved(cost: StageCost, seconds: float, peak_bandwidth_Bps: float,
+             peak_flops: float | None = None) -> RooflinePoint:
+    """The achieved rates of a stage of cost ``cost`` measured at ``seconds``.
+
+    Raises:
+        ProblemError: a time or peak that is not finite and > 0, or a stage with no cost
+            (nothing to compare: e.g. t_e of the preassembled mode).
+    """
+    if not isinstance(cost, StageCost):
+        raise ProblemError(f"expected a StageCost, got {cost!r}")
+    values = {"seconds": seconds, "peak_bandwidth_Bps": peak_bandwidth_Bps}
+    if peak_flops is not None:
+        values["peak_flops"] = peak_flops
+    for name, value in values.items():
+        try:
+            ok = math.isfinite(float(value)) and float(value) > 0
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ProblemError(f"{name} of stage {cost.stage!r} must be a finite number > 0, got "
+                               f"{value!r} (a stage time clipped to 0 has no rate: leave it out)")
+    point = RooflinePoint(cost.stage, cost.bytes, cost.flops, float(seconds), float(peak_bandwidth_Bps),
+                          None if peak_flops is None else float(peak_flops))
+    if point.roofline_s == 0:
+        raise ProblemError(f"stage {cost.stage!r} moves no bytes"
+                           + ("" if peak_flops else " (and no peak_flops was given)")
+                           + ": nothing to compare with the roofline")
+    return point
+
+
+def achieved_stages(costs: Mapping, times, peak_bandwidth_Bps: float,
+                    peak_flops: float | None = None) -> dict:
+    """:func:`achieved` for every stage with a cost > 0 and a time > 0.
+
+    Args:
+        costs: ``{stage: StageCost}`` (:func:`step_costs`, maybe with ``"t_d"`` added).
+        times: ``{stage: seconds}``, or an object with the stages as attributes (a
+            :class:`jaxsync.timing.PartTiming`).
+        peak_bandwidth_Bps, peak_flops: as in :func:`achieved`.
+
+    Returns:
+        ``{stage: RooflinePoint}`` in the order of ``costs``.
+    """
+    out = {}
+    for stage, cost in costs.items():
+        seconds = times.get(stage) if isinstance(times, Mapping) else getattr(times, stage, None)
+        if seconds is None or not seconds > 0 or (cost.bytes == 0 and cost.flops == 0):
+            continue
+        if cost.bytes == 0 and not peak_flops:
+            continue
+        out[stage] = achieved(cost, seconds, peak_bandwidth_Bps, peak_flops)
+    return out
+
+
+def roofline_table(points) -> str:
+    """A printable table of :class:`RooflinePoint` s (a dict or an iterable)."""
+    points = list(points.values() if isinstance(points, Mapping) else points)
+    lines = [f"{'stage':<6} {'bytes':>12} {'flops':>12} {'flop/B':>7} {'us':>10} {'GB/s':>8} "
+             f"{'GFlop/s':>8} {'of bw':>6} {'roof us':>10} {'x roof':>7}"]
+    for p in points:
+        lines.append(f"{p.stage:<6} {p.bytes:>12.4g} {p.flops:>12.4g} {p.intensity:>7.3f} "
+                     f"{1e6 * p.seconds:>10.3f} {p.achieved_Bps / 1e9:>8.2f} {p.achieved_flops / 1e9:>8.2f} "
+                     f"{p.bandwidth_fraction:>6.0%} {1e6 * p.roofline_s:>10.3f} {p.distance:>7.2f}")
+    return "\n".join(lines)
+
+
+def measure_copy_bandwidth(n_bytes: float = 400e6, repeats: int = 5) -> float:
+    """The machine's memory bandwidth [bytes/s]: read + write bytes of ``numpy.copyto``
+    between two float64 arrays of ``n_bytes`` bytes each, best of ``repeats`` (after a
+    first copy that touches the pages). Use an array well above the caches (the default
+    400 MB) for the memory bandwidth; small sizes measure a cache.
+
+    Raises:
+        ProblemError: n_bytes below 8 or repeats below 1.
+    """
+    if not (isinstance(n_bytes, (int, float, np.integer, np.floating)) and math.isfinite(n_bytes)
+            and n_bytes >= F64):
+        raise ProblemError(f"n_bytes must be a finite size >= 8 bytes, got {n_bytes!r}")
+    repeats = _count(repeats, "repeats", 1)
+    a = np.random.default_rng(0).random(int(n_bytes) // F64)
+    b = np.empty_like(a)
+    np.copyto(b, a)  # first touch: page faults are not bandwidth
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        np.copyto(b, a)
+        best = min(best, time.perf_counter() - start)
+    return 2 * a.nbytes / max(best, 1e-12)
