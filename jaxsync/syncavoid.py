@@ -79,6 +79,28 @@ class SurrogatePredictor:
         return out * self.dof_mask
 
     @classmethod
+    def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2,
+                    n_past: int = 20, n_future: int = 20, dtype: str = "float32",
+                    seed: int = 0) -> "SurrogatePredictor":
+        """Untrained (randomly initialized) replicas for ``partition``, unit normalization.
+
+        For timing studies: an untrained network costs exactly what a trained one of the
+        same architecture costs, and needs no training run. Its predictions are
+        meaningless."""
+        from .surrogate.lstm import LSTMArchitecture
+        from .surrogate.train import init_replicas
+
+        n_dof, counts = shared_dof_layout(partition)
+        arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers,
+                                n_past=n_past, n_future=n_future, dtype=dtype)
+        params = init_replicas(jax.random.PRNGKey(seed), arch, tuple(int(c) for c in counts))
+        n = partition.n_parts
+        # normalization and mask in float64, as a checkpoint stores them
+        mask = (np.arange(n_dof)[None, :] < counts[:, None]).astype(np.float64)
+        return cls(params=params, mean=np.zeros((n, n_dof)), std=np.ones((n, n_dof)),
+                   dof_mask=mask, cond=np.zeros(n, dtype=np.float32), arch=arch, n_s=int(n_s))
+
+    @classmethod
     def from_checkpoint(cls, checkpoint, cond: float | None = None) -> "SurrogatePredictor":
         """Predictor of a :class:`jaxsync.surrogate.SurrogateCheckpoint` (or its path)."""
         from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint

@@ -86,9 +86,10 @@ import numpy as np
 
 from .errors import CheckpointError, ProblemError
 
-__all__ = ["PartTiming", "TimingReport", "timing_breakdown", "max_average", "STAGES"]
+__all__ = ["PartTiming", "TimingReport", "timing_breakdown", "max_average", "STAGES",
+           "SpeedupReport", "speedup_breakdown"]
 
-STAGES = ("t_e", "t_m", "t_s", "t_o")  # the additive stages of t_t
+STAGES = ("t_e", "t_m", "t_s", "t_d", "t_o")  # the additive stages of t_t
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,7 +103,9 @@ class PartTiming:
         n_shared: shared nodes of the part.
         t_e, t_m, t_s, t_o: stage times per step [s].
         t_local: the part's whole step without synchronization, measured [s].
-        t_t: total per step, t_local + t_s [s].
+        t_t: total per step, t_local + t_s + t_d [s].
+        t_d: surrogate cost per step [s] (synchronization-avoiding solver: one batched
+            refill prediction divided by the n_s n_f steps it serves; 0 otherwise).
     """
 
     part: int
@@ -115,6 +118,7 @@ class PartTiming:
     t_o: float
     t_local: float
     t_t: float
+    t_d: float = 0.0
 
     def __post_init__(self):
         for name in (*STAGES, "t_local", "t_t"):
@@ -123,19 +127,19 @@ class PartTiming:
                 raise ProblemError(f"PartTiming.{name} must be a finite time >= 0 s, got {value!r}")
 
     def ratio(self, name: str) -> float:
-        """r_* = t_* / t_t for ``name`` in ``t_e, t_m, t_s, t_o`` (0 when t_t is 0)."""
+        """r_* = t_* / t_t for ``name`` in ``t_e, t_m, t_s, t_d, t_o`` (0 when t_t is 0)."""
         if name not in STAGES:
             raise ProblemError(f"ratio of {name!r}: use one of {STAGES}")
         return getattr(self, name) / self.t_t if self.t_t > 0 else 0.0
 
     @property
     def ratios(self) -> dict:
-        """{"r_e": ..., "r_m": ..., "r_s": ..., "r_o": ...}."""
+        """{"r_e": ..., "r_m": ..., "r_s": ..., "r_d": ..., "r_o": ...}."""
         return {"r" + name[1:]: self.ratio(name) for name in STAGES}
 
     @property
     def r_sum(self) -> float:
-        """(t_e + t_m + t_s + t_o) / t_t: 1 when the separately measured stages add up."""
+        """(t_e + t_m + t_s + t_d + t_o) / t_t: 1 when the separately measured stages add up."""
         return sum(self.ratios.values())
 
 
@@ -205,8 +209,8 @@ class TimingReport:
                 f"{self.n_elements} tetrahedra; {self.n_steps} steps x best of {self.repeats}; "
                 f"{self.device}")
         cols = (f"{'part':>7} {'nodes':>7} {'elems':>7} {'shared':>6} "
-                f"{'t_e':>9} {'t_m':>9} {'t_s':>9} {'t_o':>9} {'t_t':>9}  "
-                f"{'r_e':>5} {'r_m':>5} {'r_s':>5} {'r_o':>5} {'sum':>5}")
+                f"{'t_e':>9} {'t_m':>9} {'t_s':>9} {'t_d':>9} {'t_o':>9} {'t_t':>9}  "
+                f"{'r_e':>5} {'r_m':>5} {'r_s':>5} {'r_d':>5} {'r_o':>5} {'sum':>5}")
         lines = [head, "times in us per step", cols]
 
         def line(label, r):
@@ -395,7 +399,8 @@ def _describe_devices(devices) -> str:
 
 
 def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_steps: int | None = None,
-                     repeats: int = 100, dt=None, devices=None, seed: int = 0) -> TimingReport:
+                     repeats: int = 100, dt=None, devices=None, seed: int = 0,
+                     sync: str = "psum") -> TimingReport:
     """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
 
     Args:
@@ -413,6 +418,8 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
         devices: devices for the distributed program (default as in
             :func:`jaxsync.simulate`); each part's own program runs on the first.
         seed: METIS seed when ``partitions`` is an int.
+        sync: ``"psum"`` or ``"ppermute"``, the synchronization timed as t_s (see
+            :class:`jaxsync.distributed.DistributedRunner`).
 
     Returns:
         :class:`TimingReport`, times in seconds per step.
@@ -444,7 +451,7 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
 
     # The distributed program (padded parts on all devices); also places the devices.
     runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                               devices=devices)
+                               devices=devices, sync=sync)
     local_device = runner.devices[0]
     zero = jax.device_put(jnp.zeros(()), local_device)
 
@@ -491,3 +498,214 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
                         device=_describe_devices(runner.devices), n_devices=len(runner.devices),
                         rows=tuple(rows), t_step=t_step, t_step_nosync=t_step_nosync,
                         setup_s=setup_s, loadavg=os.getloadavg())
+
+
+# ---------------------------------------------------------------------------------------
+# Synchronized against synchronization-avoiding, in one run.
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeedupReport:
+    """The synchronized and the synchronization-avoiding solver measured in one run.
+
+    Attributes:
+        synchronized: per-part breakdown of the synchronized solver with the faster
+            synchronization (``sync``); t_d = 0.
+        avoiding: the same parts in the synchronization-avoiding solver: t_s = 0 and t_d
+            the part's surrogate cost per step; t_e, t_m, t_o are those of the
+            synchronized solver's local step (the predicted step also overwrites the
+            shared dofs, a gather of n_shared values, inside ``t_step_avoiding``).
+        sync: the synchronization of the baseline (the faster of those timed).
+        t_step_sync: {sync method: measured per-step time of the whole synchronized SPMD
+            program [s]} for every method timed.
+        t_step_nosync: the same program without synchronization [s].
+        t_step_avoiding: measured per-step time of the whole synchronization-avoiding
+            SPMD program (n_s n_f solver steps and one batched refill prediction per part
+            per cycle, no collective) [s].
+        t_prediction: (n_parts,) wall time of one batched refill prediction of each part,
+            alone on one device [s].
+        n_s, n_past, n_future: the refill geometry; one prediction serves n_s n_future steps.
+        architecture: the surrogate's architecture (dict), or {} for another predictor.
+        n_steps: steps per timed call of the whole programs; repeats: timed calls (best kept).
+    """
+
+    synchronized: TimingReport
+    avoiding: TimingReport
+    sync: str
+    t_step_sync: dict
+    t_step_nosync: float
+    t_step_avoiding: float
+    t_prediction: tuple
+    n_s: int
+    n_past: int
+    n_future: int
+    architecture: dict
+    n_steps: int
+    repeats: int
+
+    @property
+    def steps_per_prediction(self) -> int:
+        return self.n_s * self.n_future
+
+    @property
+    def t_step_synchronized(self) -> float:
+        """Whole-program step of the synchronized baseline at its best [s]."""
+        return self.t_step_sync[self.sync]
+
+    @property
+    def zeta(self) -> float:
+        """Speed-up t_t / t_t' of the whole programs, measured in the same run."""
+        return self.t_step_synchronized / self.t_step_avoiding
+
+    @property
+    def t_s(self) -> float:
+        """Synchronization cost per step of the baseline [s] (whole programs)."""
+        return max(self.t_step_synchronized - self.t_step_nosync, 0.0)
+
+    @property
+    def t_d(self) -> float:
+        """Surrogate cost per step of the slowest part [s] (amortized over n_s n_f steps)."""
+        return max(self.t_prediction) / self.steps_per_prediction
+
+    @property
+    def surrogate_pays(self) -> bool:
+        """True when the amortized surrogate cost is below the synchronization it replaces."""
+        return self.t_d < self.t_s
+
+    def table(self) -> str:
+        lines = [self.synchronized.table(), "", "synchronization-avoiding:", self.avoiding.table(), ""]
+        lines.append("whole programs, us per step (same run, best of "
+                     f"{self.repeats} calls of {self.n_steps} steps):")
+        for method, t in self.t_step_sync.items():
+            mark = "  <- baseline" if method == self.sync else ""
+            lines.append(f"  synchronized ({method}): {1e6 * t:9.2f}{mark}")
+        lines.append(f"  no synchronization:      {1e6 * self.t_step_nosync:9.2f}")
+        lines.append(f"  synchronization-avoiding: {1e6 * self.t_step_avoiding:8.2f}")
+        lines.append(f"  t_s = {1e6 * self.t_s:.2f} us; surrogate: {1e3 * max(self.t_prediction):.3f} ms "
+                     f"per prediction = {1e6 * self.t_d:.2f} us per step over n_s n_f = "
+                     f"{self.steps_per_prediction} steps; "
+                     + ("below" if self.surrogate_pays else "NOT below")
+                     + " the synchronization it replaces")
+        lines.append(f"  zeta = t_t / t_t' = {self.zeta:.3f}")
+        return "\n".join(lines)
+
+    def to_dict(self) -> dict:
+        out = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        out["synchronized"] = self.synchronized.to_dict()
+        out["avoiding"] = self.avoiding.to_dict()
+        out["t_prediction"] = list(self.t_prediction)
+        for name in ("zeta", "t_s", "t_d", "steps_per_prediction", "t_step_synchronized",
+                     "surrogate_pays"):
+            out[name] = getattr(self, name)
+        out["kind"] = "jaxsync-speedup-report"
+        return out
+
+    def save_json(self, path: str | os.PathLike) -> None:
+        """Write :meth:`to_dict` as JSON; the file appears only when complete."""
+        from .trajectory import atomic_path
+
+        with atomic_path(path) as tmp:
+            with open(tmp, "w") as f:
+                json.dump(self.to_dict(), f, indent=2)
+                f.write("\n")
+
+
+def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preassembled",
+                      syncs=("psum", "ppermute"), n_cycles: int = 1, repeats: int = 10,
+                      stage_repeats: int = 50, n_s: int = 80, devices=None, seed: int = 0,
+                      dt=None) -> SpeedupReport:
+    """Time the synchronized solver (each of ``syncs``) and the synchronization-avoiding
+    solver (paper Algorithm 3's predicted phase) in one run, and the stages of both.
+
+    The whole SPMD programs -- synchronized with each method, without synchronization,
+    and synchronization-avoiding, all advancing ``n_cycles`` refill cycles of n_s n_f
+    steps -- are timed round-robin (the best of ``repeats`` calls each, the cost of a
+    call removed), so that a drift of the machine's load hits all alike; zeta is the
+    ratio of the best synchronized program to the avoiding one. Each part's batched
+    refill prediction is timed alone on one device (t_d per prediction; per step over
+    the n_s n_f steps it serves). The per-part stages t_e, t_m, t_s, t_o come from
+    :func:`timing_breakdown` with the faster synchronization.
+
+    Args:
+        problem: a :class:`jaxsync.Problem`.
+        partitions: int n_parts (METIS, ``seed``) or a :class:`jaxsync.Partition`.
+        predictor: a :class:`jaxsync.syncavoid.SurrogatePredictor` (trained or not) or
+            :class:`~jaxsync.syncavoid.OraclePredictor`; default: untrained replicas of the
+            paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at stride ``n_s``
+            (:meth:`SurrogatePredictor.initialized`): the cost does not depend on the
+            weights.
+        mode: ``"preassembled"`` or ``"recompute"``.
+        syncs: synchronizations to time for the baseline (the faster one is kept).
+        n_cycles, repeats: refill cycles per timed call, timed calls per program.
+        stage_repeats: ``repeats`` of the per-part stage timing.
+        n_s: refill stride of the default predictor.
+
+    Returns:
+        :class:`SpeedupReport`.
+    """
+    from .distributed import DistributedRunner
+    from .partition import Partition, partition as make_partition
+    from .solver import SolverState, build_system, initial_state
+    from .syncavoid import SurrogatePredictor, _OnlineRunner, shared_dof_layout
+
+    if not syncs or any(m not in ("psum", "ppermute") for m in syncs):
+        raise ProblemError(f"syncs must name 'psum' and/or 'ppermute', got {syncs!r}")
+    for name, value in (("n_cycles", n_cycles), ("repeats", repeats)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ProblemError(f"{name} must be a positive integer, got {value!r}")
+    part_info = partitions if isinstance(partitions, Partition) else make_partition(
+        problem.mesh, partitions, seed=seed)
+    if part_info.n_parts < 2:
+        raise ProblemError("the synchronization-avoiding solver needs at least 2 parts")
+    if predictor is None:
+        predictor = SurrogatePredictor.initialized(part_info, n_s, seed=seed)
+    n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future
+    cycle_steps, history = n_s * n_f, n_s * n_p
+    n_steps = n_cycles * cycle_steps
+    dt = float(problem.dt if dt is None else dt)
+    system = build_system(problem, dt, mode)
+    state = initial_state(problem, system)
+    d0, dm1 = np.asarray(state.displacement), np.asarray(state.previous)
+    n_dof, _ = shared_dof_layout(part_info)
+
+    runners = {m: DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
+                                    devices=devices, sync=m) for m in syncs}
+    runner = runners[syncs[0]]
+    dist_state = runner.from_global(SolverState(d0, dm1, 0))
+    online = _OnlineRunner(runner, predictor, save_every=cycle_steps)
+    buffer = runner._put(np.zeros((part_info.n_parts, history, n_dof)))
+    first = online._first(0)
+    calls = {f"sync:{m}": (r.program(1, save_every=n_steps), (r.parts, dist_state))
+             for m, r in runners.items()}
+    calls["nosync"] = (runner.program(1, save_every=n_steps, synchronize=False), (runner.parts, dist_state))
+    calls["avoid"] = (online.prepare(dist_state, buffer, n_cycles, cycle_steps),
+                      (runner.parts, online.predictor, dist_state, buffer, first))
+    calls["call"] = (_distributed_program(runner, n_steps, synchronize=None), (runner.parts, dist_state))
+    whole = _per_step(_best_times(calls, repeats), n_steps)
+    t_step_sync = {m: whole[f"sync:{m}"] for m in syncs}
+    best = min(t_step_sync, key=t_step_sync.get)
+
+    # each part's batched refill prediction alone on one device
+    device = runner.devices[0]
+    predict = jax.jit(lambda pred, buf: pred.predict(buf, 0))
+    t_prediction = []
+    for p in range(part_info.n_parts):
+        own = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[p], predictor), device)
+        buf = jax.device_put(np.zeros((history, n_dof)), device)
+        t = _best_times({"predict": (predict, (own, buf)),
+                         "call": (jax.jit(lambda b: b + 0.0), (buf,))}, max(repeats, 20))
+        t_prediction.append(max(t["predict"] - t["call"], 0.0))
+
+    synchronized = timing_breakdown(problem, part_info, mode=mode, repeats=stage_repeats, dt=dt,
+                                    devices=devices, sync=best)
+    rows = tuple(dataclasses.replace(r, t_s=0.0, t_d=t_d, t_t=r.t_local + t_d)
+                 for r, t_d in zip(synchronized.rows, np.asarray(t_prediction) / cycle_steps))
+    avoiding = dataclasses.replace(synchronized, rows=rows, t_step=whole["avoid"],
+                                   t_step_nosync=whole["nosync"])
+    arch = getattr(predictor, "arch", None)
+    return SpeedupReport(synchronized=synchronized, avoiding=avoiding, sync=best,
+                         t_step_sync=t_step_sync, t_step_nosync=whole["nosync"],
+                         t_step_avoiding=whole["avoid"], t_prediction=tuple(t_prediction),
+                         n_s=int(n_s), n_past=int(n_p), n_future=int(n_f),
+                         architecture=arch.to_dict() if arch is not None else {},
+                         n_steps=n_steps, repeats=repeats)

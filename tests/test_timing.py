@@ -86,12 +86,12 @@ def test_report_structure(reports, small_problem, mode):
 def test_ratios_are_stage_over_total():
     r = row(0, t_e=1e-6, t_m=2e-6, t_s=3e-6, t_o=4e-6, t_local=7e-6)
     assert r.t_t == pytest.approx(10e-6)
-    assert r.ratios == pytest.approx({"r_e": 0.1, "r_m": 0.2, "r_s": 0.3, "r_o": 0.4})
+    assert r.ratios == pytest.approx({"r_e": 0.1, "r_m": 0.2, "r_s": 0.3, "r_d": 0.0, "r_o": 0.4})
     assert r.ratio("t_m") == pytest.approx(0.2)
     assert r.r_sum == pytest.approx(1.0)
     # stages measured apart may miss the whole: r_sum shows it
     assert row(0, 0.0, 1e-6, 0.0, 1e-6, 4e-6).r_sum == pytest.approx(0.5)
-    assert row(0, 0.0, 0.0, 0.0, 0.0, 0.0).ratios == {"r_e": 0.0, "r_m": 0.0, "r_s": 0.0, "r_o": 0.0}
+    assert row(0, 0.0, 0.0, 0.0, 0.0, 0.0).ratios == {"r_e": 0.0, "r_m": 0.0, "r_s": 0.0, "r_d": 0.0, "r_o": 0.0}
     with pytest.raises(ProblemError, match="t_x"):
         r.ratio("t_x")
     with pytest.raises(ProblemError, match="t_m"):
@@ -183,3 +183,38 @@ def test_report_is_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         report.mode = "recompute"
     assert len(jax.devices()) == 2
+
+
+def test_speedup_breakdown_measures_both_solvers_in_one_run(tmp_path):
+    """Synchronized (psum and ppermute) and synchronization-avoiding programs timed in one
+    run; zeta, t_s, t_d and the avoiding rows follow from the measured times."""
+    from jaxsync.syncavoid import SurrogatePredictor
+    from jaxsync.timing import speedup_breakdown
+
+    problem = jaxsync.cantilever()
+    part = jaxsync.partition(problem.mesh, 2, seed=0)
+    predictor = SurrogatePredictor.initialized(part, 4, n_hidden=8, n_layers=1, n_past=3, n_future=5)
+    report = speedup_breakdown(problem, part, predictor, n_cycles=2, repeats=3, stage_repeats=5)
+    assert report.steps_per_prediction == 20 and report.n_steps == 40
+    assert set(report.t_step_sync) == {"psum", "ppermute"}
+    assert report.sync == min(report.t_step_sync, key=report.t_step_sync.get)
+    assert report.zeta == pytest.approx(report.t_step_sync[report.sync] / report.t_step_avoiding)
+    assert report.t_s == pytest.approx(max(report.t_step_synchronized - report.t_step_nosync, 0.0))
+    assert len(report.t_prediction) == 2 and all(t > 0 for t in report.t_prediction)
+    assert report.t_d == pytest.approx(max(report.t_prediction) / 20)
+    assert report.surrogate_pays == (report.t_d < report.t_s)
+    for sync_row, row_ in zip(report.synchronized.rows, report.avoiding.rows):
+        assert row_.t_s == 0.0 and sync_row.t_d == 0.0
+        assert row_.t_d == pytest.approx(report.t_prediction[row_.part] / 20)
+        assert row_.t_t == pytest.approx(sync_row.t_local + row_.t_d)
+        assert (row_.t_e, row_.t_m, row_.t_o) == (sync_row.t_e, sync_row.t_m, sync_row.t_o)
+    assert report.architecture["n_hidden"] == 8
+    assert "zeta" in report.table()
+    report.save_json(tmp_path / "speedup.json")
+    data = json.loads((tmp_path / "speedup.json").read_text())
+    assert data["zeta"] == pytest.approx(report.zeta)
+    assert data["avoiding"]["max_average"]["t_d"] == pytest.approx(report.avoiding.max_average.t_d)
+    with pytest.raises(ProblemError, match="syncs"):
+        speedup_breakdown(problem, part, predictor, syncs=("allgather",))
+    with pytest.raises(ProblemError, match="2 parts"):
+        speedup_breakdown(problem, 1, predictor)
