@@ -23,6 +23,20 @@ many messages of which size that takes depends on the algorithm (:data:`ALGORITH
                                     different neighbours go one after another:
                                     t = sum over neighbours of t_msg; the slowest part
                                     sets the time.
+    "collective"                    one collective call that moves the whole interface
+                                    vector once: latency + S / bandwidth. This is a
+                                    reduction done in one step through shared memory:
+                                    XLA's psum between devices of one process (the
+                                    emulated devices of the tests and benchmarks; there
+                                    the "latency" is the cost of all device threads
+                                    meeting, which grows with their number, so fit one
+                                    Interconnect per device count).
+    "collective-permute"            XLA's ``ppermute`` neighbour exchange
+                                    (:class:`jaxsync.distributed.NeighbourExchange`), one
+                                    part per device: one collective call per device
+                                    offset k at which some parts p and p + k (mod p)
+                                    share nodes, each moving the largest such block:
+                                    n_offsets * (latency + max bytes / bandwidth).
 
 The counts of the two allreduce algorithms are those of Thakur, Rabenseifner & Gropp,
 "Optimization of collective communication operations in MPICH", International Journal
@@ -68,7 +82,8 @@ __all__ = ["Interconnect", "INTERCONNECTS", "CommunicationPattern", "communicati
            "ALGORITHMS", "sync_time", "fit_interconnect", "InterconnectProjection",
            "Projection", "project", "relative_error"]
 
-ALGORITHMS = ("allreduce", "allreduce-ring", "allreduce-recursive-doubling", "neighbour")
+ALGORITHMS = ("allreduce", "allreduce-ring", "allreduce-recursive-doubling", "neighbour",
+              "collective", "collective-permute")
 
 
 def _positive_finite(value, what: str, error=ConfigError) -> float:
@@ -301,6 +316,15 @@ def sync_time(pattern: CommunicationPattern, interconnect, algorithm: str = "all
         return float(doubling)
     if algorithm == "allreduce":
         return float(min(ring, doubling))
+    if algorithm == "collective":
+        return float(link.message_time(size))
+    if algorithm == "collective-permute":
+        largest = {}
+        for q, row in enumerate(pattern.neighbours):
+            for r, n in row:
+                k = (r - q) % p
+                largest[k] = max(largest.get(k, 0), n * pattern.dofs_per_node * pattern.bytes_per_value)
+        return float(sum(link.message_time(b) for b in largest.values()))
     return float(max(float(np.sum(link.message_time(np.asarray(pattern.neighbour_bytes(q), dtype=float))))
                      for q in range(p)))
 

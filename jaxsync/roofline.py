@@ -102,7 +102,7 @@ from .errors import ProblemError
 __all__ = ["StageCost", "STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
            "surrogate_flop_breakdown", "surrogate_costs", "surrogate_step_cost",
            "RooflinePoint", "achieved", "achieved_stages", "roofline_table",
-           "measure_copy_bandwidth"]
+           "measure_copy_bandwidth", "measure_matmul_flops"]
 
 STAGES = ("t_e", "t_m", "t_s", "t_o")
 
@@ -472,3 +472,30 @@ def measure_copy_bandwidth(n_bytes: float = 400e6, repeats: int = 5) -> float:
         np.copyto(b, a)
         best = min(best, time.perf_counter() - start)
     return 2 * a.nbytes / max(best, 1e-12)
+
+
+def measure_matmul_flops(n: int = 1024, dtype: str = "float32", repeats: int = 5) -> float:
+    """The machine's attainable floating-point rate [flop/s]: 2 n^3 flops of a jitted
+    (n, n) x (n, n) ``jnp.dot`` in ``dtype`` on the default device, best of ``repeats``
+    after a warm-up call. float32 is what the surrogates compute in; use it as the flop
+    roof of t_d.
+
+    Raises:
+        ProblemError: n or repeats below 1, or an unknown dtype.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    n = _count(n, "n", 1)
+    repeats = _count(repeats, "repeats", 1)
+    if dtype not in ("float32", "float64"):
+        raise ProblemError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
+    a = jnp.asarray(np.random.default_rng(0).random((n, n)), dtype=dtype)
+    product = jax.jit(jnp.dot)
+    product(a, a).block_until_ready()
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        product(a, a).block_until_ready()
+        best = min(best, time.perf_counter() - start)
+    return 2.0 * n ** 3 / max(best, 1e-12)

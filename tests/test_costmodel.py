@@ -65,6 +65,21 @@ def test_neighbour_exchange_on_a_hand_built_pattern():
     assert pattern.neighbour_bytes(0) == (240, 120)
 
 
+def test_shared_memory_collectives_by_hand():
+    """One psum call moves S once; the ppermute exchange makes one call per device offset
+    at which parts share nodes, each of the largest block at that offset."""
+    # chain of 4 parts: offsets +1 (0->1: 10 nodes, 1->2: 4, 2->3: 7) and -1 = 3 (same blocks)
+    chain = CommunicationPattern(4, 21, (((1, 10),), ((0, 10), (2, 4)), ((1, 4), (3, 7)), ((2, 7),)))
+    assert sync_time(chain, LINK, "collective") == pytest.approx(1e-6 + 21 * 24 / 1e9, rel=1e-12)
+    per_offset = 1e-6 + 10 * 24 / 1e9
+    assert sync_time(chain, LINK, "collective-permute") == pytest.approx(2 * per_offset, rel=1e-12)
+    # parts 0 and 2 also share 3 nodes: offset 2 adds a third call
+    wider = CommunicationPattern(4, 22, (((1, 10), (2, 3)), ((0, 10), (2, 4)),
+                                         ((0, 3), (1, 4), (3, 7)), ((2, 7),)))
+    assert sync_time(wider, LINK, "collective-permute") == pytest.approx(
+        2 * per_offset + (1e-6 + 3 * 24 / 1e9), rel=1e-12)
+
+
 def test_one_part_costs_nothing():
     alone = CommunicationPattern(1, 0, ((),))
     for algorithm in ALGORITHMS:

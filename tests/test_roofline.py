@@ -14,6 +14,7 @@ import pytest
 import jaxsync
 from jaxsync import ProblemError
 from jaxsync.roofline import (ELEMENT_FLOPS, StageCost, achieved, achieved_stages, measure_copy_bandwidth,
+                              measure_matmul_flops,
                               roofline_table, step_costs, step_costs_for, surrogate_costs,
                               surrogate_flop_breakdown, surrogate_step_cost)
 from jaxsync.solver import SolverState, apply_dirichlet, build_system, central_difference
@@ -246,3 +247,25 @@ def test_bad_inputs_are_refused():
         surrogate_costs(LSTMArchitecture(n_dof=3), 0)
     with pytest.raises(ProblemError, match="repeats"):
         measure_copy_bandwidth(8e3, repeats=0)
+
+
+def test_measure_matmul_flops_is_a_plausible_rate():
+    """Positive, finite, and no faster than the time of one product allows: a timed
+    product of the same size must take at least 2 n^3 / rate seconds."""
+    import time
+
+    import jax
+    import jax.numpy as jnp
+
+    rate = measure_matmul_flops(n=256, repeats=3)
+    assert np.isfinite(rate) and rate > 1e8
+    a = jnp.ones((256, 256), jnp.float32)
+    f = jax.jit(jnp.dot)
+    f(a, a).block_until_ready()
+    start = time.perf_counter()
+    f(a, a).block_until_ready()
+    assert time.perf_counter() - start >= 0.5 * 2 * 256 ** 3 / rate
+    with pytest.raises(ProblemError, match="dtype"):
+        measure_matmul_flops(n=8, dtype="int8")
+    with pytest.raises(ProblemError, match="repeats"):
+        measure_matmul_flops(n=8, repeats=0)
