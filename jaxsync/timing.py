@@ -38,15 +38,23 @@ Per part, on one device and at the part's own (unpadded) size:
 
     T_full   :func:`jaxsync.solver.step` without synchronization: the real local step.
     T_other  the step with the internal force replaced by zero.
-    T_force  d <- d + c K d with c = 0 passed at run time (XLA cannot fold it away):
-             the internal force alone plus one fused axpy.
+    T_force  the step with the internal force K d multiplied by c = 0 passed at run
+             time (XLA cannot fold it away): the internal force computed inside the real
+             update loop, as XLA fuses it there, but not acting on the result.
     T_scat   (recompute) d <- d + c segment_sum(weight (F + c d_0)) for a given array F
              of element forces: the scatter alone (c d_0 keeps it inside the loop).
-    T_empty  d <- d + c d(n-1): the loop, the carry and the same axpy, no work.
+    T_empty  d <- d + c d(n-1): the loop, the carry and one axpy, no work.
 
-    recompute:    t_m = T_scat - T_empty,   t_e = T_force - T_empty - t_m
-    preassembled: t_m = T_force - T_empty,  t_e = 0
+    internal force:  t_e + t_m = T_force - T_other  (what it adds to the real step)
+    recompute:       t_m = T_scat - T_empty (at most t_e + t_m), t_e = the rest
+    preassembled:    t_m = T_force - T_other, t_e = 0
     t_o = T_other,  t_local = T_full     (each T per step, with T_call removed).
+
+Why the internal force is timed inside the update loop: XLA fuses the mat-vec and the
+update into one loop, and there the mat-vec costs 10-15 % more than as a kernel of its
+own (measured on this machine: the mat-vec alone plus the update alone came to 0.90-0.92
+of the real step at 234 to 4949 nodes; benchmarks/bench_stepper.py times the kernels).
+Timed inside the loop, the stages add up to the real step (``r_sum`` within a few %).
 
 The synchronization cannot be timed on one device: the padded SPMD program of all parts
 (``jax.shard_map`` over the devices, parts of one device vmapped, exactly as in
@@ -57,10 +65,8 @@ synchronize (no shared nodes) and t_s = 0 without measuring. Both distributed ti
 are in the report (``t_step``, ``t_step_nosync``): t_step is the real per-step cost of
 the whole program.
 
-Limits. Differences of variants assume that stage costs add; XLA fuses the mat-vec
-output with the update in the real step, so the whole step may cost a few percent more
-or less than its measured parts (the ``r_sum`` of a row shows how far; on this kind of
-machine, unloaded, within 10 %). In recompute mode the real step may overlap the scatter
+Limits. Differences of variants assume that stage costs add (the ``r_sum`` of a row
+shows how far they do; on this kind of machine, unloaded, within 10 %). In recompute mode the real step may overlap the scatter
 with the element computation; the split of the internal force into t_e and t_m is the
 convention above (scatter timed alone), their sum is measured. Stage times are clipped
 at 0 when noise makes a difference negative. Per-part numbers are measured at each part's own
@@ -306,11 +312,12 @@ def _other(system, state, zero, n_steps):
 
 
 def _force(system, state, zero, n_steps):
-    from .solver import SolverState
+    from .solver import SolverState, apply_dirichlet, central_difference
 
     def body(s):
-        internal = system.stiffness.matvec(s.displacement)
-        return SolverState(s.displacement + zero * internal, s.displacement, s.step + 1)
+        internal = zero * system.stiffness.matvec(s.displacement)
+        new = central_difference(system, s, internal)
+        return SolverState(apply_dirichlet(system, new), s.displacement, s.step + 1)
 
     return _scan(body, state, n_steps)
 
@@ -487,7 +494,7 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
 
     rows = []
     for part, t in zip(part_info.parts, local_times):
-        t_force = max(t["force"] - t["empty"], 0.0)
+        t_force = max(t["force"] - t["other"], 0.0)
         t_m = min(max(t["scatter"] - t["empty"], 0.0), t_force) if mode == "recompute" else t_force
         rows.append(PartTiming(part=part.index, n_nodes=part.n_local, n_elements=len(part.elements),
                                n_shared=part.n_shared, t_e=t_force - t_m, t_m=t_m,

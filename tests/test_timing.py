@@ -49,18 +49,20 @@ def report_of(rows, **kw):
     return TimingReport(**values)
 
 
-def test_stages_add_up_to_the_total(reports, small_problem):
-    """Element-recompute mode: t_e + t_m + t_o, measured apart, add up to the whole local
-    step within 10 %. (In the preassembled mode XLA fuses the stored-K product with the
-    update, and the fused step measured 2-16 % slower than its separately timed stages on
-    this VM, so additivity is not asserted there; see issue 6.)"""
-    report = reports["recompute"]
+@pytest.mark.parametrize("mode", ["preassembled", "recompute"])
+def test_stages_add_up_to_the_total(reports, small_problem, mode):
+    """t_e + t_m + t_o, measured as separate programs (T_force - T_other, the scatter
+    alone, T_other), add up to the separately measured real local step T_full within
+    10 % in both modes. This fails when a variant stops representing the real step
+    (XLA folding the zero-scaled force away, or the force timed outside the update loop,
+    where it is 10-15 % cheaper than in the fused step) or when stages overlap."""
+    report = reports[mode]
     for _ in range(2):
         if worst_mismatch(report) <= 0.10:
             break
         # The VM's timings vary by up to 1.7x between runs; a burst of load during one
         # measurement is not a defect of the method, three misses in a row would be.
-        report = measure(small_problem, "recompute")
+        report = measure(small_problem, mode)
     assert worst_mismatch(report) <= 0.10, report.table()
 
 
