@@ -144,7 +144,8 @@ def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
             "sync": report.sync, "t_step_sync_us": {k: 1e6 * v for k, v in report.t_step_sync.items()},
             "t_step_nosync_us": 1e6 * report.t_step_nosync,
             "t_step_avoiding_us": 1e6 * report.t_step_avoiding, "t_s_us": 1e6 * report.t_s,
-            "t_d_us": 1e6 * report.t_d, "t_prediction_ms": 1e3 * max(report.t_prediction),
+            "t_d_us": 1e6 * report.t_d, "t_prediction_ms": 1e3 * report.t_prediction_spmd,
+            "t_prediction_alone_ms": 1e3 * max(report.t_prediction),
             "surrogate_pays": report.surrogate_pays,
             "t_compute_us": 1e6 * top.t_local,
             "roofline": {k: v.to_dict() for k, v in points.items()},
@@ -260,7 +261,8 @@ def main(argv=None):
         print(f"{r['scenario']:<8} {r['mode']:<12} nodes {r['n_nodes']:>6} parts {r['n_parts']} "
               f"n_H {r['n_hidden']:>3}: sync {r['t_step_sync_us']['psum']:9.1f} (psum) "
               f"{r['t_step_sync_us']['ppermute']:9.1f} (ppermute)  avoid {r['t_step_avoiding_us']:9.1f} "
-              f"us/step  t_s {r['t_s_us']:8.1f}  t_d {r['t_d_us']:7.2f}  zeta {r['zeta']:5.2f} "
+              f"us/step  t_s {r['t_s_us']:8.1f}  t_d {r['t_d_us']:7.2f} (alone "
+              f"{1e3 * r['t_prediction_alone_ms'] / (N_S * N_F):5.2f})  zeta {r['zeta']:5.2f} "
               f"({r['seconds']:.0f} s)", flush=True)
 
     checks = model_check(rows, links)
