@@ -25,6 +25,10 @@ oversubscribed cores, not a network message; the output says so.
 Roofline: bytes and flops per step of each stage (:mod:`jaxsync.roofline`) against the
 measured stage times and this machine's copy bandwidth.
 
+t_d is what the synchronization-avoiding program pays: one prediction of all parts at
+once (8 networks on 2 cores cost about 4x one network alone); the projection to
+clusters uses a part's own step and its network alone (one part per processor).
+
 Cost model (:mod:`jaxsync.costmodel`): latency + bytes / bandwidth per message, times
 the messages of the synchronization pattern. It is calibrated on this machine by timing
 a bare psum of growing size between 2, 4 and 8 emulated devices (one fit of latency and
@@ -179,7 +183,9 @@ def projections(rows):
                                                         if k == "neighbours" else v)
                                                     for k, v in r["pattern"].items()})
         for algorithm in ("allreduce", "neighbour"):
-            proj = costmodel.project(r["t_compute_us"] * 1e-6, r["t_d_us"] * 1e-6, pattern,
+            # one part per processor on a cluster: its own step and its own network alone
+            t_d_alone = r["t_prediction_alone_ms"] * 1e-3 / (N_S * N_F)
+            proj = costmodel.project(r["t_compute_us"] * 1e-6, t_d_alone, pattern,
                                      algorithm=algorithm)
             out.append({"scenario": r["scenario"], "mode": r["mode"], "n_parts": r["n_parts"],
                         "n_nodes": r["n_nodes"], "algorithm": algorithm,
