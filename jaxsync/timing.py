@@ -14,14 +14,20 @@ Quantities, all in seconds per step (tables print microseconds):
          timed on its own.
     t_s  synchronization: scatter of the shared-node forces into the interface vector,
          psum over the parts, gather back (``jaxsync.distributed.synchronize_forces``).
+    t_d  surrogate (synchronization-avoiding solver only): one batched refill prediction
+         of all parts at once in the SPMD program, divided by the n_s n_f steps it
+         serves (:func:`speedup_breakdown`; a part's network alone is also reported).
     t_o  everything else in a step: external force, central-difference update,
          Dirichlet values, and the loop itself (carry, counter).
-    t_t  total: the part's own step without synchronization, measured, plus t_s.
+    t_t  total: the part's own step without synchronization, measured, plus t_s (or,
+         synchronization-avoiding, plus t_d).
     r_*  = t_* / t_t. r_e + r_m + r_s + r_o equals 1 up to measurement error, because
          t_e, t_m and t_o are measured separately from the whole local step.
 
 "Max-average" (paper): each quantity is averaged per step over a run, and the part with
-the largest t_t is reported (:func:`max_average`).
+the largest t_t is reported (:func:`max_average`). Speed-up zeta = t_t / t_t' of the
+synchronized and the synchronization-avoiding programs, both timed whole, round-robin,
+in one run (:func:`speedup_breakdown`, :class:`SpeedupReport`).
 
 Method. Inside one compiled SPMD step there is nowhere to put a timer between stages, so
 each stage is timed as a separately compiled *variant* of the stepper with the same loop
