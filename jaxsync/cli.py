@@ -94,6 +94,10 @@ def _add_predict(subparsers) -> None:
                    help="internal force formulation (default: %(default)s)")
     p.add_argument("--cond", type=float, default=None,
                    help="load parameter for conditional surrogates")
+    p.add_argument("--resync-tolerance", type=float, default=None, metavar="CM",
+                   help="re-synchronize for n_p n_s steps whenever es_hat, the parts' "
+                        "disagreement at shared nodes (paper eq. 26), exceeds this many cm "
+                        "(default: never)")
     p.add_argument("--output", "-o", default="online.h5", help="output trajectory (default: %(default)s)")
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
     p.set_defaults(func=_run_predict)
@@ -121,10 +125,13 @@ def _run_predict(args) -> int:
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=ckpt, n_cri=n_cri,
                                     dt=reference.dt, mode=args.mode, save_every=args.save_every,
-                                    cond=args.cond, progress=not args.no_progress)
+                                    cond=args.cond, progress=not args.no_progress,
+                                    resync_tolerance=args.resync_tolerance)
     online.save(args.output)
-    print(f"{n_steps} steps ({n_cri} synchronized, {n_steps - n_cri} predicted); "
-          f"{online.parameters['us_per_step_predicted']:.1f} us per predicted step; wrote {args.output}")
+    resynced = online.parameters.get("resynchronized_at", [])
+    print(f"{n_steps} steps ({n_cri} synchronized, {n_steps - n_cri} predicted"
+          + (f"; re-synchronized {len(resynced)} times, at steps {list(resynced)}" if resynced else "")
+          + f"); {online.parameters['us_per_step_predicted']:.1f} us per predicted step; wrote {args.output}")
     return 0
 
 

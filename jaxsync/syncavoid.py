@@ -220,8 +220,17 @@ class _OnlineRunner:
 def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_cri: int,
                            dt=None, mode: str = "preassembled", save_every: int = 1,
                            seed: int = 0, devices=None, cond: float | None = None,
-                           progress: bool | None = None, cycles_per_chunk: int | None = None):
+                           progress: bool | None = None, cycles_per_chunk: int | None = None,
+                           resync_tolerance: float | None = None):
     """Run paper Algorithm 3: synchronized up to ``n_cri``, then surrogate-predicted.
+
+    Going beyond the paper, ``resync_tolerance`` turns the estimate es_hat (paper eq. 26:
+    the mean disagreement of the parts' predictions at the shared nodes, which needs no
+    reference solution) into a live monitor: after each compiled chunk of refill cycles,
+    if es_hat at any saved step of the chunk exceeds the tolerance, the parts are brought
+    back to one state (the mean over the parts at shared nodes), the solver runs
+    synchronized for n_p n_s steps -- which refills every network's input history with
+    synchronized values -- and prediction resumes.
 
     Args:
         problem: the problem.
@@ -233,15 +242,23 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         n_cri: last synchronized step; at least n_p n_s + 1.
         save_every: snapshot stride; must divide n_cri and n_s n_f.
         cond: load parameter for conditional surrogates.
-        cycles_per_chunk: refill cycles per compiled call (default: about 20 000 steps).
+        cycles_per_chunk: refill cycles per compiled call (default: about 20 000 steps;
+            1 when ``resync_tolerance`` is given, so that the monitor acts every cycle).
+        resync_tolerance: es_hat [cm] above which the run re-synchronizes (None: never).
+            Needs ``save_every`` to divide n_p n_s, and a predictor that works from its
+            input history (not an :class:`OraclePredictor`).
 
     Returns:
-        :class:`jaxsync.Trajectory` with ``synchronized`` flags and, per part,
+        :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
+        synchronized steps, re-synchronized ones included) and, per part,
         ``predicted_shared_displacement`` (n_predicted_saved, 3 n_shared_p): the part's own
-        predictions at the saved predicted steps.
+        predictions at the saved predicted steps. With a tolerance, ``parameters`` holds
+        ``resynchronized_at`` (the steps at which re-synchronization started) and
+        ``es_hat_trigger`` (the es_hat that triggered each) [cm].
 
     Raises:
-        ProblemError: n_cri too small, or save_every not dividing n_cri and n_s n_f.
+        ProblemError: n_cri too small, save_every not dividing n_cri and n_s n_f (and n_p
+            n_s with a tolerance), a tolerance that is not > 0 or with an oracle.
         CheckpointError: surrogates made for another partition.
         StabilityError: a prediction turned NaN/Inf (the message names the step and the
             part; ``error.trajectory`` keeps the snapshots saved before).
@@ -275,6 +292,18 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
         raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
+    monitor = None
+    if resync_tolerance is not None:
+        if not (np.isfinite(resync_tolerance) and resync_tolerance > 0) and resync_tolerance != np.inf:
+            raise ProblemError(f"resync_tolerance must be a tolerance > 0 [cm], got {resync_tolerance!r}")
+        if isinstance(predictor, OraclePredictor):
+            raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
+                               "an OraclePredictor replays fixed values")
+        if history % save_every:
+            raise ProblemError(f"with resync_tolerance, save_every={save_every} must also divide the "
+                               f"re-synchronized steps n_p * n_s = {history}")
+        monitor = _DisagreementMonitor(partition)
+        cycles_per_chunk = cycles_per_chunk or 1
 
     # synchronized phase: every step kept (the refill history), thinned afterwards
     state0 = initial_state(problem, system)
@@ -291,21 +320,19 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
 
     online = _OnlineRunner(runner, predictor, save_every)
     n_predicted = n_steps - n_cri
-    n_full, rest = divmod(n_predicted, cycle_steps)
     per_chunk = cycles_per_chunk or max(1, 20000 // cycle_steps)
-    saved_disp, saved_pred = [], []
+    timeline = []  # in order: ("predicted", local displacement, predictions) / ("synchronized", global)
+    resynced_at, triggers = [], []
     from tqdm import tqdm
 
     show = progress if progress is not None else n_predicted >= 20000
     bar = tqdm(total=n_predicted, disable=not show, unit="step", desc="predicted", dynamic_ncols=True)
-    cycle = 0
+    step_now, cycle = n_cri, 0
     chunk_times = []
     try:
-        while cycle < n_full or (rest and cycle == n_full):
-            if cycle < n_full:
-                k, steps = min(per_chunk, n_full - cycle), cycle_steps
-            else:
-                k, steps = 1, rest
+        while step_now < n_steps:
+            left = n_steps - step_now
+            k, steps = (min(per_chunk, left // cycle_steps), cycle_steps) if left >= cycle_steps else (1, left)
             online.prepare(state, buffer, k, steps)  # compilation is not timed
             start = time.perf_counter()
             state, buffer, disp, pred = online.run(state, buffer, cycle, k, steps)
@@ -313,23 +340,49 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             chunk_times.append((None, k * steps, time.perf_counter() - start))
             bad = ~np.isfinite(pred).all(axis=-1)  # (P, k, n_saved)
             if bad.any():
-                p, c, s = (int(i[0]) for i in np.nonzero(bad))
-                bad_step = n_cri + (cycle + c) * cycle_steps + (s + 1) * save_every
-                partial = _assemble(problem, partition, synced, saved_disp, saved_pred, counts,
-                                    dt, save_every, n_cri)
+                p, c, j = (int(i[0]) for i in np.nonzero(bad))
+                bad_step = step_now + c * steps + (j + 1) * save_every
+                partial = _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri)
                 err = StabilityError(
                     f"the surrogate of part {p} predicted NaN/Inf for step {bad_step} "
                     f"(t = {bad_step * dt:.6g} s): the network diverged; retrain it or raise n_cri. "
                     f"The {partial.n_saved} snapshots saved before are kept (error.trajectory)")
                 err.trajectory = partial
                 raise err
-            saved_disp.append(disp.reshape(disp.shape[0], -1, *disp.shape[3:]))
-            saved_pred.append(pred.reshape(pred.shape[0], -1, pred.shape[-1]))
+            pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
+            timeline.append(("predicted", disp.reshape(disp.shape[0], -1, *disp.shape[3:]), pred))
             bar.update(k * steps)
             cycle += k
+            step_now += k * steps
+            if monitor is not None and step_now < n_steps:
+                es_hat = monitor.es_hat(pred, counts)
+                if es_hat.max() > resync_tolerance:
+                    # one state for all parts, then n_p n_s synchronized steps refill the history
+                    resynced_at.append(step_now)
+                    triggers.append(float(es_hat.max()))
+                    local = SolverState(_host(state.displacement), _host(state.previous), step_now)
+                    length = min(history, n_steps - step_now)
+                    merged = SolverState(_mean_over_parts(problem, partition, local.displacement),
+                                         _mean_over_parts(problem, partition, local.previous), step_now)
+                    segment = drive(problem, runner, merged, step_now + length, dt, 1,
+                                    partition=partition, progress=False, label="resynchronized")
+                    disp_sync = segment.displacement  # (length + 1, n_nodes, 3), from step_now
+                    timeline.append(("synchronized", disp_sync[save_every::save_every]))
+                    step_now += length
+                    bar.update(length)
+                    state = runner.from_global(SolverState(disp_sync[-1], disp_sync[-2], step_now))
+                    if length == history:
+                        refill = np.zeros((partition.n_parts, history, n_dof))
+                        for p, part in enumerate(partition.parts):
+                            refill[p, :, :counts[p]] = disp_sync[-history:, part.shared_nodes].reshape(history, -1)
+                        buffer = runner._put(refill)
     finally:
         bar.close()
-    traj = _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri)
+    traj = _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri)
+    if monitor is not None:
+        traj = dataclasses.replace(traj, parameters={**traj.parameters, "resync_tolerance": resync_tolerance,
+                                                     "resynchronized_at": resynced_at,
+                                                     "es_hat_trigger": triggers})
     if chunk_times:
         traj = dataclasses.replace(traj, parameters={**traj.parameters, "us_per_step_predicted": us_per_step(chunk_times)})
     return traj
@@ -341,28 +394,62 @@ def _host(x) -> np.ndarray:
     return _to_host(x)
 
 
-def _assemble(problem, partition, synced, saved_disp, saved_pred, counts, dt, save_every, n_cri):
-    """The global trajectory: synchronized snapshots, then predicted ones (mean over the
-    parts that hold each node), with per-part predictions and flags."""
+def _mean_over_parts(problem, partition, local) -> np.ndarray:
+    """(n_nodes, 3) global field from per-part local fields (P, ..., n_local_max, 3): the
+    mean over the parts that hold each node (they differ at shared nodes after prediction)."""
+    local = np.asarray(local)
+    total = np.zeros(local.shape[1:-2] + (problem.mesh.n_nodes, 3))
+    count = np.zeros(problem.mesh.n_nodes)
+    for p, part in enumerate(partition.parts):
+        total[..., part.nodes, :] += local[p, ..., :part.n_local, :]
+        count[part.nodes] += 1
+    return total / count[:, None]
+
+
+class _DisagreementMonitor:
+    """es_hat (paper eq. 26) of the parts' own predictions, for the live re-synchronization."""
+
+    def __init__(self, partition):
+        from .metrics import shared_node_errors
+
+        self._errors = shared_node_errors
+        index = {int(node): k for k, node in enumerate(partition.shared_nodes)}
+        self.columns = [np.array([index[int(n)] for n in part.shared_nodes], dtype=int)
+                        for part in partition.parts]
+        self.holds = np.zeros((partition.n_parts, len(partition.shared_nodes)), bool)
+        for p, cols in enumerate(self.columns):
+            self.holds[p, cols] = True
+
+    def es_hat(self, pred, counts) -> np.ndarray:
+        """(T,) es_hat of predictions (P, T, n_dof) [cm]."""
+        n_parts, T = pred.shape[:2]
+        by_node = np.zeros((n_parts, T, self.holds.shape[1], 3))
+        for p, cols in enumerate(self.columns):
+            by_node[p][:, cols] = pred[p, :, :counts[p]].reshape(T, -1, 3)
+        return self._errors(np.zeros(by_node.shape[1:]), by_node, self.holds).es_hat
+
+
+def _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri):
+    """The global trajectory: synchronized snapshots up to n_cri, then the segments of
+    ``timeline`` in order -- predicted ones (mean over the parts that hold each node, with
+    per-part predictions) and re-synchronized ones -- with per-snapshot flags."""
     from .trajectory import Trajectory
 
-    sync_disp = synced.displacement[::save_every]
-    n_nodes = problem.mesh.n_nodes
-    if saved_disp:
-        local = np.concatenate(saved_disp, axis=1)  # (P, n_pred_saved, n_local, 3)
-        pred = np.concatenate(saved_pred, axis=1)  # (P, n_pred_saved, n_dof)
-        total = np.zeros((local.shape[1], n_nodes, 3))
-        count = np.zeros(n_nodes)
-        for p, part in enumerate(partition.parts):
-            total[:, part.nodes] += local[p, :, :part.n_local]
-            count[part.nodes] += 1
-        predicted = total / count[None, :, None]
-    else:
-        pred = np.zeros((partition.n_parts, 0, max(counts.max(), 3)))
-        predicted = np.zeros((0, n_nodes, 3))
-    displacement = np.concatenate([sync_disp, predicted])
+    pieces = [synced.displacement[::save_every]]
+    flags = [np.ones(len(pieces[0]), bool)]
+    preds = []
+    for kind, values, *rest in timeline:
+        if kind == "predicted":
+            pieces.append(_mean_over_parts(problem, partition, np.asarray(values)))
+            preds.append(rest[0])
+        else:
+            pieces.append(values)
+        flags.append(np.full(len(pieces[-1]), kind == "synchronized"))
+    pred = (np.concatenate(preds, axis=1) if preds
+            else np.zeros((partition.n_parts, 0, max(counts.max(), 3))))
+    displacement = np.concatenate(pieces)
     n_saved = len(displacement)
-    synchronized = np.arange(n_saved) * save_every <= n_cri
+    synchronized = np.concatenate(flags)
     parts = []
     for p, part in enumerate(partition.parts):
         shared = displacement[:, part.shared_nodes].reshape(n_saved, -1)

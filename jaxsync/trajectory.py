@@ -146,7 +146,7 @@ class Trajectory:
                 mesh = Mesh(points=g["points"][...], tets=g["tets"][...],
                             facet_sets={k: v[...] for k, v in g["facets"].items()},
                             source_node_ids=g["source_node_ids"][...])
-                params = {k[len("param_"):]: v.item() if hasattr(v, "item") else v
+                params = {k[len("param_"):]: _attribute_value(v)
                           for k, v in f.attrs.items() if k.startswith("param_")}
                 parts = ()
                 if "parts" in f:
@@ -199,3 +199,10 @@ class Trajectory:
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
         return os.path.join(folder, data_name)
+
+
+def _attribute_value(value):
+    """An HDF5 attribute as a Python value: scalars as numbers, arrays as lists."""
+    if getattr(value, "ndim", 0) > 0:
+        return value.tolist()
+    return value.item() if hasattr(value, "item") else value

@@ -135,6 +135,19 @@ def test_demo_end_to_end_reduced(tmp_path, capsys):
     again_summary = json.loads((tmp_path / "report" / "summary.json").read_text())
     assert again_summary["tip_max_abs_error"] == pytest.approx(summary["tip_max_abs_error"], rel=1e-9)
 
+    # with the es_hat monitor: 2-epoch networks disagree, so every cycle is followed by
+    # n_p n_s re-synchronized steps; the report handles the interleaved segments
+    capsys.readouterr()
+    assert main(["predict", str(out / "synchronized.h5"), str(out / "surrogate" / "surrogate.h5"),
+                 "--resync-tolerance", "1e-12", "-o", str(tmp_path / "resync.h5"), "--no-progress"]) == 0
+    assert "re-synchronized" in capsys.readouterr().out
+    resync = jaxsync.Trajectory.load(tmp_path / "resync.h5")
+    at = resync.parameters["resynchronized_at"]
+    assert len(at) >= 2 and at[1] - at[0] == 2 * 25  # a 25-step cycle, then 25 synchronized steps
+    assert resync.synchronized.sum() > online.synchronized.sum()
+    assert main(["report", str(out / "synchronized.h5"), str(tmp_path / "resync.h5"),
+                 "-o", str(tmp_path / "report_resync")]) == 0
+
 
 def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
     from jaxsync.surrogate import SurrogateCheckpoint, save_checkpoint

@@ -191,3 +191,73 @@ def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, parti
                                predictions[holds[:, 0], :, 0].mean(axis=0), rtol=1e-12)
     assert np.all(errs.es >= 0) and errs.es.shape == (len(steps),)
     assert l2_error(long_ref.displacement, online.displacement)[:N_CRI + 1].max() == 0.0
+
+
+def untrained(partition):
+    from jaxsync.syncavoid import SurrogatePredictor
+
+    return SurrogatePredictor.initialized(partition, N_S, n_hidden=4, n_layers=1, n_past=N_P,
+                                          n_future=N_F, seed=3)
+
+
+def test_resync_tolerance_never_reached_changes_nothing(problem, partition):
+    net = untrained(partition)
+    plain = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net,
+                                   n_cri=N_CRI, cycles_per_chunk=1)
+    watched = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net,
+                                     n_cri=N_CRI, resync_tolerance=np.inf)
+    np.testing.assert_array_equal(watched.displacement, plain.displacement)
+    np.testing.assert_array_equal(watched.synchronized, plain.synchronized)
+    assert watched.parameters["resynchronized_at"] == []
+
+
+def test_es_hat_above_tolerance_resynchronizes(problem, partition, tmp_path):
+    """Untrained networks disagree at once: after each predicted cycle the run goes back
+    to one state (mean over the parts) and runs n_p n_s synchronized steps, which equal a
+    single-device run from that state; the triggering es_hat is eq. 26 of the metrics."""
+    import jax
+
+    from jaxsync.metrics import predictions_by_node, shared_node_errors
+    from jaxsync.solver import SolverState, advance, build_system
+
+    traj = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
+                                  n_cri=N_CRI, resync_tolerance=1e-12)
+    cycle, history = N_S * N_F, N_S * N_P  # 20, 20
+    steps = np.arange(N_STEPS + 1)
+    expected = ((steps <= N_CRI) | ((steps > N_CRI + cycle) & (steps <= N_CRI + cycle + history))
+                | (steps > N_CRI + 2 * cycle + history))
+    np.testing.assert_array_equal(traj.synchronized, expected)
+    assert traj.parameters["resynchronized_at"] == [N_CRI + cycle, N_CRI + 2 * cycle + history]
+    # the re-synchronized steps continue the mean state with the synchronized solver
+    start = N_CRI + cycle
+    system = build_system(problem, problem.dt)
+    state = SolverState(traj.displacement[start], traj.displacement[start - 1], start)
+    _, saved = jax.jit(advance, static_argnums=(2, 3))(system, state, history, 1)
+    scale = np.abs(saved).max()
+    assert np.abs(np.asarray(saved) - traj.displacement[start + 1:start + history + 1]).max() <= 1e-12 * scale
+    # the trigger is es_hat of the first predicted cycle
+    predictions, holds, _ = predictions_by_node(traj, partition)
+    first = predictions[:, :cycle]
+    es_hat = shared_node_errors(np.zeros(first.shape[1:]), first, holds).es_hat
+    assert traj.parameters["es_hat_trigger"][0] == pytest.approx(es_hat.max(), rel=1e-12)
+    assert es_hat.max() > 1e-12
+    traj.save(tmp_path / "resync.h5")
+    loaded = jaxsync.Trajectory.load(tmp_path / "resync.h5")
+    assert loaded.parameters["resynchronized_at"] == traj.parameters["resynchronized_at"]
+    np.testing.assert_array_equal(loaded.synchronized, traj.synchronized)
+
+
+def test_resync_tolerance_is_checked(problem, partition, reference):
+    with pytest.raises(ProblemError, match="resync_tolerance"):
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
+                               n_cri=N_CRI, resync_tolerance=0.0)
+    with pytest.raises(ProblemError, match="OraclePredictor"):
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
+                               surrogates=oracle(reference, partition), n_cri=N_CRI, resync_tolerance=1e-3)
+    from jaxsync.syncavoid import SurrogatePredictor
+
+    three_past = SurrogatePredictor.initialized(partition, N_S, n_hidden=4, n_layers=1, n_past=3,
+                                                n_future=N_F)  # re-synchronizes 15 steps
+    with pytest.raises(ProblemError, match="n_p \\* n_s = 15"):
+        simulate_sync_avoiding(problem, 100, partitions=partition, surrogates=three_past, n_cri=40,
+                               save_every=10, resync_tolerance=1e-3)
