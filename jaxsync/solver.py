@@ -206,6 +206,12 @@ def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every
         s, _ = jax.lax.scan(inner, s, None, length=save_every, unroll=STEP_UNROLL)
         return s, s.displacement
 
+    def saved_step(s, _):  # save_every = 1 without a loop of length 1 in each step
+        s = step(system, s, synchronize)
+        return s, s.displacement
+
+    if save_every == 1:
+        return jax.lax.scan(saved_step, state, None, length=n_saves, unroll=STEP_UNROLL)
     return jax.lax.scan(outer, state, None, length=n_saves)
 
 
