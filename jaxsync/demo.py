@@ -21,7 +21,7 @@ __all__ = ["run_demo", "SUMMARY_KEYS"]
 
 SUMMARY_KEYS = ("n_steps", "n_synchronized", "n_predicted", "tip_max_abs_error",
                 "tip_max_abs_displacement", "l2_error_final", "us_per_step_synchronized",
-                "us_per_step_predicted", "speedup")
+                "us_per_step_predicted", "speedup", "zeta", "t_s_us", "t_d_us")
 
 
 def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80, n_past: int = 20,
@@ -70,13 +70,19 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
                                     n_cri=n_cri, progress=progress)
     online.save(os.path.join(out, "online.h5"))
 
-    log("[4/4] report")
+    log("[4/4] timing (compiled programs, round-robin) and report")
+    from .syncavoid import SurrogatePredictor
+    from .timing import speedup_breakdown
+
+    timing = speedup_breakdown(problem, parts, SurrogatePredictor.from_checkpoint(checkpoint),
+                               repeats=3, stage_repeats=10)
     us_sync = float(reference.parameters["us_per_step"])
     us_pred = float(online.parameters["us_per_step_predicted"])
     with open(os.path.join(surrogate_dir, "train_summary.json")) as f:
         training = json.load(f)
     extra = {"us_per_step_synchronized": us_sync, "us_per_step_predicted": us_pred,
-             "speedup": us_sync / us_pred, "dt": problem.dt,
+             "speedup": us_sync / us_pred, "zeta": timing.zeta, "zeta_sync": timing.sync,
+             "t_s_us": 1e6 * timing.t_s, "t_d_us": 1e6 * timing.t_d, "dt": problem.dt,
              "training_seconds": training["train_seconds"],
              "final_val_loss": training["final_val_loss"],
              "wall_seconds": time.perf_counter() - started}
@@ -102,7 +108,10 @@ def format_summary(summary: dict) -> str:
         ("e_l2 at the end", f"{summary['l2_error_final']:.3e} cm"),
         ("time per step, synchronized", f"{summary['us_per_step_synchronized']:.1f} us"),
         ("time per step, predicted", f"{summary['us_per_step_predicted']:.1f} us"),
-        ("speed-up", f"{summary['speedup']:.2f}x"),
+        ("speed-up, end to end", f"{summary['speedup']:.2f}x (every step saved and copied to the host)"),
+        ("zeta, compiled steps", f"{summary['zeta']:.2f}x against the {summary.get('zeta_sync', '')} "
+                                 f"baseline (jaxsync.timing.speedup_breakdown): synchronization "
+                                 f"{summary['t_s_us']:.1f} us/step, surrogate {summary['t_d_us']:.1f} us/step"),
         ("figures", summary.get("report", "")),
     ]
     width = max(len(k) for k, _ in rows)

@@ -123,7 +123,8 @@ def test_demo_end_to_end_reduced(tmp_path, capsys):
     online = jaxsync.Trajectory.load(out / "online.h5")
     assert online.synchronized.sum() == 27 and not online.synchronized[-1]
     text = capsys.readouterr().out
-    assert "speed-up" in text and "time per step, predicted" in text
+    assert "speed-up" in text and "time per step, predicted" in text and "zeta, compiled steps" in text
+    assert summary["zeta_sync"] in ("psum", "ppermute") and summary["t_d_us"] > 0
 
     # the same online run from the command line, and its report
     assert main(["predict", str(out / "synchronized.h5"), str(out / "surrogate" / "surrogate.h5"),
