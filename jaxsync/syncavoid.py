@@ -301,7 +301,11 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
     monitor = None
     if resync_tolerance is not None:
-        if not (np.isfinite(resync_tolerance) and resync_tolerance > 0) and resync_tolerance != np.inf:
+        try:
+            tolerance_ok = float(resync_tolerance) > 0  # False for NaN; inf never triggers
+        except (TypeError, ValueError):
+            tolerance_ok = False
+        if not tolerance_ok:
             raise ProblemError(f"resync_tolerance must be a tolerance > 0 [cm], got {resync_tolerance!r}")
         if isinstance(predictor, OraclePredictor):
             raise ProblemError("resync_tolerance needs a predictor that works from its input history; "

@@ -249,22 +249,17 @@ def test_bad_inputs_are_refused():
         measure_copy_bandwidth(8e3, repeats=0)
 
 
-def test_measure_matmul_flops_is_a_plausible_rate():
-    """Positive, finite, and no faster than the time of one product allows: a timed
-    product of the same size must take at least 2 n^3 / rate seconds."""
-    import time
+def test_measure_matmul_flops_counts_2n3_over_the_best_time(monkeypatch):
+    """The rate is 2 n^3 flops over the best timed product: with a fake clock that
+    advances 0.5 s per product (after a 0.25 s one), 2 n^3 / 0.25 comes back."""
+    import jaxsync.roofline as rl
 
-    import jax
-    import jax.numpy as jnp
-
-    rate = measure_matmul_flops(n=256, repeats=3)
-    assert np.isfinite(rate) and rate > 1e8
-    a = jnp.ones((256, 256), jnp.float32)
-    f = jax.jit(jnp.dot)
-    f(a, a).block_until_ready()
-    start = time.perf_counter()
-    f(a, a).block_until_ready()
-    assert time.perf_counter() - start >= 0.5 * 2 * 256 ** 3 / rate
+    ticks = iter([0.0, 1.0, 1.0, 1.25, 2.0, 2.5])  # three products: 1 s, 0.25 s, 0.5 s
+    monkeypatch.setattr(rl.time, "perf_counter", lambda: next(ticks))
+    assert rl.measure_matmul_flops(n=16, repeats=3) == pytest.approx(2 * 16 ** 3 / 0.25)
+    monkeypatch.undo()
+    rate = measure_matmul_flops(n=64, repeats=2)  # the real clock: a finite rate
+    assert np.isfinite(rate) and rate > 0
     with pytest.raises(ProblemError, match="dtype"):
         measure_matmul_flops(n=8, dtype="int8")
     with pytest.raises(ProblemError, match="repeats"):

@@ -248,9 +248,10 @@ def test_es_hat_above_tolerance_resynchronizes(problem, partition, tmp_path):
 
 
 def test_resync_tolerance_is_checked(problem, partition, reference):
-    with pytest.raises(ProblemError, match="resync_tolerance"):
-        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
-                               n_cri=N_CRI, resync_tolerance=0.0)
+    for bad in (0.0, -1.0, float("nan"), "small"):
+        with pytest.raises(ProblemError, match="resync_tolerance"):
+            simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
+                                   n_cri=N_CRI, resync_tolerance=bad)
     with pytest.raises(ProblemError, match="OraclePredictor"):
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
                                surrogates=oracle(reference, partition), n_cri=N_CRI, resync_tolerance=1e-3)
