@@ -65,7 +65,7 @@ import jaxsync  # noqa: E402
 from jaxsync import costmodel, roofline  # noqa: E402
 from jaxsync.partition import partition_from_elements  # noqa: E402
 from jaxsync.syncavoid import SurrogatePredictor  # noqa: E402
-from jaxsync.timing import speedup_breakdown  # noqa: E402
+from jaxsync.timing import _best_times, speedup_breakdown  # noqa: E402
 
 N_S, N_P, N_F = 80, 20, 20
 DEVICES_NOTE = (f"{len(jax.devices())} EMULATED CPU devices (XLA host devices sharing "
@@ -84,26 +84,21 @@ def psum_times(n_devices, sizes, n_iter=200, repeats=7):
     """Per-call seconds of a psum of ``size`` doubles between ``n_devices`` emulated devices
     (inside a scan, as in the solver; the same scan without the psum subtracted)."""
     mesh = Mesh(np.array(jax.devices()[:n_devices]), ("d",))
+
+    def program(with_psum):
+        def step(c, _):
+            if with_psum:  # the psum result is replicated; the carry is per device
+                return jax.lax.pcast(0.5 * jax.lax.psum(c, "d"), "d", to="varying"), None
+            return 0.5 * c, None
+
+        f = lambda x: jax.lax.scan(step, x, None, length=n_iter)[0]  # noqa: E731
+        return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=P("d"), out_specs=P("d")))
+
     out = []
     for size in sizes:
-        def body(with_psum):
-            def f(x):
-                def step(c, _):
-                    y = jax.lax.psum(c, "d") if with_psum else c * 1.0
-                    return jax.lax.pcast(y * 0.5, "d", to="varying") if with_psum else y * 0.5, None
-                return jax.lax.scan(step, x, None, length=n_iter)[0]
-            return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=P("d"), out_specs=P("d")))
         x = jnp.ones((n_devices * size,))
-        fns = {k: body(k) for k in (True, False)}
-        best = {}
-        for k, fn in fns.items():
-            jax.block_until_ready(fn(x))
-        for _ in range(repeats):
-            for k, fn in fns.items():
-                t = time.perf_counter()
-                jax.block_until_ready(fn(x))
-                best[k] = min(best.get(k, np.inf), time.perf_counter() - t)
-        out.append(max(best[True] - best[False], 1e-9) / n_iter)
+        best = _best_times({"psum": (program(True), (x,)), "scan": (program(False), (x,))}, repeats)
+        out.append(max(best["psum"] - best["scan"], 1e-9) / n_iter)
     return np.array(out)
 
 
@@ -162,9 +157,7 @@ def model_check(rows, links):
     measured whole-program t_s."""
     checks = []
     for r in rows:
-        pattern = costmodel.CommunicationPattern(**{k: (tuple(tuple(map(tuple, n)) for n in v)
-                                                        if k == "neighbours" else v)
-                                                    for k, v in r["pattern"].items()})
+        pattern = costmodel.CommunicationPattern(**r["pattern"])  # lists from to_dict are accepted
         link = links[r["n_devices"]]
         for method, algorithm in (("psum", "collective"), ("ppermute", "collective-permute")):
             measured = max(r["t_step_sync_us"][method] - r["t_step_nosync_us"], 1e-3) * 1e-6
@@ -179,9 +172,7 @@ def model_check(rows, links):
 def projections(rows):
     out = []
     for r in rows:
-        pattern = costmodel.CommunicationPattern(**{k: (tuple(tuple(map(tuple, n)) for n in v)
-                                                        if k == "neighbours" else v)
-                                                    for k, v in r["pattern"].items()})
+        pattern = costmodel.CommunicationPattern(**r["pattern"])  # lists from to_dict are accepted
         for algorithm in ("allreduce", "neighbour"):
             # one part per processor on a cluster: its own step and its own network alone
             t_d_alone = r["t_prediction_alone_ms"] * 1e-3 / (N_S * N_F)

@@ -187,11 +187,6 @@ class NeighbourExchange:
             total = total.at[receive[i, device]].add(incoming)
         return total
 
-    @property
-    def values_sent(self) -> int:
-        """Padded number of node values (3 dofs each) a device sends per step."""
-        return int(self.send.shape[0] * self.send.shape[2])
-
 
 def neighbour_exchange(partition: Partition, n_devices: int) -> NeighbourExchange:
     """The :class:`NeighbourExchange` of ``partition`` with its parts spread over

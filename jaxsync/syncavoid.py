@@ -371,10 +371,9 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                     # one state for all parts, then n_p n_s synchronized steps refill the history
                     resynced_at.append(step_now)
                     triggers.append(float(es_hat.max()))
-                    local = SolverState(_host(state.displacement), _host(state.previous), step_now)
                     length = min(history, n_steps - step_now)
-                    merged = SolverState(_mean_over_parts(problem, partition, local.displacement),
-                                         _mean_over_parts(problem, partition, local.previous), step_now)
+                    merged = SolverState(_mean_over_parts(problem, partition, _host(state.displacement)),
+                                         _mean_over_parts(problem, partition, _host(state.previous)), step_now)
                     segment = drive(problem, runner, merged, step_now + length, dt, 1,
                                     partition=partition, progress=False, label="resynchronized")
                     disp_sync = segment.displacement  # (length + 1, n_nodes, 3), from step_now
