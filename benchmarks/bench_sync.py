@@ -158,7 +158,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
         times = _timed(run, repeats)
         best = comm.allreduce(min(times), op=MPI.MAX)
         median = comm.allreduce(statistics.median(times), op=MPI.MAX)
-        _, saved = runner.advance(start_state, 1)
+        _, saved, _ = runner.advance(start_state, 1)
         finals[name] = saved[-1]
         rows.append({"kind": "solver", "method": name, "n_doubles": 3 * runner.partition.n_interface,
                      "steps": steps, "us_per_step_best": 1e6 * best / steps,

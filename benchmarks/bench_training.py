@@ -65,8 +65,8 @@ def main(argv=None) -> dict:
     runs = [synthetic_history(args.n_steps, n, dt, seed=p) for p, n in enumerate(args.n_dof)]
     data = stack_replicas([build_dataset([h], n_s, n_p, n_f, train_fraction=0.5) for h in runs])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.hidden, n_layers=2, n_past=n_p, n_future=n_f)
-    paper = TrainConfig(batch_size=5, eta0=5e-4, gamma=0.9995, eta_min=5e-7)
-    config = TrainConfig(batch_size=args.batch_size, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=args.epochs,
+    paper = TrainConfig(batch_size=5, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None, patience=None)
+    config = TrainConfig(batch_size=args.batch_size, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=args.epochs, patience=None,
                          epochs_per_call=args.epochs_per_call)
     load_before = os.getloadavg()[0]
     result = train_replicas(data, arch, config, jax.random.key(0), progress=True, description="benchmark",

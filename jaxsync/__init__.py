@@ -2,31 +2,33 @@
 elastodynamics on tetrahedra, with LSTM surrogates that replace synchronization.
 
 The solver runs in float64: call ``jax.config.update("jax_enable_x64", True)`` before
-creating arrays (the command line does this for you). Importing jaxsync changes no
-global configuration.
+creating arrays (the command line does this for you); the solver's entry points raise
+:class:`PrecisionError` otherwise. Importing jaxsync changes no global configuration.
 """
 
+from . import devices
 from .errors import (CheckpointError, ConfigError, JaxsyncError, MaterialError, MeshError,
-                     PartitionError, ProblemError, StabilityError)
+                     PartitionError, PrecisionError, ProblemError, StabilityError)
 from .loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .material import LinearElastic
+from .geometry import vessel_mesh
 from .mesh import Mesh, MeshWarning, box_beam, read_mesh
 from .partition import Partition, partition
 from .problem import Dirichlet, Problem, cantilever
 from .solver import simulate, steady_state
-from .syncavoid import simulate_full_system, simulate_sync_avoiding
-from .timestep import cfl_dt, mass_scaling, max_stable_dt
+from .syncavoid import ResyncTolerance, simulate_full_system, simulate_sync_avoiding
+from .timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
 from .trajectory import Trajectory
 
 __version__ = "0.1.0"
 
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
-    "CheckpointError", "ConfigError", "PartitionError", "Partition", "partition",
-    "Mesh", "MeshWarning", "read_mesh", "box_beam",
+    "CheckpointError", "ConfigError", "PartitionError", "PrecisionError", "Partition", "partition",
+    "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever",
-    "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling",
-    "simulate_sync_avoiding", "simulate_full_system",
+    "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",
+    "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
     "Trajectory",
 ]

@@ -143,8 +143,10 @@ def pressure_vector(mesh: Mesh, surface: str) -> np.ndarray:
 
 def _facet_indices(skmesh, triangles: np.ndarray) -> np.ndarray:
     """Indices into ``skmesh.facets`` of the given node triples (any order)."""
-    facets = np.sort(skmesh.facets.T, axis=1)
-    wanted = np.sort(np.asarray(triangles), axis=1)
+    # int64: scikit-fem stores facets as int32, and the key below is ~n^3, which
+    # overflows int32 beyond ~1290 nodes (every pressure on a realistic mesh failed)
+    facets = np.sort(skmesh.facets.T, axis=1).astype(np.int64)
+    wanted = np.sort(np.asarray(triangles), axis=1).astype(np.int64)
     n = int(max(facets.max(), wanted.max())) + 1
     key = lambda a: (a[:, 0] * n + a[:, 1]) * n + a[:, 2]  # noqa: E731
     fkey, wkey = key(facets), key(wanted)

@@ -43,15 +43,28 @@ Layout (every table optional; defaults give the paper's cantilever)::
     [run]
     n_steps = 20000
     save_every = 100
-    # dt = 2.0e-4               # default: the CFL step
+    # dt = 2.0e-4               # default: the CFL step (of the mass-scaled problem)
+    # mass_scaling_dt = 5.0e-6  # artificial mass scaling to this step [s], or
+    # mass_scaling_beta = 2.5   # ... to beta times the CFL step (give at most one)
     output = "trajectory.h5"
     # xdmf = "trajectory.xdmf"
     # checkpoint = "run.ckpt.h5"
+    # checkpoint_every = 10000
+
+Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
+TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
+paths are strings; anything else is a :class:`ConfigError` naming the table and key.
+
+Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``checkpoint``) are
+taken relative to the folder of the TOML file, so a case folder can be run from anywhere;
+the outputs of the packaged default configuration go to the current directory.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import os
 import tomllib
 from importlib import resources
@@ -65,17 +78,30 @@ from .material import LinearElastic
 from .mesh import box_beam, read_mesh
 from .problem import Dirichlet, Problem, cantilever
 
-__all__ = ["RunConfig", "load_config", "default_config_path", "problem_from_config"]
+__all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
-_KNOWN = {
-    "mesh": {"file", "length", "width", "height", "divisions"},
-    "material": {"E", "nu", "rho"},
-    "problem": {"kind", "damping", "body_force", "t_ramp", "t_off"},
-    "run": {"n_steps", "save_every", "dt", "output", "xdmf", "checkpoint", "checkpoint_every"},
-    "dirichlet": {"facet", "plane", "value", "components"},
-    "body_force": {"vector", "t_ramp", "t_off"},
-    "pressure": {"surface", "magnitude", "t_ramp", "t_off", "period", "times", "values"},
+# Entry types: "number" (int or float, not bool), "int", "string", "path" (a string,
+# resolved against the TOML file's folder), (type, n) a list of n entries of that type
+# (n None: any length >= 1), or a dict for an inline table.
+_PLANE = {"axis": "int", "value": "number"}
+_SCHEMA: dict[str, dict[str, Any]] = {
+    "mesh": {"file": "path", "length": "number", "width": "number", "height": "number",
+             "divisions": ("int", 3)},
+    "material": {"E": "number", "nu": "number", "rho": "number"},
+    "problem": {"kind": "string", "damping": "number", "body_force": ("number", 3),
+                "t_ramp": "number", "t_off": "number"},
+    "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
+            "xdmf": "path", "checkpoint": "path", "checkpoint_every": "int",
+            "mass_scaling_dt": "number", "mass_scaling_beta": "number"},
+    "dirichlet": {"facet": "string", "plane": _PLANE, "value": ("number", 3),
+                  "components": ("int", None)},
+    "body_force": {"vector": ("number", 3), "t_ramp": "number", "t_off": "number"},
+    "pressure": {"surface": "string", "magnitude": "number", "t_ramp": "number",
+                 "t_off": "number", "period": "number", "times": ("number", None),
+                 "values": ("number", None)},
 }
+_ARRAY_TABLES = ("dirichlet", "body_force", "pressure")
+_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "checkpoint"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,6 +115,10 @@ class RunConfig:
     xdmf: str | None = None
     checkpoint: str | None = None
     checkpoint_every: int | None = None
+    mass_scaling_dt: float | None = None
+    mass_scaling_beta: float | None = None
+    added_mass_percent: float | None = None
+    """Total mass added by the mass scaling [%] (None: no mass scaling)."""
 
 
 def default_config_path() -> str:
@@ -97,25 +127,178 @@ def default_config_path() -> str:
 
 
 def load_config(path: str | os.PathLike | None = None) -> dict:
-    """Read and check a TOML configuration (the packaged cantilever when None)."""
+    """Read and check a TOML configuration (the packaged cantilever when None).
+
+    Unknown tables or keys and entries of the wrong type raise :class:`ConfigError`.
+    Relative paths in the file (``[mesh] file``, ``[run] output``, ``xdmf``,
+    ``checkpoint``) are returned joined to the file's folder, except for the packaged
+    configuration, whose outputs stay relative to the current directory."""
+    packaged = path is None or _is_packaged(os.fspath(path))
     path = default_config_path() if path is None else os.fspath(path)
     try:
         with open(path, "rb") as f:
             config = tomllib.load(f)
     except FileNotFoundError:
         raise ConfigError(f"configuration file {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise ConfigError(f"configuration file {path!r} is a folder; give a .toml file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
-    for table, value in config.items():
-        if table not in _KNOWN:
-            raise ConfigError(f"{path}: unknown table [{table}]; known: {', '.join(sorted(_KNOWN))}")
-        entries = value if isinstance(value, list) else [value]
-        for entry in entries:
-            unknown = set(entry) - _KNOWN[table]
-            if unknown:
-                raise ConfigError(f"{path}: unknown key(s) {sorted(unknown)} in [{table}]; "
-                                  f"known: {sorted(_KNOWN[table])}")
+    check_config(config, origin=path)
+    if not packaged:
+        base = os.path.dirname(path)
+        for table, key in _PATH_KEYS:
+            if key in config.get(table, {}):
+                value = os.path.expanduser(config[table][key])
+                config[table][key] = value if os.path.isabs(value) else os.path.join(base, value)
     return config
+
+
+def _is_packaged(path: str) -> bool:
+    try:
+        return os.path.samefile(path, default_config_path())
+    except OSError:
+        return False
+
+
+def check_config(config: dict, origin: str = "configuration") -> None:
+    """Raise :class:`ConfigError` for unknown tables or keys and for entries of the wrong
+    type (see the module docstring); ``origin`` (the file name) starts each message."""
+    if not isinstance(config, dict):
+        raise ConfigError(f"{origin}: a configuration is a dictionary of tables, got "
+                          f"{type(config).__name__}")
+    for table, value in config.items():
+        if table not in _SCHEMA:
+            raise ConfigError(f"{origin}: unknown table [{table}]; known: {', '.join(sorted(_SCHEMA))}")
+        if table in _ARRAY_TABLES:
+            if not isinstance(value, list) or not all(isinstance(e, dict) for e in value):
+                raise ConfigError(f"{origin}: {table!r} must be an array of tables: write each "
+                                  f"entry under its own [[{table}]] header (two brackets)")
+            entries = [(f"[[{table}]] #{i}", entry) for i, entry in enumerate(value)]
+        else:
+            if not isinstance(value, dict):
+                raise ConfigError(f"{origin}: {table!r} must be a table: write its entries "
+                                  f"under a [{table}] header")
+            entries = [(f"[{table}]", value)]
+        for where, entry in entries:
+            _check_table(entry, _SCHEMA[table], where, origin)
+    run = config.get("run", {})
+    if "mass_scaling_dt" in run and "mass_scaling_beta" in run:
+        raise ConfigError(f"{origin}: [run] gives both mass_scaling_dt and mass_scaling_beta; "
+                          "give only one (the target step in s, or its ratio to the CFL step)")
+    for key in ("mass_scaling_dt", "mass_scaling_beta"):
+        if key in run and not run[key] > 0:
+            raise ConfigError(f"{origin}: [run] {key} = {run[key]!r} must be positive")
+
+
+def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
+    unknown = set(entry) - set(schema)
+    if unknown:
+        raise ConfigError(f"{origin}: unknown key(s) {sorted(unknown)} in {where}; "
+                          f"known: {sorted(schema)}")
+    for key, value in entry.items():
+        _check_entry(value, schema[key], f"{where} {key}", key, origin)
+
+
+_EXPECTED = {"number": "a number (int or float)", "int": "an integer",
+             "string": "a string", "path": "a path (a string)"}
+
+
+def _expected(spec) -> str:
+    if isinstance(spec, dict):
+        inner = ", ".join(f"{k} = <{_EXPECTED[v].split(' (')[0].removeprefix('a ').removeprefix('an ')}>"
+                          for k, v in spec.items())
+        return f"an inline table {{ {inner} }}"
+    if isinstance(spec, tuple):
+        kind, n = spec
+        noun = {"number": "numbers", "int": "integers", "string": "strings"}[kind]
+        return f"a list of {n} {noun}" if n else f"a non-empty list of {noun}"
+    return _EXPECTED[spec]
+
+
+def _shown(value) -> str:
+    """A value as it reads in TOML."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return json.dumps(value)
+    if isinstance(value, list):
+        return "[" + ", ".join(_shown(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {_shown(v)}" for k, v in value.items()) + " }"
+    return repr(value)
+
+
+def _kind_of(value) -> str:
+    if isinstance(value, bool):
+        return "a boolean"
+    if isinstance(value, str):
+        return "a string"
+    if isinstance(value, int):
+        return "an integer"
+    if isinstance(value, float):
+        return "a float" if math.isfinite(value) else "not finite"
+    if isinstance(value, list):
+        return f"a list of {len(value)}"
+    if isinstance(value, dict):
+        return "a table"
+    return f"a {type(value).__name__}"
+
+
+def _scalar_ok(value, kind: str) -> bool:
+    if kind == "number":
+        return (isinstance(value, (int, float)) and not isinstance(value, bool)
+                and math.isfinite(value))
+    if kind == "int":
+        return isinstance(value, int) and not isinstance(value, bool)
+    return isinstance(value, str) and (kind != "path" or value != "")
+
+
+def _hint(value, kind: str, key: str) -> str:
+    if kind in ("number", "int") and isinstance(value, str):
+        try:
+            number = float(value)
+        except ValueError:
+            return ""
+        if kind == "number" or number.is_integer():
+            text = value.strip() if kind == "number" else str(int(number))
+            return f": write {key} = {text} without the quotes"
+    if kind == "int" and isinstance(value, float) and value.is_integer():
+        return f": write {key} = {int(value)} (a TOML integer has no decimal point or exponent)"
+    return ""
+
+
+def _check_entry(value, spec, where: str, key: str, origin: str) -> None:
+    def fail(detail: str, hint: str = "") -> ConfigError:
+        return ConfigError(f"{origin}: {where} = {_shown(value)} {detail}; expected "
+                           f"{_expected(spec)}{hint}")
+
+    if isinstance(spec, dict):
+        if not isinstance(value, dict):
+            raise fail(f"is {_kind_of(value)}")
+        missing = [k for k in spec if k not in value]
+        if missing:
+            raise fail(f"lacks {', '.join(missing)}")
+        unknown = set(value) - set(spec)
+        if unknown:
+            raise fail(f"has unknown key(s) {sorted(unknown)}")
+        for k, v in value.items():
+            if not _scalar_ok(v, spec[k]):
+                raise fail(f"has {k} = {_shown(v)}, {_kind_of(v)}", _hint(v, spec[k], k))
+        return
+    if isinstance(spec, tuple):
+        kind, n = spec
+        if not isinstance(value, list):
+            raise fail(f"is {_kind_of(value)}")
+        if (n is not None and len(value) != n) or not value:
+            raise fail(f"has {len(value)} entries")
+        for i, v in enumerate(value):
+            if not _scalar_ok(v, kind):
+                raise fail(f"has entry {i} = {_shown(v)}, {_kind_of(v)}")
+        return
+    if not _scalar_ok(value, spec):
+        raise fail(f"is {_kind_of(value)}" if not (spec == "path" and value == "")
+                   else "is empty", _hint(value, spec, key))
 
 
 def _time_function(entry: dict, where: str):
@@ -132,19 +315,33 @@ def _time_function(entry: dict, where: str):
     return g
 
 
-def problem_from_config(config: dict, *, mesh_file: str | None = None) -> tuple[Problem, RunConfig]:
+def problem_from_config(config: dict, *, mesh_file: str | None = None,
+                        mass_scaling_dt: float | None = None,
+                        mass_scaling_beta: float | None = None) -> tuple[Problem, RunConfig]:
     """Build the problem and run options of a configuration dictionary.
 
-    ``mesh_file`` overrides ``[mesh] file``. Errors of the package's own types."""
+    ``mesh_file`` overrides ``[mesh] file``; ``mass_scaling_dt`` or ``mass_scaling_beta``
+    (at most one) override the ``[run]`` mass scaling. With mass scaling, the returned
+    problem is the scaled one (its ``dt``, the default step, is the target step) and
+    ``RunConfig.added_mass_percent`` the added mass; :func:`jaxsync.mass_scaling` warns
+    (:class:`jaxsync.MassScalingWarning`) above 10 %. Errors of the package's own types."""
+    check_config(config)
+    if mass_scaling_dt is not None and mass_scaling_beta is not None:
+        raise ConfigError("give only one of mass_scaling_dt (the target step in s) and "
+                          "mass_scaling_beta (its ratio to the CFL step)")
+    for name, value in (("mass_scaling_dt", mass_scaling_dt), ("mass_scaling_beta", mass_scaling_beta)):
+        if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
+                                      and math.isfinite(value) and value > 0):
+            raise ConfigError(f"{name} must be a positive number, got {value!r}")
     try:
-        return _problem_from_config(config, mesh_file)
+        return _problem_from_config(config, mesh_file, mass_scaling_dt, mass_scaling_beta)
     except JaxsyncError:
         raise
     except (TypeError, ValueError, KeyError) as exc:
         raise ConfigError(f"bad configuration value: {exc}") from exc
 
 
-def _problem_from_config(config: dict, mesh_file: str | None):
+def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scaling_beta):
     mesh_cfg = config.get("mesh", {})
     file = mesh_file or mesh_cfg.get("file")
     if file:
@@ -164,9 +361,10 @@ def _problem_from_config(config: dict, mesh_file: str | None):
             if table in config:
                 raise ConfigError(f"[[{table}]] is only used with kind = \"general\"; the "
                                   "cantilever sets its own clamp and load")
+        t_off = prob.get("t_off")
         problem = cantilever(mesh, body_force=tuple(float(x) for x in prob.get("body_force", (0.0, 0.0, -0.5))),
                              damping=damping, t_ramp=float(prob.get("t_ramp", 1.0)),
-                             t_off=prob.get("t_off"), material=material)
+                             t_off=None if t_off is None else float(t_off), material=material)
     elif kind == "general":
         problem = Problem(mesh=mesh, material=material, damping=damping,
                           dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
@@ -174,11 +372,25 @@ def _problem_from_config(config: dict, mesh_file: str | None):
     else:
         raise ConfigError(f"[problem] kind must be \"cantilever\" or \"general\", got {kind!r}")
     run = config.get("run", {})
+    if scaling_dt is None and scaling_beta is None:  # no override: the file's
+        scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")
+    percent = None
+    if scaling_dt is not None or scaling_beta is not None:
+        from .timestep import mass_scaling
+
+        problem, percent = mass_scaling(
+            problem, None if scaling_beta is None else float(scaling_beta),
+            dt_target=None if scaling_dt is None else float(scaling_dt))
+    checkpoint_every = run.get("checkpoint_every")
     run_config = RunConfig(
         n_steps=int(run.get("n_steps", 20000)), save_every=int(run.get("save_every", 100)),
         dt=None if run.get("dt") is None else float(run["dt"]),
         output=str(run.get("output", "trajectory.h5")), xdmf=run.get("xdmf"),
-        checkpoint=run.get("checkpoint"), checkpoint_every=run.get("checkpoint_every"))
+        checkpoint=run.get("checkpoint"),
+        checkpoint_every=None if checkpoint_every is None else int(checkpoint_every),
+        mass_scaling_dt=None if scaling_dt is None else float(scaling_dt),
+        mass_scaling_beta=None if scaling_beta is None else float(scaling_beta),
+        added_mass_percent=percent)
     return problem, run_config
 
 

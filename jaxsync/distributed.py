@@ -246,7 +246,7 @@ class DistributedRunner:
 
     def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
                  mode: str = "preassembled", seed: int = 0, devices=None, sync: str | None = None,
-                 allreduce: str = "auto", comm=None):
+                 allreduce: str = "auto", comm=None, record_shared: bool = False):
         """
         Args:
             problem, system: the problem and its global :class:`ExplicitSystem`.
@@ -268,6 +268,8 @@ class DistributedRunner:
                 (see :func:`jaxsync.multiprocess.make_allreduce`).
             comm: with ``sync="mpi"``, the mpi4py communicator (default a duplicate of
                 ``COMM_WORLD``); rank r runs parts [r k, (r + 1) k), k = n_parts / size.
+            record_shared: also keep every part's shared-node displacements after EVERY
+                step (the surrogates' training data; small), whatever ``save_every``.
         """
         from . import multiprocess
 
@@ -315,6 +317,7 @@ class DistributedRunner:
         self.sharding = NamedSharding(self.device_mesh, P(AXIS))
         self.save_every = save_every
         self.mode = mode
+        self.record_shared = bool(record_shared)
         host = build_part_systems(problem, system, self.partition, mode)
         self.n_local = host.system.mass.shape[1]
         self.parts = self._put(host)
@@ -333,11 +336,14 @@ class DistributedRunner:
 
         return jax.tree_util.tree_map(put, tree)
 
-    def program(self, n_saves: int, *, save_every: int | None = None, synchronize: bool = True):
+    def program(self, n_saves: int, *, save_every: int | None = None, synchronize: bool = True,
+                record: bool = False):
         """The jitted SPMD program: ``(parts, state) -> (state, saved)`` advancing
         ``n_saves * save_every`` steps (``shard_map`` over the devices, the parts of one
         device vmapped). ``synchronize=False`` leaves the force synchronization out (used
-        to time it, paper section 7)."""
+        to time it, paper section 7). ``record=True``: ``saved`` is the pair (full field
+        every ``save_every`` steps, shared-node displacements (n_parts, n_steps,
+        n_shared_max, 3) after every step; padding slots read 0)."""
         n_interface = self.partition.n_interface
         save_every = self.save_every if save_every is None else save_every
         across = self._allreduce
@@ -348,7 +354,11 @@ class DistributedRunner:
                 sync = functools.partial(synchronize_forces, shared_local=part.shared_local,
                                          shared_interface=part.shared_interface,
                                          n_interface=n_interface, across=across)
-            return advance(part.system, state, n_saves, save_every, synchronize=sync)
+            shared = None
+            if record:
+                def shared(s):
+                    return s.displacement.at[part.shared_local].get(mode="fill", fill_value=0.0)
+            return advance(part.system, state, n_saves, save_every, synchronize=sync, record=shared)
 
         body = jax.vmap(one_part, axis_name=LOCAL_AXIS)
         mapped = jax.shard_map(body, mesh=self.device_mesh, in_specs=(P(AXIS), P(AXIS)),
@@ -357,12 +367,30 @@ class DistributedRunner:
 
     def _compiled(self, n_saves: int):
         if n_saves not in self._advance:
-            self._advance[n_saves] = self.program(n_saves)
+            self._advance[n_saves] = self.program(n_saves, record=self.record_shared)
         return self._advance[n_saves]
 
+    def compile(self, state, n_saves: int) -> float:
+        """Compile the program for chunks of ``n_saves`` snapshots ahead of time (so that
+        chunk timings exclude it); returns the seconds spent (0 when already compiled)."""
+        import time
+
+        if isinstance(self._compiled(n_saves), jax.stages.Compiled):
+            return 0.0
+        start = time.perf_counter()
+        self._advance[n_saves] = self._compiled(n_saves).lower(self.parts, state).compile()
+        return time.perf_counter() - start
+
     def advance(self, state, n_saves):
+        """(state, saved (n_saves, n_nodes, 3) numpy, shared per part [(n_steps, 3
+        n_shared_p)] after every step, or None when not recording)."""
         state, saved = self._compiled(n_saves)(self.parts, state)
-        return state, self._merge(_to_host(saved), axis=1)
+        if not self.record_shared:
+            return state, self._merge(_to_host(saved), axis=1), None
+        full, shared = (_to_host(x) for x in saved)
+        per_part = [shared[p, :, :part.n_shared].reshape(shared.shape[1], -1)
+                    for p, part in enumerate(self.partition.parts)]
+        return state, self._merge(full, axis=1), per_part
 
     def _merge(self, local, axis):
         """Per-part local arrays (n_parts, ..., n_local, 3) -> global (..., n_nodes, 3)."""

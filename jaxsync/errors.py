@@ -35,5 +35,9 @@ class ConfigError(JaxsyncError, ValueError):
     """A configuration file (TOML) or command-line option that cannot be used."""
 
 
+class PrecisionError(JaxsyncError, RuntimeError):
+    """JAX is in float32 mode where the solver needs float64 (``jax_enable_x64``)."""
+
+
 class PartitionError(JaxsyncError, ValueError):
     """A partition that cannot be made or used (bad part count, empty parts...)."""

@@ -6,8 +6,11 @@ transpose of scikit-fem's ``p``/``t``. Boundary facet sets are named triangle li
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import os
+import pathlib
 import warnings
 from typing import Mapping
 
@@ -222,17 +225,11 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     plus named ``cell_sets`` of triangles. Untagged triangles are kept as ``"boundary"``.
 
     Raises:
-        MeshError: unreadable file, no tetrahedra, bad coordinates or connectivity.
+        MeshError: missing, empty, unreadable or unsupported file, no tetrahedra, bad
+            coordinates or connectivity.
     """
-    import meshio
-
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise MeshError(f"mesh file {path!r} does not exist")
-    try:
-        raw = meshio.read(path)
-    except Exception as exc:  # meshio raises many types; re-raise as ours with the cause
-        raise MeshError(f"could not read mesh file {path!r}: {exc}") from exc
+    raw = _read_raw(path)
     tet_blocks, tri_blocks = [], []
     for i, block in enumerate(raw.cells):
         if block.type in _TETRA_TYPES:
@@ -250,6 +247,61 @@ def read_mesh(path: str | os.PathLike) -> Mesh:
     if points.shape[1] == 2:
         raise MeshError(f"{path}: points are 2-D; jaxsync needs a 3-D tetrahedral mesh")
     return validated_mesh(points, tets, facet_sets, origin=path)
+
+
+def _known_mesh_extensions(path: str) -> list[str]:
+    """meshio formats that the file name's extension(s) stand for (``[]``: unknown)."""
+    import meshio
+
+    ext, formats = "", []
+    for suffix in reversed(pathlib.Path(path).suffixes):
+        ext = (suffix + ext).lower()
+        formats += meshio.extension_to_filetypes.get(ext, [])
+    return formats
+
+
+def _is_blank(path: str, limit: int = 1 << 16) -> bool:
+    """True for a file of at most ``limit`` bytes that holds nothing but white space."""
+    if os.path.getsize(path) > limit:
+        return False
+    with open(path, "rb") as f:
+        return not f.read().strip()
+
+
+def _read_raw(path: str):
+    """``meshio.read(path)`` with every failure turned into a :class:`MeshError` that names
+    the file. meshio ends the interpreter (``SystemExit``) when no reader accepts a file
+    and prints its readers' complaints; those are caught and put into the message."""
+    import meshio
+
+    if not os.path.exists(path):
+        raise MeshError(f"mesh file {path!r} does not exist; check the path (relative paths "
+                        f"are taken from {os.getcwd()!r})")
+    if os.path.isdir(path):
+        raise MeshError(f"mesh file {path!r} is a folder; give the path of a mesh file")
+    if not _known_mesh_extensions(path):
+        common = ".msh (gmsh), .vtk, .vtu, .xdmf, .med, .inp (Abaqus)"
+        raise MeshError(
+            f"mesh file {path!r}: unknown extension {os.path.splitext(path)[1] or '(none)'!r}; "
+            f"jaxsync reads meshes through meshio, which picks the format from the "
+            f"extension: rename the file or convert it to one of {common}")
+    if _is_blank(path):
+        raise MeshError(f"mesh file {path!r} is empty; re-export the mesh "
+                        "(in gmsh: File > Export, or gmsh -3 file.geo -o file.msh)")
+    chatter = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
+            return meshio.read(path)
+    except SystemExit as exc:  # meshio's "no reader accepted the file"; not KeyboardInterrupt
+        said = " ".join(chatter.getvalue().split())
+        raise MeshError(f"could not read mesh file {path!r}: it is not a valid "
+                        f"{'/'.join(_known_mesh_extensions(path))} file"
+                        + (f" (meshio: {said})" if said else "")
+                        + "; check that it is a complete mesh file, or re-export it") from exc
+    except Exception as exc:  # meshio raises many types; re-raise as ours with the cause
+        raise MeshError(f"could not read mesh file {path!r} "
+                        f"({type(exc).__name__}: {exc}); the file is damaged, truncated or "
+                        "not a mesh of that format: re-export it") from exc
 
 
 def _triangle_sets(raw, tri_blocks) -> dict[str, np.ndarray]:

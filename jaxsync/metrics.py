@@ -11,6 +11,8 @@ number of nodes, N_a the number of shared nodes, n_c the number of parts.
   es_hat(t): the same with the truth replaced by the other part's prediction, averaged
   over the pairs of parts that share the node -- it needs no reference, so it can monitor
   a run (eq. 26); et_j: the time average of each node's error.
+- :func:`estimate_quality`: how well es_hat tracks es over a run (section 6's promise
+  that the estimate can stand in for the error).
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ import numpy as np
 
 from .errors import ProblemError
 
-__all__ = ["l2_error", "SharedNodeErrors", "shared_node_errors", "predictions_by_node"]
+__all__ = ["l2_error", "SharedNodeErrors", "shared_node_errors", "predictions_by_node",
+           "EstimateQuality", "estimate_quality"]
 
 
 def l2_error(reference: np.ndarray, predicted: np.ndarray) -> np.ndarray:
@@ -103,6 +106,70 @@ def predictions_by_node(trajectory, partition) -> tuple[np.ndarray, np.ndarray, 
     for p, part in enumerate(partition.parts):
         cols = np.array([index[int(n)] for n in part.shared_nodes], dtype=int)
         values = np.asarray(trajectory.parts[p]["predicted_shared_displacement"])
-        out[p][:, cols] = values.reshape(len(steps), -1, 3)
+        out[p][:, cols] = values.reshape(len(steps), len(cols), 3)
         holds[p, cols] = True
     return out, holds, steps
+
+
+@dataclasses.dataclass(frozen=True)
+class EstimateQuality:
+    """How well es_hat (needs no reference) tracks es (needs it) over the compared
+    snapshots. es_hat measures the parts' DISAGREEMENT: when the parts' networks err
+    alike (same bias at a node), es_hat stays small while es grows, so the ratio es /
+    es_hat, not only the correlation, tells whether es_hat can stand in for es.
+
+    Attributes:
+        n_snapshots: compared snapshots (those with es > 0).
+        ratio_median, ratio_p95, ratio_max: quantiles of es / es_hat (1: exact; above 1:
+            es_hat underestimates the error).
+        log_correlation: Pearson correlation of log10 es and log10 es_hat (1: they rise
+            and fall together).
+        within_factor_2: share of snapshots with es / 2 <= es_hat <= 2 es.
+        underestimated: share of snapshots with es_hat < es / 2 (the direction that
+            hides errors from a monitor).
+    """
+
+    n_snapshots: int
+    ratio_median: float
+    ratio_p95: float
+    ratio_max: float
+    log_correlation: float
+    within_factor_2: float
+    underestimated: float
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def summary(self) -> str:
+        """One line for a report."""
+        return (f"es_hat tracks es: es/es_hat median {self.ratio_median:.3g}, 95th percentile "
+                f"{self.ratio_p95:.3g}, max {self.ratio_max:.3g}; log-correlation "
+                f"{self.log_correlation:.3f}; within a factor 2 at {100 * self.within_factor_2:.1f} % "
+                f"of {self.n_snapshots} snapshots, underestimated (es_hat < es/2) at "
+                f"{100 * self.underestimated:.1f} %")
+
+
+def estimate_quality(es: np.ndarray, es_hat: np.ndarray) -> EstimateQuality:
+    """Compare es_hat with es (both (T,) [cm], paper eqs. 25-26) over the snapshots where
+    es > 0; es_hat = 0 there counts as an infinite ratio."""
+    es, es_hat = np.asarray(es, float), np.asarray(es_hat, float)
+    if es.shape != es_hat.shape or es.ndim != 1:
+        raise ProblemError(f"es and es_hat must be equal (T,) arrays, got {es.shape} and {es_hat.shape}")
+    keep = es > 0
+    es, es_hat = es[keep], es_hat[keep]
+    if not len(es):
+        nan = float("nan")
+        return EstimateQuality(0, nan, nan, nan, nan, nan, nan)
+    with np.errstate(divide="ignore"):
+        ratio = np.where(es_hat > 0, es / np.where(es_hat > 0, es_hat, 1.0), np.inf)
+    both = es_hat > 0
+    if both.sum() > 2 and np.ptp(np.log10(es[both])) > 0 and np.ptp(np.log10(es_hat[both])) > 0:
+        correlation = float(np.corrcoef(np.log10(es[both]), np.log10(es_hat[both]))[0, 1])
+    else:
+        correlation = float("nan")
+    return EstimateQuality(
+        n_snapshots=int(len(es)), ratio_median=float(np.median(ratio)),
+        ratio_p95=float(np.percentile(ratio, 95)), ratio_max=float(ratio.max()),
+        log_correlation=correlation,
+        within_factor_2=float(np.mean((ratio >= 0.5) & (ratio <= 2.0))),
+        underestimated=float(np.mean(ratio > 2.0)))

@@ -195,24 +195,34 @@ computed and the copies disappear. Results are bit-identical."""
 
 
 def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
-            synchronize=None):
+            synchronize=None, record=None):
     """Run ``n_saves * save_every`` steps; returns (final state, (n_saves, n_nodes, 3)
-    displacements after every ``save_every`` steps). Pure; jit it at the call site."""
+    displacements after every ``save_every`` steps). Pure; jit it at the call site.
+
+    ``record``, when given, maps a state to a small array kept after EVERY step (the
+    distributed solver records its shared-node displacements, the surrogates' training
+    data, while the full field is kept only every ``save_every`` steps); the second
+    output is then the pair (saved, recorded (n_saves * save_every, ...))."""
 
     def inner(s, _):
-        return step(system, s, synchronize), None
+        s = step(system, s, synchronize)
+        return s, None if record is None else record(s)
 
     def outer(s, _):
-        s, _ = jax.lax.scan(inner, s, None, length=save_every, unroll=STEP_UNROLL)
-        return s, s.displacement
+        s, kept = jax.lax.scan(inner, s, None, length=save_every, unroll=STEP_UNROLL)
+        return s, (s.displacement, kept)
 
-    def saved_step(s, _):  # save_every = 1 without a loop of length 1 in each step
-        s = step(system, s, synchronize)
-        return s, s.displacement
+    if save_every == 1:  # without a loop of length 1 in each step
+        def saved_step(s, _):
+            s, kept = inner(s, None)
+            return s, (s.displacement, kept)
 
-    if save_every == 1:
-        return jax.lax.scan(saved_step, state, None, length=n_saves, unroll=STEP_UNROLL)
-    return jax.lax.scan(outer, state, None, length=n_saves)
+        state, (saved, kept) = jax.lax.scan(saved_step, state, None, length=n_saves, unroll=STEP_UNROLL)
+    else:
+        state, (saved, kept) = jax.lax.scan(outer, state, None, length=n_saves)
+        if record is not None:
+            kept = kept.reshape(n_saves * save_every, *kept.shape[2:])
+    return state, (saved if record is None else (saved, kept))
 
 
 _advance_jit = jax.jit(advance, static_argnums=(2, 3))
@@ -269,15 +279,26 @@ def _fingerprint(problem, dt: float, save_every: int) -> str:
 
 class SingleDeviceRunner:
     """Advances a global :class:`SolverState` on one device (the driver's interface:
-    ``advance(state, n_saves) -> (state, saved (n_saves, n_nodes, 3) numpy)``,
-    ``to_global(state)`` / ``from_global(state)`` for checkpoints)."""
+    ``compile(state, n_saves) -> seconds``, ``advance(state, n_saves) -> (state, saved
+    (n_saves, n_nodes, 3) numpy, shared histories or None)``, ``to_global(state)`` /
+    ``from_global(state)`` for checkpoints)."""
 
     def __init__(self, system: ExplicitSystem, save_every: int):
         self.system, self.save_every = system, save_every
+        self._programs = {}
+
+    def compile(self, state, n_saves: int) -> float:
+        """Compile the chunk program ahead of time; returns the seconds spent."""
+        if n_saves in self._programs:
+            return 0.0
+        start = time.perf_counter()
+        self._programs[n_saves] = _advance_jit.lower(self.system, state, n_saves, self.save_every).compile()
+        return time.perf_counter() - start
 
     def advance(self, state, n_saves):
-        state, saved = _advance_jit(self.system, state, n_saves, self.save_every)
-        return state, np.asarray(saved)
+        self.compile(state, n_saves)
+        state, saved = self._programs[n_saves](self.system, state)
+        return state, np.asarray(saved), None
 
     def to_global(self, state) -> SolverState:
         return state
@@ -290,7 +311,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
              mode: str = "preassembled", seed: int = 0, devices=None,
              progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
              checkpoint_every: int | None = None, chunk_steps: int = 5000,
-             blowup_factor: float = 1e3, check_stability: bool = True, sync: str | None = None):
+             blowup_factor: float = 1e3, check_stability: bool = True, sync: str | None = None,
+             shared_every: int | None = None):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -317,10 +339,16 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         check_stability: set False to force a dt through without the bound check.
         sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
             :class:`jaxsync.distributed.DistributedRunner`; default: the faster measured).
+        shared_every: distributed only: keep each part's shared-node displacements every
+            this many steps (a divisor of ``save_every``; default ``save_every``). The
+            surrogates train on every step: ``shared_every=1`` keeps that small history
+            while the full field is saved only every ``save_every`` steps.
 
     Returns:
         :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots (and,
-        for distributed runs, the per-part shared-node histories in ``parts``).
+        for distributed runs, the per-part shared-node histories in ``parts``, every
+        ``shared_every`` steps). ``statistics`` holds ``us_per_step`` (compiled chunks
+        only) and ``compile_seconds``.
 
     Raises:
         StabilityError: dt above the bound, or the run diverged (NaN/Inf or blow-up); the
@@ -332,14 +360,23 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     ``jax.grad``), the whole run is one ``lax.scan`` without progress, divergence checks or
     checkpoints, and the trajectory holds JAX arrays (single-device solver).
     """
+    from .precision import require_float64
     from .trajectory import Trajectory
 
+    require_float64("simulate")
     n_steps, save_every = int(n_steps), int(save_every)
     if n_steps < 0 or save_every < 1:
         raise ProblemError(f"need n_steps >= 0 and save_every >= 1, got {n_steps}, {save_every}")
     if n_steps % save_every:
         raise ProblemError(f"n_steps={n_steps} is not a multiple of save_every={save_every}; "
                            f"use n_steps={n_steps - n_steps % save_every + save_every}")
+    shared_every = save_every if shared_every is None else int(shared_every)
+    if shared_every < 1 or save_every % shared_every:
+        raise ProblemError(f"shared_every={shared_every} must be a positive divisor of "
+                           f"save_every={save_every}")
+    if shared_every != save_every and partitions is None:
+        raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
+                           "run has no shared nodes")
     dt = problem.dt if dt is None else dt
     traced = is_traced(problem.material, problem.damping, problem.loads, dt,
                        problem.initial_displacement, problem.initial_velocity)
@@ -366,25 +403,38 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         from .distributed import DistributedRunner
 
         runner = DistributedRunner(problem, system, partitions, save_every=save_every,
-                                   mode=mode, seed=seed, devices=devices, sync=sync)
+                                   mode=mode, seed=seed, devices=devices, sync=sync,
+                                   record_shared=shared_every != save_every)
         part_info = runner.partition
     return drive(problem, runner, state, n_steps, float(dt), save_every, partition=part_info,
                  progress=progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,
-                 chunk_steps=chunk_steps, blowup_factor=blowup_factor)
+                 chunk_steps=chunk_steps, blowup_factor=blowup_factor, shared_every=shared_every)
 
 
 def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_every: int, *,
           partition=None, progress=None, checkpoint=None, checkpoint_every=None,
-          chunk_steps=5000, blowup_factor=1e3, label="simulate"):
-    """The host loop shared by all solvers: compiled chunks of ``runner.advance``, a
-    progress bar, divergence checks and checkpoints between chunks."""
+          chunk_steps=5000, blowup_factor=1e3, label="simulate", shared_every=None,
+          return_state=False):
+    """The host loop shared by all solvers: compiled chunks of ``runner.advance`` (each
+    compiled ahead, so that the time per step excludes compilation), a progress bar,
+    divergence checks and checkpoints between chunks. ``shared_every`` (distributed
+    runners that record shared nodes every step): stride of the parts' shared histories.
+    Returns the :class:`jaxsync.Trajectory`, and with ``return_state`` also the final
+    global :class:`SolverState` (both displacement levels, to continue the run)."""
     from tqdm import tqdm
 
+    shared_every = save_every if shared_every is None else shared_every
     saves_per_chunk = max(1, int(chunk_steps) // save_every)
     snapshots = [np.asarray(state.displacement)[None]]
+    recorded = None
+    if getattr(runner, "record_shared", False):  # shared-node values at every step, from step 0
+        recorded = [[np.asarray(state.displacement)[None, part.shared_nodes].reshape(1, -1)]
+                    for part in partition.parts]
     fingerprint = _fingerprint(problem, dt, save_every)
     if checkpoint is not None and os.path.exists(checkpoint):
-        state, snapshots = _load_checkpoint(checkpoint, fingerprint, n_steps)
+        state, snapshots, loaded = _load_checkpoint(checkpoint, fingerprint, n_steps,
+                                                    0 if recorded is None else len(recorded))
+        recorded = loaded if recorded is not None else None
     run_state = runner.from_global(state)
     step_now = int(state.step)
     checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
@@ -393,19 +443,24 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     bar = tqdm(total=n_steps, initial=step_now, disable=not show, unit="step", desc=label,
                dynamic_ncols=True)
     chunks_done = 0
-    chunk_times = []  # (steps, seconds) of each chunk, for the per-step cost
+    chunk_times = []  # (key, steps, seconds) of each chunk, for the per-step cost
+    compile_seconds = 0.0
     try:
         while step_now < n_steps:
             k = min(saves_per_chunk, (n_steps - step_now) // save_every)
+            compile_seconds += runner.compile(run_state, k)
             start = time.perf_counter()
-            new_state, saved = runner.advance(run_state, k)
-            chunk_times.append((k, k * save_every, time.perf_counter() - start))
+            new_state, saved, shared = runner.advance(run_state, k)
+            chunk_times.append((None, k * save_every, time.perf_counter() - start))
             ok = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
             if not ok.all():
                 first_bad = int(np.argmin(ok))
                 snapshots.append(saved[:first_bad])
+                if recorded is not None:
+                    for rec, values in zip(recorded, shared):
+                        rec.append(values[:first_bad * save_every])
                 bad_step = step_now + (first_bad + 1) * save_every
-                partial = _trajectory(problem, snapshots, dt, save_every, partition)
+                partial = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
                 err = StabilityError(
                     f"the run diverged by step {bad_step} (t = {bad_step * dt:.6g} s): displacement "
                     f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {problem.dt:.4e} s; "
@@ -414,6 +469,9 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
                 err.trajectory = partial
                 raise err
             snapshots.append(saved)
+            if recorded is not None:
+                for rec, values in zip(recorded, shared):
+                    rec.append(values)
             run_state = new_state
             step_now += k * save_every
             chunks_done += 1
@@ -421,13 +479,21 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
             if checkpoint is not None and (chunks_done % checkpoint_chunks == 0 or step_now == n_steps):
                 global_state = runner.to_global(run_state)  # collective in multi-process runs
                 if jax.process_index() == 0:  # one writer
-                    _save_checkpoint(checkpoint, fingerprint, global_state, snapshots)
+                    _save_checkpoint(checkpoint, fingerprint, global_state, snapshots, recorded)
+    except BaseException:
+        bar.leave = False  # an error clears the bar instead of leaving a (blank) line before it
+        raise
     finally:
         bar.close()
-    traj = _trajectory(problem, snapshots, dt, save_every, partition)
+    traj = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
+    from .devices import device_summary
+
+    stats = {"compile_seconds": compile_seconds,
+             **device_summary(getattr(runner, "devices", None) or jax.devices()[:1])}
     if chunk_times:
-        traj = dataclasses.replace(traj, parameters={**traj.parameters, "us_per_step": us_per_step(chunk_times)})
-    return traj
+        stats["us_per_step"] = us_per_step(chunk_times)
+    traj = dataclasses.replace(traj, statistics={**traj.statistics, **stats})
+    return (traj, runner.to_global(run_state)) if return_state else traj
 
 
 def us_per_step(chunk_times) -> float:
@@ -445,18 +511,27 @@ def us_per_step(chunk_times) -> float:
     return 1e6 * sum(t for _, t in timed) / max(sum(n for n, _ in timed), 1)
 
 
-def _trajectory(problem, snapshots, dt, save_every, partition=None):
+def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):
+    """The trajectory of a run's snapshots; per-part shared histories from ``recorded``
+    (every step, thinned to ``shared_every``) or else from the snapshots."""
     from .trajectory import Trajectory
 
     displacement = np.concatenate(snapshots, axis=0)
     times = np.arange(len(displacement)) * save_every * dt
     parts = ()
     if partition is not None:
+        if recorded is None:
+            shared = [displacement[:, part.shared_nodes].reshape(len(displacement), -1)
+                      for part in partition.parts]
+            shared_every = save_every
+        else:
+            shared = [np.concatenate(rec)[::shared_every] for rec in recorded]
         parts = tuple({"shared_nodes": part.shared_nodes, "elements": part.elements,
-                       "shared_displacement": displacement[:, part.shared_nodes].reshape(len(displacement), -1)}
-                      for part in partition.parts)
+                       "shared_displacement": values}
+                      for part, values in zip(partition.parts, shared))
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt,
-                      save_every=save_every, parameters=_parameters(problem), parts=parts)
+                      save_every=save_every, parameters=_parameters(problem), parts=parts,
+                      shared_every=shared_every if partition is not None else None)
 
 
 def _parameters(problem) -> dict:
@@ -469,37 +544,77 @@ def _parameters(problem) -> dict:
     return out
 
 
-def _save_checkpoint(path, fingerprint, state: SolverState, snapshots) -> None:
+_CHECKPOINT_KIND = "jaxsync-solver-checkpoint"
+
+
+def _checkpoint_checksum(arrays: dict, fingerprint: str, step: int) -> str:
+    """sha256 over the stored state arrays, the problem fingerprint and the step."""
+    from .trajectory import array_checksum
+
+    return array_checksum(arrays, {"kind": _CHECKPOINT_KIND, "fingerprint": str(fingerprint),
+                                   "step": int(step)})
+
+
+def _save_checkpoint(path, fingerprint, state: SolverState, snapshots, recorded=None) -> None:
+    """``recorded``: per part, the list of shared-history chunks kept every step."""
     from .trajectory import atomic_h5
 
+    arrays = {"displacement": np.asarray(state.displacement),
+              "previous": np.asarray(state.previous),
+              "snapshots": np.concatenate(snapshots, axis=0)}
+    for p, chunks in enumerate(recorded or ()):
+        arrays[f"shared_{p}"] = np.concatenate(chunks, axis=0)
+    step_ = int(state.step)
     with atomic_h5(path) as f:
-        f.attrs["kind"] = "jaxsync-solver-checkpoint"
+        f.attrs["kind"] = _CHECKPOINT_KIND
         f.attrs["fingerprint"] = fingerprint
-        f.attrs["step"] = int(state.step)
-        f["displacement"] = np.asarray(state.displacement)
-        f["previous"] = np.asarray(state.previous)
-        f["snapshots"] = np.concatenate(snapshots, axis=0)
+        f.attrs["step"] = step_
+        f.attrs["checksum"] = _checkpoint_checksum(arrays, fingerprint, step_)
+        for name, array in arrays.items():
+            f[name] = array
 
 
-def _load_checkpoint(path, fingerprint, n_steps):
+def _load_checkpoint(path, fingerprint, n_steps, n_recorded: int = 0):
+    """(state, snapshot chunks, per-part shared-history chunks or None); ``n_recorded``
+    parts' every-step shared histories must be in the file when > 0."""
     import h5py
 
     try:
         with h5py.File(path, "r") as f:
-            if f.attrs.get("kind") != "jaxsync-solver-checkpoint":
-                raise CheckpointError(f"{path} is not a jaxsync solver checkpoint")
+            if f.attrs.get("kind") != _CHECKPOINT_KIND:
+                raise CheckpointError(f"{path} is not a jaxsync solver checkpoint; delete it or "
+                                      "pass another checkpoint path")
             if f.attrs["fingerprint"] != fingerprint:
                 raise CheckpointError(
                     f"checkpoint {path} was written by a different problem, dt or save_every; "
                     "delete it or pass another checkpoint path")
             step_ = int(f.attrs["step"])
-            state = SolverState(jnp.asarray(f["displacement"][...]), jnp.asarray(f["previous"][...]),
-                                jnp.asarray(step_, dtype=jnp.int32))
-            snapshots = [f["snapshots"][...]]
+            names = ["displacement", "previous", "snapshots"] + sorted(
+                (k for k in f if k.startswith("shared_")), key=lambda k: int(k.split("_")[1]))
+            arrays = {name: f[name][...] for name in names}
+            stored = f.attrs.get("checksum")
     except CheckpointError:
         raise
     except Exception as exc:
         raise CheckpointError(f"cannot read checkpoint {path}: {exc}; delete it to start over") from exc
+    if stored is None:
+        raise CheckpointError(
+            f"checkpoint {path} has no checksum (written by an older jaxsync), so its state "
+            "cannot be verified; delete it to start over")
+    if str(stored) != _checkpoint_checksum(arrays, fingerprint, step_):
+        raise CheckpointError(
+            f"checkpoint {path} fails its checksum: the stored state was altered or damaged "
+            "after it was written, and resuming from it would give a wrong trajectory; "
+            "delete it to start over")
     if step_ > n_steps:
         raise CheckpointError(f"checkpoint {path} is at step {step_}, beyond n_steps={n_steps}")
-    return state, snapshots
+    recorded = None
+    if n_recorded:
+        if f"shared_{n_recorded - 1}" not in arrays:
+            raise CheckpointError(
+                f"checkpoint {path} holds no every-step shared histories (it was written with "
+                "shared_every = save_every); delete it, or resume with the same shared_every")
+        recorded = [[arrays[f"shared_{p}"]] for p in range(n_recorded)]
+    state = SolverState(jnp.asarray(arrays["displacement"]), jnp.asarray(arrays["previous"]),
+                        jnp.asarray(step_, dtype=jnp.int32))
+    return state, [arrays["snapshots"]], recorded

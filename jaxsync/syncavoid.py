@@ -1,6 +1,6 @@
-"""Synchronization-avoiding explicit solver (paper Algorithm 3).
+"""Synchronization-avoiding explicit solver (paper Algorithm 3), with error control.
 
-Synchronized steps run up to ``n_cri`` (>= n_p n_s + 1). Then, in cycles: (a) one
+Synchronized steps run up to ``n_cri`` (>= n_p n_s). Then, in cycles: (a) one
 batched refill prediction per part of its shared-node displacements for the next
 n_s n_f steps, from the last n_p n_s steps of its history; (b) n_s n_f solver steps with
 no psum, each followed by overwriting the part's shared dofs with its prediction and
@@ -13,10 +13,17 @@ switch the parts' values there differ; the returned global trajectory takes the 
 over the parts, and each part's own predictions are kept in ``trajectory.parts`` for
 the error estimates of :mod:`jaxsync.metrics`.
 
-Predictors are pytrees with a method ``predict(buffer, cycle) -> (n_s n_f, n_dof)`` for
-one part (``buffer`` (n_s n_p, n_dof) of the last known steps, ``cycle`` the cycle
-index): :class:`SurrogatePredictor` (trained LSTM replicas) and :class:`OraclePredictor`
+Predictors are pytrees with a method ``predict(buffer, step) -> (n_s n_f, n_dof)`` for
+one part (``buffer`` (n_s n_p, n_dof) of steps step - n_s n_p + 1 .. step, ``step`` the
+last known step; the predictions are for steps step + 1 .. step + n_s n_f):
+:class:`SurrogatePredictor` (trained LSTM replicas) and :class:`OraclePredictor`
 (replays known displacements; pins the coupling independently of network error).
+
+Error control (``resync_tolerance``, see :func:`simulate_sync_avoiding`): each cycle's
+predictions are checked (es_hat, paper eq. 26) before the solver uses them; a rejected
+cycle sends the run back to its last synchronized state, from which the synchronized
+solver recomputes the steps, so a tolerance never leaves the run in a predicted state
+that the synchronized solver then amplifies.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+import warnings
 from typing import Any
 
 import jax
@@ -34,10 +42,10 @@ from jax.sharding import PartitionSpec as P
 from .distributed import AXIS, DistributedRunner, PartSystems
 from .errors import CheckpointError, ProblemError, StabilityError
 from .pytree import pytree_dataclass, static_field
-from .solver import STEP_UNROLL, SolverState, build_system, drive, initial_state, step, us_per_step
+from .solver import STEP_UNROLL, SolverState, build_system, drive, initial_state, step
 
-__all__ = ["SurrogatePredictor", "OraclePredictor", "simulate_sync_avoiding", "simulate_full_system",
-           "shared_dof_layout"]
+__all__ = ["SurrogatePredictor", "OraclePredictor", "ResyncTolerance", "simulate_sync_avoiding",
+           "simulate_full_system", "shared_dof_layout", "step_counts", "describe_run"]
 
 
 @pytree_dataclass
@@ -69,8 +77,9 @@ class SurrogatePredictor:
     def n_future(self) -> int:
         return self.arch.n_future
 
-    def predict(self, buffer, cycle):
-        """(n_s n_f, n_dof) predictions of the next steps for one part."""
+    def predict(self, buffer, step):
+        """(n_s n_f, n_dof) predictions of the steps after ``step`` for one part (the
+        network reads only ``buffer``)."""
         from .surrogate.evaluate import refill_predict
 
         cond = self.cond if self.arch.conditional else None
@@ -119,22 +128,25 @@ class SurrogatePredictor:
 @pytree_dataclass
 class OraclePredictor:
     """Replays known shared displacements: ``future[p, k]`` is part p's shared dofs at
-    step n_cri + 1 + k (padded to whole cycles). With the synchronized run's values the
-    predicted phase must reproduce that run to round-off.
+    step ``first_step + k``. With the synchronized run's values the predicted phase must
+    reproduce that run to round-off.
 
     Attributes:
-        future: (n_parts, n_cycles * n_s * n_f, n_dof) [cm].
+        future: (n_parts, n_known, n_dof) [cm]; steps past the end read the last rows
+            (pad to whole cycles).
+        first_step: the step of ``future[:, 0]`` (static).
         n_s, n_past, n_future: the refill geometry it stands in for (static).
     """
 
     future: Any
+    first_step: int = static_field()
     n_s: int = static_field(default=1)
     n_past: int = static_field(default=1)
     n_future: int = static_field(default=1)
 
-    def predict(self, buffer, cycle):
+    def predict(self, buffer, step):
         length = self.n_s * self.n_future
-        return jax.lax.dynamic_slice_in_dim(self.future, cycle * length, length, axis=0)
+        return jax.lax.dynamic_slice_in_dim(self.future, step + 1 - self.first_step, length, axis=0)
 
 
 def shared_dof_layout(partition) -> tuple[int, np.ndarray]:
@@ -143,101 +155,244 @@ def shared_dof_layout(partition) -> tuple[int, np.ndarray]:
     return max(int(counts.max()), 3), counts
 
 
-def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, first_cycle,
+# --------------------------------------------------------------------------- one part, pure
+
+def _predict_cycle(predictor, buffer, step):
+    """One part: the predictions (n_s n_f, n_dof) of the steps after ``step`` (the last
+    known one) and the history buffer moved on by them."""
+    pred = predictor.predict(buffer, step).astype(buffer.dtype)
+    return pred, jnp.concatenate([buffer, pred])[-buffer.shape[0]:]
+
+
+def _overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+    """One part: ``steps`` solver steps without synchronization, each followed by writing
+    the predicted shared-node displacements ``pred[j]`` into the part's state.
+
+    Returns (state, saved displacement (steps // save_every, n_local, 3), the predictions
+    at the saved steps (steps // save_every, n_dof))."""
+    nodes = pred.reshape(pred.shape[0], -1, 3)
+
+    def one_step(st, j):
+        overwrite = lambda new: new.at[part.shared_local].set(nodes[j], mode="drop")  # noqa: E731
+        return step(part.system, st, overwrite=overwrite), None
+
+    def saved_block(st, k):
+        st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every), unroll=STEP_UNROLL)
+        return st, (st.displacement, pred[(k + 1) * save_every - 1])
+
+    def saved_step(st, j):  # save_every = 1: no inner loop (it costs ~50 % per step)
+        st, _ = one_step(st, j)
+        return st, (st.displacement, pred[j])
+
+    if save_every == 1:
+        return _unpack(jax.lax.scan(saved_step, state, jnp.arange(steps), unroll=STEP_UNROLL))
+    return _unpack(jax.lax.scan(saved_block, state, jnp.arange(steps // save_every)))
+
+
+def _unpack(result):
+    state, (disp, kept) = result
+    return state, disp, kept
+
+
+def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, step0,
                       n_cycles: int, steps: int, save_every: int):
-    """One part: ``n_cycles`` refill cycles of ``steps`` unsynchronized steps each.
+    """One part: ``n_cycles`` refill cycles of ``steps`` unsynchronized steps each, the
+    predictions made inside the loop (the fused program of the unmonitored run).
 
     Returns (state, buffer, saved displacement (n_cycles, steps // save_every, n_local, 3),
     saved predictions (n_cycles, steps // save_every, n_dof))."""
-    history = buffer.shape[0]
-    n_dof = buffer.shape[1]
 
     def cycle(carry, c):
         state, buffer = carry
-        pred = predictor.predict(buffer, first_cycle + c).astype(buffer.dtype)  # (L, n_dof)
-        nodes = pred.reshape(pred.shape[0], -1, 3)
-
-        def one_step(st, j):
-            overwrite = lambda new: new.at[part.shared_local].set(nodes[j], mode="drop")  # noqa: E731
-            return step(part.system, st, overwrite=overwrite), None
-
-        def saved_block(st, k):
-            st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every),
-                                 unroll=STEP_UNROLL)
-            return st, (st.displacement, pred[(k + 1) * save_every - 1])
-
-        def saved_step(st, j):  # save_every = 1: no inner loop (it costs ~50 % per step)
-            st, _ = one_step(st, j)
-            return st, (st.displacement, pred[j])
-
-        if save_every == 1:
-            state, (disp, kept) = jax.lax.scan(saved_step, state, jnp.arange(steps), unroll=STEP_UNROLL)
-        else:
-            state, (disp, kept) = jax.lax.scan(saved_block, state, jnp.arange(steps // save_every))
-        buffer = jnp.concatenate([buffer, pred])[-history:]
+        pred, buffer = _predict_cycle(predictor, buffer, step0 + c * steps)
+        state, disp, kept = _overwritten_steps(part, state, pred, steps, save_every)
         return (state, buffer), (disp, kept)
 
     (state, buffer), (disp, kept) = jax.lax.scan(cycle, (state, buffer), jnp.arange(n_cycles))
-    return state, buffer, disp, kept.reshape(n_cycles, -1, n_dof)
+    return state, buffer, disp, kept
 
+
+def _rollout(predictor, buffer, step0, steps: int, save_every: int):
+    """One part, one refill cycle predicted ahead of the solver (the monitored run checks
+    it before using it): (predictions (L, n_dof), moved buffer, the predictions at the
+    saved steps (steps // save_every, n_dof))."""
+    pred, buffer = _predict_cycle(predictor, buffer, step0)
+    return pred, buffer, pred[save_every - 1:steps:save_every]
+
+
+def _apply(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+    """One part: the steps of one cycle with already made predictions ``pred``."""
+    state, disp, _ = _overwritten_steps(part, state, pred, steps, save_every)
+    return state, disp
+
+
+# --------------------------------------------------------------------------- SPMD programs
 
 class _OnlineRunner:
-    """Compiles and runs the predicted phase under ``shard_map`` (no collectives)."""
+    """Compiles and runs the predicted phase under ``shard_map`` (no collectives): the
+    fused program (predict and step, ``n_cycles`` cycles per call) and, for the monitored
+    run, the two halves (predict one cycle; step it with the predictions)."""
 
     def __init__(self, runner: DistributedRunner, predictor, save_every: int):
         self.runner = runner
         self.predictor = runner._put(predictor)
         self.save_every = save_every
         self._compiled = {}
+        self.compile_seconds = 0.0
+
+    def _spmd(self, body, n_in: int, n_out: int):
+        mapped = jax.shard_map(jax.vmap(body), mesh=self.runner.device_mesh,
+                               in_specs=(P(AXIS),) * n_in, out_specs=(P(AXIS),) * n_out,
+                               check_vma=False)
+        return jax.jit(mapped)
 
     def program(self, n_cycles: int, steps: int):
         key = ("jit", n_cycles, steps)
         if key not in self._compiled:
             body = functools.partial(_predicted_cycles, n_cycles=n_cycles, steps=steps,
                                      save_every=self.save_every)
-            # first_cycle is a per-part copy of the cycle counter (sharded like the rest)
-            mapped = jax.shard_map(jax.vmap(body), mesh=self.runner.device_mesh,
-                                   in_specs=(P(AXIS),) * 5, out_specs=(P(AXIS),) * 4,
-                                   check_vma=False)
-            self._compiled[key] = jax.jit(mapped)
+            # step0 is a per-part copy of the step counter (sharded like the rest)
+            self._compiled[key] = self._spmd(body, 5, 4)
+        return self._compiled[key]
+
+    def _ahead(self, key, build, *args):
+        """Compile ``build()`` for ``args`` once, ahead of its first timed call."""
+        if key not in self._compiled:
+            start = time.perf_counter()
+            self._compiled[key] = build().lower(*args).compile()
+            self.compile_seconds += time.perf_counter() - start
         return self._compiled[key]
 
     def lowered_text(self, state, buffer, n_cycles: int, steps: int) -> str:
-        """The compiled program's HLO text (to check that it has no collective)."""
-        first = self._first(0)
+        """The compiled fused program's HLO text (to check that it has no collective)."""
         return self.program(n_cycles, steps).lower(self.runner.parts, self.predictor, state,
-                                                   buffer, first).compile().as_text()
+                                                   buffer, self._first(0)).compile().as_text()
 
-    def _first(self, cycle: int):
-        return self.runner._put(np.full(self.runner.partition.n_parts, cycle, dtype=np.int32))
+    def _first(self, step: int):
+        return self.runner._put(np.full(self.runner.partition.n_parts, step, dtype=np.int32))
 
     def prepare(self, state, buffer, n_cycles: int, steps: int):
-        """Compile (ahead of time, once) the program for ``n_cycles`` cycles of ``steps``."""
-        key = ("compiled", n_cycles, steps)
-        if key not in self._compiled:
-            self._compiled[key] = self.program(n_cycles, steps).lower(
-                self.runner.parts, self.predictor, state, buffer, self._first(0)).compile()
-        return self._compiled[key]
+        """The fused program for ``n_cycles`` cycles of ``steps``, compiled ahead."""
+        return self._ahead(("compiled", n_cycles, steps), lambda: self.program(n_cycles, steps),
+                           self.runner.parts, self.predictor, state, buffer, self._first(0))
 
-    def run(self, state, buffer, first_cycle: int, n_cycles: int, steps: int):
+    def run(self, state, buffer, step0: int, n_cycles: int, steps: int):
         return self.prepare(state, buffer, n_cycles, steps)(
-            self.runner.parts, self.predictor, state, buffer, self._first(first_cycle))
+            self.runner.parts, self.predictor, state, buffer, self._first(step0))
+
+    def rollout(self, buffer, step0: int, steps: int):
+        """One cycle predicted ahead: (predictions, buffer, predictions at saved steps)."""
+        build = lambda: self._spmd(functools.partial(_rollout, steps=steps,  # noqa: E731
+                                                     save_every=self.save_every), 3, 3)
+        first = self._first(step0)
+        return self._ahead(("rollout", steps), build, self.predictor, buffer, first)(
+            self.predictor, buffer, first)
+
+    def apply(self, state, pred, steps: int):
+        """The steps of one cycle with the predictions of :meth:`rollout`."""
+        build = lambda: self._spmd(functools.partial(_apply, steps=steps,  # noqa: E731
+                                                     save_every=self.save_every), 3, 2)
+        return self._ahead(("apply", steps), build, self.runner.parts, state, pred)(
+            self.runner.parts, state, pred)
+
+
+# --------------------------------------------------------------------------- error control
+
+@dataclasses.dataclass(frozen=True)
+class ResyncTolerance:
+    """The es_hat level above which a synchronization-avoiding run re-synchronizes.
+
+    Give it in cm (``ResyncTolerance(absolute=1e-4)``, or just ``1e-4``) or relative to
+    the observed amplitude (``ResyncTolerance(relative=0.01)``, or ``"1%"``): a fraction
+    of the largest |displacement| at the shared nodes seen in the synchronized steps so
+    far (the amplitude that the run itself has measured; no reference needed).
+    """
+
+    absolute: float | None = None
+    relative: float | None = None
+
+    def __post_init__(self):
+        if (self.absolute is None) == (self.relative is None):
+            raise ProblemError("resync_tolerance: give exactly one of absolute (cm) or relative")
+        value = self.absolute if self.absolute is not None else self.relative
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                or not value > 0:  # also refuses NaN
+            raise ProblemError(f"resync_tolerance must be a tolerance > 0 (cm, or a fraction of the "
+                               f"amplitude), got {value!r}")
+
+    @classmethod
+    def parse(cls, value) -> "ResyncTolerance":
+        """A tolerance from a number (cm), a string ``"1e-4"`` (cm) or ``"2%"`` (relative),
+        or a :class:`ResyncTolerance`."""
+        if isinstance(value, cls):
+            return value
+        if isinstance(value, str):
+            text = value.strip()
+            try:
+                if text.endswith("%"):
+                    return cls(relative=float(text[:-1]) / 100.0)
+                return cls(absolute=float(text))
+            except ValueError:
+                pass
+            raise ProblemError(f"resync_tolerance {value!r} is neither a length in cm (e.g. 1e-4) "
+                               "nor a percentage of the amplitude (e.g. 2%)")
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise ProblemError(f"resync_tolerance must be a tolerance > 0 [cm] or a percentage "
+                               f"string like '2%', got {value!r}")
+        return cls(absolute=float(value))
+
+    def cm(self, amplitude: float) -> float:
+        """The tolerance in cm given the observed amplitude [cm]."""
+        return float(self.absolute) if self.absolute is not None else float(self.relative) * amplitude
+
+    def __str__(self) -> str:
+        return f"{self.absolute:g} cm" if self.absolute is not None else f"{100 * self.relative:g} %"
+
+
+@dataclasses.dataclass
+class _Anchor:
+    """The last synchronized point of a run: the global state (both displacement levels)
+    and each part's last n_p n_s shared-dof values (the networks' input history)."""
+
+    state: SolverState
+    history: np.ndarray  # (n_parts, n_s n_p, n_dof)
+    segment: int  # number of timeline segments up to this point
+
+
+def _histories(partition, shared, history: int, n_dof: int, previous=None) -> np.ndarray:
+    """(n_parts, history, n_dof) buffer: the last ``history`` rows of each part's shared
+    values ``shared[p]`` (n, 3 n_shared_p), after the rows of ``previous``."""
+    out = np.zeros((partition.n_parts, history, n_dof))
+    for p, values in enumerate(shared):
+        rows = values if previous is None else np.concatenate([previous[p, :, :values.shape[1]], values])
+        out[p, :, :values.shape[1]] = rows[-history:]
+    return out
 
 
 def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_cri: int,
                            dt=None, mode: str = "preassembled", save_every: int = 1,
                            seed: int = 0, devices=None, cond: float | None = None,
                            progress: bool | None = None, cycles_per_chunk: int | None = None,
-                           resync_tolerance: float | None = None):
+                           resync_tolerance=None, sync: str | None = None):
     """Run paper Algorithm 3: synchronized up to ``n_cri``, then surrogate-predicted.
 
-    Going beyond the paper, ``resync_tolerance`` turns the estimate es_hat (paper eq. 26:
-    the mean disagreement of the parts' predictions at the shared nodes, which needs no
-    reference solution) into a live monitor: after each compiled chunk of refill cycles,
-    if es_hat at any saved step of the chunk exceeds the tolerance, the parts are brought
-    back to one state (the mean over the parts at shared nodes), the solver runs
-    synchronized for n_p n_s steps -- which refills every network's input history with
-    synchronized values -- and prediction resumes.
+    Error control (beyond the paper, section 6): with ``resync_tolerance``, every refill
+    cycle is predicted BEFORE the solver uses it, and es_hat of its predictions (paper eq.
+    26: the mean disagreement of the parts at the shared nodes, which needs no reference
+    solution) is checked at the saved steps. Below the tolerance the cycle runs with the
+    predictions. Above it the predictions are dropped and the run re-synchronizes: it
+    returns to its last synchronized point (the anchor: the state and both displacement
+    levels at the end of the last synchronized stretch) and recomputes every step from
+    there up to the end of the rejected cycle with the synchronized solver, which then is
+    the new anchor (its last n_p n_s steps refill the networks' histories). A restart from
+    a predicted state is NOT used: each part's interior carries the error of its
+    predicted boundary values, mostly as high-frequency motion that the clamped shared
+    nodes trap, and joining the parts releases it into the whole structure (a 1700x
+    larger error in the demo). So after every re-synchronization the run equals the
+    synchronized solver to round-off, and between them only predictions whose es_hat
+    stayed below the tolerance were used. When the cycle right after an anchor is
+    rejected, the synchronized stretch doubles (1, 2, 4 ... cycles) before the next try.
+    Predicted steps that a re-synchronization recomputes are counted as discarded.
 
     Args:
         problem: the problem.
@@ -246,39 +401,49 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         surrogates: a surrogate checkpoint (path or
             :class:`jaxsync.surrogate.SurrogateCheckpoint`), a :class:`SurrogatePredictor`
             or an :class:`OraclePredictor`.
-        n_cri: last synchronized step; at least n_p n_s + 1.
-        save_every: snapshot stride; must divide n_cri and n_s n_f.
+        n_cri: last synchronized step; at least n_p n_s (the networks read steps
+            n_cri - n_p n_s + 1 .. n_cri).
+        save_every: snapshot stride; must divide n_cri, n_steps and n_s n_f.
         cond: load parameter for conditional surrogates.
-        cycles_per_chunk: refill cycles per compiled call (default: about 20 000 steps;
-            1 when ``resync_tolerance`` is given, so that the monitor acts every cycle).
-        resync_tolerance: es_hat [cm] above which the run re-synchronizes (None: never).
-            Needs ``save_every`` to divide n_p n_s, and a predictor that works from its
-            input history (not an :class:`OraclePredictor`).
+        cycles_per_chunk: refill cycles per compiled call of the unmonitored run
+            (default: about 20 000 steps).
+        resync_tolerance: es_hat above which the run re-synchronizes: a number [cm], a
+            string like ``"2%"`` (relative to the largest shared-node displacement seen in
+            synchronized steps), or a :class:`ResyncTolerance`; None: never.
+        sync: how the synchronized steps sum shared forces (see
+            :class:`jaxsync.distributed.DistributedRunner`).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
         synchronized steps, re-synchronized ones included) and, per part,
-        ``predicted_shared_displacement`` (n_predicted_saved, 3 n_shared_p): the part's own
-        predictions at the saved predicted steps. With a tolerance, ``parameters`` holds
-        ``resynchronized_at`` (the steps at which re-synchronization started) and
-        ``es_hat_trigger`` (the es_hat that triggered each) [cm].
+        ``shared_displacement`` and ``predicted_shared_displacement``
+        (n_predicted_saved, 3 n_shared_p): the part's own predictions at the saved
+        predicted steps. ``statistics``: ``n_synchronized_steps``, ``n_predicted_steps``
+        (they add up to n_steps), ``n_discarded_steps``, ``n_resynchronizations``,
+        ``resynchronized_at`` (the first step of each rejected cycle), ``es_hat_trigger``
+        (its es_hat) and ``tolerance_cm`` (the tolerance then) [cm], ``resync_tolerance``,
+        ``us_per_step_predicted``, ``us_per_step_synchronized``, ``compile_seconds``.
 
     Raises:
-        ProblemError: n_cri too small, save_every not dividing n_cri and n_s n_f (and n_p
-            n_s with a tolerance), a tolerance that is not > 0 or with an oracle.
+        ProblemError: n_cri too small, save_every not dividing n_cri, n_steps and n_s n_f,
+            a tolerance that is not > 0 or given with an oracle.
         CheckpointError: surrogates made for another partition.
-        StabilityError: a prediction turned NaN/Inf (the message names the step and the
-            part; ``error.trajectory`` keeps the snapshots saved before).
+        StabilityError: without a tolerance, a prediction turned NaN/Inf (the message
+            names the step and the part; ``error.trajectory`` keeps the snapshots saved
+            before). With a tolerance such a cycle is rejected like any other.
     """
+    from .precision import require_float64
     from .surrogate.checkpoint import SurrogateCheckpoint, check_compatible, load_checkpoint
 
+    require_float64("simulate_sync_avoiding")
     n_steps, n_cri, save_every = int(n_steps), int(n_cri), int(save_every)
     dt = problem.dt if dt is None else float(dt)
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
         surrogates = load_checkpoint(surrogates)
+    tolerance = None if resync_tolerance is None else ResyncTolerance.parse(resync_tolerance)
     system = build_system(problem, dt, mode)
-    runner = DistributedRunner(problem, system, partitions, save_every=1, mode=mode, seed=seed,
-                               devices=devices)
+    runner = DistributedRunner(problem, system, partitions, save_every=save_every, mode=mode,
+                               seed=seed, devices=devices, sync=sync, record_shared=True)
     partition = runner.partition
     n_dof, counts = shared_dof_layout(partition)
     if isinstance(surrogates, SurrogateCheckpoint):
@@ -291,117 +456,202 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         raise CheckpointError(f"the surrogates predict {predictor.arch.n_dof} dofs per part but this "
                               f"partition needs {n_dof}: retrain on this partition")
     history, cycle_steps = n_s * n_p, n_s * n_f
-    if n_cri < history + 1:
-        raise ProblemError(f"n_cri={n_cri} is too small: the first refill needs n_p * n_s + 1 = "
-                           f"{history + 1} synchronized steps (n_p={n_p}, n_s={n_s})")
+    if n_cri < history:
+        raise ProblemError(f"n_cri={n_cri} is too small: the first refill reads the n_p * n_s = "
+                           f"{history} synchronized steps before it (n_p={n_p}, n_s={n_s})")
     if n_cri > n_steps:
         raise ProblemError(f"n_cri={n_cri} is beyond n_steps={n_steps}")
     if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
         raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
     monitor = None
-    if resync_tolerance is not None:
-        try:
-            tolerance_ok = float(resync_tolerance) > 0  # False for NaN; inf never triggers
-        except (TypeError, ValueError):
-            tolerance_ok = False
-        if not tolerance_ok:
-            raise ProblemError(f"resync_tolerance must be a tolerance > 0 [cm], got {resync_tolerance!r}")
+    if tolerance is not None:
         if isinstance(predictor, OraclePredictor):
             raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
                                "an OraclePredictor replays fixed values")
-        if history % save_every:
-            raise ProblemError(f"with resync_tolerance, save_every={save_every} must also divide the "
-                               f"re-synchronized steps n_p * n_s = {history}")
         monitor = _DisagreementMonitor(partition)
-        cycles_per_chunk = cycles_per_chunk or 1
 
-    # synchronized phase: every step kept (the refill history), thinned afterwards
-    state0 = initial_state(problem, system)
-    synced = drive(problem, runner, state0, n_cri, dt, 1, partition=partition, progress=progress,
-                   label="synchronized")
-    sync_disp = synced.displacement
-    last = SolverState(jnp.asarray(sync_disp[-1]), jnp.asarray(sync_disp[-2]),
-                       jnp.asarray(n_cri, dtype=jnp.int32))
-    state = runner.from_global(last)
-    buffer = np.zeros((partition.n_parts, history, n_dof))
-    for p, part in enumerate(partition.parts):
-        buffer[p, :, :counts[p]] = sync_disp[-history:, part.shared_nodes].reshape(history, -1)
-    buffer = runner._put(buffer)
-
+    # synchronized phase: the full field every save_every steps, shared nodes every step
+    synced, anchor_state = drive(problem, runner, initial_state(problem, system), n_cri, dt,
+                                 save_every, partition=partition, progress=progress,
+                                 label="synchronized", shared_every=1, return_state=True)
+    shared_sync = [p["shared_displacement"] for p in synced.parts]
+    amplitude = max(float(np.abs(v).max(initial=0.0)) for v in shared_sync)
+    anchor = _Anchor(anchor_state, _histories(partition, shared_sync, history, n_dof), 0)
+    state = runner.from_global(anchor_state)
+    buffer = runner._put(anchor.history)
     online = _OnlineRunner(runner, predictor, save_every)
-    n_predicted = n_steps - n_cri
+    timeline = []  # segments in order: (kind, first step, last step, global displacement, predictions)
+    stats = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": []}
+    seconds = {"predicted": 0.0, "synchronized": 0.0, "discarded": 0.0}
+    sync_seconds = float(synced.statistics.get("us_per_step", 0.0)) * 1e-6 * n_cri
+    n_discarded = 0
     per_chunk = cycles_per_chunk or max(1, 20000 // cycle_steps)
-    timeline = []  # in order: ("predicted", local displacement, predictions) / ("synchronized", global)
-    resynced_at, triggers = [], []
     from tqdm import tqdm
 
+    n_predicted = n_steps - n_cri
     show = progress if progress is not None else n_predicted >= 20000
     bar = tqdm(total=n_predicted, disable=not show, unit="step", desc="predicted", dynamic_ncols=True)
-    step_now, cycle = n_cri, 0
-    chunk_times = []
+    step_now, failures = n_cri, 0
     try:
         while step_now < n_steps:
             left = n_steps - step_now
-            k, steps = (min(per_chunk, left // cycle_steps), cycle_steps) if left >= cycle_steps else (1, left)
-            online.prepare(state, buffer, k, steps)  # compilation is not timed
+            if monitor is None:
+                k, steps = (min(per_chunk, left // cycle_steps), cycle_steps) if left >= cycle_steps else (1, left)
+                online.prepare(state, buffer, k, steps)  # compilation is not timed
+                start = time.perf_counter()
+                state, buffer, disp, pred = online.run(state, buffer, step_now, k, steps)
+                disp, pred = _host(disp), _host(pred)  # (P, k, steps/save, ...)
+                spent = time.perf_counter() - start
+                seconds["predicted"] += spent
+                bad = ~np.isfinite(pred).all(axis=-1)  # (P, k, n_saved)
+                if bad.any():
+                    p, c, j = (int(i[0]) for i in np.nonzero(bad))
+                    bad_step = step_now + c * steps + (j + 1) * save_every
+                    partial = _assemble(problem, partition, synced, timeline, counts, dt, save_every)
+                    err = StabilityError(
+                        f"the surrogate of part {p} predicted NaN/Inf for step {bad_step} "
+                        f"(t = {bad_step * dt:.6g} s): the network diverged; retrain it, raise n_cri "
+                        f"or give a resync_tolerance. The {partial.n_saved} snapshots saved before "
+                        "are kept (error.trajectory)")
+                    err.trajectory = partial
+                    raise err
+                timeline.append(_predicted_segment(problem, partition, step_now, k * steps, disp, pred, spent))
+                step_now += k * steps
+                bar.update(k * steps)
+                continue
+
+            steps = min(cycle_steps, left)
+            online.rollout(buffer, step_now, steps)  # compile both halves ahead
             start = time.perf_counter()
-            state, buffer, disp, pred = online.run(state, buffer, cycle, k, steps)
-            disp, pred = _host(disp), _host(pred)  # (P, k, steps/save, ...)
-            chunk_times.append((None, k * steps, time.perf_counter() - start))
-            bad = ~np.isfinite(pred).all(axis=-1)  # (P, k, n_saved)
-            if bad.any():
-                p, c, j = (int(i[0]) for i in np.nonzero(bad))
-                bad_step = step_now + c * steps + (j + 1) * save_every
-                partial = _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri)
-                err = StabilityError(
-                    f"the surrogate of part {p} predicted NaN/Inf for step {bad_step} "
-                    f"(t = {bad_step * dt:.6g} s): the network diverged; retrain it or raise n_cri. "
-                    f"The {partial.n_saved} snapshots saved before are kept (error.trajectory)")
-                err.trajectory = partial
-                raise err
-            pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
-            timeline.append(("predicted", disp.reshape(disp.shape[0], -1, *disp.shape[3:]), pred))
-            bar.update(k * steps)
-            cycle += k
-            step_now += k * steps
-            if monitor is not None and step_now < n_steps:
-                es_hat = monitor.es_hat(pred, counts)
-                if es_hat.max() > resync_tolerance:
-                    # one state for all parts, then n_p n_s synchronized steps refill the history
-                    resynced_at.append(step_now)
-                    triggers.append(float(es_hat.max()))
-                    length = min(history, n_steps - step_now)
-                    merged = SolverState(_mean_over_parts(problem, partition, _host(state.displacement)),
-                                         _mean_over_parts(problem, partition, _host(state.previous)), step_now)
-                    segment = drive(problem, runner, merged, step_now + length, dt, 1,
-                                    partition=partition, progress=False, label="resynchronized")
-                    disp_sync = segment.displacement  # (length + 1, n_nodes, 3), from step_now
-                    timeline.append(("synchronized", disp_sync[save_every::save_every]))
-                    step_now += length
-                    bar.update(length)
-                    state = runner.from_global(SolverState(disp_sync[-1], disp_sync[-2], step_now))
-                    if length == history:
-                        refill = np.zeros((partition.n_parts, history, n_dof))
-                        for p, part in enumerate(partition.parts):
-                            refill[p, :, :counts[p]] = disp_sync[-history:, part.shared_nodes].reshape(history, -1)
-                        buffer = runner._put(refill)
+            pred, next_buffer, kept = online.rollout(buffer, step_now, steps)
+            kept = _host(kept)  # (P, steps / save_every, n_dof)
+            tol = tolerance.cm(amplitude)
+            es_hat = monitor.es_hat(kept, counts) if np.isfinite(kept).all() else np.array([np.inf])
+            check = time.perf_counter() - start
+            if es_hat.max() <= tol:
+                online.apply(state, pred, steps)
+                start = time.perf_counter()
+                state, disp = online.apply(state, pred, steps)
+                disp = _host(disp)
+                spent = check + time.perf_counter() - start
+                seconds["predicted"] += spent
+                timeline.append(_predicted_segment(problem, partition, step_now, steps, disp[:, None],
+                                                   kept[:, None], spent))
+                buffer = next_buffer
+                step_now += steps
+                bar.update(steps)
+                continue
+
+            # rejected: back to the anchor, synchronized through the end of this cycle
+            seconds["discarded"] += check
+            stats["resynchronized_at"].append(step_now)
+            stats["es_hat_trigger"].append(float(es_hat.max()))
+            stats["tolerance_cm"].append(tol)
+            start_step = int(anchor.state.step)
+            failures = failures + 1 if step_now == start_step else 0
+            n_discarded += step_now - start_step
+            wasted = sum(seg[5] for seg in timeline[anchor.segment:])
+            seconds["discarded"] += wasted
+            seconds["predicted"] -= wasted
+            del timeline[anchor.segment:]
+            target = min(step_now + cycle_steps * 2 ** failures, n_steps)
+            start = time.perf_counter()
+            segment, end_state = drive(problem, runner, anchor.state, target, dt, save_every,
+                                       partition=partition, progress=False, label="re-synchronized",
+                                       shared_every=1, return_state=True)
+            seconds["synchronized"] += time.perf_counter() - start - segment.statistics["compile_seconds"]
+            shared = [p["shared_displacement"][1:] for p in segment.parts]  # steps after the anchor
+            amplitude = max([amplitude] + [float(np.abs(v).max(initial=0.0)) for v in shared])
+            timeline.append(("synchronized", start_step, target, segment.displacement[1:], None, 0.0))
+            anchor = _Anchor(end_state, _histories(partition, shared, history, n_dof, anchor.history),
+                             len(timeline))
+            state = runner.from_global(end_state)
+            buffer = runner._put(anchor.history)
+            step_now = target
+            bar.n = step_now - n_cri
+            bar.refresh()
+    except BaseException:
+        bar.leave = False  # an error clears the bar instead of leaving a (blank) line before it
+        raise
     finally:
         bar.close()
-    traj = _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri)
-    if monitor is not None:
-        traj = dataclasses.replace(traj, parameters={**traj.parameters, "resync_tolerance": resync_tolerance,
-                                                     "resynchronized_at": resynced_at,
-                                                     "es_hat_trigger": triggers})
-    if chunk_times:
-        traj = dataclasses.replace(traj, parameters={**traj.parameters, "us_per_step_predicted": us_per_step(chunk_times)})
-    return traj
+    traj = _assemble(problem, partition, synced, timeline, counts, dt, save_every)
+    n_sync = n_cri + sum(b - a for kind, a, b, *_ in timeline if kind == "synchronized")
+    n_pred = n_steps - n_sync
+    sync_seconds += seconds["synchronized"]
+    statistics = {
+        **synced.statistics,
+        "n_steps": n_steps, "n_cri": n_cri,
+        "n_synchronized_steps": n_sync, "n_predicted_steps": n_pred,
+        "n_discarded_steps": n_discarded,
+        "compile_seconds": float(synced.statistics.get("compile_seconds", 0.0)) + online.compile_seconds,
+        "us_per_step_synchronized": 1e6 * sync_seconds / max(n_sync, 1),
+        "seconds_discarded": seconds["discarded"],
+    }
+    if n_pred:
+        statistics["us_per_step_predicted"] = 1e6 * seconds["predicted"] / n_pred
+    statistics.pop("us_per_step", None)
+    if tolerance is not None:
+        statistics.update(resync_tolerance=str(tolerance), n_resynchronizations=len(stats["resynchronized_at"]),
+                          **stats)
+        if stats["resynchronized_at"] and n_pred < 0.5 * (n_steps - n_cri):
+            warnings.warn(
+                f"the surrogates kept es_hat below the tolerance {tolerance} for only {n_pred} of the "
+                f"{n_steps - n_cri} steps after n_cri ({len(stats['resynchronized_at'])} "
+                f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
+                "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
+                stacklevel=2)
+    return dataclasses.replace(traj, statistics=statistics)
+
+
+def step_counts(online) -> tuple[int, int]:
+    """(steps, synchronized steps) of a synchronization-avoiding run: from its statistics,
+    or else from its per-snapshot flags (each flag stands for the save_every steps that
+    end at it; the snapshot at t = 0 is the initial state)."""
+    st = getattr(online, "statistics", {}) or {}
+    if "n_synchronized_steps" in st and "n_steps" in st:
+        return int(st["n_steps"]), int(st["n_synchronized_steps"])
+    flags = np.asarray(online.synchronized, bool)
+    return (len(flags) - 1) * int(online.save_every), int(flags[1:].sum()) * int(online.save_every)
+
+
+def describe_run(online) -> str:
+    """The step counts, re-synchronizations and speeds of a synchronization-avoiding run
+    (one text for ``predict``, ``report`` and the demo, from its statistics)."""
+    st = online.statistics
+    n_steps, n_sync = step_counts(online)
+    text = f"{n_steps} steps: {n_sync} synchronized, {n_steps - n_sync} predicted"
+    if "n_cri" in st:
+        text += f" (n_cri = {st['n_cri']})"
+    if "resync_tolerance" in st:
+        at = list(st.get("resynchronized_at", []))
+        text += (f"; tolerance {st['resync_tolerance']}: {len(at)} re-synchronization"
+                 f"{'' if len(at) == 1 else 's'}" + (f" (cycles rejected at steps {at})" if at else "")
+                 + f", {st['n_discarded_steps']} predicted steps recomputed")
+    if "us_per_step_predicted" in st:
+        text += f"; {st['us_per_step_predicted']:.1f} us per predicted step"
+    if "us_per_step_synchronized" in st:
+        text += f", {st['us_per_step_synchronized']:.1f} us per synchronized step"
+    if "n_devices" in st:
+        text += f" ({st['n_devices']} {st['device_kind']} device{'s' if st['n_devices'] > 1 else ''})"
+    return text
 
 
 def _host(x) -> np.ndarray:
     from .distributed import _to_host
 
     return _to_host(x)
+
+
+def _predicted_segment(problem, partition, first: int, n: int, disp, pred, seconds: float):
+    """A timeline entry of predicted steps first + 1 .. first + n: the global field at the
+    saved steps (mean over the parts that hold each node) and each part's predictions
+    there; ``disp`` (P, cycles, saved per cycle, n_local, 3), ``pred`` (P, cycles, saved
+    per cycle, n_dof); ``seconds`` it took."""
+    disp = disp.reshape(disp.shape[0], -1, *disp.shape[3:])
+    pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
+    return ("predicted", first, first + n, _mean_over_parts(problem, partition, disp), pred, seconds)
 
 
 def _mean_over_parts(problem, partition, local) -> np.ndarray:
@@ -417,7 +667,7 @@ def _mean_over_parts(problem, partition, local) -> np.ndarray:
 
 
 class _DisagreementMonitor:
-    """es_hat (paper eq. 26) of the parts' own predictions, for the live re-synchronization."""
+    """es_hat (paper eq. 26) of the parts' own predictions, for the live error control."""
 
     def __init__(self, partition):
         from .metrics import shared_node_errors
@@ -439,22 +689,20 @@ class _DisagreementMonitor:
         return self._errors(np.zeros(by_node.shape[1:]), by_node, self.holds).es_hat
 
 
-def _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cri):
+def _assemble(problem, partition, synced, timeline, counts, dt, save_every):
     """The global trajectory: synchronized snapshots up to n_cri, then the segments of
     ``timeline`` in order -- predicted ones (mean over the parts that hold each node, with
     per-part predictions) and re-synchronized ones -- with per-snapshot flags."""
     from .trajectory import Trajectory
 
-    pieces = [synced.displacement[::save_every]]
+    pieces = [np.asarray(synced.displacement)]
     flags = [np.ones(len(pieces[0]), bool)]
     preds = []
-    for kind, values, *rest in timeline:
+    for kind, _, _, values, pred, _ in timeline:
+        pieces.append(values)
         if kind == "predicted":
-            pieces.append(_mean_over_parts(problem, partition, np.asarray(values)))
-            preds.append(rest[0])
-        else:
-            pieces.append(values)
-        flags.append(np.full(len(pieces[-1]), kind == "synchronized"))
+            preds.append(pred)
+        flags.append(np.full(len(values), kind == "synchronized"))
     pred = (np.concatenate(preds, axis=1) if preds
             else np.zeros((partition.n_parts, 0, max(counts.max(), 3))))
     displacement = np.concatenate(pieces)
@@ -468,8 +716,8 @@ def _assemble(problem, partition, synced, timeline, counts, dt, save_every, n_cr
                       "predicted_shared_displacement": pred[p, :, :counts[p]]})
     return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, dt=dt, save_every=save_every,
-                      parameters={**synced.parameters, "n_cri": n_cri}, parts=tuple(parts),
-                      synchronized=synchronized)
+                      parameters=dict(synced.parameters), parts=tuple(parts),
+                      synchronized=synchronized, statistics=dict(synced.statistics))
 
 
 def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps: int | None = None,
@@ -491,12 +739,14 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
 
     Returns:
         :class:`jaxsync.Trajectory` (saved every step) with ``synchronized`` flags and
-        ``parameters["dirichlet_max_abs_predicted"]``, the largest |predicted value| on the
+        ``statistics["dirichlet_max_abs_predicted"]``, the largest |predicted value| on the
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
+    from .precision import require_float64
     from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
     from .trajectory import Trajectory
 
+    require_float64("simulate_full_system")
     if reference.save_every != 1:
         raise ProblemError("full-system modeling needs the reference saved at every step")
     n_steps = reference.n_saved - 1 if n_steps is None else int(n_steps)
@@ -512,9 +762,9 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     else:
         predictor = surrogates
     history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
-    if n_cri < history + 1:
-        raise ProblemError(f"n_cri={n_cri} is too small: the first refill needs n_p * n_s + 1 = "
-                           f"{history + 1} known steps")
+    if n_cri < history:
+        raise ProblemError(f"n_cri={n_cri} is too small: the first refill reads the n_p * n_s = "
+                           f"{history} known steps before it")
     if reference.n_saved < n_cri + 1:
         raise ProblemError(f"the reference holds {reference.n_saved} snapshots, fewer than n_cri + 1")
     known = np.asarray(reference.displacement[:n_cri + 1]).reshape(n_cri + 1, -1)
@@ -524,14 +774,18 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     @jax.jit
     def rollout(buffer):
         def cycle(buf, c):
-            pred = one.predict(buf, c).astype(buf.dtype)
+            pred = one.predict(buf, n_cri + c * cycle_steps).astype(buf.dtype)
             return jnp.concatenate([buf, pred])[-history:], pred
 
         _, blocks = jax.lax.scan(cycle, buffer, jnp.arange(n_cycles))
         return blocks.reshape(-1, buffer.shape[1])
 
+    buffer = jnp.asarray(known[-history:])
     start = time.perf_counter()
-    predicted = np.asarray(rollout(jnp.asarray(known[-history:])))[:n_steps - n_cri]
+    compiled = rollout.lower(buffer).compile()
+    compile_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    predicted = np.asarray(compiled(buffer))[:n_steps - n_cri]
     seconds = time.perf_counter() - start
     if not np.all(np.isfinite(predicted)):
         bad = n_cri + 1 + int(np.argmin(np.isfinite(predicted).all(axis=1)))
@@ -541,7 +795,10 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     dirichlet_error = float(np.abs(predicted[:, fixed] - values).max()) if len(predicted) else 0.0
     return Trajectory(times=np.arange(n_steps + 1) * reference.dt, displacement=displacement,
                       mesh=problem.mesh, dt=reference.dt, save_every=1,
-                      parameters={**reference.parameters, "n_cri": n_cri,
+                      parameters=dict(reference.parameters),
+                      statistics={"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
+                                  "n_predicted_steps": n_steps - n_cri,
                                   "dirichlet_max_abs_predicted": dirichlet_error,
+                                  "compile_seconds": compile_seconds,
                                   "us_per_step_predicted": 1e6 * seconds / max(n_steps - n_cri, 1)},
                       synchronized=np.arange(n_steps + 1) <= n_cri)

@@ -9,13 +9,23 @@ The exact stability bound of the undamped central difference scheme with lumped 
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from .errors import StabilityError
 
-__all__ = ["ALPHA_S", "element_size", "element_dt", "cfl_dt", "max_stable_dt", "mass_scaling"]
+__all__ = ["ALPHA_S", "MassScalingWarning", "element_size", "element_dt", "cfl_dt",
+           "max_stable_dt", "mass_scaling"]
 
 ALPHA_S = 0.9
+
+MASS_SCALING_WARN_PERCENT = 10.0
+"""Default threshold of :func:`mass_scaling`'s warning: added mass in percent."""
+
+
+class MassScalingWarning(UserWarning):
+    """Artificial mass scaling added more mass than the caller's threshold."""
 
 
 def element_size(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -91,12 +101,19 @@ def check_dt(problem, dt: float) -> None:
 
 
 def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None = None,
-                 alpha_s: float = ALPHA_S):
+                 alpha_s: float = ALPHA_S,
+                 warn_above_percent: float | None = MASS_SCALING_WARN_PERCENT):
     """Artificial mass scaling (paper Algorithm 2).
 
     Every element whose own CFL step is below the target ``dt_hat = beta * problem.dt``
     (or ``dt_target``) gets density ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``, which
-    raises its step to exactly dt_hat.
+    raises its step to exactly dt_hat. The scaled problem's ``dt`` (the default step of
+    :func:`jaxsync.simulate`) is then dt_hat, or the unscaled CFL step when that is larger.
+
+    Added mass slows the dynamics of the scaled elements, so a large increase changes the
+    result: a :class:`MassScalingWarning` (with the percentage and dt_hat) is issued when
+    the total mass grows by more than ``warn_above_percent`` percent (default 10; None
+    never warns).
 
     Returns:
         (scaled_problem, mass_increase_percent): the problem with ``density_scale`` set,
@@ -105,8 +122,11 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     if (beta is None) == (dt_target is None):
         raise StabilityError("give exactly one of beta (dt_hat = beta * dt) or dt_target")
     dt_hat = float(dt_target) if dt_target is not None else float(beta) * problem.dt
-    if not dt_hat > 0:
-        raise StabilityError(f"target time step must be positive, got {dt_hat}")
+    if not dt_hat > 0 or not np.isfinite(dt_hat):
+        raise StabilityError(f"target time step must be positive and finite, got {dt_hat}"
+                             + (f" (beta={beta})" if beta is not None else ""))
+    if warn_above_percent is not None and not float(warn_above_percent) >= 0:
+        raise StabilityError(f"warn_above_percent must be >= 0 (or None), got {warn_above_percent}")
     m = problem.material
     E, nu, rho = float(m.E), float(m.nu), float(m.rho)
     h = element_size(problem.mesh.points, problem.mesh.tets)
@@ -120,4 +140,13 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     old_mass = rho * np.sum(volumes * (1.0 if problem.density_scale is None
                                        else np.asarray(problem.density_scale, dtype=float)))
     new_mass = rho * np.sum(volumes * scale)
-    return problem.replace(density_scale=scale), 100.0 * (new_mass - old_mass) / old_mass
+    percent = 100.0 * (new_mass - old_mass) / old_mass
+    if warn_above_percent is not None and percent > float(warn_above_percent):
+        warnings.warn(
+            f"mass scaling to dt_hat={dt_hat:.4e} s (CFL step {float(problem.dt):.4e} s) added "
+            f"{percent:.1f} % to the total mass ({int(small.sum())} of {len(small)} elements "
+            f"made heavier), more than {float(warn_above_percent):g} %: the scaled elements "
+            "respond slower and the result can differ noticeably; choose a smaller target, "
+            "refine or repair the smallest elements, or raise warn_above_percent",
+            MassScalingWarning, stacklevel=2)
+    return problem.replace(density_scale=scale), percent

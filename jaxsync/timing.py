@@ -403,11 +403,14 @@ def _per_step(best: dict, n_steps: int) -> dict:
 
 
 def _describe_devices(devices) -> str:
-    d = devices[0]
-    text = f"{len(devices)} x {d.platform} device ({getattr(d, 'device_kind', d.platform)})"
-    if d.platform == "cpu" and "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
-        text += (f", emulated host devices sharing {os.cpu_count()} CPU cores "
-                 "(XLA_FLAGS=--xla_force_host_platform_device_count)")
+    from .devices import device_summary
+
+    info = device_summary(devices)
+    text = f"{info['n_devices']} x {info['platform']} device ({info['device_kind']})"
+    if info["emulated"]:
+        text += f", emulated host devices sharing {os.cpu_count()} CPU cores"
+    elif info["platform"] == "cpu" and jax.process_count() == 1:
+        text += ": every part on this one device, so no synchronization cost is measured"
     return text
 
 
@@ -441,6 +444,9 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
         ProblemError: bad ``mode``, ``n_steps`` or ``repeats``.
         PartitionError: a partition that cannot be made or does not fit the mesh.
     """
+    from .precision import require_float64
+
+    require_float64("timing_breakdown")
     from .distributed import DistributedRunner, build_part_systems
     from .element_force import MODES
     from .partition import Partition, partition as make_partition
@@ -664,6 +670,9 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
     Returns:
         :class:`SpeedupReport`.
     """
+    from .precision import require_float64
+
+    require_float64("speedup_breakdown")
     from jax.sharding import PartitionSpec as P
 
     from .distributed import AXIS, DistributedRunner

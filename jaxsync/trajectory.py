@@ -8,29 +8,46 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
+import json
 import os
 import shutil
 import tempfile
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 
 from .errors import CheckpointError
 from .mesh import Mesh
 
-__all__ = ["Trajectory", "atomic_path", "atomic_h5"]
+__all__ = ["Trajectory", "atomic_path", "atomic_h5", "array_checksum"]
 
 FORMAT_VERSION = 1
+
+
+STALE_TEMP_AGE_S = 3600.0
+"""A temporary file of :func:`atomic_path` whose writer cannot be checked (another host,
+or written by an older jaxsync) counts as abandoned when unmodified for this long."""
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike):
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success,
-    delete it on failure."""
+    delete it on failure.
+
+    The temporary file is ``.<name>.<pid>@<host>.<random>.tmp``. A writer killed hard
+    (SIGKILL, power loss) cannot delete it, so every write first removes the temporary
+    files of the same target left by writers that are gone: on this host, those whose
+    process no longer exists; from another host or an older jaxsync (no owner in the
+    name), those unmodified for :data:`STALE_TEMP_AGE_S`. Live concurrent writers keep
+    theirs."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=folder)
+    prefix = f".{os.path.basename(path)}."
+    _remove_stale_temporaries(folder, prefix)
+    fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{_host_tag()}.", suffix=".tmp",
+                               dir=folder)
     os.close(fd)
     umask = os.umask(0)
     os.umask(umask)
@@ -42,6 +59,72 @@ def atomic_path(path: str | os.PathLike):
         with contextlib.suppress(FileNotFoundError):
             os.remove(tmp)
         raise
+
+
+def _host_tag() -> str:
+    """This host's name as it goes into temporary file names (letters, digits, '-')."""
+    import re
+    import socket
+
+    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
+
+
+def _process_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    except OSError:
+        return True  # cannot tell: keep the file
+    return True
+
+
+def _remove_stale_temporaries(folder: str, prefix: str) -> None:
+    """Delete ``<prefix><pid>@<host>.<random>.tmp`` files whose writer is gone, and
+    ``<prefix><random>.tmp`` files (older jaxsync) unmodified for STALE_TEMP_AGE_S."""
+    import re
+    import time
+
+    owned = re.compile(re.escape(prefix) + r"(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+\.tmp$")
+    legacy = re.compile(re.escape(prefix) + r"[a-z0-9_]{8}\.tmp$")  # mkstemp's 8 characters
+    try:
+        names = [n for n in os.listdir(folder) if n.startswith(prefix) and n.endswith(".tmp")]
+    except OSError:
+        return
+    host, now = _host_tag(), time.time()
+    for name in names:
+        full = os.path.join(folder, name)
+        match = owned.match(name)
+        try:
+            if match and match.group(2) == host:
+                stale = not _process_alive(int(match.group(1)))
+            elif match or legacy.match(name):
+                stale = now - os.stat(full).st_mtime > STALE_TEMP_AGE_S
+            else:
+                continue  # another target's temporary whose name starts alike
+            if stale and os.path.isfile(full):
+                os.remove(full)
+        except OSError:
+            continue  # removed meanwhile, or not ours to remove
+
+
+def array_checksum(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> str:
+    """sha256 (hex) over named arrays (name, dtype, shape and bytes of each, in name order)
+    and JSON-serialisable metadata: stored in a file, it shows whether the file's content
+    was altered after it was written."""
+    digest = hashlib.sha256()
+    for name in sorted(arrays):
+        array = np.ascontiguousarray(arrays[name])
+        digest.update(name.encode())
+        digest.update(array.dtype.str.encode())
+        digest.update(repr(array.shape).encode())
+        digest.update(array.tobytes())
+    digest.update(json.dumps(dict(meta), sort_keys=True).encode())
+    return digest.hexdigest()
 
 
 @contextlib.contextmanager
@@ -70,6 +153,12 @@ class Trajectory:
             predictions), or empty.
         synchronized: (n_saved,) bool, False where the snapshot's step was predicted
             by surrogates instead of synchronized (None: all synchronized).
+        statistics: how the run went, apart from the physics: ``us_per_step`` (compiled
+            chunks, compilation excluded), ``compile_seconds``, ``n_devices`` and
+            ``device_kind``, and for synchronization-avoiding runs the step counts and
+            re-synchronizations (see :func:`jaxsync.simulate_sync_avoiding`).
+        shared_every: steps between the entries of each part's ``shared_displacement``
+            (None: ``save_every``, one per snapshot). Surrogate training needs 1.
     """
 
     times: Any
@@ -80,6 +169,13 @@ class Trajectory:
     parameters: dict = dataclasses.field(default_factory=dict)
     parts: tuple = ()
     synchronized: Any = None
+    statistics: dict = dataclasses.field(default_factory=dict)
+    shared_every: int | None = None
+
+    @property
+    def shared_stride(self) -> int:
+        """Steps between the entries of the parts' ``shared_displacement``."""
+        return int(self.save_every if self.shared_every is None else self.shared_every)
 
     @property
     def n_saved(self) -> int:
@@ -94,23 +190,39 @@ class Trajectory:
         """(n_saved, 3) displacement history of one node."""
         return self.displacement[:, node, :]
 
-    def save(self, path: str | os.PathLike) -> None:
+    def save(self, path: str | os.PathLike, *, compression: str | None = "gzip",
+             level: int = 1) -> None:
         """Write an HDF5 file (atomically): ``/times``, ``/displacement``, ``/mesh/points``,
         ``/mesh/tets``, ``/mesh/facets/<name>``, root attributes ``dt``, ``save_every``,
-        ``format_version`` and the problem parameters, and per-part groups
-        ``/parts/<p>/shared_nodes``, ``/parts/<p>/shared_displacement`` when present."""
+        ``shared_every``, ``format_version``, the problem parameters (``param_*``) and
+        the run statistics (``stat_*``), and per-part groups ``/parts/<p>/shared_nodes``,
+        ``/parts/<p>/shared_displacement`` when present.
+
+        ``compression``: HDF5 filter of the large datasets, ``"gzip"`` (at ``level``
+        1-9, with byte shuffling), ``"lzf"`` (faster, lighter) or None. Float64
+        displacements compress by about 10-30 % (the last mantissa bits are noise);
+        saving fewer steps (``save_every``) is what makes files small."""
+        if compression not in ("gzip", "lzf", None):
+            raise CheckpointError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+        if compression == "gzip" and not (isinstance(level, int) and 1 <= level <= 9):
+            raise CheckpointError(f"gzip level must be an integer 1-9, got {level!r}")
+        filters = {} if compression is None else {
+            "chunks": True, "compression": compression, "shuffle": True,
+            **({"compression_opts": level} if compression == "gzip" else {})}
         with atomic_h5(path) as f:
             f.attrs["format"] = "jaxsync-trajectory"
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["dt"] = float(self.dt)
             f.attrs["save_every"] = int(self.save_every)
+            f.attrs["shared_every"] = self.shared_stride
             for key, value in self.parameters.items():
                 f.attrs[f"param_{key}"] = value
+            for key, value in self.statistics.items():
+                f.attrs[f"stat_{key}"] = value
             f.create_dataset("times", data=np.asarray(self.times))
             if self.synchronized is not None:
                 f.create_dataset("synchronized", data=np.asarray(self.synchronized, dtype=bool))
-            f.create_dataset("displacement", data=np.asarray(self.displacement), chunks=True,
-                             compression="gzip", compression_opts=1, shuffle=True)
+            f.create_dataset("displacement", data=np.asarray(self.displacement), **filters)
             g = f.create_group("mesh")
             g["points"] = self.mesh.points
             g["tets"] = self.mesh.tets
@@ -124,7 +236,11 @@ class Trajectory:
                 for p, part in enumerate(self.parts):
                     pg = parts.create_group(str(p))
                     for key, value in part.items():
-                        pg[key] = np.asarray(value)
+                        value = np.asarray(value)
+                        if value.ndim == 2 and value.size > 4096:  # the per-step histories
+                            pg.create_dataset(key, data=value, **filters)
+                        else:
+                            pg[key] = value
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Trajectory":
@@ -148,14 +264,19 @@ class Trajectory:
                             source_node_ids=g["source_node_ids"][...])
                 params = {k[len("param_"):]: _attribute_value(v)
                           for k, v in f.attrs.items() if k.startswith("param_")}
+                stats = {k[len("stat_"):]: _attribute_value(v)
+                         for k, v in f.attrs.items() if k.startswith("stat_")}
                 parts = ()
                 if "parts" in f:
                     parts = tuple({k: v[...] for k, v in f["parts"][str(p)].items()}
                                   for p in range(int(f.attrs["n_parts"])))
                 synchronized = f["synchronized"][...] if "synchronized" in f else None
+                shared_every = f.attrs.get("shared_every")
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
                            dt=float(f.attrs["dt"]), save_every=int(f.attrs["save_every"]),
-                           parameters=params, parts=parts, synchronized=synchronized)
+                           parameters=params, parts=parts, synchronized=synchronized,
+                           statistics=stats,
+                           shared_every=None if shared_every is None else int(shared_every))
         except CheckpointError:
             raise
         except Exception as exc:

@@ -72,3 +72,25 @@ def test_product_of_time_functions():
 def test_body_force_needs_three_components():
     with pytest.raises(ProblemError, match="3 components"):
         jaxsync.BodyForce((0.0, 1.0))
+
+
+@pytest.mark.parametrize("face, normal", [("x1", (1.0, 0, 0)), ("z0", (0, 0, -1.0))])
+def test_pressure_resultant_on_a_mesh_of_thousands_of_nodes(face, normal):
+    """A uniform pressure p on a face of area A has the resultant -p A n. On meshes of
+    more than ~1290 nodes the facet lookup used to overflow int32 and refuse every
+    pressure ("not a face of any element")."""
+    import jaxsync
+
+    mesh = jaxsync.box_beam(4.0, 2.0, 3.0, (24, 8, 10))  # 25 * 9 * 11 = 2475 nodes
+    assert mesh.n_nodes > 2000
+    area = {"x1": 2.0 * 3.0, "z0": 4.0 * 2.0}[face]
+    problem = jaxsync.Problem(mesh, jaxsync.LinearElastic(1e6, 0.3, 1.0),
+                              dirichlet=(jaxsync.Dirichlet("x0"),),
+                              loads=(jaxsync.Pressure(2.5, surface=face),))
+    vectors, _ = problem.load_vectors()
+    force = np.asarray(vectors[0]).reshape(-1, 3)
+    np.testing.assert_allclose(force.sum(axis=0), -2.5 * area * np.asarray(normal), atol=1e-10)
+    # the force sits on that face only
+    on_face = np.zeros(mesh.n_nodes, bool)
+    on_face[mesh.facet_nodes(face)] = True
+    assert np.abs(force[~on_face]).max() <= 1e-12 * np.abs(force).max()

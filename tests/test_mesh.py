@@ -217,3 +217,55 @@ def test_paper_reference_mesh():
 
     w2 = spla.eigsh(K[free][:, free].tocsc(), k=1, M=sp.diags(M).tocsc(), sigma=0, which="LM")[0][0]
     assert np.sqrt(w2) / (2 * np.pi) == pytest.approx(0.483, rel=0.01)
+
+
+@pytest.mark.parametrize("content", [b"", b"\n  \n"])
+def test_empty_file_is_a_mesh_error_naming_the_file(tmp_path, content):
+    path = tmp_path / "empty.msh"
+    path.write_bytes(content)
+    with pytest.raises(MeshError, match=r"empty\.msh.* is empty; re-export"):
+        jaxsync.read_mesh(path)
+
+
+@pytest.mark.parametrize("name, content", [
+    ("garbage.msh", b"this is not a mesh\n1 2 3\n"),
+    ("garbage.vtu", b"<not xml"),
+])
+def test_garbage_file_is_a_mesh_error_not_system_exit(tmp_path, capfd, name, content):
+    """meshio calls sys.exit(1) when no reader accepts a file; read_mesh must raise a
+    catchable MeshError naming the file, and keep meshio's printing off the terminal."""
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(MeshError, match=rf"could not read mesh file .*{name}.*not a valid"):
+        jaxsync.read_mesh(path)
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""
+
+
+def test_truncated_gmsh_file_names_the_file(tmp_path):
+    path = tmp_path / "cut.msh"
+    path.write_text("$MeshFormat\n4.1 0 8\n$EndMeshFormat\n$Nodes\n1 2")
+    with pytest.raises(MeshError, match=r"cut\.msh.*damaged, truncated"):
+        jaxsync.read_mesh(path)
+
+
+def test_unknown_extension_and_folder_are_mesh_errors(tmp_path):
+    path = tmp_path / "beam.foo"
+    path.write_text("whatever")
+    with pytest.raises(MeshError, match=r"beam\.foo.*unknown extension '\.foo'.*\.msh"):
+        jaxsync.read_mesh(path)
+    with pytest.raises(MeshError, match="is a folder"):
+        jaxsync.read_mesh(tmp_path)
+
+
+def test_keyboard_interrupt_while_reading_is_not_swallowed(tmp_path, monkeypatch):
+    import meshio
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(meshio, "read", interrupted)
+    path = tmp_path / "m.msh"
+    path.write_text("x")
+    with pytest.raises(KeyboardInterrupt):
+        jaxsync.read_mesh(path)

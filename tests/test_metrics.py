@@ -49,3 +49,26 @@ def test_bad_inputs():
         shared_node_errors(np.zeros((1, 1, 3)), np.zeros((2, 1, 1, 3)), np.array([[True], [False]]))
     with pytest.raises(ProblemError, match="equal shapes"):
         l2_error(np.zeros((2, 3)), np.zeros((3, 3)))
+
+
+def test_estimate_quality_against_numpy_by_hand():
+    from jaxsync.metrics import estimate_quality
+
+    es = np.array([1.0, 2.0, 4.0, 8.0, 0.0])
+    es_hat = np.array([1.0, 1.0, 1.0, 16.0, 3.0])  # ratios 1, 2, 4, 0.5; the last has es = 0
+    q = estimate_quality(es, es_hat)
+    assert q.n_snapshots == 4
+    assert q.ratio_median == pytest.approx(1.5)
+    assert q.ratio_max == pytest.approx(4.0)
+    assert q.ratio_p95 == pytest.approx(np.percentile([1, 2, 4, 0.5], 95))
+    assert q.within_factor_2 == pytest.approx(0.75)
+    assert q.underestimated == pytest.approx(0.25)
+    expected = np.corrcoef(np.log10(es[:4]), np.log10(es_hat[:4]))[0, 1]
+    assert q.log_correlation == pytest.approx(expected)
+    assert "underestimated" in q.summary()
+    # an estimate proportional to the error correlates perfectly, with the right ratio
+    q = estimate_quality(np.geomspace(1e-6, 1e-3, 50), 0.25 * np.geomspace(1e-6, 1e-3, 50))
+    assert q.log_correlation == pytest.approx(1.0) and q.ratio_median == pytest.approx(4.0)
+    assert q.underestimated == 1.0
+    with pytest.raises(ProblemError):
+        estimate_quality(np.ones(3), np.ones(4))

@@ -238,6 +238,39 @@ def test_interrupted_run_resumes(problem, tmp_path, monkeypatch):
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
 
+def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(problem, tmp_path,
+                                                                              monkeypatch):
+    """The parts' every-step shared histories (the training data) survive a resume:
+    equal to the uninterrupted run's; a checkpoint without them is refused."""
+    import jaxsync.solver as solver
+
+    ckpt = tmp_path / "run.ckpt.h5"
+    kwargs = dict(partitions=2, save_every=50, shared_every=1, chunk_steps=500)
+    full = jaxsync.simulate(problem, 2000, **kwargs)
+    real = solver._save_checkpoint
+    calls = []
+
+    def save_then_die(*args, **kw):
+        real(*args, **kw)
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(solver, "_save_checkpoint", save_then_die)
+    with pytest.raises(KeyboardInterrupt):
+        jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
+    monkeypatch.setattr(solver, "_save_checkpoint", real)
+    resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
+    np.testing.assert_array_equal(resumed.displacement, full.displacement)
+    for a, b in zip(resumed.parts, full.parts):
+        assert a["shared_displacement"].shape == (2001, b["shared_displacement"].shape[1])
+        np.testing.assert_array_equal(a["shared_displacement"], b["shared_displacement"])
+    coarse = tmp_path / "coarse.ckpt.h5"
+    jaxsync.simulate(problem, 1000, partitions=2, save_every=50, checkpoint=coarse)
+    with pytest.raises(CheckpointError, match="every-step shared histories"):
+        jaxsync.simulate(problem, 2000, checkpoint=coarse, **kwargs)
+
+
 def test_foreign_or_corrupt_checkpoint_is_refused(problem, tmp_path):
     ckpt = tmp_path / "run.ckpt.h5"
     jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
@@ -248,6 +281,43 @@ def test_foreign_or_corrupt_checkpoint_is_refused(problem, tmp_path):
     ckpt.write_bytes(b"not an hdf5 file")
     with pytest.raises(CheckpointError, match="cannot read"):
         jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
+
+
+@pytest.mark.parametrize("tamper", ["displacement", "previous", "snapshots", "step"])
+def test_altered_checkpoint_is_refused(problem, tmp_path, tamper):
+    """A checkpoint whose stored state was changed after writing (here 0.05 cm written
+    into 10 nodes, or another step) is refused instead of resumed silently; an untouched
+    copy still resumes bit for bit."""
+    import shutil
+
+    import h5py
+
+    ckpt, intact = tmp_path / "run.ckpt.h5", tmp_path / "intact.ckpt.h5"
+    jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=ckpt)
+    shutil.copy(ckpt, intact)
+    with h5py.File(ckpt, "r+") as f:
+        if tamper == "step":
+            f.attrs["step"] = 200
+        else:
+            data = f[tamper][...]
+            data[..., :10, :] = 0.05
+            f[tamper][...] = data
+    with pytest.raises(CheckpointError, match="fails its checksum.*delete it to start over"):
+        jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200, checkpoint=ckpt)
+    resumed = jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200, checkpoint=intact)
+    full = jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200)
+    np.testing.assert_array_equal(resumed.displacement, full.displacement)
+
+
+def test_checkpoint_without_checksum_is_refused(problem, tmp_path):
+    import h5py
+
+    ckpt = tmp_path / "old.ckpt.h5"
+    jaxsync.simulate(problem, 200, save_every=20, chunk_steps=200, checkpoint=ckpt)
+    with h5py.File(ckpt, "r+") as f:
+        del f.attrs["checksum"]
+    with pytest.raises(CheckpointError, match="no checksum.*delete it to start over"):
+        jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=ckpt)
 
 
 def test_diverging_run_stops_with_the_stability_error_and_keeps_snapshots(problem):

@@ -9,7 +9,9 @@ import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate.checkpoint import check_compatible, load_checkpoint
+from jaxsync.surrogate import train as train_module
 from jaxsync.surrogate.cli import add_train_parser
+from jaxsync.surrogate.train import TrainConfig
 
 NODES = (np.array([3, 8], np.int64), np.array([3, 8, 11], np.int64))
 
@@ -20,13 +22,17 @@ def _parser():
     return parser
 
 
-def write_trajectory(path, n_steps=600, dt=0.05, save_every=1, load=None, nodes=NODES):
-    """Distributed-trajectory layout: damped oscillators, one frequency per shared dof."""
+def write_trajectory(path, n_steps=600, dt=0.05, save_every=1, load=None, nodes=NODES, synchronized=None):
+    """Distributed-trajectory layout (the parts of what Trajectory.save writes): damped
+    oscillators, one frequency per shared dof."""
     t = np.arange(n_steps) * dt
     with h5py.File(path, "w") as fh:
-        fh.attrs.update(n_parts=len(nodes), dt=dt, save_every=save_every)
+        fh.attrs.update(format="jaxsync-trajectory", format_version=1, n_parts=len(nodes), dt=dt,
+                        save_every=save_every)
         if load is not None:
-            fh.attrs["load_parameter"] = load
+            fh.attrs["param_load_parameter"] = load
+        if synchronized is not None:
+            fh["synchronized"] = synchronized
         fh["times"] = t * save_every
         for p, ids in enumerate(nodes):
             freqs = 0.6 + 0.1 * np.arange(3 * ids.size) + 0.05 * p
@@ -82,7 +88,7 @@ def test_train_errors(tmp_path):
     sparse = tmp_path / "every5.h5"
     write_trajectory(sparse, save_every=5)
     args = _parser().parse_args(["train", str(sparse), "-o", str(tmp_path / "x"), *SMALL])
-    with pytest.raises(CheckpointError, match="save_every=1"):
+    with pytest.raises(CheckpointError, match="shared_every=1"):
         args.func(args)
 
     plain = tmp_path / "plain.h5"
@@ -102,3 +108,112 @@ def test_train_errors(tmp_path):
     with pytest.raises(ConfigError, match="2 values for 1 trajectories"):
         args.func(args)
     assert not (tmp_path / "x").exists() or not any((tmp_path / "x").iterdir())
+
+
+def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
+    import inspect
+
+    from jaxsync.demo import run_demo
+
+    args = _parser().parse_args(["train", "run.h5"])
+    config = TrainConfig()
+    assert (args.batch_size, args.eta0, args.gamma, args.eta_min, args.epochs, args.patience,
+            args.epochs_per_call) == (config.batch_size, config.eta0, config.gamma, config.eta_min,
+                                      config.n_epochs, config.patience, config.epochs_per_call)
+    assert (args.hidden, args.epochs, args.checkpoint_every, args.allow_predicted) == (32, 300, 50, False)
+    demo = inspect.signature(run_demo).parameters
+    assert (demo["hidden"].default, demo["epochs"].default, demo["eta0"].default, demo["gamma"].default,
+            demo["batch_size"].default) == (args.hidden, args.epochs, args.eta0, args.gamma, args.batch_size)
+    # the paper's rule stays available
+    paper = _parser().parse_args(["train", "run.h5", "--epochs", "paper", "--eta0", "5e-4", "--gamma", "0.9995"])
+    assert paper.epochs is None
+    assert TrainConfig(eta0=paper.eta0, gamma=paper.gamma, eta_min=paper.eta_min,
+                       n_epochs=paper.epochs).resolved_epochs == 13812
+    for bad in (["--epochs", "0"], ["--epochs", "many"], ["--patience", "-1"], ["--checkpoint-every", "x"]):
+        with pytest.raises(SystemExit):
+            _parser().parse_args(["train", "run.h5", *bad])
+
+
+def test_train_resumes_after_an_interruption(tmp_path, monkeypatch):
+    path = tmp_path / "run.h5"
+    write_trajectory(path, n_steps=300)
+    common = ["train", str(path), *SMALL, "--checkpoint-every", "6", "--emse-applications", "0"]
+    whole = _parser().parse_args([*common, "-o", str(tmp_path / "whole")])
+    assert whole.func(whole) == 0
+
+    real_save = train_module._save_training_state
+
+    def killed(*args, **kwargs):
+        real_save(*args, **kwargs)
+        raise KeyboardInterrupt  # dies right after the epoch-6 state is written
+
+    monkeypatch.setattr(train_module, "_save_training_state", killed)
+    out = tmp_path / "out"
+    args = _parser().parse_args([*common, "-o", str(out)])
+    with pytest.raises(KeyboardInterrupt):
+        args.func(args)
+    assert (out / "training_state.h5").exists() and not (out / "surrogate.h5").exists()
+    monkeypatch.undo()
+
+    # another run into that folder, with other options, is refused ...
+    other = _parser().parse_args([*common, "-o", str(out), "--eta0", "2e-2"])
+    with pytest.raises(CheckpointError, match="eta0"):
+        other.func(other)
+    # ... the same command resumes and ends where the uninterrupted run did
+    args = _parser().parse_args([*common, "-o", str(out)])
+    assert args.func(args) == 0
+    summary = json.loads((out / "train_summary.json").read_text())
+    assert summary["training"]["resumed_from_epoch"] == 6 and summary["n_epochs_run"] == 12
+    a, b = load_checkpoint(tmp_path / "whole" / "surrogate.h5"), load_checkpoint(out / "surrogate.h5")
+    for x, y in zip(jax_leaves(a.params), jax_leaves(b.params)):
+        np.testing.assert_array_equal(x, y)
+    assert summary["loss_history"] == json.loads((tmp_path / "whole" / "train_summary.json").read_text())[
+        "loss_history"]
+    assert not (out / "training_state.h5").exists()  # everything is written: nothing left to resume
+
+
+def jax_leaves(tree):
+    import jax
+
+    return jax.tree_util.tree_leaves(tree)
+
+
+def test_train_stops_early_and_reports_it(tmp_path):
+    path = tmp_path / "run.h5"
+    write_trajectory(path, n_steps=300)
+    # a learning rate too small to move float32 parameters: no improvement after epoch 1
+    args = _parser().parse_args(["train", str(path), "-o", str(tmp_path / "o"), *SMALL, "--eta0", "1e-37",
+                                 "--patience", "3", "--emse-applications", "0"])
+    assert args.func(args) == 0
+    summary = json.loads((tmp_path / "o" / "train_summary.json").read_text())
+    assert summary["stopped_at_epoch"] == 4 and summary["n_epochs_run"] == 4
+    assert summary["training"]["stopped_early"] and summary["training"]["best_epoch"] == [1, 1]
+    assert summary["final_val_loss"] == [row[0] for row in zip(*summary["loss_history"]["val"])]
+    assert len(summary["loss_history"]["val"]) == 4
+
+
+def test_train_refuses_predicted_and_foreign_files(tmp_path):
+    flags = np.ones(300, bool)
+    flags[100:] = False  # a synchronization-avoiding run: predicted from step 100 on
+    predicted = tmp_path / "online.h5"
+    write_trajectory(predicted, n_steps=300, synchronized=flags)
+    args = _parser().parse_args(["train", str(predicted), "-o", str(tmp_path / "p"), *SMALL])
+    with pytest.raises(CheckpointError, match="synchronization-avoiding.*200 of its 300.*--allow-predicted"):
+        args.func(args)
+    assert not (tmp_path / "p" / "surrogate.h5").exists()
+    args = _parser().parse_args(["train", str(predicted), "-o", str(tmp_path / "p"), *SMALL,
+                                 "--allow-predicted", "--emse-applications", "0"])
+    assert args.func(args) == 0 and (tmp_path / "p" / "surrogate.h5").exists()
+    # all-synchronized flags are a synchronized run
+    synced = tmp_path / "synced.h5"
+    write_trajectory(synced, n_steps=300, synchronized=np.ones(300, bool))
+    args = _parser().parse_args(["train", str(synced), "-o", str(tmp_path / "s"), *SMALL, "--emse-applications", "0"])
+    assert args.func(args) == 0
+
+    foreign = tmp_path / "foreign.h5"
+    write_trajectory(foreign, n_steps=300)
+    with h5py.File(foreign, "r+") as fh:
+        del fh.attrs["format"]
+    args = _parser().parse_args(["train", str(foreign), "-o", str(tmp_path / "f"), *SMALL])
+    with pytest.raises(CheckpointError, match="not a jaxsync trajectory"):
+        args.func(args)

@@ -162,7 +162,8 @@ def test_stack_replicas_pads_and_masks():
 
 def _write_trajectory(path, save_every=1, n_steps=40, counts=(2, 3)):
     with h5py.File(path, "w") as fh:
-        fh.attrs.update(n_parts=len(counts), dt=1e-3, save_every=save_every)
+        fh.attrs.update(format="jaxsync-trajectory", format_version=1, n_parts=len(counts), dt=1e-3,
+                        save_every=save_every)
         fh["times"] = np.arange(n_steps) * 1e-3 * save_every
         for p, n in enumerate(counts):
             fh[f"parts/{p}/shared_nodes"] = np.arange(n, dtype=np.int64) + 10 * p
@@ -181,7 +182,7 @@ def test_read_shared_histories(tmp_path):
 def test_read_shared_histories_errors(tmp_path):
     path = tmp_path / "every2.h5"
     _write_trajectory(path, save_every=2)
-    with pytest.raises(CheckpointError, match="save_every=1"):
+    with pytest.raises(CheckpointError, match="shared_every=1"):
         read_shared_histories(path)
     with pytest.raises(CheckpointError, match="does not exist"):
         read_shared_histories(tmp_path / "missing.h5")
@@ -204,3 +205,100 @@ def test_read_shared_histories_errors(tmp_path):
         del fh.attrs["save_every"]
     with pytest.raises(CheckpointError, match="save_every"):
         read_shared_histories(noattr)
+
+
+def _saved_trajectory(path, synchronized=None, load=None):
+    """A small distributed run written by Trajectory.save (the real file format)."""
+    import dataclasses
+
+    import jaxsync
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    parts = jaxsync.partition(mesh, 2)
+    n = 30
+    disp = _wave(n, 3 * mesh.n_nodes).reshape(n, mesh.n_nodes, 3)
+    traj = jaxsync.Trajectory(times=np.arange(n) * 1e-3, displacement=disp, mesh=mesh, dt=1e-3,
+                              parameters={} if load is None else {"load_parameter": load},
+                              parts=tuple({"shared_nodes": p.shared_nodes, "elements": p.elements,
+                                           "shared_displacement": disp[:, p.shared_nodes].reshape(n, -1)}
+                                          for p in parts.parts))
+    if synchronized is not None:
+        traj = dataclasses.replace(traj, synchronized=synchronized)
+    traj.save(path)
+    return traj, parts
+
+
+def test_read_shared_histories_of_a_saved_trajectory(tmp_path):
+    traj, parts = _saved_trajectory(tmp_path / "run.h5", load=0.4)
+    hist = read_shared_histories(tmp_path / "run.h5")
+    assert hist.load_parameter == 0.4 and hist.synchronized is None and hist.n_predicted == 0
+    for p, part in enumerate(parts.parts):
+        np.testing.assert_array_equal(hist.shared_nodes[p], part.shared_nodes)
+        np.testing.assert_array_equal(hist.histories[p],
+                                      traj.displacement[:, part.shared_nodes].reshape(30, -1))
+
+
+def test_read_shared_histories_refuses_predicted_runs_unless_allowed(tmp_path):
+    flags = np.arange(30) < 12
+    _saved_trajectory(tmp_path / "online.h5", synchronized=flags)
+    with pytest.raises(CheckpointError, match="synchronization-avoiding run: 18 of its 30 snapshots"):
+        read_shared_histories(tmp_path / "online.h5")
+    hist = read_shared_histories(tmp_path / "online.h5", allow_predicted=True)
+    assert hist.n_predicted == 18 and hist.synchronized.dtype == bool
+    _saved_trajectory(tmp_path / "synced.h5", synchronized=np.ones(30, bool))
+    assert read_shared_histories(tmp_path / "synced.h5").n_predicted == 0
+
+
+def test_read_shared_histories_checks_the_format_like_trajectory_load(tmp_path):
+    import jaxsync
+
+    foreign = tmp_path / "foreign.h5"
+    _write_trajectory(foreign)
+    with h5py.File(foreign, "r+") as fh:
+        del fh.attrs["format"]
+    newer = tmp_path / "newer.h5"
+    _write_trajectory(newer)
+    with h5py.File(newer, "r+") as fh:
+        fh.attrs["format_version"] = 99
+    for path, message in ((foreign, "not a jaxsync trajectory"), (newer, "format version 99.*upgrade")):
+        with pytest.raises(CheckpointError, match=message):
+            read_shared_histories(path)
+        with pytest.raises(CheckpointError):  # the same files Trajectory.load refuses
+            jaxsync.Trajectory.load(path)
+    single = tmp_path / "single.h5"
+    _write_trajectory(single)
+    with h5py.File(single, "r+") as fh:
+        del fh.attrs["n_parts"]
+    with pytest.raises(CheckpointError, match="not a distributed run"):
+        read_shared_histories(single)
+    short = tmp_path / "short.h5"
+    _write_trajectory(short)
+    with h5py.File(short, "r+") as fh:
+        fh["synchronized"] = np.ones(7, bool)
+    with pytest.raises(CheckpointError, match="7 flags for 40 saved steps"):
+        read_shared_histories(short)
+
+
+def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
+    """simulate(save_every=50, shared_every=1): the full field every 50 steps, each part's
+    shared nodes every step (the training data), equal to a run saved at every step."""
+    import jaxsync
+
+    problem = jaxsync.cantilever()
+    parts = jaxsync.partition(problem.mesh, 2)
+    every = jaxsync.simulate(problem, 300, partitions=parts)
+    thin = jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=1)
+    assert thin.n_saved == 7 and thin.shared_stride == 1
+    np.testing.assert_array_equal(thin.displacement, every.displacement[::50])
+    for a, b in zip(thin.parts, every.parts):
+        np.testing.assert_array_equal(a["shared_displacement"], b["shared_displacement"])
+    thin.save(tmp_path / "thin.h5")
+    runs = read_shared_histories(tmp_path / "thin.h5")
+    for got, part in zip(runs.histories, every.parts):
+        np.testing.assert_array_equal(got, part["shared_displacement"])
+    # a thinned shared history is refused for training, with the fix named
+    jaxsync.simulate(problem, 300, partitions=parts, save_every=50).save(tmp_path / "coarse.h5")
+    with pytest.raises(CheckpointError, match="shared_every=1"):
+        read_shared_histories(tmp_path / "coarse.h5")
+    with pytest.raises(jaxsync.ProblemError, match="divisor"):
+        jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=3)

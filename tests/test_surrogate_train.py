@@ -10,7 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxsync.errors import ConfigError
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.surrogate import train as train_module
 from jaxsync.surrogate.data import build_dataset, refill_index_sets, stack_replicas
 from jaxsync.surrogate.evaluate import (
     e_mse,
@@ -23,6 +24,7 @@ from jaxsync.surrogate.lstm import LSTMArchitecture, forward, init_params
 from jaxsync.surrogate.train import (
     TrainConfig,
     init_replicas,
+    masked_mse,
     learning_rate_schedule,
     n_epoch_rule,
     replica_params,
@@ -42,16 +44,25 @@ def damped_oscillators(n_steps, freqs, dt=0.05, zeta=0.02, scale=1.0):
 def test_epoch_rule_and_per_epoch_decay():
     assert n_epoch_rule(5e-4, 0.9995, 5e-7) == 13812  # the paper's defaults
     assert n_epoch_rule(1e-2, 0.5, 1e-3) == 3  # 1e-2 * 0.5**3 = 1.25e-3 > 1e-3 > 0.5**4 * 1e-2
-    assert TrainConfig().resolved_epochs == 13812 and TrainConfig(n_epochs=7).resolved_epochs == 7
+    paper = TrainConfig(eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None)
+    assert paper.resolved_epochs == 13812 and TrainConfig(n_epochs=7).resolved_epochs == 7
+    # laptop defaults (the demo's schedule), the paper's rule on request
+    default = TrainConfig()
+    assert (default.batch_size, default.eta0, default.gamma, default.n_epochs, default.patience) == (
+        5, 2e-3, 0.995, 300, 100)
+    assert default.resolved_epochs == 300
+    assert TrainConfig(n_epochs=None).resolved_epochs == n_epoch_rule(2e-3, 0.995, 5e-7) == 1654
     schedule = learning_rate_schedule(TrainConfig(eta0=1e-3, gamma=0.9), steps_per_epoch=4)
     for step, expected in [(0, 1e-3), (3, 1e-3), (4, 9e-4), (7, 9e-4), (8, 8.1e-4), (41, 1e-3 * 0.9**10)]:
         assert float(schedule(step)) == pytest.approx(expected, rel=1e-6)
     with pytest.raises(ConfigError, match="gamma"):
         TrainConfig(gamma=1.5)
     with pytest.raises(ConfigError, match="eta_min"):
-        TrainConfig(eta_min=1e-2)
+        TrainConfig(eta_min=1e-2, n_epochs=None)  # checked where the paper rule uses it
     with pytest.raises(ConfigError, match="batch_size"):
         TrainConfig(batch_size=0)
+    with pytest.raises(ConfigError, match="patience"):
+        TrainConfig(patience=0)
 
 
 def test_training_on_damped_oscillators_lowers_validation_mse_100_fold_and_rollout_stays_bounded():
@@ -219,3 +230,109 @@ def test_grid_search_tabulates_every_combination_and_chooses_the_best(tmp_path):
     assert float(rows[1]["sqrt_e_mse_part1"]) == pytest.approx(result.points[1].sqrt_e_mse[1], rel=1e-6)
     summary = json.loads((tmp_path / "grid.json").read_text())
     assert summary["chosen"]["n_hidden"] == result.best.n_hidden and len(summary["points"]) == 2
+
+
+def _small_problem():
+    part0, part1, _ = _two_part_runs()
+    kw = dict(n_s=2, n_past=6, n_future=5, train_fraction=0.8)
+    data = stack_replicas([build_dataset(part0, **kw), build_dataset(part1, **kw)])
+    arch = LSTMArchitecture(n_dof=3, n_hidden=6, n_layers=1, n_past=6, n_future=5)
+    return data, arch
+
+
+def _val_loss(params, arch, data, part):
+    p = replica_params(params, part)
+    return float(masked_mse(p, arch, jnp.asarray(data.x_val[part]), jnp.asarray(data.y_val[part]),
+                            jnp.asarray(data.cond_val[part]), jnp.ones(data.x_val.shape[1], jnp.float32),
+                            jnp.asarray(data.dof_mask[part])))
+
+
+def test_best_parameters_are_kept_and_early_stopping_is_exact():
+    data, arch = _small_problem()
+    # a noisy schedule (large, undecayed steps): the validation loss does not fall monotonically
+    config = TrainConfig(batch_size=4, eta0=5e-2, gamma=1.0, n_epochs=40, epochs_per_call=8, patience=None)
+    result = train_replicas(data, arch, config, jax.random.key(0), progress=False)
+    assert result.stopped_epoch is None and result.n_epochs_run == 40
+    best = np.argmin(result.val_loss, axis=0) + 1
+    np.testing.assert_array_equal(result.best_epoch, best)
+    assert np.any(best < 40), "the schedule was meant to be noisy; pick another one"
+    for part in range(2):  # the returned parameters are those of each part's best epoch
+        assert result.best_val_loss[part] == result.val_loss[best[part] - 1, part]
+        assert _val_loss(result.params, arch, data, part) == pytest.approx(result.best_val_loss[part], rel=1e-5)
+
+    # Early stop: no part improved for `patience` epochs; exact, whatever the chunk length.
+    stops = []
+    for per_call in (8, 5):
+        stopped = train_replicas(data, arch, dataclasses.replace(config, patience=3, epochs_per_call=per_call),
+                                 jax.random.key(0), progress=False)
+        stops.append(stopped)
+        assert stopped.stopped_epoch is not None and stopped.stopped_epoch < 40
+        assert stopped.n_epochs_run == stopped.stopped_epoch == stopped.best_epoch.max() + 3
+        assert stopped.val_loss.shape == (stopped.stopped_epoch, 2)
+        np.testing.assert_array_equal(stopped.best_epoch, np.argmin(stopped.val_loss, axis=0) + 1)
+        # until the stop it is the same run as without early stopping
+        np.testing.assert_allclose(stopped.val_loss, result.val_loss[:stopped.stopped_epoch], rtol=1e-5)
+    assert stops[0].stopped_epoch == stops[1].stopped_epoch
+
+    # A learning rate too small to change float32 parameters: nothing improves after epoch 1.
+    frozen = train_replicas(data, arch, dataclasses.replace(config, eta0=1e-37, patience=4),
+                            jax.random.key(0), progress=False)
+    assert frozen.stopped_epoch == 5 and list(frozen.best_epoch) == [1, 1]
+
+
+def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path, monkeypatch):
+    data, arch = _small_problem()
+    config = TrainConfig(batch_size=4, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=4)
+    key = jax.random.key(5)
+    whole = train_replicas(data, arch, config, key, progress=False, checkpoint=tmp_path / "whole.h5",
+                           checkpoint_every=4)
+    assert whole.resumed_from == 0 and (tmp_path / "whole.h5").exists()
+
+    path = tmp_path / "state.h5"
+    saves = []
+    real_save = train_module._save_training_state
+
+    def killed_after_second_save(*args, **kwargs):
+        real_save(*args, **kwargs)
+        saves.append(args[3]["train_loss"].shape[0])
+        if len(saves) == 2:
+            raise KeyboardInterrupt  # the process dies right after writing epoch 8
+
+    monkeypatch.setattr(train_module, "_save_training_state", killed_after_second_save)
+    with pytest.raises(KeyboardInterrupt):
+        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    assert saves == [4, 8] and path.exists()
+    monkeypatch.setattr(train_module, "_save_training_state", real_save)
+
+    resumed = train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    assert resumed.resumed_from == 8 and resumed.n_epochs_run == 12
+    for a, b in zip(jax.tree_util.tree_leaves(whole.params), jax.tree_util.tree_leaves(resumed.params)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(whole.val_loss, resumed.val_loss)
+    np.testing.assert_array_equal(whole.train_loss, resumed.train_loss)
+    np.testing.assert_array_equal(whole.best_epoch, resumed.best_epoch)
+    # a finished state resumes to the same result without training
+    again = train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    assert again.resumed_from == 12
+    np.testing.assert_array_equal(again.params["dense"]["w"], whole.params["dense"]["w"])
+
+    # a state of other settings or data is refused, naming the difference
+    with pytest.raises(CheckpointError, match="config.eta0: 0.01 there, 0.02 here"):
+        train_replicas(data, arch, dataclasses.replace(config, eta0=2e-2), key, progress=False, checkpoint=path,
+                       checkpoint_every=4)
+    with pytest.raises(CheckpointError, match="checkpoint_every: 4 there, 6 here"):
+        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=6)
+    with pytest.raises(CheckpointError, match="key"):
+        train_replicas(data, arch, config, jax.random.key(6), progress=False, checkpoint=path, checkpoint_every=4)
+    other = dataclasses.replace(data, x_train=data.x_train * 1.01)
+    with pytest.raises(CheckpointError, match="data differ"):
+        train_replicas(other, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    import h5py
+
+    with h5py.File(path, "r+") as fh:  # damaged after it was written
+        fh["history/val_loss"][0, 0] += 1.0
+    with pytest.raises(CheckpointError, match="checksum"):
+        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    path.write_bytes(b"not hdf5")
+    with pytest.raises(CheckpointError, match="delete it to start over"):
+        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)

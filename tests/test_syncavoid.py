@@ -1,7 +1,13 @@
+import warnings
+from typing import Any
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxsync
+from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync import CheckpointError, ProblemError, StabilityError
 from jaxsync.syncavoid import OraclePredictor, _OnlineRunner, shared_dof_layout, simulate_sync_avoiding
 
@@ -38,7 +44,7 @@ def oracle(reference, partition, shift=0, poison_step=None, n_steps=N_STEPS):
     future = np.roll(future, shift, axis=1)
     if poison_step is not None:
         future[1, poison_step - N_CRI - 1:] = np.nan
-    return OraclePredictor(future, n_s=N_S, n_past=N_P, n_future=N_F)
+    return OraclePredictor(future, first_step=N_CRI + 1, n_s=N_S, n_past=N_P, n_future=N_F)
 
 
 def test_oracle_reproduces_the_synchronized_run(problem, partition, reference):
@@ -92,9 +98,9 @@ def test_predicted_phase_has_no_collective(problem, partition, reference):
 
 
 def test_n_cri_too_small(problem, partition, reference):
-    with pytest.raises(ProblemError, match="n_cri=20 is too small"):
+    with pytest.raises(ProblemError, match="n_cri=19 is too small"):
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
-                               surrogates=oracle(reference, partition), n_cri=N_S * N_P)
+                               surrogates=oracle(reference, partition), n_cri=N_S * N_P - 1)
 
 
 def test_save_every_must_divide(problem, partition, reference):
@@ -125,11 +131,11 @@ def test_full_system_oracle_reproduces_the_reference(problem):
     future = np.zeros((1, n_cycles * length, n_dof))
     future[0, :N_STEPS - N_CRI] = reference.displacement[N_CRI + 1:].reshape(N_STEPS - N_CRI, -1)
     future[0, :, :3] += 1e-3  # node 0 is clamped: the network's values there are reported
-    oracle_all = OraclePredictor(future, n_s=N_S, n_past=N_P, n_future=N_F)
+    oracle_all = OraclePredictor(future, first_step=N_CRI + 1, n_s=N_S, n_past=N_P, n_future=N_F)
     traj = simulate_full_system(problem, reference, oracle_all, n_cri=N_CRI)
     assert traj.n_saved == N_STEPS + 1
     np.testing.assert_array_equal(traj.displacement[:, 1:], reference.displacement[:, 1:])
-    assert traj.parameters["dirichlet_max_abs_predicted"] == pytest.approx(1e-3)
+    assert traj.statistics["dirichlet_max_abs_predicted"] == pytest.approx(1e-3)
     assert traj.synchronized.sum() == N_CRI + 1
 
 
@@ -201,6 +207,8 @@ def untrained(partition):
 
 
 def test_resync_tolerance_never_reached_changes_nothing(problem, partition):
+    """The monitored run (each cycle predicted, checked, then stepped) equals the fused
+    unmonitored program when nothing triggers."""
     net = untrained(partition)
     plain = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net,
                                    n_cri=N_CRI, cycles_per_chunk=1)
@@ -208,57 +216,206 @@ def test_resync_tolerance_never_reached_changes_nothing(problem, partition):
                                      n_cri=N_CRI, resync_tolerance=np.inf)
     np.testing.assert_array_equal(watched.displacement, plain.displacement)
     np.testing.assert_array_equal(watched.synchronized, plain.synchronized)
-    assert watched.parameters["resynchronized_at"] == []
+    for a, b in zip(watched.parts, plain.parts):
+        np.testing.assert_array_equal(a["predicted_shared_displacement"], b["predicted_shared_displacement"])
+    assert watched.statistics["resynchronized_at"] == []
+    assert watched.statistics["n_predicted_steps"] == N_STEPS - N_CRI
 
 
-def test_es_hat_above_tolerance_resynchronizes(problem, partition, tmp_path):
-    """Untrained networks disagree at once: after each predicted cycle the run goes back
-    to one state (mean over the parts) and runs n_p n_s synchronized steps, which equal a
-    single-device run from that state; the triggering es_hat is eq. 26 of the metrics."""
-    import jax
+@pytree_dataclass
+class DriftingOracle:
+    """The synchronized history plus a chosen perturbation path ``w`` (per part), as a
+    network would err: each part continues its OWN last known value with the increments
+    of reference + w, so from a synchronized history the error starts at zero, and left
+    alone it follows w (a drift grows without bound; jitter is step-to-step noise like
+    that of the interleaved refill sequences of a trained network)."""
 
-    from jaxsync.metrics import predictions_by_node, shared_node_errors
-    from jaxsync.solver import SolverState, advance, build_system
+    reference: Any  # (P, T, n_dof) shared dofs at steps 0 .. T - 1
+    path: Any  # (P, T, n_dof) perturbation w, zero on padding
+    n_s: int = static_field(default=N_S)
+    n_past: int = static_field(default=N_P)
+    n_future: int = static_field(default=N_F)
 
-    traj = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
-                                  n_cri=N_CRI, resync_tolerance=1e-12)
-    cycle, history = N_S * N_F, N_S * N_P  # 20, 20
-    steps = np.arange(N_STEPS + 1)
-    expected = ((steps <= N_CRI) | ((steps > N_CRI + cycle) & (steps <= N_CRI + cycle + history))
-                | (steps > N_CRI + 2 * cycle + history))
+    def predict(self, buffer, step):
+        length = self.n_s * self.n_future
+        at = lambda a: jax.lax.dynamic_index_in_dim(a, step, keepdims=False)  # noqa: E731
+        ahead = lambda a: jax.lax.dynamic_slice_in_dim(a, step + 1, length)  # noqa: E731
+        own_error = buffer[-1] - at(self.reference) - at(self.path)
+        return ahead(self.reference) + ahead(self.path) + own_error
+
+
+def drifting_oracle(reference, partition, drift, jitter=0.0, drift_until=None, seed=0):
+    """w_p(step) = drift[p] * min(step, drift_until) on every dof + uniform jitter."""
+    n_dof, counts = shared_dof_layout(partition)
+    n = reference.n_saved + 2 * N_S * N_F
+    values = np.zeros((partition.n_parts, n, n_dof))
+    path = np.zeros_like(values)
+    rng = np.random.default_rng(seed)
+    steps = np.minimum(np.arange(n), n if drift_until is None else drift_until)
+    for p, part in enumerate(partition.parts):
+        shared = reference.parts[p]["shared_displacement"]
+        values[p, :len(shared), :counts[p]] = shared
+        values[p, len(shared):, :counts[p]] = shared[-1]
+        path[p, :, :counts[p]] = drift[p] * steps[:, None] + jitter * rng.uniform(-1, 1, (n, counts[p]))
+    return DriftingOracle(values, path)
+
+
+@pytest.fixture(scope="module")
+def long_reference(problem, partition):
+    return jaxsync.simulate(problem, 1000, partitions=partition)
+
+
+def test_drift_beyond_the_tolerance_is_recomputed_synchronized(problem, partition, long_reference):
+    """Parts drifting apart by 2e-6 cm per step, tolerance 1e-4 cm: after a synchronized
+    point the first two cycles pass (es_hat up to 8e-5) and the third (1.2e-4) is rejected
+    BEFORE it is used; the run goes back to the synchronized point and recomputes through
+    the rejected cycle with the synchronized solver (the two accepted cycles are
+    discarded: their state carries the drift). The synchronized stretches equal the
+    synchronized reference to round-off, not merely a run from the same restart; the
+    final stretch, never rejected, stays predicted."""
+    cycle, rate, tol, n_steps = N_S * N_F, 1e-6, 1e-4, 980
+    net = drifting_oracle(long_reference, partition, drift=(+rate, -rate))
+    with pytest.warns(RuntimeWarning, match="only 40 of the 940 steps"):
+        traj = simulate_sync_avoiding(problem, n_steps, partitions=partition, surrogates=net,
+                                      n_cri=N_CRI, resync_tolerance=tol)
+    st = traj.statistics
+    rejected = list(range(N_CRI + 2 * cycle, n_steps, 3 * cycle))  # 80, 140, ..., 920
+    assert st["resynchronized_at"] == rejected
+    # es_hat of the rejected cycle: |drift_0 - drift_1| = 2e-6 cm per step, 3 cycles on
+    np.testing.assert_allclose(st["es_hat_trigger"], 2 * rate * 3 * cycle, rtol=1e-9)
+    assert st["tolerance_cm"] == [tol] * len(rejected)
+    assert st["n_discarded_steps"] == 2 * cycle * len(rejected)
+    steps = np.arange(n_steps + 1)
+    expected = steps <= rejected[-1] + cycle
     np.testing.assert_array_equal(traj.synchronized, expected)
-    assert traj.parameters["resynchronized_at"] == [N_CRI + cycle, N_CRI + 2 * cycle + history]
-    # the re-synchronized steps continue the mean state with the synchronized solver
-    start = N_CRI + cycle
-    system = build_system(problem, problem.dt)
-    state = SolverState(traj.displacement[start], traj.displacement[start - 1], start)
-    _, saved = jax.jit(advance, static_argnums=(2, 3))(system, state, history, 1)
-    scale = np.abs(saved).max()
-    assert np.abs(np.asarray(saved) - traj.displacement[start + 1:start + history + 1]).max() <= 1e-12 * scale
-    # the trigger is es_hat of the first predicted cycle
-    predictions, holds, _ = predictions_by_node(traj, partition)
-    first = predictions[:, :cycle]
-    es_hat = shared_node_errors(np.zeros(first.shape[1:]), first, holds).es_hat
-    assert traj.parameters["es_hat_trigger"][0] == pytest.approx(es_hat.max(), rel=1e-12)
-    assert es_hat.max() > 1e-12
-    traj.save(tmp_path / "resync.h5")
-    loaded = jaxsync.Trajectory.load(tmp_path / "resync.h5")
-    assert loaded.parameters["resynchronized_at"] == traj.parameters["resynchronized_at"]
-    np.testing.assert_array_equal(loaded.synchronized, traj.synchronized)
+    assert st["n_synchronized_steps"] == rejected[-1] + cycle
+    assert st["n_synchronized_steps"] + st["n_predicted_steps"] == n_steps
+    scale = np.abs(long_reference.displacement).max()
+    err = np.abs(traj.displacement - long_reference.displacement[:n_steps + 1]).max(axis=(1, 2))
+    assert err[expected].max() <= 1e-12 * scale
+    assert 0 < err.max() <= 2 * rate * 2 * cycle  # the accepted drift of the final stretch
+
+
+def test_noisy_oracle_error_stays_bounded_by_the_tolerance(problem, partition, long_reference):
+    """Jittering predictions that drift apart for 600 steps, then only jitter: without a
+    tolerance the drift stays in the run (over 5x the bounded error); with one the error
+    stays below a bound set by the tolerance (es_hat <= tol at every used prediction: the
+    error at the shared nodes is about tol, and the parts' interiors follow them), over
+    the many cycles after the last re-synchronization."""
+    net = drifting_oracle(long_reference, partition, drift=(2e-6, -1e-6), jitter=2e-6, drift_until=600)
+
+    def run(tol):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # "mostly synchronized"
+            traj = simulate_sync_avoiding(problem, 1000, partitions=partition, surrogates=net,
+                                          n_cri=N_CRI, resync_tolerance=tol)
+        return np.abs(traj.displacement - long_reference.displacement).max(axis=(1, 2)), traj
+
+    free, _ = run(None)
+    errors = {}
+    for tol in (1e-4, 3e-5):
+        errors[tol], traj = run(tol)
+        assert traj.statistics["n_resynchronizations"] >= 3
+        assert traj.statistics["n_predicted_steps"] >= 300
+        assert errors[tol].max() <= 2 * tol, (tol, errors[tol].max())
+    assert free.max() > 5 * errors[1e-4].max()
+
+
+def test_untrained_networks_fall_back_to_the_synchronized_run(problem, partition, long_reference):
+    """Untrained networks disagree at once: every cycle right after a synchronized point is
+    rejected, the synchronized stretch doubles each time (1, 2, 4 cycles...), the run is
+    the synchronized one to round-off, and the user is warned."""
+    with pytest.warns(RuntimeWarning, match="only 0 of the"):
+        traj = simulate_sync_avoiding(problem, 400, partitions=partition, surrogates=untrained(partition),
+                                      n_cri=N_CRI, resync_tolerance=1e-12)
+    cycle = N_S * N_F
+    assert traj.statistics["resynchronized_at"] == [N_CRI, N_CRI + 2 * cycle, N_CRI + 6 * cycle,
+                                                    N_CRI + 14 * cycle]
+    assert traj.synchronized.all() and traj.statistics["n_predicted_steps"] == 0
+    assert traj.statistics["n_discarded_steps"] == 0
+    scale = np.abs(long_reference.displacement).max()
+    assert np.abs(traj.displacement - long_reference.displacement[:401]).max() <= 1e-12 * scale
+
+
+def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference):
+    """'2%' is 2 % of the largest shared-node |displacement| seen in the synchronized steps
+    so far (the load ramps up, so the tolerance grows as the run goes on)."""
+    from jaxsync.syncavoid import ResyncTolerance
+
+    net = drifting_oracle(long_reference, partition, drift=(+1e-6, -1e-6))
+    with pytest.warns(RuntimeWarning):
+        traj = simulate_sync_avoiding(problem, 1000, partitions=partition, surrogates=net,
+                                      n_cri=N_CRI, resync_tolerance="2%")
+    st = traj.statistics
+    assert st["resync_tolerance"] == "2 %" and st["n_resynchronizations"] >= 3
+    for step, tol in zip(st["resynchronized_at"], st["tolerance_cm"]):
+        # here every rejection comes right after a synchronized stretch ending at `step`
+        seen = max(np.abs(part["shared_displacement"][:step + 1]).max() for part in long_reference.parts)
+        assert tol == pytest.approx(0.02 * seen, rel=1e-12)
+    assert st["tolerance_cm"] == sorted(st["tolerance_cm"]) and st["tolerance_cm"][-1] > st["tolerance_cm"][0]
+    assert ResyncTolerance.parse("1e-4") == ResyncTolerance(absolute=1e-4)
+    assert ResyncTolerance.parse(2e-4).cm(5.0) == 2e-4
+    assert ResyncTolerance.parse("5%").cm(2.0) == pytest.approx(0.1)
 
 
 def test_resync_tolerance_is_checked(problem, partition, reference):
-    for bad in (0.0, -1.0, float("nan"), "small"):
+    for bad in (0.0, -1.0, float("nan"), "small", "-2%", True):
         with pytest.raises(ProblemError, match="resync_tolerance"):
             simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
                                    n_cri=N_CRI, resync_tolerance=bad)
     with pytest.raises(ProblemError, match="OraclePredictor"):
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
                                surrogates=oracle(reference, partition), n_cri=N_CRI, resync_tolerance=1e-3)
-    from jaxsync.syncavoid import SurrogatePredictor
 
-    three_past = SurrogatePredictor.initialized(partition, N_S, n_hidden=4, n_layers=1, n_past=3,
-                                                n_future=N_F)  # re-synchronizes 15 steps
-    with pytest.raises(ProblemError, match="n_p \\* n_s = 15"):
-        simulate_sync_avoiding(problem, 100, partitions=partition, surrogates=three_past, n_cri=40,
-                               save_every=10, resync_tolerance=1e-3)
+
+def test_float32_mode_is_refused(problem, partition, reference):
+    import jax
+
+    jax.config.update("jax_enable_x64", False)
+    try:
+        with pytest.raises(jaxsync.PrecisionError, match="jax_enable_x64"):
+            simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
+                                   surrogates=oracle(reference, partition), n_cri=N_CRI)
+        with pytest.raises(jaxsync.PrecisionError, match="jax_enable_x64"):
+            jaxsync.simulate(problem, 10)
+    finally:
+        jax.config.update("jax_enable_x64", True)
+
+
+@pytest.fixture(scope="module")
+def briefly_trained(problem, partition):
+    """Replicas trained for a few seconds on a 4000-step synchronized run (n_s 20,
+    n_p = n_f = 10): a surrogate that errs by a few % of the amplitude, as a user's
+    under-trained network would."""
+    from jaxsync.surrogate import (LSTMArchitecture, SurrogateCheckpoint, TrainConfig, build_dataset,
+                                   stack_replicas, train_replicas)
+
+    reference = jaxsync.simulate(problem, 4000, partitions=partition)
+    data = stack_replicas([build_dataset([reference.parts[p]["shared_displacement"]], 20, 10, 10)
+                           for p in range(2)])
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=16, n_layers=1, n_past=10, n_future=10)
+    result = train_replicas(data, arch, TrainConfig(n_epochs=30, eta0=3e-3, gamma=0.98),
+                            jax.random.key(0), progress=False)
+    return reference, SurrogateCheckpoint.from_result(result, 20, [p.shared_nodes for p in partition.parts])
+
+
+def test_a_tolerance_never_makes_a_trained_run_worse(problem, partition, briefly_trained):
+    """Against the synchronized reference: every tolerance gives an error no larger than
+    the run without one, and a tight one gives the synchronized run (round-off)."""
+    reference, ckpt = briefly_trained
+
+    def max_error(tol):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            traj = simulate_sync_avoiding(problem, 4000, partitions=partition, surrogates=ckpt,
+                                          n_cri=200, resync_tolerance=tol)
+        return np.abs(traj.displacement - reference.displacement).max(), traj.statistics
+
+    free, _ = max_error(None)
+    assert free > 1e-4  # the network is far from perfect
+    for tol in (1e-3, 1e-4):
+        error, _ = max_error(tol)
+        assert error <= free * (1 + 1e-9), (tol, error, free)
+    tight, stats = max_error(1e-8)
+    assert tight <= 1e-12 * np.abs(reference.displacement).max()
+    assert stats["n_predicted_steps"] == 0 and stats["n_synchronized_steps"] == 4000

@@ -74,3 +74,43 @@ def test_mass_scaling_arguments():
     problem = jaxsync.cantilever()
     with pytest.raises(StabilityError, match="exactly one"):
         jaxsync.mass_scaling(problem)
+
+
+def graded_cantilever():
+    """A beam whose elements shrink quadratically towards the clamp."""
+    mesh = jaxsync.box_beam(10.0, 1.0, 1.0, (10, 1, 1))
+    points = mesh.points.copy()
+    points[:, 0] = 10.0 * (points[:, 0] / 10.0) ** 2
+    return jaxsync.cantilever(jaxsync.Mesh(points, mesh.tets, mesh.facet_sets))
+
+
+def test_mass_scaling_warns_above_the_threshold():
+    import warnings
+
+    problem = graded_cantilever()
+    target = 4.0 * problem.dt
+    with pytest.warns(jaxsync.MassScalingWarning) as record:
+        scaled, percent = jaxsync.mass_scaling(problem, dt_target=target)
+    assert percent > 10.0
+    message = str(record[0].message)
+    assert f"{percent:.1f} %" in message and f"{target:.4e} s" in message
+    # the caller's threshold: no warning at or below it, none at all with None
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _, same = jaxsync.mass_scaling(problem, dt_target=target, warn_above_percent=percent)
+        jaxsync.mass_scaling(problem, dt_target=target, warn_above_percent=None)
+        jaxsync.mass_scaling(problem, dt_target=0.5 * problem.dt)  # nothing added
+    assert same == percent
+    with pytest.warns(jaxsync.MassScalingWarning):
+        jaxsync.mass_scaling(problem, beta=1.05, warn_above_percent=0.0)
+    with pytest.raises(StabilityError, match="warn_above_percent"):
+        jaxsync.mass_scaling(problem, beta=2.0, warn_above_percent=-1.0)
+
+
+def test_mass_scaled_problem_runs_at_the_target_step_by_default():
+    problem = graded_cantilever()
+    scaled, _ = jaxsync.mass_scaling(problem, beta=2.0, warn_above_percent=None)
+    traj = jaxsync.simulate(scaled, 20, save_every=10)
+    assert traj.dt == pytest.approx(2.0 * problem.dt, rel=1e-12)
+    with pytest.raises(StabilityError, match="positive and finite"):
+        jaxsync.mass_scaling(problem, beta=float("nan"))

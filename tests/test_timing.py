@@ -161,7 +161,7 @@ def test_timed_distributed_program_is_the_solver_step(small_problem):
     state = initial_state(small_problem, system)
     runner = DistributedRunner(small_problem, system, 2, save_every=30)
     start = runner.from_global(state)
-    expected, _ = runner.advance(start, 1)
+    expected, _, _ = runner.advance(start, 1)
     timed, _ = _distributed_program(runner, 30, synchronize=True)(runner.parts, start)
     np.testing.assert_array_equal(np.asarray(timed.displacement), np.asarray(expected.displacement))
     unsynchronized, _ = _distributed_program(runner, 30, synchronize=False)(runner.parts, start)

@@ -27,7 +27,8 @@ def test_hdf5_round_trip(trajectory, tmp_path):
     assert back.parameters == trajectory.parameters
     assert {k: back.parameters[k] for k in ("E", "nu", "rho", "damping")} == {
         "E": 1.0e6, "nu": 0.3, "rho": 1.0, "damping": 0.5}
-    assert back.parameters["us_per_step"] > 0
+    assert back.statistics == trajectory.statistics  # run statistics, apart from the physics
+    assert back.statistics["us_per_step"] > 0 and back.statistics["n_devices"] == 1
 
 
 def test_parts_round_trip(trajectory, tmp_path):
@@ -101,3 +102,99 @@ def test_xdmf_time_series_is_readable_and_does_not_clobber(trajectory, tmp_path)
     finally:
         os.chdir(cwd)
     np.testing.assert_array_equal(points, trajectory.mesh.points)
+
+
+def dead_pid():
+    import subprocess
+    import sys
+
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
+    import time
+
+    from jaxsync.trajectory import STALE_TEMP_AGE_S, _host_tag
+
+    host = _host_tag()
+    old = time.time() - 2 * STALE_TEMP_AGE_S
+    files = {
+        # (name, age in s) -> kept?
+        (f".t.h5.{dead_pid()}@{host}.abcd1234.tmp", 0): False,  # writer gone
+        (f".t.h5.{os.getpid()}@{host}.abcd1234.tmp", 0): True,  # live writer (this one)
+        (f".t.h5.{os.getppid()}@{host}.abcd1234.tmp", 2 * STALE_TEMP_AGE_S): True,  # live, idle
+        (".t.h5.1234@another-host.abcd1234.tmp", 0): True,  # cannot check: recent, kept
+        (".t.h5.1234@another-host.efgh5678.tmp", 2 * STALE_TEMP_AGE_S): False,  # abandoned
+        (".t.h5.k2j4h1x_.tmp", 2 * STALE_TEMP_AGE_S): False,  # older jaxsync, abandoned
+        (".t.h5.q9w8e7r6.tmp", 0): True,  # older jaxsync, maybe still writing
+        (f".t.h5.x.{dead_pid()}@{host}.abcd1234.tmp", 0): True,  # target "t.h5.x"
+        (f".u.h5.{dead_pid()}@{host}.abcd1234.tmp", 0): True,  # another target
+    }
+    for (name, age), _ in files.items():
+        (tmp_path / name).write_bytes(b"half a file")
+        if age:
+            os.utime(tmp_path / name, (time.time() - age, time.time() - age))
+    with atomic_path(tmp_path / "t.h5") as tmp:
+        assert f".t.h5.{os.getpid()}@{host}." in os.path.basename(tmp)
+        open(tmp, "w").write("new")
+    left = set(os.listdir(tmp_path))
+    assert (tmp_path / "t.h5").read_text() == "new"
+    for (name, _), kept in files.items():
+        assert (name in left) == kept, name
+    assert old < time.time()
+
+
+def test_temporary_of_a_killed_writer_is_removed_by_the_next_write(tmp_path):
+    import signal
+    import subprocess
+    import sys
+
+    target = tmp_path / "big.h5"
+    target.write_text("good")
+    script = ("import sys, time\n"
+              "from jaxsync.trajectory import atomic_path\n"
+              "with atomic_path(sys.argv[1]) as tmp:\n"
+              "    open(tmp, 'wb').write(b'x' * 100000)\n"
+              "    print('writing', flush=True)\n"
+              "    time.sleep(120)\n")
+    child = subprocess.Popen([sys.executable, "-c", script, str(target)], stdout=subprocess.PIPE,
+                             text=True)
+    try:
+        assert child.stdout.readline().strip() == "writing"
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait(timeout=60)
+    stale = [n for n in os.listdir(tmp_path) if n.endswith(".tmp")]
+    assert len(stale) == 1 and stale[0].startswith(f".big.h5.{child.pid}@")
+    assert target.read_text() == "good"  # the killed write did not touch the target
+    with atomic_path(target) as tmp:
+        open(tmp, "w").write("newer")
+    assert sorted(os.listdir(tmp_path)) == ["big.h5"]
+    assert target.read_text() == "newer"
+
+
+@pytest.mark.parametrize("compression", ["gzip", "lzf", None])
+def test_compression_options_round_trip(tmp_path, compression):
+    import h5py
+
+    problem = jaxsync.cantilever()
+    traj = jaxsync.simulate(problem, 400, save_every=10, partitions=2, shared_every=1)
+    path = tmp_path / f"{compression}.h5"
+    traj.save(path, compression=compression)
+    back = jaxsync.Trajectory.load(path)
+    np.testing.assert_array_equal(back.displacement, traj.displacement)
+    np.testing.assert_array_equal(back.parts[0]["shared_displacement"], traj.parts[0]["shared_displacement"])
+    assert back.shared_every == 1 and back.statistics["n_devices"] == traj.statistics["n_devices"]
+    with h5py.File(path) as f:
+        assert f["displacement"].compression == compression
+
+
+def test_bad_compression_is_refused(tmp_path):
+    traj = jaxsync.simulate(jaxsync.cantilever(), 10)
+    with pytest.raises(jaxsync.CheckpointError, match="compression"):
+        traj.save(tmp_path / "x.h5", compression="zip")
+    with pytest.raises(jaxsync.CheckpointError, match="level"):
+        traj.save(tmp_path / "x.h5", level=12)
+    assert not (tmp_path / "x.h5").exists()

@@ -4,6 +4,16 @@ Writes, into the output directory: the checkpoint (``surrogate.h5`` by default),
 curves (``loss_curves.png``) and a JSON summary (``train_summary.json``).  Every file is
 written under a temporary name and moved into place, so a failed run leaves earlier
 results intact.
+
+While it trains, ``training_state.h5`` in the output directory holds a resumable state,
+rewritten every ``--checkpoint-every`` epochs: the same command run again continues from
+it (and ends with the same parameters as an uninterrupted run); a state of other data or
+options is refused.  It is deleted once the results are written.
+
+The defaults are the laptop schedule of :class:`~jaxsync.surrogate.train.TrainConfig`
+(n_H = 32, n_B = 5, eta0 = 2e-3, gamma = 0.995, 300 epochs, early stop after 100 epochs
+without a better validation loss); the paper's is ``--hidden 100 --eta0 5e-4 --gamma
+0.9995 --epochs paper`` (13 812 epochs).
 """
 
 from __future__ import annotations
@@ -23,6 +33,33 @@ from jaxsync.surrogate.data import build_dataset, read_shared_histories, stack_r
 from jaxsync.surrogate.evaluate import evaluate_result, max_applications
 from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
 from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
+
+DEFAULTS = TrainConfig()
+DEFAULT_HIDDEN = 32
+STATE_NAME = "training_state.h5"
+
+
+def _epochs(text: str) -> int | None:
+    """``--epochs`` value: a positive integer, or ``paper`` for the paper's rule (None)."""
+    if text.strip().lower() == "paper":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive integer or 'paper', got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"the epoch count must be >= 1, got {value}")
+    return value
+
+
+def _non_negative(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0, got {value}")
+    return value
 
 
 def add_train_parser(subparsers) -> argparse.ArgumentParser:
@@ -50,21 +87,38 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         help="leading fraction n_ts of each run used for training (default: %(default)s)")
     parser.add_argument("--val-fraction", type=float, default=0.25,
                         help="fraction of windows held out for validation (default: %(default)s)")
-    parser.add_argument("--hidden", type=int, default=100, help="encoder hidden size n_H (default: %(default)s)")
+    parser.add_argument("--hidden", type=int, default=DEFAULT_HIDDEN,
+                        help="encoder hidden size n_H (default: %(default)s; paper: 100)")
     parser.add_argument("--layers", type=int, default=2, help="bidirectional encoder layers k (default: %(default)s)")
     parser.add_argument("--cond-repeat", type=int, default=0,
                         help="copies q of the load parameter fed to the decoder; 0 = unconditional "
                         "(default: %(default)s; paper: 12)")
-    parser.add_argument("--batch-size", type=int, default=5, help="mini-batch size n_B (default: %(default)s)")
-    parser.add_argument("--eta0", type=float, default=5e-4, help="initial learning rate (default: %(default)s)")
-    parser.add_argument("--gamma", type=float, default=0.9995,
-                        help="per-epoch learning-rate decay (default: %(default)s)")
-    parser.add_argument("--eta-min", type=float, default=5e-7,
-                        help="final learning rate of the epoch rule (default: %(default)s)")
-    parser.add_argument("--epochs", type=int, default=None,
-                        help="number of epochs (default: floor(log_gamma(eta_min/eta0)), the paper's rule)")
-    parser.add_argument("--epochs-per-call", type=int, default=10,
+    parser.add_argument("--batch-size", type=int, default=DEFAULTS.batch_size,
+                        help="mini-batch size n_B (default: %(default)s)")
+    parser.add_argument("--eta0", type=float, default=DEFAULTS.eta0,
+                        help="initial learning rate (default: %(default)s; paper: 5e-4)")
+    parser.add_argument("--gamma", type=float, default=DEFAULTS.gamma,
+                        help="per-epoch learning-rate decay (default: %(default)s; paper: 0.9995)")
+    parser.add_argument("--eta-min", type=float, default=DEFAULTS.eta_min,
+                        help="final learning rate of the paper's epoch rule, used with --epochs paper "
+                        "(default: %(default)s)")
+    parser.add_argument("--epochs", type=_epochs, default=DEFAULTS.n_epochs, metavar="N|paper",
+                        help="largest number of epochs, or 'paper' for the paper's rule "
+                        "floor(log_gamma(eta_min/eta0)) (13 812 epochs, about 40 min, with --eta0 5e-4 "
+                        "--gamma 0.9995) (default: %(default)s)")
+    parser.add_argument("--patience", type=_non_negative, default=DEFAULTS.patience,
+                        help="stop when no part's validation loss has improved for this many epochs; "
+                        "0 never stops early; each part keeps the parameters of its best epoch either way "
+                        "(default: %(default)s)")
+    parser.add_argument("--epochs-per-call", type=int, default=DEFAULTS.epochs_per_call,
                         help="epochs per compiled call between progress updates (default: %(default)s)")
+    parser.add_argument("--checkpoint-every", type=_non_negative, default=50, metavar="N",
+                        help=f"write the resumable training state {STATE_NAME} into the output directory "
+                        "every N epochs; rerunning the same command resumes from it; 0 disables it "
+                        "(default: %(default)s)")
+    parser.add_argument("--allow-predicted", action="store_true",
+                        help="accept synchronization-avoiding (jaxsync predict) trajectories, whose shared "
+                        "dofs were partly predicted by surrogates, as training data (refused by default)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of initialization, shuffling and the train/validation split (default: %(default)s)")
     parser.add_argument("--emse-applications", type=int, default=60,
@@ -78,7 +132,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _load_runs(args):
-    runs = [read_shared_histories(path) for path in args.trajectories]
+    runs = [read_shared_histories(path, allow_predicted=args.allow_predicted) for path in args.trajectories]
     first = runs[0]
     for path, run in zip(args.trajectories[1:], runs[1:]):
         same = len(run.shared_nodes) == len(first.shared_nodes) and all(
@@ -114,19 +168,30 @@ def _atomic_write_text(path: str, text: str) -> None:
 
 
 def plot_loss_curves(result: TrainResult, path: str) -> None:
-    """Write the per-part training and validation loss curves to a PNG (atomically)."""
+    """Write the per-part training and validation loss curves to a PNG (atomically), with
+    each part's best epoch (the parameters kept) and the early stop marked."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
     fig = Figure(figsize=(7, 4.5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     epochs = np.arange(1, result.train_loss.shape[0] + 1)
+    best = result.best_epoch
     for p in range(result.train_loss.shape[1]):
         line, = ax.semilogy(epochs, result.train_loss[:, p], label=f"part {p} train")
         ax.semilogy(epochs, result.val_loss[:, p], "--", color=line.get_color(), label=f"part {p} validation")
+        if best is not None:
+            ax.semilogy([best[p]], [result.val_loss[best[p] - 1, p]], "o", color=line.get_color(), mfc="none",
+                        label=f"part {p} best epoch ({best[p]}, kept)")
+    if result.stopped_epoch is not None:
+        ax.axvline(result.stopped_epoch, color="0.3", ls=":", lw=1.0,
+                   label=f"early stop (epoch {result.stopped_epoch})")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("epoch")
-    ax.set_ylabel("MSE (normalized)")
+    ax.set_ylabel("MSE of normalized displacements [-]")
+    ax.set_title(f"Training of {result.train_loss.shape[1]} LSTM replicas (one per part)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     fig.tight_layout()
@@ -151,11 +216,15 @@ def run_train(args: argparse.Namespace) -> int:
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.hidden, n_layers=args.layers,
                             n_past=args.n_past, n_future=args.n_future, n_cond_repeat=args.cond_repeat)
     config = TrainConfig(batch_size=args.batch_size, eta0=args.eta0, gamma=args.gamma, eta_min=args.eta_min,
-                         n_epochs=args.epochs, epochs_per_call=args.epochs_per_call)
+                         n_epochs=args.epochs, epochs_per_call=args.epochs_per_call,
+                         patience=args.patience or None)
     os.makedirs(args.output, exist_ok=True)
+    state_path = os.path.join(args.output, STATE_NAME) if args.checkpoint_every else None
+    if state_path is not None and os.path.exists(state_path):
+        print(f"resuming from the training state {state_path}")
     started = time.perf_counter()
     result = train_replicas(data, arch, config, jax.random.key(args.seed), progress=not args.no_progress,
-                            devices=args.devices)
+                            devices=args.devices, checkpoint=state_path, checkpoint_every=args.checkpoint_every)
     train_seconds = time.perf_counter() - started
 
     first = runs[0]
@@ -174,15 +243,22 @@ def run_train(args: argparse.Namespace) -> int:
         "dof_counts": list(result.dof_counts),
         "architecture": arch.to_dict(),
         "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
-        "training": {**config.to_dict(), "n_epochs_run": int(result.train_loss.shape[0])},
+        "training": {**config.to_dict(), "n_epochs_run": result.n_epochs_run,
+                     "stopped_early": result.stopped_epoch is not None, "stopped_at_epoch": result.stopped_epoch,
+                     "best_epoch": [int(e) for e in result.best_epoch],
+                     "resumed_from_epoch": result.resumed_from, "checkpoint_every": args.checkpoint_every},
         "sampling": {"n_s": args.n_s, "train_fraction": args.train_fraction, "val_fraction": args.val_fraction,
                      "seed": args.seed, "n_train_windows": int(data.x_train.shape[1]),
                      "n_val_windows": int(data.x_val.shape[1])},
         "initial_val_loss": result.initial_val_loss.tolist(),
         "final_train_loss": result.train_loss[-1].tolist(),
-        "final_val_loss": result.val_loss[-1].tolist(),
+        "final_val_loss": result.best_val_loss.tolist(),
+        "last_epoch_val_loss": result.val_loss[-1].tolist(),
+        "n_epochs_run": result.n_epochs_run,
+        "stopped_at_epoch": result.stopped_epoch,
         "seconds_per_epoch": result.seconds_per_epoch,
-        "gradient_steps_per_second": result.steps_per_epoch / result.seconds_per_epoch,
+        "gradient_steps_per_second": (result.steps_per_epoch / result.seconds_per_epoch
+                                      if result.seconds_per_epoch > 0 else None),
         "compile_seconds": result.compile_seconds,
         "train_seconds": train_seconds,
         "e_mse_applications": n_app if sqrt_e_mse is not None else None,
@@ -199,8 +275,13 @@ def run_train(args: argparse.Namespace) -> int:
     summary.update(checkpoint=os.path.abspath(checkpoint_path), loss_curves=os.path.abspath(plot_path),
                    loss_history={"train": result.train_loss.tolist(), "val": result.val_loss.tolist()})
     _atomic_write_text(os.path.join(args.output, "train_summary.json"), json.dumps(summary, indent=2))
-    print(f"wrote {checkpoint_path}, {plot_path} and train_summary.json; "
-          f"final validation MSE per part: {', '.join(f'{v:.3e}' for v in result.val_loss[-1])}")
+    if state_path is not None and os.path.exists(state_path):
+        os.remove(state_path)  # everything it could resume is written
+    stop = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
+            else f"{result.n_epochs_run} epochs")
+    print(f"wrote {checkpoint_path}, {plot_path} and train_summary.json ({stop}); "
+          f"validation MSE of the kept parameters per part: {', '.join(f'{v:.3e}' for v in result.best_val_loss)} "
+          f"(best epochs {', '.join(str(int(e)) for e in result.best_epoch)})")
     return 0
 
 

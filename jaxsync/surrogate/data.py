@@ -375,23 +375,66 @@ class SharedHistories:
         histories: per part, (n_steps, 3 n_shared_p) displacements at every step, float64.
         shared_nodes: per part, (n_shared_p,) int64 global node ids.
         dt: time step (s).
-        load_parameter: the file's root attribute ``load_parameter`` if present, else None.
+        load_parameter: the run's load parameter alpha_f if the file stores one (problem
+            parameter ``load_parameter``, i.e. root attribute ``param_load_parameter``, or
+            a root attribute ``load_parameter``), else None.
+        synchronized: (n_steps,) bool flags of a synchronization-avoiding trajectory
+            (False where the step was predicted by surrogates), None for a synchronized run.
     """
 
     histories: tuple[np.ndarray, ...]
     shared_nodes: tuple[np.ndarray, ...]
     dt: float
     load_parameter: float | None
+    synchronized: np.ndarray | None = None
+
+    @property
+    def n_predicted(self) -> int:
+        """Number of steps whose shared displacements came from surrogates, not the solver."""
+        return 0 if self.synchronized is None else int(np.count_nonzero(~self.synchronized))
 
 
-def read_shared_histories(path) -> SharedHistories:
+def _check_trajectory_format(fh, path) -> None:
+    """The format check of :meth:`jaxsync.Trajectory.load`, on an open HDF5 file."""
+    from jaxsync.trajectory import FORMAT_VERSION
+
+    if fh.attrs.get("format") != "jaxsync-trajectory":
+        raise CheckpointError(
+            f"{path} is not a jaxsync trajectory file (root attribute format != 'jaxsync-trajectory'); "
+            "train on files written by jaxsync simulate / Trajectory.save"
+        )
+    try:
+        version = int(fh.attrs["format_version"])
+    except (KeyError, TypeError, ValueError) as err:
+        raise CheckpointError(
+            f"{path} has no readable format_version attribute; rewrite it with Trajectory.save"
+        ) from err
+    if version > FORMAT_VERSION:
+        raise CheckpointError(
+            f"{path} has format version {version}, newer than this jaxsync reads ({FORMAT_VERSION}): upgrade jaxsync"
+        )
+
+
+def read_shared_histories(path, *, allow_predicted: bool = False) -> SharedHistories:
     """Read ``/parts/<p>/shared_displacement`` and ``shared_nodes`` of a trajectory file.
 
-    The file must have been saved at every step (root attribute ``save_every == 1``).
+    The file must be a jaxsync trajectory (the same format check as
+    :meth:`jaxsync.Trajectory.load`; only the per-part shared histories are read, not the
+    whole displacement field, which can be far larger), with the shared histories at
+    every step (root attribute ``shared_every == 1``, e.g. ``simulate(...,
+    shared_every=1)``; older files: ``save_every == 1``), and by default a synchronized run: a
+    synchronization-avoiding (``jaxsync predict``) trajectory, whose ``synchronized``
+    dataset has False entries, holds surrogate predictions at the shared dofs, and
+    training on them would teach the networks their own errors.
+
+    Args:
+        path: trajectory HDF5 file.
+        allow_predicted: accept a synchronization-avoiding trajectory anyway.
 
     Raises:
-        CheckpointError: missing file, groups or attributes, inconsistent shapes, or a
-            trajectory saved with ``save_every != 1``.
+        CheckpointError: missing or foreign file, missing groups or attributes,
+            inconsistent shapes, shared histories not kept at every step, or a
+            predicted trajectory without ``allow_predicted``.
     """
     try:
         fh = h5py.File(path, "r")
@@ -400,19 +443,38 @@ def read_shared_histories(path) -> SharedHistories:
     except OSError as err:
         raise CheckpointError(f"trajectory file {path} cannot be read ({err}); is it a complete HDF5 file?") from err
     with fh:
+        _check_trajectory_format(fh, path)
         try:
-            n_parts = int(fh.attrs["n_parts"])
             save_every = int(fh.attrs["save_every"])
             dt = float(fh.attrs["dt"])
         except KeyError as err:
             raise CheckpointError(
-                f"trajectory file {path} lacks root attribute {err}; write it with the distributed solver"
+                f"trajectory file {path} lacks root attribute {err}; write it with Trajectory.save"
             ) from err
-        if save_every != 1:
+        if "n_parts" not in fh.attrs:
             raise CheckpointError(
-                f"trajectory file {path} was saved every {save_every} steps; surrogate training needs every step: "
-                "rerun the solver with save_every=1"
+                f"trajectory file {path} holds no parts (root attribute 'n_parts' missing): it is not a "
+                "distributed run; rerun the solver with partitions=n (jaxsync simulate --partitions n)"
             )
+        n_parts = int(fh.attrs["n_parts"])
+        stride = int(fh.attrs.get("shared_every", save_every))
+        if stride != 1:
+            raise CheckpointError(
+                f"trajectory file {path} keeps the shared nodes every {stride} steps; surrogate training needs "
+                "every step: rerun the solver with shared_every=1 (jaxsync simulate --shared-every 1; the full "
+                "field can stay at a larger --save-every)"
+            )
+        synchronized = None
+        if "synchronized" in fh:
+            synchronized = np.asarray(fh["synchronized"][()], bool)
+            n_pred = int(np.count_nonzero(~synchronized))
+            if n_pred and not allow_predicted:
+                raise CheckpointError(
+                    f"trajectory file {path} is a synchronization-avoiding run: {n_pred} of its "
+                    f"{synchronized.size} snapshots were predicted by surrogates, not computed by the "
+                    "synchronized solver; train on the synchronized reference run instead, or pass "
+                    "--allow-predicted (allow_predicted=True) if you really mean to"
+                )
         histories, nodes = [], []
         for p in range(n_parts):
             try:
@@ -434,5 +496,10 @@ def read_shared_histories(path) -> SharedHistories:
         lengths = {h.shape[0] for h in histories}
         if len(lengths) > 1:
             raise CheckpointError(f"trajectory file {path}: parts hold different numbers of steps {sorted(lengths)}")
-        load = fh.attrs.get("load_parameter")
-    return SharedHistories(tuple(histories), tuple(nodes), dt, None if load is None else float(load))
+        if synchronized is not None and save_every == 1 and lengths and synchronized.size != next(iter(lengths)):
+            raise CheckpointError(
+                f"trajectory file {path}: 'synchronized' has {synchronized.size} flags for "
+                f"{next(iter(lengths))} saved steps; the file is damaged"
+            )
+        load = fh.attrs.get("param_load_parameter", fh.attrs.get("load_parameter"))
+    return SharedHistories(tuple(histories), tuple(nodes), dt, None if load is None else float(load), synchronized)

@@ -2,8 +2,28 @@
 
 Optimizer: optax Adam with a learning rate that decays once per epoch,
 ``eta(epoch) = eta0 * gamma**epoch`` (``optax.exponential_decay`` with staircase steps of
-one epoch), run for the paper's ``n_epoch = floor(log_gamma(eta_min / eta0))`` epochs
-unless a count is given.  Mini-batches are reshuffled every epoch.
+one epoch).  Mini-batches are reshuffled every epoch.
+
+Defaults (:class:`TrainConfig`, the same as ``jaxsync train``'s): n_B = 5, eta0 = 2e-3,
+gamma = 0.995, 300 epochs, early stopping after 100 epochs without a better validation
+loss.  These fit a laptop (the coarse cantilever trains in about a minute and reaches
+about 2 % error online).  The paper's schedule (n_B = 5, eta0 = 5e-4, gamma = 0.9995 run
+for ``n_epoch = floor(log_gamma(eta_min / eta0))`` = 13 812 epochs, about 40 minutes) is
+``TrainConfig(eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None)``
+(``jaxsync train --epochs paper --eta0 5e-4 --gamma 0.9995``).
+
+Best parameters and early stopping: after every epoch each replica's validation loss is
+compared with its best so far; the returned parameters of a replica are those of its
+epoch with the lowest validation loss.  With ``patience`` set, training stops once no
+replica has improved for ``patience`` epochs (checked after every epoch inside the
+compiled loop, so the stop epoch does not depend on ``epochs_per_call``).
+
+Resumable training: with ``checkpoint=path``, :func:`train_replicas` writes its whole
+state (parameters, Adam state, best parameters, loss history) atomically every
+``checkpoint_every`` epochs and at the end; called again with the same data, settings and
+key it continues from that state and ends with the same parameters as an uninterrupted
+run (the compiled chunks end at the same epochs).  A state written with other data or
+settings is refused with :class:`~jaxsync.errors.CheckpointError`.
 
 Replicas: parts have different shared-dof counts, so inputs, outputs and parameters are
 zero-padded to the largest count and a dof mask (1 real, 0 padding) is applied to the
@@ -13,7 +33,8 @@ them at their (zero) initial value: each replica trains as it would alone (equal
 float32 round-off, since XLA may order the sums of batched products differently).  The
 per-epoch function is ``jax.vmap``-ed over the part axis (and, with several local devices,
 ``jax.shard_map``-ed so each device trains its own parts), and ``epochs_per_call`` epochs
-run in one ``jax.lax.scan`` inside ``jax.jit``; Python only updates the progress bar.
+run in one ``jax.lax.scan`` inside ``jax.jit``; Python only updates the progress bar and
+writes checkpoints.
 
 Reproducibility: the PRNG key is split into an initialization key (replica ``r`` uses
 ``fold_in(init_key, r)``) and a shuffling key (epoch ``e`` uses ``fold_in(shuffle_key, e)``,
@@ -24,7 +45,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
+import json
 import math
+import os
 import time
 from typing import Any
 
@@ -36,7 +60,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
-from jaxsync.errors import ConfigError
+from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate.data import ReplicaData, padding_mask
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward, init_params
 
@@ -56,21 +80,28 @@ def n_epoch_rule(eta0: float, gamma: float, eta_min: float) -> int:
 class TrainConfig:
     """Optimization settings (static under jit).
 
+    The defaults are the laptop schedule that ``jaxsync train`` and ``jaxsync demo`` use;
+    the paper's is ``TrainConfig(eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None)``.
+
     Attributes:
         batch_size: n_B, windows per mini-batch.
         eta0: initial learning rate.
         gamma: per-epoch decay factor of the learning rate.
-        eta_min: final learning rate of the n_epoch rule.
-        n_epochs: number of epochs; None applies :func:`n_epoch_rule`.
+        eta_min: final learning rate of the paper's epoch rule (used when n_epochs is None).
+        n_epochs: largest number of epochs; None applies the paper's
+            :func:`n_epoch_rule` floor(log_gamma(eta_min / eta0)).
         epochs_per_call: epochs run inside one compiled call (between progress updates).
+        patience: stop when no replica's validation loss has improved for this many
+            epochs; None never stops early.  The best parameters are returned either way.
     """
 
     batch_size: int = 5
-    eta0: float = 5e-4
-    gamma: float = 0.9995
+    eta0: float = 2e-3
+    gamma: float = 0.995
     eta_min: float = 5e-7
-    n_epochs: int | None = None
+    n_epochs: int | None = 300
     epochs_per_call: int = 10
+    patience: int | None = 100
 
     def __post_init__(self):
         if self.batch_size < 1:
@@ -81,6 +112,8 @@ class TrainConfig:
             raise ConfigError(f"n_epochs must be >= 1 or None (paper rule), got {self.n_epochs}")
         if self.epochs_per_call < 1:
             raise ConfigError(f"epochs_per_call must be >= 1, got {self.epochs_per_call}")
+        if self.patience is not None and (isinstance(self.patience, bool) or self.patience < 1):
+            raise ConfigError(f"patience must be >= 1 epoch or None (no early stopping), got {self.patience}")
         if self.n_epochs is None:
             n_epoch_rule(self.eta0, self.gamma, self.eta_min)  # validates gamma, eta_min
         elif not 0.0 < self.gamma <= 1.0:
@@ -88,7 +121,7 @@ class TrainConfig:
 
     @property
     def resolved_epochs(self) -> int:
-        """Epoch count actually run."""
+        """Largest epoch count (early stopping may end sooner)."""
         if self.n_epochs is not None:
             return int(self.n_epochs)
         return n_epoch_rule(self.eta0, self.gamma, self.eta_min)
@@ -102,18 +135,24 @@ class TrainResult:
     """Trained replicas and their loss history.
 
     Attributes:
-        params: stacked, padded parameters (leading part axis), numpy arrays.
+        params: stacked, padded parameters (leading part axis), numpy arrays: each
+            replica's parameters of its best epoch (lowest validation loss).
         arch: architecture (n_dof is the padded width).
         config: the training configuration.
         dof_counts: real dofs per part.
         mean, std: (n_parts, n_dof) normalization of each part.
-        train_loss: (n_epochs, n_parts) mean training MSE of each epoch (normalized units).
-        val_loss: (n_epochs, n_parts) validation MSE after each epoch.
+        train_loss: (n_epochs_run, n_parts) mean training MSE of each epoch (normalized units).
+        val_loss: (n_epochs_run, n_parts) validation MSE after each epoch.
         initial_val_loss: (n_parts,) validation MSE of the initial parameters.
-        seconds_per_epoch: wall time per epoch, compilation excluded.
+        seconds_per_epoch: wall time per epoch, compilation excluded (over every session
+            of a resumed run).
         compile_seconds: wall time spent compiling the epoch loop in this call (0 when
             an earlier call with the same settings compiled it).
         steps_per_epoch: gradient steps per epoch.
+        best_epoch: (n_parts,) epoch (1-based) whose parameters each replica returns.
+        stopped_epoch: epochs run when early stopping ended the training, None when it
+            ran all ``config.resolved_epochs``.
+        resumed_from: epochs restored from a training checkpoint (0: a fresh start).
     """
 
     params: Params
@@ -128,10 +167,24 @@ class TrainResult:
     seconds_per_epoch: float
     compile_seconds: float
     steps_per_epoch: int
+    best_epoch: np.ndarray | None = None
+    stopped_epoch: int | None = None
+    resumed_from: int = 0
 
     @property
     def dof_mask(self) -> np.ndarray:
         return padding_mask(self.dof_counts, self.arch.n_dof)
+
+    @property
+    def n_epochs_run(self) -> int:
+        return int(self.train_loss.shape[0])
+
+    @property
+    def best_val_loss(self) -> np.ndarray:
+        """(n_parts,) validation MSE of the returned parameters."""
+        if self.best_epoch is None:
+            return self.val_loss[-1]
+        return self.val_loss[np.asarray(self.best_epoch) - 1, np.arange(self.val_loss.shape[1])]
 
 
 # ----------------------------------------------------------------------------- params
@@ -238,9 +291,20 @@ def _parts_mesh(n_parts: int, devices: int | None) -> Mesh | None:
     return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("parts",))
 
 
+def _runner_config(config: TrainConfig) -> TrainConfig:
+    """The part of ``config`` the compiled program depends on (the cache key of the runner)."""
+    return TrainConfig(batch_size=config.batch_size, eta0=config.eta0, gamma=config.gamma,
+                       n_epochs=1, patience=None)
+
+
 @functools.lru_cache(maxsize=16)
 def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mesh: Mesh | None):
-    """Compiled function running a chunk of epochs for all replicas (split over ``mesh``)."""
+    """Compiled function running a chunk of epochs for all replicas (split over ``mesh``).
+
+    The chunk carries ``(params, opt_state, best_params, best_val, best_epoch)``; an epoch
+    whose index ``e`` (epochs done before it) has ``e - best_epoch >= patience`` for every
+    replica is skipped (early stop, ``patience > 0``) and reported as not run.
+    """
     batch = config.batch_size
     steps = -(-n_train // batch)
     optimizer = make_optimizer(config, steps)
@@ -270,21 +334,156 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         all_replicas = jax.shard_map(all_replicas, mesh=mesh, in_specs=(P("parts"),) * 9 + (P(),),
                                      out_specs=P("parts"))
 
-    def run_chunk(params, opt_state, data, shuffle_key, epochs):
-        def body(carry, epoch):
-            params, opt_state = carry
+    def run_chunk(state, data, shuffle_key, epochs, patience):
+        def run_epoch(carry, epoch):
+            params, opt_state, best_params, best_val, best_epoch = carry
             params, opt_state, train, val = all_replicas(
                 params, opt_state, *data, jax.random.fold_in(shuffle_key, epoch)
             )
-            return (params, opt_state), (train, val)
+            better = val < best_val
 
-        (params, opt_state), (train, val) = jax.lax.scan(body, (params, opt_state), epochs)
-        return params, opt_state, train, val
+            def keep(new, old):
+                return jnp.where(better.reshape(better.shape + (1,) * (new.ndim - 1)), new, old)
+
+            best_params = jax.tree_util.tree_map(keep, params, best_params)
+            best_val = jnp.where(better, val, best_val)
+            best_epoch = jnp.where(better, epoch + 1, best_epoch)
+            return (params, opt_state, best_params, best_val, best_epoch), (train, val, jnp.bool_(True))
+
+        def skip_epoch(carry, epoch):
+            nan = jnp.full_like(carry[3], jnp.nan)
+            return carry, (nan, nan, jnp.bool_(False))
+
+        def body(carry, epoch):
+            stop = (patience > 0) & jnp.all(epoch - carry[4] >= patience)
+            return jax.lax.cond(stop, skip_epoch, run_epoch, carry, epoch)
+
+        state, (train, val, ran) = jax.lax.scan(body, state, epochs)
+        return state, train, val, ran
 
     val_loss = jax.jit(jax.vmap(
         lambda p, xv, yv, cv, m: masked_mse(p, arch, xv, yv, cv, jnp.ones(xv.shape[0], jnp.float32), m)
     ))
     return optimizer, steps, jax.jit(run_chunk), val_loss, {}
+
+
+# ----------------------------------------------------------------------------- training state
+
+_STATE_KIND = "jaxsync-training-state"
+_STATE_VERSION = 1
+
+
+def _digest(arrays) -> str:
+    """sha256 over a sequence of arrays (dtype, shape and bytes of each)."""
+    digest = hashlib.sha256()
+    for array in arrays:
+        array = np.ascontiguousarray(np.asarray(array))
+        digest.update(array.dtype.str.encode())
+        digest.update(repr(array.shape).encode())
+        digest.update(array.tobytes())
+    return digest.hexdigest()
+
+
+def training_fingerprint(data: ReplicaData, arch: LSTMArchitecture, config: TrainConfig, key: jax.Array,
+                         init: Params | None = None, checkpoint_every: int | None = None) -> dict[str, Any]:
+    """Everything that determines a training run, as a JSON-serializable dict.
+
+    A training checkpoint is resumed only by a run with the same fingerprint: same
+    windows and normalization (hashed), architecture, configuration, key, initial
+    parameters and checkpoint interval (which sets where the compiled chunks end).
+    """
+    return {
+        "data_sha256": _digest([data.x_train, data.y_train, data.cond_train, data.x_val, data.y_val,
+                                data.cond_val, data.dof_mask, data.mean, data.std]),
+        "architecture": arch.to_dict(),
+        "config": config.to_dict(),
+        "key": np.asarray(jax.random.key_data(key)).ravel().tolist(),
+        "init_sha256": None if init is None else _digest(jax.tree_util.tree_leaves(init)),
+        "checkpoint_every": checkpoint_every,
+    }
+
+
+def _fingerprint_differences(stored: dict, current: dict) -> list[str]:
+    out = []
+    for name in sorted(set(stored) | set(current)):
+        a, b = stored.get(name), current.get(name)
+        if a == b:
+            continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += [f"{name}.{k}: {a.get(k)!r} there, {b.get(k)!r} here"
+                    for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
+        elif name.endswith("sha256"):
+            out.append(f"{name[:-len('_sha256')]} differ")
+        else:
+            out.append(f"{name}: {a!r} there, {b!r} here")
+    return out
+
+
+def _state_checksum(arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
+    names = sorted(arrays)
+    digest = hashlib.sha256(_digest([arrays[n] for n in names]).encode())
+    digest.update(json.dumps({"names": names, **attrs}, sort_keys=True).encode())
+    return digest.hexdigest()
+
+
+def _save_training_state(path, fingerprint: dict, state, history: dict[str, np.ndarray],
+                         info: dict[str, Any]) -> None:
+    """Write the training state atomically (HDF5): the chunk carry as flat leaves, the
+    loss history and the bookkeeping in ``info`` (epochs done, stopped, timings)."""
+    from jaxsync.trajectory import atomic_h5
+
+    arrays = {f"state/{i:04d}": np.asarray(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(state))}
+    arrays.update({f"history/{k}": np.asarray(v) for k, v in history.items()})
+    attrs = {"kind": _STATE_KIND, "version": _STATE_VERSION, "fingerprint": json.dumps(fingerprint, sort_keys=True),
+             "info": json.dumps(info, sort_keys=True)}
+    with atomic_h5(path) as f:
+        for name, value in attrs.items():
+            f.attrs[name] = value
+        f.attrs["checksum"] = _state_checksum(arrays, attrs)
+        for name, array in arrays.items():
+            f[name] = array
+
+
+def _load_training_state(path, fingerprint: dict, template):
+    """Read a state written by :func:`_save_training_state` for a run with ``fingerprint``;
+    ``template`` is the chunk carry of this run (tree structure, shapes and dtypes)."""
+    import h5py
+
+    fix = "delete it to start over, or write to another output folder"
+    try:
+        with h5py.File(path, "r") as f:
+            attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items() if k != "checksum"}
+            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in attrs.items()}
+            stored_sum = f.attrs.get("checksum")
+            arrays = {}
+            f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
+    except Exception as exc:
+        raise CheckpointError(f"cannot read training checkpoint {path} ({exc}); {fix}") from exc
+    if attrs.get("kind") != _STATE_KIND:
+        raise CheckpointError(f"{path} is not a jaxsync training checkpoint; {fix}")
+    if int(attrs.get("version", -1)) != _STATE_VERSION:
+        raise CheckpointError(f"training checkpoint {path} has version {attrs.get('version')}, this jaxsync "
+                              f"reads {_STATE_VERSION}; {fix}")
+    if stored_sum is None or str(stored_sum.decode() if isinstance(stored_sum, bytes) else stored_sum) != \
+            _state_checksum(arrays, attrs):
+        raise CheckpointError(f"training checkpoint {path} fails its checksum (damaged or altered); {fix}")
+    stored = json.loads(attrs["fingerprint"])
+    if stored != fingerprint:
+        diffs = "; ".join(_fingerprint_differences(stored, fingerprint))
+        raise CheckpointError(
+            f"training checkpoint {path} was written by a run with other data or settings ({diffs}); "
+            f"rerun with the same arguments to resume, or {fix}"
+        )
+    leaves, treedef = jax.tree_util.tree_flatten(template)
+    loaded = [arrays.get(f"state/{i:04d}") for i in range(len(leaves))]
+    for i, (a, b) in enumerate(zip(loaded, leaves)):
+        if a is None or a.shape != b.shape or a.dtype != b.dtype:
+            raise CheckpointError(f"training checkpoint {path}: state array {i} does not fit this run; {fix}")
+    history = {k[len("history/"):]: v for k, v in arrays.items() if k.startswith("history/")}
+    return jax.tree_util.tree_unflatten(treedef, loaded), history, json.loads(attrs["info"])
+
+
+# ----------------------------------------------------------------------------- training
 
 
 def train_replicas(
@@ -296,6 +495,8 @@ def train_replicas(
     progress: bool = True,
     description: str = "training",
     devices: int | None = None,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int | None = 50,
 ) -> TrainResult:
     """Train one replica per part, all together.
 
@@ -310,6 +511,14 @@ def train_replicas(
         devices: local devices to spread the parts over (default: as many as divide the
             number of parts); 1 keeps everything on one device.  The result does not
             depend on it beyond float32 round-off.
+        checkpoint: HDF5 path of a resumable training state (None: none).  If the file
+            exists it must come from a run with the same data, architecture, config, key,
+            init and ``checkpoint_every`` (else :class:`CheckpointError`), and training
+            continues from it.  It is rewritten atomically every ``checkpoint_every``
+            epochs and at the end; delete it once the results are saved.
+        checkpoint_every: epochs between training checkpoints (None or 0: only at the
+            end).  Compiled chunks also end at its multiples, so a multiple of
+            ``config.epochs_per_call`` avoids compiling a second chunk length.
 
     Returns:
         A :class:`TrainResult`.
@@ -321,6 +530,10 @@ def train_replicas(
             f"windows are {data.x_train.shape[2]} -> {data.y_train.shape[2]} snapshots but the architecture "
             f"expects n_past={arch.n_past}, n_future={arch.n_future}"
         )
+    if checkpoint_every is not None and (isinstance(checkpoint_every, bool) or checkpoint_every < 0):
+        raise ConfigError(f"checkpoint_every must be >= 0 epochs (0 or None: only at the end), got {checkpoint_every}")
+    every = int(checkpoint_every or 0)
+    fingerprint = training_fingerprint(data, arch, config, key, init, every) if checkpoint is not None else None
     init_key, shuffle_key = jax.random.split(key)
     dtype = jnp.dtype(arch.dtype)
     if init is None:
@@ -336,14 +549,34 @@ def train_replicas(
             )
     n_train = data.x_train.shape[1]
     mesh = _parts_mesh(data.n_parts, devices)
-    optimizer, steps, run_chunk, val_loss_fn, executables = _epoch_runner(arch, config, n_train, mesh)
+    optimizer, steps, run_chunk, val_loss_fn, executables = _epoch_runner(
+        arch, _runner_config(config), n_train, mesh)
     opt_state = jax.vmap(optimizer.init)(params)
+    state = (params, opt_state, params, jnp.full(data.n_parts, jnp.inf, dtype),
+             jnp.zeros(data.n_parts, jnp.int32))
     arrays = tuple(jnp.asarray(a, dtype) for a in (
         data.x_train, data.y_train, data.cond_train, data.x_val, data.y_val, data.cond_val, data.dof_mask
     ))
+
+    n_epochs = config.resolved_epochs
+    train_hist = np.zeros((0, data.n_parts), dtype)
+    val_hist = np.zeros((0, data.n_parts), dtype)
+    initial_val = None
+    info = {"epochs_done": 0, "stopped": False, "train_seconds": 0.0, "epochs_timed": 0}
+    if checkpoint is not None and os.path.exists(checkpoint):
+        state, history, info = _load_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state))
+        train_hist, val_hist, initial_val = history["train_loss"], history["val_loss"], history["initial_val_loss"]
+        if train_hist.shape != (info["epochs_done"], data.n_parts):
+            raise CheckpointError(f"training checkpoint {checkpoint} holds an inconsistent loss history; "
+                                  "delete it to start over")
+    resumed_from = int(info["epochs_done"])
     if mesh is not None:
-        params, opt_state, arrays = jax.device_put((params, opt_state, arrays), NamedSharding(mesh, P("parts")))
-    initial_val = np.asarray(val_loss_fn(params, *arrays[3:7]))
+        state, arrays = jax.device_put((state, arrays), NamedSharding(mesh, P("parts")))
+    else:
+        state = jax.tree_util.tree_map(jnp.asarray, state)
+    if initial_val is None:
+        initial_val = np.asarray(val_loss_fn(state[0], *arrays[3:7]))
+    patience = jnp.int32(config.patience or 0)
 
     def executable(chunk):
         # Compiled ahead of time (and kept with the cached runner) so that compilation is
@@ -351,46 +584,66 @@ def train_replicas(
         signature = (chunk,) + tuple(a.shape for a in arrays)
         if signature not in executables:
             epochs = jax.ShapeDtypeStruct((chunk,), jnp.int32)
-            executables[signature] = run_chunk.lower(params, opt_state, arrays, shuffle_key, epochs).compile()
+            executables[signature] = run_chunk.lower(state, arrays, shuffle_key, epochs, patience).compile()
         return executables[signature]
 
-    n_epochs = config.resolved_epochs
-    train_hist, val_hist = [], []
-    train_seconds, compile_seconds = 0.0, 0.0
-    with tqdm(total=n_epochs, desc=description, disable=not progress, unit="epoch") as bar:
-        done = 0
-        while done < n_epochs:
-            chunk = min(config.epochs_per_call, n_epochs - done)
+    def save():
+        _save_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state),
+                             {"train_loss": train_hist, "val_loss": val_hist, "initial_val_loss": initial_val},
+                             info)
+
+    def next_boundary(done, step):
+        return (done // step + 1) * step
+
+    compile_seconds = 0.0
+    done = int(info["epochs_done"])
+    with tqdm(total=n_epochs, initial=done, desc=description, disable=not progress, unit="epoch") as bar:
+        while done < n_epochs and not info["stopped"]:
+            # Chunks end at multiples of epochs_per_call and checkpoint_every: fixed epochs,
+            # so a resumed run compiles and runs the same chunks as an uninterrupted one.
+            end = min(next_boundary(done, config.epochs_per_call), n_epochs)
+            if every:
+                end = min(end, next_boundary(done, every))
+            chunk = end - done
             start = time.perf_counter()
             run = executable(chunk)
             compiled = time.perf_counter()
-            params, opt_state, train, val = run(
-                params, opt_state, arrays, shuffle_key, jnp.arange(done, done + chunk, dtype=jnp.int32)
-            )
-            train, val = np.asarray(train), np.asarray(val)  # waits for the chunk
+            state, train, val, ran = run(state, arrays, shuffle_key, jnp.arange(done, end, dtype=jnp.int32), patience)
+            train, val, ran = np.asarray(train), np.asarray(val), np.asarray(ran)  # waits for the chunk
             compile_seconds += compiled - start
-            train_seconds += time.perf_counter() - compiled
-            if not np.all(np.isfinite(train)):
+            n_ran = int(ran.sum())
+            info["train_seconds"] += time.perf_counter() - compiled
+            info["epochs_timed"] += n_ran
+            if not np.all(np.isfinite(train[:n_ran])):
                 raise ConfigError(
                     f"training diverged (non-finite loss) by epoch {done + chunk}; lower eta0 (now {config.eta0})"
                 )
-            train_hist.append(train)
-            val_hist.append(val)
-            done += chunk
-            bar.update(chunk)
-            bar.set_postfix(train=f"{train[-1].max():.3e}", val=f"{val[-1].max():.3e}")
+            train_hist = np.concatenate([train_hist, train[:n_ran]])
+            val_hist = np.concatenate([val_hist, val[:n_ran]])
+            done += n_ran
+            info["epochs_done"] = done
+            info["stopped"] = n_ran < chunk
+            bar.update(n_ran)
+            if n_ran:
+                bar.set_postfix(train=f"{train[n_ran - 1].max():.3e}", val=f"{val[n_ran - 1].max():.3e}")
+            if checkpoint is not None and (info["stopped"] or done == n_epochs or (every and done % every == 0)):
+                save()
 
+    best_epoch = np.asarray(state[4])
     return TrainResult(
-        params=jax.tree_util.tree_map(np.asarray, params),
+        params=jax.tree_util.tree_map(np.asarray, state[2]),
         arch=arch,
         config=config,
         dof_counts=tuple(data.dof_counts),
         mean=np.asarray(data.mean),
         std=np.asarray(data.std),
-        train_loss=np.concatenate(train_hist),
-        val_loss=np.concatenate(val_hist),
-        initial_val_loss=initial_val,
-        seconds_per_epoch=train_seconds / n_epochs,
+        train_loss=train_hist,
+        val_loss=val_hist,
+        initial_val_loss=np.asarray(initial_val),
+        seconds_per_epoch=info["train_seconds"] / max(info["epochs_timed"], 1),
         compile_seconds=compile_seconds,
         steps_per_epoch=int(steps),
+        best_epoch=best_epoch,
+        stopped_epoch=done if info["stopped"] else None,
+        resumed_from=resumed_from,
     )

@@ -1,0 +1,58 @@
+"""Which devices a run uses, and giving each part its own emulated CPU device.
+
+On a CPU-only machine JAX shows ONE device unless told otherwise before it starts, so a
+2-part run would put both parts on one device: no synchronization is then measured
+(0 us/step) and every speed figure is meaningless. The command line therefore asks for
+one emulated CPU device per part (:func:`request_cpu_devices`) before JAX initializes,
+unless the user chose a count (``XLA_FLAGS=--xla_force_host_platform_device_count=N``,
+``JAX_NUM_CPU_DEVICES``) or another platform. From Python, call it right after
+``import jax`` (or set the flag). Every table, summary and JSON states the devices it
+ran on (:func:`device_summary`).
+"""
+
+from __future__ import annotations
+
+import os
+
+__all__ = ["request_cpu_devices", "device_summary", "user_chose_devices"]
+
+
+def user_chose_devices(environ=None) -> bool:
+    """True when the environment already fixes the CPU device count or the platform."""
+    env = os.environ if environ is None else environ
+    if "xla_force_host_platform_device_count" in env.get("XLA_FLAGS", ""):
+        return True
+    if env.get("JAX_NUM_CPU_DEVICES"):
+        return True
+    platforms = env.get("JAX_PLATFORMS", "").strip().lower()
+    return bool(platforms) and platforms != "cpu"
+
+
+def request_cpu_devices(n: int) -> bool:
+    """Ask JAX for ``n`` emulated CPU devices (one per part) before it initializes.
+
+    Returns True when the request was made; False when the user chose the devices (see
+    :func:`user_chose_devices`), or JAX is already running (then the devices it has are
+    used, and the run's statistics say how many). Harmless on machines with GPUs: the CPU
+    devices are only the fallback there."""
+    import jax
+    from jax._src import xla_bridge
+
+    n = int(n)
+    if n < 2 or user_chose_devices() or xla_bridge.backends_are_initialized():
+        return False
+    jax.config.update("jax_num_cpu_devices", n)
+    return True
+
+
+def device_summary(devices=None) -> dict:
+    """{"n_devices", "device_kind", "platform", "emulated"} of ``devices`` (default: all
+    of JAX's devices); ``emulated`` is True for several CPU devices in one process (they
+    share the machine's cores and memory)."""
+    import jax
+
+    devices = list(jax.devices() if devices is None else devices)
+    platform = devices[0].platform if devices else "none"
+    return {"n_devices": len(devices), "device_kind": devices[0].device_kind if devices else "none",
+            "platform": platform,
+            "emulated": bool(platform == "cpu" and len(devices) > 1 and jax.process_count() == 1)}
