@@ -12,7 +12,6 @@ non-zero status (the error is printed with its rank) instead of leaving the othe
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time

@@ -315,21 +315,26 @@ def _triangle_sets(raw, tri_blocks) -> dict[str, np.ndarray]:
             names_by_tag[int(value[0])] = name
     sets: dict[str, list[np.ndarray]] = {}
     tagged_any = False
-    physical = raw.cell_data.get("gmsh:physical")
-    for i, tri in tri_blocks:
-        if physical is not None and len(physical[i]) == len(tri):
-            tagged_any = True
-            for tag in np.unique(physical[i]):
-                name = names_by_tag.get(int(tag), f"tag{int(tag)}")
-                sets.setdefault(name, []).append(tri[physical[i] == tag])
+    # cell sets first: meshio lists every member of each physical group there, while
+    # "gmsh:physical" keeps only an element's FIRST tag, so a surface in two groups
+    # would be missing from the second one
     for name, per_block in (raw.cell_sets or {}).items():
-        if name.startswith("gmsh:") or name in sets:
+        if name.startswith("gmsh:"):
             continue
         for i, tri in tri_blocks:
             idx = per_block[i] if i < len(per_block) else None
             if idx is not None and len(idx):
                 tagged_any = True
                 sets.setdefault(name, []).append(tri[np.asarray(idx)])
+    physical = raw.cell_data.get("gmsh:physical")
+    for i, tri in tri_blocks:
+        if physical is not None and len(physical[i]) == len(tri):
+            for tag in np.unique(physical[i]):
+                name = names_by_tag.get(int(tag), f"tag{int(tag)}")
+                if name in (raw.cell_sets or {}):
+                    continue  # complete in the cell sets
+                tagged_any = True
+                sets.setdefault(name, []).append(tri[physical[i] == tag])
     if not tagged_any:
         sets["boundary"] = [tri for _, tri in tri_blocks]
     return {k: np.concatenate(v, axis=0) for k, v in sets.items()}

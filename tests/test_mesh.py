@@ -269,3 +269,37 @@ def test_keyboard_interrupt_while_reading_is_not_swallowed(tmp_path, monkeypatch
     path.write_text("x")
     with pytest.raises(KeyboardInterrupt):
         jaxsync.read_mesh(path)
+
+
+def test_a_surface_in_two_physical_groups_is_in_both_facet_sets(tmp_path):
+    """meshio keeps only an element's first physical tag in gmsh:physical; the facet sets
+    come from the complete physical groups."""
+    import gmsh
+
+    path = tmp_path / "box.msh"
+    gmsh.initialize()
+    try:
+        gmsh.option.setNumber("General.Terminal", 0)
+        gmsh.model.add("box")
+        gmsh.model.occ.addBox(0, 0, 0, 2, 1, 1)
+        gmsh.model.occ.synchronize()
+        surfaces = [tag for _, tag in gmsh.model.getEntities(2)]
+        left = [s for s in surfaces
+                if abs(gmsh.model.occ.getCenterOfMass(2, s)[0]) < 1e-9]
+        right = [s for s in surfaces
+                 if abs(gmsh.model.occ.getCenterOfMass(2, s)[0] - 2) < 1e-9]
+        gmsh.model.addPhysicalGroup(2, left, name="left")
+        gmsh.model.addPhysicalGroup(2, left + right, name="ends")
+        gmsh.model.addPhysicalGroup(3, [1], name="solid")
+        gmsh.option.setNumber("Mesh.MeshSizeMax", 0.4)
+        gmsh.model.mesh.generate(3)
+        gmsh.write(str(path))
+    finally:
+        gmsh.finalize()
+    mesh = jaxsync.read_mesh(path)
+    ends = mesh.facet_nodes("ends")
+    left_nodes = mesh.facet_nodes("left")
+    x = mesh.points[:, 0]
+    assert np.all(x[left_nodes] == 0.0)
+    assert set(np.flatnonzero(np.isclose(x, 0.0))) == set(left_nodes)
+    assert set(np.flatnonzero(np.isclose(x, 0.0) | np.isclose(x, 2.0))) == set(ends)

@@ -20,7 +20,6 @@ failed write never clobbers an existing good checkpoint.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import os
 from collections.abc import Sequence
@@ -103,16 +102,9 @@ def _param_paths(arch: LSTMArchitecture):
 
 
 def _checksum(datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
-    digest = hashlib.sha256()
-    for name in sorted(datasets):
-        array = np.ascontiguousarray(datasets[name])
-        digest.update(name.encode())
-        digest.update(array.dtype.str.encode())
-        digest.update(repr(array.shape).encode())
-        digest.update(array.tobytes())
-    meta = {k: v for k, v in attrs.items() if k != _CHECKSUM_ATTR}
-    digest.update(json.dumps(meta, sort_keys=True).encode())
-    return digest.hexdigest()
+    from jaxsync.trajectory import array_checksum
+
+    return array_checksum(datasets, {k: v for k, v in attrs.items() if k != _CHECKSUM_ATTR})
 
 
 def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
