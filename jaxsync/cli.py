@@ -144,18 +144,9 @@ def _run_predict(args) -> int:
                                     save_every=args.save_every or reference.save_every,
                                     cond=args.cond, progress=not args.no_progress,
                                     resync_tolerance=args.resync_tolerance)
-    online.save(args.output, compression=None if args.compression == "none" else args.compression)
+    online.save(args.output, compression=_compression(args))
     print(describe_run(online) + f"; wrote {args.output}")
     return 0
-
-
-def _json_value(value):
-    """A statistics value as JSON can hold it (numpy scalars and arrays to Python)."""
-    import numpy as np
-
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    return value.item() if isinstance(value, np.generic) else value
 
 
 def _add_report(subparsers) -> None:
@@ -209,8 +200,7 @@ def _run_report(args) -> int:
     fixed = constrained_nodes(args.config, online.mesh, reference.displacement)
     summary = write_report(reference, online, partition_of(online), args.out,
                            component=args.component, fixed_nodes=fixed, nodes=args.node,
-                           extra={"online_statistics": {k: _json_value(v)
-                                                        for k, v in online.statistics.items()}})
+                           extra={"online_statistics": dict(online.statistics)})
     for line in summary["node_notes"]:
         print(f"note: {line}")
     if online.statistics:
@@ -456,7 +446,7 @@ def _run_simulate(args) -> int:
     if run.added_mass_percent is not None:
         trajectory = dataclasses.replace(trajectory, parameters={
             **trajectory.parameters, "added_mass_percent": float(run.added_mass_percent)})
-    trajectory.save(output, compression=None if args.compression == "none" else args.compression)
+    trajectory.save(output, compression=_compression(args))
     st = trajectory.statistics
     speed = (f"{st['us_per_step']:.1f} us/step, compilation {st['compile_seconds']:.2f} s not included"
              if "us_per_step" in st else "no steps run")
@@ -511,6 +501,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _compression(args) -> str | None:
+    """``--compression`` as :meth:`jaxsync.Trajectory.save` takes it."""
+    return None if args.compression == "none" else args.compression
+
+
 def _parts_of(args) -> int:
     """How many parts the command runs (0: none), read without starting JAX."""
     command = getattr(args, "command", None)
@@ -530,13 +525,6 @@ def _parts_of(args) -> int:
     return 0
 
 
-def _request_devices(args) -> None:
-    """One emulated CPU device per part, before JAX starts (unless the user chose)."""
-    from .devices import request_cpu_devices
-
-    request_cpu_devices(_parts_of(args))
-
-
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxsync`` console script."""
     from .errors import JaxsyncError
@@ -553,7 +541,9 @@ def main(argv: list[str] | None = None) -> int:
             initialize()
             _enable_x64()
             return int(args.func(args) or 0)
-    _request_devices(args)
+    from .devices import request_cpu_devices
+
+    request_cpu_devices(_parts_of(args))  # one emulated CPU device per part, before JAX starts
     _enable_x64()
     try:
         return int(args.func(args) or 0)

@@ -21,6 +21,7 @@ materials).
 from __future__ import annotations
 
 import functools
+import time
 from typing import Any
 
 import jax
@@ -35,7 +36,7 @@ from .errors import ConfigError, PartitionError, ProblemError
 from .partition import Partition, partition as make_partition, partition_from_elements
 from .pytree import pytree_dataclass, static_field
 from .element_force import MODES, ElementStiffness
-from .solver import ExplicitSystem, SolverState, advance
+from .stepper import ExplicitSystem, SolverState, advance
 from .sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 
 __all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "synchronize_forces",
@@ -373,8 +374,6 @@ class DistributedRunner:
     def compile(self, state, n_saves: int) -> float:
         """Compile the program for chunks of ``n_saves`` snapshots ahead of time (so that
         chunk timings exclude it); returns the seconds spent (0 when already compiled)."""
-        import time
-
         if isinstance(self._compiled(n_saves), jax.stages.Compiled):
             return 0.0
         start = time.perf_counter()

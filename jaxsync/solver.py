@@ -1,17 +1,10 @@
-"""Single-device explicit solver: central differences with lumped mass (paper eq. 7).
+"""Explicit solver driver: single-device and distributed runs in compiled chunks.
 
-With lumped mass M and C = alpha M the update is, per dof,
-
-    d(n+1) = [dt^2 (f(t_n) - K d(n)) / m + 2 d(n) - (1 - alpha dt / 2) d(n-1)]
-             / (1 + alpha dt / 2),
-
-with Dirichlet values imposed after every update. ``f`` is evaluated at the time of the
-current displacement d(n), as in the paper's published code. The start follows the
-paper: a0 from the consistent-mass system, d(-1) = d0 - dt v0 + dt^2/2 a0.
-
-State is explicit (:class:`SolverState`); :func:`step` is a pure function; the driver
-:func:`simulate` runs it in compiled ``lax.scan`` chunks, saves every ``save_every``
-steps, shows progress, checks for divergence and checkpoints between chunks.
+The numerics (central differences with lumped mass, paper eq. 7; the paper's start) are
+the pure stepper of :mod:`jaxsync.stepper`. Here the driver :func:`simulate` runs it in
+compiled ``lax.scan`` chunks (on one device, or over parts through
+:mod:`jaxsync.distributed`), saves every ``save_every`` steps, shows progress, checks for
+divergence and checkpoints between chunks; :func:`steady_state` solves the static problem.
 """
 
 from __future__ import annotations
@@ -21,209 +14,19 @@ import hashlib
 import math
 import os
 import time
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from .errors import CheckpointError, ProblemError, StabilityError
-from .pytree import is_traced, pytree_dataclass, static_field
-from .sparse import BlockEll
+from .pytree import is_traced
+from .stepper import (ExplicitSystem, SolverState, advance, apply_dirichlet,  # noqa: F401
+                      build_system, central_difference, external_force, initial_state, step)
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
            "central_difference", "apply_dirichlet", "external_force", "advance",
            "simulate", "steady_state"]
-
-
-@pytree_dataclass
-class ExplicitSystem:
-    """Everything one explicit step needs, as JAX arrays (a pytree).
-
-    Attributes:
-        stiffness: K in node-blocked ELL form [dyn/cm].
-        mass: (n_nodes, 3) lumped mass per dof [g].
-        damping: alpha [1/s].
-        dt: time step [s].
-        load_vectors: (n_loads, n_nodes, 3) full-magnitude nodal loads [dyn].
-        load_times: tuple of time functions g_l(t), one per load.
-        fixed: (n_nodes, 3) bool, True on prescribed dofs.
-        fixed_values: (n_nodes, 3) prescribed values there [cm] (zero elsewhere).
-    """
-
-    stiffness: BlockEll
-    mass: Any
-    damping: Any
-    dt: Any
-    load_vectors: Any
-    load_times: tuple
-    fixed: Any
-    fixed_values: Any
-
-
-@pytree_dataclass
-class SolverState:
-    """State of the two-step scheme.
-
-    Attributes:
-        displacement: (n_nodes, 3) d(n) [cm].
-        previous: (n_nodes, 3) d(n-1) [cm].
-        step: n (int); the time is n * dt.
-    """
-
-    displacement: Any
-    previous: Any
-    step: Any
-
-
-def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
-    """Assemble the JAX-side system of ``problem`` for time step ``dt`` [s].
-
-    ``mode`` selects the internal force: ``"preassembled"`` (K stored in node-blocked
-    ELL form) or ``"recompute"`` (element quantities formed every step, paper Remark 2).
-    Traceable in the material, damping, load magnitudes and dt (differentiable)."""
-    from .element_force import MODES, ElementStiffness
-
-    if mode not in MODES:
-        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
-    m = problem.material
-    if mode == "preassembled":
-        adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
-        stiffness = BlockEll(jnp.asarray(adjacency),
-                             m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu))
-    else:
-        mesh = problem.mesh
-        stiffness = ElementStiffness(jnp.asarray(mesh.points), jnp.asarray(mesh.tets, dtype=jnp.int32),
-                                     jnp.ones(mesh.n_elements), m.lam, m.mu)
-    mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
-    vectors, times = problem.load_vectors()
-    n = problem.mesh.n_nodes
-    load_vectors = jnp.stack(vectors) if vectors else jnp.zeros((0, n, 3))
-    fixed, fixed_values = dirichlet_arrays(problem)
-    return ExplicitSystem(
-        stiffness=stiffness, mass=mass,
-        damping=jnp.asarray(problem.damping, dtype=float), dt=jnp.asarray(dt, dtype=float),
-        load_vectors=load_vectors, load_times=tuple(times),
-        fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values))
-
-
-def dirichlet_arrays(problem) -> tuple[np.ndarray, np.ndarray]:
-    """(mask (n_nodes, 3) bool, values (n_nodes, 3)) of the prescribed dofs."""
-    dofs, values = problem.dirichlet_dofs()
-    mask = np.zeros(problem.mesh.n_dofs, dtype=bool)
-    full = np.zeros(problem.mesh.n_dofs)
-    mask[dofs], full[dofs] = True, values
-    return mask.reshape(-1, 3), full.reshape(-1, 3)
-
-
-def external_force(system: ExplicitSystem, t):
-    """(n_nodes, 3) external nodal force at time t [dyn]: sum_l g_l(t) F_l."""
-    force = jnp.zeros_like(system.mass)
-    for l, g in enumerate(system.load_times):
-        force = force + g(t) * system.load_vectors[l]
-    return force
-
-
-def central_difference(system: ExplicitSystem, state: SolverState, internal_force):
-    """d(n+1) before Dirichlet values are imposed, given K d(n) = ``internal_force``."""
-    dt = system.dt
-    f = external_force(system, state.step * dt)
-    half_damp = 0.5 * system.damping * dt
-    return (dt * dt * (f - internal_force) / system.mass + 2.0 * state.displacement
-            - (1.0 - half_damp) * state.previous) / (1.0 + half_damp)
-
-
-def apply_dirichlet(system: ExplicitSystem, displacement):
-    """``displacement`` (n_nodes, 3) with the prescribed values written in."""
-    return jnp.where(system.fixed, system.fixed_values, displacement)
-
-
-def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None) -> SolverState:
-    """One central-difference step: (d(n), d(n-1), n) -> (d(n+1), d(n), n + 1).
-
-    ``synchronize``, when given, maps the (partial) internal force K d of a part to the
-    full one (the distributed solver's psum); the single-device solver needs none.
-    ``overwrite``, when given, maps the updated displacement to the one kept before the
-    Dirichlet values are imposed (the synchronization-avoiding solver writes its
-    predicted shared-node displacements there)."""
-    internal = system.stiffness.matvec(state.displacement)
-    if synchronize is not None:
-        internal = synchronize(internal)
-    new = central_difference(system, state, internal)
-    if overwrite is not None:
-        new = overwrite(new)
-    return SolverState(apply_dirichlet(system, new), state.displacement, state.step + 1)
-
-
-def initial_state(problem, system: ExplicitSystem) -> SolverState:
-    """The paper's start: a0 solves M a0 = f(0) - C v0 - K d0 with the CONSISTENT mass
-    (Dirichlet rows and columns replaced by the identity, so a0 = 0 there), then
-    d(-1) = d0 - dt v0 + dt^2 / 2 a0. Solved by conjugate gradients (differentiable)."""
-    from .assembly import consistent_mass
-    from .sparse import block_ell_values
-
-    n = problem.mesh.n_nodes
-    d0 = jnp.zeros((n, 3)) if problem.initial_displacement is None else jnp.asarray(
-        problem.initial_displacement, dtype=float)
-    v0 = jnp.zeros((n, 3)) if problem.initial_velocity is None else jnp.asarray(
-        problem.initial_velocity, dtype=float)
-    d0 = apply_dirichlet(system, d0)
-    free = 1.0 - system.fixed.astype(float)
-    adjacency, _, _, M_1 = problem.operators.block_ell
-    if problem.density_scale is not None:
-        M_1 = block_ell_values(consistent_mass(problem.mesh, problem.density_scale), adjacency)
-    mass = BlockEll(jnp.asarray(adjacency), problem.material.rho * jnp.asarray(M_1))
-    rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - system.stiffness.matvec(d0)
-    rhs = free * rhs
-
-    def operator(x):
-        return free * mass.matvec(free * x) + (1.0 - free) * x
-
-    # The consistent P1 mass is well conditioned: CG converges in a few dozen iterations.
-    a0, _ = jax.scipy.sparse.linalg.cg(operator, rhs, tol=1e-14, maxiter=1000)
-    dt = system.dt
-    previous = apply_dirichlet(system, d0 - dt * v0 + 0.5 * dt * dt * a0)
-    return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32))
-
-
-STEP_UNROLL = 2
-"""Steps per iteration of the compiled time loop. With one step per iteration the carry
-(d(n), d(n-1)) -> (d(n+1), d(n)) hands d(n) to another slot of the loop state, and XLA
-copies the displacement fields (three (n_nodes, 3) copies per step, about 10 % of the
-step's memory traffic); with two steps per iteration both outgoing fields are freshly
-computed and the copies disappear. Results are bit-identical."""
-
-
-def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
-            synchronize=None, record=None):
-    """Run ``n_saves * save_every`` steps; returns (final state, (n_saves, n_nodes, 3)
-    displacements after every ``save_every`` steps). Pure; jit it at the call site.
-
-    ``record``, when given, maps a state to a small array kept after EVERY step (the
-    distributed solver records its shared-node displacements, the surrogates' training
-    data, while the full field is kept only every ``save_every`` steps); the second
-    output is then the pair (saved, recorded (n_saves * save_every, ...))."""
-
-    def inner(s, _):
-        s = step(system, s, synchronize)
-        return s, None if record is None else record(s)
-
-    def outer(s, _):
-        s, kept = jax.lax.scan(inner, s, None, length=save_every, unroll=STEP_UNROLL)
-        return s, (s.displacement, kept)
-
-    if save_every == 1:  # without a loop of length 1 in each step
-        def saved_step(s, _):
-            s, kept = inner(s, None)
-            return s, (s.displacement, kept)
-
-        state, (saved, kept) = jax.lax.scan(saved_step, state, None, length=n_saves, unroll=STEP_UNROLL)
-    else:
-        state, (saved, kept) = jax.lax.scan(outer, state, None, length=n_saves)
-        if record is not None:
-            kept = kept.reshape(n_saves * save_every, *kept.shape[2:])
-    return state, (saved if record is None else (saved, kept))
-
 
 _advance_jit = jax.jit(advance, static_argnums=(2, 3))
 
@@ -432,9 +235,8 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
                     for part in partition.parts]
     fingerprint = _fingerprint(problem, dt, save_every)
     if checkpoint is not None and os.path.exists(checkpoint):
-        state, snapshots, loaded = _load_checkpoint(checkpoint, fingerprint, n_steps,
-                                                    0 if recorded is None else len(recorded))
-        recorded = loaded if recorded is not None else None
+        state, snapshots, recorded = _load_checkpoint(checkpoint, fingerprint, n_steps,
+                                                      0 if recorded is None else len(recorded))
     run_state = runner.from_global(state)
     step_now = int(state.step)
     checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
@@ -443,7 +245,7 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     bar = tqdm(total=n_steps, initial=step_now, disable=not show, unit="step", desc=label,
                dynamic_ncols=True)
     chunks_done = 0
-    chunk_times = []  # (key, steps, seconds) of each chunk, for the per-step cost
+    timed_steps, timed_seconds = 0, 0.0  # compiled chunks (compilation done ahead, not timed)
     compile_seconds = 0.0
     try:
         while step_now < n_steps:
@@ -451,7 +253,8 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
             compile_seconds += runner.compile(run_state, k)
             start = time.perf_counter()
             new_state, saved, shared = runner.advance(run_state, k)
-            chunk_times.append((None, k * save_every, time.perf_counter() - start))
+            timed_seconds += time.perf_counter() - start
+            timed_steps += k * save_every
             ok = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
             if not ok.all():
                 first_bad = int(np.argmin(ok))
@@ -490,25 +293,10 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
 
     stats = {"compile_seconds": compile_seconds,
              **device_summary(getattr(runner, "devices", None) or jax.devices()[:1])}
-    if chunk_times:
-        stats["us_per_step"] = us_per_step(chunk_times)
+    if timed_steps:
+        stats["us_per_step"] = 1e6 * timed_seconds / timed_steps
     traj = dataclasses.replace(traj, statistics={**traj.statistics, **stats})
     return (traj, runner.to_global(run_state)) if return_state else traj
-
-
-def us_per_step(chunk_times) -> float:
-    """Microseconds per step from (program key, steps, seconds) chunk timings.
-
-    The first call of each compiled program includes its compilation, so only chunks
-    that re-run an already used program count (key None: compiled ahead, always counts);
-    when there are none, all chunks count (and the figure includes compilation)."""
-    seen, timed = set(), []
-    for key, steps, seconds in chunk_times:
-        if key is None or key in seen:
-            timed.append((steps, seconds))
-        seen.add(key)
-    timed = timed or [(steps, seconds) for _, steps, seconds in chunk_times]
-    return 1e6 * sum(t for _, t in timed) / max(sum(n for n, _ in timed), 1)
 
 
 def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):

@@ -32,7 +32,7 @@ import dataclasses
 import functools
 import time
 import warnings
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -42,7 +42,8 @@ from jax.sharding import PartitionSpec as P
 from .distributed import AXIS, DistributedRunner, PartSystems
 from .errors import CheckpointError, ProblemError, StabilityError
 from .pytree import pytree_dataclass, static_field
-from .solver import STEP_UNROLL, SolverState, build_system, drive, initial_state, step
+from .solver import drive
+from .stepper import STEP_UNROLL, SolverState, build_system, initial_state, step
 
 __all__ = ["SurrogatePredictor", "OraclePredictor", "ResyncTolerance", "simulate_sync_avoiding",
            "simulate_full_system", "shared_dof_layout", "step_counts", "describe_run"]
@@ -255,11 +256,12 @@ class _OnlineRunner:
             self._compiled[key] = self._spmd(body, 5, 4)
         return self._compiled[key]
 
-    def _ahead(self, key, build, *args):
-        """Compile ``build()`` for ``args`` once, ahead of its first timed call."""
+    def _ahead(self, key, build, example_args):
+        """Compile ``build()`` once, ahead of its first timed call, for the arguments
+        ``example_args()`` returns (called only then: it may place arrays on devices)."""
         if key not in self._compiled:
             start = time.perf_counter()
-            self._compiled[key] = build().lower(*args).compile()
+            self._compiled[key] = build().lower(*example_args()).compile()
             self.compile_seconds += time.perf_counter() - start
         return self._compiled[key]
 
@@ -274,7 +276,7 @@ class _OnlineRunner:
     def prepare(self, state, buffer, n_cycles: int, steps: int):
         """The fused program for ``n_cycles`` cycles of ``steps``, compiled ahead."""
         return self._ahead(("compiled", n_cycles, steps), lambda: self.program(n_cycles, steps),
-                           self.runner.parts, self.predictor, state, buffer, self._first(0))
+                           lambda: (self.runner.parts, self.predictor, state, buffer, self._first(0)))
 
     def run(self, state, buffer, step0: int, n_cycles: int, steps: int):
         return self.prepare(state, buffer, n_cycles, steps)(
@@ -283,17 +285,20 @@ class _OnlineRunner:
     def _rollout_program(self, buffer, steps: int):
         build = lambda: self._spmd(functools.partial(_rollout, steps=steps,  # noqa: E731
                                                      save_every=self.save_every), 3, 3)
-        return self._ahead(("rollout", steps), build, self.predictor, buffer, self._first(0))
+        return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self._first(0)))
 
     def _apply_program(self, state, pred, steps: int):
         build = lambda: self._spmd(functools.partial(_apply, steps=steps,  # noqa: E731
                                                      save_every=self.save_every), 3, 2)
-        return self._ahead(("apply", steps), build, self.runner.parts, state, pred)
+        return self._ahead(("apply", steps), build, lambda: (self.runner.parts, state, pred()))
 
     def prepare_monitored(self, state, buffer, steps: int) -> None:
         """Compile both halves of a monitored cycle of ``steps`` ahead (nothing runs)."""
-        pred = jax.ShapeDtypeStruct(buffer.shape[:1] + (self.predictor.n_s * self.predictor.n_future,)
-                                    + buffer.shape[2:], buffer.dtype, sharding=buffer.sharding)
+        def pred():  # the shape of a cycle's predictions, for compiling
+            length = self.predictor.n_s * self.predictor.n_future
+            return jax.ShapeDtypeStruct(buffer.shape[:1] + (length,) + buffer.shape[2:], buffer.dtype,
+                                        sharding=buffer.sharding)
+
         self._rollout_program(buffer, steps)
         self._apply_program(state, pred, steps)
 
@@ -303,7 +308,7 @@ class _OnlineRunner:
 
     def apply(self, state, pred, steps: int):
         """The steps of one cycle with the predictions of :meth:`rollout`."""
-        return self._apply_program(state, pred, steps)(self.runner.parts, state, pred)
+        return self._apply_program(state, lambda: pred, steps)(self.runner.parts, state, pred)
 
 
 # --------------------------------------------------------------------------- error control
@@ -346,10 +351,7 @@ class ResyncTolerance:
                 pass
             raise ProblemError(f"resync_tolerance {value!r} is neither a length in cm (e.g. 1e-4) "
                                "nor a percentage of the amplitude (e.g. 2%)")
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-            raise ProblemError(f"resync_tolerance must be a tolerance > 0 [cm] or a percentage "
-                               f"string like '2%', got {value!r}")
-        return cls(absolute=float(value))
+        return cls(absolute=value)  # checked by __post_init__
 
     def cm(self, amplitude: float) -> float:
         """The tolerance in cm given the observed amplitude [cm]."""
@@ -357,6 +359,17 @@ class ResyncTolerance:
 
     def __str__(self) -> str:
         return f"{self.absolute:g} cm" if self.absolute is not None else f"{100 * self.relative:g} %"
+
+
+class _Segment(NamedTuple):
+    """A stretch of the run after n_cri: steps ``first`` + 1 .. ``last``."""
+
+    kind: str  # "predicted" or "synchronized"
+    first: int
+    last: int
+    displacement: np.ndarray  # (saved, n_nodes, 3) global, at the saved steps
+    predictions: np.ndarray | None  # (n_parts, saved, n_dof) each part's own; predicted only
+    seconds: float  # wall time of the predicted stretch (0 for synchronized ones)
 
 
 @dataclasses.dataclass
@@ -491,7 +504,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     state = runner.from_global(anchor_state)
     buffer = runner._put(anchor.history)
     online = _OnlineRunner(runner, predictor, save_every)
-    timeline = []  # segments in order: (kind, first step, last step, global displacement, predictions)
+    timeline: list[_Segment] = []
     stats = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": []}
     seconds = {"predicted": 0.0, "synchronized": 0.0, "discarded": 0.0}
     sync_seconds = float(synced.statistics.get("us_per_step", 0.0)) * 1e-6 * n_cri
@@ -560,19 +573,18 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             start_step = int(anchor.state.step)
             failures = failures + 1 if step_now == start_step else 0
             n_discarded += step_now - start_step
-            wasted = sum(seg[5] for seg in timeline[anchor.segment:])
+            wasted = sum(seg.seconds for seg in timeline[anchor.segment:])
             seconds["discarded"] += wasted
             seconds["predicted"] -= wasted
             del timeline[anchor.segment:]
             target = min(step_now + cycle_steps * 2 ** failures, n_steps)
-            start = time.perf_counter()
             segment, end_state = drive(problem, runner, anchor.state, target, dt, save_every,
                                        partition=partition, progress=False, label="re-synchronized",
                                        shared_every=1, return_state=True)
-            seconds["synchronized"] += time.perf_counter() - start - segment.statistics["compile_seconds"]
+            seconds["synchronized"] += 1e-6 * segment.statistics["us_per_step"] * (target - start_step)
             shared = [p["shared_displacement"][1:] for p in segment.parts]  # steps after the anchor
             amplitude = max([amplitude] + [float(np.abs(v).max(initial=0.0)) for v in shared])
-            timeline.append(("synchronized", start_step, target, segment.displacement[1:], None, 0.0))
+            timeline.append(_Segment("synchronized", start_step, target, segment.displacement[1:], None, 0.0))
             anchor = _Anchor(end_state, _histories(partition, shared, history, n_dof, anchor.history),
                              len(timeline))
             state = runner.from_global(end_state)
@@ -586,7 +598,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     finally:
         bar.close()
     traj = _assemble(problem, partition, synced, timeline, counts, dt, save_every)
-    n_sync = n_cri + sum(b - a for kind, a, b, *_ in timeline if kind == "synchronized")
+    n_sync = n_cri + sum(seg.last - seg.first for seg in timeline if seg.kind == "synchronized")
     n_pred = n_steps - n_sync
     sync_seconds += seconds["synchronized"]
     statistics = {
@@ -660,7 +672,7 @@ def _predicted_segment(problem, partition, first: int, n: int, disp, pred, secon
     per cycle, n_dof); ``seconds`` it took."""
     disp = disp.reshape(disp.shape[0], -1, *disp.shape[3:])
     pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
-    return ("predicted", first, first + n, _mean_over_parts(problem, partition, disp), pred, seconds)
+    return _Segment("predicted", first, first + n, _mean_over_parts(problem, partition, disp), pred, seconds)
 
 
 def _mean_over_parts(problem, partition, local) -> np.ndarray:
@@ -707,11 +719,11 @@ def _assemble(problem, partition, synced, timeline, counts, dt, save_every):
     pieces = [np.asarray(synced.displacement)]
     flags = [np.ones(len(pieces[0]), bool)]
     preds = []
-    for kind, _, _, values, pred, _ in timeline:
-        pieces.append(values)
-        if kind == "predicted":
-            preds.append(pred)
-        flags.append(np.full(len(values), kind == "synchronized"))
+    for seg in timeline:
+        pieces.append(seg.displacement)
+        if seg.kind == "predicted":
+            preds.append(seg.predictions)
+        flags.append(np.full(len(seg.displacement), seg.kind == "synchronized"))
     pred = (np.concatenate(preds, axis=1) if preds
             else np.zeros((partition.n_parts, 0, max(counts.max(), 3))))
     displacement = np.concatenate(pieces)

@@ -295,20 +295,20 @@ class TimingReport:
 def _scan(body, state, n_steps):
     # the solver's own loop structure (jaxsync.solver.advance), so that every variant
     # pays the same loop costs as the real step
-    from .solver import STEP_UNROLL
+    from .stepper import STEP_UNROLL
 
     return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps,
                         unroll=STEP_UNROLL)[0]
 
 
 def _full(system, state, zero, n_steps):
-    from .solver import step
+    from .stepper import step
 
     return _scan(lambda s: step(system, s), state, n_steps)
 
 
 def _other(system, state, zero, n_steps):
-    from .solver import SolverState, apply_dirichlet, central_difference
+    from .stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         new = central_difference(system, s, jnp.zeros_like(s.displacement))
@@ -318,7 +318,7 @@ def _other(system, state, zero, n_steps):
 
 
 def _force(system, state, zero, n_steps):
-    from .solver import SolverState, apply_dirichlet, central_difference
+    from .stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         internal = zero * system.stiffness.matvec(s.displacement)
@@ -331,7 +331,7 @@ def _force(system, state, zero, n_steps):
 def _scatter(system, state, zero, n_steps, forces):
     """Recompute mode: only the sum of given (n_elements, 4, 3) element forces into the
     nodes, as :meth:`jaxsync.element_force.ElementStiffness.matvec` does it."""
-    from .solver import SolverState
+    from .stepper import SolverState
 
     k = system.stiffness
 
@@ -345,7 +345,7 @@ def _scatter(system, state, zero, n_steps, forces):
 
 
 def _empty(system, state, zero, n_steps):
-    from .solver import SolverState
+    from .stepper import SolverState
 
     def body(s):
         return SolverState(s.displacement + zero * s.previous, s.displacement, s.step + 1)
@@ -354,7 +354,7 @@ def _empty(system, state, zero, n_steps):
 
 
 def _call(system, state, zero, n_steps):
-    from .solver import SolverState
+    from .stepper import SolverState
 
     return SolverState(state.displacement + zero, state.previous, state.step)
 
@@ -450,7 +450,7 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
     from .distributed import DistributedRunner, build_part_systems
     from .element_force import MODES
     from .partition import Partition, partition as make_partition
-    from .solver import SolverState, build_system, initial_state
+    from .stepper import SolverState, build_system, initial_state
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -677,7 +677,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
 
     from .distributed import AXIS, DistributedRunner
     from .partition import Partition, partition as make_partition
-    from .solver import SolverState, build_system, initial_state
+    from .stepper import SolverState, build_system, initial_state
     from .syncavoid import SurrogatePredictor, _OnlineRunner, shared_dof_layout
 
     if not syncs or any(m not in ("psum", "ppermute") for m in syncs):

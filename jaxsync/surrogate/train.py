@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import hashlib
 import json
 import math
 import os
@@ -61,6 +60,7 @@ from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.trajectory import array_checksum
 from jaxsync.surrogate.data import ReplicaData, padding_mask
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward, init_params
 
@@ -375,13 +375,7 @@ _STATE_VERSION = 1
 
 def _digest(arrays) -> str:
     """sha256 over a sequence of arrays (dtype, shape and bytes of each)."""
-    digest = hashlib.sha256()
-    for array in arrays:
-        array = np.ascontiguousarray(np.asarray(array))
-        digest.update(array.dtype.str.encode())
-        digest.update(repr(array.shape).encode())
-        digest.update(array.tobytes())
-    return digest.hexdigest()
+    return array_checksum({f"{i:04d}": np.asarray(a) for i, a in enumerate(arrays)}, {})
 
 
 def training_fingerprint(data: ReplicaData, arch: LSTMArchitecture, config: TrainConfig, key: jax.Array,
@@ -420,10 +414,7 @@ def _fingerprint_differences(stored: dict, current: dict) -> list[str]:
 
 
 def _state_checksum(arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
-    names = sorted(arrays)
-    digest = hashlib.sha256(_digest([arrays[n] for n in names]).encode())
-    digest.update(json.dumps({"names": names, **attrs}, sort_keys=True).encode())
-    return digest.hexdigest()
+    return array_checksum(arrays, attrs)
 
 
 def _save_training_state(path, fingerprint: dict, state, history: dict[str, np.ndarray],
