@@ -8,7 +8,7 @@ Scenarios (cantilever, ``jaxsync.cantilever(jaxsync.box_beam(25, 1, 1, (nx, ny, 
 * part count: one fixed mesh split into 1 to 8 parts; cost against n_c;
 * both with pre-assembly (stored K) and element recompute (paper Remark 2).
 
-Each configuration is one :func:`jaxsync.timing.timing_breakdown` (method and limits in
+Each configuration is one :func:`jaxsync.perf.timing.timing_breakdown` (method and limits in
 that module's docstring): t_e, t_m, t_s, t_o, t_t and ratios of the "max-average" part.
 
 Baseline, side by side: ``benchmarks/paper_baseline.py`` under ``mpiexec -n 2`` (two
@@ -52,7 +52,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.timing import STAGES, timing_breakdown  # noqa: E402
+from jaxsync.perf.timing import STAGES, timing_breakdown  # noqa: E402
 from jaxsync.trajectory import atomic_path  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -77,7 +77,7 @@ def run_scenario(name, configs, repeats, log):
     out = []
     for divisions, n_parts in configs:
         problem = cantilever(divisions)
-        partition = jaxsync.partition(problem.mesh, n_parts)
+        partition = jaxsync.parallel.partition(problem.mesh, n_parts)
         for mode in MODES:
             start = time.perf_counter()
             # default n_steps: about 1 ms calls (the per-call cost is measured and removed)
@@ -111,9 +111,9 @@ HEADER = (f"{'scenario':<8} {'mode':<12} {'mesh':>9} {'nodes':>6} {'n_c':>3} {'N
 def baseline_input(problem, partition, path) -> dict:
     """Write the per-part arrays ``paper_baseline.py`` reads; returns the global initial
     state and system used (for running jaxsync from the same start)."""
-    from jaxsync.assembly import element_blocks
-    from jaxsync.loads import Ramp
-    from jaxsync.solver import build_system, initial_state
+    from jaxsync.fem.assembly import element_blocks
+    from jaxsync.fem.loads import Ramp
+    from jaxsync.solve.solver import build_system, initial_state
 
     if len(problem.loads) != 1 or not isinstance(problem.loads[0].time, Ramp):
         raise ValueError("the baseline handles one ramped load (the cantilever)")
@@ -153,11 +153,11 @@ def best_wall(fn, repeats):
 
 
 def run_baseline(divisions, n_steps, log, repeats=3, jax_repeats=5) -> dict:
-    from jaxsync.distributed import DistributedRunner
-    from jaxsync.solver import SingleDeviceRunner
+    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.solver import SingleDeviceRunner
 
     problem = cantilever(divisions)
-    partition = jaxsync.partition(problem.mesh, 2)
+    partition = jaxsync.parallel.partition(problem.mesh, 2)
     entry = {"divisions": list(divisions), "n_nodes": problem.mesh.n_nodes,
              "n_elements": problem.mesh.n_elements, "n_steps": n_steps, "n_parts": 2,
              "n_shared_nodes": partition.n_interface}

@@ -26,15 +26,15 @@ import jax
 
 import jaxsync
 
-jaxsync.devices.request_cpu_devices(2)  # one emulated device per part, before JAX starts
+jaxsync.parallel.devices.request_cpu_devices(2)  # one emulated device per part, before JAX starts
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
 from jaxsync.metrics import estimate_quality, predictions_by_node, shared_node_errors  # noqa: E402
-from jaxsync.partition import partition_of  # noqa: E402
+from jaxsync.parallel.partition import partition_of  # noqa: E402
 from jaxsync.surrogate import load_checkpoint  # noqa: E402
-from jaxsync.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
 
 DEFAULT_TOLERANCES = ["none", "1e-2", "1e-3", "3e-4", "1e-4", "3e-5", "1e-5", "10%", "1%", "0.1%"]
 
@@ -50,7 +50,7 @@ def main(argv=None):
     reference_path = os.path.join(args.demo, "synchronized.h5")
     checkpoint = os.path.join(args.demo, "surrogate", "surrogate.h5")
     if not (os.path.exists(reference_path) and os.path.exists(checkpoint)):
-        from jaxsync.demo import run_demo
+        from jaxsync.app.demo import run_demo
 
         run_demo(args.demo)
     reference = jaxsync.Trajectory.load(reference_path)
@@ -101,7 +101,7 @@ def main(argv=None):
               f"{r['n_predicted_steps']:>9} {r['n_discarded_steps']:>10} {r['n_resynchronizations']:>7} "
               f"{(r['us_per_step_predicted'] or 0):>8.1f} {tr.get('ratio_median', float('nan')):>13.3g} "
               f"{tr.get('ratio_p95', float('nan')):>8.3g}")
-    from jaxsync.devices import device_summary
+    from jaxsync.parallel.devices import device_summary
 
     result = {"case": "demo cantilever, 2 parts", "n_steps": n_steps, "n_cri": n_cri,
               "save_every": every, "surrogate": checkpoint, "machine": platform.machine(),

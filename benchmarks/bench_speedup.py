@@ -1,7 +1,7 @@
 """Speed-up of avoiding synchronization (paper section 7, Figures 25-34), roofline and a
 projection to clusters.
 
-Every configuration is measured with :func:`jaxsync.timing.speedup_breakdown`: the whole
+Every configuration is measured with :func:`jaxsync.perf.timing.speedup_breakdown`: the whole
 SPMD programs -- synchronized with a psum of the interface and with the ppermute
 neighbour exchange, without synchronization, and synchronization-avoiding (n_s n_f
 unsynchronized steps and one batched refill prediction per part, no collective) -- are
@@ -22,14 +22,14 @@ The devices are EMULATED: XLA host devices (``--xla_force_host_platform_device_c
 that share this machine's cores, so a collective is a rendezvous of threads on
 oversubscribed cores, not a network message; the output says so.
 
-Roofline: bytes and flops per step of each stage (:mod:`jaxsync.roofline`) against the
+Roofline: bytes and flops per step of each stage (:mod:`jaxsync.perf.roofline`) against the
 measured stage times and this machine's copy bandwidth.
 
 t_d is what the synchronization-avoiding program pays: one prediction of all parts at
 once (8 networks on 2 cores cost about 4x one network alone); the projection to
 clusters uses a part's own step and its network alone (one part per processor).
 
-Cost model (:mod:`jaxsync.costmodel`): latency + bytes / bandwidth per message, times
+Cost model (:mod:`jaxsync.perf.costmodel`): latency + bytes / bandwidth per message, times
 the messages of the synchronization pattern. It is calibrated on this machine by timing
 a bare psum of growing size between 2, 4 and 8 emulated devices (one fit of latency and
 bandwidth per device count: the "latency" of emulated devices is their threads meeting,
@@ -62,10 +62,10 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, PartitionSpec as P  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync import costmodel, roofline  # noqa: E402
-from jaxsync.partition import partition_from_elements  # noqa: E402
-from jaxsync.syncavoid import SurrogatePredictor  # noqa: E402
-from jaxsync.timing import _best_times, speedup_breakdown  # noqa: E402
+from jaxsync.perf import costmodel, roofline  # noqa: E402
+from jaxsync.parallel.partition import partition_from_elements  # noqa: E402
+from jaxsync.solve.syncavoid import SurrogatePredictor  # noqa: E402
+from jaxsync.perf.timing import _best_times, speedup_breakdown  # noqa: E402
 
 N_S, N_P, N_F = 80, 20, 20
 DEVICES_NOTE = (f"{len(jax.devices())} EMULATED CPU devices (XLA host devices sharing "
@@ -123,7 +123,7 @@ def scenario_configs(quick):
 
 def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
     problem, n_parts = cfg["problem"], cfg["n_parts"]
-    part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.partition(problem.mesh, n_parts)
+    part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.parallel.partition(problem.mesh, n_parts)
     predictor = SurrogatePredictor.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
                                                n_past=N_P, n_future=N_F)
     start = time.perf_counter()

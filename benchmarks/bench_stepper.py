@@ -40,8 +40,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.solver import build_system, initial_state, _advance_jit  # noqa: E402
-from jaxsync.sparse import BlockEll  # noqa: E402
+from jaxsync.solve.solver import build_system, initial_state, _advance_jit  # noqa: E402
+from jaxsync.fem.sparse import BlockEll  # noqa: E402
 
 
 def best_of(fn, repeats):
@@ -102,7 +102,7 @@ def jax_single(problem, dt, n_steps, repeats=3):
 
 
 def jax_two_devices(problem, dt, n_steps, repeats=3):
-    from jaxsync.distributed import DistributedRunner
+    from jaxsync.parallel.distributed import DistributedRunner
 
     system = build_system(problem, dt)
     state = initial_state(problem, system)

@@ -23,7 +23,7 @@ one compiling run). Methods:
 
 Then the real thing: the coarse cantilever (paper Table 1, 2 METIS parts, one per
 process, interface of 4 nodes = 12 doubles) advanced by the distributed solver with each
-synchronization (``jaxsync.distributed.DistributedRunner(sync=...)``), time per step of a
+synchronization (``jaxsync.parallel.distributed.DistributedRunner(sync=...)``), time per step of a
 compiled chunk of ``--solver-steps`` steps. The interface sizes: 12 doubles is that
 cantilever's interface; 1002 doubles (334 nodes) stands for a refined mesh.
 
@@ -43,7 +43,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from jaxsync import multiprocess  # noqa: E402  (imports no JAX state)
+from jaxsync.parallel import multiprocess  # noqa: E402  (imports no JAX state)
 
 
 def _timed(fn, repeats: int) -> list[float]:
@@ -133,8 +133,8 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     from mpi4py import MPI
 
     import jaxsync
-    from jaxsync.distributed import DistributedRunner
-    from jaxsync.solver import build_system, initial_state
+    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.solver import build_system, initial_state
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

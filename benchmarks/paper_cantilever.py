@@ -31,11 +31,11 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.plots import tip_node, write_report  # noqa: E402
+from jaxsync.app.plots import tip_node, write_report  # noqa: E402
 from jaxsync.surrogate import (LSTMArchitecture, SurrogateCheckpoint, TrainConfig,  # noqa: E402
                                build_dataset, n_epoch_rule, save_checkpoint, stack_replicas,
                                train_replicas)
-from jaxsync.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
 
 
 def main(argv=None):
@@ -56,7 +56,7 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     mesh = jaxsync.read_mesh(args.mesh) if args.mesh else jaxsync.box_beam()
     problem = jaxsync.cantilever(mesh)
-    parts = jaxsync.partition(mesh, 2, seed=args.seed)
+    parts = jaxsync.parallel.partition(mesh, 2, seed=args.seed)
     n_s, n_p = args.n_s, args.n_p
     epochs = args.epochs or n_epoch_rule(5e-4, 0.9995, 5e-7)
     timings = {}

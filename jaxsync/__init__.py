@@ -6,18 +6,18 @@ creating arrays (the command line does this for you); the solver's entry points 
 :class:`PrecisionError` otherwise. Importing jaxsync changes no global configuration.
 """
 
-from . import devices
+from .parallel import devices
 from .errors import (CheckpointError, ConfigError, JaxsyncError, MaterialError, MeshError,
                      PartitionError, PrecisionError, ProblemError, StabilityError)
-from .loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
-from .material import LinearElastic
-from .geometry import vessel_mesh
-from .mesh import Mesh, MeshWarning, box_beam, read_mesh
-from .partition import Partition, partition
-from .problem import Dirichlet, Problem, cantilever
-from .solver import simulate, steady_state
-from .syncavoid import ResyncTolerance, simulate_full_system, simulate_sync_avoiding
-from .timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
+from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
+from .fem.material import LinearElastic
+from .fem.geometry import vessel_mesh
+from .fem.mesh import Mesh, MeshWarning, box_beam, read_mesh
+from .parallel.partition import Partition, partition
+from .fem.problem import Dirichlet, Problem, cantilever
+from .solve.solver import simulate, steady_state
+from .solve.syncavoid import ResyncTolerance, simulate_full_system, simulate_sync_avoiding
+from .fem.timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
 from .trajectory import Trajectory
 
 __version__ = "0.1.0"

@@ -18,7 +18,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import CheckpointError
-from .mesh import Mesh
+from .fem.mesh import Mesh
 
 __all__ = ["Trajectory", "atomic_path", "atomic_h5", "array_checksum"]
 

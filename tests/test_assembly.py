@@ -3,9 +3,9 @@ import pytest
 import scipy.linalg
 
 import jaxsync
-from jaxsync.assembly import (assemble_unit_operators, body_force_vectors, consistent_mass,
+from jaxsync.fem.assembly import (assemble_unit_operators, body_force_vectors, consistent_mass,
                               element_blocks, lumped_mass, pressure_vector)
-from jaxsync.sparse import BlockEll, block_ell_values, node_adjacency
+from jaxsync.fem.sparse import BlockEll, block_ell_values, node_adjacency
 
 import fem_reference as ref
 

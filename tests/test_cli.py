@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.cli import build_parser, main
-from jaxsync.config import load_config, problem_from_config
+from jaxsync.app.cli import build_parser, main
+from jaxsync.app.config import load_config, problem_from_config
 
 
 def option_strings(parser):
@@ -28,7 +28,7 @@ def test_every_option_is_documented():
 
 
 def test_console_script_help():
-    out = subprocess.run([sys.executable, "-m", "jaxsync.cli", "--help"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "jaxsync.app.cli", "--help"], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0
     assert "simulate" in out.stdout and "demo" in out.stdout
@@ -107,7 +107,7 @@ def test_diverging_run_keeps_what_was_saved(tmp_path, capsys):
 def test_demo_end_to_end_reduced(tmp_path, capsys):
     """The whole pipeline (synchronized run, training, online run, report) in a reduced
     mode; the summary has the documented keys and the figures exist."""
-    from jaxsync.demo import SUMMARY_KEYS
+    from jaxsync.app.demo import SUMMARY_KEYS
 
     out = tmp_path / "demo"
     assert main(["demo", "--steps", "1500", "--epochs", "2", "--hidden", "8", "--n-s", "5",
@@ -185,7 +185,7 @@ def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
     problem = jaxsync.cantilever()
     sync = jaxsync.simulate(problem, 200, partitions=2)
     sync.save(tmp_path / "s.h5")
-    other = jaxsync.partition(problem.mesh, 4)
+    other = jaxsync.parallel.partition(problem.mesh, 4)
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, init_replicas
@@ -219,14 +219,14 @@ def test_simulate_distributed(tmp_path):
 
 def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
     """When a run diverges, the snapshots before are written next to the output."""
-    import jaxsync.solver
+    import jaxsync.solve.solver
 
     def diverging(problem, n_steps, **kwargs):
         err = jaxsync.StabilityError("the run diverged by step 7")
         err.trajectory = jaxsync.simulate(problem, 10, save_every=5)
         raise err
 
-    monkeypatch.setattr(jaxsync.solver, "simulate", diverging)
+    monkeypatch.setattr(jaxsync.solve.solver, "simulate", diverging)
     out = tmp_path / "run.h5"
     assert main(["simulate", "--steps", "100", "--save-every", "5", "-o", str(out),
                  "--no-progress"]) == 2
@@ -278,7 +278,7 @@ def test_xdmf_requested_by_the_config_follows_dash_o(tmp_path, capsys):
 @pytest.mark.parametrize("existing", ["run.h5", "run.xdmf", "run.xdmf.h5"])
 def test_existing_outputs_are_refused_before_running_unless_forced(tmp_path, capsys, monkeypatch,
                                                                    existing):
-    import jaxsync.solver
+    import jaxsync.solve.solver
 
     cfg = small_case(tmp_path)
     (tmp_path / existing).write_bytes(b"another run's result")
@@ -288,7 +288,7 @@ def test_existing_outputs_are_refused_before_running_unless_forced(tmp_path, cap
     def must_not_run(*a, **k):
         raise AssertionError("simulate ran although an output exists")
 
-    monkeypatch.setattr(jaxsync.solver, "simulate", must_not_run)
+    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
     assert main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and existing in err and "--force" in err
@@ -370,12 +370,12 @@ def test_mass_scaling_from_toml(tmp_path, capsys):
 
 
 def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, capsys, monkeypatch):
-    import jaxsync.solver
+    import jaxsync.solve.solver
 
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(jaxsync.solver, "simulate", interrupted)
+    monkeypatch.setattr(jaxsync.solve.solver, "simulate", interrupted)
     out = tmp_path / "k.h5"
     try:
         code = main(["simulate", str(small_case(tmp_path)), "-o", str(out), "--no-progress"])

@@ -6,8 +6,8 @@ import pytest
 
 import jaxsync
 from jaxsync import ConfigError
-from jaxsync.cli import main
-from jaxsync.config import RunConfig, default_config_path, load_config, problem_from_config
+from jaxsync.app.cli import main
+from jaxsync.app.config import RunConfig, default_config_path, load_config, problem_from_config
 
 
 def write(path, text):

@@ -1,4 +1,4 @@
-"""Communication cost model (jaxsync.costmodel): hand-computed message counts and times,
+"""Communication cost model (jaxsync.perf.costmodel): hand-computed message counts and times,
 neighbour patterns checked against the mesh, the latency-bandwidth fit, the projection."""
 
 import json
@@ -9,10 +9,10 @@ import pytest
 
 import jaxsync
 from jaxsync import ConfigError, ProblemError
-from jaxsync.costmodel import (ALGORITHMS, INTERCONNECTS, CommunicationPattern, Interconnect,
+from jaxsync.perf.costmodel import (ALGORITHMS, INTERCONNECTS, CommunicationPattern, Interconnect,
                                Projection, communication_pattern, fit_interconnect, project,
                                relative_error, sync_time)
-from jaxsync.partition import partition_from_elements
+from jaxsync.parallel.partition import partition_from_elements
 
 LINK = Interconnect("test", latency_s=1e-6, bandwidth_Bps=1e9, source="hand")
 
@@ -85,7 +85,7 @@ def test_one_part_costs_nothing():
     for algorithm in ALGORITHMS:
         assert sync_time(alone, LINK, algorithm) == 0.0
     mesh = jaxsync.box_beam(25.0, 1.0, 1.0, (8, 1, 1))
-    pattern = communication_pattern(jaxsync.partition(mesh, 1))
+    pattern = communication_pattern(jaxsync.parallel.partition(mesh, 1))
     assert pattern.n_interface == 0 and pattern.neighbours == ((),)
     assert sync_time(pattern, "infiniband-hdr") == 0.0
 
@@ -103,7 +103,7 @@ def shared_counts(mesh, element_part):
 
 def test_pattern_of_a_metis_partition_matches_the_mesh():
     mesh = jaxsync.box_beam(25.0, 1.0, 1.0, (8, 1, 1))
-    part = jaxsync.partition(mesh, 2, seed=0)
+    part = jaxsync.parallel.partition(mesh, 2, seed=0)
     counts = shared_counts(mesh, part.element_part)
     pattern = communication_pattern(part)
     assert counts[0, 1] > 0

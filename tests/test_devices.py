@@ -10,14 +10,14 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.devices import device_summary, user_chose_devices
+from jaxsync.parallel.devices import device_summary, user_chose_devices
 
 
 def _run_cli(args, tmp_path, extra_env=None):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES",
                                                              "JAX_PLATFORMS", "JAX_ENABLE_X64")}
     env.update(extra_env or {})
-    return subprocess.run([sys.executable, "-m", "jaxsync.cli", *args], cwd=tmp_path, env=env,
+    return subprocess.run([sys.executable, "-m", "jaxsync.app.cli", *args], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -71,7 +71,7 @@ def test_device_summary_and_run_statistics():
 
 
 def test_request_after_jax_started_changes_nothing():
-    from jaxsync.devices import request_cpu_devices
+    from jaxsync.parallel.devices import request_cpu_devices
 
     assert request_cpu_devices(4) is False  # JAX already runs here: its devices stay
     import jax
@@ -81,6 +81,6 @@ def test_request_after_jax_started_changes_nothing():
 
 @pytest.mark.parametrize("command", [["demo", "--parts", "4"]])
 def test_parts_of_a_command_are_read_without_jax(command):
-    from jaxsync.cli import _parts_of, build_parser
+    from jaxsync.app.cli import _parts_of, build_parser
 
     assert _parts_of(build_parser().parse_args(command)) == 4

@@ -4,7 +4,7 @@ import pytest
 
 import jaxsync
 from jaxsync import PartitionError
-from jaxsync.partition import partition_from_elements
+from jaxsync.parallel.partition import partition_from_elements
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +63,7 @@ def test_shared_displacement_is_the_global_displacement(problem, tmp_path):
     path = tmp_path / "d.h5"
     traj.save(path)
     back = jaxsync.Trajectory.load(path)
-    part = jaxsync.partition(problem.mesh, 2)
+    part = jaxsync.parallel.partition(problem.mesh, 2)
     import h5py
 
     with h5py.File(path) as f:
@@ -86,7 +86,7 @@ def test_several_parts_per_device_and_checkpoint_resume(problem, tmp_path):
 
 
 def test_partition_of_another_mesh_is_refused(problem):
-    other = jaxsync.partition(jaxsync.box_beam(divisions=(10, 1, 1)), 2)
+    other = jaxsync.parallel.partition(jaxsync.box_beam(divisions=(10, 1, 1)), 2)
     with pytest.raises(PartitionError, match="another mesh"):
         jaxsync.simulate(problem, 10, partitions=other)
 
@@ -99,7 +99,7 @@ def test_unknown_mode_is_refused(problem):
 def test_element_forces_equal_stiffness_times_u():
     import jax.numpy as jnp
 
-    from jaxsync.element_force import ElementStiffness
+    from jaxsync.fem.element_force import ElementStiffness
 
     mesh = jaxsync.box_beam(3.0, 1.0, 1.0, (3, 2, 1))
     mat = jaxsync.LinearElastic(2.0e5, 0.35, 1.0)
@@ -125,10 +125,10 @@ def test_neighbour_exchange_tables_sum_every_shared_node(n_parts, n_devices):
     """Replay the exchange of the tables in NumPy on a mesh that METIS cuts in several
     directions (parts meet at edges and corners): every device must end with the sum over
     all parts at each of its shared nodes, and only device pairs that share nodes talk."""
-    from jaxsync.distributed import neighbour_exchange
+    from jaxsync.parallel.distributed import neighbour_exchange
 
     mesh = jaxsync.box_beam(4.0, 4.0, 4.0, (4, 4, 4))
-    part = jaxsync.partition(mesh, n_parts, seed=1)
+    part = jaxsync.parallel.partition(mesh, n_parts, seed=1)
     plan = neighbour_exchange(part, n_devices)
     per_device = n_parts // n_devices
     rng = np.random.default_rng(0)

@@ -7,7 +7,7 @@ import pytest
 
 import jaxsync
 from jaxsync import MeshError, MeshWarning
-from jaxsync.mesh import tet_volumes, validated_mesh
+from jaxsync.fem.mesh import tet_volumes, validated_mesh
 
 REFERENCE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "reference", "beam_coarse.vtk")
 

@@ -24,7 +24,7 @@ STEPS, SAVE_EVERY = 2000, 100
 def _worker_sync(out_path: str) -> None:
     """Run the cantilever on 2 parts with each synchronization; rank 0 writes the
     trajectories as .npz."""
-    from jaxsync import multiprocess
+    from jaxsync.parallel import multiprocess
 
     with multiprocess.abort_on_error():
         multiprocess.initialize()
@@ -33,8 +33,8 @@ def _worker_sync(out_path: str) -> None:
 
         jax.config.update("jax_enable_x64", True)
         import jaxsync
-        from jaxsync.distributed import DistributedRunner
-        from jaxsync.solver import build_system, drive, initial_state
+        from jaxsync.parallel.distributed import DistributedRunner
+        from jaxsync.solve.solver import build_system, drive, initial_state
 
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
@@ -54,7 +54,7 @@ def _worker_sync(out_path: str) -> None:
 
 def _worker_fail(kind: str) -> None:
     """Rank 1 fails while rank 0 waits in a collective that rank 1 never joins."""
-    from jaxsync import multiprocess
+    from jaxsync.parallel import multiprocess
 
     with multiprocess.abort_on_error():
         multiprocess.initialize()
@@ -83,7 +83,7 @@ import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync import multiprocess  # noqa: E402
+from jaxsync.parallel import multiprocess  # noqa: E402
 
 MPIEXEC = shutil.which("mpiexec")
 needs_mpiexec = pytest.mark.skipif(MPIEXEC is None,
@@ -121,7 +121,7 @@ def _mpiexec(*command, n: int = 2, cwd=None) -> subprocess.CompletedProcess:
 
 
 def _jaxsync_cli() -> list[str]:
-    return [sys.executable, "-m", "jaxsync.cli"]
+    return [sys.executable, "-m", "jaxsync.app.cli"]
 
 
 @pytest.fixture(scope="module")
@@ -207,8 +207,8 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     pytest.importorskip("mpi4py")
     import jax
 
-    from jaxsync.distributed import DistributedRunner
-    from jaxsync.solver import build_system, drive, initial_state
+    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.solver import build_system, drive, initial_state
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

@@ -1,4 +1,4 @@
-"""Report figures and summary (jaxsync.plots, jaxsync report): which nodes are monitored,
+"""Report figures and summary (jaxsync.app.plots, jaxsync report): which nodes are monitored,
 readable figures, summary entries."""
 
 import dataclasses
@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync import plots
-from jaxsync.cli import main
+from jaxsync.app import plots
+from jaxsync.app.cli import main
 from jaxsync.errors import ConfigError, ProblemError
 
 N_STEPS, SAVE_EVERY = 4000, 10  # 1 s of physical time: the beam bends, the load is ramped
@@ -54,7 +54,7 @@ def fake_online(reference, partition, resync=((200, 240), (320, 330)), n_cri_sna
 def cantilever_case():
     problem = jaxsync.cantilever()
     reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
-    parts = jaxsync.partition(problem.mesh, 2)
+    parts = jaxsync.parallel.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 
 
@@ -62,7 +62,7 @@ def cantilever_case():
 def vessel_case():
     problem = vessel_like()
     reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
-    parts = jaxsync.partition(problem.mesh, 2)
+    parts = jaxsync.parallel.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 
 

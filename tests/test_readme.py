@@ -156,7 +156,7 @@ def user_environment() -> dict[str, str]:
     env.setdefault("JAX_PLATFORMS", "cpu")
     env["PYTHONUNBUFFERED"] = "1"
     env["MPLBACKEND"] = "Agg"
-    # A snippet that calls jaxsync.multiprocess.initialize() runs as a single rank; give
+    # A snippet that calls jaxsync.parallel.multiprocess.initialize() runs as a single rank; give
     # its jax.distributed coordinator a free port rather than the fixed one derived from
     # the host name, which a concurrent run on this machine may hold.
     env["JAX_COORDINATOR_ADDRESS"] = f"127.0.0.1:{free_port()}"

@@ -1,4 +1,4 @@
-"""Bytes and flops per stage (jaxsync.roofline): byte counts against the real arrays,
+"""Bytes and flops per stage (jaxsync.perf.roofline): byte counts against the real arrays,
 flop counts against an independent count of the operations in the traced programs
 (jaxprs), the surrogate against its parameter shapes, achieved rates by hand."""
 
@@ -13,11 +13,11 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.roofline import (ELEMENT_FLOPS, StageCost, achieved, achieved_stages, measure_copy_bandwidth,
+from jaxsync.perf.roofline import (ELEMENT_FLOPS, StageCost, achieved, achieved_stages, measure_copy_bandwidth,
                               measure_matmul_flops,
                               roofline_table, step_costs, step_costs_for, surrogate_costs,
                               surrogate_flop_breakdown, surrogate_step_cost)
-from jaxsync.solver import SolverState, apply_dirichlet, build_system, central_difference
+from jaxsync.solve.solver import SolverState, apply_dirichlet, build_system, central_difference
 from jaxsync.surrogate.evaluate import refill_predict
 from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
 
@@ -103,7 +103,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
     gathered = np.asarray(K.points)[np.asarray(K.tets)]  # (m, 4, 3) coordinates per element
     assert costs["t_e"].bytes == K.tets.nbytes + gathered.nbytes + np.asarray(u)[np.asarray(K.tets)].nbytes
     assert costs["t_m"].bytes == K.weight.nbytes + np.zeros((m, 4, 3)).nbytes
-    from jaxsync.element_force import element_forces
+    from jaxsync.fem.element_force import element_forces
 
     per_element = written_flops(lambda x: element_forces(K.points, K.tets, x, K.lam, K.mu), u) / m
     assert costs["t_e"].flops / m == per_element == sum(ELEMENT_FLOPS.values()) == 264
@@ -111,14 +111,14 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
-    from jaxsync.distributed import build_part_systems
+    from jaxsync.parallel.distributed import build_part_systems
 
-    part_info = jaxsync.partition(problem.mesh, 2, seed=0)
+    part_info = jaxsync.parallel.partition(problem.mesh, 2, seed=0)
     system = build_system(problem, problem.dt)
     per_part = step_costs_for(problem, part_info)
     assert len(per_part) == 2
     for part, costs in zip(part_info.parts, per_part):
-        # the part's own system at its own size, as jaxsync.timing measures it
+        # the part's own system at its own size, as jaxsync.perf.timing measures it
         alone = build_part_systems(problem, system, dataclasses.replace(part_info, parts=(part,)),
                                    "preassembled").system.stiffness
         assert costs["t_m"].bytes == alone.columns.nbytes + alone.blocks.nbytes + 2 * 24 * part.n_local
@@ -252,7 +252,7 @@ def test_bad_inputs_are_refused():
 def test_measure_matmul_flops_counts_2n3_over_the_best_time(monkeypatch):
     """The rate is 2 n^3 flops over the best timed product: with a fake clock that
     advances 0.5 s per product (after a 0.25 s one), 2 n^3 / 0.25 comes back."""
-    import jaxsync.roofline as rl
+    import jaxsync.perf.roofline as rl
 
     ticks = iter([0.0, 1.0, 1.0, 1.25, 2.0, 2.5])  # three products: 1 s, 0.25 s, 0.5 s
     monkeypatch.setattr(rl.time, "perf_counter", lambda: next(ticks))

@@ -217,7 +217,7 @@ def test_resumed_run_equals_uninterrupted_bit_for_bit(problem, tmp_path):
 def test_interrupted_run_resumes(problem, tmp_path, monkeypatch):
     """A run killed mid-way (here: an exception after the third chunk) resumes from its
     last checkpoint and matches the uninterrupted run."""
-    import jaxsync.solver as solver
+    import jaxsync.solve.solver as solver
 
     ckpt = tmp_path / "run.ckpt.h5"
     full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
@@ -242,7 +242,7 @@ def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(pr
                                                                               monkeypatch):
     """The parts' every-step shared histories (the training data) survive a resume:
     equal to the uninterrupted run's; a checkpoint without them is refused."""
-    import jaxsync.solver as solver
+    import jaxsync.solve.solver as solver
 
     ckpt = tmp_path / "run.ckpt.h5"
     kwargs = dict(partitions=2, save_every=50, shared_every=1, chunk_steps=500)

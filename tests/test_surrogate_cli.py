@@ -10,7 +10,7 @@ import pytest
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate.checkpoint import check_compatible, load_checkpoint
 from jaxsync.surrogate import train as train_module
-from jaxsync.surrogate.cli import add_train_parser
+from jaxsync.app.train import add_train_parser
 from jaxsync.surrogate.train import TrainConfig
 
 NODES = (np.array([3, 8], np.int64), np.array([3, 8, 11], np.int64))
@@ -113,7 +113,7 @@ def test_train_errors(tmp_path):
 def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
     import inspect
 
-    from jaxsync.demo import run_demo
+    from jaxsync.app.demo import run_demo
 
     args = _parser().parse_args(["train", "run.h5"])
     config = TrainConfig()

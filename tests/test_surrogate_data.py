@@ -214,7 +214,7 @@ def _saved_trajectory(path, synchronized=None, load=None):
     import jaxsync
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
-    parts = jaxsync.partition(mesh, 2)
+    parts = jaxsync.parallel.partition(mesh, 2)
     n = 30
     disp = _wave(n, 3 * mesh.n_nodes).reshape(n, mesh.n_nodes, 3)
     traj = jaxsync.Trajectory(times=np.arange(n) * 1e-3, displacement=disp, mesh=mesh, dt=1e-3,
@@ -285,7 +285,7 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     import jaxsync
 
     problem = jaxsync.cantilever()
-    parts = jaxsync.partition(problem.mesh, 2)
+    parts = jaxsync.parallel.partition(problem.mesh, 2)
     every = jaxsync.simulate(problem, 300, partitions=parts)
     thin = jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=1)
     assert thin.n_saved == 7 and thin.shared_stride == 1

@@ -9,7 +9,7 @@ import pytest
 import jaxsync
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync import CheckpointError, ProblemError, StabilityError
-from jaxsync.syncavoid import OraclePredictor, _OnlineRunner, shared_dof_layout, simulate_sync_avoiding
+from jaxsync.solve.syncavoid import OraclePredictor, _OnlineRunner, shared_dof_layout, simulate_sync_avoiding
 
 N_S, N_P, N_F = 5, 4, 4
 N_CRI = N_S * N_P + 1 + 19  # 40
@@ -23,7 +23,7 @@ def problem():
 
 @pytest.fixture(scope="module")
 def partition(problem):
-    return jaxsync.partition(problem.mesh, 2)
+    return jaxsync.parallel.partition(problem.mesh, 2)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +70,7 @@ def test_wrong_overwrite_timing_is_detected(problem, partition, reference):
 
 
 def test_oracle_with_save_every_and_four_parts(problem, reference):
-    part4 = jaxsync.partition(problem.mesh, 4)
+    part4 = jaxsync.parallel.partition(problem.mesh, 4)
     ref4 = jaxsync.simulate(problem, N_STEPS - 10, partitions=part4)
     traj = simulate_sync_avoiding(problem, N_STEPS - 10, partitions=part4, save_every=10,
                                   surrogates=oracle(ref4, part4, n_steps=N_STEPS - 10), n_cri=N_CRI)
@@ -80,14 +80,14 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
-    from jaxsync.distributed import DistributedRunner
-    from jaxsync.solver import build_system
+    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.solver import build_system
 
     system = build_system(problem, problem.dt)
     runner = DistributedRunner(problem, system, partition, save_every=1)
     online = _OnlineRunner(runner, oracle(reference, partition), save_every=1)
     n_dof, _ = shared_dof_layout(partition)
-    state = runner.from_global(jaxsync.solver.initial_state(problem, system))
+    state = runner.from_global(jaxsync.solve.solver.initial_state(problem, system))
     buffer = runner._put(np.zeros((2, N_S * N_P, n_dof)))
     text = online.lowered_text(state, buffer, 2, N_S * N_F).lower()
     for collective in ("all-reduce", "all-gather", "collective-permute", "all-to-all", "reduce-scatter"):
@@ -122,7 +122,7 @@ def test_nan_prediction_names_step_and_part(problem, partition, reference):
 
 
 def test_full_system_oracle_reproduces_the_reference(problem):
-    from jaxsync.syncavoid import simulate_full_system
+    from jaxsync.solve.syncavoid import simulate_full_system
 
     reference = jaxsync.simulate(problem, N_STEPS)
     n_dof = problem.mesh.n_dofs
@@ -143,7 +143,7 @@ def test_full_system_needs_one_replica_over_all_dofs(problem, partition, referen
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint, init_replicas
-    from jaxsync.syncavoid import simulate_full_system
+    from jaxsync.solve.syncavoid import simulate_full_system
 
     counts = (12, 12)
     arch = LSTMArchitecture(n_dof=12, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
@@ -159,7 +159,7 @@ def test_surrogates_of_another_partition_are_refused(problem, reference):
 
     from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint, init_replicas
 
-    other = jaxsync.partition(problem.mesh, 4)
+    other = jaxsync.parallel.partition(problem.mesh, 4)
     counts = tuple(3 * p.n_shared for p in other.parts)
     arch = LSTMArchitecture(n_dof=max(counts), n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
@@ -200,7 +200,7 @@ def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, parti
 
 
 def untrained(partition):
-    from jaxsync.syncavoid import SurrogatePredictor
+    from jaxsync.solve.syncavoid import SurrogatePredictor
 
     return SurrogatePredictor.initialized(partition, N_S, n_hidden=4, n_layers=1, n_past=N_P,
                                           n_future=N_F, seed=3)
@@ -340,7 +340,7 @@ def test_untrained_networks_fall_back_to_the_synchronized_run(problem, partition
 def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference):
     """'2%' is 2 % of the largest shared-node |displacement| seen in the synchronized steps
     so far (the load ramps up, so the tolerance grows as the run goes on)."""
-    from jaxsync.syncavoid import ResyncTolerance
+    from jaxsync.solve.syncavoid import ResyncTolerance
 
     net = drifting_oracle(long_reference, partition, drift=(+1e-6, -1e-6))
     with pytest.warns(RuntimeWarning):

@@ -5,7 +5,7 @@ import scipy.sparse as sp
 
 import jaxsync
 from jaxsync import StabilityError
-from jaxsync.timestep import check_dt, element_size
+from jaxsync.fem.timestep import check_dt, element_size
 
 import fem_reference as ref
 

@@ -1,4 +1,4 @@
-"""Timing breakdown (jaxsync.timing): consistency of the measured stages, the paper's
+"""Timing breakdown (jaxsync.perf.timing): consistency of the measured stages, the paper's
 definitions (ratios, max-average), JSON round trip. No test asserts a speed."""
 
 import dataclasses
@@ -10,7 +10,7 @@ import pytest
 
 import jaxsync
 from jaxsync import CheckpointError, ProblemError
-from jaxsync.timing import PartTiming, TimingReport, max_average, timing_breakdown
+from jaxsync.perf.timing import PartTiming, TimingReport, max_average, timing_breakdown
 
 
 @pytest.fixture(scope="module")
@@ -153,9 +153,9 @@ def test_one_part_has_no_synchronization():
 def test_timed_distributed_program_is_the_solver_step(small_problem):
     """The synchronized variant that t_step and t_s come from computes the same states as
     the distributed solver, so the timing measures the real step."""
-    from jaxsync.distributed import DistributedRunner
-    from jaxsync.solver import build_system, initial_state
-    from jaxsync.timing import _distributed_program
+    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.solver import build_system, initial_state
+    from jaxsync.perf.timing import _distributed_program
 
     system = build_system(small_problem, small_problem.dt, "preassembled")
     state = initial_state(small_problem, system)
@@ -190,11 +190,11 @@ def test_report_is_frozen():
 def test_speedup_breakdown_measures_both_solvers_in_one_run(tmp_path):
     """Synchronized (psum and ppermute) and synchronization-avoiding programs timed in one
     run; zeta, t_s, t_d and the avoiding rows follow from the measured times."""
-    from jaxsync.syncavoid import SurrogatePredictor
-    from jaxsync.timing import speedup_breakdown
+    from jaxsync.solve.syncavoid import SurrogatePredictor
+    from jaxsync.perf.timing import speedup_breakdown
 
     problem = jaxsync.cantilever()
-    part = jaxsync.partition(problem.mesh, 2, seed=0)
+    part = jaxsync.parallel.partition(problem.mesh, 2, seed=0)
     predictor = SurrogatePredictor.initialized(part, 4, n_hidden=8, n_layers=1, n_past=3, n_future=5)
     report = speedup_breakdown(problem, part, predictor, n_cycles=2, repeats=3, stage_repeats=5)
     assert report.steps_per_prediction == 20 and report.n_steps == 40

@@ -4,7 +4,7 @@ Modules: :mod:`~jaxsync.surrogate.lstm` (network), :mod:`~jaxsync.surrogate.data
 (sample-refill windows, normalization, refill index sets), :mod:`~jaxsync.surrogate.train`
 (optax training of all replicas together), :mod:`~jaxsync.surrogate.evaluate` (refill
 prediction, E_mse, grid search), :mod:`~jaxsync.surrogate.checkpoint` (HDF5 files),
-:mod:`~jaxsync.surrogate.cli` (``jaxsync train``).
+:mod:`~jaxsync.app.train` (``jaxsync train``).
 """
 
 from jaxsync.surrogate.checkpoint import (

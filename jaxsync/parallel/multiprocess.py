@@ -32,7 +32,7 @@ import time
 import traceback
 from collections.abc import Callable, Mapping
 
-from .errors import ConfigError, JaxsyncError
+from ..errors import ConfigError, JaxsyncError
 
 __all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "launched_size", "launched_by_mpi",
            "initialize", "process_index", "process_count", "is_main_process",
@@ -125,7 +125,7 @@ def initialize(*, cpu_devices: int | None = 1, coordinator_address: str | None =
     from jax._src import xla_bridge
 
     if xla_bridge.backends_are_initialized():
-        raise ConfigError("JAX was used before jaxsync.multiprocess.initialize(): call it at the "
+        raise ConfigError("JAX was used before jaxsync.parallel.multiprocess.initialize(): call it at the "
                           "start of the program, before creating arrays or calling jax.devices()")
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
     if cpu_devices is not None:

@@ -39,9 +39,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import PartitionSpec as P
 
-from .distributed import AXIS, DistributedRunner, PartSystems
-from .errors import CheckpointError, ProblemError, StabilityError
-from .pytree import pytree_dataclass, static_field
+from ..parallel.distributed import AXIS, DistributedRunner, PartSystems
+from ..errors import CheckpointError, ProblemError, StabilityError
+from ..pytree import pytree_dataclass, static_field
 from .solver import drive
 from .stepper import STEP_UNROLL, SolverState, build_system, initial_state, step
 
@@ -81,7 +81,7 @@ class SurrogatePredictor:
     def predict(self, buffer, step):
         """(n_s n_f, n_dof) predictions of the steps after ``step`` for one part (the
         network reads only ``buffer``)."""
-        from .surrogate.evaluate import refill_predict
+        from ..surrogate.evaluate import refill_predict
 
         cond = self.cond if self.arch.conditional else None
         out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s,
@@ -97,8 +97,8 @@ class SurrogatePredictor:
         For timing studies: an untrained network costs exactly what a trained one of the
         same architecture costs, and needs no training run. Its predictions are
         meaningless."""
-        from .surrogate.lstm import LSTMArchitecture
-        from .surrogate.train import init_replicas
+        from ..surrogate.lstm import LSTMArchitecture
+        from ..surrogate.train import init_replicas
 
         n_dof, counts = shared_dof_layout(partition)
         arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers,
@@ -113,7 +113,7 @@ class SurrogatePredictor:
     @classmethod
     def from_checkpoint(cls, checkpoint, cond: float | None = None) -> "SurrogatePredictor":
         """Predictor of a :class:`jaxsync.surrogate.SurrogateCheckpoint` (or its path)."""
-        from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
+        from ..surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
 
         if not isinstance(checkpoint, SurrogateCheckpoint):
             checkpoint = load_checkpoint(checkpoint)
@@ -434,7 +434,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             string like ``"2%"`` (relative to the largest shared-node displacement seen in
             synchronized steps), or a :class:`ResyncTolerance`; None: never.
         sync: how the synchronized steps sum shared forces (see
-            :class:`jaxsync.distributed.DistributedRunner`).
+            :class:`jaxsync.parallel.distributed.DistributedRunner`).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
@@ -455,8 +455,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             names the step and the part; ``error.trajectory`` keeps the snapshots saved
             before). With a tolerance such a cycle is rejected like any other.
     """
-    from .precision import require_float64
-    from .surrogate.checkpoint import SurrogateCheckpoint, check_compatible, load_checkpoint
+    from ..precision import require_float64
+    from ..surrogate.checkpoint import SurrogateCheckpoint, check_compatible, load_checkpoint
 
     require_float64("simulate_sync_avoiding")
     n_steps, n_cri, save_every = int(n_steps), int(n_cri), int(save_every)
@@ -660,7 +660,7 @@ def describe_run(online) -> str:
 
 
 def _host(x) -> np.ndarray:
-    from .distributed import _to_host
+    from ..parallel.distributed import _to_host
 
     return _to_host(x)
 
@@ -691,7 +691,7 @@ class _DisagreementMonitor:
     """es_hat (paper eq. 26) of the parts' own predictions, for the live error control."""
 
     def __init__(self, partition):
-        from .metrics import shared_node_errors
+        from ..metrics import shared_node_errors
 
         self._errors = shared_node_errors
         index = {int(node): k for k, node in enumerate(partition.shared_nodes)}
@@ -714,7 +714,7 @@ def _assemble(problem, partition, synced, timeline, counts, dt, save_every):
     """The global trajectory: synchronized snapshots up to n_cri, then the segments of
     ``timeline`` in order -- predicted ones (mean over the parts that hold each node, with
     per-part predictions) and re-synchronized ones -- with per-snapshot flags."""
-    from .trajectory import Trajectory
+    from ..trajectory import Trajectory
 
     pieces = [np.asarray(synced.displacement)]
     flags = [np.ones(len(pieces[0]), bool)]
@@ -763,9 +763,9 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         ``statistics["dirichlet_max_abs_predicted"]``, the largest |predicted value| on the
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
-    from .precision import require_float64
-    from .surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
-    from .trajectory import Trajectory
+    from ..precision import require_float64
+    from ..surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
+    from ..trajectory import Trajectory
 
     require_float64("simulate_full_system")
     if reference.save_every != 1:

@@ -4,7 +4,7 @@ Errors of the package's own types are printed as one line (``error: ...``) with 
 status 2; anything else is a bug and keeps its traceback.
 
 Under ``mpiexec -n N`` (N > 1, detected from the launcher's environment) every rank joins
-the others through ``jax.distributed`` before using JAX (:mod:`jaxsync.multiprocess`),
+the others through ``jax.distributed`` before using JAX (:mod:`jaxsync.parallel.multiprocess`),
 only rank 0 prints and writes files, and an error on any rank ends the whole job with a
 non-zero status (the error is printed with its rank) instead of leaving the others waiting.
 """
@@ -61,7 +61,7 @@ def _add_demo(subparsers) -> None:
 
 def _run_demo(args) -> int:
     from .demo import format_summary, run_demo
-    from .errors import ConfigError
+    from ..errors import ConfigError
 
     if _process_count() > 1:
         raise ConfigError("jaxsync demo runs in one process (it uses emulated devices); "
@@ -122,11 +122,11 @@ def _run_predict(args) -> int:
     import numpy as np
 
     from .config import load_config, problem_from_config
-    from .errors import PartitionError
-    from .partition import partition_of
-    from .surrogate.checkpoint import load_checkpoint
-    from .syncavoid import describe_run, simulate_sync_avoiding
-    from .trajectory import Trajectory
+    from ..errors import PartitionError
+    from ..parallel.partition import partition_of
+    from ..surrogate.checkpoint import load_checkpoint
+    from ..solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..trajectory import Trajectory
 
     _refuse_to_overwrite([args.output], force=args.force)
     reference = Trajectory.load(args.trajectory)
@@ -178,10 +178,10 @@ def _add_report(subparsers) -> None:
 def _run_report(args) -> int:
     import dataclasses
 
-    from .errors import CheckpointError
-    from .partition import partition_of
+    from ..errors import CheckpointError
+    from ..parallel.partition import partition_of
     from .plots import constrained_nodes, write_report
-    from .trajectory import Trajectory
+    from ..trajectory import Trajectory
 
     reference = Trajectory.load(args.reference)
     online = Trajectory.load(args.online)
@@ -204,11 +204,11 @@ def _run_report(args) -> int:
     for line in summary["node_notes"]:
         print(f"note: {line}")
     if online.statistics:
-        from .syncavoid import describe_run
+        from ..solve.syncavoid import describe_run
 
         print(describe_run(online))
     if "es_hat_tracking" in summary:
-        from .metrics import EstimateQuality
+        from ..metrics import EstimateQuality
 
         print(EstimateQuality(**summary["es_hat_tracking"]).summary())
     c = "xyz"[args.component]
@@ -223,7 +223,7 @@ def _add_simulate(subparsers) -> None:
     p = subparsers.add_parser(
         "simulate", help="run a problem described by a TOML file",
         description="Run the explicit solver on a problem described by a TOML file (default: "
-                    "the packaged cantilever; see jaxsync.config for the layout). Command-line "
+                    "the packaged cantilever; see jaxsync.app.config for the layout). Command-line "
                     "options override the file's [run] and [mesh] entries; relative paths on the "
                     "command line are taken from the current directory, those in the file from "
                     "the file's folder. Existing output files are never overwritten without "
@@ -332,7 +332,7 @@ def _xdmf_files(xdmf: str) -> list[str]:
 def _refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None = None) -> None:
     """ConfigError, before anything runs, when two outputs (or an output and the
     checkpoint) are the same file, or when an output exists and ``force`` is False."""
-    from .errors import ConfigError
+    from ..errors import ConfigError
 
     seen: dict[str, str] = {}
     for path in paths + ([checkpoint] if checkpoint else []):
@@ -354,8 +354,8 @@ def _report_warnings(caught) -> None:
     ``warning: ...`` line on stderr, any other as Python shows it."""
     import warnings
 
-    from .mesh import MeshWarning
-    from .timestep import MassScalingWarning
+    from ..fem.mesh import MeshWarning
+    from ..fem.timestep import MassScalingWarning
 
     for w in caught:
         if issubclass(w.category, (MeshWarning, MassScalingWarning)):
@@ -369,8 +369,8 @@ def _run_simulate(args) -> int:
     import warnings
 
     from .config import default_config_path, load_config, problem_from_config
-    from .errors import StabilityError
-    from .solver import simulate
+    from ..errors import StabilityError
+    from ..solve.solver import simulate
 
     if args.print_config:
         with open(default_config_path()) as f:
@@ -397,7 +397,7 @@ def _run_simulate(args) -> int:
     save_every = args.save_every if args.save_every is not None else run.save_every
     dt = args.dt if args.dt is not None else run.dt  # None: the (mass-scaled) CFL step
     if args.timings is not None:
-        from .timing import timing_breakdown
+        from ..perf.timing import timing_breakdown
 
         report = timing_breakdown(problem, args.partitions or 1, mode=args.mode, dt=dt,
                                   seed=args.seed)
@@ -462,13 +462,13 @@ def _run_simulate(args) -> int:
 
 
 def _process_count() -> int:
-    from .multiprocess import process_count
+    from ..parallel.multiprocess import process_count
 
     return process_count()
 
 
 def _is_main_process() -> bool:
-    from .multiprocess import is_main_process
+    from ..parallel.multiprocess import is_main_process
 
     return is_main_process()
 
@@ -476,14 +476,14 @@ def _is_main_process() -> bool:
 def _barrier() -> None:
     """Wait for all processes (a no-op in a single-process run)."""
     if _process_count() > 1:
-        from .multiprocess import world
+        from ..parallel.multiprocess import world
 
         world().Barrier()
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``jaxsync`` argument parser with all subcommands."""
-    from . import __version__
+    from .. import __version__
 
     parser = argparse.ArgumentParser(
         prog="jaxsync",
@@ -491,7 +491,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "tetrahedra, with LSTM surrogates that replace synchronization.")
     parser.add_argument("--version", action="version", version=f"jaxsync {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    from .surrogate.cli import add_train_parser
+    from .train import add_train_parser
 
     _add_demo(subparsers)
     _add_simulate(subparsers)
@@ -527,21 +527,21 @@ def _parts_of(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the ``jaxsync`` console script."""
-    from .errors import JaxsyncError
+    from ..errors import JaxsyncError
 
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
         return 0
-    from .multiprocess import abort_on_error, initialize, launched_by_mpi
+    from ..parallel.multiprocess import abort_on_error, initialize, launched_by_mpi
 
     if launched_by_mpi():  # mpiexec -n N, N > 1: join the others before any JAX use
         with abort_on_error():
             initialize()
             _enable_x64()
             return int(args.func(args) or 0)
-    from .devices import request_cpu_devices
+    from ..parallel.devices import request_cpu_devices
 
     request_cpu_devices(_parts_of(args))  # one emulated CPU device per part, before JAX starts
     _enable_x64()

@@ -14,7 +14,7 @@ import functools
 import numpy as np
 import scipy.sparse as sp
 
-from .errors import ProblemError
+from ..errors import ProblemError
 from .mesh import Mesh, to_skfem
 
 __all__ = ["UnitOperators", "assemble_unit_operators", "consistent_mass", "lumped_mass",

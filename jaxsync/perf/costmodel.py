@@ -5,7 +5,7 @@ Model. One message of ``b`` bytes between two parts takes
     t_msg(b) = latency + b / bandwidth                                    [s]
 
 (the "alpha-beta" or Hockney model). One synchronization of the distributed explicit
-solver (:func:`jaxsync.distributed.synchronize_forces`) sums the parts' partial forces at
+solver (:func:`jaxsync.parallel.distributed.synchronize_forces`) sums the parts' partial forces at
 the N_a shared (interface) nodes: S = N_a * 3 dofs * 8 bytes of float64 per part. How
 many messages of which size that takes depends on the algorithm (:data:`ALGORITHMS`):
 
@@ -32,7 +32,7 @@ many messages of which size that takes depends on the algorithm (:data:`ALGORITH
                                     meeting, which grows with their number, so fit one
                                     Interconnect per device count).
     "collective-permute"            XLA's ``ppermute`` neighbour exchange
-                                    (:class:`jaxsync.distributed.NeighbourExchange`), one
+                                    (:class:`jaxsync.parallel.distributed.NeighbourExchange`), one
                                     part per device: one collective call per device
                                     offset k at which some parts p and p + k (mod p)
                                     share nodes, each moving the largest such block:
@@ -46,7 +46,7 @@ for p not a power of two MPICH adds steps, which this model ignores).
 
 Per step: the synchronized solver costs t_t = t_compute + t_s, the synchronization-
 avoiding solver t_t' = t_compute + t_d, with t_compute = t_e + t_m + t_o the measured
-local work (:mod:`jaxsync.timing`) and t_d the measured surrogate cost per step
+local work (:mod:`jaxsync.perf.timing`) and t_d the measured surrogate cost per step
 (a refill prediction divided by the n_s n_f steps it serves). Speed-up zeta = t_t / t_t'.
 The surrogate pays off while t_d < t_s (the break-even surrogate cost is t_s).
 
@@ -59,10 +59,10 @@ Assumptions (each makes the model optimistic or simple, none is measured here):
   hops, no topology (a fat tree without oversubscription);
 - the reduction arithmetic (3 N_a additions) is free next to the messages;
 - all parts start the synchronization together (load imbalance shows up in t_compute,
-  the max-average part of :mod:`jaxsync.timing`).
+  the max-average part of :mod:`jaxsync.perf.timing`).
 
 Inputs and their sources: the partition's interface (:func:`communication_pattern`,
-from :class:`jaxsync.partition.Partition`); an :class:`Interconnect`, either one of the
+from :class:`jaxsync.parallel.partition.Partition`); an :class:`Interconnect`, either one of the
 typical published figures in :data:`INTERCONNECTS` (vendor spec sheets and OSU
 micro-benchmark results, not measured here), or one fitted to measured message times on
 this machine with :func:`fit_interconnect`; t_compute and t_d measured by the benchmarks.
@@ -76,7 +76,7 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .errors import ConfigError, ProblemError
+from ..errors import ConfigError, ProblemError
 
 __all__ = ["Interconnect", "INTERCONNECTS", "CommunicationPattern", "communication_pattern",
            "ALGORITHMS", "sync_time", "fit_interconnect", "InterconnectProjection",
@@ -256,7 +256,7 @@ class CommunicationPattern:
 
 
 def communication_pattern(partition, dofs_per_node: int = 3, bytes_per_value: int = 8) -> CommunicationPattern:
-    """The :class:`CommunicationPattern` of a :class:`jaxsync.partition.Partition`.
+    """The :class:`CommunicationPattern` of a :class:`jaxsync.parallel.partition.Partition`.
 
     Nodes shared by parts p and q are the interface nodes whose ``sharing_parts`` hold
     both; with B the (N_a, p) boolean incidence of interface nodes and parts, the counts

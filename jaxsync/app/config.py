@@ -72,11 +72,11 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ConfigError, JaxsyncError
-from .loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
-from .material import LinearElastic
-from .mesh import box_beam, read_mesh
-from .problem import Dirichlet, Problem, cantilever
+from ..errors import ConfigError, JaxsyncError
+from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
+from ..fem.material import LinearElastic
+from ..fem.mesh import box_beam, read_mesh
+from ..fem.problem import Dirichlet, Problem, cantilever
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -376,7 +376,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
         scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")
     percent = None
     if scaling_dt is not None or scaling_beta is not None:
-        from .timestep import mass_scaling
+        from ..fem.timestep import mass_scaling
 
         problem, percent = mass_scaling(
             problem, None if scaling_beta is None else float(scaling_beta),

@@ -7,10 +7,10 @@ mask 1 byte per dof). Bytes are the traffic of the arrays each stage reads and w
 as written in jaxsync; flops are a count of the written floating-point operations (a
 division, a negation or a transcendental function counts as one flop; a contraction of
 length k as 2 k flops, multiply and add, as for matrix products). Each stage is counted
-as if it ran alone, as :mod:`jaxsync.timing` measures it: the fused real step reads d(n)
+as if it ran alone, as :mod:`jaxsync.perf.timing` measures it: the fused real step reads d(n)
 once and never stores K d, so its traffic is the sum below minus 2 * 24 n bytes.
 
-``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.sparse`, columns (n, w) int32,
+``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.fem.sparse`, columns (n, w) int32,
 blocks (n, 3, w, 3) float64)::
 
     bytes = n w (9 * 8 + 4)      the blocks and column indices, streamed once
@@ -20,7 +20,7 @@ blocks (n, 3, w, 3) float64)::
 
 ``"t_e"`` is 0 in the preassembled mode (K is assembled once, before the run).
 
-``"t_e"``, recompute mode (:func:`jaxsync.element_force.element_forces`), per element::
+``"t_e"``, recompute mode (:func:`jaxsync.fem.element_force.element_forces`), per element::
 
     bytes = 4 * 4 (node ids) + 12 * 8 (coordinates gathered) + 12 * 8 (displacements
             gathered) = 208
@@ -29,7 +29,7 @@ blocks (n, 3, w, 3) float64)::
             eps 18, trace 2, sigma 28, volume 1, sigma grad 72, times volume 12
 
 ``"t_m"``, recompute mode (the weight and the scatter-add of the element forces into the
-nodes, :meth:`jaxsync.element_force.ElementStiffness.matvec`), per element::
+nodes, :meth:`jaxsync.fem.element_force.ElementStiffness.matvec`), per element::
 
     bytes = 8 (weight) + 12 * 8 (forces scatter-added) = 104
     flops = 12 (times weight) + 12 (scatter-add) = 24
@@ -38,7 +38,7 @@ The per-element gathers and scatters are counted every time an element touches a
 (each node has about 20 elements): an upper bound on the memory traffic when they hit
 cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
 
-``"t_o"``, the update (:func:`jaxsync.solver.external_force`, ``central_difference``,
+``"t_o"``, the update (:func:`jaxsync.solve.solver.external_force`, ``central_difference``,
 ``apply_dirichlet``), per dof (3 per node)::
 
     bytes = 8 * (3 + L + 1 + 1) + 1   read d(n), d(n-1), lumped mass, L load vectors,
@@ -47,8 +47,8 @@ cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
                                       (f - Kd), * dt^2, / m, 2 d, +, (1 - a) d_prev, -,
                                       / (1 + a); the Dirichlet select is no flop
 
-``"t_s"``, synchronization (:func:`jaxsync.distributed.synchronize_forces`, as written;
-the bytes on the network are :mod:`jaxsync.costmodel`'s)::
+``"t_s"``, synchronization (:func:`jaxsync.parallel.distributed.synchronize_forces`, as written;
+the bytes on the network are :mod:`jaxsync.perf.costmodel`'s)::
 
     bytes = 2 * 4 n_sh                index arrays shared_local, shared_interface
           + 24 N_a                    the zeroed interface vector written
@@ -97,7 +97,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import ProblemError
+from ..errors import ProblemError
 
 __all__ = ["StageCost", "STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
            "surrogate_flop_breakdown", "surrogate_costs", "surrogate_step_cost",
@@ -108,7 +108,7 @@ STAGES = ("t_e", "t_m", "t_s", "t_o")
 
 F64, I32, MASK = 8, 4, 1  # bytes per float64, int32, boolean
 
-# Flops per element of jaxsync.element_force.element_forces, operation by operation as
+# Flops per element of jaxsync.fem.element_force.element_forces, operation by operation as
 # written (the t_e of the recompute mode).
 ELEMENT_FLOPS = {
     "edge vectors r1, r2, r3": 9,
@@ -180,7 +180,7 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
     Args:
         n_nodes: n, nodes of the part (or mesh).
         width: w, ELL slots per node row (``"preassembled"``; the second dimension of
-            :func:`jaxsync.sparse.node_adjacency`).
+            :func:`jaxsync.fem.sparse.node_adjacency`).
         n_elements: m, elements of the part (``"recompute"``).
         n_load_vectors: L, load vectors of the problem.
         mode: ``"preassembled"`` or ``"recompute"``.
@@ -194,7 +194,7 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
         ProblemError: unknown mode, a missing ``width`` / ``n_elements``, negative counts,
             n_shared > n_interface or n_shared > n_nodes.
     """
-    from .element_force import MODES
+    from ..fem.element_force import MODES
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -231,14 +231,14 @@ def step_costs_for(problem, partition=None, mode: str = "preassembled"):
         problem: the problem (mesh size, ELL width, load vectors).
         partition: None for the whole mesh on one device (no synchronization), or a
             :class:`jaxsync.Partition` of ``problem.mesh``: then each part at its own
-            (unpadded) size, as :func:`jaxsync.timing.timing_breakdown` measures it (the
+            (unpadded) size, as :func:`jaxsync.perf.timing.timing_breakdown` measures it (the
             SPMD program pads every part to the largest).
         mode: ``"preassembled"`` or ``"recompute"``.
 
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
-    from .sparse import node_adjacency
+    from ..fem.sparse import node_adjacency
 
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh
@@ -259,7 +259,7 @@ def step_costs_for(problem, partition=None, mode: str = "preassembled"):
 
 
 def _check_arch(arch, n_s):
-    from .surrogate.lstm import LSTMArchitecture
+    from ..surrogate.lstm import LSTMArchitecture
 
     if not isinstance(arch, LSTMArchitecture):
         raise ProblemError(f"expected a jaxsync.surrogate.lstm.LSTMArchitecture, got {arch!r}")
@@ -421,7 +421,7 @@ def achieved_stages(costs: Mapping, times, peak_bandwidth_Bps: float,
     Args:
         costs: ``{stage: StageCost}`` (:func:`step_costs`, maybe with ``"t_d"`` added).
         times: ``{stage: seconds}``, or an object with the stages as attributes (a
-            :class:`jaxsync.timing.PartTiming`).
+            :class:`jaxsync.perf.timing.PartTiming`).
         peak_bandwidth_Bps, peak_flops: as in :func:`achieved`.
 
     Returns:

@@ -1,9 +1,9 @@
 """Explicit solver driver: single-device and distributed runs in compiled chunks.
 
 The numerics (central differences with lumped mass, paper eq. 7; the paper's start) are
-the pure stepper of :mod:`jaxsync.stepper`. Here the driver :func:`simulate` runs it in
+the pure stepper of :mod:`jaxsync.solve.stepper`. Here the driver :func:`simulate` runs it in
 compiled ``lax.scan`` chunks (on one device, or over parts through
-:mod:`jaxsync.distributed`), saves every ``save_every`` steps, shows progress, checks for
+:mod:`jaxsync.parallel.distributed`), saves every ``save_every`` steps, shows progress, checks for
 divergence and checkpoints between chunks; :func:`steady_state` solves the static problem.
 """
 
@@ -19,8 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import CheckpointError, ProblemError, StabilityError
-from .pytree import is_traced
+from ..errors import CheckpointError, ProblemError, StabilityError
+from ..pytree import is_traced
 from .stepper import (ExplicitSystem, SolverState, advance, apply_dirichlet,  # noqa: F401
                       build_system, central_difference, external_force, initial_state, step)
 
@@ -141,7 +141,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
         sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
-            :class:`jaxsync.distributed.DistributedRunner`; default: the faster measured).
+            :class:`jaxsync.parallel.distributed.DistributedRunner`; default: the faster measured).
         shared_every: distributed only: keep each part's shared-node displacements every
             this many steps (a divisor of ``save_every``; default ``save_every``). The
             surrogates train on every step: ``shared_every=1`` keeps that small history
@@ -163,8 +163,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     ``jax.grad``), the whole run is one ``lax.scan`` without progress, divergence checks or
     checkpoints, and the trajectory holds JAX arrays (single-device solver).
     """
-    from .precision import require_float64
-    from .trajectory import Trajectory
+    from ..precision import require_float64
+    from ..trajectory import Trajectory
 
     require_float64("simulate")
     n_steps, save_every = int(n_steps), int(save_every)
@@ -184,7 +184,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     traced = is_traced(problem.material, problem.damping, problem.loads, dt,
                        problem.initial_displacement, problem.initial_velocity)
     if not traced and check_stability:
-        from .timestep import check_dt
+        from ..fem.timestep import check_dt
 
         check_dt(problem, dt)
     system = build_system(problem, dt, mode)
@@ -203,7 +203,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     if partitions is None:
         runner = SingleDeviceRunner(system, save_every)
     else:
-        from .distributed import DistributedRunner
+        from ..parallel.distributed import DistributedRunner
 
         runner = DistributedRunner(problem, system, partitions, save_every=save_every,
                                    mode=mode, seed=seed, devices=devices, sync=sync,
@@ -289,7 +289,7 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     finally:
         bar.close()
     traj = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
-    from .devices import device_summary
+    from ..parallel.devices import device_summary
 
     stats = {"compile_seconds": compile_seconds,
              **device_summary(getattr(runner, "devices", None) or jax.devices()[:1])}
@@ -302,7 +302,7 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
 def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):
     """The trajectory of a run's snapshots; per-part shared histories from ``recorded``
     (every step, thinned to ``shared_every``) or else from the snapshots."""
-    from .trajectory import Trajectory
+    from ..trajectory import Trajectory
 
     displacement = np.concatenate(snapshots, axis=0)
     times = np.arange(len(displacement)) * save_every * dt
@@ -337,7 +337,7 @@ _CHECKPOINT_KIND = "jaxsync-solver-checkpoint"
 
 def _checkpoint_checksum(arrays: dict, fingerprint: str, step: int) -> str:
     """sha256 over the stored state arrays, the problem fingerprint and the step."""
-    from .trajectory import array_checksum
+    from ..trajectory import array_checksum
 
     return array_checksum(arrays, {"kind": _CHECKPOINT_KIND, "fingerprint": str(fingerprint),
                                    "step": int(step)})
@@ -345,7 +345,7 @@ def _checkpoint_checksum(arrays: dict, fingerprint: str, step: int) -> str:
 
 def _save_checkpoint(path, fingerprint, state: SolverState, snapshots, recorded=None) -> None:
     """``recorded``: per part, the list of shared-history chunks kept every step."""
-    from .trajectory import atomic_h5
+    from ..trajectory import atomic_h5
 
     arrays = {"displacement": np.asarray(state.displacement),
               "previous": np.asarray(state.previous),

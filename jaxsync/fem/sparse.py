@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from .pytree import pytree_dataclass
+from ..pytree import pytree_dataclass
 
 __all__ = ["BlockEll", "node_adjacency", "block_ell_values", "pad_block_ell"]
 

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 
-from .errors import StabilityError
+from ..errors import StabilityError
 
 __all__ = ["ALPHA_S", "MassScalingWarning", "element_size", "element_dt", "cfl_dt",
            "max_stable_dt", "mass_scaling"]
@@ -51,7 +51,7 @@ def cfl_dt(problem, alpha_s: float = ALPHA_S):
     material is traced)."""
     import jax.numpy as jnp
 
-    from .pytree import is_traced
+    from ..pytree import is_traced
 
     dt = jnp.min(element_dt(problem, alpha_s))
     return dt if is_traced(dt) else float(dt)

@@ -40,11 +40,11 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     ``surrogate/`` (checkpoint, loss curves, training summary), ``online.h5`` (the
     synchronization-avoiding run), ``report/`` (figures) and ``summary.json``.
     """
-    from . import cantilever, partition, simulate
-    from .surrogate.cli import add_train_parser
+    from .. import cantilever, partition, simulate
+    from .train import add_train_parser
     from .plots import write_report
-    from .syncavoid import describe_run, simulate_sync_avoiding
-    from .trajectory import atomic_path
+    from ..solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..trajectory import atomic_path
 
     os.makedirs(out, exist_ok=True)
     problem = cantilever()
@@ -52,7 +52,7 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     log(parts.summary())
     started = time.perf_counter()
 
-    from .devices import device_summary
+    from ..parallel.devices import device_summary
 
     save_every = n_s if save_every is None else int(save_every)
     devices = device_summary()
@@ -87,8 +87,8 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     log("  " + describe_run(online))
 
     log("[4/4] timing (compiled programs, round-robin) and report")
-    from .syncavoid import SurrogatePredictor
-    from .timing import speedup_breakdown
+    from ..solve.syncavoid import SurrogatePredictor
+    from ..perf.timing import speedup_breakdown
 
     timing = speedup_breakdown(problem, parts, SurrogatePredictor.from_checkpoint(checkpoint),
                                repeats=3, stage_repeats=10)
@@ -137,7 +137,7 @@ def format_summary(summary: dict) -> str:
         ("speed-up, end to end", f"{summary['speedup']:.2f}x (compiled chunks; compilation "
                                  f"{summary.get('compile_seconds', 0.0):.1f} s not included)"),
         ("zeta, compiled steps", f"{summary['zeta']:.2f}x against the {summary.get('zeta_sync', '')} "
-                                 f"baseline (jaxsync.timing.speedup_breakdown): synchronization "
+                                 f"baseline (jaxsync.perf.timing.speedup_breakdown): synchronization "
                                  f"{summary['t_s_us']:.1f} us/step, surrogate {summary['t_d_us']:.1f} us/step"),
         ("figures", summary.get("report", "")),
     ]

@@ -37,8 +37,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .errors import ConfigError, ProblemError
-from .metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors
+from ..errors import ConfigError, ProblemError
+from ..metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors
 
 __all__ = ["write_report", "report_nodes", "resolve_nodes", "parse_node", "moving_nodes", "constrained_nodes",
            "histogram_bins", "tip_node"]
@@ -58,7 +58,7 @@ def _figure(width=7.0, height=4.2):
 
 
 def _save(fig, path):
-    from .trajectory import atomic_path
+    from ..trajectory import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
@@ -526,7 +526,7 @@ def write_report(reference, online, partition, out_dir, *, component: int = 2,
     shared[partition.shared_nodes] = True
     table = _node_table(times, ref, pred, shown, component, mesh, shared, fixed)
     top = max(table, key=lambda row: row["max_abs_displacement"])
-    from .syncavoid import step_counts
+    from ..solve.syncavoid import step_counts
 
     n_steps, n_synchronized = step_counts(online)
     summary = {
@@ -547,7 +547,7 @@ def write_report(reference, online, partition, out_dir, *, component: int = 2,
         "resynchronized_intervals": [[a, b] for a, b in spans],
         **summary_shared, **(extra or {}),
     }
-    from .trajectory import atomic_path
+    from ..trajectory import atomic_path
 
     with atomic_path(os.path.join(out_dir, "summary.json")) as tmp:
         with open(tmp, "w") as f:

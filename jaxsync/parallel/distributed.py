@@ -32,12 +32,12 @@ from jax.sharding import Mesh as DeviceMesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from .errors import ConfigError, PartitionError, ProblemError
+from ..errors import ConfigError, PartitionError, ProblemError
 from .partition import Partition, partition as make_partition, partition_from_elements
-from .pytree import pytree_dataclass, static_field
-from .element_force import MODES, ElementStiffness
-from .stepper import ExplicitSystem, SolverState, advance
-from .sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
+from ..pytree import pytree_dataclass, static_field
+from ..fem.element_force import MODES, ElementStiffness
+from ..solve.stepper import ExplicitSystem, SolverState, advance
+from ..fem.sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 
 __all__ = ["PartSystems", "DistributedRunner", "build_part_systems", "synchronize_forces",
            "NeighbourExchange", "neighbour_exchange", "MODES", "AXIS"]
@@ -73,7 +73,7 @@ def _pad_to(arrays, length, fill, axis=0):
 
 def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mode: str) -> PartSystems:
     """Split the global ``system`` into padded, stacked per-part systems (numpy-backed)."""
-    from .assembly import element_blocks
+    from ..fem.assembly import element_blocks
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -140,7 +140,7 @@ def synchronize_forces(internal, shared_local, shared_interface, n_interface: in
     ``internal`` is a part's (n_local_max, 3) partial force [dyn]; the interface vector is
     (n_interface + 1, 3). The sum runs over the parts on this device (the vmapped axis),
     then across devices: ``jax.lax.psum`` over the mesh axis when ``across`` is None, else
-    ``across(interface)`` (the MPI Allreduce of :func:`jaxsync.multiprocess.make_allreduce`
+    ``across(interface)`` (the MPI Allreduce of :func:`jaxsync.parallel.multiprocess.make_allreduce`
     with one device per process, or a :class:`NeighbourExchange`)."""
     # one spare slot at the end receives the padding entries (index n_interface)
     interface = jnp.zeros((n_interface + 1, 3), internal.dtype)
@@ -243,7 +243,7 @@ def _default_devices(n_parts: int, devices=None, sync: str = "psum"):
 
 class DistributedRunner:
     """Advances per-part states under ``shard_map`` (the driver interface of
-    :class:`jaxsync.solver.SingleDeviceRunner`)."""
+    :class:`jaxsync.solve.solver.SingleDeviceRunner`)."""
 
     def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
                  mode: str = "preassembled", seed: int = 0, devices=None, sync: str | None = None,
@@ -263,10 +263,10 @@ class DistributedRunner:
                 (each device exchanges only the nodes it shares with each neighbouring
                 device: :class:`NeighbourExchange`) or ``"mpi"`` (one device per
                 process, MPI Allreduce called from inside the compiled step).
-                Default: :func:`jaxsync.multiprocess.default_sync` (``"mpi"`` across
+                Default: :func:`jaxsync.parallel.multiprocess.default_sync` (``"mpi"`` across
                 processes, measured faster; ``"psum"`` in one process).
             allreduce: with ``sync="mpi"``, ``"mpi4jax"``, ``"callback"`` or ``"auto"``
-                (see :func:`jaxsync.multiprocess.make_allreduce`).
+                (see :func:`jaxsync.parallel.multiprocess.make_allreduce`).
             comm: with ``sync="mpi"``, the mpi4py communicator (default a duplicate of
                 ``COMM_WORLD``); rank r runs parts [r k, (r + 1) k), k = n_parts / size.
             record_shared: also keep every part's shared-node displacements after EVERY
@@ -304,7 +304,7 @@ class DistributedRunner:
                 raise ConfigError(
                     f"sync='mpi' over {size} MPI ranks needs jax.distributed joined across them "
                     f"(JAX sees {jax.process_count()} process); call "
-                    "jaxsync.multiprocess.initialize() at the start of every rank")
+                    "jaxsync.parallel.multiprocess.initialize() at the start of every rank")
             if n_parts % size:
                 raise PartitionError(f"n_parts={n_parts} must be a multiple of the {size} MPI "
                                      f"ranks; use a multiple of {size} parts")

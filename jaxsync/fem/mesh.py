@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from .errors import MeshError
+from ..errors import MeshError
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "tet_volumes", "to_skfem"]
 

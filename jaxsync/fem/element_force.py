@@ -14,7 +14,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from .pytree import pytree_dataclass
+from ..pytree import pytree_dataclass
 
 __all__ = ["ElementStiffness", "element_forces", "MODES"]
 

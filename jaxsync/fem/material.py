@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from .errors import MaterialError
-from .pytree import concrete_scalar, pytree_dataclass
+from ..errors import MaterialError
+from ..pytree import concrete_scalar, pytree_dataclass
 
 __all__ = ["LinearElastic"]
 

@@ -12,8 +12,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import ProblemError
-from .pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
+from ..errors import ProblemError
+from ..pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
 
 __all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product",
            "BodyForce", "Pressure"]

@@ -13,8 +13,8 @@ import dataclasses
 
 import numpy as np
 
-from .errors import PartitionError
-from .mesh import Mesh
+from ..errors import PartitionError
+from ..fem.mesh import Mesh
 
 __all__ = ["Part", "Partition", "partition", "partition_from_elements", "partition_of"]
 

@@ -14,11 +14,11 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector
-from .errors import ProblemError
+from ..errors import ProblemError
 from .loads import BodyForce, Pressure, Ramp, StepOff
 from .material import LinearElastic
 from .mesh import Mesh, box_beam
-from .pytree import is_traced
+from ..pytree import is_traced
 
 __all__ = ["Dirichlet", "Problem", "cantilever"]
 
@@ -107,7 +107,7 @@ class Problem:
 
     @property
     def dt(self):
-        """The paper's CFL time step [s] (see :func:`jaxsync.timestep.cfl_dt`)."""
+        """The paper's CFL time step [s] (see :func:`jaxsync.fem.timestep.cfl_dt`)."""
         from .timestep import cfl_dt
 
         return cfl_dt(self)

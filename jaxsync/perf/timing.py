@@ -3,7 +3,7 @@
 Quantities, all in seconds per step (tables print microseconds):
 
     t_e  element quantities. ``"recompute"`` mode: forming the element geometry, strains,
-         stresses and element force vectors (:func:`jaxsync.element_force.element_forces`,
+         stresses and element force vectors (:func:`jaxsync.fem.element_force.element_forces`,
          including the gather of the element displacements): the internal force minus
          t_m. ``"preassembled"`` mode: 0 per step; K is assembled once before the run,
          and that one-off cost is reported apart as ``TimingReport.setup_s`` (the wall
@@ -13,7 +13,7 @@ Quantities, all in seconds per step (tables print microseconds):
          (n_elements, 4, 3) element forces (times the padding weight) into the nodes,
          timed on its own.
     t_s  synchronization: scatter of the shared-node forces into the interface vector,
-         psum over the parts, gather back (``jaxsync.distributed.synchronize_forces``).
+         psum over the parts, gather back (``jaxsync.parallel.distributed.synchronize_forces``).
     t_d  surrogate (synchronization-avoiding solver only): one batched refill prediction
          of all parts at once in the SPMD program, divided by the n_s n_f steps it
          serves (:func:`speedup_breakdown`; a part's network alone is also reported).
@@ -32,7 +32,7 @@ in one run (:func:`speedup_breakdown`, :class:`SpeedupReport`).
 Method. Inside one compiled SPMD step there is nowhere to put a timer between stages, so
 each stage is timed as a separately compiled *variant* of the stepper with the same loop
 structure (``lax.scan`` over ``n_steps`` steps, the same :class:`SolverState` carry),
-built from the solver's public pieces (:func:`jaxsync.solver.step`, ``advance``,
+built from the solver's public pieces (:func:`jaxsync.solve.solver.step`, ``advance``,
 ``central_difference``, ``apply_dirichlet``). Each variant is compiled and run once
 (warm-up), then timed ``repeats`` times round-robin with ``block_until_ready`` (so slow
 drifts of the machine's load hit all variants alike), and the best repeat is kept. A
@@ -42,7 +42,7 @@ argument handling); it is subtracted from every variant's time before dividing b
 repeats work best: the best repeat is then a call that the OS did not interrupt.
 Per part, on one device and at the part's own (unpadded) size:
 
-    T_full   :func:`jaxsync.solver.step` without synchronization: the real local step.
+    T_full   :func:`jaxsync.solve.solver.step` without synchronization: the real local step.
     T_other  the step with the internal force replaced by zero.
     T_force  the step with the internal force K d multiplied by c = 0 passed at run
              time (XLA cannot fold it away): the internal force computed inside the real
@@ -64,7 +64,7 @@ Timed inside the loop, the stages add up to the real step (``r_sum`` within a fe
 
 The synchronization cannot be timed on one device: the padded SPMD program of all parts
 (``jax.shard_map`` over the devices, parts of one device vmapped, exactly as in
-:class:`jaxsync.distributed.DistributedRunner`) is timed with and without
+:class:`jaxsync.parallel.distributed.DistributedRunner`) is timed with and without
 ``synchronize_forces``, and t_s = T_dist(sync) - T_dist(no sync) is given to every part (the
 psum is collective; every part waits for it). With one part there is nothing to
 synchronize (no shared nodes) and t_s = 0 without measuring. Both distributed timings
@@ -96,7 +96,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import CheckpointError, ProblemError
+from ..errors import CheckpointError, ProblemError
 
 __all__ = ["PartTiming", "TimingReport", "timing_breakdown", "max_average", "STAGES",
            "SpeedupReport", "speedup_breakdown"]
@@ -268,7 +268,7 @@ class TimingReport:
 
     def save_json(self, path: str | os.PathLike) -> None:
         """Write :meth:`to_dict` as JSON; the file appears only when complete."""
-        from .trajectory import atomic_path
+        from ..trajectory import atomic_path
 
         with atomic_path(path) as tmp:
             with open(tmp, "w") as f:
@@ -293,22 +293,22 @@ class TimingReport:
 
 
 def _scan(body, state, n_steps):
-    # the solver's own loop structure (jaxsync.solver.advance), so that every variant
+    # the solver's own loop structure (jaxsync.solve.solver.advance), so that every variant
     # pays the same loop costs as the real step
-    from .stepper import STEP_UNROLL
+    from ..solve.stepper import STEP_UNROLL
 
     return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps,
                         unroll=STEP_UNROLL)[0]
 
 
 def _full(system, state, zero, n_steps):
-    from .stepper import step
+    from ..solve.stepper import step
 
     return _scan(lambda s: step(system, s), state, n_steps)
 
 
 def _other(system, state, zero, n_steps):
-    from .stepper import SolverState, apply_dirichlet, central_difference
+    from ..solve.stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         new = central_difference(system, s, jnp.zeros_like(s.displacement))
@@ -318,7 +318,7 @@ def _other(system, state, zero, n_steps):
 
 
 def _force(system, state, zero, n_steps):
-    from .stepper import SolverState, apply_dirichlet, central_difference
+    from ..solve.stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         internal = zero * system.stiffness.matvec(s.displacement)
@@ -330,8 +330,8 @@ def _force(system, state, zero, n_steps):
 
 def _scatter(system, state, zero, n_steps, forces):
     """Recompute mode: only the sum of given (n_elements, 4, 3) element forces into the
-    nodes, as :meth:`jaxsync.element_force.ElementStiffness.matvec` does it."""
-    from .stepper import SolverState
+    nodes, as :meth:`jaxsync.fem.element_force.ElementStiffness.matvec` does it."""
+    from ..solve.stepper import SolverState
 
     k = system.stiffness
 
@@ -345,7 +345,7 @@ def _scatter(system, state, zero, n_steps, forces):
 
 
 def _empty(system, state, zero, n_steps):
-    from .stepper import SolverState
+    from ..solve.stepper import SolverState
 
     def body(s):
         return SolverState(s.displacement + zero * s.previous, s.displacement, s.step + 1)
@@ -354,7 +354,7 @@ def _empty(system, state, zero, n_steps):
 
 
 def _call(system, state, zero, n_steps):
-    from .stepper import SolverState
+    from ..solve.stepper import SolverState
 
     return SolverState(state.displacement + zero, state.previous, state.step)
 
@@ -368,7 +368,7 @@ def _distributed_program(runner, n_steps: int, synchronize: bool | None):
     synchronization (``synchronize=None``: no step at all, the cost of a call)."""
     from jax.sharding import PartitionSpec as P
 
-    from .distributed import AXIS, LOCAL_AXIS
+    from ..parallel.distributed import AXIS, LOCAL_AXIS
 
     if synchronize is not None:
         return runner.program(1, save_every=n_steps, synchronize=synchronize)
@@ -403,7 +403,7 @@ def _per_step(best: dict, n_steps: int) -> dict:
 
 
 def _describe_devices(devices) -> str:
-    from .devices import device_summary
+    from ..parallel.devices import device_summary
 
     info = device_summary(devices)
     text = f"{info['n_devices']} x {info['platform']} device ({info['device_kind']})"
@@ -435,7 +435,7 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
             :func:`jaxsync.simulate`); each part's own program runs on the first.
         seed: METIS seed when ``partitions`` is an int.
         sync: ``"psum"`` or ``"ppermute"``, the synchronization timed as t_s (see
-            :class:`jaxsync.distributed.DistributedRunner`).
+            :class:`jaxsync.parallel.distributed.DistributedRunner`).
 
     Returns:
         :class:`TimingReport`, times in seconds per step.
@@ -444,13 +444,13 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
         ProblemError: bad ``mode``, ``n_steps`` or ``repeats``.
         PartitionError: a partition that cannot be made or does not fit the mesh.
     """
-    from .precision import require_float64
+    from ..precision import require_float64
 
     require_float64("timing_breakdown")
-    from .distributed import DistributedRunner, build_part_systems
-    from .element_force import MODES
-    from .partition import Partition, partition as make_partition
-    from .stepper import SolverState, build_system, initial_state
+    from ..parallel.distributed import DistributedRunner, build_part_systems
+    from ..fem.element_force import MODES
+    from ..parallel.partition import Partition, partition as make_partition
+    from ..solve.stepper import SolverState, build_system, initial_state
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -628,7 +628,7 @@ class SpeedupReport:
 
     def save_json(self, path: str | os.PathLike) -> None:
         """Write :meth:`to_dict` as JSON; the file appears only when complete."""
-        from .trajectory import atomic_path
+        from ..trajectory import atomic_path
 
         with atomic_path(path) as tmp:
             with open(tmp, "w") as f:
@@ -656,8 +656,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
     Args:
         problem: a :class:`jaxsync.Problem`.
         partitions: int n_parts (METIS, ``seed``) or a :class:`jaxsync.Partition`.
-        predictor: a :class:`jaxsync.syncavoid.SurrogatePredictor` (trained or not) or
-            :class:`~jaxsync.syncavoid.OraclePredictor`; default: untrained replicas of the
+        predictor: a :class:`jaxsync.solve.syncavoid.SurrogatePredictor` (trained or not) or
+            :class:`~jaxsync.solve.syncavoid.OraclePredictor`; default: untrained replicas of the
             paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at stride ``n_s``
             (:meth:`SurrogatePredictor.initialized`): the cost does not depend on the
             weights.
@@ -670,15 +670,15 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
     Returns:
         :class:`SpeedupReport`.
     """
-    from .precision import require_float64
+    from ..precision import require_float64
 
     require_float64("speedup_breakdown")
     from jax.sharding import PartitionSpec as P
 
-    from .distributed import AXIS, DistributedRunner
-    from .partition import Partition, partition as make_partition
-    from .stepper import SolverState, build_system, initial_state
-    from .syncavoid import SurrogatePredictor, _OnlineRunner, shared_dof_layout
+    from ..parallel.distributed import AXIS, DistributedRunner
+    from ..parallel.partition import Partition, partition as make_partition
+    from ..solve.stepper import SolverState, build_system, initial_state
+    from ..solve.syncavoid import SurrogatePredictor, _OnlineRunner, shared_dof_layout
 
     if not syncs or any(m not in ("psum", "ppermute") for m in syncs):
         raise ProblemError(f"syncs must name 'psum' and/or 'ppermute', got {syncs!r}")
