@@ -153,7 +153,7 @@ def best_wall(fn, repeats):
 
 
 def run_baseline(divisions, n_steps, log, repeats=3, jax_repeats=5) -> dict:
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.solver import SingleDeviceRunner
 
     problem = cantilever(divisions)

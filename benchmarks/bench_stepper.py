@@ -102,7 +102,7 @@ def jax_single(problem, dt, n_steps, repeats=3):
 
 
 def jax_two_devices(problem, dt, n_steps, repeats=3):
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
 
     system = build_system(problem, dt)
     state = initial_state(problem, system)

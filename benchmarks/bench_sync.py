@@ -23,7 +23,7 @@ one compiling run). Methods:
 
 Then the real thing: the coarse cantilever (paper Table 1, 2 METIS parts, one per
 process, interface of 4 nodes = 12 doubles) advanced by the distributed solver with each
-synchronization (``jaxsync.parallel.distributed.DistributedRunner(sync=...)``), time per step of a
+synchronization (``jaxsync.solve.distributed.DistributedRunner(sync=...)``), time per step of a
 compiled chunk of ``--solver-steps`` steps. The interface sizes: 12 doubles is that
 cantilever's interface; 1002 doubles (334 nodes) stands for a refined mesh.
 
@@ -133,7 +133,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     from mpi4py import MPI
 
     import jaxsync
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.solver import build_system, initial_state
 
     problem = jaxsync.cantilever()

@@ -125,7 +125,7 @@ def test_neighbour_exchange_tables_sum_every_shared_node(n_parts, n_devices):
     """Replay the exchange of the tables in NumPy on a mesh that METIS cuts in several
     directions (parts meet at edges and corners): every device must end with the sum over
     all parts at each of its shared nodes, and only device pairs that share nodes talk."""
-    from jaxsync.parallel.distributed import neighbour_exchange
+    from jaxsync.parallel.exchange import neighbour_exchange
 
     mesh = jaxsync.box_beam(4.0, 4.0, 4.0, (4, 4, 4))
     part = jaxsync.parallel.partition(mesh, n_parts, seed=1)

@@ -33,7 +33,7 @@ def _worker_sync(out_path: str) -> None:
 
         jax.config.update("jax_enable_x64", True)
         import jaxsync
-        from jaxsync.parallel.distributed import DistributedRunner
+        from jaxsync.solve.distributed import DistributedRunner
         from jaxsync.solve.solver import build_system, drive, initial_state
 
         problem = jaxsync.cantilever()
@@ -207,7 +207,7 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     pytest.importorskip("mpi4py")
     import jax
 
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.solver import build_system, drive, initial_state
 
     problem = jaxsync.cantilever()

@@ -111,7 +111,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
-    from jaxsync.parallel.distributed import build_part_systems
+    from jaxsync.parallel.exchange import build_part_systems
 
     part_info = jaxsync.parallel.partition(problem.mesh, 2, seed=0)
     system = build_system(problem, problem.dt)

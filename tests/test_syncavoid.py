@@ -9,7 +9,7 @@ import pytest
 import jaxsync
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync import CheckpointError, ProblemError, StabilityError
-from jaxsync.solve.syncavoid import OraclePredictor, _OnlineRunner, shared_dof_layout, simulate_sync_avoiding
+from jaxsync.solve.syncavoid import OraclePredictor, PredictedPhase, shared_dof_layout, simulate_sync_avoiding
 
 N_S, N_P, N_F = 5, 4, 4
 N_CRI = N_S * N_P + 1 + 19  # 40
@@ -80,15 +80,15 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.solver import build_system
 
     system = build_system(problem, problem.dt)
     runner = DistributedRunner(problem, system, partition, save_every=1)
-    online = _OnlineRunner(runner, oracle(reference, partition), save_every=1)
+    online = PredictedPhase(runner, oracle(reference, partition), save_every=1)
     n_dof, _ = shared_dof_layout(partition)
     state = runner.from_global(jaxsync.solve.solver.initial_state(problem, system))
-    buffer = runner._put(np.zeros((2, N_S * N_P, n_dof)))
+    buffer = runner.put(np.zeros((2, N_S * N_P, n_dof)))
     text = online.lowered_text(state, buffer, 2, N_S * N_F).lower()
     for collective in ("all-reduce", "all-gather", "collective-permute", "all-to-all", "reduce-scatter"):
         assert collective not in text

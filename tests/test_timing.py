@@ -153,7 +153,7 @@ def test_one_part_has_no_synchronization():
 def test_timed_distributed_program_is_the_solver_step(small_problem):
     """The synchronized variant that t_step and t_s come from computes the same states as
     the distributed solver, so the timing measures the real step."""
-    from jaxsync.parallel.distributed import DistributedRunner
+    from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.solver import build_system, initial_state
     from jaxsync.perf.timing import _distributed_program
 

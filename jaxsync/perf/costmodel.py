@@ -5,7 +5,7 @@ Model. One message of ``b`` bytes between two parts takes
     t_msg(b) = latency + b / bandwidth                                    [s]
 
 (the "alpha-beta" or Hockney model). One synchronization of the distributed explicit
-solver (:func:`jaxsync.parallel.distributed.synchronize_forces`) sums the parts' partial forces at
+solver (:func:`jaxsync.parallel.exchange.synchronize_forces`) sums the parts' partial forces at
 the N_a shared (interface) nodes: S = N_a * 3 dofs * 8 bytes of float64 per part. How
 many messages of which size that takes depends on the algorithm (:data:`ALGORITHMS`):
 
@@ -32,7 +32,7 @@ many messages of which size that takes depends on the algorithm (:data:`ALGORITH
                                     meeting, which grows with their number, so fit one
                                     Interconnect per device count).
     "collective-permute"            XLA's ``ppermute`` neighbour exchange
-                                    (:class:`jaxsync.parallel.distributed.NeighbourExchange`), one
+                                    (:class:`jaxsync.parallel.exchange.NeighbourExchange`), one
                                     part per device: one collective call per device
                                     offset k at which some parts p and p + k (mod p)
                                     share nodes, each moving the largest such block:

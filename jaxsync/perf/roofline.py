@@ -47,7 +47,7 @@ cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
                                       (f - Kd), * dt^2, / m, 2 d, +, (1 - a) d_prev, -,
                                       / (1 + a); the Dirichlet select is no flop
 
-``"t_s"``, synchronization (:func:`jaxsync.parallel.distributed.synchronize_forces`, as written;
+``"t_s"``, synchronization (:func:`jaxsync.parallel.exchange.synchronize_forces`, as written;
 the bytes on the network are :mod:`jaxsync.perf.costmodel`'s)::
 
     bytes = 2 * 4 n_sh                index arrays shared_local, shared_interface

@@ -13,7 +13,7 @@ Quantities, all in seconds per step (tables print microseconds):
          (n_elements, 4, 3) element forces (times the padding weight) into the nodes,
          timed on its own.
     t_s  synchronization: scatter of the shared-node forces into the interface vector,
-         psum over the parts, gather back (``jaxsync.parallel.distributed.synchronize_forces``).
+         psum over the parts, gather back (``jaxsync.parallel.exchange.synchronize_forces``).
     t_d  surrogate (synchronization-avoiding solver only): one batched refill prediction
          of all parts at once in the SPMD program, divided by the n_s n_f steps it
          serves (:func:`speedup_breakdown`; a part's network alone is also reported).
@@ -64,7 +64,7 @@ Timed inside the loop, the stages add up to the real step (``r_sum`` within a fe
 
 The synchronization cannot be timed on one device: the padded SPMD program of all parts
 (``jax.shard_map`` over the devices, parts of one device vmapped, exactly as in
-:class:`jaxsync.parallel.distributed.DistributedRunner`) is timed with and without
+:class:`jaxsync.solve.distributed.DistributedRunner`) is timed with and without
 ``synchronize_forces``, and t_s = T_dist(sync) - T_dist(no sync) is given to every part (the
 psum is collective; every part waits for it). With one part there is nothing to
 synchronize (no shared nodes) and t_s = 0 without measuring. Both distributed timings
@@ -295,20 +295,20 @@ class TimingReport:
 def _scan(body, state, n_steps):
     # the solver's own loop structure (jaxsync.solve.solver.advance), so that every variant
     # pays the same loop costs as the real step
-    from ..solve.stepper import STEP_UNROLL
+    from ..fem.stepper import STEP_UNROLL
 
     return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps,
                         unroll=STEP_UNROLL)[0]
 
 
 def _full(system, state, zero, n_steps):
-    from ..solve.stepper import step
+    from ..fem.stepper import step
 
     return _scan(lambda s: step(system, s), state, n_steps)
 
 
 def _other(system, state, zero, n_steps):
-    from ..solve.stepper import SolverState, apply_dirichlet, central_difference
+    from ..fem.stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         new = central_difference(system, s, jnp.zeros_like(s.displacement))
@@ -318,7 +318,7 @@ def _other(system, state, zero, n_steps):
 
 
 def _force(system, state, zero, n_steps):
-    from ..solve.stepper import SolverState, apply_dirichlet, central_difference
+    from ..fem.stepper import SolverState, apply_dirichlet, central_difference
 
     def body(s):
         internal = zero * system.stiffness.matvec(s.displacement)
@@ -331,7 +331,7 @@ def _force(system, state, zero, n_steps):
 def _scatter(system, state, zero, n_steps, forces):
     """Recompute mode: only the sum of given (n_elements, 4, 3) element forces into the
     nodes, as :meth:`jaxsync.fem.element_force.ElementStiffness.matvec` does it."""
-    from ..solve.stepper import SolverState
+    from ..fem.stepper import SolverState
 
     k = system.stiffness
 
@@ -345,7 +345,7 @@ def _scatter(system, state, zero, n_steps, forces):
 
 
 def _empty(system, state, zero, n_steps):
-    from ..solve.stepper import SolverState
+    from ..fem.stepper import SolverState
 
     def body(s):
         return SolverState(s.displacement + zero * s.previous, s.displacement, s.step + 1)
@@ -354,7 +354,7 @@ def _empty(system, state, zero, n_steps):
 
 
 def _call(system, state, zero, n_steps):
-    from ..solve.stepper import SolverState
+    from ..fem.stepper import SolverState
 
     return SolverState(state.displacement + zero, state.previous, state.step)
 
@@ -368,7 +368,7 @@ def _distributed_program(runner, n_steps: int, synchronize: bool | None):
     synchronization (``synchronize=None``: no step at all, the cost of a call)."""
     from jax.sharding import PartitionSpec as P
 
-    from ..parallel.distributed import AXIS, LOCAL_AXIS
+    from ..parallel.exchange import AXIS, LOCAL_AXIS
 
     if synchronize is not None:
         return runner.program(1, save_every=n_steps, synchronize=synchronize)
@@ -435,7 +435,7 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
             :func:`jaxsync.simulate`); each part's own program runs on the first.
         seed: METIS seed when ``partitions`` is an int.
         sync: ``"psum"`` or ``"ppermute"``, the synchronization timed as t_s (see
-            :class:`jaxsync.parallel.distributed.DistributedRunner`).
+            :class:`jaxsync.solve.distributed.DistributedRunner`).
 
     Returns:
         :class:`TimingReport`, times in seconds per step.
@@ -447,10 +447,11 @@ def timing_breakdown(problem, partitions=1, *, mode: str = "preassembled", n_ste
     from ..precision import require_float64
 
     require_float64("timing_breakdown")
-    from ..parallel.distributed import DistributedRunner, build_part_systems
+    from ..solve.distributed import DistributedRunner
+    from ..parallel.exchange import build_part_systems
     from ..fem.element_force import MODES
     from ..parallel.partition import Partition, partition as make_partition
-    from ..solve.stepper import SolverState, build_system, initial_state
+    from ..fem.stepper import SolverState, build_system, initial_state
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -675,10 +676,11 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
     require_float64("speedup_breakdown")
     from jax.sharding import PartitionSpec as P
 
-    from ..parallel.distributed import AXIS, DistributedRunner
+    from ..solve.distributed import DistributedRunner
+    from ..parallel.exchange import AXIS
     from ..parallel.partition import Partition, partition as make_partition
-    from ..solve.stepper import SolverState, build_system, initial_state
-    from ..solve.syncavoid import SurrogatePredictor, _OnlineRunner, shared_dof_layout
+    from ..fem.stepper import SolverState, build_system, initial_state
+    from ..solve.syncavoid import SurrogatePredictor, PredictedPhase, shared_dof_layout
 
     if not syncs or any(m not in ("psum", "ppermute") for m in syncs):
         raise ProblemError(f"syncs must name 'psum' and/or 'ppermute', got {syncs!r}")
@@ -704,9 +706,9 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: str = "preas
                                     devices=devices, sync=m) for m in syncs}
     runner = runners[syncs[0]]
     dist_state = runner.from_global(SolverState(d0, dm1, 0))
-    online = _OnlineRunner(runner, predictor, save_every=cycle_steps)
-    buffer = runner._put(np.zeros((part_info.n_parts, history, n_dof)))
-    first = online._first(0)
+    online = PredictedPhase(runner, predictor, save_every=cycle_steps)
+    buffer = runner.put(np.zeros((part_info.n_parts, history, n_dof)))
+    first = online.step_counter(0)
     calls = {f"sync:{m}": (r.program(1, save_every=n_steps), (r.parts, dist_state))
              for m, r in runners.items()}
     calls["nosync"] = (runner.program(1, save_every=n_steps, synchronize=False), (runner.parts, dist_state))

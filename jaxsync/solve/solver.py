@@ -1,9 +1,9 @@
 """Explicit solver driver: single-device and distributed runs in compiled chunks.
 
 The numerics (central differences with lumped mass, paper eq. 7; the paper's start) are
-the pure stepper of :mod:`jaxsync.solve.stepper`. Here the driver :func:`simulate` runs it in
+the pure stepper of :mod:`jaxsync.fem.stepper`. Here the driver :func:`simulate` runs it in
 compiled ``lax.scan`` chunks (on one device, or over parts through
-:mod:`jaxsync.parallel.distributed`), saves every ``save_every`` steps, shows progress, checks for
+:mod:`jaxsync.solve.distributed`), saves every ``save_every`` steps, shows progress, checks for
 divergence and checkpoints between chunks; :func:`steady_state` solves the static problem.
 """
 
@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import CheckpointError, ProblemError, StabilityError
 from ..pytree import is_traced
-from .stepper import (ExplicitSystem, SolverState, advance, apply_dirichlet,  # noqa: F401
+from ..fem.stepper import (ExplicitSystem, SolverState, advance, apply_dirichlet,  # noqa: F401
                       build_system, central_difference, external_force, initial_state, step)
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
@@ -141,7 +141,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
         sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
-            :class:`jaxsync.parallel.distributed.DistributedRunner`; default: the faster measured).
+            :class:`jaxsync.solve.distributed.DistributedRunner`; default: the faster measured).
         shared_every: distributed only: keep each part's shared-node displacements every
             this many steps (a divisor of ``save_every``; default ``save_every``). The
             surrogates train on every step: ``shared_every=1`` keeps that small history
@@ -203,7 +203,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     if partitions is None:
         runner = SingleDeviceRunner(system, save_every)
     else:
-        from ..parallel.distributed import DistributedRunner
+        from .distributed import DistributedRunner
 
         runner = DistributedRunner(problem, system, partitions, save_every=save_every,
                                    mode=mode, seed=seed, devices=devices, sync=sync,

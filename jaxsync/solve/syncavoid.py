@@ -37,13 +37,14 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import PartitionSpec as P
 
-from ..parallel.distributed import AXIS, DistributedRunner, PartSystems
+from .distributed import DistributedRunner
+from ..parallel.exchange import PartSystems
+from ..parallel.spmd import spmd_program
 from ..errors import CheckpointError, ProblemError, StabilityError
 from ..pytree import pytree_dataclass, static_field
 from .solver import drive
-from .stepper import STEP_UNROLL, SolverState, build_system, initial_state, step
+from ..fem.stepper import STEP_UNROLL, SolverState, build_system, initial_state, step
 
 __all__ = ["SurrogatePredictor", "OraclePredictor", "ResyncTolerance", "simulate_sync_avoiding",
            "simulate_full_system", "shared_dof_layout", "step_counts", "describe_run"]
@@ -229,23 +230,20 @@ def _apply(part: PartSystems, state: SolverState, pred, steps: int, save_every: 
 
 # --------------------------------------------------------------------------- SPMD programs
 
-class _OnlineRunner:
+class PredictedPhase:
     """Compiles and runs the predicted phase under ``shard_map`` (no collectives): the
     fused program (predict and step, ``n_cycles`` cycles per call) and, for the monitored
     run, the two halves (predict one cycle; step it with the predictions)."""
 
     def __init__(self, runner: DistributedRunner, predictor, save_every: int):
         self.runner = runner
-        self.predictor = runner._put(predictor)
+        self.predictor = runner.put(predictor)
         self.save_every = save_every
         self._compiled = {}
         self.compile_seconds = 0.0
 
     def _spmd(self, body, n_in: int, n_out: int):
-        mapped = jax.shard_map(jax.vmap(body), mesh=self.runner.device_mesh,
-                               in_specs=(P(AXIS),) * n_in, out_specs=(P(AXIS),) * n_out,
-                               check_vma=False)
-        return jax.jit(mapped)
+        return spmd_program(body, self.runner.device_mesh, n_in=n_in, n_out=n_out)
 
     def program(self, n_cycles: int, steps: int):
         key = ("jit", n_cycles, steps)
@@ -268,24 +266,26 @@ class _OnlineRunner:
     def lowered_text(self, state, buffer, n_cycles: int, steps: int) -> str:
         """The compiled fused program's HLO text (to check that it has no collective)."""
         return self.program(n_cycles, steps).lower(self.runner.parts, self.predictor, state,
-                                                   buffer, self._first(0)).compile().as_text()
+                                                   buffer, self.step_counter(0)).compile().as_text()
 
-    def _first(self, step: int):
-        return self.runner._put(np.full(self.runner.partition.n_parts, step, dtype=np.int32))
+    def step_counter(self, step: int):
+        """The step ``step`` as one int32 per part, sharded like the parts (an argument
+        of the predicted programs)."""
+        return self.runner.put(np.full(self.runner.partition.n_parts, step, dtype=np.int32))
 
     def prepare(self, state, buffer, n_cycles: int, steps: int):
         """The fused program for ``n_cycles`` cycles of ``steps``, compiled ahead."""
         return self._ahead(("compiled", n_cycles, steps), lambda: self.program(n_cycles, steps),
-                           lambda: (self.runner.parts, self.predictor, state, buffer, self._first(0)))
+                           lambda: (self.runner.parts, self.predictor, state, buffer, self.step_counter(0)))
 
     def run(self, state, buffer, step0: int, n_cycles: int, steps: int):
         return self.prepare(state, buffer, n_cycles, steps)(
-            self.runner.parts, self.predictor, state, buffer, self._first(step0))
+            self.runner.parts, self.predictor, state, buffer, self.step_counter(step0))
 
     def _rollout_program(self, buffer, steps: int):
         build = lambda: self._spmd(functools.partial(_rollout, steps=steps,  # noqa: E731
                                                      save_every=self.save_every), 3, 3)
-        return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self._first(0)))
+        return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self.step_counter(0)))
 
     def _apply_program(self, state, pred, steps: int):
         build = lambda: self._spmd(functools.partial(_apply, steps=steps,  # noqa: E731
@@ -304,7 +304,7 @@ class _OnlineRunner:
 
     def rollout(self, buffer, step0: int, steps: int):
         """One cycle predicted ahead: (predictions, buffer, predictions at saved steps)."""
-        return self._rollout_program(buffer, steps)(self.predictor, buffer, self._first(step0))
+        return self._rollout_program(buffer, steps)(self.predictor, buffer, self.step_counter(step0))
 
     def apply(self, state, pred, steps: int):
         """The steps of one cycle with the predictions of :meth:`rollout`."""
@@ -434,7 +434,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             string like ``"2%"`` (relative to the largest shared-node displacement seen in
             synchronized steps), or a :class:`ResyncTolerance`; None: never.
         sync: how the synchronized steps sum shared forces (see
-            :class:`jaxsync.parallel.distributed.DistributedRunner`).
+            :class:`jaxsync.solve.distributed.DistributedRunner`).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
@@ -502,8 +502,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     amplitude = max(float(np.abs(v).max(initial=0.0)) for v in shared_sync)
     anchor = _Anchor(anchor_state, _histories(partition, shared_sync, history, n_dof), 0)
     state = runner.from_global(anchor_state)
-    buffer = runner._put(anchor.history)
-    online = _OnlineRunner(runner, predictor, save_every)
+    buffer = runner.put(anchor.history)
+    online = PredictedPhase(runner, predictor, save_every)
     timeline: list[_Segment] = []
     stats = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": []}
     seconds = {"predicted": 0.0, "synchronized": 0.0, "discarded": 0.0}
@@ -588,7 +588,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             anchor = _Anchor(end_state, _histories(partition, shared, history, n_dof, anchor.history),
                              len(timeline))
             state = runner.from_global(end_state)
-            buffer = runner._put(anchor.history)
+            buffer = runner.put(anchor.history)
             step_now = target
             bar.n = step_now - n_cri
             bar.refresh()
@@ -660,7 +660,7 @@ def describe_run(online) -> str:
 
 
 def _host(x) -> np.ndarray:
-    from ..parallel.distributed import _to_host
+    from .distributed import to_host
 
     return _to_host(x)
 

@@ -12,7 +12,7 @@ paper: a0 from the consistent-mass system, d(-1) = d0 - dt v0 + dt^2/2 a0.
 State is explicit (:class:`SolverState`); :func:`step` is a pure function and
 :func:`advance` runs it in a ``lax.scan``. The host drivers that call them, for one
 device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
-(:mod:`jaxsync.parallel.distributed`), both build on this module.
+(:mod:`jaxsync.solve.distributed`), both build on this module.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..pytree import pytree_dataclass
-from ..fem.sparse import BlockEll
+from .sparse import BlockEll
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
            "central_difference", "apply_dirichlet", "external_force", "advance", "STEP_UNROLL"]
@@ -77,7 +77,7 @@ def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
     ``mode`` selects the internal force: ``"preassembled"`` (K stored in node-blocked
     ELL form) or ``"recompute"`` (element quantities formed every step, paper Remark 2).
     Traceable in the material, damping, load magnitudes and dt (differentiable)."""
-    from ..fem.element_force import MODES, ElementStiffness
+    from .element_force import MODES, ElementStiffness
 
     if mode not in MODES:
         raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
@@ -154,8 +154,8 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     """The paper's start: a0 solves M a0 = f(0) - C v0 - K d0 with the CONSISTENT mass
     (Dirichlet rows and columns replaced by the identity, so a0 = 0 there), then
     d(-1) = d0 - dt v0 + dt^2 / 2 a0. Solved by conjugate gradients (differentiable)."""
-    from ..fem.assembly import consistent_mass
-    from ..fem.sparse import block_ell_values
+    from .assembly import consistent_mass
+    from .sparse import block_ell_values
 
     n = problem.mesh.n_nodes
     d0 = jnp.zeros((n, 3)) if problem.initial_displacement is None else jnp.asarray(
