@@ -77,7 +77,7 @@ def run_scenario(name, configs, repeats, log):
     out = []
     for divisions, n_parts in configs:
         problem = cantilever(divisions)
-        partition = jaxsync.parallel.partition(problem.mesh, n_parts)
+        partition = jaxsync.partition(problem.mesh, n_parts)
         for mode in MODES:
             start = time.perf_counter()
             # default n_steps: about 1 ms calls (the per-call cost is measured and removed)
@@ -157,7 +157,7 @@ def run_baseline(divisions, n_steps, log, repeats=3, jax_repeats=5) -> dict:
     from jaxsync.solve.solver import SingleDeviceRunner
 
     problem = cantilever(divisions)
-    partition = jaxsync.parallel.partition(problem.mesh, 2)
+    partition = jaxsync.partition(problem.mesh, 2)
     entry = {"divisions": list(divisions), "n_nodes": problem.mesh.n_nodes,
              "n_elements": problem.mesh.n_elements, "n_steps": n_steps, "n_parts": 2,
              "n_shared_nodes": partition.n_interface}

@@ -71,15 +71,15 @@ def main(argv=None):
                                             resync_tolerance=None if tol == "none" else tol)
         wall = time.perf_counter() - start
         err = np.abs(online.displacement - truth)
-        st = online.statistics
+        st = online.stats
         row = {"tolerance": tol, "max_abs_error_cm": float(err.max()),
                "l2_error_final_cm": float(np.linalg.norm(err[-1])),
-               "n_synchronized_steps": st["n_synchronized_steps"],
-               "n_predicted_steps": st["n_predicted_steps"],
-               "n_discarded_steps": st.get("n_discarded_steps", 0),
-               "n_resynchronizations": st.get("n_resynchronizations", 0),
-               "us_per_step_predicted": st.get("us_per_step_predicted"),
-               "us_per_step_synchronized": st["us_per_step_synchronized"],
+               "n_synchronized_steps": st.n_synchronized_steps,
+               "n_predicted_steps": st.n_predicted_steps,
+               "n_discarded_steps": (st.n_discarded_steps or 0),
+               "n_resynchronizations": (st.n_resynchronizations or 0),
+               "us_per_step_predicted": st.us_per_step_predicted,
+               "us_per_step_synchronized": st.us_per_step_synchronized,
                "wall_seconds": wall, "warning": [str(w.message) for w in caught]}
         predictions, holds, steps = predictions_by_node(online, parts)
         if len(steps):

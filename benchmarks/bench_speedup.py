@@ -123,7 +123,7 @@ def scenario_configs(quick):
 
 def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
     problem, n_parts = cfg["problem"], cfg["n_parts"]
-    part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.parallel.partition(problem.mesh, n_parts)
+    part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.partition(problem.mesh, n_parts)
     predictor = SurrogatePredictor.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
                                                n_past=N_P, n_future=N_F)
     start = time.perf_counter()

@@ -56,7 +56,7 @@ def main(argv=None):
     os.makedirs(args.out, exist_ok=True)
     mesh = jaxsync.read_mesh(args.mesh) if args.mesh else jaxsync.box_beam()
     problem = jaxsync.cantilever(mesh)
-    parts = jaxsync.parallel.partition(mesh, 2, seed=args.seed)
+    parts = jaxsync.partition(mesh, 2, seed=args.seed)
     n_s, n_p = args.n_s, args.n_p
     epochs = args.epochs or n_epoch_rule(5e-4, 0.9995, 5e-7)
     timings = {}
@@ -65,7 +65,7 @@ def main(argv=None):
     reference = jaxsync.simulate(problem, args.steps, partitions=parts, progress=True)
     timings["synchronized_run_s"] = time.perf_counter() - start
 
-    data = stack_replicas([build_dataset([p["shared_displacement"]], n_s, n_p, n_p, train_fraction=0.5,
+    data = stack_replicas([build_dataset([p.shared_displacement], n_s, n_p, n_p, train_fraction=0.5,
                                          split_seed=args.seed) for p in reference.parts])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.hidden, n_layers=2, n_past=n_p,
                             n_future=n_p)
@@ -91,9 +91,9 @@ def main(argv=None):
     e = np.linalg.norm((online.displacement - reference.displacement).reshape(len(z), -1), axis=1)
     fixed = np.unique(problem.dirichlet_dofs()[0] // 3)
     summary = write_report(reference, online, parts, args.out, fixed_nodes=fixed, extra={
-        "us_per_step_synchronized": reference.statistics["us_per_step"],
-        "us_per_step_predicted": online.statistics["us_per_step_predicted"],
-        "speedup": reference.statistics["us_per_step"] / online.statistics["us_per_step_predicted"]})
+        "us_per_step_synchronized": reference.stats.us_per_step,
+        "us_per_step_predicted": online.stats.us_per_step_predicted,
+        "speedup": reference.stats.us_per_step / online.stats.us_per_step_predicted})
     record = {
         "experiment": "paper cantilever (section 5.1)", "mesh": args.mesh or "box_beam (104 nodes)",
         "n_steps": args.steps, "n_cri": n_cri, "n_s": n_s, "n_p": n_p, "n_f": n_p,

@@ -105,7 +105,7 @@ def predictions_by_node(trajectory, partition) -> tuple[np.ndarray, np.ndarray, 
     holds = np.zeros((partition.n_parts, len(shared)), bool)
     for p, part in enumerate(partition.parts):
         cols = np.array([index[int(n)] for n in part.shared_nodes], dtype=int)
-        values = np.asarray(trajectory.parts[p]["predicted_shared_displacement"])
+        values = np.asarray(trajectory.parts[p].predicted_shared_displacement)
         out[p][:, cols] = values.reshape(len(steps), len(cols), 3)
         holds[p, cols] = True
     return out, holds, steps

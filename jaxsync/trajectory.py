@@ -1,140 +1,125 @@
-"""Trajectories: saved displacement histories, HDF5 files and ParaView (XDMF) output.
+"""Trajectories: saved displacement histories with their run statistics and per-part
+shared-node histories; HDF5 files (the one reader and writer) and ParaView (XDMF) output.
 
-Every file is written under a temporary name in the target folder and renamed over the
-target only when complete, so a failed or interrupted write never replaces a good file.
+Files are written atomically (:mod:`jaxsync.io`): a failed or interrupted write never
+replaces a good file.
 """
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
-import hashlib
-import json
 import os
 import shutil
 import tempfile
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
 from .errors import CheckpointError
 from .fem.mesh import Mesh
+from .io import array_checksum, atomic_h5, atomic_path  # noqa: F401  (re-exported)
 
-__all__ = ["Trajectory", "atomic_path", "atomic_h5", "array_checksum"]
+__all__ = ["Trajectory", "RunStats", "PartHistory"]
 
 FORMAT_VERSION = 1
 
 
-STALE_TEMP_AGE_S = 3600.0
-"""A temporary file of :func:`atomic_path` whose writer cannot be checked (another host,
-or written by an older jaxsync) counts as abandoned when unmodified for this long."""
+@dataclasses.dataclass(frozen=True)
+class RunStats:
+    """How a run went, apart from the physics (every field None when not measured).
+
+    Timing (compiled chunks only; compilation is counted apart):
+        us_per_step: wall time per step of a synchronized run [us].
+        us_per_step_synchronized, us_per_step_predicted: the same for the two kinds of
+            steps of a synchronization-avoiding run [us].
+        compile_seconds: time spent compiling [s].
+        seconds_discarded: time spent on predicted steps that were recomputed [s].
+    Devices: n_devices, device_kind, platform, emulated (several CPU devices emulated in
+        one process, sharing its cores).
+    Steps of a synchronization-avoiding run (they add up: n_synchronized_steps +
+    n_predicted_steps = n_steps):
+        n_steps, n_cri (last step of the first synchronized stretch),
+        n_synchronized_steps, n_predicted_steps, n_discarded_steps (predicted, then
+        recomputed synchronized after a rejected cycle).
+    Error control: resync_tolerance (as given, e.g. ``"1 %"``), n_resynchronizations,
+        resynchronized_at (first step of each rejected cycle), es_hat_trigger (its es_hat
+        [cm]) and tolerance_cm (the tolerance then [cm]).
+    Full-system modeling: dirichlet_max_abs_predicted, the largest |predicted value| on
+        the Dirichlet dofs [cm].
+    """
+
+    us_per_step: float | None = None
+    us_per_step_synchronized: float | None = None
+    us_per_step_predicted: float | None = None
+    compile_seconds: float | None = None
+    seconds_discarded: float | None = None
+    n_devices: int | None = None
+    device_kind: str | None = None
+    platform: str | None = None
+    emulated: bool | None = None
+    n_steps: int | None = None
+    n_cri: int | None = None
+    n_synchronized_steps: int | None = None
+    n_predicted_steps: int | None = None
+    n_discarded_steps: int | None = None
+    resync_tolerance: str | None = None
+    n_resynchronizations: int | None = None
+    resynchronized_at: tuple | None = None
+    es_hat_trigger: tuple | None = None
+    tolerance_cm: tuple | None = None
+    dirichlet_max_abs_predicted: float | None = None
+
+    def __post_init__(self):
+        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm"):
+            value = getattr(self, name)
+            if value is not None and not isinstance(value, tuple):
+                object.__setattr__(self, name, tuple(np.asarray(value).tolist()))
+
+    def to_dict(self) -> dict:
+        """The measured fields (None left out), as plain Python values."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if getattr(self, f.name) is not None}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "RunStats":
+        """The inverse of :meth:`to_dict`; keys this jaxsync does not know are ignored
+        (files of a newer jaxsync stay readable)."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in known})
+
+    def merged(self, **changes) -> "RunStats":
+        """A copy with ``changes`` applied (None values leave a field as it is)."""
+        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
-@contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
-    """Yield a temporary path beside ``path``; rename it onto ``path`` on success,
-    delete it on failure.
+@dataclasses.dataclass(frozen=True, eq=False)
+class PartHistory:
+    """One part of a distributed run: its shared nodes and their displacement history.
 
-    The temporary file is ``.<name>.<pid>@<host>.<random>.tmp``. A writer killed hard
-    (SIGKILL, power loss) cannot delete it, so every write first removes the temporary
-    files of the same target left by writers that are gone: on this host, those whose
-    process no longer exists; from another host or an older jaxsync (no owner in the
-    name), those unmodified for :data:`STALE_TEMP_AGE_S`. Live concurrent writers keep
-    theirs."""
-    path = os.fspath(path)
-    folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
-    prefix = f".{os.path.basename(path)}."
-    _remove_stale_temporaries(folder, prefix)
-    fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{_host_tag()}.", suffix=".tmp",
-                               dir=folder)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the usual permissions
-    try:
-        yield tmp
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.remove(tmp)
-        raise
+    Attributes:
+        shared_nodes: (n_shared,) global ids of the nodes the part shares with others.
+        elements: (n_elements_p,) global ids of the part's elements.
+        shared_displacement: (n_entries, 3 n_shared) the shared nodes' displacement
+            [cm], one row every ``Trajectory.shared_stride`` steps from step 0, columns
+            node-major (x, y, z of shared_nodes[0], then of shared_nodes[1] ...).
+        predicted_shared_displacement: synchronization-avoiding runs only:
+            (n_predicted_saved, 3 n_shared) the part's OWN predictions at the saved
+            predicted steps [cm]; None otherwise.
+    """
 
+    shared_nodes: Any
+    elements: Any
+    shared_displacement: Any
+    predicted_shared_displacement: Any = None
 
-def _host_tag() -> str:
-    """This host's name as it goes into temporary file names (letters, digits, '-')."""
-    import re
-    import socket
+    @property
+    def n_shared(self) -> int:
+        return int(np.shape(self.shared_nodes)[0])
 
-    return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
-
-
-def _process_alive(pid: int) -> bool:
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    except OSError:
-        return True  # cannot tell: keep the file
-    return True
-
-
-def _remove_stale_temporaries(folder: str, prefix: str) -> None:
-    """Delete ``<prefix><pid>@<host>.<random>.tmp`` files whose writer is gone, and
-    ``<prefix><random>.tmp`` files (older jaxsync) unmodified for STALE_TEMP_AGE_S."""
-    import re
-    import time
-
-    owned = re.compile(re.escape(prefix) + r"(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+\.tmp$")
-    legacy = re.compile(re.escape(prefix) + r"[a-z0-9_]{8}\.tmp$")  # mkstemp's 8 characters
-    try:
-        names = [n for n in os.listdir(folder) if n.startswith(prefix) and n.endswith(".tmp")]
-    except OSError:
-        return
-    host, now = _host_tag(), time.time()
-    for name in names:
-        full = os.path.join(folder, name)
-        match = owned.match(name)
-        try:
-            if match and match.group(2) == host:
-                stale = not _process_alive(int(match.group(1)))
-            elif match or legacy.match(name):
-                stale = now - os.stat(full).st_mtime > STALE_TEMP_AGE_S
-            else:
-                continue  # another target's temporary whose name starts alike
-            if stale and os.path.isfile(full):
-                os.remove(full)
-        except OSError:
-            continue  # removed meanwhile, or not ours to remove
-
-
-def array_checksum(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) -> str:
-    """sha256 (hex) over named arrays (name, dtype, shape and bytes of each, in name order)
-    and JSON-serialisable metadata: stored in a file, it shows whether the file's content
-    was altered after it was written."""
-    digest = hashlib.sha256()
-    for name in sorted(arrays):
-        array = np.ascontiguousarray(arrays[name])
-        digest.update(name.encode())
-        digest.update(array.dtype.str.encode())
-        digest.update(repr(array.shape).encode())
-        digest.update(array.tobytes())
-    digest.update(json.dumps(dict(meta), sort_keys=True).encode())
-    return digest.hexdigest()
-
-
-@contextlib.contextmanager
-def atomic_h5(path: str | os.PathLike):
-    """Open a new HDF5 file for writing that appears at ``path`` only when complete."""
-    import h5py
-
-    with atomic_path(path) as tmp:
-        with h5py.File(tmp, "w") as f:
-            yield f
+    def arrays(self) -> dict:
+        """The fields that are set, by name (as stored in a file)."""
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
+                if getattr(self, f.name) is not None}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -148,15 +133,13 @@ class Trajectory:
         dt: time step [s].
         save_every: steps between saved snapshots.
         parameters: problem parameters (E, nu, rho, damping...) for the record.
-        parts: per-part data of a distributed run (shared node ids and their
-            displacement history, and for synchronization-avoiding runs the part's own
-            predictions), or empty.
+        parts: per-part shared-node histories of a distributed run
+            (:class:`PartHistory`, one per part), or empty.
         synchronized: (n_saved,) bool, False where the snapshot's step was predicted
             by surrogates instead of synchronized (None: all synchronized).
-        statistics: how the run went, apart from the physics: ``us_per_step`` (compiled
-            chunks, compilation excluded), ``compile_seconds``, ``n_devices`` and
-            ``device_kind``, and for synchronization-avoiding runs the step counts and
-            re-synchronizations (see :func:`jaxsync.simulate_sync_avoiding`).
+        stats: how the run went, apart from the physics (:class:`RunStats`: time per
+            step, compilation, devices, and for synchronization-avoiding runs the step
+            counts and re-synchronizations).
         shared_every: steps between the entries of each part's ``shared_displacement``
             (None: ``save_every``, one per snapshot). Surrogate training needs 1.
     """
@@ -167,10 +150,16 @@ class Trajectory:
     dt: Any
     save_every: int = 1
     parameters: dict = dataclasses.field(default_factory=dict)
-    parts: tuple = ()
+    parts: tuple[PartHistory, ...] = ()
     synchronized: Any = None
-    statistics: dict = dataclasses.field(default_factory=dict)
+    stats: RunStats = RunStats()
     shared_every: int | None = None
+
+    def __post_init__(self):
+        if isinstance(self.stats, dict):
+            object.__setattr__(self, "stats", RunStats.from_dict(self.stats))
+        if any(not isinstance(part, PartHistory) for part in self.parts):
+            raise TypeError("Trajectory.parts must hold PartHistory objects")
 
     @property
     def shared_stride(self) -> int:
@@ -217,7 +206,7 @@ class Trajectory:
             f.attrs["shared_every"] = self.shared_stride
             for key, value in self.parameters.items():
                 f.attrs[f"param_{key}"] = value
-            for key, value in self.statistics.items():
+            for key, value in self.stats.to_dict().items():
                 f.attrs[f"stat_{key}"] = value
             f.create_dataset("times", data=np.asarray(self.times))
             if self.synchronized is not None:
@@ -235,7 +224,7 @@ class Trajectory:
                 parts = f.create_group("parts")
                 for p, part in enumerate(self.parts):
                     pg = parts.create_group(str(p))
-                    for key, value in part.items():
+                    for key, value in part.arrays().items():
                         value = np.asarray(value)
                         if value.ndim == 2 and value.size > 4096:  # the per-step histories
                             pg.create_dataset(key, data=value, **filters)
@@ -268,14 +257,14 @@ class Trajectory:
                          for k, v in f.attrs.items() if k.startswith("stat_")}
                 parts = ()
                 if "parts" in f:
-                    parts = tuple({k: v[...] for k, v in f["parts"][str(p)].items()}
+                    parts = tuple(PartHistory(**{k: v[...] for k, v in f["parts"][str(p)].items()})
                                   for p in range(int(f.attrs["n_parts"])))
                 synchronized = f["synchronized"][...] if "synchronized" in f else None
                 shared_every = f.attrs.get("shared_every")
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
                            dt=float(f.attrs["dt"]), save_every=int(f.attrs["save_every"]),
                            parameters=params, parts=parts, synchronized=synchronized,
-                           statistics=stats,
+                           stats=RunStats.from_dict(stats),
                            shared_every=None if shared_every is None else int(shared_every))
         except CheckpointError:
             raise

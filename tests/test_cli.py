@@ -129,7 +129,7 @@ def test_demo_end_to_end_reduced(tmp_path, capsys):
     assert online.save_every == 5 and online.n_saved == 301  # the full field every n_s steps
     assert online.synchronized.sum() == 25 // 5 + 1 and not online.synchronized[-1]
     reference = jaxsync.Trajectory.load(out / "synchronized.h5")
-    assert reference.save_every == 5 and reference.parts[0]["shared_displacement"].shape[0] == 1501
+    assert reference.save_every == 5 and reference.parts[0].shared_displacement.shape[0] == 1501
     text = capsys.readouterr().out
     assert "speed-up" in text and "time per step, predicted" in text and "zeta, compiled steps" in text
     assert "1500 steps: 25 synchronized, 1475 predicted" in text
@@ -163,10 +163,10 @@ def test_demo_end_to_end_reduced(tmp_path, capsys):
                      "--no-progress"]) == 0
     printed = capsys.readouterr().out
     resync = jaxsync.Trajectory.load(tmp_path / "resync.h5")
-    st = resync.statistics
-    at = list(st["resynchronized_at"])
+    st = resync.stats
+    at = list(st.resynchronized_at)
     assert at[:3] == [25, 75, 175]  # a 25-step cycle; synchronized for 2, then 4 cycles
-    assert st["n_synchronized_steps"] == 1500 and st["n_predicted_steps"] == 0
+    assert st.n_synchronized_steps == 1500 and st.n_predicted_steps == 0
     assert f"1500 steps: 1500 synchronized, 0 predicted (n_cri = 25); tolerance 1e-12 cm: {len(at)} " in printed
     assert resync.synchronized.all()
     np.testing.assert_allclose(resync.displacement, reference.displacement, rtol=0,
@@ -185,7 +185,7 @@ def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
     problem = jaxsync.cantilever()
     sync = jaxsync.simulate(problem, 200, partitions=2)
     sync.save(tmp_path / "s.h5")
-    other = jaxsync.parallel.partition(problem.mesh, 4)
+    other = jaxsync.partition(problem.mesh, 4)
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, init_replicas

@@ -85,7 +85,7 @@ def test_one_part_costs_nothing():
     for algorithm in ALGORITHMS:
         assert sync_time(alone, LINK, algorithm) == 0.0
     mesh = jaxsync.box_beam(25.0, 1.0, 1.0, (8, 1, 1))
-    pattern = communication_pattern(jaxsync.parallel.partition(mesh, 1))
+    pattern = communication_pattern(jaxsync.partition(mesh, 1))
     assert pattern.n_interface == 0 and pattern.neighbours == ((),)
     assert sync_time(pattern, "infiniband-hdr") == 0.0
 
@@ -103,7 +103,7 @@ def shared_counts(mesh, element_part):
 
 def test_pattern_of_a_metis_partition_matches_the_mesh():
     mesh = jaxsync.box_beam(25.0, 1.0, 1.0, (8, 1, 1))
-    part = jaxsync.parallel.partition(mesh, 2, seed=0)
+    part = jaxsync.partition(mesh, 2, seed=0)
     counts = shared_counts(mesh, part.element_part)
     pattern = communication_pattern(part)
     assert counts[0, 1] > 0

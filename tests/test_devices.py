@@ -27,9 +27,9 @@ def test_simulate_gives_each_part_its_own_device(tmp_path):
     assert done.returncode == 0, done.stderr
     assert "3 cpu devices, emulated" in done.stdout
     traj = jaxsync.Trajectory.load(tmp_path / "run.h5")
-    assert traj.statistics["n_devices"] == 3 and traj.statistics["device_kind"] == "cpu"
-    assert traj.statistics["emulated"]
-    assert traj.statistics["compile_seconds"] > 0 and traj.statistics["us_per_step"] > 0
+    assert traj.stats.n_devices == 3 and traj.stats.device_kind == "cpu"
+    assert traj.stats.emulated
+    assert traj.stats.compile_seconds > 0 and traj.stats.us_per_step > 0
 
 
 def test_the_users_device_count_is_respected(tmp_path):
@@ -38,7 +38,7 @@ def test_the_users_device_count_is_respected(tmp_path):
                     {"XLA_FLAGS": "--xla_force_host_platform_device_count=1"})
     assert done.returncode == 0, done.stderr
     assert "1 cpu device, 2 parts per device)" in done.stdout
-    assert jaxsync.Trajectory.load(tmp_path / "run.h5").statistics["n_devices"] == 1
+    assert jaxsync.Trajectory.load(tmp_path / "run.h5").stats.n_devices == 1
 
 
 def test_zero_steps_report_no_speed(tmp_path):
@@ -64,9 +64,9 @@ def test_device_summary_and_run_statistics():
     assert device_summary(jax.devices()[:1])["emulated"] is False
     problem = jaxsync.cantilever()
     single = jaxsync.simulate(problem, 20)
-    assert single.statistics["n_devices"] == 1
+    assert single.stats.n_devices == 1
     split = jaxsync.simulate(problem, 20, partitions=2)
-    assert split.statistics["n_devices"] == 2 and split.statistics["emulated"]
+    assert split.stats.n_devices == 2 and split.stats.emulated
     np.testing.assert_allclose(split.displacement, single.displacement, rtol=0, atol=1e-13)
 
 

@@ -63,7 +63,7 @@ def test_shared_displacement_is_the_global_displacement(problem, tmp_path):
     path = tmp_path / "d.h5"
     traj.save(path)
     back = jaxsync.Trajectory.load(path)
-    part = jaxsync.parallel.partition(problem.mesh, 2)
+    part = jaxsync.partition(problem.mesh, 2)
     import h5py
 
     with h5py.File(path) as f:
@@ -86,7 +86,7 @@ def test_several_parts_per_device_and_checkpoint_resume(problem, tmp_path):
 
 
 def test_partition_of_another_mesh_is_refused(problem):
-    other = jaxsync.parallel.partition(jaxsync.box_beam(divisions=(10, 1, 1)), 2)
+    other = jaxsync.partition(jaxsync.box_beam(divisions=(10, 1, 1)), 2)
     with pytest.raises(PartitionError, match="another mesh"):
         jaxsync.simulate(problem, 10, partitions=other)
 
@@ -128,7 +128,7 @@ def test_neighbour_exchange_tables_sum_every_shared_node(n_parts, n_devices):
     from jaxsync.parallel.exchange import neighbour_exchange
 
     mesh = jaxsync.box_beam(4.0, 4.0, 4.0, (4, 4, 4))
-    part = jaxsync.parallel.partition(mesh, n_parts, seed=1)
+    part = jaxsync.partition(mesh, n_parts, seed=1)
     plan = neighbour_exchange(part, n_devices)
     per_device = n_parts // n_devices
     rng = np.random.default_rng(0)

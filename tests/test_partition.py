@@ -14,7 +14,7 @@ def mesh():
 
 @pytest.mark.parametrize("n_parts", [1, 2, 3, 5])
 def test_partition_invariants(mesh, n_parts):
-    part = jaxsync.parallel.partition(mesh, n_parts, seed=1)
+    part = jaxsync.partition(mesh, n_parts, seed=1)
     assert part.n_parts == n_parts
     # every element in exactly one part
     all_elements = np.concatenate([p.elements for p in part.parts])
@@ -42,19 +42,19 @@ def test_partition_invariants(mesh, n_parts):
 
 
 def test_partition_is_deterministic(mesh):
-    a = jaxsync.parallel.partition(mesh, 4, seed=7)
-    b = jaxsync.parallel.partition(mesh, 4, seed=7)
+    a = jaxsync.partition(mesh, 4, seed=7)
+    b = jaxsync.partition(mesh, 4, seed=7)
     np.testing.assert_array_equal(a.element_part, b.element_part)
 
 
 def test_summary(mesh):
-    text = jaxsync.parallel.partition(mesh, 2).summary()
+    text = jaxsync.partition(mesh, 2).summary()
     assert "interface:" in text and "shared" in text
     assert len(text.splitlines()) == 5
 
 
 def test_dirichlet_local(mesh):
-    part = jaxsync.parallel.partition(mesh, 3)
+    part = jaxsync.partition(mesh, 3)
     dofs = np.array([0, 1, 2, 3 * 17 + 2, 3 * (mesh.n_nodes - 1)])
     for p, local in zip(part.parts, part.dirichlet_local(dofs)):
         global_dofs = 3 * p.nodes[local // 3] + local % 3
@@ -65,13 +65,13 @@ def test_dirichlet_local(mesh):
                                             (10_000, "cannot split")])
 def test_bad_part_counts(mesh, n_parts, match):
     with pytest.raises(PartitionError, match=match):
-        jaxsync.parallel.partition(mesh, n_parts)
+        jaxsync.partition(mesh, n_parts)
 
 
 def test_metis_empty_part_is_an_error():
     mesh = jaxsync.box_beam()  # 150 elements: METIS leaves parts empty at 150 parts
     with pytest.raises(PartitionError, match="empty"):
-        jaxsync.parallel.partition(mesh, 150)
+        jaxsync.partition(mesh, 150)
 
 
 def test_partition_from_elements_rejects_bad_assignments(mesh):

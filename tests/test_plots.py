@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import jaxsync
+from jaxsync.trajectory import PartHistory
 from jaxsync.app import plots
 from jaxsync.app.cli import main
 from jaxsync.errors import ConfigError, ProblemError
@@ -43,9 +44,8 @@ def fake_online(reference, partition, resync=((200, 240), (320, 330)), n_cri_sna
     for part in partition.parts:
         sh = part.shared_nodes
         own = pred[~sync][:, sh] + 1e-3 * amp * rng.standard_normal((int((~sync).sum()), len(sh), 3))
-        parts.append({"elements": part.elements, "shared_nodes": sh,
-                      "shared_displacement": pred[:, sh].reshape(T, -1),
-                      "predicted_shared_displacement": own.reshape(len(own), -1)})
+        parts.append(PartHistory(sh, part.elements, pred[:, sh].reshape(T, -1),
+                                 own.reshape(len(own), -1)))
     return dataclasses.replace(reference, displacement=pred, synchronized=sync, parts=tuple(parts),
                                parameters={**reference.parameters, "n_cri": n_cri_snapshot * SAVE_EVERY})
 
@@ -54,7 +54,7 @@ def fake_online(reference, partition, resync=((200, 240), (320, 330)), n_cri_sna
 def cantilever_case():
     problem = jaxsync.cantilever()
     reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
-    parts = jaxsync.parallel.partition(problem.mesh, 2)
+    parts = jaxsync.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 
 
@@ -62,7 +62,7 @@ def cantilever_case():
 def vessel_case():
     problem = vessel_like()
     reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
-    parts = jaxsync.parallel.partition(problem.mesh, 2)
+    parts = jaxsync.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 
 

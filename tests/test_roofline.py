@@ -113,7 +113,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
 def test_per_part_costs_match_the_part_systems(problem):
     from jaxsync.parallel.exchange import build_part_systems
 
-    part_info = jaxsync.parallel.partition(problem.mesh, 2, seed=0)
+    part_info = jaxsync.partition(problem.mesh, 2, seed=0)
     system = build_system(problem, problem.dt)
     per_part = step_costs_for(problem, part_info)
     assert len(per_part) == 2

@@ -263,8 +263,8 @@ def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(pr
     resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     for a, b in zip(resumed.parts, full.parts):
-        assert a["shared_displacement"].shape == (2001, b["shared_displacement"].shape[1])
-        np.testing.assert_array_equal(a["shared_displacement"], b["shared_displacement"])
+        assert a.shared_displacement.shape == (2001, b.shared_displacement.shape[1])
+        np.testing.assert_array_equal(a.shared_displacement, b.shared_displacement)
     coarse = tmp_path / "coarse.ckpt.h5"
     jaxsync.simulate(problem, 1000, partitions=2, save_every=50, checkpoint=coarse)
     with pytest.raises(CheckpointError, match="every-step shared histories"):

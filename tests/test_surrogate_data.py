@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.trajectory import PartHistory
 from jaxsync.surrogate.data import (
     Normalization,
     build_dataset,
@@ -214,13 +215,13 @@ def _saved_trajectory(path, synchronized=None, load=None):
     import jaxsync
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
-    parts = jaxsync.parallel.partition(mesh, 2)
+    parts = jaxsync.partition(mesh, 2)
     n = 30
     disp = _wave(n, 3 * mesh.n_nodes).reshape(n, mesh.n_nodes, 3)
     traj = jaxsync.Trajectory(times=np.arange(n) * 1e-3, displacement=disp, mesh=mesh, dt=1e-3,
                               parameters={} if load is None else {"load_parameter": load},
-                              parts=tuple({"shared_nodes": p.shared_nodes, "elements": p.elements,
-                                           "shared_displacement": disp[:, p.shared_nodes].reshape(n, -1)}
+                              parts=tuple(PartHistory(p.shared_nodes, p.elements,
+                                                      disp[:, p.shared_nodes].reshape(n, -1))
                                           for p in parts.parts))
     if synchronized is not None:
         traj = dataclasses.replace(traj, synchronized=synchronized)
@@ -285,17 +286,17 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     import jaxsync
 
     problem = jaxsync.cantilever()
-    parts = jaxsync.parallel.partition(problem.mesh, 2)
+    parts = jaxsync.partition(problem.mesh, 2)
     every = jaxsync.simulate(problem, 300, partitions=parts)
     thin = jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=1)
     assert thin.n_saved == 7 and thin.shared_stride == 1
     np.testing.assert_array_equal(thin.displacement, every.displacement[::50])
     for a, b in zip(thin.parts, every.parts):
-        np.testing.assert_array_equal(a["shared_displacement"], b["shared_displacement"])
+        np.testing.assert_array_equal(a.shared_displacement, b.shared_displacement)
     thin.save(tmp_path / "thin.h5")
     runs = read_shared_histories(tmp_path / "thin.h5")
     for got, part in zip(runs.histories, every.parts):
-        np.testing.assert_array_equal(got, part["shared_displacement"])
+        np.testing.assert_array_equal(got, part.shared_displacement)
     # a thinned shared history is refused for training, with the fix named
     jaxsync.simulate(problem, 300, partitions=parts, save_every=50).save(tmp_path / "coarse.h5")
     with pytest.raises(CheckpointError, match="shared_every=1"):

@@ -23,7 +23,7 @@ def problem():
 
 @pytest.fixture(scope="module")
 def partition(problem):
-    return jaxsync.parallel.partition(problem.mesh, 2)
+    return jaxsync.partition(problem.mesh, 2)
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +57,7 @@ def test_oracle_reproduces_the_synchronized_run(problem, partition, reference):
     # each part's own predictions are what the oracle said
     for p, part in enumerate(partition.parts):
         np.testing.assert_array_equal(
-            traj.parts[p]["predicted_shared_displacement"],
+            traj.parts[p].predicted_shared_displacement,
             reference.displacement[N_CRI + 1:, part.shared_nodes].reshape(N_STEPS - N_CRI, -1))
 
 
@@ -70,13 +70,13 @@ def test_wrong_overwrite_timing_is_detected(problem, partition, reference):
 
 
 def test_oracle_with_save_every_and_four_parts(problem, reference):
-    part4 = jaxsync.parallel.partition(problem.mesh, 4)
+    part4 = jaxsync.partition(problem.mesh, 4)
     ref4 = jaxsync.simulate(problem, N_STEPS - 10, partitions=part4)
     traj = simulate_sync_avoiding(problem, N_STEPS - 10, partitions=part4, save_every=10,
                                   surrogates=oracle(ref4, part4, n_steps=N_STEPS - 10), n_cri=N_CRI)
     np.testing.assert_allclose(traj.displacement, ref4.displacement[::10], rtol=0,
                                atol=1e-13 * np.abs(ref4.displacement).max())
-    assert traj.parts[0]["predicted_shared_displacement"].shape[0] == (N_STEPS - 10 - N_CRI) // 10
+    assert traj.parts[0].predicted_shared_displacement.shape[0] == (N_STEPS - 10 - N_CRI) // 10
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
@@ -135,7 +135,7 @@ def test_full_system_oracle_reproduces_the_reference(problem):
     traj = simulate_full_system(problem, reference, oracle_all, n_cri=N_CRI)
     assert traj.n_saved == N_STEPS + 1
     np.testing.assert_array_equal(traj.displacement[:, 1:], reference.displacement[:, 1:])
-    assert traj.statistics["dirichlet_max_abs_predicted"] == pytest.approx(1e-3)
+    assert traj.stats.dirichlet_max_abs_predicted == pytest.approx(1e-3)
     assert traj.synchronized.sum() == N_CRI + 1
 
 
@@ -159,7 +159,7 @@ def test_surrogates_of_another_partition_are_refused(problem, reference):
 
     from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint, init_replicas
 
-    other = jaxsync.parallel.partition(problem.mesh, 4)
+    other = jaxsync.partition(problem.mesh, 4)
     counts = tuple(3 * p.n_shared for p in other.parts)
     arch = LSTMArchitecture(n_dof=max(counts), n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
@@ -180,7 +180,7 @@ def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, parti
                                    build_dataset, stack_replicas, train_replicas)
 
     long_ref = jaxsync.simulate(problem, 400, partitions=partition)
-    data = stack_replicas([build_dataset([long_ref.parts[p]["shared_displacement"]], N_S, N_P, N_F,
+    data = stack_replicas([build_dataset([long_ref.parts[p].shared_displacement], N_S, N_P, N_F,
                                          train_fraction=1.0) for p in range(2)])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=8, n_layers=1, n_past=N_P, n_future=N_F)
     result = train_replicas(data, arch, TrainConfig(n_epochs=3), jax.random.key(0), progress=False)
@@ -217,9 +217,9 @@ def test_resync_tolerance_never_reached_changes_nothing(problem, partition):
     np.testing.assert_array_equal(watched.displacement, plain.displacement)
     np.testing.assert_array_equal(watched.synchronized, plain.synchronized)
     for a, b in zip(watched.parts, plain.parts):
-        np.testing.assert_array_equal(a["predicted_shared_displacement"], b["predicted_shared_displacement"])
-    assert watched.statistics["resynchronized_at"] == []
-    assert watched.statistics["n_predicted_steps"] == N_STEPS - N_CRI
+        np.testing.assert_array_equal(a.predicted_shared_displacement, b.predicted_shared_displacement)
+    assert watched.stats.resynchronized_at == []
+    assert watched.stats.n_predicted_steps == N_STEPS - N_CRI
 
 
 @pytree_dataclass
@@ -253,7 +253,7 @@ def drifting_oracle(reference, partition, drift, jitter=0.0, drift_until=None, s
     rng = np.random.default_rng(seed)
     steps = np.minimum(np.arange(n), n if drift_until is None else drift_until)
     for p, part in enumerate(partition.parts):
-        shared = reference.parts[p]["shared_displacement"]
+        shared = reference.parts[p].shared_displacement
         values[p, :len(shared), :counts[p]] = shared
         values[p, len(shared):, :counts[p]] = shared[-1]
         path[p, :, :counts[p]] = drift[p] * steps[:, None] + jitter * rng.uniform(-1, 1, (n, counts[p]))
@@ -278,18 +278,18 @@ def test_drift_beyond_the_tolerance_is_recomputed_synchronized(problem, partitio
     with pytest.warns(RuntimeWarning, match="only 40 of the 940 steps"):
         traj = simulate_sync_avoiding(problem, n_steps, partitions=partition, surrogates=net,
                                       n_cri=N_CRI, resync_tolerance=tol)
-    st = traj.statistics
+    st = traj.stats
     rejected = list(range(N_CRI + 2 * cycle, n_steps, 3 * cycle))  # 80, 140, ..., 920
-    assert st["resynchronized_at"] == rejected
+    assert list(st.resynchronized_at) == rejected
     # es_hat of the rejected cycle: |drift_0 - drift_1| = 2e-6 cm per step, 3 cycles on
-    np.testing.assert_allclose(st["es_hat_trigger"], 2 * rate * 3 * cycle, rtol=1e-9)
-    assert st["tolerance_cm"] == [tol] * len(rejected)
-    assert st["n_discarded_steps"] == 2 * cycle * len(rejected)
+    np.testing.assert_allclose(st.es_hat_trigger, 2 * rate * 3 * cycle, rtol=1e-9)
+    assert list(st.tolerance_cm) == [tol] * len(rejected)
+    assert st.n_discarded_steps == 2 * cycle * len(rejected)
     steps = np.arange(n_steps + 1)
     expected = steps <= rejected[-1] + cycle
     np.testing.assert_array_equal(traj.synchronized, expected)
-    assert st["n_synchronized_steps"] == rejected[-1] + cycle
-    assert st["n_synchronized_steps"] + st["n_predicted_steps"] == n_steps
+    assert st.n_synchronized_steps == rejected[-1] + cycle
+    assert st.n_synchronized_steps + st.n_predicted_steps == n_steps
     scale = np.abs(long_reference.displacement).max()
     err = np.abs(traj.displacement - long_reference.displacement[:n_steps + 1]).max(axis=(1, 2))
     assert err[expected].max() <= 1e-12 * scale
@@ -315,8 +315,8 @@ def test_noisy_oracle_error_stays_bounded_by_the_tolerance(problem, partition, l
     errors = {}
     for tol in (1e-4, 3e-5):
         errors[tol], traj = run(tol)
-        assert traj.statistics["n_resynchronizations"] >= 3
-        assert traj.statistics["n_predicted_steps"] >= 300
+        assert traj.stats.n_resynchronizations >= 3
+        assert traj.stats.n_predicted_steps >= 300
         assert errors[tol].max() <= 2 * tol, (tol, errors[tol].max())
     assert free.max() > 5 * errors[1e-4].max()
 
@@ -329,10 +329,10 @@ def test_untrained_networks_fall_back_to_the_synchronized_run(problem, partition
         traj = simulate_sync_avoiding(problem, 400, partitions=partition, surrogates=untrained(partition),
                                       n_cri=N_CRI, resync_tolerance=1e-12)
     cycle = N_S * N_F
-    assert traj.statistics["resynchronized_at"] == [N_CRI, N_CRI + 2 * cycle, N_CRI + 6 * cycle,
+    assert traj.stats.resynchronized_at == [N_CRI, N_CRI + 2 * cycle, N_CRI + 6 * cycle,
                                                     N_CRI + 14 * cycle]
-    assert traj.synchronized.all() and traj.statistics["n_predicted_steps"] == 0
-    assert traj.statistics["n_discarded_steps"] == 0
+    assert traj.synchronized.all() and traj.stats.n_predicted_steps == 0
+    assert traj.stats.n_discarded_steps == 0
     scale = np.abs(long_reference.displacement).max()
     assert np.abs(traj.displacement - long_reference.displacement[:401]).max() <= 1e-12 * scale
 
@@ -346,13 +346,13 @@ def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference)
     with pytest.warns(RuntimeWarning):
         traj = simulate_sync_avoiding(problem, 1000, partitions=partition, surrogates=net,
                                       n_cri=N_CRI, resync_tolerance="2%")
-    st = traj.statistics
-    assert st["resync_tolerance"] == "2 %" and st["n_resynchronizations"] >= 3
-    for step, tol in zip(st["resynchronized_at"], st["tolerance_cm"]):
+    st = traj.stats
+    assert st.resync_tolerance == "2 %" and st.n_resynchronizations >= 3
+    for step, tol in zip(st.resynchronized_at, st.tolerance_cm):
         # here every rejection comes right after a synchronized stretch ending at `step`
-        seen = max(np.abs(part["shared_displacement"][:step + 1]).max() for part in long_reference.parts)
+        seen = max(np.abs(part.shared_displacement[:step + 1]).max() for part in long_reference.parts)
         assert tol == pytest.approx(0.02 * seen, rel=1e-12)
-    assert st["tolerance_cm"] == sorted(st["tolerance_cm"]) and st["tolerance_cm"][-1] > st["tolerance_cm"][0]
+    assert list(st.tolerance_cm) == sorted(st.tolerance_cm) and st.tolerance_cm[-1] > st.tolerance_cm[0]
     assert ResyncTolerance.parse("1e-4") == ResyncTolerance(absolute=1e-4)
     assert ResyncTolerance.parse(2e-4).cm(5.0) == 2e-4
     assert ResyncTolerance.parse("5%").cm(2.0) == pytest.approx(0.1)
@@ -391,7 +391,7 @@ def briefly_trained(problem, partition):
                                    stack_replicas, train_replicas)
 
     reference = jaxsync.simulate(problem, 4000, partitions=partition)
-    data = stack_replicas([build_dataset([reference.parts[p]["shared_displacement"]], 20, 10, 10)
+    data = stack_replicas([build_dataset([reference.parts[p].shared_displacement], 20, 10, 10)
                            for p in range(2)])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=16, n_layers=1, n_past=10, n_future=10)
     result = train_replicas(data, arch, TrainConfig(n_epochs=30, eta0=3e-3, gamma=0.98),
@@ -409,7 +409,7 @@ def test_a_tolerance_never_makes_a_trained_run_worse(problem, partition, briefly
             warnings.simplefilter("ignore", RuntimeWarning)
             traj = simulate_sync_avoiding(problem, 4000, partitions=partition, surrogates=ckpt,
                                           n_cri=200, resync_tolerance=tol)
-        return np.abs(traj.displacement - reference.displacement).max(), traj.statistics
+        return np.abs(traj.displacement - reference.displacement).max(), traj.stats
 
     free, _ = max_error(None)
     assert free > 1e-4  # the network is far from perfect
@@ -418,7 +418,7 @@ def test_a_tolerance_never_makes_a_trained_run_worse(problem, partition, briefly
         assert error <= free * (1 + 1e-9), (tol, error, free)
     tight, stats = max_error(1e-8)
     assert tight <= 1e-12 * np.abs(reference.displacement).max()
-    assert stats["n_predicted_steps"] == 0 and stats["n_synchronized_steps"] == 4000
+    assert stats.n_predicted_steps == 0 and stats.n_synchronized_steps == 4000
 
 
 @pytest.mark.slow
@@ -431,7 +431,7 @@ def test_demo_surrogate_error_control(problem, partition):
                                    stack_replicas, train_replicas)
 
     reference = jaxsync.simulate(problem, 100_000, partitions=partition, save_every=80, shared_every=1)
-    data = stack_replicas([build_dataset([p["shared_displacement"]], 80, 20, 20) for p in reference.parts])
+    data = stack_replicas([build_dataset([p.shared_displacement], 80, 20, 20) for p in reference.parts])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=32, n_past=20, n_future=20)
     result = train_replicas(data, arch, TrainConfig(), jax.random.key(0), progress=False)
     ckpt = SurrogateCheckpoint.from_result(result, 80, [p.shared_nodes for p in partition.parts])

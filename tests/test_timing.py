@@ -194,7 +194,7 @@ def test_speedup_breakdown_measures_both_solvers_in_one_run(tmp_path):
     from jaxsync.perf.timing import speedup_breakdown
 
     problem = jaxsync.cantilever()
-    part = jaxsync.parallel.partition(problem.mesh, 2, seed=0)
+    part = jaxsync.partition(problem.mesh, 2, seed=0)
     predictor = SurrogatePredictor.initialized(part, 4, n_hidden=8, n_layers=1, n_past=3, n_future=5)
     report = speedup_breakdown(problem, part, predictor, n_cycles=2, repeats=3, stage_repeats=5)
     assert report.steps_per_prediction == 20 and report.n_steps == 40

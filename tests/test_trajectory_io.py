@@ -6,7 +6,8 @@ import pytest
 
 import jaxsync
 from jaxsync import CheckpointError
-from jaxsync.trajectory import atomic_path
+from jaxsync.io import atomic_path
+from jaxsync.trajectory import PartHistory
 
 
 @pytest.fixture(scope="module")
@@ -27,21 +28,21 @@ def test_hdf5_round_trip(trajectory, tmp_path):
     assert back.parameters == trajectory.parameters
     assert {k: back.parameters[k] for k in ("E", "nu", "rho", "damping")} == {
         "E": 1.0e6, "nu": 0.3, "rho": 1.0, "damping": 0.5}
-    assert back.statistics == trajectory.statistics  # run statistics, apart from the physics
-    assert back.statistics["us_per_step"] > 0 and back.statistics["n_devices"] == 1
+    assert back.stats == trajectory.stats  # run statistics, apart from the physics
+    assert back.stats.us_per_step > 0 and back.stats.n_devices == 1
 
 
 def test_parts_round_trip(trajectory, tmp_path):
     import dataclasses
 
-    parts = ({"shared_nodes": np.array([3, 4]), "shared_displacement": np.ones((11, 6))},
-             {"shared_nodes": np.array([4]), "shared_displacement": np.zeros((11, 3))})
+    parts = (PartHistory(np.array([3, 4]), np.array([0]), np.ones((11, 6))),
+             PartHistory(np.array([4]), np.array([1]), np.zeros((11, 3))))
     with_parts = dataclasses.replace(trajectory, parts=parts)
     with_parts.save(tmp_path / "p.h5")
     back = jaxsync.Trajectory.load(tmp_path / "p.h5")
     assert len(back.parts) == 2
-    np.testing.assert_array_equal(back.parts[0]["shared_nodes"], [3, 4])
-    np.testing.assert_array_equal(back.parts[1]["shared_displacement"], np.zeros((11, 3)))
+    np.testing.assert_array_equal(back.parts[0].shared_nodes, [3, 4])
+    np.testing.assert_array_equal(back.parts[1].shared_displacement, np.zeros((11, 3)))
 
 
 def test_failed_write_keeps_the_old_file(trajectory, tmp_path):
@@ -116,7 +117,7 @@ def dead_pid():
 def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     import time
 
-    from jaxsync.trajectory import STALE_TEMP_AGE_S, _host_tag
+    from jaxsync.io import STALE_TEMP_AGE_S, _host_tag
 
     host = _host_tag()
     old = time.time() - 2 * STALE_TEMP_AGE_S
@@ -154,7 +155,7 @@ def test_temporary_of_a_killed_writer_is_removed_by_the_next_write(tmp_path):
     target = tmp_path / "big.h5"
     target.write_text("good")
     script = ("import sys, time\n"
-              "from jaxsync.trajectory import atomic_path\n"
+              "from jaxsync.io import atomic_path\n"
               "with atomic_path(sys.argv[1]) as tmp:\n"
               "    open(tmp, 'wb').write(b'x' * 100000)\n"
               "    print('writing', flush=True)\n"
@@ -185,8 +186,8 @@ def test_compression_options_round_trip(tmp_path, compression):
     traj.save(path, compression=compression)
     back = jaxsync.Trajectory.load(path)
     np.testing.assert_array_equal(back.displacement, traj.displacement)
-    np.testing.assert_array_equal(back.parts[0]["shared_displacement"], traj.parts[0]["shared_displacement"])
-    assert back.shared_every == 1 and back.statistics["n_devices"] == traj.statistics["n_devices"]
+    np.testing.assert_array_equal(back.parts[0].shared_displacement, traj.parts[0].shared_displacement)
+    assert back.shared_every == 1 and back.stats.n_devices == traj.stats.n_devices
     with h5py.File(path) as f:
         assert f["displacement"].compression == compression
 

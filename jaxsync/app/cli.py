@@ -200,10 +200,10 @@ def _run_report(args) -> int:
     fixed = constrained_nodes(args.config, online.mesh, reference.displacement)
     summary = write_report(reference, online, partition_of(online), args.out,
                            component=args.component, fixed_nodes=fixed, nodes=args.node,
-                           extra={"online_statistics": dict(online.statistics)})
+                           extra={"online_statistics": online.stats.to_dict()})
     for line in summary["node_notes"]:
         print(f"note: {line}")
-    if online.statistics:
+    if online.stats.to_dict():
         from ..solve.syncavoid import describe_run
 
         print(describe_run(online))
@@ -447,13 +447,13 @@ def _run_simulate(args) -> int:
         trajectory = dataclasses.replace(trajectory, parameters={
             **trajectory.parameters, "added_mass_percent": float(run.added_mass_percent)})
     trajectory.save(output, compression=_compression(args))
-    st = trajectory.statistics
-    speed = (f"{st['us_per_step']:.1f} us/step, compilation {st['compile_seconds']:.2f} s not included"
-             if "us_per_step" in st else "no steps run")
-    shared = (f", {partitions // st['n_devices']} parts per device"
-              if partitions and partitions > st["n_devices"] else "")
-    print(f"{n_steps} steps in {elapsed:.2f} s ({speed}; {st['n_devices']} {st['device_kind']} "
-          f"device{'s' if st['n_devices'] > 1 else ''}{', emulated' if st.get('emulated') else ''}"
+    st = trajectory.stats
+    speed = (f"{st.us_per_step:.1f} us/step, compilation {st.compile_seconds:.2f} s not included"
+             if st.us_per_step is not None else "no steps run")
+    shared = (f", {partitions // st.n_devices} parts per device"
+              if partitions and partitions > st.n_devices else "")
+    print(f"{n_steps} steps in {elapsed:.2f} s ({speed}; {st.n_devices} {st.device_kind} "
+          f"device{'s' if st.n_devices > 1 else ''}{', emulated' if st.emulated else ''}"
           f"{shared}); wrote {output}")
     if xdmf:
         trajectory.to_xdmf(xdmf)

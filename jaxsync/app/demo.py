@@ -92,8 +92,8 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
 
     timing = speedup_breakdown(problem, parts, SurrogatePredictor.from_checkpoint(checkpoint),
                                repeats=3, stage_repeats=10)
-    us_sync = float(reference.statistics["us_per_step"])
-    us_pred = float(online.statistics["us_per_step_predicted"])
+    us_sync = float(reference.stats.us_per_step)
+    us_pred = float(online.stats.us_per_step_predicted)
     with open(os.path.join(surrogate_dir, "train_summary.json")) as f:
         training = json.load(f)
     extra = {"us_per_step_synchronized": us_sync, "us_per_step_predicted": us_pred,
@@ -103,11 +103,11 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
              "final_val_loss": training["final_val_loss"],
              "n_devices": devices["n_devices"], "device_kind": devices["device_kind"],
              "devices_emulated": devices["emulated"],
-             "compile_seconds": reference.statistics["compile_seconds"] + online.statistics["compile_seconds"],
+             "compile_seconds": reference.stats.compile_seconds + online.stats.compile_seconds,
              "save_every": save_every,
-             **{k: online.statistics[k] for k in ("n_synchronized_steps", "n_predicted_steps",
-                                                   "n_discarded_steps", "n_resynchronizations")
-                if k in online.statistics},
+             **{k: v for k, v in online.stats.to_dict().items()
+                if k in ("n_synchronized_steps", "n_predicted_steps", "n_discarded_steps",
+                         "n_resynchronizations")},
              "wall_seconds": time.perf_counter() - started}
     fixed_nodes = np.unique(problem.dirichlet_dofs()[0] // 3)
     summary = write_report(reference, online, parts, os.path.join(out, "report"),

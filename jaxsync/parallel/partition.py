@@ -177,7 +177,7 @@ def partition_of(trajectory) -> Partition:
                              "distributed solver (simulate(..., partitions=n))")
     element_part = np.full(trajectory.mesh.n_elements, -1, dtype=np.int64)
     for p, part in enumerate(trajectory.parts):
-        element_part[np.asarray(part["elements"])] = p
+        element_part[np.asarray(part.elements)] = p
     if np.any(element_part < 0):
         raise PartitionError("the trajectory's parts do not cover every element")
     return partition_from_elements(trajectory.mesh, element_part)

@@ -150,7 +150,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     Returns:
         :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots (and,
         for distributed runs, the per-part shared-node histories in ``parts``, every
-        ``shared_every`` steps). ``statistics`` holds ``us_per_step`` (compiled chunks
+        ``shared_every`` steps). ``stats`` holds ``us_per_step`` (compiled chunks
         only) and ``compile_seconds``.
 
     Raises:
@@ -290,19 +290,19 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
         bar.close()
     traj = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
     from ..parallel.devices import device_summary
+    from ..trajectory import RunStats
 
-    stats = {"compile_seconds": compile_seconds,
-             **device_summary(getattr(runner, "devices", None) or jax.devices()[:1])}
-    if timed_steps:
-        stats["us_per_step"] = 1e6 * timed_seconds / timed_steps
-    traj = dataclasses.replace(traj, statistics={**traj.statistics, **stats})
+    stats = RunStats(compile_seconds=compile_seconds,
+                     us_per_step=1e6 * timed_seconds / timed_steps if timed_steps else None,
+                     **device_summary(getattr(runner, "devices", None) or jax.devices()[:1]))
+    traj = dataclasses.replace(traj, stats=stats)
     return (traj, runner.to_global(run_state)) if return_state else traj
 
 
 def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):
     """The trajectory of a run's snapshots; per-part shared histories from ``recorded``
     (every step, thinned to ``shared_every``) or else from the snapshots."""
-    from ..trajectory import Trajectory
+    from ..trajectory import PartHistory, Trajectory
 
     displacement = np.concatenate(snapshots, axis=0)
     times = np.arange(len(displacement)) * save_every * dt
@@ -314,8 +314,7 @@ def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=Non
             shared_every = save_every
         else:
             shared = [np.concatenate(rec)[::shared_every] for rec in recorded]
-        parts = tuple({"shared_nodes": part.shared_nodes, "elements": part.elements,
-                       "shared_displacement": values}
+        parts = tuple(PartHistory(part.shared_nodes, part.elements, values)
                       for part, values in zip(partition.parts, shared))
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt,
                       save_every=save_every, parameters=_parameters(problem), parts=parts,

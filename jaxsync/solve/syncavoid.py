@@ -43,6 +43,7 @@ from ..parallel.exchange import PartSystems
 from ..parallel.spmd import spmd_program
 from ..errors import CheckpointError, ProblemError, StabilityError
 from ..pytree import pytree_dataclass, static_field
+from ..trajectory import RunStats
 from .solver import drive
 from ..fem.stepper import STEP_UNROLL, SolverState, build_system, initial_state, step
 
@@ -441,7 +442,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         synchronized steps, re-synchronized ones included) and, per part,
         ``shared_displacement`` and ``predicted_shared_displacement``
         (n_predicted_saved, 3 n_shared_p): the part's own predictions at the saved
-        predicted steps. ``statistics``: ``n_synchronized_steps``, ``n_predicted_steps``
+        predicted steps. ``stats`` (:class:`jaxsync.RunStats`): ``n_synchronized_steps``, ``n_predicted_steps``
         (they add up to n_steps), ``n_discarded_steps``, ``n_resynchronizations``,
         ``resynchronized_at`` (the first step of each rejected cycle), ``es_hat_trigger``
         (its es_hat) and ``tolerance_cm`` (the tolerance then) [cm], ``resync_tolerance``,
@@ -498,7 +499,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     synced, anchor_state = drive(problem, runner, initial_state(problem, system), n_cri, dt,
                                  save_every, partition=partition, progress=progress,
                                  label="synchronized", shared_every=1, return_state=True)
-    shared_sync = [p["shared_displacement"] for p in synced.parts]
+    shared_sync = [p.shared_displacement for p in synced.parts]
     amplitude = max(float(np.abs(v).max(initial=0.0)) for v in shared_sync)
     anchor = _Anchor(anchor_state, _histories(partition, shared_sync, history, n_dof), 0)
     state = runner.from_global(anchor_state)
@@ -507,7 +508,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     timeline: list[_Segment] = []
     stats = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": []}
     seconds = {"predicted": 0.0, "synchronized": 0.0, "discarded": 0.0}
-    sync_seconds = float(synced.statistics.get("us_per_step", 0.0)) * 1e-6 * n_cri
+    sync_seconds = float(synced.stats.us_per_step or 0.0) * 1e-6 * n_cri
     n_discarded = 0
     per_chunk = cycles_per_chunk or max(1, 20000 // cycle_steps)
     from tqdm import tqdm
@@ -581,8 +582,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             segment, end_state = drive(problem, runner, anchor.state, target, dt, save_every,
                                        partition=partition, progress=False, label="re-synchronized",
                                        shared_every=1, return_state=True)
-            seconds["synchronized"] += 1e-6 * segment.statistics["us_per_step"] * (target - start_step)
-            shared = [p["shared_displacement"][1:] for p in segment.parts]  # steps after the anchor
+            seconds["synchronized"] += 1e-6 * segment.stats.us_per_step * (target - start_step)
+            shared = [p.shared_displacement[1:] for p in segment.parts]  # steps after the anchor
             amplitude = max([amplitude] + [float(np.abs(v).max(initial=0.0)) for v in shared])
             timeline.append(_Segment("synchronized", start_step, target, segment.displacement[1:], None, 0.0))
             anchor = _Anchor(end_state, _histories(partition, shared, history, n_dof, anchor.history),
@@ -602,11 +603,11 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     n_pred = n_steps - n_sync
     sync_seconds += seconds["synchronized"]
     statistics = {
-        **synced.statistics,
+        **synced.stats.to_dict(),
         "n_steps": n_steps, "n_cri": n_cri,
         "n_synchronized_steps": n_sync, "n_predicted_steps": n_pred,
         "n_discarded_steps": n_discarded,
-        "compile_seconds": float(synced.statistics.get("compile_seconds", 0.0)) + online.compile_seconds,
+        "compile_seconds": float(synced.stats.compile_seconds or 0.0) + online.compile_seconds,
         "us_per_step_synchronized": 1e6 * sync_seconds / max(n_sync, 1),
         "seconds_discarded": seconds["discarded"],
     }
@@ -623,16 +624,16 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                 f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
                 "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
                 stacklevel=2)
-    return dataclasses.replace(traj, statistics=statistics)
+    return dataclasses.replace(traj, stats=RunStats(**statistics))
 
 
 def step_counts(online) -> tuple[int, int]:
     """(steps, synchronized steps) of a synchronization-avoiding run: from its statistics,
     or else from its per-snapshot flags (each flag stands for the save_every steps that
     end at it; the snapshot at t = 0 is the initial state)."""
-    st = getattr(online, "statistics", {}) or {}
-    if "n_synchronized_steps" in st and "n_steps" in st:
-        return int(st["n_steps"]), int(st["n_synchronized_steps"])
+    st = online.stats
+    if st.n_synchronized_steps is not None and st.n_steps is not None:
+        return int(st.n_steps), int(st.n_synchronized_steps)
     flags = np.asarray(online.synchronized, bool)
     return (len(flags) - 1) * int(online.save_every), int(flags[1:].sum()) * int(online.save_every)
 
@@ -640,22 +641,22 @@ def step_counts(online) -> tuple[int, int]:
 def describe_run(online) -> str:
     """The step counts, re-synchronizations and speeds of a synchronization-avoiding run
     (one text for ``predict``, ``report`` and the demo, from its statistics)."""
-    st = online.statistics
+    st = online.stats
     n_steps, n_sync = step_counts(online)
     text = f"{n_steps} steps: {n_sync} synchronized, {n_steps - n_sync} predicted"
-    if "n_cri" in st:
-        text += f" (n_cri = {st['n_cri']})"
-    if "resync_tolerance" in st:
-        at = list(st.get("resynchronized_at", []))
-        text += (f"; tolerance {st['resync_tolerance']}: {len(at)} re-synchronization"
+    if st.n_cri is not None:
+        text += f" (n_cri = {st.n_cri})"
+    if st.resync_tolerance is not None:
+        at = list(st.resynchronized_at or ())
+        text += (f"; tolerance {st.resync_tolerance}: {len(at)} re-synchronization"
                  f"{'' if len(at) == 1 else 's'}" + (f" (cycles rejected at steps {at})" if at else "")
-                 + f", {st['n_discarded_steps']} predicted steps recomputed")
-    if "us_per_step_predicted" in st:
-        text += f"; {st['us_per_step_predicted']:.1f} us per predicted step"
-    if "us_per_step_synchronized" in st:
-        text += f", {st['us_per_step_synchronized']:.1f} us per synchronized step"
-    if "n_devices" in st:
-        text += f" ({st['n_devices']} {st['device_kind']} device{'s' if st['n_devices'] > 1 else ''})"
+                 + f", {st.n_discarded_steps} predicted steps recomputed")
+    if st.us_per_step_predicted is not None:
+        text += f"; {st.us_per_step_predicted:.1f} us per predicted step"
+    if st.us_per_step_synchronized is not None:
+        text += f", {st.us_per_step_synchronized:.1f} us per synchronized step"
+    if st.n_devices is not None:
+        text += f" ({st.n_devices} {st.device_kind} device{'s' if st.n_devices > 1 else ''})"
     return text
 
 
@@ -714,7 +715,7 @@ def _assemble(problem, partition, synced, timeline, counts, dt, save_every):
     """The global trajectory: synchronized snapshots up to n_cri, then the segments of
     ``timeline`` in order -- predicted ones (mean over the parts that hold each node, with
     per-part predictions) and re-synchronized ones -- with per-snapshot flags."""
-    from ..trajectory import Trajectory
+    from ..trajectory import PartHistory, RunStats, Trajectory
 
     pieces = [np.asarray(synced.displacement)]
     flags = [np.ones(len(pieces[0]), bool)]
@@ -732,13 +733,11 @@ def _assemble(problem, partition, synced, timeline, counts, dt, save_every):
     parts = []
     for p, part in enumerate(partition.parts):
         shared = displacement[:, part.shared_nodes].reshape(n_saved, -1)
-        parts.append({"shared_nodes": part.shared_nodes, "elements": part.elements,
-                      "shared_displacement": shared,
-                      "predicted_shared_displacement": pred[p, :, :counts[p]]})
+        parts.append(PartHistory(part.shared_nodes, part.elements, shared, pred[p, :, :counts[p]]))
     return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, dt=dt, save_every=save_every,
                       parameters=dict(synced.parameters), parts=tuple(parts),
-                      synchronized=synchronized, statistics=dict(synced.statistics))
+                      synchronized=synchronized, stats=synced.stats)
 
 
 def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps: int | None = None,
@@ -760,12 +759,12 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
 
     Returns:
         :class:`jaxsync.Trajectory` (saved every step) with ``synchronized`` flags and
-        ``statistics["dirichlet_max_abs_predicted"]``, the largest |predicted value| on the
+        ``stats.dirichlet_max_abs_predicted``, the largest |predicted value| on the
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
     from ..precision import require_float64
     from ..surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
-    from ..trajectory import Trajectory
+    from ..trajectory import PartHistory, RunStats, Trajectory
 
     require_float64("simulate_full_system")
     if reference.save_every != 1:
@@ -817,9 +816,9 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     return Trajectory(times=np.arange(n_steps + 1) * reference.dt, displacement=displacement,
                       mesh=problem.mesh, dt=reference.dt, save_every=1,
                       parameters=dict(reference.parameters),
-                      statistics={"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
+                      stats=RunStats(**{"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
                                   "n_predicted_steps": n_steps - n_cri,
                                   "dirichlet_max_abs_predicted": dirichlet_error,
                                   "compile_seconds": compile_seconds,
-                                  "us_per_step_predicted": 1e6 * seconds / max(n_steps - n_cri, 1)},
+                                  "us_per_step_predicted": 1e6 * seconds / max(n_steps - n_cri, 1)}),
                       synchronized=np.arange(n_steps + 1) <= n_cri)
