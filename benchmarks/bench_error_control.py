@@ -32,9 +32,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxsync.metrics import estimate_quality, predictions_by_node, shared_node_errors  # noqa: E402
-from jaxsync.parallel.partition import partition_of  # noqa: E402
-from jaxsync.surrogate import load_checkpoint  # noqa: E402
+from jaxsync.parallel.partitioning import partition_of  # noqa: E402
 from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.surrogate import load_checkpoint  # noqa: E402
 
 DEFAULT_TOLERANCES = ["none", "1e-2", "1e-3", "3e-4", "1e-4", "3e-5", "1e-5", "10%", "1%", "0.1%"]
 

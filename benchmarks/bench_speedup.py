@@ -59,13 +59,14 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from jax.sharding import Mesh, PartitionSpec as P  # noqa: E402
+from jax.sharding import Mesh  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.perf import costmodel, roofline  # noqa: E402
-from jaxsync.parallel.partition import partition_from_elements  # noqa: E402
-from jaxsync.solve.syncavoid import SurrogatePredictor  # noqa: E402
-from jaxsync.perf.timing import _best_times, speedup_breakdown  # noqa: E402
+from jaxsync.parallel.partitioning import partition_from_elements  # noqa: E402
+from jaxsync.parallel.spmd import AXIS, spmd_program  # noqa: E402
+from jaxsync.perf import costmodel, measure, roofline  # noqa: E402
+from jaxsync.perf.timing import speedup_breakdown  # noqa: E402
+from jaxsync.surrogate import Surrogate  # noqa: E402
 
 N_S, N_P, N_F = 80, 20, 20
 DEVICES_NOTE = (f"{len(jax.devices())} EMULATED CPU devices (XLA host devices sharing "
@@ -83,21 +84,19 @@ def x_slabs(mesh, n_parts):
 def psum_times(n_devices, sizes, n_iter=200, repeats=7):
     """Per-call seconds of a psum of ``size`` doubles between ``n_devices`` emulated devices
     (inside a scan, as in the solver; the same scan without the psum subtracted)."""
-    mesh = Mesh(np.array(jax.devices()[:n_devices]), ("d",))
+    mesh = Mesh(np.array(jax.devices()[:n_devices]), (AXIS,))
 
     def program(with_psum):
-        def step(c, _):
-            if with_psum:  # the psum result is replicated; the carry is per device
-                return jax.lax.pcast(0.5 * jax.lax.psum(c, "d"), "d", to="varying"), None
-            return 0.5 * c, None
+        def step(c, _):  # one part per device: the psum over the devices sums all parts
+            return 0.5 * (jax.lax.psum(c, AXIS) if with_psum else c), None
 
-        f = lambda x: jax.lax.scan(step, x, None, length=n_iter)[0]  # noqa: E731
-        return jax.jit(jax.shard_map(f, mesh=mesh, in_specs=P("d"), out_specs=P("d")))
+        per_part = lambda x: jax.lax.scan(step, x, None, length=n_iter)[0]  # noqa: E731
+        return spmd_program(per_part, mesh, n_in=1, n_out=1)
 
     out = []
     for size in sizes:
-        x = jnp.ones((n_devices * size,))
-        best = _best_times({"psum": (program(True), (x,)), "scan": (program(False), (x,))}, repeats)
+        x = jnp.ones((n_devices, size))
+        best = measure.best_times({"psum": (program(True), (x,)), "scan": (program(False), (x,))}, repeats)
         out.append(max(best["psum"] - best["scan"], 1e-9) / n_iter)
     return np.array(out)
 
@@ -124,7 +123,7 @@ def scenario_configs(quick):
 def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
     problem, n_parts = cfg["problem"], cfg["n_parts"]
     part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.partition(problem.mesh, n_parts)
-    predictor = SurrogatePredictor.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
+    predictor = Surrogate.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
                                                n_past=N_P, n_future=N_F)
     start = time.perf_counter()
     report = speedup_breakdown(problem, part, predictor, mode=cfg["mode"], repeats=repeats,
@@ -236,8 +235,8 @@ def main(argv=None):
     args = parser.parse_args(argv)
     repeats, stage_repeats = (2, 5) if args.quick else (4, 20)
 
-    bandwidth = roofline.measure_copy_bandwidth()
-    peak_flops = roofline.measure_matmul_flops()
+    bandwidth = measure.copy_bandwidth()
+    peak_flops = measure.matmul_flop_rate()
     sizes = np.array([12, 1200, 12000, 120000])  # doubles
     calib, links = {}, {}
     for n in (2, 4, 8):
@@ -264,7 +263,6 @@ def main(argv=None):
 
     checks = model_check(rows, links)
     proj = projections(rows)
-    errors = np.array([c["relative_error"] for c in checks])
     print()
     print(DEVICES_NOTE)
     print(f"copy bandwidth {bandwidth / 1e9:.1f} GB/s; float32 matmul peak {peak_flops / 1e9:.0f} "
@@ -297,7 +295,7 @@ def main(argv=None):
               "machine": {"platform": platform.platform(), "cores": os.cpu_count(),
                           "python": sys.version.split()[0], "jax": jax.__version__,
                           "load_average": os.getloadavg()[0]}}
-    from jaxsync.trajectory import atomic_path
+    from jaxsync.io import atomic_path
 
     with atomic_path(args.out) as tmp:
         with open(tmp, "w") as f:

@@ -16,6 +16,8 @@ blocks and column indices once, and the state vectors d(n), d(n-1), d(n+1), lump
 load vector and Dirichlet arrays once each; the gathers of d(n) are assumed to hit cache.
 Achieved bandwidth = bytes / time, compared with this machine's copy bandwidth
 (numpy ``copyto`` of 400 MB: read + write bytes per second), measured in the same run.
+Every time is the best of several calls after an untimed first one
+(:func:`jaxsync.perf.measure.best_time`, the harness of all jaxsync timings).
 
 Usage: python benchmarks/bench_stepper.py [--quick] [--out benchmarks/results/stepper.json]
 """
@@ -27,7 +29,6 @@ import json
 import os
 import platform
 import sys
-import time
 
 os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                            + " --xla_force_host_platform_device_count=2").strip()
@@ -40,25 +41,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.solve.solver import build_system, initial_state, _advance_jit  # noqa: E402
-from jaxsync.fem.sparse import BlockEll  # noqa: E402
+from jaxsync.fem.stepper import advance, build_system, initial_state  # noqa: E402
+from jaxsync.perf.measure import best_time, copy_bandwidth  # noqa: E402
 
-
-def best_of(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
-def copy_bandwidth(n_bytes=400_000_000, repeats=5):
-    a = np.random.rand(n_bytes // 8)
-    b = np.empty_like(a)
-    np.copyto(b, a)
-    t = best_of(lambda: np.copyto(b, a), repeats)
-    return 2 * a.nbytes / t / 1e9
+# the single-device solver's compiled chunk: (system, state, n_saves, save_every)
+advance_jit = jax.jit(advance, static_argnums=(2, 3))
 
 
 def bytes_per_step(n_nodes, width):
@@ -89,16 +76,13 @@ def scipy_loop(problem, dt, n_steps, repeats=3):
             new[fixed] = values
             prev, d = d, new
 
-    run()  # warm caches
-    return best_of(run, repeats) / n_steps
+    return best_time(run, repeats) / n_steps  # the harness's untimed first call warms the caches
 
 
 def jax_single(problem, dt, n_steps, repeats=3):
     system = build_system(problem, dt)
     state = initial_state(problem, system)
-    run = lambda: jax.block_until_ready(_advance_jit(system, state, 1, n_steps))  # noqa: E731
-    run()
-    return best_of(run, repeats) / n_steps
+    return best_time(advance_jit, repeats, system, state, 1, n_steps) / n_steps
 
 
 def jax_two_devices(problem, dt, n_steps, repeats=3):
@@ -107,11 +91,7 @@ def jax_two_devices(problem, dt, n_steps, repeats=3):
     system = build_system(problem, dt)
     state = initial_state(problem, system)
     runner = DistributedRunner(problem, system, 2, save_every=n_steps)
-    local = runner.from_global(state)
-    compiled = runner._compiled(1)
-    run = lambda: jax.block_until_ready(compiled(runner.parts, local))  # noqa: E731
-    run()
-    return best_of(run, repeats) / n_steps
+    return best_time(runner.program(1), repeats, runner.parts, runner.from_global(state)) / n_steps
 
 
 def jax_alternative(problem, dt, n_steps, layout, repeats=3):
@@ -148,9 +128,7 @@ def jax_alternative(problem, dt, n_steps, layout, repeats=3):
     import dataclasses
 
     system = dataclasses.replace(system, stiffness=op)
-    run = lambda: jax.block_until_ready(_advance_jit(system, state, 1, n_steps))  # noqa: E731
-    run()
-    return best_of(run, repeats) / n_steps
+    return best_time(advance_jit, repeats, system, state, 1, n_steps) / n_steps
 
 
 def main(argv=None):
@@ -163,7 +141,7 @@ def main(argv=None):
     # the short small-mesh timings are sensitive to other activity on the machine
     cases = [("cantilever-coarse", (25, 1, 1), 20000, 2000, 9),
              ("beam-250k-dofs", (60, 8, 8) if args.quick else (200, 20, 20), 20, 5, 3)]
-    bandwidth = copy_bandwidth()
+    bandwidth = copy_bandwidth() / 1e9  # GB/s
     rows = []
     for name, divisions, n_jax, n_scipy, repeats in cases:
         mesh = jaxsync.box_beam(25.0, 1.0, 1.0, divisions)
@@ -195,7 +173,7 @@ def main(argv=None):
                           "python": sys.version.split()[0], "jax": jax.__version__,
                           "load_average": os.getloadavg()[0],
                           "devices": f"{len(jax.devices())} emulated CPU devices"}}
-    from jaxsync.trajectory import atomic_path
+    from jaxsync.io import atomic_path
 
     with atomic_path(args.out) as tmp:
         with open(tmp, "w") as f:

@@ -39,7 +39,6 @@ import platform
 import socket
 import statistics
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -47,22 +46,22 @@ from jaxsync.parallel import multiprocess  # noqa: E402  (imports no JAX state)
 
 
 def _timed(fn, repeats: int) -> list[float]:
-    fn()  # compile / warm up
-    out = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        out.append(time.perf_counter() - start)
-    return out
+    """Wall times [s] of ``repeats`` calls of ``fn()`` after an untimed first one (the
+    harness of every jaxsync timing, :func:`jaxsync.perf.measure.sample_times`)."""
+    from jaxsync.perf.measure import sample_times
+
+    return sample_times({"fn": (fn, ())}, repeats)["fn"].tolist()
 
 
 def bench_collectives(sizes, steps: int, repeats: int, comm) -> list[dict]:
     import jax
     import numpy as np
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+    from jax.sharding import Mesh, NamedSharding
+
+    from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
 
     n_proc = jax.process_count()
-    global_mesh = Mesh(np.array(jax.devices()), ("p",))
+    global_mesh = Mesh(np.array(jax.devices()), (AXIS,))
     local_device = jax.local_devices()[0]
 
     def scan_of(body):
@@ -84,11 +83,10 @@ def bench_collectives(sizes, steps: int, repeats: int, comm) -> list[dict]:
         none = jax.jit(scan_of(lambda x: x[::-1] * n_proc))  # not elided
         methods["none"] = (lambda f=none, x=jax.device_put(x_local, local_device): f(x).block_until_ready(), None)
 
-        # psum over the global mesh (gloo between processes)
-        sharding = NamedSharding(global_mesh, P("p"))
-        x_global = jax.make_array_from_callback((n_proc * n,), sharding, lambda idx: x_local)
-        psum = jax.jit(jax.shard_map(scan_of(lambda x: jax.lax.psum(x, "p")), mesh=global_mesh,
-                                     in_specs=P("p"), out_specs=P("p"), check_vma=False))
+        # psum over the global mesh (gloo between processes), one part per device
+        sharding = NamedSharding(global_mesh, part_spec())
+        x_global = jax.make_array_from_callback((n_proc, n), sharding, lambda idx: x_local[None])
+        psum = spmd_program(scan_of(lambda x: jax.lax.psum(x, AXIS)), global_mesh, n_in=1, n_out=1)
         methods["psum-gloo"] = (lambda f=psum, x=x_global: f(x).block_until_ready(),
                                 lambda f=psum, x=x_global: np.asarray(f(x).addressable_data(0)))
 
@@ -149,7 +147,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
         runner = DistributedRunner(problem, system, n_parts, save_every=steps, sync=sync,
                                    allreduce=backend)
         start_state = runner.from_global(state)
-        compiled = runner._compiled(1)
+        compiled = runner.program(1)
 
         def run(compiled=compiled, start_state=start_state):
             jax.block_until_ready(compiled(runner.parts, start_state))
@@ -158,8 +156,8 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
         times = _timed(run, repeats)
         best = comm.allreduce(min(times), op=MPI.MAX)
         median = comm.allreduce(statistics.median(times), op=MPI.MAX)
-        _, saved, _ = runner.advance(start_state, 1)
-        finals[name] = saved[-1]
+        final, _ = compiled(runner.parts, start_state)
+        finals[name] = runner.to_global(final).displacement
         rows.append({"kind": "solver", "method": name, "n_doubles": 3 * runner.partition.n_interface,
                      "steps": steps, "us_per_step_best": 1e6 * best / steps,
                      "us_per_step_median": 1e6 * median / steps})
@@ -204,7 +202,8 @@ def main(argv=None) -> dict:
             "mpi_library": MPI.Get_library_version().splitlines()[0].strip(),
             "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg()),
             "python": platform.python_version(),
-            "command": "mpiexec -n %d python %s" % (n_proc, " ".join([os.path.relpath(__file__)] + (argv or sys.argv[1:]))),
+            "command": "mpiexec -n %d python %s" % (
+                n_proc, " ".join([os.path.relpath(__file__)] + (argv or sys.argv[1:]))),
             "rows": rows,
         }
         if multiprocess.is_main_process():

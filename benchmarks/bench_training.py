@@ -8,10 +8,10 @@ The shared-dof histories are synthetic damped oscillations at the cantilever's t
 epoch (compilation excluded), one refill call (n_s forwards per replica), and projects the
 paper's full schedule.  Prints a table and writes JSON.
 
-    python benchmarks/bench_training.py [--epochs 30] [--n-dof 15 15] [--hidden 100] [--batch-size 5]
+    python benchmarks/bench_training.py [--epochs 30] [--n-dof 15 15] [--n-hidden 100] [--batch-size 5]
                                         [--json PATH]
 
-``--hidden 50 --batch-size 10`` is the setting in which the paper's published code was
+``--n-hidden 50 --batch-size 10`` is the setting in which the paper's published code was
 timed at 1.19 s/epoch on this kind of machine (DESIGN.md).
 """
 
@@ -31,10 +31,15 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxsync.surrogate.data import build_dataset, stack_replicas  # noqa: E402
-from jaxsync.surrogate.evaluate import rollout_replicas  # noqa: E402
-from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters  # noqa: E402
-from jaxsync.surrogate.train import TrainConfig, train_replicas  # noqa: E402
+from jaxsync.surrogate import (  # noqa: E402
+    LSTMArchitecture,
+    Surrogate,
+    TrainConfig,
+    build_dataset,
+    stack_replicas,
+    train_replicas,
+)
+from jaxsync.surrogate.lstm import count_parameters  # noqa: E402
 
 
 def synthetic_history(n_steps: int, n_dof: int, dt: float, seed: int) -> np.ndarray:
@@ -52,7 +57,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--epochs-per-call", type=int, default=10, help="epochs per compiled call")
     parser.add_argument("--n-dof", type=int, nargs=2, default=[15, 15],
                         help="shared dofs of the two parts (default: %(default)s)")
-    parser.add_argument("--hidden", type=int, default=100, help="n_H (default: %(default)s, the paper's)")
+    parser.add_argument("--n-hidden", "--hidden", dest="n_hidden", type=int, default=100,
+                        help="n_H (default: %(default)s, the paper's)")
     parser.add_argument("--batch-size", type=int, default=5, help="n_B (default: %(default)s, the paper's)")
     parser.add_argument("--devices", type=int, default=None,
                         help="devices to spread the two replicas over (default: all that divide 2)")
@@ -64,21 +70,21 @@ def main(argv=None) -> dict:
     dt, n_s, n_p, n_f = 2.48e-4, 80, 20, 20
     runs = [synthetic_history(args.n_steps, n, dt, seed=p) for p, n in enumerate(args.n_dof)]
     data = stack_replicas([build_dataset([h], n_s, n_p, n_f, train_fraction=0.5) for h in runs])
-    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.hidden, n_layers=2, n_past=n_p, n_future=n_f)
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=args.n_hidden, n_layers=2, n_past=n_p, n_future=n_f)
     paper = TrainConfig(batch_size=5, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None, patience=None)
-    config = TrainConfig(batch_size=args.batch_size, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=args.epochs, patience=None,
-                         epochs_per_call=args.epochs_per_call)
+    config = TrainConfig(batch_size=args.batch_size, eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=args.epochs,
+                         patience=None, epochs_per_call=args.epochs_per_call)
     load_before = os.getloadavg()[0]
     result = train_replicas(data, arch, config, jax.random.key(0), progress=True, description="benchmark",
                             devices=args.devices)
 
     # One refill call: n_s forwards per replica, both replicas batched (what the online solver does).
     buffer = jnp.asarray(np.stack([np.pad(h[:n_s * n_p], ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in runs]))
-    mask = jnp.asarray(result.dof_mask)
-    mean, std = jnp.asarray(result.mean), jnp.asarray(result.std)
+    surrogate = Surrogate.from_result(result, n_s)
+    predict_all = jax.jit(jax.vmap(lambda one, buf: one.predict(buf, n_s * n_p - 1)))
 
     def refill():
-        return rollout_replicas(result.params, arch, mean, std, buffer, n_s, 1, None, mask).block_until_ready()
+        return predict_all(surrogate, buffer).block_until_ready()
 
     refill()
     reps = 20
@@ -94,7 +100,8 @@ def main(argv=None) -> dict:
         # Other processes on the machine slow every number down: record how busy it was.
         "load_average_1min_before_after": [load_before, os.getloadavg()[0]],
         "devices_used": args.devices if args.devices else min(2, len(jax.local_devices())),
-        "n_hidden": args.hidden, "batch_size": args.batch_size, "dof_counts": list(data.dof_counts), "n_train_windows": int(data.x_train.shape[1]),
+        "n_hidden": args.n_hidden, "batch_size": args.batch_size, "dof_counts": list(data.dof_counts),
+        "n_train_windows": int(data.x_train.shape[1]),
         "n_val_windows": int(data.x_val.shape[1]), "parameters_per_replica": count_parameters(result.params) // 2,
         "steps_per_epoch": result.steps_per_epoch, "epochs_timed": args.epochs,
         "seconds_per_epoch": result.seconds_per_epoch,
@@ -107,7 +114,7 @@ def main(argv=None) -> dict:
     }
     rows = [
         ("replicas x dofs", f"2 x {data.dof_counts}"),
-        ("n_H, n_B", f"{args.hidden}, {args.batch_size}"),
+        ("n_H, n_B", f"{args.n_hidden}, {args.batch_size}"),
         ("train / val windows", f"{out['n_train_windows']} / {out['n_val_windows']}"),
         ("parameters per replica", f"{out['parameters_per_replica']}"),
         ("gradient steps per epoch", f"{out['steps_per_epoch']}"),

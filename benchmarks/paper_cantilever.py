@@ -32,10 +32,17 @@ import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.app.plots import tip_node, write_report  # noqa: E402
-from jaxsync.surrogate import (LSTMArchitecture, SurrogateCheckpoint, TrainConfig,  # noqa: E402
-                               build_dataset, n_epoch_rule, save_checkpoint, stack_replicas,
-                               train_replicas)
 from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.surrogate import (  # noqa: E402
+    LSTMArchitecture,
+    SurrogateCheckpoint,
+    TrainConfig,
+    build_dataset,
+    save_checkpoint,
+    stack_replicas,
+    train_replicas,
+)
+from jaxsync.surrogate.train import n_epoch_rule  # noqa: E402
 
 
 def main(argv=None):
@@ -109,7 +116,7 @@ def main(argv=None):
         "machine": {"platform": platform.platform(), "cores": os.cpu_count(), "jax": jax.__version__,
                     "load_average": os.getloadavg()[0]},
     }
-    from jaxsync.trajectory import atomic_path
+    from jaxsync.io import atomic_path
 
     with atomic_path(os.path.join(args.out, "paper_cantilever.json")) as tmp:
         with open(tmp, "w") as f:

@@ -6,18 +6,28 @@ creating arrays (the command line does this for you); the solver's entry points 
 :class:`PrecisionError` otherwise. Importing jaxsync changes no global configuration.
 """
 
-from .parallel import devices
-from .errors import (CheckpointError, ConfigError, JaxsyncError, MaterialError, MeshError,
-                     PartitionError, PrecisionError, ProblemError, StabilityError)
+from .errors import (
+                     CheckpointError,
+                     ConfigError,
+                     JaxsyncError,
+                     MaterialError,
+                     MeshError,
+                     PartitionError,
+                     PrecisionError,
+                     ProblemError,
+                     StabilityError,
+)
+from .fem.geometry import vessel_mesh
 from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .fem.material import LinearElastic
-from .fem.geometry import vessel_mesh
 from .fem.mesh import Mesh, MeshWarning, box_beam, read_mesh
-from .parallel.partition import Partition, partition
 from .fem.problem import Dirichlet, Problem, cantilever
-from .solve.solver import simulate, steady_state
-from .solve.syncavoid import ResyncTolerance, simulate_full_system, simulate_sync_avoiding
 from .fem.timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
+from .parallel import devices
+from .parallel.partitioning import Partition, partition
+from .solve.full_system import simulate_full_system
+from .solve.solver import simulate, steady_state
+from .solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from .trajectory import Trajectory
 
 __version__ = "0.1.0"

@@ -17,7 +17,7 @@ import numpy as np
 
 from .errors import CheckpointError
 from .fem.mesh import Mesh
-from .io import array_checksum, atomic_h5, atomic_path  # noqa: F401  (re-exported)
+from .io import atomic_h5
 
 __all__ = ["Trajectory", "RunStats", "PartHistory"]
 
@@ -257,8 +257,7 @@ class Trajectory:
                          for k, v in f.attrs.items() if k.startswith("stat_")}
                 parts = ()
                 if "parts" in f:
-                    parts = tuple(PartHistory(**{k: v[...] for k, v in f["parts"][str(p)].items()})
-                                  for p in range(int(f.attrs["n_parts"])))
+                    parts = tuple(_part_history(f["parts"][str(p)]) for p in range(int(f.attrs["n_parts"])))
                 synchronized = f["synchronized"][...] if "synchronized" in f else None
                 shared_every = f.attrs.get("shared_every")
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
@@ -309,6 +308,15 @@ class Trajectory:
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
         return os.path.join(folder, data_name)
+
+
+def _part_history(group) -> PartHistory:
+    """A :class:`PartHistory` from its HDF5 group (``elements`` and the predictions may be
+    absent in files of other writers)."""
+    read = {name: group[name][...] for name in group}
+    return PartHistory(shared_nodes=read["shared_nodes"], elements=read.get("elements"),
+                       shared_displacement=read["shared_displacement"],
+                       predicted_shared_displacement=read.get("predicted_shared_displacement"))
 
 
 def _attribute_value(value):

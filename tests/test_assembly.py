@@ -2,12 +2,17 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-import jaxsync
-from jaxsync.fem.assembly import (assemble_unit_operators, body_force_vectors, consistent_mass,
-                              element_blocks, lumped_mass, pressure_vector)
-from jaxsync.fem.sparse import BlockEll, block_ell_values, node_adjacency
-
 import fem_reference as ref
+import jaxsync
+from jaxsync.fem.assembly import (
+    assemble_unit_operators,
+    body_force_vectors,
+    consistent_mass,
+    element_blocks,
+    lumped_mass,
+    pressure_vector,
+)
+from jaxsync.fem.sparse import BlockEll, block_ell_values, node_adjacency
 
 
 @pytest.fixture(scope="module")

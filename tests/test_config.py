@@ -49,7 +49,7 @@ checkpoint = "beam.ckpt.h5"
 
 
 def test_command_line_paths_stay_relative_to_the_cwd(tmp_path, monkeypatch):
-    case = write(tmp_path / "case" / "bar.toml", """
+    write(tmp_path / "case" / "bar.toml", """
 [mesh]
 length = 3.0
 divisions = [3, 1, 1]

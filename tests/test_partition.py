@@ -4,7 +4,7 @@ import pytest
 import jaxsync
 from jaxsync import PartitionError
 from jaxsync.fem.assembly import lumped_mass
-from jaxsync.parallel.partition import partition_from_elements
+from jaxsync.parallel.partitioning import partition_from_elements
 
 
 @pytest.fixture(scope="module")

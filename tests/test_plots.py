@@ -1,18 +1,17 @@
-"""Report figures and summary (jaxsync.app.plots, jaxsync report): which nodes are monitored,
-readable figures, summary entries."""
+"""Report figures and summary (jaxsync.app.plots, jaxsync.app.figures, jaxsync report):
+which nodes are monitored, readable figures, summary entries."""
 
 import dataclasses
 import json
-import os
 
 import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.trajectory import PartHistory
-from jaxsync.app import plots
+from jaxsync.app import figures, plots
 from jaxsync.app.cli import main
 from jaxsync.errors import ConfigError, ProblemError
+from jaxsync.trajectory import PartHistory
 
 N_STEPS, SAVE_EVERY = 4000, 10  # 1 s of physical time: the beam bends, the load is ramped
 
@@ -155,35 +154,32 @@ def test_no_candidate_is_said_clearly(cantilever_case, tmp_path):
 def test_phases_and_histogram_bins():
     times = np.arange(10) * 0.1
     flags = np.array([1, 1, 0, 0, 1, 1, 0, 0, 0, 1], bool)
-    t_switch, spans = plots._phases(times, flags)
+    t_switch, spans = figures.phases(times, flags)
     assert t_switch == pytest.approx(0.1)
     assert spans == [pytest.approx((0.35, 0.55)), pytest.approx((0.85, 0.9))]
-    assert plots._phases(times, np.ones(10, bool)) == (None, [])
-    few = plots.histogram_bins([1e-3, 2e-3, 3e-3, 4e-3])
+    assert figures.phases(times, np.ones(10, bool)) == (None, [])
+    few = figures.histogram_bins([1e-3, 2e-3, 3e-3, 4e-3])
     assert 3 <= len(few) - 1 <= 5 and few[0] <= 1e-3 and few[-1] >= 4e-3
-    wide = plots.histogram_bins(np.geomspace(1e-6, 1e-2, 400))
+    wide = figures.histogram_bins(np.geomspace(1e-6, 1e-2, 400))
     assert len(wide) - 1 == 20 and np.allclose(np.diff(np.log(wide)), np.log(wide[1] / wide[0]))
-    same = plots.histogram_bins([2e-4] * 3)
+    same = figures.histogram_bins([2e-4] * 3)
     assert same[0] < 2e-4 < same[-1] and same[-1] - same[0] < 1e-4
 
 
-def test_every_figure_is_labelled(cantilever_case, tmp_path, monkeypatch):
+def test_every_figure_is_labelled(cantilever_case, tmp_path):
     problem, reference, parts, online = cantilever_case
-    figures = {}
-    save = plots._save
-
-    def keep(fig, path):
-        figures[os.path.basename(path)] = fig
-        save(fig, path)
-
-    monkeypatch.setattr(plots, "_save", keep)
-    plots.write_report(reference, online, parts, tmp_path, fixed_nodes=dirichlet_nodes(problem))
-    assert set(figures) == {"displacement_nodes.png", "l2_error.png", "shared_errors.png", "et_histogram.png",
-                            "es_tracking.png"}
-    for name, fig in figures.items():
+    fixed = dirichlet_nodes(problem)
+    names = {"displacement_nodes.png", "l2_error.png", "shared_errors.png", "et_histogram.png", "es_tracking.png"}
+    plots.write_report(reference, online, parts, tmp_path, fixed_nodes=fixed)
+    assert {path.name for path in tmp_path.glob("*.png")} == names
+    for name in names:
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the figures write_report saved, drawn again from the same comparison
+    drawn = plots.report_figures(plots.compare(reference, online, parts, fixed_nodes=fixed))
+    assert set(drawn) == names
+    for name, fig in drawn.items():
         fig.canvas.draw()
-        titled = bool(fig._suptitle and fig._suptitle.get_text()) or all(ax.get_title() for ax in fig.axes)
+        titled = bool(fig.get_suptitle()) or all(ax.get_title() for ax in fig.axes)
         assert titled, name
         assert fig.legends or all(ax.get_legend() for ax in fig.axes), name
         for ax in fig.axes:  # units everywhere, except on a count of nodes
@@ -196,13 +192,13 @@ def test_every_figure_is_labelled(cantilever_case, tmp_path, monkeypatch):
             spans = [p for p in fig.axes[0].patches if p.get_label() == "re-synchronized"]
             assert len(spans) == 1  # one legend entry; the other span is unlabelled
             assert len(fig.axes[0].patches) == 2
-    tracking = figures["es_tracking.png"].axes[0]
+    tracking = drawn["es_tracking.png"].axes[0]
     assert tracking.get_xscale() == tracking.get_yscale() == "log"
-    hist = figures["et_histogram.png"].axes[0]
+    hist = drawn["et_histogram.png"].axes[0]
     assert hist.get_ylabel() == "number of shared nodes"
     ticks = hist.get_yticks()
     assert np.allclose(ticks, np.round(ticks))  # counts of nodes: integer ticks
-    nodes_fig = figures["displacement_nodes.png"]
+    nodes_fig = drawn["displacement_nodes.png"]
     assert len(nodes_fig.axes) == 2 * 3  # a displacement and an error panel per node
     lines = {line.get_label(): line for line in nodes_fig.axes[0].get_lines()}
     ref_line = lines["synchronized (reference)"]

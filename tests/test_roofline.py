@@ -13,13 +13,21 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.perf.roofline import (ELEMENT_FLOPS, StageCost, achieved, achieved_stages, measure_copy_bandwidth,
-                              measure_matmul_flops,
-                              roofline_table, step_costs, step_costs_for, surrogate_costs,
-                              surrogate_flop_breakdown, surrogate_step_cost)
-from jaxsync.solve.solver import SolverState, apply_dirichlet, build_system, central_difference
-from jaxsync.surrogate.evaluate import refill_predict
+from jaxsync.fem.stepper import SolverState, apply_dirichlet, build_system, central_difference
+from jaxsync.perf.roofline import (
+    ELEMENT_FLOPS,
+    StageCost,
+    achieved,
+    achieved_stages,
+    roofline_table,
+    step_costs,
+    step_costs_for,
+    surrogate_costs,
+    surrogate_flop_breakdown,
+    surrogate_step_cost,
+)
 from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
+from jaxsync.surrogate.refill import refill_predict
 
 ELEMENTWISE = {"add", "sub", "mul", "div", "neg", "logistic", "tanh", "exp", "max", "min"}
 
@@ -118,7 +126,7 @@ def test_per_part_costs_match_the_part_systems(problem):
     per_part = step_costs_for(problem, part_info)
     assert len(per_part) == 2
     for part, costs in zip(part_info.parts, per_part):
-        # the part's own system at its own size, as jaxsync.perf.timing measures it
+        # the part's own system at its own size, as jaxsync.perf.timing times it
         alone = build_part_systems(problem, system, dataclasses.replace(part_info, parts=(part,)),
                                    "preassembled").system.stiffness
         assert costs["t_m"].bytes == alone.columns.nbytes + alone.blocks.nbytes + 2 * 24 * part.n_local
@@ -220,11 +228,6 @@ def test_achieved_stages_skips_empty_stages():
     assert "t_m" in roofline_table(points)
 
 
-def test_copy_bandwidth_is_a_rate():
-    bandwidth = measure_copy_bandwidth(n_bytes=8e6, repeats=2)
-    assert math.isfinite(bandwidth) and bandwidth > 0
-
-
 def test_bad_inputs_are_refused():
     cost = StageCost("t_m", 1e3, 1e3)
     with pytest.raises(ProblemError, match="seconds"):
@@ -245,22 +248,3 @@ def test_bad_inputs_are_refused():
         step_costs(10, width=5, n_shared=4, n_interface=3)
     with pytest.raises(ProblemError, match="n_s"):
         surrogate_costs(LSTMArchitecture(n_dof=3), 0)
-    with pytest.raises(ProblemError, match="repeats"):
-        measure_copy_bandwidth(8e3, repeats=0)
-
-
-def test_measure_matmul_flops_counts_2n3_over_the_best_time(monkeypatch):
-    """The rate is 2 n^3 flops over the best timed product: with a fake clock that
-    advances 0.5 s per product (after a 0.25 s one), 2 n^3 / 0.25 comes back."""
-    import jaxsync.perf.roofline as rl
-
-    ticks = iter([0.0, 1.0, 1.0, 1.25, 2.0, 2.5])  # three products: 1 s, 0.25 s, 0.5 s
-    monkeypatch.setattr(rl.time, "perf_counter", lambda: next(ticks))
-    assert rl.measure_matmul_flops(n=16, repeats=3) == pytest.approx(2 * 16 ** 3 / 0.25)
-    monkeypatch.undo()
-    rate = measure_matmul_flops(n=64, repeats=2)  # the real clock: a finite rate
-    assert np.isfinite(rate) and rate > 0
-    with pytest.raises(ProblemError, match="dtype"):
-        measure_matmul_flops(n=8, dtype="int8")
-    with pytest.raises(ProblemError, match="repeats"):
-        measure_matmul_flops(n=8, repeats=0)

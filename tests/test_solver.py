@@ -4,14 +4,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-import scipy.linalg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
+import fem_reference as ref
 import jaxsync
 from jaxsync import CheckpointError, ProblemError, StabilityError
-
-import fem_reference as ref
+from jaxsync.solve import Progress
 
 
 @pytest.fixture(scope="module")
@@ -214,52 +213,40 @@ def test_resumed_run_equals_uninterrupted_bit_for_bit(problem, tmp_path):
     np.testing.assert_array_equal(resumed.times, full.times)
 
 
-def test_interrupted_run_resumes(problem, tmp_path, monkeypatch):
-    """A run killed mid-way (here: an exception after the third chunk) resumes from its
-    last checkpoint and matches the uninterrupted run."""
-    import jaxsync.solve.solver as solver
+class InterruptAfter(Progress):
+    """A progress display that interrupts the run (as Ctrl-C would) at its n-th update,
+    i.e. after n - 1 whole chunks and their checkpoints."""
 
-    ckpt = tmp_path / "run.ckpt.h5"
-    full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
-    real = solver._save_checkpoint
-    calls = []
+    def __init__(self, n_updates: int):
+        super().__init__(0, show=False)
+        self.left = n_updates
 
-    def save_then_die(*args, **kwargs):
-        real(*args, **kwargs)
-        calls.append(1)
-        if len(calls) == 3:
+    def update(self, steps: int) -> None:
+        self.left -= 1
+        if self.left == 0:
             raise KeyboardInterrupt
 
-    monkeypatch.setattr(solver, "_save_checkpoint", save_then_die)
+
+def test_interrupted_run_resumes(problem, tmp_path):
+    """A run killed mid-way (here: interrupted in its fourth chunk) resumes from its last
+    checkpoint and matches the uninterrupted run."""
+    ckpt = tmp_path / "run.ckpt.h5"
+    full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
-    monkeypatch.setattr(solver, "_save_checkpoint", real)
+        jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt,
+                         progress=InterruptAfter(4))
     resumed = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
 
-def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(problem, tmp_path,
-                                                                              monkeypatch):
+def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(problem, tmp_path):
     """The parts' every-step shared histories (the training data) survive a resume:
     equal to the uninterrupted run's; a checkpoint without them is refused."""
-    import jaxsync.solve.solver as solver
-
     ckpt = tmp_path / "run.ckpt.h5"
     kwargs = dict(partitions=2, save_every=50, shared_every=1, chunk_steps=500)
     full = jaxsync.simulate(problem, 2000, **kwargs)
-    real = solver._save_checkpoint
-    calls = []
-
-    def save_then_die(*args, **kw):
-        real(*args, **kw)
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(solver, "_save_checkpoint", save_then_die)
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
-    monkeypatch.setattr(solver, "_save_checkpoint", real)
+        jaxsync.simulate(problem, 2000, checkpoint=ckpt, progress=InterruptAfter(3), **kwargs)
     resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     for a, b in zip(resumed.parts, full.parts):

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError
-from jaxsync.surrogate import checkpoint as checkpoint_module
 from jaxsync.surrogate.checkpoint import (
     FORMAT_VERSION,
     SurrogateCheckpoint,
@@ -17,7 +16,7 @@ from jaxsync.surrogate.checkpoint import (
     save_checkpoint,
 )
 from jaxsync.surrogate.lstm import LSTMArchitecture
-from jaxsync.surrogate.train import init_replicas
+from jaxsync.surrogate.replicas import init_replicas
 
 NODES = (np.array([4, 9, 17], np.int64), np.array([2, 4, 9, 30], np.int64))
 
@@ -141,7 +140,7 @@ def test_failed_write_keeps_the_previous_file(saved, monkeypatch):
     def boom(self, name, **kwargs):
         raise OSError("disk full")
 
-    monkeypatch.setattr(checkpoint_module.h5py.Group, "create_dataset", boom)
+    monkeypatch.setattr(h5py.Group, "create_dataset", boom)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, _checkpoint(q=0))
     monkeypatch.undo()

@@ -1,4 +1,4 @@
-"""`jaxsync train` on a synthetic distributed trajectory file."""
+"""`jaxsync train` on distributed trajectory files: flags, files, printed lines, resuming."""
 
 import argparse
 import json
@@ -7,13 +7,11 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate.checkpoint import check_compatible, load_checkpoint
-from jaxsync.surrogate import train as train_module
 from jaxsync.app.train import add_train_parser
-from jaxsync.surrogate.train import TrainConfig
-
-NODES = (np.array([3, 8], np.int64), np.array([3, 8, 11], np.int64))
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.surrogate import TrainConfig, train_surrogates
+from jaxsync.surrogate.checkpoint import check_compatible, load_checkpoint
+from test_surrogate_fit import NODES, write_trajectory
 
 
 def _parser():
@@ -22,27 +20,7 @@ def _parser():
     return parser
 
 
-def write_trajectory(path, n_steps=600, dt=0.05, save_every=1, load=None, nodes=NODES, synchronized=None):
-    """Distributed-trajectory layout (the parts of what Trajectory.save writes): damped
-    oscillators, one frequency per shared dof."""
-    t = np.arange(n_steps) * dt
-    with h5py.File(path, "w") as fh:
-        fh.attrs.update(format="jaxsync-trajectory", format_version=1, n_parts=len(nodes), dt=dt,
-                        save_every=save_every)
-        if load is not None:
-            fh.attrs["param_load_parameter"] = load
-        if synchronized is not None:
-            fh["synchronized"] = synchronized
-        fh["times"] = t * save_every
-        for p, ids in enumerate(nodes):
-            freqs = 0.6 + 0.1 * np.arange(3 * ids.size) + 0.05 * p
-            w = 2 * np.pi * freqs[None, :]
-            disp = (1.0 if load is None else load) * np.exp(-0.02 * w * t[:, None]) * np.cos(w * t[:, None])
-            fh[f"parts/{p}/shared_nodes"] = ids
-            fh[f"parts/{p}/shared_displacement"] = disp
-
-
-SMALL = ["--n-s", "2", "--n-past", "6", "--n-future", "5", "--hidden", "6", "--layers", "1", "--batch-size", "8",
+SMALL = ["--n-s", "2", "--n-past", "6", "--n-future", "5", "--n-hidden", "6", "--n-layers", "1", "--batch-size", "8",
          "--eta0", "1e-2", "--gamma", "0.95", "--epochs", "12", "--epochs-per-call", "6", "--no-progress"]
 
 
@@ -53,7 +31,7 @@ def test_every_option_has_help():
         assert action.help, f"option {action.option_strings or action.dest} has no help text"
 
 
-def test_train_writes_checkpoint_curves_and_summary(tmp_path):
+def test_train_writes_checkpoint_curves_and_summary(tmp_path, capsys):
     # Two runs of one partition with different loads, conditional decoder (q = 3).
     paths = []
     for k, load in enumerate((1.0, 0.6)):
@@ -82,6 +60,8 @@ def test_train_writes_checkpoint_curves_and_summary(tmp_path):
     assert summary["seconds_per_epoch"] > 0 and summary["gradient_steps_per_second"] > 0
     assert ckpt.metadata["final_val_loss"] == summary["final_val_loss"]
     assert not [p.name for p in out.iterdir() if ".tmp" in p.name]
+    printed = capsys.readouterr().out
+    assert f"wrote {out / 'surrogate.h5'}, {out / 'loss_curves.png'} and train_summary.json (12 epochs)" in printed
 
 
 def test_train_errors(tmp_path):
@@ -120,10 +100,19 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
     assert (args.batch_size, args.eta0, args.gamma, args.eta_min, args.epochs, args.patience,
             args.epochs_per_call) == (config.batch_size, config.eta0, config.gamma, config.eta_min,
                                       config.n_epochs, config.patience, config.epochs_per_call)
-    assert (args.hidden, args.epochs, args.checkpoint_every, args.allow_predicted) == (32, 300, 50, False)
+    assert (args.n_hidden, args.n_layers, args.epochs, args.checkpoint_every, args.allow_predicted) == (
+        32, 2, 300, 50, False)
     demo = inspect.signature(run_demo).parameters
-    assert (demo["hidden"].default, demo["epochs"].default, demo["eta0"].default, demo["gamma"].default,
-            demo["batch_size"].default) == (args.hidden, args.epochs, args.eta0, args.gamma, args.batch_size)
+    assert (demo["n_hidden"].default, demo["n_layers"].default, demo["epochs"].default, demo["eta0"].default,
+            demo["gamma"].default, demo["batch_size"].default) == (
+        args.n_hidden, args.n_layers, args.epochs, args.eta0, args.gamma, args.batch_size)
+    lib = inspect.signature(train_surrogates).parameters
+    assert (lib["n_hidden"].default, lib["n_layers"].default, lib["n_s"].default, lib["checkpoint_every"].default,
+            lib["emse_applications"].default) == (args.n_hidden, args.n_layers, args.n_s, args.checkpoint_every,
+                                                  args.emse_applications)
+    # the old spellings stay
+    old = _parser().parse_args(["train", "run.h5", "--hidden", "7", "--layers", "3"])
+    assert (old.n_hidden, old.n_layers) == (7, 3)
     # the paper's rule stays available
     paper = _parser().parse_args(["train", "run.h5", "--epochs", "paper", "--eta0", "5e-4", "--gamma", "0.9995"])
     assert paper.epochs is None
@@ -134,34 +123,34 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
             _parser().parse_args(["train", "run.h5", *bad])
 
 
-def test_train_resumes_after_an_interruption(tmp_path, monkeypatch):
-    path = tmp_path / "run.h5"
-    write_trajectory(path, n_steps=300)
+def test_train_resumes_after_an_interruption(tmp_path, capsys):
+    path = write_trajectory(tmp_path / "run.h5", n_steps=300)
     common = ["train", str(path), *SMALL, "--checkpoint-every", "6", "--emse-applications", "0"]
     whole = _parser().parse_args([*common, "-o", str(tmp_path / "whole")])
     assert whole.func(whole) == 0
 
-    real_save = train_module._save_training_state
+    # the library function with the settings of the command, killed right after the
+    # epoch-6 state is written
+    def killed(progress):
+        if progress.state_written:
+            raise KeyboardInterrupt
 
-    def killed(*args, **kwargs):
-        real_save(*args, **kwargs)
-        raise KeyboardInterrupt  # dies right after the epoch-6 state is written
-
-    monkeypatch.setattr(train_module, "_save_training_state", killed)
     out = tmp_path / "out"
-    args = _parser().parse_args([*common, "-o", str(out)])
     with pytest.raises(KeyboardInterrupt):
-        args.func(args)
+        train_surrogates(path, n_s=2, n_past=6, n_future=5, n_hidden=6, n_layers=1, emse_applications=0,
+                         config=TrainConfig(batch_size=8, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=6),
+                         out=out, checkpoint_every=6, progress=False, callback=killed)
     assert (out / "training_state.h5").exists() and not (out / "surrogate.h5").exists()
-    monkeypatch.undo()
 
     # another run into that folder, with other options, is refused ...
     other = _parser().parse_args([*common, "-o", str(out), "--eta0", "2e-2"])
     with pytest.raises(CheckpointError, match="eta0"):
         other.func(other)
     # ... the same command resumes and ends where the uninterrupted run did
+    capsys.readouterr()
     args = _parser().parse_args([*common, "-o", str(out)])
     assert args.func(args) == 0
+    assert f"resuming from the training state {out / 'training_state.h5'}" in capsys.readouterr().out
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["training"]["resumed_from_epoch"] == 6 and summary["n_epochs_run"] == 12
     a, b = load_checkpoint(tmp_path / "whole" / "surrogate.h5"), load_checkpoint(out / "surrogate.h5")
@@ -195,8 +184,7 @@ def test_train_stops_early_and_reports_it(tmp_path):
 def test_train_refuses_predicted_and_foreign_files(tmp_path):
     flags = np.ones(300, bool)
     flags[100:] = False  # a synchronization-avoiding run: predicted from step 100 on
-    predicted = tmp_path / "online.h5"
-    write_trajectory(predicted, n_steps=300, synchronized=flags)
+    predicted = write_trajectory(tmp_path / "online.h5", n_steps=300, synchronized=flags)
     args = _parser().parse_args(["train", str(predicted), "-o", str(tmp_path / "p"), *SMALL])
     with pytest.raises(CheckpointError, match="synchronization-avoiding.*200 of its 300.*--allow-predicted"):
         args.func(args)
@@ -205,13 +193,11 @@ def test_train_refuses_predicted_and_foreign_files(tmp_path):
                                  "--allow-predicted", "--emse-applications", "0"])
     assert args.func(args) == 0 and (tmp_path / "p" / "surrogate.h5").exists()
     # all-synchronized flags are a synchronized run
-    synced = tmp_path / "synced.h5"
-    write_trajectory(synced, n_steps=300, synchronized=np.ones(300, bool))
+    synced = write_trajectory(tmp_path / "synced.h5", n_steps=300, synchronized=np.ones(300, bool))
     args = _parser().parse_args(["train", str(synced), "-o", str(tmp_path / "s"), *SMALL, "--emse-applications", "0"])
     assert args.func(args) == 0
 
-    foreign = tmp_path / "foreign.h5"
-    write_trajectory(foreign, n_steps=300)
+    foreign = write_trajectory(tmp_path / "foreign.h5", n_steps=300)
     with h5py.File(foreign, "r+") as fh:
         del fh.attrs["format"]
     args = _parser().parse_args(["train", str(foreign), "-o", str(tmp_path / "f"), *SMALL])

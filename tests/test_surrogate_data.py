@@ -1,25 +1,31 @@
-"""Sample-refill data: subsampling, windows, split, normalization, refill index sets, files."""
+"""Sample-refill data: refill index sets, subsampling, windows, split, normalization,
+and the shared histories of trajectories."""
+
+import dataclasses
 
 import h5py
 import numpy as np
 import pytest
 
+import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.trajectory import PartHistory
 from jaxsync.surrogate.data import (
     Normalization,
     build_dataset,
     make_windows,
     read_shared_histories,
+    split_indices,
+    stack_replicas,
+    subsample,
+)
+from jaxsync.surrogate.refill import (
     refill_index_sets,
     refill_input_steps,
     refill_scatter,
     refill_target_steps,
     refill_windows,
-    split_indices,
-    stack_replicas,
-    subsample,
 )
+from jaxsync.trajectory import PartHistory, Trajectory
 
 REFILL_CASES = [(1599, 80, 20, 20), (9, 1, 10, 10), (47, 4, 6, 3), (100, 7, 3, 5), (29, 3, 5, 9), (5, 2, 3, 1)]
 
@@ -133,9 +139,9 @@ def test_several_runs_pool_their_windows_with_load_parameters():
     per_run = [make_windows(subsample(r, 3), 5, 4)[0].shape[0] for r in runs]
     total = ds.x_train.shape[0] + ds.x_val.shape[0]
     assert total == sum(per_run)
-    conds = np.concatenate([ds.cond_train, ds.cond_val])
+    loads = np.concatenate([ds.load_parameter_train, ds.load_parameter_val])
     for value, count in zip([0.3, 0.5, 0.7], per_run):
-        assert np.sum(np.isclose(conds, value)) == count
+        assert np.sum(np.isclose(loads, value)) == count
     with pytest.raises(ConfigError, match="load parameters"):
         build_dataset(runs, 3, 5, 4, load_parameters=[0.3])
     with pytest.raises(ConfigError, match="run 1"):
@@ -161,82 +167,37 @@ def test_stack_replicas_pads_and_masks():
         stack_replicas([a, short])
 
 
-def _write_trajectory(path, save_every=1, n_steps=40, counts=(2, 3)):
-    with h5py.File(path, "w") as fh:
-        fh.attrs.update(format="jaxsync-trajectory", format_version=1, n_parts=len(counts), dt=1e-3,
-                        save_every=save_every)
-        fh["times"] = np.arange(n_steps) * 1e-3 * save_every
-        for p, n in enumerate(counts):
-            fh[f"parts/{p}/shared_nodes"] = np.arange(n, dtype=np.int64) + 10 * p
-            fh[f"parts/{p}/shared_displacement"] = _wave(n_steps, 3 * n, phase=p)
-
-
-def test_read_shared_histories(tmp_path):
-    path = tmp_path / "traj.h5"
-    _write_trajectory(path)
-    hist = read_shared_histories(path)
-    assert [h.shape for h in hist.histories] == [(40, 6), (40, 9)]
-    np.testing.assert_array_equal(hist.shared_nodes[1], [10, 11, 12])
-    assert hist.dt == 1e-3 and hist.load_parameter is None
-
-
-def test_read_shared_histories_errors(tmp_path):
-    path = tmp_path / "every2.h5"
-    _write_trajectory(path, save_every=2)
-    with pytest.raises(CheckpointError, match="shared_every=1"):
-        read_shared_histories(path)
-    with pytest.raises(CheckpointError, match="does not exist"):
-        read_shared_histories(tmp_path / "missing.h5")
-    broken = tmp_path / "broken.h5"
-    _write_trajectory(broken)
-    with h5py.File(broken, "r+") as fh:
-        del fh["parts/1/shared_nodes"]
-    with pytest.raises(CheckpointError, match="part 1"):
-        read_shared_histories(broken)
-    mismatch = tmp_path / "mismatch.h5"
-    _write_trajectory(mismatch)
-    with h5py.File(mismatch, "r+") as fh:
-        del fh["parts/0/shared_displacement"]
-        fh["parts/0/shared_displacement"] = np.zeros((40, 5))
-    with pytest.raises(CheckpointError, match="expected \\(n_saved, 6\\)"):
-        read_shared_histories(mismatch)
-    noattr = tmp_path / "noattr.h5"
-    _write_trajectory(noattr)
-    with h5py.File(noattr, "r+") as fh:
-        del fh.attrs["save_every"]
-    with pytest.raises(CheckpointError, match="save_every"):
-        read_shared_histories(noattr)
-
-
-def _saved_trajectory(path, synchronized=None, load=None):
-    """A small distributed run written by Trajectory.save (the real file format)."""
-    import dataclasses
-
-    import jaxsync
-
+def _trajectory(n=30, synchronized=None, load=None, save_every=1, distributed=True):
+    """A small run of a 2-part box beam, the real type (saved with Trajectory.save)."""
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
     parts = jaxsync.partition(mesh, 2)
-    n = 30
     disp = _wave(n, 3 * mesh.n_nodes).reshape(n, mesh.n_nodes, 3)
-    traj = jaxsync.Trajectory(times=np.arange(n) * 1e-3, displacement=disp, mesh=mesh, dt=1e-3,
-                              parameters={} if load is None else {"load_parameter": load},
-                              parts=tuple(PartHistory(p.shared_nodes, p.elements,
-                                                      disp[:, p.shared_nodes].reshape(n, -1))
-                                          for p in parts.parts))
-    if synchronized is not None:
-        traj = dataclasses.replace(traj, synchronized=synchronized)
+    histories = tuple(PartHistory(p.shared_nodes, p.elements, disp[:, p.shared_nodes].reshape(n, -1))
+                      for p in parts.parts)
+    traj = Trajectory(times=np.arange(n) * 1e-3 * save_every, displacement=disp, mesh=mesh, dt=1e-3,
+                      save_every=save_every, parameters={} if load is None else {"load_parameter": load},
+                      parts=histories if distributed else (), synchronized=synchronized)
+    return traj, parts
+
+
+def _saved_trajectory(path, **kwargs):
+    traj, parts = _trajectory(**kwargs)
     traj.save(path)
     return traj, parts
 
 
-def test_read_shared_histories_of_a_saved_trajectory(tmp_path):
+def test_read_shared_histories_of_a_trajectory_and_of_its_file(tmp_path):
     traj, parts = _saved_trajectory(tmp_path / "run.h5", load=0.4)
-    hist = read_shared_histories(tmp_path / "run.h5")
-    assert hist.load_parameter == 0.4 and hist.synchronized is None and hist.n_predicted == 0
-    for p, part in enumerate(parts.parts):
-        np.testing.assert_array_equal(hist.shared_nodes[p], part.shared_nodes)
-        np.testing.assert_array_equal(hist.histories[p],
-                                      traj.displacement[:, part.shared_nodes].reshape(30, -1))
+    for source in (tmp_path / "run.h5", str(tmp_path / "run.h5"), traj):
+        hist = read_shared_histories(source)
+        assert hist.load_parameter == 0.4 and hist.synchronized is None and hist.n_predicted == 0
+        assert hist.dt == 1e-3
+        for p, part in enumerate(parts.parts):
+            np.testing.assert_array_equal(hist.shared_nodes[p], part.shared_nodes)
+            assert hist.shared_nodes[p].dtype == np.int64 and hist.histories[p].dtype == np.float64
+            np.testing.assert_array_equal(hist.histories[p],
+                                          traj.displacement[:, part.shared_nodes].reshape(30, -1))
+    assert read_shared_histories(_trajectory()[0]).load_parameter is None
 
 
 def test_read_shared_histories_refuses_predicted_runs_unless_allowed(tmp_path):
@@ -250,34 +211,41 @@ def test_read_shared_histories_refuses_predicted_runs_unless_allowed(tmp_path):
     assert read_shared_histories(tmp_path / "synced.h5").n_predicted == 0
 
 
-def test_read_shared_histories_checks_the_format_like_trajectory_load(tmp_path):
-    import jaxsync
+def test_read_shared_histories_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="shared_every=1"):
+        read_shared_histories(_trajectory(save_every=2)[0])
+    with pytest.raises(CheckpointError, match="not a distributed run"):
+        read_shared_histories(_trajectory(distributed=False)[0])
+    with pytest.raises(CheckpointError, match="7 flags for 30 saved steps"):
+        read_shared_histories(_trajectory(synchronized=np.ones(7, bool))[0])
+    traj, _ = _trajectory()
+    bad = dataclasses.replace(traj.parts[1], shared_displacement=traj.parts[1].shared_displacement[:, :-1])
+    with pytest.raises(CheckpointError, match=f"part 1 has shared_displacement .* expected \\(n_saved, "
+                                              f"{3 * traj.parts[1].n_shared}\\)"):
+        read_shared_histories(dataclasses.replace(traj, parts=(traj.parts[0], bad)))
+    short = dataclasses.replace(traj.parts[1], shared_displacement=traj.parts[1].shared_displacement[:-1])
+    with pytest.raises(CheckpointError, match="different numbers of steps"):
+        read_shared_histories(dataclasses.replace(traj, parts=(traj.parts[0], short)))
 
-    foreign = tmp_path / "foreign.h5"
-    _write_trajectory(foreign)
-    with h5py.File(foreign, "r+") as fh:
-        del fh.attrs["format"]
-    newer = tmp_path / "newer.h5"
-    _write_trajectory(newer)
-    with h5py.File(newer, "r+") as fh:
-        fh.attrs["format_version"] = 99
-    for path, message in ((foreign, "not a jaxsync trajectory"), (newer, "format version 99.*upgrade")):
+
+def test_read_shared_histories_reads_through_trajectory_load(tmp_path):
+    """The one reader: every file Trajectory.load refuses is refused, with its message."""
+    with pytest.raises(CheckpointError, match="does not exist"):
+        read_shared_histories(tmp_path / "missing.h5")
+    damaged = {
+        "foreign": (lambda fh: fh.attrs.__delitem__("format"), "not a jaxsync trajectory"),
+        "newer": (lambda fh: fh.attrs.__setitem__("format_version", 99), "format version 99.*upgrade"),
+        "broken": (lambda fh: fh.__delitem__("parts/1/shared_nodes"), "cannot read trajectory"),
+    }
+    for name, (damage, message) in damaged.items():
+        path = tmp_path / f"{name}.h5"
+        _saved_trajectory(path)
+        with h5py.File(path, "r+") as fh:
+            damage(fh)
         with pytest.raises(CheckpointError, match=message):
             read_shared_histories(path)
-        with pytest.raises(CheckpointError):  # the same files Trajectory.load refuses
-            jaxsync.Trajectory.load(path)
-    single = tmp_path / "single.h5"
-    _write_trajectory(single)
-    with h5py.File(single, "r+") as fh:
-        del fh.attrs["n_parts"]
-    with pytest.raises(CheckpointError, match="not a distributed run"):
-        read_shared_histories(single)
-    short = tmp_path / "short.h5"
-    _write_trajectory(short)
-    with h5py.File(short, "r+") as fh:
-        fh["synchronized"] = np.ones(7, bool)
-    with pytest.raises(CheckpointError, match="7 flags for 40 saved steps"):
-        read_shared_histories(short)
+        with pytest.raises(CheckpointError, match=message):
+            Trajectory.load(path)
 
 
 def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):

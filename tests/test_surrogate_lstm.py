@@ -45,7 +45,7 @@ def np_run(cell, xs, n_hidden):
     return np.array(hs), (h, c)
 
 
-def np_forward(params, arch, xs, cond=None):
+def np_forward(params, arch, xs, load=None):
     """Encoder: each layer runs forward over xs and backward over xs reversed; decoder
     starts from [fwd | bwd] final states and feeds back its own dense output."""
     layer_in = np.asarray(xs, np.float64)
@@ -58,7 +58,7 @@ def np_forward(params, arch, xs, cond=None):
     y = np.asarray(xs[-1], np.float64)
     out = []
     for _ in range(arch.n_future):
-        d = y if cond is None else np.concatenate([y, np.full(arch.n_cond_repeat, cond)])
+        d = y if load is None else np.concatenate([y, np.full(arch.n_cond_repeat, load)])
         h, c = np_cell(params["decoder"], h, c, d)
         y = w @ h + b
         out.append(y)
@@ -113,10 +113,10 @@ def test_forward_matches_reference_and_feeds_back_its_output(q):
     arch = LSTMArchitecture(n_dof=4, n_hidden=6, n_layers=2, n_past=5, n_future=6, n_cond_repeat=q)
     params = init_params(jax.random.key(4), arch)
     xs = np.random.default_rng(3).normal(size=(5, 4)).astype(np.float32)
-    cond = 0.37 if q else None
-    out = forward(params, arch, jnp.asarray(xs), None if cond is None else jnp.float32(cond))
+    load = 0.37 if q else None
+    out = forward(params, arch, jnp.asarray(xs), None if load is None else jnp.float32(load))
     assert out.shape == (6, 4) and out.dtype == jnp.float32
-    ref = np_forward(params, arch, xs, cond)
+    ref = np_forward(params, arch, xs, load)
     np.testing.assert_allclose(np.asarray(out), ref, atol=1e-5)
 
     # Feedback: step t of the decoder consumed the prediction of step t-1.  Replay the
@@ -125,14 +125,14 @@ def test_forward_matches_reference_and_feeds_back_its_output(q):
     w, b = np.asarray(params["dense"]["w"], np.float64), np.asarray(params["dense"]["b"], np.float64)
     inputs = np.concatenate([xs[-1:], np.asarray(out[:-1])])
     for t in range(arch.n_future):
-        d = inputs[t] if q == 0 else np.concatenate([inputs[t], np.full(q, cond)])
+        d = inputs[t] if q == 0 else np.concatenate([inputs[t], np.full(q, load)])
         h, c = np_cell(params["decoder"], h, c, d)
         np.testing.assert_allclose(w @ h + b, np.asarray(out[t]), atol=1e-5)
     # A decoder that reused the last input instead of its own output would differ.
     h, c = (np.asarray(a, np.float64) for a in encode(params, arch, jnp.asarray(xs)))
     stale = []
     for t in range(arch.n_future):
-        d = xs[-1] if q == 0 else np.concatenate([xs[-1], np.full(q, cond)])
+        d = xs[-1] if q == 0 else np.concatenate([xs[-1], np.full(q, load)])
         h, c = np_cell(params["decoder"], h, c, d)
         stale.append(w @ h + b)
     assert np.max(np.abs(np.array(stale) - np.asarray(out))) > 1e-4
@@ -168,7 +168,8 @@ def test_parameter_shapes_dtype_and_initialization_bounds():
     assert count_parameters(params) == expected
     # Same key, same parameters; another key, others.
     again = init_params(jax.random.key(6), arch)
-    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(again)))
+    leaves = zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(again))
+    assert all(np.array_equal(a, b) for a, b in leaves)
     other = init_params(jax.random.key(7), arch)
     assert not np.array_equal(params["dense"]["w"], other["dense"]["w"])
 

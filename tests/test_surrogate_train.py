@@ -1,4 +1,4 @@
-"""Training (optax, replicas together), refill rollouts, E_mse and the grid search."""
+"""Training (optax, replicas together), resuming, early stopping, E_mse and the grid search."""
 
 import csv
 import dataclasses
@@ -11,26 +11,17 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import train as train_module
-from jaxsync.surrogate.data import build_dataset, refill_index_sets, stack_replicas
-from jaxsync.surrogate.evaluate import (
-    e_mse,
-    evaluate_result,
-    grid_search,
-    max_applications,
-    rollout_replicas,
-)
-from jaxsync.surrogate.lstm import LSTMArchitecture, forward, init_params
+from jaxsync.surrogate import Surrogate
+from jaxsync.surrogate.data import build_dataset, stack_replicas
+from jaxsync.surrogate.evaluate import e_mse, grid_search, max_applications
+from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
+from jaxsync.surrogate.replicas import init_replicas, replica_params, stack_params, unpad_params
 from jaxsync.surrogate.train import (
     TrainConfig,
-    init_replicas,
-    masked_mse,
     learning_rate_schedule,
+    masked_mse,
     n_epoch_rule,
-    replica_params,
-    stack_params,
     train_replicas,
-    unpad_params,
 )
 
 
@@ -78,13 +69,13 @@ def test_training_on_damped_oscillators_lowers_validation_mse_100_fold_and_rollo
 
     n_app = 60
     assert max_applications(history.shape[0], n_s, n_p, n_f) >= n_app
-    pred = np.asarray(rollout_replicas(result.params, arch, result.mean, result.std,
-                                       history[None, :n_s * n_p], n_s, n_app))
-    assert pred.shape == (1, n_app * n_s * n_f, 3)
+    surrogate = Surrogate.from_result(result, n_s)
+    pred = np.asarray(jax.jit(surrogate.part(0).rollout, static_argnums=2)(history[:n_s * n_p], n_s * n_p - 1, n_app))
+    assert pred.shape == (n_app * n_s * n_f, 3)
     assert np.all(np.isfinite(pred))
     assert np.max(np.abs(pred)) <= 1.5 * np.max(np.abs(history))
     # Well below the error of predicting zero displacement over the same steps.
-    err = np.sqrt(evaluate_result(result, history[None], n_s, n_app))
+    err = np.sqrt(e_mse(surrogate, history[None], n_app))
     truth = history[n_s * n_p:n_s * n_p + n_app * n_s * n_f]
     assert err[0] < 0.25 * np.sqrt(np.mean(truth**2))
 
@@ -152,59 +143,27 @@ def test_train_rejects_mismatched_architecture():
                        devices=len(jax.local_devices()) + 1)
 
 
-def _normalize_and_forward(params, arch, mean, std, window, mask):
-    z = jnp.asarray((window - mean) / std, jnp.float32)
-    return np.asarray(forward(params, arch, z, None, jnp.asarray(mask, jnp.float32)), np.float64) * std + mean
-
-
-def test_rollout_applies_the_network_on_the_refill_index_sets():
-    n_s, n_p, n_f, n_cycles = 3, 4, 2, 3
-    arch = LSTMArchitecture(n_dof=3, n_hidden=5, n_layers=1, n_past=n_p, n_future=n_f)
-    params = init_replicas(jax.random.key(9), arch, (2, 3))
-    history = np.stack([np.pad(damped_oscillators(60, [1.0, 2.0]), ((0, 0), (0, 1))),
-                        damped_oscillators(60, [0.5, 1.5, 1.0])])
-    mean = np.array([[0.1, -0.2, 0.0], [0.0, 0.3, -0.1]])
-    std = np.array([[0.5, 0.7, 1.0], [0.8, 0.6, 0.4]])
-    mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
-    n0 = n_s * n_p + 5  # current step; the refill buffer holds steps n0 + 1 - n_s n_p .. n0
-    pred = np.asarray(rollout_replicas(params, arch, mean, std, history[:, n0 + 1 - n_s * n_p:n0 + 1], n_s,
-                                       n_cycles, None, mask))
-    assert pred.shape == (2, n_cycles * n_s * n_f, 3)
-    for part in range(2):
-        p = replica_params(params, part)
-        series = {k: history[part, k] for k in range(n0 + 1)}  # known steps, then predictions
-        for cycle in range(n_cycles):
-            n = n0 + cycle * n_s * n_f
-            inputs, targets = refill_index_sets(n, n_s, n_p, n_f)
-            new = {}
-            for i in range(n_s):
-                window = np.stack([series[k] for k in inputs[i]])
-                out = _normalize_and_forward(p, arch, mean[part], std[part], window, mask[part])
-                new.update(zip(targets[i].tolist(), out))
-            series.update(new)
-        expected = np.stack([series[k] for k in range(n0 + 1, n0 + 1 + n_cycles * n_s * n_f)])
-        np.testing.assert_allclose(pred[part], expected, rtol=1e-5, atol=1e-6)
-        assert np.all(pred[part][:, mask[part] == 0] == 0)
-
-
 def test_e_mse_is_the_mean_squared_rollout_error_over_real_dofs():
     n_s, n_p, n_f = 2, 3, 2
     arch = LSTMArchitecture(n_dof=3, n_hidden=4, n_layers=1, n_past=n_p, n_future=n_f)
     params = init_replicas(jax.random.key(1), arch, (2, 3))
     history = np.stack([np.pad(damped_oscillators(50, [1.0, 2.0]), ((0, 0), (0, 1))),
                         damped_oscillators(50, [0.5, 1.5, 1.0])])
-    mean, std = np.zeros((2, 3)), np.ones((2, 3))
-    start, n_app = 9, 4
-    got = e_mse(params, arch, mean, std, history, n_s, n_app, start=start, dof_counts=(2, 3))
     mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
-    pred = np.asarray(rollout_replicas(params, arch, mean, std, history[:, start + 1 - n_s * n_p:start + 1],
-                                       n_s, n_app, None, mask))
+    surrogate = Surrogate(params=params, mean=np.zeros((2, 3)), std=np.ones((2, 3)), dof_mask=mask,
+                          load_parameter=np.zeros(2, np.float32), arch=arch, n_s=n_s)
+    start, n_app = 9, 4
+    got = e_mse(surrogate, history, n_app, start=start)
+    buffers = history[:, start + 1 - n_s * n_p:start + 1]
+    pred = np.stack([np.asarray(surrogate.part(p).rollout(buffers[p], start, n_app)) for p in range(2)])
     truth = history[:, start + 1:start + 1 + n_app * n_s * n_f]
     np.testing.assert_allclose(got[0], np.mean((pred[0] - truth[0])[:, :2] ** 2), rtol=1e-12)
     np.testing.assert_allclose(got[1], np.mean((pred[1] - truth[1]) ** 2), rtol=1e-12)
     assert max_applications(50, n_s, n_p, n_f, start) == 10
     with pytest.raises(ConfigError, match="at most 10 applications"):
-        e_mse(params, arch, mean, std, history, n_s, 11, start=start, dof_counts=(2, 3))
+        e_mse(surrogate, history, 11, start=start)
+    with pytest.raises(ConfigError, match="histories must have shape"):
+        e_mse(surrogate, history[:, :, :2], 4)
 
 
 def test_grid_search_tabulates_every_combination_and_chooses_the_best(tmp_path):
@@ -243,7 +202,7 @@ def _small_problem():
 def _val_loss(params, arch, data, part):
     p = replica_params(params, part)
     return float(masked_mse(p, arch, jnp.asarray(data.x_val[part]), jnp.asarray(data.y_val[part]),
-                            jnp.asarray(data.cond_val[part]), jnp.ones(data.x_val.shape[1], jnp.float32),
+                            jnp.asarray(data.load_parameter_val[part]), jnp.ones(data.x_val.shape[1], jnp.float32),
                             jnp.asarray(data.dof_mask[part])))
 
 
@@ -280,7 +239,7 @@ def test_best_parameters_are_kept_and_early_stopping_is_exact():
     assert frozen.stopped_epoch == 5 and list(frozen.best_epoch) == [1, 1]
 
 
-def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path, monkeypatch):
+def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path):
     data, arch = _small_problem()
     config = TrainConfig(batch_size=4, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=4)
     key = jax.random.key(5)
@@ -290,19 +249,17 @@ def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path, mon
 
     path = tmp_path / "state.h5"
     saves = []
-    real_save = train_module._save_training_state
 
-    def killed_after_second_save(*args, **kwargs):
-        real_save(*args, **kwargs)
-        saves.append(args[3]["train_loss"].shape[0])
+    def killed_after_second_save(progress):
+        if progress.state_written:
+            saves.append(progress.epochs_done)
         if len(saves) == 2:
             raise KeyboardInterrupt  # the process dies right after writing epoch 8
 
-    monkeypatch.setattr(train_module, "_save_training_state", killed_after_second_save)
     with pytest.raises(KeyboardInterrupt):
-        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4,
+                       callback=killed_after_second_save)
     assert saves == [4, 8] and path.exists()
-    monkeypatch.setattr(train_module, "_save_training_state", real_save)
 
     resumed = train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
     assert resumed.resumed_from == 8 and resumed.n_epochs_run == 12

@@ -1,13 +1,11 @@
 import numpy as np
 import pytest
 import scipy.linalg
-import scipy.sparse as sp
 
+import fem_reference as ref
 import jaxsync
 from jaxsync import StabilityError
 from jaxsync.fem.timestep import check_dt, element_size
-
-import fem_reference as ref
 
 
 def test_cfl_dt_of_one_known_tetrahedron():

@@ -77,6 +77,7 @@ from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from ..fem.material import LinearElastic
 from ..fem.mesh import box_beam, read_mesh
 from ..fem.problem import Dirichlet, Problem, cantilever
+from ..options import ProblemKind, check_option
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -354,7 +355,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     material = LinearElastic(float(mat.get("E", 1.0e6)), float(mat.get("nu", 0.3)),
                              float(mat.get("rho", 1.0)))
     prob = config.get("problem", {})
-    kind = prob.get("kind", "cantilever")
+    kind = check_option("[problem] kind", prob.get("kind", "cantilever"), ProblemKind)
     damping = float(prob.get("damping", 0.5))
     if kind == "cantilever":
         for table in ("dirichlet", "body_force", "pressure"):
@@ -365,12 +366,10 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
         problem = cantilever(mesh, body_force=tuple(float(x) for x in prob.get("body_force", (0.0, 0.0, -0.5))),
                              damping=damping, t_ramp=float(prob.get("t_ramp", 1.0)),
                              t_off=None if t_off is None else float(t_off), material=material)
-    elif kind == "general":
+    else:  # "general"
         problem = Problem(mesh=mesh, material=material, damping=damping,
                           dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
                           loads=tuple(_loads(config)))
-    else:
-        raise ConfigError(f"[problem] kind must be \"cantilever\" or \"general\", got {kind!r}")
     run = config.get("run", {})
     if scaling_dt is None and scaling_beta is None:  # no override: the file's
         scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")

@@ -2,9 +2,10 @@
 
 On the built-in coarse cantilever split into parts: (1) a synchronized distributed run
 saved at every step, (2) training of one LSTM surrogate per part on the first half of it
-(``jaxsync train``'s code path), (3) the synchronization-avoiding run from n_cri = n_s n_p on (98 400 of 1e5 steps
-predicted, as in the paper), (4) the report (figures, ``summary.json``). The defaults
-follow the paper's sampling (n_s = 80, n_p = n_f = 20, 1e5 steps) with a smaller network
+(:func:`jaxsync.surrogate.train_surrogates`, as ``jaxsync train``), (3) the
+synchronization-avoiding run from n_cri = n_s n_p on (98 400 of 1e5 steps predicted, as
+in the paper), (4) the report (figures, ``summary.json``). The defaults follow the
+paper's sampling (n_s = 80, n_p = n_f = 20, 1e5 steps) with a smaller network
 (n_H = 32) and a short schedule (300 epochs), which finishes in about 2-3 minutes on a
 2-core laptop; every size is an argument. The full field is saved every ``save_every``
 steps (default n_s) and each part's shared nodes at every step (the training data), so
@@ -13,12 +14,13 @@ the files stay small (a few MB instead of 380 MB).
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import time
 
 import numpy as np
+
+from ..surrogate.lstm import LSTMArchitecture
+from ..surrogate.train import TrainConfig
 
 __all__ = ["run_demo", "SUMMARY_KEYS"]
 
@@ -28,12 +30,17 @@ SUMMARY_KEYS = ("n_steps", "n_synchronized", "n_predicted", "tip_max_abs_error",
                 "device_kind")
 
 
-def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80, n_past: int = 20,
-             n_future: int = 20, hidden: int = 32, layers: int = 2, epochs: int = 300,
-             batch_size: int = 5, eta0: float = 2e-3, gamma: float = 0.995, seed: int = 0,
+def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80,
+             n_past: int = LSTMArchitecture.n_past, n_future: int = LSTMArchitecture.n_future,
+             n_hidden: int = LSTMArchitecture.n_hidden, n_layers: int = LSTMArchitecture.n_layers,
+             epochs: int = TrainConfig.n_epochs, batch_size: int = TrainConfig.batch_size,
+             eta0: float = TrainConfig.eta0, gamma: float = TrainConfig.gamma, seed: int = 0,
              save_every: int | None = None, resync_tolerance=None, progress: bool = True,
              log=print) -> dict:
-    """Run the pipeline; write everything into ``out`` and return the summary.
+    """Run the pipeline; write everything into ``out`` and return the summary. The
+    surrogate sizes and schedule default to those of
+    :class:`~jaxsync.surrogate.lstm.LSTMArchitecture` and
+    :class:`~jaxsync.surrogate.train.TrainConfig` (the laptop schedule).
 
     Files: ``synchronized.h5`` (reference every ``save_every`` steps, per-part shared
     histories every step),
@@ -41,10 +48,10 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     synchronization-avoiding run), ``report/`` (figures) and ``summary.json``.
     """
     from .. import cantilever, partition, simulate
-    from .train import add_train_parser
-    from .plots import write_report
+    from ..io import atomic_json
     from ..solve.syncavoid import describe_run, simulate_sync_avoiding
-    from ..trajectory import atomic_path
+    from ..surrogate.fit import train_surrogates
+    from .plots import write_report
 
     os.makedirs(out, exist_ok=True)
     problem = cantilever()
@@ -64,43 +71,34 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     reference.save(reference_path)
 
     log(f"[2/4] training {n_parts} LSTM replicas (n_s={n_s}, n_p={n_past}, n_f={n_future}, "
-        f"n_H={hidden}, {epochs} epochs)")
-    surrogate_dir = os.path.join(out, "surrogate")
-    parser = argparse.ArgumentParser(prog="jaxsync")  # the code path of jaxsync train
-    add_train_parser(parser.add_subparsers())
-    train_args = parser.parse_args([
-        "train", reference_path, "-o", surrogate_dir, "--n-s", str(n_s), "--n-past", str(n_past),
-        "--n-future", str(n_future), "--hidden", str(hidden), "--layers", str(layers),
-        "--epochs", str(epochs), "--batch-size", str(batch_size), "--eta0", str(eta0),
-        "--gamma", str(gamma), "--seed", str(seed), "--emse-applications", "0",
-        *([] if progress else ["--no-progress"])])
-    train_args.func(train_args)
-    checkpoint = os.path.join(surrogate_dir, "surrogate.h5")
+        f"n_H={n_hidden}, {epochs} epochs)")
+    trained = train_surrogates(
+        reference_path, n_s=n_s, n_past=n_past, n_future=n_future, n_hidden=n_hidden, n_layers=n_layers,
+        config=TrainConfig(batch_size=batch_size, eta0=eta0, gamma=gamma, n_epochs=epochs), seed=seed,
+        emse_applications=0, out=os.path.join(out, "surrogate"), progress=progress)
+    log(f"  {trained.result.n_epochs_run} epochs in {trained.train_seconds:.1f} s; validation MSE per part "
+        + ", ".join(f"{v:.3e}" for v in trained.final_val_loss) + f"; wrote {trained.files['checkpoint']}")
 
     n_cri = n_s * n_past
     log(f"[3/4] synchronization-avoiding run: synchronized to step {n_cri}, then predicted"
         + (f", error control at es_hat <= {resync_tolerance}" if resync_tolerance is not None else ""))
-    online = simulate_sync_avoiding(problem, n_steps, partitions=parts, surrogates=checkpoint,
+    online = simulate_sync_avoiding(problem, n_steps, partitions=parts, surrogates=trained.checkpoint,
                                     n_cri=n_cri, progress=progress, save_every=save_every,
                                     resync_tolerance=resync_tolerance)
     online.save(os.path.join(out, "online.h5"))
     log("  " + describe_run(online))
 
     log("[4/4] timing (compiled programs, round-robin) and report")
-    from ..solve.syncavoid import SurrogatePredictor
     from ..perf.timing import speedup_breakdown
 
-    timing = speedup_breakdown(problem, parts, SurrogatePredictor.from_checkpoint(checkpoint),
-                               repeats=3, stage_repeats=10)
+    timing = speedup_breakdown(problem, parts, trained.surrogate, repeats=3, stage_repeats=10)
     us_sync = float(reference.stats.us_per_step)
     us_pred = float(online.stats.us_per_step_predicted)
-    with open(os.path.join(surrogate_dir, "train_summary.json")) as f:
-        training = json.load(f)
     extra = {"us_per_step_synchronized": us_sync, "us_per_step_predicted": us_pred,
              "speedup": us_sync / us_pred, "zeta": timing.zeta, "zeta_sync": timing.sync,
              "t_s_us": 1e6 * timing.t_s, "t_d_us": 1e6 * timing.t_d, "dt": problem.dt,
-             "training_seconds": training["train_seconds"],
-             "final_val_loss": training["final_val_loss"],
+             "training_seconds": trained.train_seconds,
+             "final_val_loss": trained.final_val_loss.tolist(),
              "n_devices": devices["n_devices"], "device_kind": devices["device_kind"],
              "devices_emulated": devices["emulated"],
              "compile_seconds": reference.stats.compile_seconds + online.stats.compile_seconds,
@@ -113,9 +111,7 @@ def run_demo(out: str, *, n_steps: int = 100000, n_parts: int = 2, n_s: int = 80
     summary = write_report(reference, online, parts, os.path.join(out, "report"),
                            fixed_nodes=fixed_nodes, extra=extra)
     summary["report"] = os.path.abspath(os.path.join(out, "report"))
-    with atomic_path(os.path.join(out, "summary.json")) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(summary, f, indent=2)
+    atomic_json(os.path.join(out, "summary.json"), summary)
     return summary
 
 

@@ -1,7 +1,10 @@
-"""Figures of synchronization-avoiding runs, for papers (matplotlib, no pyplot state).
+"""``jaxsync report``: compare a synchronization-avoiding run with the synchronized
+reference, choose the monitored nodes, and write the figures and ``summary.json``.
 
 :func:`write_report` compares an online (synchronization-avoiding) trajectory with the
-synchronized reference and writes PNG figures plus ``summary.json``:
+synchronized reference (:func:`compare`), draws the figures of
+:mod:`jaxsync.app.figures` (:func:`report_figures`) and writes them as PNG, plus
+``summary.json``:
 
 - ``displacement_nodes.png``: for each monitored node, the synchronized (reference,
   wide grey) and predicted (thin, coloured) displacement component, and below it the
@@ -31,7 +34,7 @@ free end x = 25 for the part that holds it.
 
 from __future__ import annotations
 
-import json
+import dataclasses
 import os
 from collections.abc import Mapping
 
@@ -39,29 +42,11 @@ import numpy as np
 
 from ..errors import ConfigError, ProblemError
 from ..metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors
+from ..options import DEFAULT_COMPONENT, Component, check_option
+from . import figures
 
-__all__ = ["write_report", "report_nodes", "resolve_nodes", "parse_node", "moving_nodes", "constrained_nodes",
-           "histogram_bins", "tip_node"]
-
-_AXES = "xyz"
-REFERENCE_STYLE = dict(color="0.6", lw=3.2, solid_capstyle="butt", zorder=2)
-PREDICTED_STYLE = dict(color="tab:red", lw=1.0, zorder=3)
-ERROR_STYLE = dict(color="tab:purple", lw=0.9)
-SWITCH_STYLE = dict(color="k", lw=1.2, ls=(0, (4, 2)), zorder=4)
-RESYNC_STYLE = dict(color="tab:blue", alpha=0.15, lw=0, zorder=1)
-
-
-def _figure(width=7.0, height=4.2):
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(width, height), dpi=150, layout="constrained")
-
-
-def _save(fig, path):
-    from ..trajectory import atomic_path
-
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+__all__ = ["write_report", "compare", "Comparison", "report_figures", "report_summary", "report_nodes",
+           "resolve_nodes", "parse_node", "moving_nodes", "constrained_nodes", "tip_node"]
 
 
 def tip_node(mesh) -> int:
@@ -261,196 +246,160 @@ def constrained_nodes(config_path, mesh, displacement) -> np.ndarray:
     return np.union1d(dirichlet, still).astype(np.int64)
 
 
-# ----------------------------------------------------------------------------- phases
-
-
-def _phases(times, synchronized):
-    """(t of the last synchronized snapshot before the first predicted one or None,
-    [(t_start, t_end)] of the re-synchronized intervals)."""
-    times = np.asarray(times, float)
-    sync = np.ones(len(times), bool) if synchronized is None else np.asarray(synchronized, bool)
-    predicted = np.flatnonzero(~sync)
-    if not predicted.size:
-        return None, []
-    first = int(predicted[0])
-    t_switch = float(times[max(first - 1, 0)])
-    spans = []
-    k = first
-    while k < len(sync):
-        if sync[k]:
-            a = k
-            while k + 1 < len(sync) and sync[k + 1]:
-                k += 1
-            b = k
-            # each synchronized snapshot stands for the steps around it: midpoints
-            start = 0.5 * (times[a - 1] + times[a])
-            end = 0.5 * (times[b] + times[b + 1]) if b + 1 < len(sync) else float(times[b])
-            spans.append((float(start), float(end)))
-        k += 1
-    return t_switch, spans
-
-
-def _mark_phases(ax, t_switch, spans, label=True):
-    """End of the synchronized phase (dashed line) and re-synchronized intervals (shaded)."""
-    if t_switch is not None:
-        ax.axvline(t_switch, label="end of synchronized phase, t(n_cri)" if label else None, **SWITCH_STYLE)
-    for i, (a, b) in enumerate(spans):
-        ax.axvspan(a, b, label="re-synchronized" if label and i == 0 else None, **RESYNC_STYLE)
-
-
-# ----------------------------------------------------------------------------- figures
-
-
-def _plot_nodes(path, times, ref, pred, nodes, component, t_switch, spans, mesh):
-    c = _AXES[component]
-    k = len(nodes)
-    fig = _figure(8.0, 1.1 + 3.0 * k)
-    grid = fig.add_gridspec(2 * k, 1, height_ratios=[2.6, 1.0] * k)
-    first = None
-    handles = None
-    for i, (label, node) in enumerate(nodes.items()):
-        ax = fig.add_subplot(grid[2 * i], sharex=first)
-        first = first or ax
-        err_ax = fig.add_subplot(grid[2 * i + 1], sharex=first)
-        ax.plot(times, ref[:, node, component], label="synchronized (reference)", **REFERENCE_STYLE)
-        ax.plot(times, pred[:, node, component], label="synchronization-avoiding (predicted)",
-                **PREDICTED_STYLE)
-        err_ax.plot(times, pred[:, node, component] - ref[:, node, component],
-                    label=rf"error $\hat d_{c} - d_{c}$", **ERROR_STYLE)
-        err_ax.axhline(0.0, color="0.3", lw=0.5)
-        for a in (ax, err_ax):
-            _mark_phases(a, t_switch, spans, label=(a is ax))
-            a.grid(True, alpha=0.3)
-        x, y, z = mesh.points[node]
-        ax.set_title(f"{label}: node {node} at ({x:.3g}, {y:.3g}, {z:.3g}) cm", fontsize=9)
-        ax.set_ylabel(f"$d_{c}$ [cm]")
-        err_ax.set_ylabel("error [cm]")
-        ax.tick_params(labelbottom=False)
-        if handles is None:
-            handles = ax.get_legend_handles_labels()
-            eh = err_ax.get_legend_handles_labels()
-            handles = (handles[0] + eh[0], handles[1] + eh[1])
-    err_ax.set_xlabel("time t [s]")
-    fig.suptitle(f"Displacement $d_{c}$ at the monitored nodes: synchronized vs predicted")
-    fig.legend(*handles, loc="outside lower center", ncol=3, fontsize=8)
-    _save(fig, path)
-
-
-def _plot_l2(path, times, e, t_switch, spans):
-    fig = _figure()
-    ax = fig.add_subplot(1, 1, 1)
-    ax.plot(times, e, color="tab:red", lw=1.0, label=r"$e(t) = \|\hat d(t) - d(t)\|_2$ (eq. 24)", zorder=3)
-    _mark_phases(ax, t_switch, spans)
-    ax.set_xlabel("time t [s]")
-    ax.set_ylabel("e(t) [cm]")
-    ax.set_title("Error of the whole displacement field against the synchronized run")
-    ax.grid(True, alpha=0.3)
-    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=3, fontsize=8)
-    _save(fig, path)
-
-
-def _plot_shared(path, times, steps, errs, t_switch, spans):
-    es = np.full(len(times), np.nan)
-    es_hat = np.full(len(times), np.nan)
-    tiny = np.finfo(float).tiny
-    es[steps] = np.maximum(errs.es, tiny)  # NaN elsewhere: the lines break at synchronized snapshots
-    es_hat[steps] = np.maximum(errs.es_hat, tiny)
-    fig = _figure()
-    ax = fig.add_subplot(1, 1, 1)
-    ax.semilogy(times, es, color="tab:red", lw=1.0, label=r"$e_s(t)$: predictions vs synchronized (eq. 25)",
-                zorder=3)
-    ax.semilogy(times, es_hat, color="tab:green", lw=1.0, ls="--",
-                label=r"$\hat e_s(t)$: between the parts' predictions (eq. 26)", zorder=3)
-    _mark_phases(ax, t_switch, spans)
-    ax.set_xlabel("time t [s]")
-    ax.set_ylabel("mean error per shared node [cm]")
-    ax.set_title("Errors at the shared nodes while predicted")
-    ax.grid(True, which="both", alpha=0.3)
-    fig.legend(*ax.get_legend_handles_labels(), loc="outside lower center", ncol=2, fontsize=8)
-    _save(fig, path)
-
-
-def _plot_tracking(path, errs, quality):
-    """es_hat against es, one point per predicted snapshot (log-log), with the lines
-    es_hat = es and a factor 2 either way: how far the estimate can stand in for the error."""
-    tiny = np.finfo(float).tiny
-    es, es_hat = np.maximum(errs.es, tiny), np.maximum(errs.es_hat, tiny)
-    fig = _figure(5.6, 5.0)
-    ax = fig.add_subplot(1, 1, 1)
-    ax.loglog(es, es_hat, ".", ms=2.5, alpha=0.5, color="tab:blue", label="predicted snapshots")
-    low, high = min(es.min(), es_hat.min()), max(es.max(), es_hat.max())
-    line = np.array([low, high])
-    ax.loglog(line, line, color="0.2", lw=1.0, label=r"$\hat e_s = e_s$")
-    ax.loglog(line, line / 2, color="0.5", lw=0.8, ls="--", label="a factor 2 off")
-    ax.loglog(line, line * 2, color="0.5", lw=0.8, ls="--")
-    ax.set_xlabel(r"$e_s$: error at the shared nodes against the synchronized run [cm]")
-    ax.set_ylabel(r"$\hat e_s$: disagreement between the parts [cm]")
-    ax.set_title(f"Does the estimate track the error? es/es_hat median {quality.ratio_median:.2g}, "
-                 f"95 % {quality.ratio_p95:.2g}", fontsize=9)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left")
-    _save(fig, path)
-
-
-def histogram_bins(values, max_bins: int = 20) -> np.ndarray:
-    """Bin edges for a few to a few thousand values: about 2 sqrt(n) bins (3 to
-    ``max_bins``), logarithmic when positive values span more than two decades."""
-    v = np.asarray(values, float).ravel()
-    v = v[np.isfinite(v)]
-    n_bins = int(np.clip(np.ceil(2 * np.sqrt(max(v.size, 1))), 3, max_bins))
-    if not v.size:
-        return np.linspace(0.0, 1.0, n_bins + 1)
-    if v.min() == v.max():  # one value: a narrow range around it, not numpy's +-0.5
-        half = 0.1 * abs(v[0]) or 1e-12
-        return np.linspace(v[0] - half, v[0] + half, n_bins + 1)
-    if v.min() > 0 and v.max() / v.min() > 100:
-        return np.geomspace(v.min(), v.max(), n_bins + 1)
-    return np.histogram_bin_edges(v, bins=n_bins)
-
-
-def _plot_histogram(path, errs):
-    from matplotlib.ticker import MaxNLocator
-
-    n = len(errs.et)
-    edges = histogram_bins(np.concatenate([errs.et, errs.et_hat]))
-    fig = _figure()
-    ax = fig.add_subplot(1, 1, 1)
-    ax.hist([errs.et, errs.et_hat], bins=edges, color=["tab:red", "tab:green"],
-            label=[rf"$e_{{t,j}}$: vs synchronized (eq. 25), mean {errs.et.mean():.2e} cm",
-                   rf"$\hat e_{{t,j}}$: between parts (eq. 26), mean {errs.et_hat.mean():.2e} cm"])
-    if edges[0] > 0 and edges[-1] / edges[0] > 100:
-        ax.set_xscale("log")
-    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("time-averaged error of a shared node over the predicted snapshots [cm]")
-    ax.set_ylabel("number of shared nodes")
-    ax.set_title(f"Time-averaged errors at the {n} shared node{'s' if n != 1 else ''}")
-    ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=8)
-    _save(fig, path)
-
-
 # ----------------------------------------------------------------------------- report
 
 
-def _node_table(times, ref, pred, nodes, component, mesh, shared, fixed):
+@dataclasses.dataclass(frozen=True)
+class Comparison:
+    """An online run against the synchronized reference, at the saved snapshots.
+
+    Attributes:
+        times: (T,) times of the snapshots [s].
+        reference, predicted: (T, n_nodes, 3) synchronized and online displacement.
+        mesh: the mesh.
+        partition: the partition of the online run.
+        component: displacement component shown and compared at the nodes (0, 1, 2).
+        nodes: label -> id of the monitored nodes; notes: why a part has none.
+        fixed: (n_nodes,) bool, constrained nodes; shared: (n_nodes,) bool, shared nodes.
+        t_switch, spans: end of the synchronized phase and re-synchronized intervals
+            (:func:`jaxsync.app.figures.phases`).
+        l2: (T,) e(t) of the whole field (paper eq. 24).
+        steps: snapshots with predictions at the shared nodes; shared_errors: their
+            :class:`jaxsync.metrics.SharedNodeErrors` and quality their
+            :class:`jaxsync.metrics.EstimateQuality` (None without shared predictions).
+        n_steps, n_synchronized: time steps of the online run, and how many were
+            synchronized.
+    """
+
+    times: np.ndarray
+    reference: np.ndarray
+    predicted: np.ndarray
+    mesh: object
+    partition: object
+    component: int
+    nodes: dict
+    notes: list
+    fixed: np.ndarray
+    shared: np.ndarray
+    t_switch: float | None
+    spans: list
+    l2: np.ndarray
+    steps: np.ndarray
+    shared_errors: object | None
+    quality: object | None
+    n_steps: int
+    n_synchronized: int
+
+
+def compare(reference, online, partition, *, component: Component = DEFAULT_COMPONENT,
+            fixed_nodes=(), nodes=None) -> Comparison:
+    """Compare ``online`` with ``reference`` (arguments as :func:`write_report`); writes nothing.
+
+    Raises:
+        ProblemError: trajectories of different shapes, or no node to show;
+        ConfigError: a bad node in ``nodes``, or a component other than 0, 1, 2.
+    """
+    from ..solve.syncavoid import step_counts
+
+    ref = np.asarray(reference.displacement)
+    pred = np.asarray(online.displacement)
+    if ref.shape != pred.shape:
+        raise ProblemError(f"reference {ref.shape} and online {pred.shape} trajectories differ in shape; "
+                           "compare runs of the same mesh saved at the same steps")
+    component = int(check_option("component", component, Component))
+    mesh = online.mesh
+    n_nodes = ref.shape[1]
+    fixed = np.zeros(n_nodes, bool)
+    fixed_ids = np.asarray(fixed_nodes, dtype=np.int64).ravel()
+    if fixed_ids.size and (fixed_ids.min() < 0 or fixed_ids.max() >= n_nodes):
+        raise ProblemError(f"fixed_nodes holds ids outside the mesh's 0 .. {n_nodes - 1}")
+    fixed[fixed_ids] = True
+    notes: list[str] = []
+    if nodes is None:
+        shown, notes = _default_nodes(ref, partition, fixed_ids, component)
+    else:
+        shown = resolve_nodes(mesh, nodes)
+    times = np.asarray(online.times)
+    t_switch, spans = figures.phases(times, online.synchronized)
+    predictions, holds, steps = predictions_by_node(online, partition)
+    errs = quality = None
+    if partition.n_interface and len(steps):
+        errs = shared_node_errors(ref[steps][:, partition.shared_nodes], predictions, holds)
+        quality = estimate_quality(errs.es, errs.es_hat)
+    shared = np.zeros(n_nodes, bool)
+    shared[partition.shared_nodes] = True
+    n_steps, n_synchronized = step_counts(online)
+    return Comparison(times=times, reference=ref, predicted=pred, mesh=mesh, partition=partition,
+                      component=component, nodes=shown, notes=notes, fixed=fixed, shared=shared,
+                      t_switch=t_switch, spans=spans, l2=l2_error(ref, pred), steps=np.asarray(steps),
+                      shared_errors=errs, quality=quality, n_steps=n_steps,
+                      n_synchronized=n_synchronized)
+
+
+def report_figures(c: Comparison) -> dict:
+    """File name -> :class:`matplotlib.figure.Figure` of every figure of the report (the
+    shared-node figures only when the online run has predictions at shared nodes)."""
+    out = {"displacement_nodes.png": figures.nodes_figure(c.times, c.reference, c.predicted, c.nodes,
+                                                          c.component, c.t_switch, c.spans, c.mesh),
+           "l2_error.png": figures.l2_error_figure(c.times, c.l2, c.t_switch, c.spans)}
+    if c.shared_errors is not None:
+        out["shared_errors.png"] = figures.shared_errors_figure(c.times, c.steps, c.shared_errors,
+                                                                c.t_switch, c.spans)
+        out["et_histogram.png"] = figures.histogram_figure(c.shared_errors)
+        out["es_tracking.png"] = figures.tracking_figure(c.shared_errors, c.quality)
+    return out
+
+
+def _node_table(c: Comparison) -> list[dict]:
     rows = []
-    for label, node in nodes.items():
-        err_c = np.abs(pred[:, node, component] - ref[:, node, component])
-        amp = float(np.abs(ref[:, node, component]).max())
+    k = c.component
+    for label, node in c.nodes.items():
+        err_c = np.abs(c.predicted[:, node, k] - c.reference[:, node, k])
+        amp = float(np.abs(c.reference[:, node, k]).max())
         rows.append({
-            "label": label, "node": int(node), "coordinates": [float(v) for v in mesh.points[node]],
-            "shared": bool(shared[node]), "constrained": bool(fixed[node]),
+            "label": label, "node": int(node), "coordinates": [float(v) for v in c.mesh.points[node]],
+            "shared": bool(c.shared[node]), "constrained": bool(c.fixed[node]),
             "max_abs_displacement": amp,
             "max_abs_error": float(err_c.max()),
             "relative_max_error": float(err_c.max() / amp) if amp > 0 else None,
             "final_abs_error": float(err_c[-1]),
             "rms_error": float(np.sqrt(np.mean(err_c ** 2))),
-            "max_error_norm": float(np.linalg.norm(pred[:, node] - ref[:, node], axis=1).max()),
+            "max_error_norm": float(np.linalg.norm(c.predicted[:, node] - c.reference[:, node], axis=1).max()),
         })
     return rows
 
 
-def write_report(reference, online, partition, out_dir, *, component: int = 2,
+def report_summary(c: Comparison, extra: dict | None = None) -> dict:
+    """The entries of ``summary.json`` (see :func:`write_report`), plus ``extra``."""
+    table = _node_table(c)
+    top = max(table, key=lambda row: row["max_abs_displacement"])
+    errs = c.shared_errors
+    summary_shared = {} if errs is None else {
+        "es_final": float(errs.es[-1]), "es_hat_final": float(errs.es_hat[-1]),
+        "es_max": float(errs.es.max()), "es_hat_max": float(errs.es_hat.max()),
+        "et_mean": float(errs.et.mean()), "et_hat_mean": float(errs.et_hat.mean()),
+        "es_hat_tracking": c.quality.to_dict()}
+    return {
+        "n_steps": c.n_steps,
+        "n_synchronized": c.n_synchronized,
+        "n_predicted": c.n_steps - c.n_synchronized,
+        "n_parts": c.partition.n_parts,
+        "component": figures.AXES[c.component],
+        "monitored_node": top["node"],
+        "monitored_label": top["label"],
+        "tip_max_abs_error": top["max_abs_error"],
+        "tip_max_abs_displacement": top["max_abs_displacement"],
+        "l2_error_final": float(c.l2[-1]),
+        "l2_error_max": float(c.l2.max()),
+        "nodes": {label: int(node) for label, node in c.nodes.items()},
+        "node_errors": table,
+        "node_notes": c.notes,
+        "resynchronized_intervals": [[a, b] for a, b in c.spans],
+        **summary_shared, **(extra or {}),
+    }
+
+
+def write_report(reference, online, partition, out_dir, *, component: Component = DEFAULT_COMPONENT,
                  fixed_nodes=(), nodes=None, extra: dict | None = None) -> dict:
     """Write the figures and ``summary.json`` into ``out_dir``; return the summary.
 
@@ -480,76 +429,13 @@ def write_report(reference, online, partition, out_dir, *, component: int = 2,
         ProblemError: trajectories of different shapes, or no node to show;
         ConfigError: a bad node in ``nodes``.
     """
-    ref = np.asarray(reference.displacement)
-    pred = np.asarray(online.displacement)
-    if ref.shape != pred.shape:
-        raise ProblemError(f"reference {ref.shape} and online {pred.shape} trajectories differ in shape; "
-                           "compare runs of the same mesh saved at the same steps")
-    if component not in (0, 1, 2):
-        raise ConfigError(f"component must be 0, 1 or 2 (x, y, z), got {component!r}")
-    mesh = online.mesh
-    n_nodes = ref.shape[1]
-    fixed = np.zeros(n_nodes, bool)
-    fixed_ids = np.asarray(fixed_nodes, dtype=np.int64).ravel()
-    if fixed_ids.size and (fixed_ids.min() < 0 or fixed_ids.max() >= n_nodes):
-        raise ProblemError(f"fixed_nodes holds ids outside the mesh's 0 .. {n_nodes - 1}")
-    fixed[fixed_ids] = True
-    notes: list[str] = []
-    if nodes is None:
-        shown, notes = _default_nodes(ref, partition, fixed_ids, component)
-    else:
-        shown = resolve_nodes(mesh, nodes)
+    from ..io import atomic_json
+
+    comparison = compare(reference, online, partition, component=component, fixed_nodes=fixed_nodes,
+                         nodes=nodes)
     os.makedirs(out_dir, exist_ok=True)
-    times = np.asarray(online.times)
-    t_switch, spans = _phases(times, online.synchronized)
-
-    _plot_nodes(os.path.join(out_dir, "displacement_nodes.png"), times, ref, pred, shown, component,
-                t_switch, spans, mesh)
-    e = l2_error(ref, pred)
-    _plot_l2(os.path.join(out_dir, "l2_error.png"), times, e, t_switch, spans)
-
-    predictions, holds, steps = predictions_by_node(online, partition)
-    summary_shared = {}
-    if partition.n_interface and len(steps):
-        truth = ref[steps][:, partition.shared_nodes]
-        errs = shared_node_errors(truth, predictions, holds)
-        _plot_shared(os.path.join(out_dir, "shared_errors.png"), times, steps, errs, t_switch, spans)
-        _plot_histogram(os.path.join(out_dir, "et_histogram.png"), errs)
-        quality = estimate_quality(errs.es, errs.es_hat)
-        _plot_tracking(os.path.join(out_dir, "es_tracking.png"), errs, quality)
-        summary_shared = {"es_final": float(errs.es[-1]), "es_hat_final": float(errs.es_hat[-1]),
-                          "es_max": float(errs.es.max()), "es_hat_max": float(errs.es_hat.max()),
-                          "et_mean": float(errs.et.mean()), "et_hat_mean": float(errs.et_hat.mean()),
-                          "es_hat_tracking": quality.to_dict()}
-
-    shared = np.zeros(n_nodes, bool)
-    shared[partition.shared_nodes] = True
-    table = _node_table(times, ref, pred, shown, component, mesh, shared, fixed)
-    top = max(table, key=lambda row: row["max_abs_displacement"])
-    from ..solve.syncavoid import step_counts
-
-    n_steps, n_synchronized = step_counts(online)
-    summary = {
-        "n_steps": n_steps,
-        "n_synchronized": n_synchronized,
-        "n_predicted": n_steps - n_synchronized,
-        "n_parts": partition.n_parts,
-        "component": _AXES[component],
-        "monitored_node": top["node"],
-        "monitored_label": top["label"],
-        "tip_max_abs_error": top["max_abs_error"],
-        "tip_max_abs_displacement": top["max_abs_displacement"],
-        "l2_error_final": float(e[-1]),
-        "l2_error_max": float(e.max()),
-        "nodes": {label: int(node) for label, node in shown.items()},
-        "node_errors": table,
-        "node_notes": notes,
-        "resynchronized_intervals": [[a, b] for a, b in spans],
-        **summary_shared, **(extra or {}),
-    }
-    from ..trajectory import atomic_path
-
-    with atomic_path(os.path.join(out_dir, "summary.json")) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(summary, f, indent=2)
+    for name, fig in report_figures(comparison).items():
+        figures.save_figure(fig, os.path.join(out_dir, name))
+    summary = report_summary(comparison, extra)
+    atomic_json(os.path.join(out_dir, "summary.json"), summary)
     return summary

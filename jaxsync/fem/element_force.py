@@ -14,11 +14,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from ..options import Mode, choices
 from ..pytree import pytree_dataclass
 
 __all__ = ["ElementStiffness", "element_forces", "MODES"]
 
-MODES = ("preassembled", "recompute")
+MODES = choices(Mode)  # ("preassembled", "recompute"), defined in jaxsync.options
 
 
 @pytree_dataclass
@@ -60,6 +61,6 @@ def element_forces(points, tets, u, lam, mu):
     H = jnp.einsum("mai,maj->mij", ue, grads)
     eps = 0.5 * (H + jnp.swapaxes(H, 1, 2))
     trace = eps[:, 0, 0] + eps[:, 1, 1] + eps[:, 2, 2]
-    sigma = 2.0 * mu * eps + (lam * trace)[:, None, None] * jnp.eye(3)
+    sigma = 2.0 * mu * eps + (lam * trace)[:, None, None] * jnp.eye(3)[None]
     volume = det / 6.0
     return volume[:, None, None] * jnp.einsum("mij,maj->mai", sigma, grads)

@@ -13,12 +13,12 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector
 from ..errors import ProblemError
+from ..pytree import is_traced
+from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector
 from .loads import BodyForce, Pressure, Ramp, StepOff
 from .material import LinearElastic
 from .mesh import Mesh, box_beam
-from ..pytree import is_traced
 
 __all__ = ["Dirichlet", "Problem", "cantilever"]
 

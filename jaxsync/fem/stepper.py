@@ -77,10 +77,10 @@ def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
     ``mode`` selects the internal force: ``"preassembled"`` (K stored in node-blocked
     ELL form) or ``"recompute"`` (element quantities formed every step, paper Remark 2).
     Traceable in the material, damping, load magnitudes and dt (differentiable)."""
-    from .element_force import MODES, ElementStiffness
+    from ..options import Mode, check_option
+    from .element_force import ElementStiffness
 
-    if mode not in MODES:
-        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    check_option("mode", mode, Mode, error=ProblemError)
     m = problem.material
     if mode == "preassembled":
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
@@ -114,15 +114,15 @@ def dirichlet_arrays(problem) -> tuple[np.ndarray, np.ndarray]:
 def external_force(system: ExplicitSystem, t):
     """(n_nodes, 3) external nodal force at time t [dyn]: sum_l g_l(t) F_l."""
     force = jnp.zeros_like(system.mass)
-    for l, g in enumerate(system.load_times):
-        force = force + g(t) * system.load_vectors[l]
+    for k, g in enumerate(system.load_times):
+        force = force + g(t) * system.load_vectors[k]
     return force
 
 
 def central_difference(system: ExplicitSystem, state: SolverState, internal_force):
     """d(n+1) before Dirichlet values are imposed, given K d(n) = ``internal_force``."""
     dt = system.dt
-    f = external_force(system, state.step * dt)
+    f = external_force(system, jnp.asarray(state.step, dtype=dt.dtype) * dt)
     half_damp = 0.5 * system.damping * dt
     return (dt * dt * (f - internal_force) / system.mass + 2.0 * state.displacement
             - (1.0 - half_damp) * state.previous) / (1.0 + half_damp)

@@ -35,11 +35,12 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import PartitionError, ProblemError
-from ..fem.element_force import MODES, ElementStiffness
+from ..fem.element_force import ElementStiffness
 from ..fem.sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
 from ..fem.stepper import ExplicitSystem
+from ..options import Mode, check_option
 from ..pytree import pytree_dataclass, static_field
-from .partition import Partition
+from .partitioning import Partition
 from .spmd import AXIS, LOCAL_AXIS
 
 __all__ = ["PartSystems", "build_part_systems", "synchronize_forces", "scatter_reverse",
@@ -75,8 +76,7 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
     """Split the global ``system`` into padded, stacked per-part systems (numpy-backed)."""
     from ..fem.assembly import element_blocks
 
-    if mode not in MODES:
-        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    check_option("mode", mode, Mode, error=ProblemError)
     if partition.mesh is not problem.mesh and not (
             partition.mesh.n_nodes == problem.mesh.n_nodes
             and np.array_equal(partition.mesh.tets, problem.mesh.tets)):

@@ -33,13 +33,14 @@ import traceback
 from collections.abc import Callable, Mapping
 
 from ..errors import ConfigError, JaxsyncError
+from ..options import Sync, choices
 
 __all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "launched_size", "launched_by_mpi",
            "initialize", "process_index", "process_count", "is_main_process",
            "abort_on_error", "world", "make_allreduce", "mpi4jax_available",
            "default_sync"]
 
-SYNC_METHODS = ("psum", "ppermute", "mpi")
+SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi"), defined in jaxsync.options
 """Per-step synchronization across devices and processes: XLA ``psum`` of the whole
 interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of only the
 nodes two devices share, or MPI Allreduce."""

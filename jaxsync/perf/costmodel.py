@@ -59,10 +59,10 @@ Assumptions (each makes the model optimistic or simple, none is measured here):
   hops, no topology (a fat tree without oversubscription);
 - the reduction arithmetic (3 N_a additions) is free next to the messages;
 - all parts start the synchronization together (load imbalance shows up in t_compute,
-  the max-average part of :mod:`jaxsync.perf.timing`).
+  the max-average part of :mod:`jaxsync.perf.reports`).
 
 Inputs and their sources: the partition's interface (:func:`communication_pattern`,
-from :class:`jaxsync.parallel.partition.Partition`); an :class:`Interconnect`, either one of the
+from :class:`jaxsync.parallel.partitioning.Partition`); an :class:`Interconnect`, either one of the
 typical published figures in :data:`INTERCONNECTS` (vendor spec sheets and OSU
 micro-benchmark results, not measured here), or one fitted to measured message times on
 this machine with :func:`fit_interconnect`; t_compute and t_d measured by the benchmarks.
@@ -86,24 +86,14 @@ ALGORITHMS = ("allreduce", "allreduce-ring", "allreduce-recursive-doubling", "ne
               "collective", "collective-permute")
 
 
-def _positive_finite(value, what: str, error=ConfigError) -> float:
+def _finite(value, what: str, *, error=ConfigError, positive: bool = True) -> float:
+    """``value`` as a float, finite and > 0 (``positive``) or >= 0; else ``error``."""
     try:
         value = float(value)
     except (TypeError, ValueError):
         raise error(f"{what} must be a number, got {value!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise error(f"{what} must be a finite number > 0, got {value!r}")
-    return value
-
-
-def _time(value, what: str) -> float:
-    """A measured time [s]: finite and >= 0."""
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise ProblemError(f"{what} must be a time in seconds, got {value!r}") from None
-    if not (math.isfinite(value) and value >= 0):
-        raise ProblemError(f"{what} must be a finite time >= 0 s, got {value!r}")
+    if not (math.isfinite(value) and (value > 0 if positive else value >= 0)):
+        raise error(f"{what} must be a finite number {'>' if positive else '>='} 0, got {value!r}")
     return value
 
 
@@ -128,9 +118,9 @@ class Interconnect:
 
     def __post_init__(self):
         object.__setattr__(self, "latency_s",
-                           _positive_finite(self.latency_s, f"Interconnect {self.name!r} latency_s"))
+                           _finite(self.latency_s, f"Interconnect {self.name!r} latency_s"))
         object.__setattr__(self, "bandwidth_Bps",
-                           _positive_finite(self.bandwidth_Bps, f"Interconnect {self.name!r} bandwidth_Bps"))
+                           _finite(self.bandwidth_Bps, f"Interconnect {self.name!r} bandwidth_Bps"))
 
     def message_time(self, n_bytes):
         """Time of one message of ``n_bytes`` bytes [s]: latency + n_bytes / bandwidth.
@@ -256,7 +246,7 @@ class CommunicationPattern:
 
 
 def communication_pattern(partition, dofs_per_node: int = 3, bytes_per_value: int = 8) -> CommunicationPattern:
-    """The :class:`CommunicationPattern` of a :class:`jaxsync.parallel.partition.Partition`.
+    """The :class:`CommunicationPattern` of a :class:`jaxsync.parallel.partitioning.Partition`.
 
     Nodes shared by parts p and q are the interface nodes whose ``sharing_parts`` hold
     both; with B the (N_a, p) boolean incidence of interface nodes and parts, the counts
@@ -467,8 +457,8 @@ def project(t_compute: float, t_surrogate: float, pattern: CommunicationPattern,
         ProblemError: times that are negative, not finite, or both 0.
         ConfigError: unknown algorithm, no interconnect.
     """
-    t_compute = _time(t_compute, "t_compute")
-    t_surrogate = _time(t_surrogate, "t_surrogate")
+    t_compute = _finite(t_compute, "t_compute [s]", error=ProblemError, positive=False)
+    t_surrogate = _finite(t_surrogate, "t_surrogate [s]", error=ProblemError, positive=False)
     if t_compute + t_surrogate <= 0:
         raise ProblemError("t_compute + t_surrogate is 0 s: the speed-up needs a measured step time > 0")
     links = tuple(interconnects.values() if isinstance(interconnects, Mapping) else interconnects)

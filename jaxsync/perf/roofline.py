@@ -7,7 +7,7 @@ mask 1 byte per dof). Bytes are the traffic of the arrays each stage reads and w
 as written in jaxsync; flops are a count of the written floating-point operations (a
 division, a negation or a transcendental function counts as one flop; a contraction of
 length k as 2 k flops, multiply and add, as for matrix products). Each stage is counted
-as if it ran alone, as :mod:`jaxsync.perf.timing` measures it: the fused real step reads d(n)
+as if it ran alone, as :mod:`jaxsync.perf.timing` times it: the fused real step reads d(n)
 once and never stores K d, so its traffic is the sum below minus 2 * 24 n bytes.
 
 ``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.fem.sparse`, columns (n, w) int32,
@@ -38,7 +38,7 @@ The per-element gathers and scatters are counted every time an element touches a
 (each node has about 20 elements): an upper bound on the memory traffic when they hit
 cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
 
-``"t_o"``, the update (:func:`jaxsync.solve.solver.external_force`, ``central_difference``,
+``"t_o"``, the update (:func:`jaxsync.fem.stepper.external_force`, ``central_difference``,
 ``apply_dirichlet``), per dof (3 per node)::
 
     bytes = 8 * (3 + L + 1 + 1) + 1   read d(n), d(n-1), lumped mass, L load vectors,
@@ -58,7 +58,7 @@ the bytes on the network are :mod:`jaxsync.perf.costmodel`'s)::
     flops = 3 n_sh + 3 N_a            scatter-adds; one reduction add per interface dof
 
 ``"t_d"``, the surrogate: one refill prediction of n_s windows
-(:func:`jaxsync.surrogate.evaluate.refill_predict`; :func:`surrogate_costs`), with
+(:func:`jaxsync.surrogate.refill.refill_predict`; :func:`surrogate_costs`), with
 H = n_H, H_d = 2 n_H, D = n_dof, q = n_cond_repeat, T = n_p, F = n_f, n_in of encoder
 layer l (D for the first, 2 H after). A cell step given its input projection costs
 8 H^2 (w_h h) + 4 H (add the projection) + 4 H (gate products and sum) + 5 H (3 sigmoid,
@@ -81,9 +81,10 @@ solver's float64. Intermediate activations (projections, hidden sequences, state
 not counted: they are small and stay in cache for the paper's sizes. Per solver step:
 divide by the n_s n_f steps one prediction serves (:func:`surrogate_step_cost`).
 
-Achieved rates (:func:`achieved`): bytes / t, flops / t, arithmetic intensity
-flops / bytes, fraction of the machine's measured memory bandwidth
-(:func:`measure_copy_bandwidth`, read + write bytes of a large numpy copy), and the time
+Achieved rates (:func:`achieved`), computed from given times and peaks (this module
+only counts; the machine's rates are measured by :func:`jaxsync.perf.measure.copy_bandwidth`
+and :func:`jaxsync.perf.measure.matmul_flop_rate`): bytes / t, flops / t, arithmetic
+intensity flops / bytes, fraction of the machine's memory bandwidth, and the time
 the roofline predicts, max(bytes / bandwidth, flops / peak flops), with the ratio
 measured / predicted (the distance to the roofline, >= 1 when the model holds).
 """
@@ -92,19 +93,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import time
 from typing import Mapping
 
 import numpy as np
 
 from ..errors import ProblemError
+from ..options import Mode, check_option
 
-__all__ = ["StageCost", "STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
+__all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
            "surrogate_flop_breakdown", "surrogate_costs", "surrogate_step_cost",
-           "RooflinePoint", "achieved", "achieved_stages", "roofline_table",
-           "measure_copy_bandwidth", "measure_matmul_flops"]
+           "RooflinePoint", "achieved", "achieved_stages", "roofline_table"]
 
-STAGES = ("t_e", "t_m", "t_s", "t_o")
+STEP_STAGES = ("t_e", "t_m", "t_s", "t_o")  # the stages of a step that step_costs counts
 
 F64, I32, MASK = 8, 4, 1  # bytes per float64, int32, boolean
 
@@ -173,7 +173,7 @@ def _count(value, name: str, minimum: int = 0) -> int:
 
 
 def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = None,
-               n_load_vectors: int = 1, mode: str = "preassembled", n_shared: int = 0,
+               n_load_vectors: int = 1, mode: Mode = "preassembled", n_shared: int = 0,
                n_interface: int = 0) -> dict:
     """Bytes and flops of each stage of one explicit step (formulas: module docstring).
 
@@ -194,10 +194,7 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
         ProblemError: unknown mode, a missing ``width`` / ``n_elements``, negative counts,
             n_shared > n_interface or n_shared > n_nodes.
     """
-    from ..fem.element_force import MODES
-
-    if mode not in MODES:
-        raise ProblemError(f"mode must be one of {MODES}, got {mode!r}")
+    check_option("mode", mode, Mode, error=ProblemError)
     n = _count(n_nodes, "n_nodes", 1)
     loads = _count(n_load_vectors, "n_load_vectors")
     n_sh = _count(n_shared, "n_shared")
@@ -224,7 +221,7 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
     return {"t_e": t_e, "t_m": t_m, "t_s": t_s, "t_o": t_o}
 
 
-def step_costs_for(problem, partition=None, mode: str = "preassembled"):
+def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     """:func:`step_costs` of a :class:`jaxsync.Problem`, whole or per part.
 
     Args:
@@ -421,7 +418,7 @@ def achieved_stages(costs: Mapping, times, peak_bandwidth_Bps: float,
     Args:
         costs: ``{stage: StageCost}`` (:func:`step_costs`, maybe with ``"t_d"`` added).
         times: ``{stage: seconds}``, or an object with the stages as attributes (a
-            :class:`jaxsync.perf.timing.PartTiming`).
+            :class:`jaxsync.perf.reports.PartTiming`).
         peak_bandwidth_Bps, peak_flops: as in :func:`achieved`.
 
     Returns:
@@ -448,54 +445,3 @@ def roofline_table(points) -> str:
                      f"{1e6 * p.seconds:>10.3f} {p.achieved_Bps / 1e9:>8.2f} {p.achieved_flops / 1e9:>8.2f} "
                      f"{p.bandwidth_fraction:>6.0%} {1e6 * p.roofline_s:>10.3f} {p.distance:>7.2f}")
     return "\n".join(lines)
-
-
-def measure_copy_bandwidth(n_bytes: float = 400e6, repeats: int = 5) -> float:
-    """The machine's memory bandwidth [bytes/s]: read + write bytes of ``numpy.copyto``
-    between two float64 arrays of ``n_bytes`` bytes each, best of ``repeats`` (after a
-    first copy that touches the pages). Use an array well above the caches (the default
-    400 MB) for the memory bandwidth; small sizes measure a cache.
-
-    Raises:
-        ProblemError: n_bytes below 8 or repeats below 1.
-    """
-    if not (isinstance(n_bytes, (int, float, np.integer, np.floating)) and math.isfinite(n_bytes)
-            and n_bytes >= F64):
-        raise ProblemError(f"n_bytes must be a finite size >= 8 bytes, got {n_bytes!r}")
-    repeats = _count(repeats, "repeats", 1)
-    a = np.random.default_rng(0).random(int(n_bytes) // F64)
-    b = np.empty_like(a)
-    np.copyto(b, a)  # first touch: page faults are not bandwidth
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        np.copyto(b, a)
-        best = min(best, time.perf_counter() - start)
-    return 2 * a.nbytes / max(best, 1e-12)
-
-
-def measure_matmul_flops(n: int = 1024, dtype: str = "float32", repeats: int = 5) -> float:
-    """The machine's attainable floating-point rate [flop/s]: 2 n^3 flops of a jitted
-    (n, n) x (n, n) ``jnp.dot`` in ``dtype`` on the default device, best of ``repeats``
-    after a warm-up call. float32 is what the surrogates compute in; use it as the flop
-    roof of t_d.
-
-    Raises:
-        ProblemError: n or repeats below 1, or an unknown dtype.
-    """
-    import jax
-    import jax.numpy as jnp
-
-    n = _count(n, "n", 1)
-    repeats = _count(repeats, "repeats", 1)
-    if dtype not in ("float32", "float64"):
-        raise ProblemError(f"dtype must be 'float32' or 'float64', got {dtype!r}")
-    a = jnp.asarray(np.random.default_rng(0).random((n, n)), dtype=dtype)
-    product = jax.jit(jnp.dot)
-    product(a, a).block_until_ready()
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        product(a, a).block_until_ready()
-        best = min(best, time.perf_counter() - start)
-    return 2.0 * n ** 3 / max(best, 1e-12)

@@ -17,8 +17,10 @@ from jax.sharding import PartitionSpec as P
 from ..errors import ConfigError, PartitionError
 from ..fem.stepper import ExplicitSystem, SolverState, advance
 from ..parallel.exchange import PartSystems, build_part_systems, neighbour_exchange, synchronize_forces
-from ..parallel.partition import Partition, partition as make_partition, partition_from_elements
+from ..parallel.partitioning import Partition, partition_from_elements
+from ..parallel.partitioning import partition as make_partition
 from ..parallel.spmd import AXIS, spmd_program
+from .driver import Chunk, chunk_of_saves
 
 __all__ = ["DistributedRunner", "to_host"]
 
@@ -49,8 +51,7 @@ def _default_devices(n_parts: int, devices=None, sync: str = "psum"):
 
 
 class DistributedRunner:
-    """Advances per-part states under ``shard_map`` (the driver interface of
-    :class:`jaxsync.solve.solver.SingleDeviceRunner`)."""
+    """Advances per-part states under ``shard_map`` (a :class:`jaxsync.solve.driver.Runner`)."""
 
     def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
                  mode: str = "preassembled", seed: int = 0, devices=None, sync: str | None = None,
@@ -79,11 +80,10 @@ class DistributedRunner:
             record_shared: also keep every part's shared-node displacements after EVERY
                 step (the surrogates' training data; small), whatever ``save_every``.
         """
+        from ..options import Sync, check_option
         from ..parallel import multiprocess
 
-        sync = multiprocess.default_sync() if sync is None else sync
-        if sync not in multiprocess.SYNC_METHODS:
-            raise ConfigError(f"sync must be one of {multiprocess.SYNC_METHODS}, got {sync!r}")
+        sync = check_option("sync", multiprocess.default_sync() if sync is None else sync, Sync)
         self.sync = sync
         if isinstance(partitions, Partition):
             self.partition = partitions
@@ -126,6 +126,7 @@ class DistributedRunner:
         self.save_every = save_every
         self.mode = mode
         self.record_shared = bool(record_shared)
+        self.n_nodes = self.partition.mesh.n_nodes
         host = build_part_systems(problem, system, self.partition, mode)
         self.n_local = host.system.mass.shape[1]
         self.parts = self.put(host)
@@ -175,25 +176,30 @@ class DistributedRunner:
             self._advance[n_saves] = self.program(n_saves, record=self.record_shared)
         return self._advance[n_saves]
 
-    def compile(self, state, n_saves: int) -> float:
-        """Compile the program for chunks of ``n_saves`` snapshots ahead of time (so that
-        chunk timings exclude it); returns the seconds spent (0 when already compiled)."""
+    def chunk_steps(self, steps_left: int, preferred: int) -> int:
+        return chunk_of_saves(steps_left, preferred, self.save_every)
+
+    def compile(self, state, steps: int) -> float:
+        """Compile the program for chunks of ``steps`` steps ahead of time (so that chunk
+        timings exclude it); returns the seconds spent (0 when already compiled)."""
+        n_saves = steps // self.save_every
         if isinstance(self._compiled(n_saves), jax.stages.Compiled):
             return 0.0
         start = time.perf_counter()
         self._advance[n_saves] = self._compiled(n_saves).lower(self.parts, state).compile()
         return time.perf_counter() - start
 
-    def advance(self, state, n_saves):
-        """(state, saved (n_saves, n_nodes, 3) numpy, shared per part [(n_steps, 3
-        n_shared_p)] after every step, or None when not recording)."""
-        state, saved = self._compiled(n_saves)(self.parts, state)
+    def advance(self, state, steps: int):
+        """``steps`` steps (a multiple of save_every): (state, :class:`Chunk` with the
+        global field (n_saves, n_nodes, 3) and, when recording, each part's shared-node
+        displacements after every step (steps, 3 n_shared_p))."""
+        state, saved = self._compiled(steps // self.save_every)(self.parts, state)
         if not self.record_shared:
-            return state, self._merge(to_host(saved), axis=1), None
+            return state, Chunk(self._merge(to_host(saved), axis=1))
         full, shared = (to_host(x) for x in saved)
         per_part = [shared[p, :, :part.n_shared].reshape(shared.shape[1], -1)
                     for p, part in enumerate(self.partition.parts)]
-        return state, self._merge(full, axis=1), per_part
+        return state, Chunk(self._merge(full, axis=1), per_part)
 
     def _merge(self, local, axis):
         """Per-part local arrays (n_parts, ..., n_local, 3) -> global (..., n_nodes, 3)."""

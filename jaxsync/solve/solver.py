@@ -9,8 +9,8 @@ divergence and checkpoints between chunks; :func:`steady_state` solves the stati
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
-import hashlib
 import math
 import os
 import time
@@ -19,10 +19,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import CheckpointError, ProblemError, StabilityError
+from ..errors import ProblemError, StabilityError
+from ..fem.stepper import (  # noqa: F401
+    ExplicitSystem,
+    SolverState,
+    advance,
+    apply_dirichlet,
+    build_system,
+    central_difference,
+    external_force,
+    initial_state,
+    step,
+)
 from ..pytree import is_traced
-from ..fem.stepper import (ExplicitSystem, SolverState, advance, apply_dirichlet,  # noqa: F401
-                      build_system, central_difference, external_force, initial_state, step)
+from .checkpoint import fingerprint, load_checkpoint, save_checkpoint
+from .driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
            "central_difference", "apply_dirichlet", "external_force", "advance",
@@ -60,48 +71,31 @@ def steady_state(problem) -> np.ndarray:
     return u.reshape(-1, 3)
 
 
-def _fingerprint(problem, dt: float, save_every: int) -> str:
-    """Hash of everything that determines a trajectory, to refuse foreign checkpoints."""
-    h = hashlib.sha256()
-    mesh = problem.mesh
-    for arr in (mesh.points, mesh.tets):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    m = problem.material
-    dofs, values = problem.dirichlet_dofs()
-    h.update(np.asarray([float(m.E), float(m.nu), float(m.rho), float(problem.damping), dt,
-                         save_every], dtype=float).tobytes())
-    h.update(dofs.tobytes())
-    h.update(values.tobytes())
-    for v in problem.load_vectors()[0]:
-        h.update(np.asarray(v, dtype=float).tobytes())
-    for ic in (problem.initial_displacement, problem.initial_velocity, problem.density_scale):
-        if ic is not None:
-            h.update(np.asarray(ic, dtype=float).tobytes())
-    return h.hexdigest()
-
-
 class SingleDeviceRunner:
-    """Advances a global :class:`SolverState` on one device (the driver's interface:
-    ``compile(state, n_saves) -> seconds``, ``advance(state, n_saves) -> (state, saved
-    (n_saves, n_nodes, 3) numpy, shared histories or None)``, ``to_global(state)`` /
-    ``from_global(state)`` for checkpoints)."""
+    """Advances a global :class:`SolverState` on one device (a :class:`jaxsync.solve.driver.Runner`)."""
 
     def __init__(self, system: ExplicitSystem, save_every: int):
         self.system, self.save_every = system, save_every
+        self.n_nodes = int(np.shape(system.mass)[0])
+        self.devices = jax.devices()[:1]
         self._programs = {}
 
-    def compile(self, state, n_saves: int) -> float:
+    def chunk_steps(self, steps_left: int, preferred: int) -> int:
+        return chunk_of_saves(steps_left, preferred, self.save_every)
+
+    def compile(self, state, steps: int) -> float:
         """Compile the chunk program ahead of time; returns the seconds spent."""
+        n_saves = steps // self.save_every
         if n_saves in self._programs:
             return 0.0
         start = time.perf_counter()
         self._programs[n_saves] = _advance_jit.lower(self.system, state, n_saves, self.save_every).compile()
         return time.perf_counter() - start
 
-    def advance(self, state, n_saves):
-        self.compile(state, n_saves)
-        state, saved = self._programs[n_saves](self.system, state)
-        return state, np.asarray(saved), None
+    def advance(self, state, steps: int):
+        self.compile(state, steps)
+        state, saved = self._programs[steps // self.save_every](self.system, state)
+        return state, Chunk(np.asarray(saved))
 
     def to_global(self, state) -> SolverState:
         return state
@@ -132,7 +126,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         seed: METIS seed when ``partitions`` is an int.
         devices: devices for the distributed solver (default: as many of
             ``jax.devices()`` as divide n_parts).
-        progress: show a tqdm progress bar (default: when n_steps >= 20000).
+        progress: show a tqdm progress bar (default: when n_steps >= 20000), or a
+            :class:`jaxsync.solve.Progress` to report to (shared by several runs).
         checkpoint: HDF5 path for resumable runs: the state is stored there every
             ``checkpoint_every`` steps (rounded up to whole chunks), and a run started
             again with the same problem continues from it, giving the same trajectory.
@@ -196,7 +191,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         n_saves = n_steps // save_every
         _, saved = advance(system, state, n_saves, save_every)
         displacement = jnp.concatenate([state.displacement[None], saved])
-        times = jnp.arange(n_saves + 1) * save_every * system.dt
+        times = jnp.arange(n_saves + 1, dtype=system.dt.dtype) * save_every * system.dt
         return Trajectory(times=times, displacement=displacement, mesh=problem.mesh,
                           dt=dt, save_every=save_every, parameters=_parameters(problem))
     part_info = None
@@ -218,85 +213,76 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
           partition=None, progress=None, checkpoint=None, checkpoint_every=None,
           chunk_steps=5000, blowup_factor=1e3, label="simulate", shared_every=None,
           return_state=False):
-    """The host loop shared by all solvers: compiled chunks of ``runner.advance`` (each
-    compiled ahead, so that the time per step excludes compilation), a progress bar,
-    divergence checks and checkpoints between chunks. ``shared_every`` (distributed
-    runners that record shared nodes every step): stride of the parts' shared histories.
-    Returns the :class:`jaxsync.Trajectory`, and with ``return_state`` also the final
-    global :class:`SolverState` (both displacement levels, to continue the run)."""
-    from tqdm import tqdm
+    """A synchronized run from ``state`` to step ``n_steps`` through the host loop
+    (:func:`jaxsync.solve.driver.run_chunks`), with resumable checkpoints.
 
+    ``runner``: a :class:`SingleDeviceRunner` or a
+    :class:`jaxsync.solve.distributed.DistributedRunner`; ``progress``: a bool (a bar of
+    its own; None: for long runs) or a :class:`jaxsync.solve.driver.Progress` to share.
+    ``shared_every``: stride of the parts' shared histories when the runner records them
+    every step. Returns the :class:`jaxsync.Trajectory` (from step 0, or from the
+    checkpoint's start), and with ``return_state`` also the final global
+    :class:`SolverState` (both displacement levels, to continue the run)."""
     shared_every = save_every if shared_every is None else shared_every
-    saves_per_chunk = max(1, int(chunk_steps) // save_every)
     snapshots = [np.asarray(state.displacement)[None]]
     recorded = None
     if getattr(runner, "record_shared", False):  # shared-node values at every step, from step 0
         recorded = [[np.asarray(state.displacement)[None, part.shared_nodes].reshape(1, -1)]
                     for part in partition.parts]
-    fingerprint = _fingerprint(problem, dt, save_every)
+    problem_key = fingerprint(problem, dt, save_every)
     if checkpoint is not None and os.path.exists(checkpoint):
-        state, snapshots, recorded = _load_checkpoint(checkpoint, fingerprint, n_steps,
+        state, snapshots, recorded = load_checkpoint(checkpoint, problem_key, n_steps,
                                                       0 if recorded is None else len(recorded))
-    run_state = runner.from_global(state)
     step_now = int(state.step)
+    saves_per_chunk = max(1, int(chunk_steps) // save_every)
     checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
-    limit = blowup_factor * float(np.linalg.norm(np.ptp(problem.mesh.points, axis=0)))
-    show = progress if progress is not None else n_steps >= 20000
-    bar = tqdm(total=n_steps, initial=step_now, disable=not show, unit="step", desc=label,
-               dynamic_ncols=True)
     chunks_done = 0
-    timed_steps, timed_seconds = 0, 0.0  # compiled chunks (compilation done ahead, not timed)
-    compile_seconds = 0.0
-    try:
-        while step_now < n_steps:
-            k = min(saves_per_chunk, (n_steps - step_now) // save_every)
-            compile_seconds += runner.compile(run_state, k)
-            start = time.perf_counter()
-            new_state, saved, shared = runner.advance(run_state, k)
-            timed_seconds += time.perf_counter() - start
-            timed_steps += k * save_every
-            ok = np.isfinite(saved).all(axis=(1, 2)) & (np.abs(saved).max(axis=(1, 2), initial=0) <= limit)
-            if not ok.all():
-                first_bad = int(np.argmin(ok))
-                snapshots.append(saved[:first_bad])
-                if recorded is not None:
-                    for rec, values in zip(recorded, shared):
-                        rec.append(values[:first_bad * save_every])
-                bad_step = step_now + (first_bad + 1) * save_every
-                partial = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
-                err = StabilityError(
-                    f"the run diverged by step {bad_step} (t = {bad_step * dt:.6g} s): displacement "
-                    f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {problem.dt:.4e} s; "
-                    f"reduce dt. The {partial.n_saved} snapshots saved before are kept "
-                    "(error.trajectory)")
-                err.trajectory = partial
-                raise err
-            snapshots.append(saved)
-            if recorded is not None:
-                for rec, values in zip(recorded, shared):
-                    rec.append(values)
-            run_state = new_state
-            step_now += k * save_every
-            chunks_done += 1
-            bar.update(k * save_every)
-            if checkpoint is not None and (chunks_done % checkpoint_chunks == 0 or step_now == n_steps):
-                global_state = runner.to_global(run_state)  # collective in multi-process runs
-                if jax.process_index() == 0:  # one writer
-                    _save_checkpoint(checkpoint, fingerprint, global_state, snapshots, recorded)
-    except BaseException:
-        bar.leave = False  # an error clears the bar instead of leaving a (blank) line before it
-        raise
-    finally:
-        bar.close()
-    traj = _trajectory(problem, snapshots, dt, save_every, partition, recorded, shared_every)
+
+    def after_chunk(segment: Segment) -> None:
+        nonlocal chunks_done
+        chunks_done += 1
+        if chunks_done % checkpoint_chunks == 0 or segment.last == n_steps:
+            global_state = runner.to_global(segment.state)  # collective in multi-process runs
+            if jax.process_index() == 0:  # one writer
+                save_checkpoint(checkpoint, problem_key, global_state, snapshots + [segment.displacement],
+                                 None if recorded is None else
+                                 [rec + [new] for rec, new in zip(recorded, segment.shared)])
+
+    bar = progress if isinstance(progress, Progress) else None
+    limit = divergence_limit(problem.mesh, blowup_factor)
+    with (contextlib.nullcontext(bar) if bar is not None
+          else Progress(n_steps, show=progress, label=label, initial=step_now)) as bar:
+        try:
+            segment = run_chunks(runner, runner.from_global(state), step_now, n_steps, kind="synchronized",
+                                 limit=limit, progress=bar, chunk_steps=chunk_steps,
+                                 after_chunk=None if checkpoint is None else after_chunk)
+        except Diverged as bad:
+            partial = _trajectory(problem, snapshots + [bad.segment.displacement], dt, save_every, partition,
+                                  _joined(recorded, bad.segment.shared), shared_every)
+            err = StabilityError(
+                f"the run diverged by step {bad.step} (t = {bad.step * dt:.6g} s): displacement "
+                f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {problem.dt:.4e} s; "
+                f"reduce dt. The {partial.n_saved} snapshots saved before are kept "
+                "(error.trajectory)")
+            err.trajectory = partial
+            raise err from None
+    traj = _trajectory(problem, snapshots + [segment.displacement], dt, save_every, partition,
+                       _joined(recorded, segment.shared), shared_every)
     from ..parallel.devices import device_summary
     from ..trajectory import RunStats
 
-    stats = RunStats(compile_seconds=compile_seconds,
-                     us_per_step=1e6 * timed_seconds / timed_steps if timed_steps else None,
-                     **device_summary(getattr(runner, "devices", None) or jax.devices()[:1]))
+    stats = RunStats(compile_seconds=segment.compile_seconds,
+                     us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
+                     **device_summary(runner.devices))
     traj = dataclasses.replace(traj, stats=stats)
-    return (traj, runner.to_global(run_state)) if return_state else traj
+    return (traj, runner.to_global(segment.state)) if return_state else traj
+
+
+def _joined(recorded, new):
+    """Per part, the earlier shared-history chunks followed by ``new`` (None: none)."""
+    if recorded is None:
+        return None
+    return [rec + ([] if new is None else [values]) for rec, values in zip(recorded, new or [None] * len(recorded))]
 
 
 def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):
@@ -329,79 +315,3 @@ def _parameters(problem) -> dict:
         if not is_traced(value):
             out[name] = float(value)
     return out
-
-
-_CHECKPOINT_KIND = "jaxsync-solver-checkpoint"
-
-
-def _checkpoint_checksum(arrays: dict, fingerprint: str, step: int) -> str:
-    """sha256 over the stored state arrays, the problem fingerprint and the step."""
-    from ..trajectory import array_checksum
-
-    return array_checksum(arrays, {"kind": _CHECKPOINT_KIND, "fingerprint": str(fingerprint),
-                                   "step": int(step)})
-
-
-def _save_checkpoint(path, fingerprint, state: SolverState, snapshots, recorded=None) -> None:
-    """``recorded``: per part, the list of shared-history chunks kept every step."""
-    from ..trajectory import atomic_h5
-
-    arrays = {"displacement": np.asarray(state.displacement),
-              "previous": np.asarray(state.previous),
-              "snapshots": np.concatenate(snapshots, axis=0)}
-    for p, chunks in enumerate(recorded or ()):
-        arrays[f"shared_{p}"] = np.concatenate(chunks, axis=0)
-    step_ = int(state.step)
-    with atomic_h5(path) as f:
-        f.attrs["kind"] = _CHECKPOINT_KIND
-        f.attrs["fingerprint"] = fingerprint
-        f.attrs["step"] = step_
-        f.attrs["checksum"] = _checkpoint_checksum(arrays, fingerprint, step_)
-        for name, array in arrays.items():
-            f[name] = array
-
-
-def _load_checkpoint(path, fingerprint, n_steps, n_recorded: int = 0):
-    """(state, snapshot chunks, per-part shared-history chunks or None); ``n_recorded``
-    parts' every-step shared histories must be in the file when > 0."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as f:
-            if f.attrs.get("kind") != _CHECKPOINT_KIND:
-                raise CheckpointError(f"{path} is not a jaxsync solver checkpoint; delete it or "
-                                      "pass another checkpoint path")
-            if f.attrs["fingerprint"] != fingerprint:
-                raise CheckpointError(
-                    f"checkpoint {path} was written by a different problem, dt or save_every; "
-                    "delete it or pass another checkpoint path")
-            step_ = int(f.attrs["step"])
-            names = ["displacement", "previous", "snapshots"] + sorted(
-                (k for k in f if k.startswith("shared_")), key=lambda k: int(k.split("_")[1]))
-            arrays = {name: f[name][...] for name in names}
-            stored = f.attrs.get("checksum")
-    except CheckpointError:
-        raise
-    except Exception as exc:
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc}; delete it to start over") from exc
-    if stored is None:
-        raise CheckpointError(
-            f"checkpoint {path} has no checksum (written by an older jaxsync), so its state "
-            "cannot be verified; delete it to start over")
-    if str(stored) != _checkpoint_checksum(arrays, fingerprint, step_):
-        raise CheckpointError(
-            f"checkpoint {path} fails its checksum: the stored state was altered or damaged "
-            "after it was written, and resuming from it would give a wrong trajectory; "
-            "delete it to start over")
-    if step_ > n_steps:
-        raise CheckpointError(f"checkpoint {path} is at step {step_}, beyond n_steps={n_steps}")
-    recorded = None
-    if n_recorded:
-        if f"shared_{n_recorded - 1}" not in arrays:
-            raise CheckpointError(
-                f"checkpoint {path} holds no every-step shared histories (it was written with "
-                "shared_every = save_every); delete it, or resume with the same shared_every")
-        recorded = [[arrays[f"shared_{p}"]] for p in range(n_recorded)]
-    state = SolverState(jnp.asarray(arrays["displacement"]), jnp.asarray(arrays["previous"]),
-                        jnp.asarray(step_, dtype=jnp.int32))
-    return state, [arrays["snapshots"]], recorded

@@ -1,80 +1,38 @@
 """LSTM encoder-decoder surrogates of the partition-shared displacements (paper section 3).
 
-Modules: :mod:`~jaxsync.surrogate.lstm` (network), :mod:`~jaxsync.surrogate.data`
-(sample-refill windows, normalization, refill index sets), :mod:`~jaxsync.surrogate.train`
-(optax training of all replicas together), :mod:`~jaxsync.surrogate.evaluate` (refill
-prediction, E_mse, grid search), :mod:`~jaxsync.surrogate.checkpoint` (HDF5 files),
-:mod:`~jaxsync.app.train` (``jaxsync train``).
+The names a user needs are here; everything else stays importable from its module:
+
+=========================  =================================================================
+:mod:`.model`              :class:`Surrogate`: the trained replicas of a partition as one
+                           pytree, with ``predict`` (one refill) and ``rollout`` (refill
+                           cycles); what the solver runs
+:mod:`.fit`                :func:`train_surrogates`: trajectories in, trained surrogates and
+                           files out (``jaxsync train`` and the demo call it)
+:mod:`.lstm`               the network, written by hand (:class:`LSTMArchitecture`)
+:mod:`.refill`             Algorithm 3's refill index sets and ``refill_predict``
+:mod:`.data`               sample-refill windows, normalization, padded replica datasets,
+                           reading shared histories from trajectories
+:mod:`.replicas`           padding and stacking one network per part
+:mod:`.train`              optax training of all replicas in one program
+                           (:func:`train_replicas`, :class:`TrainConfig`, :class:`TrainResult`)
+:mod:`.training_state`     the resumable state of a training run
+:mod:`.checkpoint`         checkpoint files of trained replicas (:class:`SurrogateCheckpoint`)
+:mod:`.evaluate`           E_mse and the grid search
+=========================  =================================================================
 """
 
-from jaxsync.surrogate.checkpoint import (
-    FORMAT_VERSION,
-    SurrogateCheckpoint,
-    check_compatible,
-    load_checkpoint,
-    save_checkpoint,
-)
-from jaxsync.surrogate.data import (
-    Normalization,
-    ReplicaData,
-    SharedHistories,
-    WindowDataset,
-    build_dataset,
-    make_windows,
-    padding_mask,
-    read_shared_histories,
-    refill_index_sets,
-    refill_input_steps,
-    refill_scatter,
-    refill_target_steps,
-    refill_windows,
-    split_indices,
-    stack_replicas,
-    subsample,
-)
-from jaxsync.surrogate.evaluate import (
-    GridPoint,
-    GridSearchResult,
-    e_mse,
-    evaluate_result,
-    grid_search,
-    max_applications,
-    refill_predict,
-    rollout,
-    rollout_replicas,
-)
-from jaxsync.surrogate.lstm import (
-    LSTMArchitecture,
-    count_parameters,
-    decode,
-    encode,
-    forward,
-    init_params,
-    lstm_cell,
-    run_lstm,
-)
-from jaxsync.surrogate.train import (
-    TrainConfig,
-    TrainResult,
-    init_replicas,
-    learning_rate_schedule,
-    n_epoch_rule,
-    pad_params,
-    replica_params,
-    stack_params,
-    train_replicas,
-    unpad_params,
-)
+from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
+from jaxsync.surrogate.data import build_dataset, stack_replicas
+from jaxsync.surrogate.evaluate import GridSearchResult, e_mse, grid_search
+from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
+from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
 
 __all__ = [
-    "FORMAT_VERSION", "SurrogateCheckpoint", "check_compatible", "load_checkpoint", "save_checkpoint",
-    "Normalization", "ReplicaData", "SharedHistories", "WindowDataset", "build_dataset", "make_windows", "padding_mask",
-    "read_shared_histories", "refill_index_sets", "refill_input_steps", "refill_scatter", "refill_target_steps", "refill_windows",
-    "split_indices", "stack_replicas", "subsample",
-    "GridPoint", "GridSearchResult", "e_mse", "evaluate_result", "grid_search", "max_applications",
-    "refill_predict", "rollout", "rollout_replicas",
-    "LSTMArchitecture", "count_parameters", "decode", "encode", "forward", "init_params", "lstm_cell",
-    "run_lstm",
-    "TrainConfig", "TrainResult", "init_replicas", "learning_rate_schedule", "n_epoch_rule", "pad_params", "replica_params",
-    "stack_params", "train_replicas", "unpad_params",
+    "Surrogate", "LSTMArchitecture",
+    "train_surrogates", "TrainedSurrogates",
+    "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
+    "SurrogateCheckpoint", "save_checkpoint", "load_checkpoint",
+    "e_mse", "grid_search", "GridSearchResult",
 ]

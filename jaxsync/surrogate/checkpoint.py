@@ -30,10 +30,10 @@ import jax
 import numpy as np
 
 from jaxsync.errors import CheckpointError
+from jaxsync.io import array_checksum, atomic_h5
 from jaxsync.surrogate.data import padding_mask
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, init_params
 from jaxsync.surrogate.train import TrainResult
-from jaxsync.trajectory import atomic_h5
 
 FORMAT_NAME = "jaxsync-lstm-surrogate"
 FORMAT_VERSION = 1
@@ -102,8 +102,6 @@ def _param_paths(arch: LSTMArchitecture):
 
 
 def _checksum(datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
-    from jaxsync.trajectory import array_checksum
-
     return array_checksum(datasets, {k: v for k, v in attrs.items() if k != _CHECKSUM_ATTR})
 
 
@@ -136,7 +134,7 @@ def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
 
 
 def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
-    """Write ``ckpt`` to ``path`` atomically (:func:`jaxsync.trajectory.atomic_h5`)."""
+    """Write ``ckpt`` to ``path`` atomically (:func:`jaxsync.io.atomic_h5`)."""
     path = os.fspath(path)
     datasets = _to_datasets(ckpt)
     if ckpt.mean.shape != (ckpt.n_parts, ckpt.arch.n_dof) or ckpt.std.shape != ckpt.mean.shape:

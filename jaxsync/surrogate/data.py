@@ -14,107 +14,22 @@ every time step (step k is row k; units of the solver, cm in the paper).  From i
 Several runs (different initial conditions or loads, each with its scalar load parameter
 for the conditional network) are combined by pooling their windows before the split.
 
-Refill index sets (Algorithm 3)
--------------------------------
-At the current step ``n`` (the last step whose displacements are known), the network is
-applied ``n_s`` times, ``i = 0 .. n_s - 1``, with
-
-    N_p^i = { n + 1 + i - n_s (n_p - j) : j = 0 .. n_p - 1 }   (inputs)
-    N_f^i = { n + 1 + i + n_s j         : j = 0 .. n_f - 1 }   (targets)
-
-Inputs and targets are both spaced n_s steps apart, the last input lies one stride
-before the first target, and the union of the N_f^i over i is exactly
-n + 1 .. n + n_s n_f, each step once.  The inputs span the last n_s n_p steps
-n + 1 - n_s n_p .. n, so refill needs n + 1 >= n_s n_p (steps counted from 0).  With
-``buffer`` the rows of those last n_s n_p steps, :func:`refill_windows` gathers the
-inputs of all applications by a reshape and :func:`refill_scatter` lays their outputs out
-in step order (application i fills rows i, i + n_s, ... of the next n_s n_f steps).
+Training data come from distributed trajectories (:func:`read_shared_histories`, through
+:meth:`jaxsync.Trajectory.load`, the one trajectory reader); a partition's shared-dof
+layout, padded to its largest part, is :func:`shared_dof_layout`.  The refill index sets
+that prediction uses are in :mod:`jaxsync.surrogate.refill`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Sequence
 
-import h5py
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
-
-# ----------------------------------------------------------------------------- refill
-
-
-def refill_input_steps(n: int, n_s: int, n_p: int, i: int) -> np.ndarray:
-    """N_p^i: steps whose snapshots are the inputs of refill application ``i``.
-
-    ``N_p^i = { n + 1 + i - n_s (n_p - j) : j = 0 .. n_p - 1 }`` (increasing).
-
-    Args:
-        n: current step (last known).
-        n_s: sampling stride.
-        n_p: input snapshots per window.
-        i: application index, 0 <= i < n_s.
-    """
-    _check_refill_args(n, n_s, n_p, 1, i)
-    return n + 1 + i - n_s * (n_p - np.arange(n_p, dtype=np.int64))
-
-
-def refill_target_steps(n: int, n_s: int, n_f: int, i: int) -> np.ndarray:
-    """N_f^i: steps that refill application ``i`` predicts.
-
-    ``N_f^i = { n + 1 + i + n_s j : j = 0 .. n_f - 1 }`` (increasing).
-    """
-    _check_refill_args(n, n_s, 1, n_f, i)
-    return n + 1 + i + n_s * np.arange(n_f, dtype=np.int64)
-
-
-def refill_index_sets(n: int, n_s: int, n_p: int, n_f: int) -> tuple[np.ndarray, np.ndarray]:
-    """All refill index sets at step ``n``.
-
-    Returns:
-        ``(inputs (n_s, n_p), targets (n_s, n_f))``: row i is N_p^i, respectively N_f^i.
-    """
-    inputs = np.stack([refill_input_steps(n, n_s, n_p, i) for i in range(n_s)])
-    targets = np.stack([refill_target_steps(n, n_s, n_f, i) for i in range(n_s)])
-    return inputs, targets
-
-
-def refill_windows(buffer, n_s: int, n_p: int):
-    """Inputs of the n_s refill applications from the last n_s n_p steps.
-
-    Args:
-        buffer: (n_s n_p, ...) rows of steps n + 1 - n_s n_p .. n (NumPy or JAX array).
-
-    Returns:
-        (n_s, n_p, ...): entry [i, j] is row ``i + j n_s``, i.e. step N_p^i[j].
-    """
-    return buffer.reshape((n_p, n_s) + buffer.shape[1:]).swapaxes(0, 1)
-
-
-def refill_scatter(predictions, n_s: int):
-    """Lay the outputs of the n_s refill applications out in step order.
-
-    Args:
-        predictions: (n_s, n_f, ...), entry [i, j] predicting step N_f^i[j].
-
-    Returns:
-        (n_s n_f, ...): row k is step n + 1 + k; row ``i + j n_s`` is entry [i, j].
-    """
-    n_f = predictions.shape[1]
-    return predictions.swapaxes(0, 1).reshape((n_f * n_s,) + predictions.shape[2:])
-
-
-def _check_refill_args(n, n_s, n_p, n_f, i):
-    if min(n_s, n_p, n_f) < 1:
-        raise ConfigError(f"n_s, n_p, n_f must be >= 1, got {n_s}, {n_p}, {n_f}")
-    if not 0 <= i < n_s:
-        raise ConfigError(f"refill application index i must be in [0, n_s={n_s}), got {i}")
-    if n + 1 < n_s * n_p:
-        raise ConfigError(
-            f"refill at step n={n} needs n + 1 >= n_s * n_p = {n_s * n_p} known steps; "
-            "run more synchronized steps first"
-        )
-
+from jaxsync.trajectory import Trajectory
 
 # ----------------------------------------------------------------------------- windows
 
@@ -215,17 +130,18 @@ class WindowDataset:
 
     Attributes:
         x_train, y_train: (n_train, n_p, n_dof), (n_train, n_f, n_dof) float32.
-        cond_train: (n_train,) float32 load parameter of each window's run (0 if none).
-        x_val, y_val, cond_val: the validation counterparts.
+        load_parameter_train: (n_train,) float32 load parameter of each window's run (0 if
+            none).
+        x_val, y_val, load_parameter_val: the validation counterparts.
         normalization: fitted on the training windows.
     """
 
     x_train: np.ndarray
     y_train: np.ndarray
-    cond_train: np.ndarray
+    load_parameter_train: np.ndarray
     x_val: np.ndarray
     y_val: np.ndarray
-    cond_val: np.ndarray
+    load_parameter_val: np.ndarray
     normalization: Normalization
 
     @property
@@ -265,7 +181,7 @@ def build_dataset(
     if not 0.0 < train_fraction <= 1.0:
         raise ConfigError(f"train fraction n_ts must be in (0, 1], got {train_fraction}")
     n_dof = np.shape(runs[0])[-1]
-    xs, ys, conds = [], [], []
+    xs, ys, loads = [], [], []
     for r, run in enumerate(runs):
         run = np.asarray(run, dtype=np.float64)
         if run.ndim != 2 or run.shape[1] != n_dof:
@@ -276,8 +192,8 @@ def build_dataset(
         x, y = make_windows(subsample(run[:n_used], n_s), n_past, n_future)
         xs.append(x)
         ys.append(y)
-        conds.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
-    x, y, cond = np.concatenate(xs), np.concatenate(ys), np.concatenate(conds)
+        loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
+    x, y, load = np.concatenate(xs), np.concatenate(ys), np.concatenate(loads)
     train, val = split_indices(x.shape[0], val_fraction, split_seed)
     norm = Normalization.fit(np.concatenate([x[train], y[train]], axis=1))
 
@@ -285,8 +201,8 @@ def build_dataset(
         return norm.apply(a).astype(np.float32)
 
     return WindowDataset(
-        x_train=prep(x[train]), y_train=prep(y[train]), cond_train=cond[train].astype(np.float32),
-        x_val=prep(x[val]), y_val=prep(y[val]), cond_val=cond[val].astype(np.float32),
+        x_train=prep(x[train]), y_train=prep(y[train]), load_parameter_train=load[train].astype(np.float32),
+        x_val=prep(x[val]), y_val=prep(y[val]), load_parameter_val=load[val].astype(np.float32),
         normalization=norm,
     )
 
@@ -297,8 +213,8 @@ class ReplicaData:
 
     Attributes:
         x_train, y_train: (n_parts, n_train, n_p|n_f, n_dof_max) float32, zero padding.
-        cond_train: (n_parts, n_train) float32.
-        x_val, y_val, cond_val: validation counterparts.
+        load_parameter_train: (n_parts, n_train) float32.
+        x_val, y_val, load_parameter_val: validation counterparts.
         dof_mask: (n_parts, n_dof_max) float32, 1 on real dofs.
         dof_counts: real dofs per part.
         mean, std: (n_parts, n_dof_max) float64 normalization (0 and 1 on padding).
@@ -306,10 +222,10 @@ class ReplicaData:
 
     x_train: np.ndarray
     y_train: np.ndarray
-    cond_train: np.ndarray
+    load_parameter_train: np.ndarray
     x_val: np.ndarray
     y_val: np.ndarray
-    cond_val: np.ndarray
+    load_parameter_val: np.ndarray
     dof_mask: np.ndarray
     dof_counts: tuple[int, ...]
     mean: np.ndarray
@@ -353,10 +269,10 @@ def stack_replicas(datasets: Sequence[WindowDataset]) -> ReplicaData:
     return ReplicaData(
         x_train=np.stack([pad(d.x_train) for d in datasets]),
         y_train=np.stack([pad(d.y_train) for d in datasets]),
-        cond_train=np.stack([d.cond_train for d in datasets]),
+        load_parameter_train=np.stack([d.load_parameter_train for d in datasets]),
         x_val=np.stack([pad(d.x_val) for d in datasets]),
         y_val=np.stack([pad(d.y_val) for d in datasets]),
-        cond_val=np.stack([d.cond_val for d in datasets]),
+        load_parameter_val=np.stack([d.load_parameter_val for d in datasets]),
         dof_mask=padding_mask(counts, width),
         dof_counts=counts,
         mean=np.stack([pad(d.normalization.mean) for d in datasets]),
@@ -364,20 +280,29 @@ def stack_replicas(datasets: Sequence[WindowDataset]) -> ReplicaData:
     )
 
 
-# ----------------------------------------------------------------------------- trajectory files
+
+
+def shared_dof_layout(partition) -> tuple[int, np.ndarray]:
+    """The replicas' dof layout of a :class:`jaxsync.Partition`: ``(n_dof, counts)`` with
+    ``counts`` (n_parts,) the real shared-dof counts (3 per shared node) and ``n_dof`` the
+    padded width, ``max(counts.max(), 3)``."""
+    counts = np.array([3 * p.n_shared for p in partition.parts])
+    return max(int(counts.max()), 3), counts
+
+
+# ----------------------------------------------------------------------------- trajectories
 
 
 @dataclasses.dataclass(frozen=True)
 class SharedHistories:
-    """Per-part shared-dof histories read from a distributed trajectory file.
+    """Per-part shared-dof histories of a distributed trajectory, ready for training.
 
     Attributes:
         histories: per part, (n_steps, 3 n_shared_p) displacements at every step, float64.
         shared_nodes: per part, (n_shared_p,) int64 global node ids.
         dt: time step (s).
-        load_parameter: the run's load parameter alpha_f if the file stores one (problem
-            parameter ``load_parameter``, i.e. root attribute ``param_load_parameter``, or
-            a root attribute ``load_parameter``), else None.
+        load_parameter: the run's load parameter alpha_f (the problem parameter
+            ``load_parameter`` of the trajectory), or None.
         synchronized: (n_steps,) bool flags of a synchronization-avoiding trajectory
             (False where the step was predicted by surrogates), None for a synchronized run.
     """
@@ -394,112 +319,71 @@ class SharedHistories:
         return 0 if self.synchronized is None else int(np.count_nonzero(~self.synchronized))
 
 
-def _check_trajectory_format(fh, path) -> None:
-    """The format check of :meth:`jaxsync.Trajectory.load`, on an open HDF5 file."""
-    from jaxsync.trajectory import FORMAT_VERSION
+def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> SharedHistories:
+    """The per-part shared-dof histories of a distributed trajectory, checked for training.
 
-    if fh.attrs.get("format") != "jaxsync-trajectory":
-        raise CheckpointError(
-            f"{path} is not a jaxsync trajectory file (root attribute format != 'jaxsync-trajectory'); "
-            "train on files written by jaxsync simulate / Trajectory.save"
-        )
-    try:
-        version = int(fh.attrs["format_version"])
-    except (KeyError, TypeError, ValueError) as err:
-        raise CheckpointError(
-            f"{path} has no readable format_version attribute; rewrite it with Trajectory.save"
-        ) from err
-    if version > FORMAT_VERSION:
-        raise CheckpointError(
-            f"{path} has format version {version}, newer than this jaxsync reads ({FORMAT_VERSION}): upgrade jaxsync"
-        )
-
-
-def read_shared_histories(path, *, allow_predicted: bool = False) -> SharedHistories:
-    """Read ``/parts/<p>/shared_displacement`` and ``shared_nodes`` of a trajectory file.
-
-    The file must be a jaxsync trajectory (the same format check as
-    :meth:`jaxsync.Trajectory.load`; only the per-part shared histories are read, not the
-    whole displacement field, which can be far larger), with the shared histories at
-    every step (root attribute ``shared_every == 1``, e.g. ``simulate(...,
-    shared_every=1)``; older files: ``save_every == 1``), and by default a synchronized run: a
-    synchronization-avoiding (``jaxsync predict``) trajectory, whose ``synchronized``
-    dataset has False entries, holds surrogate predictions at the shared dofs, and
-    training on them would teach the networks their own errors.
+    The trajectory (a :class:`jaxsync.Trajectory` or the path of a file, read with
+    :meth:`jaxsync.Trajectory.load`) must be distributed, keep the shared histories at
+    every step (``shared_stride == 1``, e.g. ``simulate(..., shared_every=1)``), and by
+    default be a synchronized run: a synchronization-avoiding (``jaxsync predict``)
+    trajectory, whose ``synchronized`` flags have False entries, holds surrogate
+    predictions at the shared dofs, and training on them would teach the networks their
+    own errors.
 
     Args:
-        path: trajectory HDF5 file.
+        trajectory: a :class:`jaxsync.Trajectory` or a trajectory file.
         allow_predicted: accept a synchronization-avoiding trajectory anyway.
 
     Raises:
-        CheckpointError: missing or foreign file, missing groups or attributes,
-            inconsistent shapes, shared histories not kept at every step, or a
-            predicted trajectory without ``allow_predicted``.
+        CheckpointError: missing or foreign file, a run that is not distributed, shared
+            histories not kept at every step, inconsistent shapes, or a predicted
+            trajectory without ``allow_predicted``.
     """
-    try:
-        fh = h5py.File(path, "r")
-    except FileNotFoundError as err:
-        raise CheckpointError(f"trajectory file {path} does not exist") from err
-    except OSError as err:
-        raise CheckpointError(f"trajectory file {path} cannot be read ({err}); is it a complete HDF5 file?") from err
-    with fh:
-        _check_trajectory_format(fh, path)
-        try:
-            save_every = int(fh.attrs["save_every"])
-            dt = float(fh.attrs["dt"])
-        except KeyError as err:
+    if isinstance(trajectory, Trajectory):
+        name, traj = "the trajectory", trajectory
+    else:
+        name, traj = f"trajectory file {os.fspath(trajectory)}", Trajectory.load(trajectory)
+    if not traj.parts:
+        raise CheckpointError(
+            f"{name} holds no parts: it is not a distributed run; rerun the solver with partitions=n "
+            "(jaxsync simulate --partitions n)"
+        )
+    if traj.shared_stride != 1:
+        raise CheckpointError(
+            f"{name} keeps the shared nodes every {traj.shared_stride} steps; surrogate training needs "
+            "every step: rerun the solver with shared_every=1 (jaxsync simulate --shared-every 1; the full "
+            "field can stay at a larger --save-every)"
+        )
+    synchronized = None
+    if traj.synchronized is not None:
+        synchronized = np.asarray(traj.synchronized, bool)
+        n_pred = int(np.count_nonzero(~synchronized))
+        if n_pred and not allow_predicted:
             raise CheckpointError(
-                f"trajectory file {path} lacks root attribute {err}; write it with Trajectory.save"
-            ) from err
-        if "n_parts" not in fh.attrs:
-            raise CheckpointError(
-                f"trajectory file {path} holds no parts (root attribute 'n_parts' missing): it is not a "
-                "distributed run; rerun the solver with partitions=n (jaxsync simulate --partitions n)"
+                f"{name} is a synchronization-avoiding run: {n_pred} of its {synchronized.size} snapshots "
+                "were predicted by surrogates, not computed by the synchronized solver; train on the "
+                "synchronized reference run instead, or pass --allow-predicted (allow_predicted=True) if "
+                "you really mean to"
             )
-        n_parts = int(fh.attrs["n_parts"])
-        stride = int(fh.attrs.get("shared_every", save_every))
-        if stride != 1:
+    histories, nodes = [], []
+    for p, part in enumerate(traj.parts):
+        disp = np.asarray(part.shared_displacement, np.float64)
+        ids = np.asarray(part.shared_nodes, np.int64)
+        if disp.ndim != 2 or disp.shape[1] != 3 * ids.size:
             raise CheckpointError(
-                f"trajectory file {path} keeps the shared nodes every {stride} steps; surrogate training needs "
-                "every step: rerun the solver with shared_every=1 (jaxsync simulate --shared-every 1; the full "
-                "field can stay at a larger --save-every)"
+                f"{name}: part {p} has shared_displacement {disp.shape} for {ids.size} shared nodes; "
+                f"expected (n_saved, {3 * ids.size})"
             )
-        synchronized = None
-        if "synchronized" in fh:
-            synchronized = np.asarray(fh["synchronized"][()], bool)
-            n_pred = int(np.count_nonzero(~synchronized))
-            if n_pred and not allow_predicted:
-                raise CheckpointError(
-                    f"trajectory file {path} is a synchronization-avoiding run: {n_pred} of its "
-                    f"{synchronized.size} snapshots were predicted by surrogates, not computed by the "
-                    "synchronized solver; train on the synchronized reference run instead, or pass "
-                    "--allow-predicted (allow_predicted=True) if you really mean to"
-                )
-        histories, nodes = [], []
-        for p in range(n_parts):
-            try:
-                group = fh[f"parts/{p}"]
-                disp = np.asarray(group["shared_displacement"][()], np.float64)
-                ids = np.asarray(group["shared_nodes"][()], np.int64)
-            except (KeyError, OSError) as err:
-                raise CheckpointError(
-                    f"trajectory file {path}: part {p} lacks shared_displacement or shared_nodes ({err}); "
-                    "was the run distributed, and did it finish?"
-                ) from err
-            if disp.ndim != 2 or disp.shape[1] != 3 * ids.size:
-                raise CheckpointError(
-                    f"trajectory file {path}: part {p} has shared_displacement {disp.shape} for {ids.size} shared nodes; "
-                    f"expected (n_saved, {3 * ids.size})"
-                )
-            histories.append(disp)
-            nodes.append(ids)
-        lengths = {h.shape[0] for h in histories}
-        if len(lengths) > 1:
-            raise CheckpointError(f"trajectory file {path}: parts hold different numbers of steps {sorted(lengths)}")
-        if synchronized is not None and save_every == 1 and lengths and synchronized.size != next(iter(lengths)):
-            raise CheckpointError(
-                f"trajectory file {path}: 'synchronized' has {synchronized.size} flags for "
-                f"{next(iter(lengths))} saved steps; the file is damaged"
-            )
-        load = fh.attrs.get("param_load_parameter", fh.attrs.get("load_parameter"))
-    return SharedHistories(tuple(histories), tuple(nodes), dt, None if load is None else float(load), synchronized)
+        histories.append(disp)
+        nodes.append(ids)
+    lengths = {h.shape[0] for h in histories}
+    if len(lengths) > 1:
+        raise CheckpointError(f"{name}: parts hold different numbers of steps {sorted(lengths)}")
+    if synchronized is not None and traj.save_every == 1 and synchronized.size != histories[0].shape[0]:
+        raise CheckpointError(
+            f"{name}: 'synchronized' has {synchronized.size} flags for {histories[0].shape[0]} saved steps; "
+            "the file is damaged"
+        )
+    load = traj.parameters.get("load_parameter")
+    return SharedHistories(tuple(histories), tuple(nodes), float(traj.dt), None if load is None else float(load),
+                           synchronized)

@@ -1,26 +1,21 @@
-"""Offline evaluation of trained surrogates: refill prediction, rollouts, E_mse, grid search.
-
-Refill (Algorithm 3, index sets in :mod:`jaxsync.surrogate.data`): from the last
-n_s n_p known steps the network is applied n_s times at once (vmap), application i
-reading rows i, i + n_s, ... of that buffer and filling rows i, i + n_s, ... of the next
-n_s n_f steps.  A rollout repeats this, each cycle consuming the previous predictions.
+"""Offline evaluation of trained surrogates: E_mse and the grid search.
 
 E_mse (paper section 4): starting at step n (default the first step where refill is
-possible, n = n_s n_p - 1), run N refill cycles without ever looking at the truth and
-average the squared error over the N n_s n_f predicted steps and the part's real dofs,
-in solver units (cm^2 in the paper); its square root is reported.
+possible, n = n_s n_p - 1), run N refill cycles without ever looking at the truth
+(:meth:`jaxsync.surrogate.Surrogate.rollout`) and average the squared error over the
+N n_s n_f predicted steps and the part's real dofs, in solver units (cm^2 in the paper);
+its square root is reported.
 """
 
 from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import io
 import itertools
-import json
 import os
 from collections.abc import Sequence
-from functools import partial
 from typing import Any
 
 import jax
@@ -28,134 +23,65 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.trajectory import atomic_path
-from jaxsync.surrogate.data import build_dataset, padding_mask, refill_scatter, refill_windows, stack_replicas
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
-from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
+from jaxsync.io import atomic_json, atomic_path
+from jaxsync.surrogate.data import build_dataset, padding_mask, stack_replicas
+from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.train import TrainConfig, train_replicas
+
+__all__ = ["max_applications", "e_mse", "GridPoint", "GridSearchResult", "grid_search"]
 
 
-def refill_predict(
-    params: Params,
-    arch: LSTMArchitecture,
-    mean: jax.Array,
-    std: jax.Array,
-    buffer: jax.Array,
-    n_s: int,
-    cond: jax.Array | None = None,
-    dof_mask: jax.Array | None = None,
-) -> jax.Array:
-    """Predict the next n_s n_f steps from the last n_s n_p steps (one replica, unbatched).
-
-    Args:
-        params: one replica's parameters.
-        arch: architecture.
-        mean, std: (n_dof,) normalization, solver units.
-        buffer: (n_s n_p, n_dof) displacements of steps n + 1 - n_s n_p .. n, solver units.
-        n_s: sampling stride the network was trained with.
-        cond: load parameter (conditional networks).
-        dof_mask: optional (n_dof,) padding mask.
-
-    Returns:
-        (n_s n_f, n_dof) predicted displacements of steps n + 1 .. n + n_s n_f, in the
-        dtype of ``mean``.
-    """
-    n_p, n_dof = arch.n_past, arch.n_dof
-    if buffer.shape != (n_s * n_p, n_dof):
-        raise ConfigError(f"refill buffer must have shape (n_s*n_p, n_dof) = {(n_s * n_p, n_dof)}, got {buffer.shape}")
-    z = ((buffer - mean) / std).astype(arch.dtype)
-    windows = refill_windows(z, n_s, n_p)  # (n_s, n_p, n_dof), rows N_p^i
-    pred = jax.vmap(lambda x: forward(params, arch, x, cond, dof_mask))(windows)  # (n_s, n_f, n_dof)
-    return refill_scatter(pred, n_s).astype(mean.dtype) * std + mean
-
-
-def rollout(
-    params: Params,
-    arch: LSTMArchitecture,
-    mean: jax.Array,
-    std: jax.Array,
-    buffer: jax.Array,
-    n_s: int,
-    n_cycles: int,
-    cond: jax.Array | None = None,
-    dof_mask: jax.Array | None = None,
-) -> jax.Array:
-    """``n_cycles`` refill cycles, each consuming earlier predictions (one replica).
-
-    Returns:
-        (n_cycles n_s n_f, n_dof) predictions of steps n + 1 .. n + n_cycles n_s n_f.
-    """
-    keep = n_s * arch.n_past
-
-    def cycle(buf, _):
-        new = refill_predict(params, arch, mean, std, buf, n_s, cond, dof_mask)
-        return jnp.concatenate([buf, new])[-keep:], new
-
-    _, blocks = jax.lax.scan(cycle, buffer, None, length=n_cycles)
-    return blocks.reshape(-1, arch.n_dof)
-
-
-@partial(jax.jit, static_argnames=("arch", "n_s", "n_cycles"))
-def rollout_replicas(params, arch, mean, std, buffer, n_s, n_cycles, cond=None, dof_mask=None):
-    """:func:`rollout` for stacked replicas (leading part axis on every argument but
-    ``arch``, ``n_s``, ``n_cycles``; ``cond`` is one scalar shared by all parts)."""
-    fn = lambda p, m, s, b, k: rollout(p, arch, m, s, b, n_s, n_cycles, cond, k)  # noqa: E731
-    mask = jnp.ones(mean.shape, mean.dtype) if dof_mask is None else dof_mask
-    return jax.vmap(fn)(params, mean, std, buffer, mask)
-
-
-def max_applications(n_steps: int, n_s: int, n_p: int, n_f: int, start: int | None = None) -> int:
+def max_applications(n_steps: int, n_s: int, n_past: int, n_future: int, start: int | None = None) -> int:
     """Largest N such that N refill cycles from ``start`` stay within ``n_steps`` steps."""
-    start = n_s * n_p - 1 if start is None else start
-    return max((n_steps - 1 - start) // (n_s * n_f), 0)
+    start = n_s * n_past - 1 if start is None else start
+    return max((n_steps - 1 - start) // (n_s * n_future), 0)
+
+
+@functools.partial(jax.jit, static_argnames="n_cycles")
+def _rollout_parts(surrogate: Surrogate, buffers, step0, n_cycles: int):
+    """:meth:`Surrogate.rollout` of every part (buffers (n_parts, n_s n_p, n_dof))."""
+    return jax.vmap(lambda one, buffer: one.rollout(buffer, step0, n_cycles))(surrogate, buffers)
 
 
 def e_mse(
-    params: Params,
-    arch: LSTMArchitecture,
-    mean: np.ndarray,
-    std: np.ndarray,
+    surrogate: Surrogate,
     histories: np.ndarray,
-    n_s: int,
     n_applications: int = 60,
     start: int | None = None,
-    cond: float | None = None,
-    dof_counts: Sequence[int] | None = None,
 ) -> np.ndarray:
     """E_mse of every replica (paper: N = 60 applications; report its square root).
 
     Args:
-        params: stacked replica parameters.
-        arch: architecture (padded n_dof).
-        mean, std: (n_parts, n_dof) normalization.
+        surrogate: the replicas (with the load parameter of this run, for conditional
+            networks).
         histories: (n_parts, n_steps, n_dof) true displacements at every step, padded
-            with zeros; solver units.
-        n_s: sampling stride.
+            with zeros to the surrogate's width; solver units.
         n_applications: N, refill cycles.
         start: current step n at which prediction starts (default n_s n_p - 1).
-        cond: load parameter of this run (conditional networks).
-        dof_counts: real dofs per part (default: all n_dof).
 
     Returns:
-        (n_parts,) E_mse in squared solver units.
+        (n_parts,) E_mse in squared solver units, over each part's real dofs.
     """
     histories = np.asarray(histories)
-    n_parts, n_steps, n_dof = histories.shape
-    start = n_s * arch.n_past - 1 if start is None else int(start)
-    if start + 1 < n_s * arch.n_past:
-        raise ConfigError(f"E_mse start step {start} leaves fewer than n_s*n_p = {n_s * arch.n_past} known steps")
-    available = max_applications(n_steps, n_s, arch.n_past, arch.n_future, start)
+    n_s, n_past, n_future = surrogate.n_s, surrogate.n_past, surrogate.n_future
+    if histories.ndim != 3 or histories.shape[0] != surrogate.n_parts or histories.shape[2] != surrogate.n_dof:
+        raise ConfigError(f"histories must have shape (n_parts, n_steps, n_dof) = ({surrogate.n_parts}, n_steps, "
+                          f"{surrogate.n_dof}) for these replicas, got {histories.shape}")
+    n_steps, n_dof = histories.shape[1:]
+    start = n_s * n_past - 1 if start is None else int(start)
+    if start + 1 < n_s * n_past:
+        raise ConfigError(f"E_mse start step {start} leaves fewer than n_s*n_p = {n_s * n_past} known steps")
+    available = max_applications(n_steps, n_s, n_past, n_future, start)
     if n_applications < 1 or n_applications > available:
         raise ConfigError(
-            f"{n_applications} refill cycles from step {start} need {start + 1 + n_applications * n_s * arch.n_future} "
+            f"{n_applications} refill cycles from step {start} need {start + 1 + n_applications * n_s * n_future} "
             f"steps but the history has {n_steps}; use at most {available} applications or a longer run"
         )
-    counts = np.full(n_parts, n_dof) if dof_counts is None else np.asarray(dof_counts)
+    counts = np.asarray(surrogate.dof_counts)
     mask = padding_mask(counts, n_dof)
-    buffer = histories[:, start + 1 - n_s * arch.n_past:start + 1]
-    pred = np.asarray(rollout_replicas(
-        params, arch, jnp.asarray(mean), jnp.asarray(std), jnp.asarray(buffer), n_s, n_applications,
-        None if cond is None else jnp.asarray(cond, arch.dtype), jnp.asarray(mask),
-    ))
+    buffer = histories[:, start + 1 - n_s * n_past:start + 1]
+    pred = np.asarray(_rollout_parts(surrogate, jnp.asarray(buffer), start, n_applications))
     truth = histories[:, start + 1:start + 1 + pred.shape[1]]
     sq = np.square(pred - truth) * mask[:, None, :]  # padded predictions are 0, truth padding 0
     return sq.sum(axis=(1, 2)) / (pred.shape[1] * counts)
@@ -221,11 +147,10 @@ class GridSearchResult:
     def write(self, path: str | os.PathLike) -> None:
         """Write ``path`` (CSV table) and ``path`` with suffix .json, atomically."""
         path = os.fspath(path)
-        stem = os.path.splitext(path)[0]
-        for target, text in ((path, self.to_csv()), (stem + ".json", json.dumps(self.to_dict(), indent=2))):
-            with atomic_path(target) as tmp:
-                with open(tmp, "w") as fh:
-                    fh.write(text)
+        with atomic_path(path) as tmp:
+            with open(tmp, "w") as fh:
+                fh.write(self.to_csv())
+        atomic_json(os.path.splitext(path)[0] + ".json", self.to_dict())
 
 
 def grid_search(
@@ -276,30 +201,17 @@ def grid_search(
         np.pad(np.asarray(runs[eval_run], np.float64), ((0, 0), (0, width - np.shape(runs[eval_run])[1])))
         for runs in runs_per_part
     ])
-    cond = None if load_parameters is None else float(load_parameters[eval_run])
+    load_parameter = None if load_parameters is None else float(load_parameters[eval_run])
     points = []
     for n_b, n_h, eta0 in itertools.product(batch_sizes, hidden_sizes, learning_rates):
         combo_arch = dataclasses.replace(arch, n_dof=width, n_hidden=int(n_h))
         combo_config = dataclasses.replace(config, batch_size=int(n_b), eta0=float(eta0))
         result = train_replicas(data, combo_arch, combo_config, key, progress=progress,
                                 description=f"n_B={n_b} n_H={n_h} eta0={eta0:g}")
-        err = np.sqrt(evaluate_result(result, histories, n_s, n_applications, start, cond))
+        err = np.sqrt(e_mse(Surrogate.from_result(result, n_s, load_parameter), histories, n_applications, start))
         points.append(GridPoint(
             batch_size=int(n_b), n_hidden=int(n_h), eta0=float(eta0),
             sqrt_e_mse=tuple(float(v) for v in err), spread=float(err.max() - err.min()),
             final_val_loss=tuple(float(v) for v in result.val_loss[-1]),
         ))
     return GridSearchResult(points=tuple(points), n_applications=n_applications)
-
-
-def evaluate_result(
-    result: TrainResult,
-    histories: np.ndarray,
-    n_s: int,
-    n_applications: int = 60,
-    start: int | None = None,
-    cond: float | None = None,
-) -> np.ndarray:
-    """E_mse (n_parts,) of a :class:`TrainResult` on padded (n_parts, n_steps, n_dof) histories."""
-    return e_mse(result.params, result.arch, result.mean, result.std, histories, n_s,
-                 n_applications, start, cond, result.dof_counts)

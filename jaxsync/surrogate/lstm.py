@@ -194,7 +194,7 @@ def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
         ``(hs, (h_T, c_T))``: the hidden states (T, H) and the final state.
     """
     # The input projection does not depend on the recursion: one matmul for all steps.
-    z_in = xs @ cell["w_d"].T + cell["b"]
+    z_in = xs @ cell["w_d"].T + cell["b"][None]
 
     def step(carry, z_t):
         carry = _cell_update(cell["w_h"], carry, z_t)
@@ -247,7 +247,7 @@ def decode(
     arch: LSTMArchitecture,
     state: tuple[jax.Array, jax.Array],
     first_input: jax.Array,
-    cond: jax.Array | None = None,
+    load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
 ) -> jax.Array:
     """Decoder fed its own predictions for ``n_future`` steps.
@@ -257,7 +257,7 @@ def decode(
         arch: architecture.
         state: initial ``(h, c)``, each (2 n_H,).
         first_input: the last input snapshot d(n_p) (n_dof,).
-        cond: scalar load parameter (conditional networks only).
+        load_parameter: scalar load parameter (conditional networks only).
         dof_mask: (n_dof,) 1 for real dofs, 0 for padding; padded outputs are zeroed
             before being fed back so that padding never influences real dofs.
 
@@ -265,14 +265,14 @@ def decode(
         Predictions (n_f, n_dof).
     """
     if arch.conditional:
-        if cond is None:
-            raise ConfigError("this network is conditional (n_cond_repeat > 0): pass the load parameter cond")
-        cond_vec = jnp.full((arch.n_cond_repeat,), cond, dtype=first_input.dtype)
+        if load_parameter is None:
+            raise ConfigError("this network is conditional (n_cond_repeat > 0): pass the load parameter")
+        repeated_load = jnp.full((arch.n_cond_repeat,), load_parameter, dtype=first_input.dtype)
     dense = params["dense"]
 
     def step(carry, _):
         hc, y_prev = carry
-        d = jnp.concatenate([y_prev, cond_vec]) if arch.conditional else y_prev
+        d = jnp.concatenate([y_prev, repeated_load]) if arch.conditional else y_prev
         hc = lstm_cell(params["decoder"], hc, d)
         y = dense["w"] @ hc[0] + dense["b"]
         if dof_mask is not None:
@@ -288,7 +288,7 @@ def forward(
     params: Params,
     arch: LSTMArchitecture,
     xs: jax.Array,
-    cond: jax.Array | None = None,
+    load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
 ) -> jax.Array:
     """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
@@ -297,7 +297,7 @@ def forward(
         params: network parameters.
         arch: architecture.
         xs: normalized window (n_p, n_dof).
-        cond: scalar load parameter (conditional networks only).
+        load_parameter: scalar load parameter (conditional networks only).
         dof_mask: optional (n_dof,) padding mask, see :func:`decode`.
 
     Returns:
@@ -307,7 +307,7 @@ def forward(
         raise ConfigError(f"input window must have shape (n_past, {arch.n_dof}), got {xs.shape}")
     xs = xs.astype(arch.dtype)
     state = encode(params, arch, xs)
-    return decode(params, arch, state, xs[-1], cond, dof_mask)
+    return decode(params, arch, state, xs[-1], load_parameter, dof_mask)
 
 
 def count_parameters(params: Params) -> int:

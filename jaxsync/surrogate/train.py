@@ -18,12 +18,11 @@ epoch with the lowest validation loss.  With ``patience`` set, training stops on
 replica has improved for ``patience`` epochs (checked after every epoch inside the
 compiled loop, so the stop epoch does not depend on ``epochs_per_call``).
 
-Resumable training: with ``checkpoint=path``, :func:`train_replicas` writes its whole
-state (parameters, Adam state, best parameters, loss history) atomically every
-``checkpoint_every`` epochs and at the end; called again with the same data, settings and
-key it continues from that state and ends with the same parameters as an uninterrupted
-run (the compiled chunks end at the same epochs).  A state written with other data or
-settings is refused with :class:`~jaxsync.errors.CheckpointError`.
+Resumable training: with ``checkpoint=path``, :func:`train_replicas` writes its state
+(:mod:`jaxsync.surrogate.training_state`) every ``checkpoint_every`` epochs and at the
+end; called again with the same data, settings and key it continues from it and ends
+with the same parameters as an uninterrupted run (the compiled chunks end at the same
+epochs).
 
 Replicas: parts have different shared-dof counts, so inputs, outputs and parameters are
 zero-padded to the largest count and a dof mask (1 real, 0 padding) is applied to the
@@ -31,10 +30,12 @@ decoder's output and to the loss.  Padded inputs are zero, padded outputs are fo
 zero, so the parameters that touch padding get exactly zero gradients and Adam leaves
 them at their (zero) initial value: each replica trains as it would alone (equal up to
 float32 round-off, since XLA may order the sums of batched products differently).  The
-per-epoch function is ``jax.vmap``-ed over the part axis (and, with several local devices,
-``jax.shard_map``-ed so each device trains its own parts), and ``epochs_per_call`` epochs
-run in one ``jax.lax.scan`` inside ``jax.jit``; Python only updates the progress bar and
-writes checkpoints.
+per-epoch function of one replica becomes a program over all parts through
+:func:`jaxsync.parallel.spmd.spmd_program` (vmapped over the parts of a device, each
+device training its own block of parts, no communication), and ``epochs_per_call``
+epochs run in one ``jax.lax.scan`` inside ``jax.jit``; Python only updates the progress
+bar, writes the training state and calls the optional ``callback``.  Padding and
+stacking replicas: :mod:`jaxsync.surrogate.replicas`.
 
 Reproducibility: the PRNG key is split into an initialization key (replica ``r`` uses
 ``fold_in(init_key, r)``) and a shuffling key (epoch ``e`` uses ``fold_in(shuffle_key, e)``,
@@ -45,10 +46,10 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import os
 import time
+from collections.abc import Callable
 from typing import Any
 
 import jax
@@ -56,13 +57,17 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from jax.sharding import Mesh, NamedSharding
-from jax.sharding import PartitionSpec as P
 from tqdm.auto import tqdm
 
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.trajectory import array_checksum
+from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
 from jaxsync.surrogate.data import ReplicaData, padding_mask
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward, init_params
+from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
+from jaxsync.surrogate.replicas import init_replicas
+from jaxsync.surrogate.training_state import load_training_state, save_training_state, training_fingerprint
+
+__all__ = ["n_epoch_rule", "TrainConfig", "TrainResult", "TrainProgress", "masked_mse",
+           "learning_rate_schedule", "make_optimizer", "train_replicas"]
 
 
 def n_epoch_rule(eta0: float, gamma: float, eta_min: float) -> int:
@@ -187,83 +192,22 @@ class TrainResult:
         return self.val_loss[np.asarray(self.best_epoch) - 1, np.arange(self.val_loss.shape[1])]
 
 
-# ----------------------------------------------------------------------------- params
-
-
-def pad_params(params: Params, arch: LSTMArchitecture, n_dof: int) -> Params:
-    """Zero-pad one replica's parameters from ``arch.n_dof`` to ``n_dof`` dofs.
-
-    Pads the first encoder layer's input columns, the decoder's input columns (the dof
-    block, before the q load-parameter columns) and the dense layer's output rows.
-    """
-    extra = n_dof - arch.n_dof
-    if extra < 0:
-        raise ConfigError(f"cannot pad {arch.n_dof} dofs down to {n_dof}")
-
-    def pad_cols(w, start):
-        return jnp.concatenate([w[:, :start], jnp.zeros((w.shape[0], extra), w.dtype), w[:, start:]], axis=1)
-
-    encoder = [dict(layer) for layer in params["encoder"]]
-    encoder[0] = {
-        direction: {**cell, "w_d": pad_cols(cell["w_d"], arch.n_dof)} for direction, cell in encoder[0].items()
-    }
-    decoder = {**params["decoder"], "w_d": pad_cols(params["decoder"]["w_d"], arch.n_dof)}
-    dense = {
-        "w": jnp.pad(params["dense"]["w"], ((0, extra), (0, 0))),
-        "b": jnp.pad(params["dense"]["b"], (0, extra)),
-    }
-    return {"encoder": encoder, "decoder": decoder, "dense": dense}
-
-
-def unpad_params(params: Params, arch: LSTMArchitecture, n_dof: int) -> Params:
-    """Inverse of :func:`pad_params`: keep the first ``n_dof`` dofs of a padded replica."""
-    q = arch.n_cond_repeat
-
-    def cut_cols(w):
-        return jnp.concatenate([w[:, :n_dof], w[:, arch.n_dof:arch.n_dof + q]], axis=1)
-
-    encoder = [dict(layer) for layer in params["encoder"]]
-    encoder[0] = {d: {**cell, "w_d": cell["w_d"][:, :n_dof]} for d, cell in encoder[0].items()}
-    decoder = {**params["decoder"], "w_d": cut_cols(params["decoder"]["w_d"])}
-    dense = {"w": params["dense"]["w"][:n_dof], "b": params["dense"]["b"][:n_dof]}
-    return {"encoder": encoder, "decoder": decoder, "dense": dense}
-
-
-def stack_params(replicas: list[Params]) -> Params:
-    """Stack equally shaped replicas on a new leading axis."""
-    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *replicas)
-
-
-def replica_params(stacked: Params, index: int) -> Params:
-    """The ``index``-th replica of stacked parameters (still padded)."""
-    return jax.tree_util.tree_map(lambda leaf: leaf[index], stacked)
-
-
-def init_replicas(key: jax.Array, arch: LSTMArchitecture, dof_counts: tuple[int, ...]) -> Params:
-    """Initial stacked parameters: replica r is ``init_params(fold_in(key, r))`` at its own
-    dof count (so it equals a replica initialized alone), zero-padded to ``arch.n_dof``."""
-    replicas = []
-    for r, count in enumerate(dof_counts):
-        own = dataclasses.replace(arch, n_dof=int(count))
-        replicas.append(pad_params(init_params(jax.random.fold_in(key, r), own), own, arch.n_dof))
-    return stack_params(replicas)
-
-
 # ----------------------------------------------------------------------------- loss
 
 
-def masked_mse(params, arch, x, y, cond, weight, dof_mask):
+def masked_mse(params, arch, x, y, load_parameter, weight, dof_mask):
     """Weighted mean squared error over windows, steps and real dofs (one replica).
 
     Args:
-        x: (B, n_p, n_dof) inputs; y: (B, n_f, n_dof) targets; cond: (B,) load parameters;
+        x: (B, n_p, n_dof) inputs; y: (B, n_f, n_dof) targets;
+        load_parameter: (B,) load parameter of each window (used by conditional networks);
         weight: (B,) window weights (0 for the filler of a short last batch);
         dof_mask: (n_dof,) 1 on real dofs.
     """
-    cond_arg = cond if arch.conditional else None
+    load_arg = load_parameter if arch.conditional else None
     in_axes = (None, None, 0, 0 if arch.conditional else None, None)
-    pred = jax.vmap(forward, in_axes=in_axes)(params, arch, x, cond_arg, dof_mask)
-    sq = jnp.square(pred - y) * dof_mask
+    pred = jax.vmap(forward, in_axes=in_axes)(params, arch, x, load_arg, dof_mask)
+    sq = jnp.square(pred - y) * dof_mask[None, None]
     per_window = jnp.sum(sq, axis=(1, 2)) / (arch.n_future * jnp.sum(dof_mask))
     return jnp.sum(weight * per_window) / jnp.sum(weight)
 
@@ -280,15 +224,15 @@ def make_optimizer(config: TrainConfig, steps_per_epoch: int) -> optax.GradientT
     return optax.adam(learning_rate_schedule(config, steps_per_epoch))
 
 
-def _parts_mesh(n_parts: int, devices: int | None) -> Mesh | None:
-    """Mesh over the part axis: as many local devices as divide ``n_parts`` evenly (None: one)."""
+def _parts_mesh(n_parts: int, devices: int | None) -> Mesh:
+    """Device mesh over the part axis: as many local devices as divide ``n_parts`` evenly."""
     available = len(jax.local_devices())
     n = available if devices is None else int(devices)
     if n < 1 or n > available:
         raise ConfigError(f"devices must be between 1 and the {available} local devices, got {devices}")
     while n_parts % n:
         n -= 1
-    return None if n == 1 else Mesh(np.array(jax.local_devices()[:n]), ("parts",))
+    return Mesh(np.array(jax.local_devices()[:n]), (AXIS,))
 
 
 def _runner_config(config: TrainConfig) -> TrainConfig:
@@ -298,7 +242,7 @@ def _runner_config(config: TrainConfig) -> TrainConfig:
 
 
 @functools.lru_cache(maxsize=16)
-def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mesh: Mesh | None):
+def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mesh: Mesh):
     """Compiled function running a chunk of epochs for all replicas (split over ``mesh``).
 
     The chunk carries ``(params, opt_state, best_params, best_val, best_epoch)``; an epoch
@@ -310,29 +254,32 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
     optimizer = make_optimizer(config, steps)
     fill = steps * batch - n_train
 
-    def replica_epoch(params, opt_state, x, y, c, xv, yv, cv, mask, key):
+    def replica_epoch(params, opt_state, x, y, load, x_val, y_val, load_val, mask, key):
         # A short last batch is filled with window 0 at weight 0 so every step has one shape.
-        order = jnp.concatenate([jax.random.permutation(key, n_train), jnp.zeros(fill, jnp.int32)])
-        weights = jnp.concatenate([jnp.ones(n_train, jnp.float32), jnp.zeros(fill, jnp.float32)])
+        order = jax.random.permutation(key, n_train)
+        order = jnp.concatenate([order, jnp.zeros(fill, order.dtype)])
+        weights = jnp.concatenate([jnp.ones(n_train, x.dtype), jnp.zeros(fill, x.dtype)])
 
         def step(carry, batch_ids):
             params, opt_state = carry
             ids, w = batch_ids
-            loss, grads = jax.value_and_grad(masked_mse)(params, arch, x[ids], y[ids], c[ids], w, mask)
-            updates, opt_state = optimizer.update(grads, opt_state, params)
-            return (optax.apply_updates(params, updates), opt_state), loss * jnp.sum(w)
+            loss, grads = jax.value_and_grad(masked_mse)(params, arch, x[ids], y[ids], load[ids], w, mask)
+            # optax mixes Python floats with int32 step counts (Adam's bias correction, the
+            # decay schedule): standard dtype promotion, whatever the caller's setting
+            with jax.numpy_dtype_promotion("standard"):
+                updates, opt_state = optimizer.update(grads, opt_state, params)
+                params = optax.apply_updates(params, updates)
+            return (params, opt_state), loss * jnp.sum(w)
 
         (params, opt_state), losses = jax.lax.scan(
             step, (params, opt_state), (order.reshape(steps, batch), weights.reshape(steps, batch))
         )
-        val = masked_mse(params, arch, xv, yv, cv, jnp.ones(xv.shape[0], jnp.float32), mask)
+        val = masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask)
         return params, opt_state, jnp.sum(losses) / n_train, val
 
-    all_replicas = jax.vmap(replica_epoch, in_axes=(0,) * 9 + (None,))
-    if mesh is not None:
-        # Replicas are independent: each device trains its block of parts, no communication.
-        all_replicas = jax.shard_map(all_replicas, mesh=mesh, in_specs=(P("parts"),) * 9 + (P(),),
-                                     out_specs=P("parts"))
+    # Replicas are independent: each device trains its block of parts, no communication;
+    # the shuffling key (argument 9) is the same for all parts.
+    all_replicas = spmd_program(replica_epoch, mesh, n_in=10, n_out=4, replicated_in=(9,), jit=False)
 
     def run_chunk(state, data, shuffle_key, epochs, patience):
         def run_epoch(carry, epoch):
@@ -361,120 +308,48 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         state, (train, val, ran) = jax.lax.scan(body, state, epochs)
         return state, train, val, ran
 
-    val_loss = jax.jit(jax.vmap(
-        lambda p, xv, yv, cv, m: masked_mse(p, arch, xv, yv, cv, jnp.ones(xv.shape[0], jnp.float32), m)
-    ))
+    def replica_val_loss(params, x_val, y_val, load_val, mask):
+        return masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask)
+
+    val_loss = spmd_program(replica_val_loss, mesh, n_in=5, n_out=1)
     return optimizer, steps, jax.jit(run_chunk), val_loss, {}
 
 
-# ----------------------------------------------------------------------------- training state
-
-_STATE_KIND = "jaxsync-training-state"
-_STATE_VERSION = 1
-
-
-def _digest(arrays) -> str:
-    """sha256 over a sequence of arrays (dtype, shape and bytes of each)."""
-    return array_checksum({f"{i:04d}": np.asarray(a) for i, a in enumerate(arrays)}, {})
-
-
-def training_fingerprint(data: ReplicaData, arch: LSTMArchitecture, config: TrainConfig, key: jax.Array,
-                         init: Params | None = None, checkpoint_every: int | None = None) -> dict[str, Any]:
-    """Everything that determines a training run, as a JSON-serializable dict.
-
-    A training checkpoint is resumed only by a run with the same fingerprint: same
-    windows and normalization (hashed), architecture, configuration, key, initial
-    parameters and checkpoint interval (which sets where the compiled chunks end).
-    """
-    return {
-        "data_sha256": _digest([data.x_train, data.y_train, data.cond_train, data.x_val, data.y_val,
-                                data.cond_val, data.dof_mask, data.mean, data.std]),
-        "architecture": arch.to_dict(),
-        "config": config.to_dict(),
-        "key": np.asarray(jax.random.key_data(key)).ravel().tolist(),
-        "init_sha256": None if init is None else _digest(jax.tree_util.tree_leaves(init)),
-        "checkpoint_every": checkpoint_every,
-    }
-
-
-def _fingerprint_differences(stored: dict, current: dict) -> list[str]:
-    out = []
-    for name in sorted(set(stored) | set(current)):
-        a, b = stored.get(name), current.get(name)
-        if a == b:
-            continue
-        if isinstance(a, dict) and isinstance(b, dict):
-            out += [f"{name}.{k}: {a.get(k)!r} there, {b.get(k)!r} here"
-                    for k in sorted(set(a) | set(b)) if a.get(k) != b.get(k)]
-        elif name.endswith("sha256"):
-            out.append(f"{name[:-len('_sha256')]} differ")
-        else:
-            out.append(f"{name}: {a!r} there, {b!r} here")
-    return out
-
-
-def _state_checksum(arrays: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
-    return array_checksum(arrays, attrs)
-
-
-def _save_training_state(path, fingerprint: dict, state, history: dict[str, np.ndarray],
-                         info: dict[str, Any]) -> None:
-    """Write the training state atomically (HDF5): the chunk carry as flat leaves, the
-    loss history and the bookkeeping in ``info`` (epochs done, stopped, timings)."""
-    from jaxsync.trajectory import atomic_h5
-
-    arrays = {f"state/{i:04d}": np.asarray(leaf) for i, leaf in enumerate(jax.tree_util.tree_leaves(state))}
-    arrays.update({f"history/{k}": np.asarray(v) for k, v in history.items()})
-    attrs = {"kind": _STATE_KIND, "version": _STATE_VERSION, "fingerprint": json.dumps(fingerprint, sort_keys=True),
-             "info": json.dumps(info, sort_keys=True)}
-    with atomic_h5(path) as f:
-        for name, value in attrs.items():
-            f.attrs[name] = value
-        f.attrs["checksum"] = _state_checksum(arrays, attrs)
-        for name, array in arrays.items():
-            f[name] = array
-
-
-def _load_training_state(path, fingerprint: dict, template):
-    """Read a state written by :func:`_save_training_state` for a run with ``fingerprint``;
-    ``template`` is the chunk carry of this run (tree structure, shapes and dtypes)."""
-    import h5py
-
-    fix = "delete it to start over, or write to another output folder"
-    try:
-        with h5py.File(path, "r") as f:
-            attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items() if k != "checksum"}
-            attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in attrs.items()}
-            stored_sum = f.attrs.get("checksum")
-            arrays = {}
-            f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
-    except Exception as exc:
-        raise CheckpointError(f"cannot read training checkpoint {path} ({exc}); {fix}") from exc
-    if attrs.get("kind") != _STATE_KIND:
-        raise CheckpointError(f"{path} is not a jaxsync training checkpoint; {fix}")
-    if int(attrs.get("version", -1)) != _STATE_VERSION:
-        raise CheckpointError(f"training checkpoint {path} has version {attrs.get('version')}, this jaxsync "
-                              f"reads {_STATE_VERSION}; {fix}")
-    if stored_sum is None or str(stored_sum.decode() if isinstance(stored_sum, bytes) else stored_sum) != \
-            _state_checksum(arrays, attrs):
-        raise CheckpointError(f"training checkpoint {path} fails its checksum (damaged or altered); {fix}")
-    stored = json.loads(attrs["fingerprint"])
-    if stored != fingerprint:
-        diffs = "; ".join(_fingerprint_differences(stored, fingerprint))
-        raise CheckpointError(
-            f"training checkpoint {path} was written by a run with other data or settings ({diffs}); "
-            f"rerun with the same arguments to resume, or {fix}"
-        )
-    leaves, treedef = jax.tree_util.tree_flatten(template)
-    loaded = [arrays.get(f"state/{i:04d}") for i in range(len(leaves))]
-    for i, (a, b) in enumerate(zip(loaded, leaves)):
-        if a is None or a.shape != b.shape or a.dtype != b.dtype:
-            raise CheckpointError(f"training checkpoint {path}: state array {i} does not fit this run; {fix}")
-    history = {k[len("history/"):]: v for k, v in arrays.items() if k.startswith("history/")}
-    return jax.tree_util.tree_unflatten(treedef, loaded), history, json.loads(attrs["info"])
-
-
 # ----------------------------------------------------------------------------- training
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainProgress:
+    """What the ``callback`` of :func:`train_replicas` is given after each compiled chunk
+    of epochs (after the training state, if any, is written).
+
+    Attributes:
+        epochs_done: epochs run so far (a resumed run counts the restored ones).
+        n_epochs: largest number of epochs (``config.resolved_epochs``).
+        train_loss, val_loss: (n_parts,) losses of the last epoch run (NaN before any).
+        state_written: the training state file was rewritten after this chunk.
+        stopped: early stopping ended the training.
+    """
+
+    epochs_done: int
+    n_epochs: int
+    train_loss: np.ndarray
+    val_loss: np.ndarray
+    state_written: bool
+    stopped: bool
+
+
+def _initial_params(arch, data, init_key, init):
+    """Default :func:`init_replicas`, or ``init`` checked against them."""
+    if init is None:
+        return init_replicas(init_key, arch, data.dof_counts)
+    params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.dtype(arch.dtype)), init)
+    expected = jax.eval_shape(lambda k: init_replicas(k, arch, data.dof_counts), init_key)
+    if jax.tree_util.tree_structure(params) != jax.tree_util.tree_structure(expected) or any(
+        a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(expected))
+    ):
+        raise ConfigError("init parameters do not match the architecture and part count; build them with init_replicas")
+    return params
 
 
 def train_replicas(
@@ -488,6 +363,7 @@ def train_replicas(
     devices: int | None = None,
     checkpoint: str | os.PathLike | None = None,
     checkpoint_every: int | None = 50,
+    callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainResult:
     """Train one replica per part, all together.
 
@@ -496,7 +372,8 @@ def train_replicas(
         arch: architecture; ``arch.n_dof`` must equal ``data.n_dof_max``.
         config: optimization settings.
         key: PRNG key (initialization and shuffling).
-        init: optional initial stacked parameters (default :func:`init_replicas`).
+        init: optional initial stacked parameters (default
+            :func:`~jaxsync.surrogate.replicas.init_replicas`).
         progress: show a tqdm bar with the epoch and the largest train/val loss over parts.
         description: label of the progress bar.
         devices: local devices to spread the parts over (default: as many as divide the
@@ -510,6 +387,9 @@ def train_replicas(
         checkpoint_every: epochs between training checkpoints (None or 0: only at the
             end).  Compiled chunks also end at its multiples, so a multiple of
             ``config.epochs_per_call`` avoids compiling a second chunk length.
+        callback: called with a :class:`TrainProgress` after every compiled chunk (for
+            logging; an exception raised there ends the training, and a state written
+            before it can be resumed).
 
     Returns:
         A :class:`TrainResult`.
@@ -527,17 +407,7 @@ def train_replicas(
     fingerprint = training_fingerprint(data, arch, config, key, init, every) if checkpoint is not None else None
     init_key, shuffle_key = jax.random.split(key)
     dtype = jnp.dtype(arch.dtype)
-    if init is None:
-        params = init_replicas(init_key, arch, data.dof_counts)
-    else:
-        params = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), init)
-        expected = jax.eval_shape(lambda k: init_replicas(k, arch, data.dof_counts), init_key)
-        if jax.tree_util.tree_structure(params) != jax.tree_util.tree_structure(expected) or any(
-            a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(expected))
-        ):
-            raise ConfigError(
-                "init parameters do not match the architecture and part count; build them with init_replicas"
-            )
+    params = _initial_params(arch, data, init_key, init)
     n_train = data.x_train.shape[1]
     mesh = _parts_mesh(data.n_parts, devices)
     optimizer, steps, run_chunk, val_loss_fn, executables = _epoch_runner(
@@ -546,7 +416,8 @@ def train_replicas(
     state = (params, opt_state, params, jnp.full(data.n_parts, jnp.inf, dtype),
              jnp.zeros(data.n_parts, jnp.int32))
     arrays = tuple(jnp.asarray(a, dtype) for a in (
-        data.x_train, data.y_train, data.cond_train, data.x_val, data.y_val, data.cond_val, data.dof_mask
+        data.x_train, data.y_train, data.load_parameter_train, data.x_val, data.y_val, data.load_parameter_val,
+        data.dof_mask,
     ))
 
     n_epochs = config.resolved_epochs
@@ -555,16 +426,13 @@ def train_replicas(
     initial_val = None
     info = {"epochs_done": 0, "stopped": False, "train_seconds": 0.0, "epochs_timed": 0}
     if checkpoint is not None and os.path.exists(checkpoint):
-        state, history, info = _load_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state))
+        state, history, info = load_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state))
         train_hist, val_hist, initial_val = history["train_loss"], history["val_loss"], history["initial_val_loss"]
         if train_hist.shape != (info["epochs_done"], data.n_parts):
             raise CheckpointError(f"training checkpoint {checkpoint} holds an inconsistent loss history; "
                                   "delete it to start over")
     resumed_from = int(info["epochs_done"])
-    if mesh is not None:
-        state, arrays = jax.device_put((state, arrays), NamedSharding(mesh, P("parts")))
-    else:
-        state = jax.tree_util.tree_map(jnp.asarray, state)
+    state, arrays = jax.device_put((state, arrays), NamedSharding(mesh, part_spec()))
     if initial_val is None:
         initial_val = np.asarray(val_loss_fn(state[0], *arrays[3:7]))
     patience = jnp.int32(config.patience or 0)
@@ -577,11 +445,6 @@ def train_replicas(
             epochs = jax.ShapeDtypeStruct((chunk,), jnp.int32)
             executables[signature] = run_chunk.lower(state, arrays, shuffle_key, epochs, patience).compile()
         return executables[signature]
-
-    def save():
-        _save_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state),
-                             {"train_loss": train_hist, "val_loss": val_hist, "initial_val_loss": initial_val},
-                             info)
 
     def next_boundary(done, step):
         return (done // step + 1) * step
@@ -617,8 +480,14 @@ def train_replicas(
             bar.update(n_ran)
             if n_ran:
                 bar.set_postfix(train=f"{train[n_ran - 1].max():.3e}", val=f"{val[n_ran - 1].max():.3e}")
-            if checkpoint is not None and (info["stopped"] or done == n_epochs or (every and done % every == 0)):
-                save()
+            write = checkpoint is not None and (info["stopped"] or done == n_epochs or (every and done % every == 0))
+            if write:
+                save_training_state(checkpoint, fingerprint, jax.tree_util.tree_map(np.asarray, state),
+                                    {"train_loss": train_hist, "val_loss": val_hist, "initial_val_loss": initial_val},
+                                    info)
+            if callback is not None:
+                last = (train_hist[-1], val_hist[-1]) if done else (np.full(data.n_parts, np.nan),) * 2
+                callback(TrainProgress(done, n_epochs, *last, state_written=bool(write), stopped=info["stopped"]))
 
     best_epoch = np.asarray(state[4])
     return TrainResult(

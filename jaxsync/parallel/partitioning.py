@@ -172,7 +172,7 @@ def partition_from_elements(mesh: Mesh, element_part: np.ndarray, seed: int = 0)
 def partition_of(trajectory) -> Partition:
     """The partition a distributed :class:`jaxsync.Trajectory` was computed on (rebuilt
     from the element lists it stores per part)."""
-    if not trajectory.parts or "elements" not in trajectory.parts[0]:
+    if not trajectory.parts or any(part.elements is None for part in trajectory.parts):
         raise PartitionError("the trajectory holds no partition: it was not computed by the "
                              "distributed solver (simulate(..., partitions=n))")
     element_part = np.full(trajectory.mesh.n_elements, -1, dtype=np.int64)

@@ -1,0 +1,160 @@
+"""Helpers shared by the subcommands: options that several commands take, output files
+that must not be overwritten, and the processes of an ``mpiexec`` run."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Sync, choices
+
+__all__ = ["add_compression_option", "compression_of", "add_mode_option", "add_sync_option", "sync_of",
+           "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
+           "add_surrogate_options", "accept_negative_numbers", "refuse_to_overwrite", "process_count",
+           "is_main_process", "barrier"]
+
+
+def add_compression_option(parser) -> None:
+    """``--compression``: HDF5 compression of the output trajectory's large datasets."""
+    parser.add_argument("--compression", choices=choices(Compression), default=DEFAULT_COMPRESSION,
+                        help="HDF5 compression of the output's large datasets (default: %(default)s; "
+                             "lzf is faster, none the fastest to write)")
+
+
+def add_mode_option(parser) -> None:
+    """``--mode``: the internal force formulation (paper Remark 2)."""
+    parser.add_argument("--mode", choices=choices(Mode), default=DEFAULT_MODE,
+                        help="internal force: stored sparse K, or element quantities formed every "
+                             "step (default: %(default)s)")
+
+
+def add_sync_option(parser) -> None:
+    """``--sync``: how the parts sum shared-node forces; left None unless given, so that
+    the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`)."""
+    parser.add_argument("--sync", choices=choices(Sync), default=None,
+                        help="how parts sum shared-node forces every synchronized step: XLA psum of "
+                             "the whole interface (emulated devices, gloo between processes, NCCL "
+                             "between GPUs), XLA ppermute exchange of the nodes neighbouring devices "
+                             "share, or an MPI Allreduce inside the compiled step, one device per "
+                             "process (default: jaxsync.parallel.multiprocess.default_sync(): mpi "
+                             "across CPU processes, psum otherwise)")
+
+
+def sync_of(args) -> dict:
+    """``{"sync": ...}`` when ``--sync`` was given, else ``{}`` (the library's default)."""
+    return {} if args.sync is None else {"sync": args.sync}
+
+
+def compression_of(args) -> str | None:
+    """``--compression`` as :meth:`jaxsync.Trajectory.save` takes it."""
+    return None if args.compression == "none" else args.compression
+
+
+def add_resync_tolerance_option(parser, help: str | None = None) -> None:
+    """``--resync-tolerance CM|PCT%``: error control of the synchronization-avoiding run."""
+    parser.add_argument(
+        "--resync-tolerance", default=None, metavar="CM|PCT%",
+        help=help or "error control: check each refill cycle's predictions before using them; "
+                     "when es_hat, the parts' disagreement at the shared nodes (paper eq. 26), "
+                     "exceeds this tolerance -- in cm (1e-4) or as a percentage of the largest "
+                     "shared-node displacement seen in synchronized steps (2%%) -- go back to "
+                     "the last synchronized state and recompute with the synchronized solver "
+                     "(default: never)")
+
+
+def add_progress_option(parser, what: str = "the progress bar") -> None:
+    parser.add_argument("--no-progress", action="store_true", help=f"hide {what}")
+
+
+def surrogate_defaults() -> dict:
+    """Defaults of the surrogate options, read from the library's own defaults (as
+    ``jaxsync train`` reads them): the keyword defaults of
+    :func:`jaxsync.surrogate.train_surrogates` (n_s, n_p, n_f, n_H, k) and
+    :class:`jaxsync.surrogate.TrainConfig` (eta0, gamma, epochs)."""
+    import inspect
+
+    from ...surrogate import TrainConfig, train_surrogates
+
+    library = {name: p.default for name, p in inspect.signature(train_surrogates).parameters.items()}
+    config = TrainConfig()
+    return {"n_s": library["n_s"], "n_past": library["n_past"], "n_future": library["n_future"],
+            "n_hidden": library["n_hidden"], "n_layers": library["n_layers"], "eta0": config.eta0,
+            "gamma": config.gamma, "epochs": config.n_epochs}
+
+
+SURROGATE_OPTIONS = (
+    # (flags, type, dest = key of surrogate_defaults(), help); the spellings of jaxsync train
+    (("--n-s",), int, "n_s", "sampling stride n_s in steps"),
+    (("--n-past",), int, "n_past", "input snapshots n_p"),
+    (("--n-future",), int, "n_future", "predicted snapshots n_f"),
+    (("--n-hidden", "--hidden"), int, "n_hidden", "LSTM encoder hidden size n_H (paper: 100)"),
+    (("--n-layers", "--layers"), int, "n_layers", "bidirectional encoder layers k"),
+    (("--eta0",), float, "eta0", "initial learning rate (paper: 5e-4)"),
+    (("--gamma",), float, "gamma", "per-epoch learning-rate decay (paper: 0.9995)"),
+)
+
+
+def add_surrogate_options(parser) -> None:
+    """The sampling, network and schedule options of the surrogates
+    (:data:`SURROGATE_OPTIONS`), with the defaults of :func:`surrogate_defaults` (the
+    laptop schedule)."""
+    defaults = surrogate_defaults()
+    for flags, kind, dest, text in SURROGATE_OPTIONS:
+        parser.add_argument(*flags, dest=dest, type=kind, default=defaults[dest],
+                            help=f"{text} (default: %(default)s)")
+
+
+NEGATIVE_NUMBER = r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$"
+
+
+def accept_negative_numbers(parser: argparse.ArgumentParser) -> None:
+    """Let option values such as ``--dt -1e-4`` parse as numbers (and be refused by the
+    package's own checks with a clear message) instead of argparse's "expected one
+    argument": before Python 3.14 argparse takes a negative number in exponent notation
+    for an option name. The parser has no options that look like negative numbers."""
+    import re
+
+    if hasattr(parser, "_negative_number_matcher"):  # argparse has no public setting for it
+        parser._negative_number_matcher = re.compile(NEGATIVE_NUMBER)
+
+
+def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None = None) -> None:
+    """ConfigError, before anything runs, when two outputs (or an output and the
+    checkpoint) are the same file, or when an output exists and ``force`` is False."""
+    from ...errors import ConfigError
+
+    seen: dict[str, str] = {}
+    for path in paths + ([checkpoint] if checkpoint else []):
+        key = os.path.normcase(os.path.realpath(path))
+        if key in seen:
+            raise ConfigError(f"{path} is used for two outputs (also as {seen[key]}); give the "
+                              "trajectory, XDMF and checkpoint files different names")
+        seen[key] = path
+    existing = [path for path in paths if os.path.exists(path)]
+    if existing and not force:
+        names = ", ".join(existing)
+        raise ConfigError(f"{names} already exist{'s' if len(existing) == 1 else ''} (the output "
+                          "of an earlier run?); pass --force to overwrite, or choose other "
+                          "names with -o/--xdmf")
+
+
+def process_count() -> int:
+    """Processes of this run (``mpiexec -n N``: N; otherwise 1)."""
+    from ...parallel.multiprocess import process_count as count
+
+    return count()
+
+
+def is_main_process() -> bool:
+    """True on rank 0, which prints and writes files."""
+    from ...parallel.multiprocess import is_main_process as main
+
+    return main()
+
+
+def barrier() -> None:
+    """Wait for all processes (a no-op in a single-process run)."""
+    if process_count() > 1:
+        from ...parallel.multiprocess import world
+
+        world().Barrier()

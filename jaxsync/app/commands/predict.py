@@ -1,0 +1,70 @@
+"""``jaxsync predict``: the synchronization-avoiding run (paper Algorithm 3) with trained
+surrogates, on the partition of a synchronized trajectory."""
+
+from __future__ import annotations
+
+from . import common
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "predict", help="synchronization-avoiding run with trained surrogates",
+        description="Run paper Algorithm 3: synchronized steps up to --n-cri, then the "
+                    "surrogates of CHECKPOINT replace the synchronization. The partition is the "
+                    "one of TRAJECTORY (the synchronized run the surrogates were trained on); "
+                    "the problem comes from a TOML file (default: the packaged cantilever).")
+    p.add_argument("trajectory", help="synchronized distributed trajectory (HDF5) that defines "
+                                      "the partition")
+    p.add_argument("checkpoint", help="surrogate checkpoint written by jaxsync train")
+    p.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
+    p.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
+    p.add_argument("--n-cri", type=int, default=None,
+                   help="last synchronized step (default and minimum: n_p n_s)")
+    p.add_argument("--steps", type=int, default=None,
+                   help="total steps (default: as many as the trajectory holds)")
+    p.add_argument("--save-every", type=int, default=None,
+                   help="snapshot stride; must divide n_cri and n_s n_f (default: the "
+                        "trajectory's, so that jaxsync report can compare the two)")
+    common.add_mode_option(p)
+    common.add_sync_option(p)
+    p.add_argument("--cond", type=float, default=None,
+                   help="load parameter for conditional surrogates")
+    common.add_resync_tolerance_option(p)
+    p.add_argument("--output", "-o", default="online.h5", help="output trajectory (default: %(default)s)")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite an existing output file (without it the run is refused before "
+                        "it starts)")
+    common.add_compression_option(p)
+    common.add_progress_option(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    import numpy as np
+
+    from ...errors import PartitionError
+    from ...parallel.partitioning import partition_of
+    from ...solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ...surrogate.checkpoint import load_checkpoint
+    from ...trajectory import Trajectory
+    from ..config import load_config, problem_from_config
+
+    common.refuse_to_overwrite([args.output], force=args.force)
+    reference = Trajectory.load(args.trajectory)
+    part = partition_of(reference)
+    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh)
+    if (problem.mesh.n_nodes != reference.mesh.n_nodes
+            or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
+        raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
+                             "pass the same --config/--mesh as the synchronized run")
+    ckpt = load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
+    n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
+    n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
+    online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=ckpt, n_cri=n_cri,
+                                    dt=reference.dt, mode=args.mode,
+                                    save_every=args.save_every or reference.save_every,
+                                    load_parameter=args.cond, progress=not args.no_progress,
+                                    resync_tolerance=args.resync_tolerance, **common.sync_of(args))
+    online.save(args.output, compression=common.compression_of(args))
+    print(describe_run(online) + f"; wrote {args.output}")
+    return 0

@@ -1,0 +1,89 @@
+"""``jaxsync report``: figures and ``summary.json`` comparing a synchronization-avoiding
+run with the synchronized one (:func:`jaxsync.app.plots.write_report`)."""
+
+from __future__ import annotations
+
+import os
+
+from ...options import DEFAULT_COMPONENT, Component, choices
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "report", help="figures and summary.json comparing an online run with the synchronized one",
+        description="Compare a synchronization-avoiding trajectory (jaxsync predict) with the "
+                    "synchronized reference: displacement at monitored nodes, e_l2(t), es and "
+                    "es_hat, et histograms (PNG) and summary.json. By default the monitored nodes "
+                    "are, for each part, the node that is neither shared nor constrained with the "
+                    "largest amplitude in the reference, and the shared node with the largest "
+                    "amplitude; never a node that does not move in the reference or belongs to "
+                    "the Dirichlet set of --config.")
+    p.add_argument("reference", help="synchronized trajectory (HDF5)")
+    p.add_argument("online", help="synchronization-avoiding trajectory (HDF5)")
+    p.add_argument("--out", "-o", default="report", help="output folder (default: %(default)s)")
+    p.add_argument("--component", type=int, choices=choices(Component), default=DEFAULT_COMPONENT,
+                   help="displacement component shown and compared at the nodes (default: "
+                        "%(default)s = z)")
+    p.add_argument("--node", action="append", default=None, metavar="ID|X,Y,Z",
+                   help="monitor this node instead of the automatic choice: a node id or "
+                        "coordinates x,y,z (the nearest node); repeat for several")
+    p.add_argument("--config", default=None,
+                   help="TOML problem file of the run: its Dirichlet nodes are never chosen "
+                        "(default: none; then the constrained nodes are those that never move in "
+                        "the reference, which covers every fully clamped node)")
+    p.set_defaults(func=run)
+
+
+def same_steps(reference, online, reference_name: str, online_name: str):
+    """``reference`` thinned to the saved steps of ``online``.
+
+    Raises:
+        CheckpointError: ``online`` is not synchronization-avoiding, the two do not share
+            time steps, or the reference is shorter.
+    """
+    import dataclasses
+
+    from ...errors import CheckpointError
+
+    if online.synchronized is None:
+        raise CheckpointError(f"{online_name} is not a synchronization-avoiding trajectory")
+    stride, rest = divmod(online.save_every, reference.save_every)
+    if rest or abs(online.dt - reference.dt) > 1e-12 * reference.dt:
+        raise CheckpointError("the two trajectories do not share time steps (dt and save_every "
+                              "must match, the reference saved at least as often)")
+    n = online.n_saved
+    if reference.n_saved < (n - 1) * stride + 1:
+        raise CheckpointError(f"{reference_name} is shorter than {online_name}")
+    kept = slice(None, (n - 1) * stride + 1, stride)
+    return dataclasses.replace(reference, times=reference.times[kept],
+                               displacement=reference.displacement[kept], save_every=online.save_every)
+
+
+def run(args) -> int:
+    from ...parallel.partitioning import partition_of
+    from ...trajectory import Trajectory
+    from ..plots import constrained_nodes, write_report
+
+    reference = Trajectory.load(args.reference)
+    online = Trajectory.load(args.online)
+    reference = same_steps(reference, online, args.reference, args.online)
+    fixed = constrained_nodes(args.config, online.mesh, reference.displacement)
+    summary = write_report(reference, online, partition_of(online), args.out,
+                           component=args.component, fixed_nodes=fixed, nodes=args.node,
+                           extra={"online_statistics": online.stats.to_dict()})
+    for line in summary["node_notes"]:
+        print(f"note: {line}")
+    if online.stats.to_dict():
+        from ...solve.syncavoid import describe_run
+
+        print(describe_run(online))
+    if "es_hat_tracking" in summary:
+        from ...metrics import EstimateQuality
+
+        print(EstimateQuality(**summary["es_hat_tracking"]).summary())
+    c = "xyz"[args.component]
+    print(f"wrote figures and summary.json to {os.path.abspath(args.out)}; largest-amplitude monitored "
+          f"node {summary['monitored_node']} ({summary['monitored_label']}): max |error| in d_{c} "
+          f"{summary['tip_max_abs_error']:.3e} cm of {summary['tip_max_abs_displacement']:.3e} cm; "
+          f"e_l2 at the end {summary['l2_error_final']:.3e} cm")
+    return 0

@@ -1,0 +1,218 @@
+"""``jaxsync simulate``: run the explicit solver on a problem described by a TOML file
+(:mod:`jaxsync.app.config`), on one device or distributed over parts; or, with
+``--timings``, measure the per-step cost breakdown instead of running."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+from . import common
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate", help="run a problem described by a TOML file",
+        description="Run the explicit solver on a problem described by a TOML file (default: "
+                    "the packaged cantilever; see jaxsync.app.config for the layout). Command-line "
+                    "options override the file's [run] and [mesh] entries; relative paths on the "
+                    "command line are taken from the current directory, those in the file from "
+                    "the file's folder. Existing output files are never overwritten without "
+                    "--force.")
+    common.accept_negative_numbers(p)
+    p.add_argument("config", nargs="?", default=None,
+                   help="TOML problem file (default: the packaged cantilever)")
+    p.add_argument("--mesh", default=None, help="mesh file to use instead of [mesh]")
+    p.add_argument("--steps", type=int, default=None, help="number of time steps ([run] n_steps)")
+    p.add_argument("--save-every", type=int, default=None,
+                   help="keep one snapshot every this many steps ([run] save_every)")
+    p.add_argument("--shared-every", type=int, default=None,
+                   help="distributed runs: keep each part's shared-node displacements every this "
+                        "many steps, a divisor of --save-every (default: --save-every); surrogate "
+                        "training (jaxsync train) needs 1, while the full field can stay thinned")
+    common.add_compression_option(p)
+    p.add_argument("--dt", type=float, default=None,
+                   help="time step in s ([run] dt; default: the CFL step of the problem, after "
+                        "mass scaling if any); must be positive and below the stability bound")
+    scaling = p.add_mutually_exclusive_group()
+    scaling.add_argument("--mass-scaling-dt", type=float, default=None, metavar="S",
+                         help="artificial mass scaling (paper Algorithm 2): make every element "
+                              "stable at this step in s, and run at it unless --dt is given "
+                              "([run] mass_scaling_dt); the added mass is printed, with a warning "
+                              "above 10 %%")
+    scaling.add_argument("--mass-scaling-beta", type=float, default=None, metavar="B",
+                         help="mass scaling to B times the CFL step ([run] mass_scaling_beta)")
+    p.add_argument("--output", "-o", default=None,
+                   help="HDF5 trajectory file ([run] output); with -o, an XDMF output the file "
+                        "asks for ([run] xdmf) is named after it: <stem>.xdmf")
+    p.add_argument("--xdmf", default=None, help="also write an XDMF time series for ParaView")
+    p.add_argument("--force", action="store_true",
+                   help="overwrite existing output files (trajectory, XDMF and its .xdmf.h5, "
+                        "timings JSON); without it the run is refused before it starts, except "
+                        "when it resumes from an existing --checkpoint: it then continues the "
+                        "run that wrote those outputs and replaces them")
+    p.add_argument("--checkpoint", default=None,
+                   help="resumable run: store the state here and continue from it if present "
+                        "(a checkpoint of another problem, or altered after it was written, is "
+                        "refused: delete it to start over)")
+    p.add_argument("--checkpoint-every", type=int, default=None,
+                   help="steps between checkpoints (default: every compiled chunk)")
+    p.add_argument("--parts", type=int, default=None,
+                   help="distributed run over this many METIS parts (default: single device; "
+                        "under mpiexec -n N: N parts, one per process)")
+    # the option's name before `--parts` became the one name of a part count everywhere
+    p.add_argument("--partitions", dest="parts", type=int, help=argparse.SUPPRESS)
+    common.add_sync_option(p)
+    common.add_mode_option(p)
+    p.add_argument("--seed", type=int, default=0, help="METIS seed (default: %(default)s)")
+    p.add_argument("--timings", nargs="?", const="", default=None, metavar="JSON",
+                   help="instead of running, measure the per-step breakdown t_e, t_m, t_s, t_t "
+                        "(paper section 7; max-average over parts), print the table and write it "
+                        "as JSON (default file: <output>.timings.json)")
+    common.add_progress_option(p)
+    p.add_argument("--print-config", action="store_true",
+                   help="print the packaged default configuration and exit")
+    p.set_defaults(func=run)
+
+
+def outputs(args, config: dict) -> tuple[str, str | None, str | None, bool]:
+    """(trajectory path, xdmf path or None, checkpoint path or None, resuming) of a
+    ``jaxsync simulate`` run, from the command line over the (path-resolved) config."""
+    from ..config import RunConfig
+
+    run_table = config.get("run", {})
+    output = args.output or run_table.get("output", RunConfig.output)
+    if args.xdmf:
+        xdmf = args.xdmf
+    elif run_table.get("xdmf") and args.output:  # two runs with different -o keep their own xdmf
+        xdmf = os.path.splitext(args.output)[0] + ".xdmf"
+    else:
+        xdmf = run_table.get("xdmf")
+    if xdmf and not xdmf.endswith(".xdmf"):
+        xdmf += ".xdmf"  # as Trajectory.to_xdmf names it
+    checkpoint = args.checkpoint or run_table.get("checkpoint")
+    return output, xdmf, checkpoint, bool(checkpoint) and os.path.exists(checkpoint)
+
+
+def xdmf_files(xdmf: str) -> list[str]:
+    """The files Trajectory.to_xdmf writes: ``<stem>.xdmf`` and ``<stem>.xdmf.h5``."""
+    return [xdmf, os.path.splitext(xdmf)[0] + ".xdmf.h5"]
+
+
+def report_warnings(caught) -> None:
+    """Show warnings recorded while building the problem: the package's own as one
+    ``warning: ...`` line on stderr, any other as Python shows it."""
+    import warnings
+
+    from ...fem.mesh import MeshWarning
+    from ...fem.timestep import MassScalingWarning
+
+    for w in caught:
+        if issubclass(w.category, (MeshWarning, MassScalingWarning)):
+            print(f"warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+
+
+def run(args) -> int:
+    import warnings
+
+    from ..config import default_config_path, load_config, problem_from_config
+
+    if args.print_config:
+        with open(default_config_path()) as f:
+            sys.stdout.write(f.read())
+        return 0
+    main_rank = common.is_main_process()
+    config = load_config(args.config)
+    output, xdmf, checkpoint, resuming = outputs(args, config)
+    if args.timings is not None:
+        timings_path = args.timings or os.path.splitext(output)[0] + ".timings.json"
+        if main_rank:
+            common.refuse_to_overwrite([timings_path], force=args.force)
+    elif main_rank:  # the writer; checked before the mesh is read and anything runs
+        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []),
+                                   force=args.force or resuming, checkpoint=checkpoint)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        problem, run_config = problem_from_config(config, mesh_file=args.mesh,
+                                                  mass_scaling_dt=args.mass_scaling_dt,
+                                                  mass_scaling_beta=args.mass_scaling_beta)
+    if main_rank:
+        report_warnings(caught)
+    dt = args.dt if args.dt is not None else run_config.dt  # None: the (mass-scaled) CFL step
+    sync = common.sync_of(args)  # only when asked for: the library keeps its one default
+    if args.timings is not None:
+        from ...perf.timing import timing_breakdown
+
+        report = timing_breakdown(problem, args.parts or 1, mode=args.mode, dt=dt, seed=args.seed,
+                                  **sync)
+        if main_rank:
+            print(report.table())
+            report.save_json(timings_path)
+            print(f"wrote {timings_path}")
+        return 0
+    return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, xdmf=xdmf,
+                     checkpoint=checkpoint, main_rank=main_rank)
+
+
+def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, main_rank) -> int:
+    import dataclasses
+
+    from ...errors import StabilityError
+    from ...solve import solver
+
+    n_steps = args.steps if args.steps is not None else run_config.n_steps
+    save_every = args.save_every if args.save_every is not None else run_config.save_every
+    n_processes = common.process_count()
+    parts = args.parts
+    if parts is None and n_processes > 1:
+        parts = n_processes  # one part per process
+    if main_rank:
+        print(problem.summary())
+        if run_config.added_mass_percent is not None:
+            print(f"mass scaling to dt {float(problem.dt):.4e} s: added mass "
+                  f"{run_config.added_mass_percent:.2f} % of the total")
+        if n_processes > 1:
+            print(f"{n_processes} processes, {parts} parts")
+    start = time.perf_counter()
+    try:
+        trajectory = solver.simulate(problem, n_steps, dt=dt, save_every=save_every,
+                                     progress=main_rank and not args.no_progress, partitions=parts,
+                                     mode=args.mode, seed=args.seed, checkpoint=checkpoint,
+                                     checkpoint_every=args.checkpoint_every or run_config.checkpoint_every,
+                                     shared_every=args.shared_every, **sync)
+    except StabilityError as exc:
+        partial = getattr(exc, "trajectory", None)
+        if not main_rank:
+            common.barrier()  # let rank 0 write the partial trajectory before the job ends
+            raise
+        if partial is not None and partial.n_saved:
+            root, ext = os.path.splitext(output)
+            partial_path = f"{root}.partial{ext or '.h5'}"
+            partial.save(partial_path)
+            print(f"saved the {partial.n_saved} snapshots before divergence to {partial_path}",
+                  file=sys.stderr)
+        common.barrier()
+        raise
+    elapsed = time.perf_counter() - start
+    if not main_rank:  # rank 0 writes and prints
+        return 0
+    if run_config.added_mass_percent is not None:
+        trajectory = dataclasses.replace(trajectory, parameters={
+            **trajectory.parameters, "added_mass_percent": float(run_config.added_mass_percent)})
+    trajectory.save(output, compression=common.compression_of(args))
+    st = trajectory.stats
+    speed = (f"{st.us_per_step:.1f} us/step, compilation {st.compile_seconds:.2f} s not included"
+             if st.us_per_step is not None else "no steps run")
+    shared = (f", {parts // st.n_devices} parts per device"
+              if parts and parts > st.n_devices else "")
+    print(f"{n_steps} steps in {elapsed:.2f} s ({speed}; {st.n_devices} {st.device_kind} "
+          f"device{'s' if st.n_devices > 1 else ''}{', emulated' if st.emulated else ''}"
+          f"{shared}); wrote {output}")
+    if xdmf:
+        trajectory.to_xdmf(xdmf)
+        print(f"wrote {xdmf}")
+    return 0

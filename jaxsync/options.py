@@ -1,0 +1,76 @@
+"""The string (and small integer) options of jaxsync, defined once.
+
+Each option is a :data:`typing.Literal` type: functions annotate their parameters with it,
+the command line takes its ``choices=`` from it (:func:`choices`), and
+:func:`check_option` refuses any other value with a message that names the allowed ones.
+The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
+``jaxsync.parallel.multiprocess.SYNC_METHODS``) are ``choices`` of these types.
+
+- :data:`Mode`: the internal force of the explicit step (paper Remark 2): ``"preassembled"``
+  (sparse K stored once) or ``"recompute"`` (element quantities formed every step).
+- :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
+  whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
+  Allreduce. There is no fixed default: ``sync=None`` everywhere means
+  :func:`jaxsync.parallel.multiprocess.default_sync` (``"psum"`` in one process,
+  ``"mpi"`` across CPU processes).
+- :data:`Compression`: HDF5 compression of a trajectory's large datasets
+  (``jaxsync simulate/predict --compression``; ``"none"`` is ``compression=None`` of
+  :meth:`jaxsync.Trajectory.save`).
+- :data:`Component`: a displacement component, 0, 1, 2 = x, y, z (``jaxsync report
+  --component``).
+- :data:`EpochRule`: the named epoch count of ``jaxsync train --epochs`` (besides a number):
+  ``"paper"``, the paper's rule floor(log_gamma(eta_min / eta0)).
+- :data:`ProblemKind`: ``[problem] kind`` of a TOML problem file (:mod:`jaxsync.app.config`):
+  the packaged ``"cantilever"`` or a ``"general"`` problem with its own conditions and loads.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Literal, get_args
+
+from .errors import ConfigError, JaxsyncError
+
+__all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "choices", "check_option",
+           "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
+
+Mode = Literal["preassembled", "recompute"]
+Sync = Literal["psum", "ppermute", "mpi"]
+Compression = Literal["gzip", "lzf", "none"]
+Component = Literal[0, 1, 2]
+EpochRule = Literal["paper"]
+ProblemKind = Literal["cantilever", "general"]
+
+DEFAULT_MODE: Mode = "preassembled"
+DEFAULT_COMPRESSION: Compression = "gzip"
+DEFAULT_COMPONENT: Component = 2
+
+
+def choices(option) -> tuple:
+    """The allowed values of an option type, in order: ``choices(Mode)`` is
+    ``("preassembled", "recompute")``."""
+    values = get_args(option)
+    if not values:
+        raise TypeError(f"{option!r} is not a Literal type")
+    return values
+
+
+def check_option(name: str, value, option, *, error: type[JaxsyncError] = ConfigError):
+    """Return ``value`` if it is one of the values of the ``Literal`` type ``option``.
+
+    Raises:
+        ConfigError (or ``error``): naming ``name``, the allowed values and ``value``.
+    """
+    allowed = choices(option)
+    if not any(_same_kind(value, a) and value == a for a in allowed):
+        names = ", ".join(repr(a) for a in allowed)
+        raise error(f"{name} must be one of {names}, got {value!r}")
+    return value
+
+
+def _same_kind(value, allowed) -> bool:
+    """A string for a string choice; an integer (not a bool, which equals 0 or 1) for an
+    integer choice."""
+    if isinstance(allowed, str):
+        return isinstance(value, str)
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)

@@ -1,0 +1,220 @@
+"""The one host loop: compiled chunks of a runner, timed, checked and shown.
+
+Every run of jaxsync -- single device, distributed, the predicted phase of a
+synchronization-avoiding run and its re-synchronized stretches -- advances through
+:func:`run_chunks`. A *runner* owns the compiled programs and the device state; the loop
+owns what happens between chunks: chunk sizes, compilation ahead of the timed call,
+timing, the divergence check, progress and the per-chunk hook (checkpoints).
+
+The runner protocol (:class:`Runner`): ``chunk_steps(steps_left, preferred)`` (how many
+steps the next call advances), ``compile(state, steps) -> seconds`` (ahead, untimed),
+``advance(state, steps) -> (state, Chunk)``. Runners of synchronized runs also offer
+``to_global`` / ``from_global`` (a :class:`~jaxsync.fem.stepper.SolverState` of the whole
+mesh, for checkpoints and restarts).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from typing import Any, Callable, NamedTuple, Protocol
+
+import numpy as np
+
+__all__ = ["Runner", "Chunk", "Segment", "Progress", "Diverged", "run_chunks", "divergence_limit",
+           "chunk_of_saves"]
+
+
+class Chunk(NamedTuple):
+    """What one compiled call returns to the host.
+
+    Attributes:
+        displacement: (n_saved, n_nodes, 3) global field at the saved steps [cm] (at
+            shared nodes of a predicted chunk: the mean over the parts that hold it).
+        shared: per part, (steps, 3 n_shared_p) shared-node displacement after every
+            step [cm], or None when the runner does not record it.
+        predictions: (n_parts, n_saved, n_dof) each part's own predictions at the saved
+            steps [cm] (predicted chunks), or None.
+    """
+
+    displacement: np.ndarray
+    shared: list | None = None
+    predictions: np.ndarray | None = None
+
+
+class Runner(Protocol):
+    """What :func:`run_chunks` drives (see the module docstring)."""
+
+    save_every: int
+
+    def chunk_steps(self, steps_left: int, preferred: int) -> int: ...
+
+    def compile(self, state, steps: int) -> float: ...
+
+    def advance(self, state, steps: int) -> tuple[Any, Chunk]: ...
+
+
+@dataclasses.dataclass
+class Segment:
+    """Steps ``first`` + 1 .. ``last`` of a run as one runner advanced them.
+
+    Attributes:
+        kind: a label (``"synchronized"``, ``"predicted"``).
+        first, last: step before the first and last step advanced.
+        displacement: (n_saved, n_nodes, 3) [cm] at steps first + save_every, ..., last.
+        shared: per part, (last - first, 3 n_shared_p) every step, or None.
+        predictions: (n_parts, n_saved, n_dof) or None.
+        seconds: wall time of the compiled calls (compilation excluded) [s].
+        compile_seconds: time spent compiling [s].
+        state: the runner's state at ``last``.
+    """
+
+    kind: str
+    first: int
+    last: int
+    displacement: np.ndarray
+    shared: list | None
+    predictions: np.ndarray | None
+    seconds: float
+    compile_seconds: float
+    state: Any
+
+    @property
+    def n_steps(self) -> int:
+        return self.last - self.first
+
+
+class Diverged(Exception):
+    """Raised by :func:`run_chunks` when a chunk holds NaN/Inf or a blow-up: ``segment``
+    holds the steps before the bad snapshot, ``step`` the step of the first bad one,
+    ``part`` the part whose prediction went bad (None: the solution itself)."""
+
+    def __init__(self, segment: Segment, step: int, part: int | None):
+        super().__init__(f"diverged by step {step}")
+        self.segment, self.step, self.part = segment, step, part
+
+
+class Progress:
+    """One progress bar over a whole run (tqdm), shared by the loop's calls; ``show``
+    None shows it for runs of 20 000 steps or more. Use as a context manager: an error
+    clears the bar instead of leaving a blank line before the traceback."""
+
+    def __init__(self, total: int, *, show: bool | None = None, label: str = "", initial: int = 0):
+        from tqdm import tqdm
+
+        show = show if show is not None else total >= 20000
+        self.bar = tqdm(total=total, initial=initial, disable=not show, unit="step", desc=label,
+                        dynamic_ncols=True)
+
+    def label(self, text: str) -> None:
+        self.bar.set_description_str(text, refresh=False)
+
+    def update(self, steps: int) -> None:
+        self.bar.update(steps)
+
+    def set(self, done: int) -> None:
+        self.bar.n = done
+        self.bar.refresh()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, *_):
+        if kind is not None:
+            self.bar.leave = False
+        self.bar.close()
+        return False
+
+
+def chunk_of_saves(steps_left: int, preferred: int, save_every: int) -> int:
+    """Steps of the next chunk of a synchronized runner: whole saves, about ``preferred``
+    steps, at most ``steps_left``."""
+    return min(max(1, preferred // save_every), steps_left // save_every) * save_every
+
+
+def divergence_limit(mesh, blowup_factor: float) -> float:
+    """The |displacement| [cm] above which a run counts as diverged: ``blowup_factor``
+    times the diagonal of the mesh's bounding box."""
+    return blowup_factor * float(np.linalg.norm(np.ptp(mesh.points, axis=0)))
+
+
+def _first_bad(chunk: Chunk, limit: float) -> tuple[int, int | None] | None:
+    """(index of the first bad saved snapshot, part or None) or None when all are good."""
+    if chunk.predictions is not None:
+        bad = ~np.isfinite(chunk.predictions).all(axis=-1)  # (n_parts, n_saved)
+        if bad.any():
+            parts, saves = np.nonzero(bad)
+            j = int(saves.min())
+            return j, int(parts[saves == j][0])
+    disp = chunk.displacement
+    ok = np.isfinite(disp).all(axis=(1, 2)) & (np.abs(disp).max(axis=(1, 2), initial=0) <= limit)
+    return None if ok.all() else (int(np.argmin(ok)), None)
+
+
+def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit: float,
+               progress: Progress | None = None, chunk_steps: int = 5000,
+               after_chunk: Callable[[Segment], None] | None = None) -> Segment:
+    """Advance ``state`` from step ``first`` to ``last`` in compiled chunks of ``runner``.
+
+    Each chunk's program is compiled ahead of its timed call (so ``seconds`` excludes
+    compilation), its snapshots are checked (NaN/Inf, or |d| above ``limit`` [cm]; NaN
+    predictions of a predicted chunk are named by part), the progress bar moves, and
+    ``after_chunk(segment so far)`` runs (checkpoints).
+
+    Returns the :class:`Segment`. Raises :class:`Diverged` (with the good part of the
+    segment) on divergence; an exception from the runner (e.g. a rejected predicted
+    cycle) propagates with the segment so far in its ``segment`` attribute when it has
+    one.
+    """
+    save_every = runner.save_every
+    pieces, shared, preds = [], None, []
+    seconds = compile_seconds = 0.0
+    step = first
+
+    def segment(upto: int | None = None) -> Segment:
+        disp = np.concatenate(pieces) if pieces else np.zeros((0,) + _field_shape(runner))
+        pred = np.concatenate(preds, axis=1) if preds else None
+        rec = None if shared is None else [np.concatenate(s) if s else np.zeros((0, 0)) for s in shared]
+        if upto is not None:  # keep the snapshots before index `upto` of the last chunk
+            n_keep = len(disp) - len(pieces[-1]) + upto
+            disp = disp[:n_keep]
+            pred = None if pred is None else pred[:, :n_keep]
+            rec = None if rec is None else [r[:n_keep * save_every] for r in rec]
+        n_steps = len(disp) * save_every
+        return Segment(kind, first, first + n_steps, disp, rec, pred, seconds, compile_seconds, state)
+
+    while step < last:
+        steps = runner.chunk_steps(last - step, chunk_steps)
+        compile_seconds += runner.compile(state, steps)
+        start = time.perf_counter()
+        try:
+            new_state, chunk = runner.advance(state, steps)
+        except Exception as exc:
+            seconds += time.perf_counter() - start
+            if not hasattr(exc, "segment"):
+                exc.segment = segment()
+            raise
+        seconds += time.perf_counter() - start
+        pieces.append(chunk.displacement)
+        if chunk.predictions is not None:
+            preds.append(chunk.predictions)
+        if chunk.shared is not None:
+            shared = shared or [[] for _ in chunk.shared]
+            for rec, values in zip(shared, chunk.shared):
+                rec.append(values)
+        bad = _first_bad(chunk, limit)
+        if bad is not None:
+            index, part = bad
+            raise Diverged(segment(upto=index), step + (index + 1) * save_every, part)
+        state = new_state
+        step += steps
+        if progress is not None:
+            progress.update(steps)
+        if after_chunk is not None:
+            after_chunk(segment())
+    return segment()
+
+
+def _field_shape(runner) -> tuple:
+    n_nodes = getattr(runner, "n_nodes", 0)
+    return (n_nodes, 3)

@@ -1,0 +1,312 @@
+"""The predicted phase of the synchronization-avoiding solver (paper Algorithm 3).
+
+One part, pure: a refill cycle predicts the part's shared-node displacements for the next
+n_s n_f steps from its last n_p n_s (:func:`predict_cycle`), then advances n_s n_f solver
+steps with no synchronization, each followed by overwriting the shared dofs with the
+prediction (:func:`overwritten_steps`). No collective runs in these programs.
+
+All parts: :class:`PredictedPhase` compiles them as SPMD programs
+(:func:`jaxsync.parallel.spmd.spmd_program`), and two runners of the host loop
+(:mod:`jaxsync.solve.driver`) drive them: :class:`PredictedRunner` (the fused program,
+predictions made inside the loop, several cycles per call) and :class:`MonitoredRunner`
+(each cycle predicted first, its es_hat checked, then applied; a rejected cycle raises
+:class:`CycleRejected`).
+"""
+
+from __future__ import annotations
+
+import functools
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..fem.stepper import STEP_UNROLL, SolverState, step
+from ..parallel.exchange import PartSystems
+from ..parallel.spmd import spmd_program
+from ..surrogate.refill import refill_cycle
+from .distributed import DistributedRunner, to_host
+from .driver import Chunk
+
+__all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejected",
+           "DisagreementMonitor", "mean_over_parts", "overwritten_steps"]
+
+
+# --------------------------------------------------------------------------- one part, pure
+
+def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+    """One part: ``steps`` solver steps without synchronization, each followed by writing
+    the predicted shared-node displacements ``pred[j]`` into the part's state.
+
+    Returns (state, saved displacement (steps // save_every, n_local, 3), the predictions
+    at the saved steps (steps // save_every, n_dof))."""
+    nodes = pred.reshape(pred.shape[0], -1, 3)
+
+    def one_step(st, j):
+        overwrite = lambda new: new.at[part.shared_local].set(nodes[j], mode="drop")  # noqa: E731
+        return step(part.system, st, overwrite=overwrite), None
+
+    def saved_block(st, k):
+        st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every), unroll=STEP_UNROLL)
+        return st, (st.displacement, pred[(k + 1) * save_every - 1])
+
+    def saved_step(st, j):  # save_every = 1: no inner loop (it costs ~50 % per step)
+        st, _ = one_step(st, j)
+        return st, (st.displacement, pred[j])
+
+    if save_every == 1:
+        return _unpack(jax.lax.scan(saved_step, state, jnp.arange(steps), unroll=STEP_UNROLL))
+    return _unpack(jax.lax.scan(saved_block, state, jnp.arange(steps // save_every)))
+
+
+def _unpack(result):
+    state, (disp, kept) = result
+    return state, disp, kept
+
+
+def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, step0,
+                      n_cycles: int, steps: int, save_every: int):
+    """One part: ``n_cycles`` refill cycles of ``steps`` unsynchronized steps each, the
+    predictions made inside the loop (the fused program of the unmonitored run).
+
+    Returns (state, buffer, saved displacement (n_cycles, steps // save_every, n_local, 3),
+    saved predictions (n_cycles, steps // save_every, n_dof))."""
+
+    def cycle(carry, c):
+        state, buffer = carry
+        pred, buffer = refill_cycle(predictor, buffer, step0 + c * steps)
+        state, disp, kept = overwritten_steps(part, state, pred, steps, save_every)
+        return (state, buffer), (disp, kept)
+
+    cycles = jnp.arange(n_cycles, dtype=jnp.result_type(step0))  # the dtype of the step counter
+    (state, buffer), (disp, kept) = jax.lax.scan(cycle, (state, buffer), cycles)
+    return state, buffer, disp, kept
+
+
+def _rollout(predictor, buffer, step0, steps: int, save_every: int):
+    """One part, one refill cycle predicted ahead of the solver (the monitored run checks
+    it before using it): (predictions (L, n_dof), moved buffer, the predictions at the
+    saved steps (steps // save_every, n_dof))."""
+    pred, buffer = refill_cycle(predictor, buffer, step0)
+    return pred, buffer, pred[save_every - 1:steps:save_every]
+
+
+def _apply(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+    """One part: the steps of one cycle with already made predictions ``pred``."""
+    state, disp, _ = overwritten_steps(part, state, pred, steps, save_every)
+    return state, disp
+
+
+# --------------------------------------------------------------------------- SPMD programs
+
+class PredictedPhase:
+    """Compiles and runs the predicted phase under ``shard_map`` (no collectives): the
+    fused program (predict and step, ``n_cycles`` cycles per call) and, for the monitored
+    run, the two halves (predict one cycle; step it with the predictions)."""
+
+    def __init__(self, runner: DistributedRunner, predictor, save_every: int):
+        self.runner = runner
+        self.predictor = runner.put(predictor)
+        self.save_every = save_every
+        self._compiled = {}
+        self.compile_seconds = 0.0
+
+    def _spmd(self, body, n_in: int, n_out: int):
+        return spmd_program(body, self.runner.device_mesh, n_in=n_in, n_out=n_out)
+
+    def program(self, n_cycles: int, steps: int):
+        key = ("jit", n_cycles, steps)
+        if key not in self._compiled:
+            body = functools.partial(_predicted_cycles, n_cycles=n_cycles, steps=steps,
+                                     save_every=self.save_every)
+            # step0 is a per-part copy of the step counter (sharded like the rest)
+            self._compiled[key] = self._spmd(body, 5, 4)
+        return self._compiled[key]
+
+    def _ahead(self, key, build, example_args):
+        """Compile ``build()`` once, ahead of its first timed call, for the arguments
+        ``example_args()`` returns (called only then: it may place arrays on devices)."""
+        if key not in self._compiled:
+            start = time.perf_counter()
+            self._compiled[key] = build().lower(*example_args()).compile()
+            self.compile_seconds += time.perf_counter() - start
+        return self._compiled[key]
+
+    def lowered_text(self, state, buffer, n_cycles: int, steps: int) -> str:
+        """The compiled fused program's HLO text (to check that it has no collective)."""
+        return self.program(n_cycles, steps).lower(self.runner.parts, self.predictor, state,
+                                                   buffer, self.step_counter(0)).compile().as_text()
+
+    def step_counter(self, step: int):
+        """The step ``step`` as one int32 per part, sharded like the parts (an argument
+        of the predicted programs)."""
+        return self.runner.put(np.full(self.runner.partition.n_parts, step, dtype=np.int32))
+
+    def prepare(self, state, buffer, n_cycles: int, steps: int):
+        """The fused program for ``n_cycles`` cycles of ``steps``, compiled ahead."""
+        return self._ahead(("compiled", n_cycles, steps), lambda: self.program(n_cycles, steps),
+                           lambda: (self.runner.parts, self.predictor, state, buffer, self.step_counter(0)))
+
+    def run(self, state, buffer, step0: int, n_cycles: int, steps: int):
+        return self.prepare(state, buffer, n_cycles, steps)(
+            self.runner.parts, self.predictor, state, buffer, self.step_counter(step0))
+
+    def _rollout_program(self, buffer, steps: int):
+        build = lambda: self._spmd(functools.partial(_rollout, steps=steps,  # noqa: E731
+                                                     save_every=self.save_every), 3, 3)
+        return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self.step_counter(0)))
+
+    def _apply_program(self, state, pred, steps: int):
+        build = lambda: self._spmd(functools.partial(_apply, steps=steps,  # noqa: E731
+                                                     save_every=self.save_every), 3, 2)
+        return self._ahead(("apply", steps), build, lambda: (self.runner.parts, state, pred()))
+
+    def prepare_monitored(self, state, buffer, steps: int) -> None:
+        """Compile both halves of a monitored cycle of ``steps`` ahead (nothing runs)."""
+        def pred():  # the shape of a cycle's predictions, for compiling
+            length = self.predictor.n_s * self.predictor.n_future
+            return jax.ShapeDtypeStruct(buffer.shape[:1] + (length,) + buffer.shape[2:], buffer.dtype,
+                                        sharding=buffer.sharding)
+
+        self._rollout_program(buffer, steps)
+        self._apply_program(state, pred, steps)
+
+    def rollout(self, buffer, step0: int, steps: int):
+        """One cycle predicted ahead: (predictions, buffer, predictions at saved steps)."""
+        return self._rollout_program(buffer, steps)(self.predictor, buffer, self.step_counter(step0))
+
+    def apply(self, state, pred, steps: int):
+        """The steps of one cycle with the predictions of :meth:`rollout`."""
+        return self._apply_program(state, lambda: pred, steps)(self.runner.parts, state, pred)
+
+
+# --------------------------------------------------------------------------- runners
+
+
+class CycleRejected(Exception):
+    """A monitored cycle whose es_hat [cm] exceeded the tolerance [cm] (it was not applied)."""
+
+    def __init__(self, step: int, es_hat: float, tolerance: float):
+        super().__init__(f"cycle after step {step} rejected: es_hat {es_hat:.3g} cm > {tolerance:.3g} cm")
+        self.step, self.es_hat, self.tolerance = step, es_hat, tolerance
+
+
+class _PredictedRunnerBase:
+    """What both predicted runners share: the compiled phase, the global field of the
+    parts' local fields, and the state ``(per-part SolverState, buffer, step)``."""
+
+    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int):
+        self.phase, self.problem = phase, problem
+        self.partition = phase.runner.partition
+        self.save_every, self.cycle_steps = phase.save_every, cycle_steps
+        self.n_nodes = problem.mesh.n_nodes
+
+    def _compiled_delta(self, compile_something) -> float:
+        before = self.phase.compile_seconds
+        compile_something()
+        return self.phase.compile_seconds - before
+
+    def _chunk(self, disp, pred) -> Chunk:
+        """``disp`` (P, ..., n_local, 3) and ``pred`` (P, ..., n_dof) on the devices -> a
+        :class:`Chunk` (global field: mean over the parts that hold each node)."""
+        disp, pred = to_host(disp), to_host(pred)
+        disp = disp.reshape(disp.shape[0], -1, *disp.shape[-2:])
+        pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
+        return Chunk(mean_over_parts(self.problem.mesh.n_nodes, self.partition, disp), None, pred)
+
+
+class PredictedRunner(_PredictedRunnerBase):
+    """The unmonitored predicted phase: ``cycles_per_chunk`` refill cycles per compiled
+    call (the fused program), the last partial cycle alone."""
+
+    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int, cycles_per_chunk: int):
+        super().__init__(phase, problem, cycle_steps)
+        self.cycles_per_chunk = cycles_per_chunk
+
+    def _split(self, steps: int) -> tuple[int, int]:
+        """(cycles, steps per cycle) of a chunk of ``steps``."""
+        return (steps // self.cycle_steps, self.cycle_steps) if steps >= self.cycle_steps else (1, steps)
+
+    def chunk_steps(self, steps_left: int, preferred: int) -> int:
+        if steps_left < self.cycle_steps:
+            return steps_left
+        return min(self.cycles_per_chunk, steps_left // self.cycle_steps) * self.cycle_steps
+
+    def compile(self, state, steps: int) -> float:
+        solver_state, buffer, _ = state
+        return self._compiled_delta(lambda: self.phase.prepare(solver_state, buffer, *self._split(steps)))
+
+    def advance(self, state, steps: int):
+        solver_state, buffer, step0 = state
+        solver_state, buffer, disp, pred = self.phase.run(solver_state, buffer, step0, *self._split(steps))
+        return (solver_state, buffer, step0 + steps), self._chunk(disp, pred)
+
+
+class MonitoredRunner(_PredictedRunnerBase):
+    """The monitored predicted phase: one refill cycle per call, predicted ahead, its
+    es_hat (paper eq. 26) checked at the saved steps against ``tolerance(amplitude)``
+    before the solver uses it; :class:`CycleRejected` when above (or not finite).
+    ``amplitude`` [cm] is set by the caller as the run observes it."""
+
+    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int, tolerance, monitor):
+        super().__init__(phase, problem, cycle_steps)
+        self.tolerance, self.monitor = tolerance, monitor
+        self.amplitude = 0.0
+
+    def chunk_steps(self, steps_left: int, preferred: int) -> int:
+        return min(self.cycle_steps, steps_left)
+
+    def compile(self, state, steps: int) -> float:
+        solver_state, buffer, _ = state
+        return self._compiled_delta(lambda: self.phase.prepare_monitored(solver_state, buffer, steps))
+
+    def advance(self, state, steps: int):
+        solver_state, buffer, step0 = state
+        pred, next_buffer, kept = self.phase.rollout(buffer, step0, steps)
+        kept = to_host(kept)  # (P, steps / save_every, n_dof)
+        tol = self.tolerance.cm(self.amplitude)
+        es_hat = self.monitor.es_hat(kept) if np.isfinite(kept).all() else np.array([np.inf])
+        if not es_hat.max() <= tol:
+            raise CycleRejected(step0, float(es_hat.max()), tol)
+        solver_state, disp = self.phase.apply(solver_state, pred, steps)
+        disp = to_host(disp)
+        return (solver_state, next_buffer, step0 + steps), Chunk(
+            mean_over_parts(self.problem.mesh.n_nodes, self.partition, disp), None, kept)
+
+
+def mean_over_parts(n_nodes: int, partition, local) -> np.ndarray:
+    """(..., n_nodes, 3) global field from per-part local fields (P, ..., n_local_max, 3):
+    the mean over the parts that hold each node (they differ at shared nodes after
+    prediction)."""
+    local = np.asarray(local)
+    total = np.zeros(local.shape[1:-2] + (n_nodes, 3))
+    count = np.zeros(n_nodes)
+    for p, part in enumerate(partition.parts):
+        total[..., part.nodes, :] += local[p, ..., :part.n_local, :]
+        count[part.nodes] += 1
+    return total / count[:, None]
+
+
+class DisagreementMonitor:
+    """es_hat (paper eq. 26) of the parts' own predictions, for the live error control."""
+
+    def __init__(self, partition):
+        from ..metrics import shared_node_errors
+
+        self._errors = shared_node_errors
+        index = {int(node): k for k, node in enumerate(partition.shared_nodes)}
+        self.columns = [np.array([index[int(n)] for n in part.shared_nodes], dtype=int)
+                        for part in partition.parts]
+        self.counts = [3 * len(cols) for cols in self.columns]
+        self.holds = np.zeros((partition.n_parts, len(partition.shared_nodes)), bool)
+        for p, cols in enumerate(self.columns):
+            self.holds[p, cols] = True
+
+    def es_hat(self, pred) -> np.ndarray:
+        """(T,) es_hat of predictions (P, T, n_dof) [cm]."""
+        n_parts, T = pred.shape[:2]
+        by_node = np.zeros((n_parts, T, self.holds.shape[1], 3))
+        for p, cols in enumerate(self.columns):
+            by_node[p][:, cols] = pred[p, :, :self.counts[p]].reshape(T, -1, 3)
+        return self._errors(np.zeros(by_node.shape[1:]), by_node, self.holds).es_hat

@@ -1,0 +1,329 @@
+"""Training surrogates from trajectories: the one library function behind ``jaxsync train``
+and ``jaxsync demo``.
+
+:func:`train_surrogates` reads the per-part shared-dof histories of one or more
+distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
+builds the sample-refill windows of every part, trains all replicas together
+(:func:`~jaxsync.surrogate.train.train_replicas`), measures sqrt(E_mse) on the first run
+and returns a :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the
+solver, its checkpoint (with the partition's shared node ids), the loss history and
+timings.  Given an output folder ``out`` it also writes there, each file atomically:
+
+* the checkpoint (``surrogate.h5`` by default),
+* ``loss_curves.png``, the per-part training and validation losses,
+* ``train_summary.json`` (:meth:`TrainedSurrogates.summary`),
+* while it trains, ``training_state.h5``, a resumable state rewritten every
+  ``checkpoint_every`` epochs: the same call again continues from it and ends with the
+  same parameters as an uninterrupted run; a state of other data or settings is refused.
+  It is deleted once the results are written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import jax
+import numpy as np
+
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.io import atomic_json, atomic_path
+from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
+from jaxsync.surrogate.data import SharedHistories, build_dataset, read_shared_histories, stack_replicas
+from jaxsync.surrogate.evaluate import e_mse, max_applications
+from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
+from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult, train_replicas
+from jaxsync.trajectory import Trajectory
+
+__all__ = ["train_surrogates", "TrainedSurrogates", "plot_loss_curves", "STATE_NAME", "SUMMARY_NAME",
+           "LOSS_CURVES_NAME"]
+
+STATE_NAME = "training_state.h5"
+SUMMARY_NAME = "train_summary.json"
+LOSS_CURVES_NAME = "loss_curves.png"
+
+# what the checkpoint's metadata keeps of the summary
+_METADATA_KEYS = ("training", "sampling", "load_parameters", "final_val_loss", "sqrt_e_mse")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainedSurrogates:
+    """The result of :func:`train_surrogates`.
+
+    Attributes:
+        surrogate: the trained replicas, ready for the solver (conditional networks carry
+            the load parameter of the first trajectory).
+        result: the optimization: losses per epoch and part, best epochs, early stop,
+            seconds per epoch, compilation time.
+        shared_nodes: per part, the global ids of its shared nodes (the partition).
+        trajectories: absolute path of each trajectory (None for one given in memory).
+        load_parameters: the load parameter of each run fed to a conditional network, or
+            None (unconditional).
+        train_fraction, val_fraction, seed: the sampling settings.
+        n_train_windows, n_val_windows: windows per part.
+        checkpoint_every: epochs between writes of the resumable training state.
+        train_seconds: wall time of the training call (compilation included).
+        e_mse_applications: refill cycles N of ``sqrt_e_mse`` (None: not measured).
+        sqrt_e_mse: per part, sqrt(E_mse) on the first trajectory [solver units].
+        files: the files written, by kind (``checkpoint``, ``loss_curves``, ``summary``);
+            empty without ``out``.
+    """
+
+    surrogate: Surrogate
+    result: TrainResult
+    shared_nodes: tuple[np.ndarray, ...]
+    trajectories: tuple[str | None, ...]
+    load_parameters: tuple[float, ...] | None
+    train_fraction: float
+    val_fraction: float
+    seed: int
+    n_train_windows: int
+    n_val_windows: int
+    checkpoint_every: int
+    train_seconds: float
+    e_mse_applications: int | None
+    sqrt_e_mse: tuple[float, ...] | None
+    files: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def checkpoint(self) -> SurrogateCheckpoint:
+        """What is saved: the replicas with the partition's shared node ids and the
+        training metadata (a part of :meth:`summary`)."""
+        summary = self.summary()
+        return SurrogateCheckpoint.from_result(self.result, self.surrogate.n_s, self.shared_nodes,
+                                               metadata={k: summary[k] for k in _METADATA_KEYS})
+
+    @property
+    def final_val_loss(self) -> np.ndarray:
+        """(n_parts,) validation MSE of the kept parameters (normalized units)."""
+        return self.result.best_val_loss
+
+    def summary(self) -> dict[str, Any]:
+        """The content of ``train_summary.json`` (JSON-serializable)."""
+        result, arch = self.result, self.result.arch
+        n_parts = len(result.dof_counts)
+        out = {
+            "trajectories": list(self.trajectories),
+            "load_parameters": None if self.load_parameters is None else list(self.load_parameters),
+            "n_parts": n_parts,
+            "dof_counts": list(result.dof_counts),
+            "architecture": arch.to_dict(),
+            "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
+            "training": {**result.config.to_dict(), "n_epochs_run": result.n_epochs_run,
+                         "stopped_early": result.stopped_epoch is not None,
+                         "stopped_at_epoch": result.stopped_epoch,
+                         "best_epoch": [int(e) for e in result.best_epoch],
+                         "resumed_from_epoch": result.resumed_from, "checkpoint_every": self.checkpoint_every},
+            "sampling": {"n_s": self.surrogate.n_s, "train_fraction": self.train_fraction,
+                         "val_fraction": self.val_fraction, "seed": self.seed,
+                         "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows},
+            "initial_val_loss": result.initial_val_loss.tolist(),
+            "final_train_loss": result.train_loss[-1].tolist(),
+            "final_val_loss": result.best_val_loss.tolist(),
+            "last_epoch_val_loss": result.val_loss[-1].tolist(),
+            "n_epochs_run": result.n_epochs_run,
+            "stopped_at_epoch": result.stopped_epoch,
+            "seconds_per_epoch": result.seconds_per_epoch,
+            "gradient_steps_per_second": (result.steps_per_epoch / result.seconds_per_epoch
+                                          if result.seconds_per_epoch > 0 else None),
+            "compile_seconds": result.compile_seconds,
+            "train_seconds": self.train_seconds,
+            "e_mse_applications": self.e_mse_applications,
+            "sqrt_e_mse": None if self.sqrt_e_mse is None else list(self.sqrt_e_mse),
+        }
+        if self.files:
+            out.update(checkpoint=self.files["checkpoint"], loss_curves=self.files["loss_curves"])
+        out["loss_history"] = {"train": result.train_loss.tolist(), "val": result.val_loss.tolist()}
+        return out
+
+
+def _read_runs(trajectories, allow_predicted: bool) -> tuple[list[SharedHistories], list[str | None]]:
+    """The shared histories of every trajectory, all of one partition."""
+    if isinstance(trajectories, (str, os.PathLike, Trajectory)):
+        trajectories = [trajectories]
+    if len(trajectories) == 0:
+        raise ConfigError("train_surrogates needs at least one trajectory")
+    names = [None if isinstance(t, Trajectory) else os.path.abspath(os.fspath(t)) for t in trajectories]
+    runs = [read_shared_histories(t, allow_predicted=allow_predicted) for t in trajectories]
+    first = runs[0]
+    for k, run in enumerate(runs[1:], start=1):
+        same = len(run.shared_nodes) == len(first.shared_nodes) and all(
+            np.array_equal(a, b) for a, b in zip(run.shared_nodes, first.shared_nodes)
+        )
+        if not same:
+            label = lambda i: names[i] or f"trajectory {i}"  # noqa: E731
+            raise CheckpointError(
+                f"{label(k)} belongs to another partition than {label(0)} (different shared nodes); "
+                "train on runs of one partition"
+            )
+    return runs, names
+
+
+def _load_parameters(runs, given, n_cond_repeat: int) -> list[float] | None:
+    """The load parameter of each run for a conditional network (None: unconditional)."""
+    if given is not None:
+        if len(given) != len(runs):
+            raise ConfigError(f"load_parameters (--load-parameter) got {len(given)} values for {len(runs)} "
+                              "trajectories; give one each")
+        loads = [float(v) for v in given]
+    elif all(run.load_parameter is not None for run in runs):
+        loads = [run.load_parameter for run in runs]
+    else:
+        loads = None
+    if n_cond_repeat > 0 and loads is None:
+        raise ConfigError(
+            "n_cond_repeat > 0 (--cond-repeat) trains the conditional network, which needs a load parameter per "
+            "trajectory: pass load_parameters (--load-parameter) or run the solver with a problem parameter "
+            "'load_parameter'"
+        )
+    return loads if n_cond_repeat > 0 else None
+
+
+def train_surrogates(
+    trajectories,
+    *,
+    n_s: int = 80,
+    n_past: int = LSTMArchitecture.n_past,
+    n_future: int = LSTMArchitecture.n_future,
+    n_hidden: int = LSTMArchitecture.n_hidden,
+    n_layers: int = LSTMArchitecture.n_layers,
+    n_cond_repeat: int = LSTMArchitecture.n_cond_repeat,
+    dtype: str = LSTMArchitecture.dtype,
+    config: TrainConfig | None = None,
+    train_fraction: float = 0.5,
+    val_fraction: float = 0.25,
+    load_parameters: Sequence[float] | None = None,
+    allow_predicted: bool = False,
+    seed: int = 0,
+    emse_applications: int = 60,
+    devices: int | None = None,
+    out: str | os.PathLike | None = None,
+    checkpoint_name: str = "surrogate.h5",
+    checkpoint_every: int = 50,
+    progress: bool = True,
+    callback: Callable[[TrainProgress], None] | None = None,
+) -> TrainedSurrogates:
+    """Train one LSTM surrogate per part on distributed trajectories of one partition.
+
+    Args:
+        trajectories: a :class:`jaxsync.Trajectory` or trajectory file, or a sequence of
+            them (runs of one partition, e.g. different loads), with the shared nodes
+            kept at every step (``simulate(..., shared_every=1)``).
+        n_s, n_past, n_future: sampling stride (the paper's 80) and window lengths n_p, n_f.
+        n_hidden, n_layers, n_cond_repeat, dtype: the architecture
+            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`, whose defaults these are;
+            ``n_cond_repeat`` > 0 trains the conditional network).
+        config: optimization settings (default :class:`~jaxsync.surrogate.train.TrainConfig`,
+            the laptop schedule).
+        train_fraction, val_fraction: leading fraction n_ts of each run used, fraction of
+            windows held out for validation.
+        load_parameters: the load parameter of each trajectory (default: their problem
+            parameter ``load_parameter``); used with ``n_cond_repeat`` > 0.
+        allow_predicted: accept synchronization-avoiding trajectories (refused by default).
+        seed: seed of initialization, shuffling and the train/validation split.
+        emse_applications: refill cycles N of sqrt(E_mse) on the first trajectory,
+            clipped to what it holds; 0 skips it.
+        devices: local devices to spread the parts over (default: as many as divide the
+            part count).
+        out: output folder for the files listed in the module docstring (None: nothing
+            is written).
+        checkpoint_name: checkpoint file name inside ``out``.
+        checkpoint_every: epochs between writes of the resumable training state in
+            ``out`` (0: none).
+        progress: show a progress bar.
+        callback: given a :class:`~jaxsync.surrogate.train.TrainProgress` after every
+            compiled chunk of epochs.
+
+    Returns:
+        :class:`TrainedSurrogates`.
+
+    Raises:
+        CheckpointError: unusable trajectories (not distributed, shared nodes not kept at
+            every step, predicted, of different partitions) or a training state in
+            ``out`` of other data or settings.
+        ConfigError: unusable settings.
+    """
+    config = TrainConfig() if config is None else config
+    runs, names = _read_runs(trajectories, allow_predicted)
+    loads = _load_parameters(runs, load_parameters, n_cond_repeat)
+    n_parts = len(runs[0].histories)
+    datasets = [
+        build_dataset([run.histories[p] for run in runs], n_s, n_past, n_future, train_fraction, val_fraction,
+                      seed, loads)
+        for p in range(n_parts)
+    ]
+    data = stack_replicas(datasets)
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
+                            n_future=n_future, n_cond_repeat=n_cond_repeat, dtype=dtype)
+    state_path = None
+    if out is not None:
+        os.makedirs(out, exist_ok=True)
+        state_path = os.path.join(out, STATE_NAME) if checkpoint_every else None
+    started = time.perf_counter()
+    result = train_replicas(data, arch, config, jax.random.key(seed), progress=progress, devices=devices,
+                            checkpoint=state_path, checkpoint_every=checkpoint_every, callback=callback)
+    train_seconds = time.perf_counter() - started
+
+    load = None if loads is None else loads[0]
+    surrogate = Surrogate.from_result(result, n_s, load)
+    first = runs[0]
+    n_app = min(emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
+    sqrt_e_mse = None
+    if n_app > 0:
+        histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
+        sqrt_e_mse = tuple(float(v) for v in np.sqrt(e_mse(surrogate, histories, n_app)))
+    trained = TrainedSurrogates(
+        surrogate=surrogate, result=result, shared_nodes=first.shared_nodes, trajectories=tuple(names),
+        load_parameters=None if loads is None else tuple(loads), train_fraction=train_fraction,
+        val_fraction=val_fraction, seed=seed, n_train_windows=int(data.x_train.shape[1]),
+        n_val_windows=int(data.x_val.shape[1]), checkpoint_every=checkpoint_every, train_seconds=train_seconds,
+        e_mse_applications=n_app if sqrt_e_mse is not None else None, sqrt_e_mse=sqrt_e_mse,
+    )
+    if out is None:
+        return trained
+    files = {"checkpoint": os.path.abspath(os.path.join(out, checkpoint_name)),
+             "loss_curves": os.path.abspath(os.path.join(out, LOSS_CURVES_NAME)),
+             "summary": os.path.abspath(os.path.join(out, SUMMARY_NAME))}
+    save_checkpoint(files["checkpoint"], trained.checkpoint)
+    plot_loss_curves(result, files["loss_curves"])
+    trained = dataclasses.replace(trained, files=files)
+    atomic_json(files["summary"], trained.summary())
+    if state_path is not None and os.path.exists(state_path):
+        os.remove(state_path)  # everything it could resume is written
+    return trained
+
+
+def plot_loss_curves(result: TrainResult, path: str | os.PathLike) -> None:
+    """Write the per-part training and validation loss curves to a PNG (atomically), with
+    each part's best epoch (the parameters kept) and the early stop marked."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
+
+    fig = Figure(figsize=(7, 4.5))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    epochs = np.arange(1, result.train_loss.shape[0] + 1)
+    best = result.best_epoch
+    for p in range(result.train_loss.shape[1]):
+        line, = ax.semilogy(epochs, result.train_loss[:, p], label=f"part {p} train")
+        ax.semilogy(epochs, result.val_loss[:, p], "--", color=line.get_color(), label=f"part {p} validation")
+        if best is not None:
+            ax.semilogy([best[p]], [result.val_loss[best[p] - 1, p]], "o", color=line.get_color(), mfc="none",
+                        label=f"part {p} best epoch ({best[p]}, kept)")
+    if result.stopped_epoch is not None:
+        ax.axvline(result.stopped_epoch, color="0.3", ls=":", lw=1.0,
+                   label=f"early stop (epoch {result.stopped_epoch})")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("MSE of normalized displacements [-]")
+    ax.set_title(f"Training of {result.train_loss.shape[1]} LSTM replicas (one per part)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize="small")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=120, format="png")

@@ -1,0 +1,198 @@
+"""The trained surrogates of a partition as one pytree: :class:`Surrogate`.
+
+One LSTM encoder-decoder per part, padded to the largest part and stacked on a leading
+part axis (:mod:`jaxsync.surrogate.replicas`), with each part's normalization, padding
+mask and load parameter.  The solver places it on the devices like any other stacked
+pytree (each part's replica on the device of its part) and calls, for one part,
+
+* :meth:`Surrogate.predict` -- one refill: the next n_s n_f steps from the last
+  n_s n_p (paper Algorithm 3);
+* :meth:`Surrogate.rollout` -- refill cycles, each consuming the previous predictions:
+  the one rollout of a surrogate, used by the offline evaluation
+  (:func:`jaxsync.surrogate.evaluate.e_mse`) and by full-system modeling.
+
+Files: :meth:`Surrogate.save` / :meth:`Surrogate.load` go through
+:mod:`jaxsync.surrogate.checkpoint` (a :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint`
+also keeps the shared node ids and training metadata).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync.errors import CheckpointError
+from jaxsync.pytree import pytree_dataclass, static_field
+from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
+from jaxsync.surrogate.data import padding_mask, shared_dof_layout
+from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.refill import refill_predict, refill_rollout
+from jaxsync.surrogate.replicas import init_replicas
+
+__all__ = ["Surrogate"]
+
+
+@pytree_dataclass
+class Surrogate:
+    """Trained LSTM replicas, one per part, stacked on a leading part axis.
+
+    Attributes:
+        params: stacked, padded network parameters (leading part axis).
+        mean, std: (n_parts, n_dof) normalization [solver units, cm]; 0 and 1 on padding.
+        dof_mask: (n_parts, n_dof) 1 on real dofs, 0 on padding (dtype of ``mean``).
+        load_parameter: (n_parts,) float32 load parameter alpha_f fed to conditional
+            networks (ignored by unconditional ones).
+        arch: the architecture (static); ``arch.n_dof`` is the padded width.
+        n_s: the sampling stride the replicas were trained with (static).
+
+    ``surrogate.part(p)`` (or ``jax.tree_util.tree_map(lambda x: x[p], surrogate)``, as
+    vmap and shard_map do) is part p alone: the same type without the leading axis,
+    whose :meth:`predict` and :meth:`rollout` work on that part's buffer.
+    """
+
+    params: Any
+    mean: Any
+    std: Any
+    dof_mask: Any
+    load_parameter: Any
+    arch: LSTMArchitecture = static_field()
+    n_s: int = static_field()
+
+    # ------------------------------------------------------------------ sizes
+
+    @property
+    def n_past(self) -> int:
+        return self.arch.n_past
+
+    @property
+    def n_future(self) -> int:
+        return self.arch.n_future
+
+    @property
+    def n_dof(self) -> int:
+        """Padded width of a part's shared dofs."""
+        return self.arch.n_dof
+
+    @property
+    def n_parts(self) -> int:
+        """Number of replicas (1 for a one-part view from :meth:`part`)."""
+        return int(np.shape(self.dof_mask)[0]) if np.ndim(self.dof_mask) == 2 else 1
+
+    @property
+    def dof_counts(self) -> tuple[int, ...]:
+        """Real shared dofs of each part (concrete arrays only)."""
+        return tuple(int(c) for c in np.asarray(self.dof_mask).reshape(-1, self.n_dof).sum(axis=1))
+
+    @property
+    def history_steps(self) -> int:
+        """n_s n_p: the steps a refill reads (the rows of ``buffer``)."""
+        return self.n_s * self.arch.n_past
+
+    @property
+    def cycle_steps(self) -> int:
+        """n_s n_f: the steps one refill predicts."""
+        return self.n_s * self.arch.n_future
+
+    def part(self, index: int) -> "Surrogate":
+        """Part ``index`` alone (arrays without the part axis)."""
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x)[index], self)
+
+    # ------------------------------------------------------------------ prediction
+
+    def predict(self, buffer, step):
+        """One refill of ONE part: the (n_s n_f, n_dof) predictions of steps step + 1 ..
+        step + n_s n_f from ``buffer`` (n_s n_p, n_dof), the displacements of steps
+        step + 1 - n_s n_p .. step [cm].  The network reads only ``buffer``; ``step`` is
+        the predictor interface of the solver.  Padded dofs are 0."""
+        load = self.load_parameter if self.arch.conditional else None
+        out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask)
+        return out * self.dof_mask[None]
+
+    def rollout(self, buffer, step0, n_cycles: int):
+        """``n_cycles`` refill cycles of ONE part, each consuming the predictions of the
+        ones before (:func:`~jaxsync.surrogate.refill.refill_rollout`).
+
+        Args:
+            buffer: (n_s n_p, n_dof) displacements of steps step0 + 1 - n_s n_p .. step0.
+            step0: the last known step.
+            n_cycles: refill cycles (static).
+
+        Returns:
+            (n_cycles n_s n_f, n_dof) predictions of steps step0 + 1 .. step0 +
+            n_cycles n_s n_f, in the dtype of ``buffer``.
+        """
+        return refill_rollout(self, buffer, step0, n_cycles)
+
+    # ------------------------------------------------------------------ construction
+
+    @classmethod
+    def _build(cls, arch, params, mean, std, dof_mask, n_s, load_parameter) -> "Surrogate":
+        if arch.conditional and load_parameter is None:
+            raise CheckpointError("the surrogates are conditional on a load parameter: pass load_parameter=")
+        mean = np.asarray(mean)
+        n = mean.shape[0]
+        return cls(params=params, mean=mean, std=np.asarray(std), dof_mask=np.asarray(dof_mask).astype(mean.dtype),
+                   load_parameter=np.full(n, 0.0 if load_parameter is None else float(load_parameter),
+                                          dtype=np.float32),
+                   arch=arch, n_s=int(n_s))
+
+    @classmethod
+    def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2, n_past: int = 20,
+                    n_future: int = 20, dtype: str = "float32", seed: int = 0) -> "Surrogate":
+        """Untrained (randomly initialized) replicas for ``partition``, unit normalization.
+
+        For timing studies: an untrained network costs exactly what a trained one of the
+        same architecture costs, and needs no training run.  Its predictions are
+        meaningless.  The defaults are the paper's architecture (n_H = 100, 2 layers,
+        n_p = n_f = 20)."""
+        n_dof, counts = shared_dof_layout(partition)
+        arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
+                                n_future=n_future, dtype=dtype)
+        params = init_replicas(jax.random.PRNGKey(seed), arch, tuple(int(c) for c in counts))
+        n = partition.n_parts
+        # normalization and mask in float64, as a checkpoint stores them
+        return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)), padding_mask(counts, n_dof),
+                          n_s, None)
+
+    @classmethod
+    def from_checkpoint(cls, checkpoint, load_parameter: float | None = None) -> "Surrogate":
+        """The surrogate of a :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint`
+        or of its file; ``load_parameter`` is required by conditional networks."""
+        if not isinstance(checkpoint, SurrogateCheckpoint):
+            checkpoint = load_checkpoint(checkpoint)
+        return cls._build(checkpoint.arch, checkpoint.params, checkpoint.mean, checkpoint.std,
+                          checkpoint.dof_mask, checkpoint.n_s, load_parameter)
+
+    @classmethod
+    def from_result(cls, result, n_s: int, load_parameter: float | None = None) -> "Surrogate":
+        """The surrogate of a :class:`~jaxsync.surrogate.train.TrainResult` trained at
+        sampling stride ``n_s``."""
+        return cls._build(result.arch, result.params, result.mean, result.std, result.dof_mask, n_s,
+                          load_parameter)
+
+    # ------------------------------------------------------------------ files
+
+    def to_checkpoint(self, shared_nodes=None, metadata: dict | None = None) -> SurrogateCheckpoint:
+        """A :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint` of these replicas,
+        with the partition's shared node ids (per part; needed to check a partition
+        against it) and JSON-serializable ``metadata``."""
+        return SurrogateCheckpoint(
+            arch=self.arch, params=jax.tree_util.tree_map(np.asarray, self.params),
+            mean=np.asarray(self.mean, np.float64), std=np.asarray(self.std, np.float64),
+            dof_counts=self.dof_counts, n_s=self.n_s,
+            shared_nodes=None if shared_nodes is None else tuple(np.asarray(n, np.int64) for n in shared_nodes),
+            metadata=dict(metadata or {}),
+        )
+
+    def save(self, path: str | os.PathLike, *, shared_nodes=None, metadata: dict | None = None) -> None:
+        """Write a checkpoint file atomically (:func:`~jaxsync.surrogate.checkpoint.save_checkpoint`)."""
+        save_checkpoint(path, self.to_checkpoint(shared_nodes, metadata))
+
+    @classmethod
+    def load(cls, path: str | os.PathLike, load_parameter: float | None = None) -> "Surrogate":
+        """Read a checkpoint file (:func:`~jaxsync.surrogate.checkpoint.load_checkpoint`)."""
+        return cls.from_checkpoint(load_checkpoint(path), load_parameter)

@@ -1,0 +1,223 @@
+"""The whole pipeline from the command line, reduced: ``jaxsync demo`` (synchronized run,
+training, online run, report), then ``predict`` and ``report`` on its files, with and
+without error control.
+
+Each command runs once, in a module-scoped fixture that keeps its exit status and output;
+every check is its own test, so one failure does not hide the others."""
+
+import contextlib
+import dataclasses
+import io
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.app.cli import main
+
+N_STEPS, N_S = 1500, 5
+
+
+@dataclasses.dataclass
+class Run:
+    """A finished command: exit status, stdout, stderr, warnings."""
+
+    code: int
+    out: str
+    err: str
+    warnings: list
+
+
+def run_cli(argv) -> Run:
+    """``main(argv)`` with its output and warnings recorded (usable in module fixtures,
+    where capsys is not)."""
+    out, err = io.StringIO(), io.StringIO()
+    with warnings.catch_warnings(record=True) as caught, contextlib.redirect_stdout(out), \
+            contextlib.redirect_stderr(err):
+        warnings.simplefilter("always")
+        code = main([str(a) for a in argv])
+    return Run(code, out.getvalue(), err.getvalue(), list(caught))
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """``jaxsync demo`` in a reduced mode; its folder and output."""
+    folder = tmp_path_factory.mktemp("pipeline")
+    out = folder / "demo"
+    run = run_cli(["demo", "--steps", N_STEPS, "--epochs", "2", "--hidden", "8", "--n-s", N_S,
+                   "--n-past", "5", "--n-future", "5", "--out", out, "--no-progress"])
+    assert run.code == 0, run.err
+    return folder, out, run
+
+
+@pytest.fixture(scope="module")
+def summary(demo):
+    return json.loads((demo[1] / "summary.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def online(demo):
+    return jaxsync.Trajectory.load(demo[1] / "online.h5")
+
+
+@pytest.fixture(scope="module")
+def reference(demo):
+    return jaxsync.Trajectory.load(demo[1] / "synchronized.h5")
+
+
+def predict_args(demo, output, *extra):
+    _, out, _ = demo
+    return ["predict", out / "synchronized.h5", out / "surrogate" / "surrogate.h5", "-o", output,
+            "--no-progress", *extra]
+
+
+@pytest.fixture(scope="module")
+def predicted(demo):
+    """``jaxsync predict`` on the demo's files: the same online run from the command line."""
+    path = demo[0] / "again.h5"
+    return path, run_cli(predict_args(demo, path))
+
+
+@pytest.fixture(scope="module")
+def resync(demo):
+    """``jaxsync predict`` with error control: 2-epoch networks disagree at once, every
+    cycle is rejected before use and the run falls back to the synchronized solver
+    (stretches of 2, 4, 8... cycles)."""
+    path = demo[0] / "resync.h5"
+    return path, run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12"))
+
+
+# ----------------------------------------------------------------------------- demo
+
+
+def test_demo_summary_has_the_documented_keys(summary):
+    from jaxsync.app.demo import SUMMARY_KEYS
+
+    for key in SUMMARY_KEYS:
+        assert key in summary, key
+        assert isinstance(summary[key], str) or np.isfinite(summary[key]), key
+
+
+def test_demo_counts_agree_with_the_run(summary):
+    assert summary["n_steps"] == N_STEPS
+    # n_cri = n_s n_p; the counts agree with the run's statistics and flags
+    assert summary["n_synchronized"] == 25 and summary["n_predicted"] == 1475
+    assert summary["n_synchronized_steps"] == 25 and summary["n_predicted_steps"] == 1475
+
+
+def test_demo_devices_and_speed(summary):
+    assert summary["n_devices"] == 2 and summary["device_kind"] == "cpu"
+    assert summary["speedup"] == pytest.approx(summary["us_per_step_synchronized"]
+                                               / summary["us_per_step_predicted"])
+    assert summary["zeta_sync"] in ("psum", "ppermute") and summary["t_d_us"] > 0
+
+
+def test_demo_writes_the_report_figures(demo):
+    for name in ("displacement_nodes.png", "l2_error.png", "shared_errors.png", "et_histogram.png"):
+        assert (demo[1] / "report" / name).stat().st_size > 1000
+
+
+def test_demo_online_trajectory(online):
+    assert online.save_every == 5 and online.n_saved == 301  # the full field every n_s steps
+    assert online.synchronized.sum() == 25 // 5 + 1 and not online.synchronized[-1]
+
+
+def test_demo_reference_keeps_every_step_at_the_shared_nodes(reference):
+    assert reference.save_every == 5 and reference.parts[0].shared_displacement.shape[0] == 1501
+
+
+def test_demo_prints_the_summary(demo):
+    text = demo[2].out
+    assert "speed-up" in text and "time per step, predicted" in text and "zeta, compiled steps" in text
+    assert "1500 steps: 25 synchronized, 1475 predicted" in text
+
+
+# ----------------------------------------------------------------------------- predict
+
+
+def test_predict_prints_the_counts(predicted):
+    _, run = predicted
+    assert run.code == 0, run.err
+    assert "1500 steps: 25 synchronized, 1475 predicted" in run.out
+
+
+def test_predict_repeats_the_demo_online_run(predicted, online):
+    path, _ = predicted
+    again = jaxsync.Trajectory.load(path)
+    np.testing.assert_allclose(again.displacement, online.displacement, rtol=0, atol=1e-12)
+
+
+def test_predict_refuses_an_existing_output(demo, predicted):
+    """An existing output is not overwritten without --force (refused before running)."""
+    path, _ = predicted
+    before = path.stat().st_mtime_ns, path.read_bytes()
+    run = run_cli(predict_args(demo, path))
+    assert run.code == 2
+    assert "--force" in run.err
+    assert (path.stat().st_mtime_ns, path.read_bytes()) == before
+
+
+def test_report_of_the_predicted_run_matches_the_demo(demo, predicted, summary):
+    path, _ = predicted
+    report = demo[0] / "report"
+    run = run_cli(["report", demo[1] / "synchronized.h5", path, "-o", report])
+    assert run.code == 0, run.err
+    again_summary = json.loads((report / "summary.json").read_text())
+    assert again_summary["tip_max_abs_error"] == pytest.approx(summary["tip_max_abs_error"], rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- error control
+
+
+def test_resync_warns_that_every_cycle_was_rejected(resync):
+    _, run = resync
+    assert run.code == 0, run.err
+    assert any(issubclass(w.category, RuntimeWarning)
+               and "retrain the surrogates or loosen the tolerance" in str(w.message) for w in run.warnings)
+
+
+def test_resync_statistics_and_printed_counts_agree(resync):
+    path, run = resync
+    st = jaxsync.Trajectory.load(path).stats
+    at = list(st.resynchronized_at)
+    assert at[:3] == [25, 75, 175]  # a 25-step cycle; synchronized for 2, then 4 cycles
+    assert st.n_synchronized_steps == 1500 and st.n_predicted_steps == 0
+    assert f"1500 steps: 1500 synchronized, 0 predicted (n_cri = 25); tolerance 1e-12 cm: {len(at)} " in run.out
+
+
+def test_resync_run_is_the_synchronized_run(resync, reference):
+    path, _ = resync
+    result = jaxsync.Trajectory.load(path)
+    assert result.synchronized.all()
+    np.testing.assert_allclose(result.displacement, reference.displacement, rtol=0,
+                               atol=1e-12 * np.abs(reference.displacement).max())
+
+
+def test_report_of_the_resync_run(demo, resync):
+    path, _ = resync
+    report = demo[0] / "report_resync"
+    run = run_cli(["report", demo[1] / "synchronized.h5", path, "-o", report])
+    assert run.code == 0, run.err
+    reported = json.loads((report / "summary.json").read_text())
+    assert reported["n_synchronized"] == 1500 and reported["n_predicted"] == 0
+    assert "1500 steps: 1500 synchronized, 0 predicted" in run.out
+
+
+# ----------------------------------------------------------------------------- partitions
+
+
+def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
+    from jaxsync.surrogate import Surrogate
+
+    problem = jaxsync.cantilever()
+    sync = jaxsync.simulate(problem, 200, partitions=2)
+    sync.save(tmp_path / "s.h5")
+    other = jaxsync.partition(problem.mesh, 4)
+    untrained = Surrogate.initialized(other, 2, n_hidden=4, n_layers=1, n_past=2, n_future=2)
+    untrained.save(tmp_path / "c.h5", shared_nodes=tuple(p.shared_nodes for p in other.parts))
+    assert main(["predict", str(tmp_path / "s.h5"), str(tmp_path / "c.h5"), "-o",
+                 str(tmp_path / "o.h5"), "--no-progress"]) == 2
+    assert "partition has 2 parts" in capsys.readouterr().err
+    assert not (tmp_path / "o.h5").exists()

@@ -1,0 +1,157 @@
+"""The Surrogate pytree: one refill and rollouts against a step-by-step reference on the
+refill index sets, construction, and its checkpoint round trip."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.surrogate import LSTMArchitecture, Surrogate, SurrogateCheckpoint, load_checkpoint
+from jaxsync.surrogate.data import shared_dof_layout
+from jaxsync.surrogate.lstm import forward
+from jaxsync.surrogate.refill import refill_cycle, refill_index_sets, refill_rollout
+from jaxsync.surrogate.replicas import init_replicas, replica_params
+
+N_S, N_P, N_F = 3, 4, 2
+
+
+def _surrogate(q=0, dtype="float32"):
+    """Two replicas (2 and 3 real dofs, width 3) with a non-trivial normalization."""
+    arch = LSTMArchitecture(n_dof=3, n_hidden=5, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=q,
+                            dtype=dtype)
+    params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(9), arch, (2, 3)))
+    mean = np.array([[0.1, -0.2, 0.0], [0.0, 0.3, -0.1]])
+    std = np.array([[0.5, 0.7, 1.0], [0.8, 0.6, 0.4]])
+    mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
+    return Surrogate(params=params, mean=mean, std=std, dof_mask=mask, load_parameter=np.float32([0.4, 0.4]),
+                     arch=arch, n_s=N_S)
+
+
+def _history(n_steps=60):
+    t = np.arange(n_steps)[:, None] * 0.05
+    part0 = np.cos(2 * np.pi * np.array([[1.0, 2.0]]) * t)
+    part1 = np.sin(2 * np.pi * np.array([[0.5, 1.5, 1.0]]) * t)
+    return np.stack([np.pad(part0, ((0, 0), (0, 1))), part1])
+
+
+def _reference(surrogate, part, series, n, n_cycles):
+    """Predictions of steps n + 1 .. by applying the network once per refill index set
+    (paper Algorithm 3) in a Python loop, in float64 around the network; ``series``:
+    step -> known displacement."""
+    s = surrogate
+    params = replica_params(s.params, part)
+    mean, std, mask = s.mean[part], s.std[part], s.dof_mask[part]
+    load = jnp.float32(s.load_parameter[part]) if s.arch.conditional else None
+    series = dict(series)
+    for cycle in range(n_cycles):
+        inputs, targets = refill_index_sets(n + cycle * N_S * N_F, N_S, N_P, N_F)
+        new = {}
+        for i in range(N_S):
+            window = np.stack([series[k] for k in inputs[i]])
+            z = jnp.asarray((window - mean) / std, s.arch.dtype)
+            out = np.asarray(forward(params, s.arch, z, load, jnp.asarray(mask, jnp.float32)), np.float64)
+            new.update(zip(targets[i].tolist(), out * std + mean))
+        series.update(new)  # the next cycle reads these predictions
+    return np.stack([series[k] for k in range(n + 1, n + 1 + n_cycles * N_S * N_F)])
+
+
+@pytest.mark.parametrize("q", [0, 2])
+def test_predict_and_rollout_follow_the_refill_index_sets(q):
+    surrogate, history = _surrogate(q), _history()
+    n0 = N_S * N_P + 5  # the buffer holds steps n0 + 1 - n_s n_p .. n0
+    buffers = history[:, n0 + 1 - N_S * N_P:n0 + 1]
+    n_cycles = 3
+    rolled = np.asarray(jax.jit(jax.vmap(lambda s, b: s.rollout(b, n0, n_cycles)))(surrogate, buffers))
+    one = np.asarray(jax.vmap(lambda s, b: s.predict(b, n0))(surrogate, buffers))
+    assert rolled.shape == (2, n_cycles * N_S * N_F, 3) and one.shape == (2, N_S * N_F, 3)
+    for part in range(2):
+        known = {k: history[part, k] for k in range(n0 + 1)}
+        expected = _reference(surrogate, part, known, n0, n_cycles)
+        np.testing.assert_allclose(rolled[part], expected, rtol=1e-5, atol=1e-6)
+        # the first cycle is predict (eager here, compiled there: equal to round-off)
+        np.testing.assert_allclose(one[part], rolled[part, :N_S * N_F], rtol=1e-12, atol=1e-15)
+        assert np.all(rolled[part][:, surrogate.dof_mask[part] == 0] == 0)
+        # part() is the one-part view that vmap gives each part
+        alone = np.asarray(surrogate.part(part).rollout(buffers[part], n0, n_cycles))
+        np.testing.assert_allclose(alone, rolled[part], rtol=1e-6, atol=1e-7)
+    if q:  # the load parameter reaches the decoder
+        other = dataclasses.replace(surrogate, load_parameter=np.float32([0.9, 0.9]))
+        assert not np.allclose(np.asarray(other.part(0).predict(buffers[0], n0)), one[0])
+
+
+def test_rollout_sizes_and_a_wrong_buffer():
+    surrogate, history = _surrogate(), _history()
+    buffer = history[0, :N_S * N_P]
+    assert surrogate.part(0).rollout(buffer, N_S * N_P - 1, 2).dtype == jnp.float64
+    with pytest.raises(ConfigError, match="refill buffer"):
+        surrogate.part(0).predict(buffer[:-1], 0)
+    assert (surrogate.history_steps, surrogate.cycle_steps) == (N_S * N_P, N_S * N_F)
+    assert (surrogate.n_parts, surrogate.part(1).n_parts, surrogate.dof_counts) == (2, 1, (2, 3))
+
+
+def test_save_and_load_round_trip_is_exact(tmp_path):
+    surrogate = _surrogate(q=2)
+    surrogate.save(tmp_path / "s.h5", metadata={"note": "test"})
+    loaded = Surrogate.load(tmp_path / "s.h5", load_parameter=0.4)
+    assert loaded.arch == surrogate.arch and loaded.n_s == N_S
+    a, tree_a = jax.tree_util.tree_flatten(surrogate)
+    b, tree_b = jax.tree_util.tree_flatten(loaded)
+    assert tree_a == tree_b
+    for x, y in zip(a, b):
+        x, y = np.asarray(x), np.asarray(y)
+        assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
+    ckpt = load_checkpoint(tmp_path / "s.h5")
+    assert ckpt.metadata == {"note": "test"} and ckpt.dof_counts == (2, 3) and ckpt.shared_nodes is None
+    assert Surrogate.from_checkpoint(ckpt, 0.4).dof_counts == (2, 3)
+    with pytest.raises(CheckpointError, match="conditional on a load parameter"):
+        Surrogate.from_checkpoint(ckpt)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        Surrogate.load(tmp_path / "missing.h5")
+
+
+def test_initialized_replicas_fit_the_partition_and_save_with_its_nodes(tmp_path):
+    problem = jaxsync.cantilever()
+    part = jaxsync.partition(problem.mesh, 2, seed=0)
+    n_dof, counts = shared_dof_layout(part)
+    assert n_dof == max(3 * p.n_shared for p in part.parts) and list(counts) == [3 * p.n_shared for p in part.parts]
+    surrogate = Surrogate.initialized(part, 4, n_hidden=6, n_layers=1, n_past=3, n_future=2, seed=1)
+    assert surrogate.arch.n_dof == n_dof and surrogate.dof_counts == tuple(counts) and surrogate.n_s == 4
+    assert surrogate.mean.dtype == np.float64 and surrogate.dof_mask.dtype == np.float64
+    assert surrogate.load_parameter.dtype == np.float32
+    again = Surrogate.initialized(part, 4, n_hidden=6, n_layers=1, n_past=3, n_future=2, seed=1)
+    np.testing.assert_array_equal(again.params["dense"]["w"], surrogate.params["dense"]["w"])
+    nodes = [p.shared_nodes for p in part.parts]
+    surrogate.save(tmp_path / "s.h5", shared_nodes=nodes)
+    ckpt = load_checkpoint(tmp_path / "s.h5", shared_nodes_per_part=nodes)  # the partition check passes
+    assert isinstance(ckpt, SurrogateCheckpoint) and ckpt.n_parts == 2
+    default = Surrogate.initialized(part, 80)
+    assert (default.arch.n_hidden, default.arch.n_layers, default.n_past, default.n_future, default.arch.dtype) == (
+        100, 2, 20, 20, "float32")
+
+
+class _Replay:
+    """A predictor that replays known values (the contract refill_rollout relies on:
+    ``predict(buffer, step)`` for the steps after ``step``, sizes ``n_s``, ``n_future``)."""
+
+    n_s, n_future = N_S, N_F
+
+    def __init__(self, series):
+        self.series = jnp.asarray(series)
+
+    def predict(self, buffer, step):
+        return jax.lax.dynamic_slice_in_dim(self.series, step + 1, N_S * N_F, axis=0)
+
+
+def test_refill_cycles_of_any_predictor_move_the_buffer_on():
+    series = _history(80)[1]
+    n0 = N_S * N_P - 1
+    replay = _Replay(series)
+    pred, buffer = refill_cycle(replay, jnp.asarray(series[:n0 + 1]), n0)
+    np.testing.assert_array_equal(pred, series[n0 + 1:n0 + 1 + N_S * N_F])
+    np.testing.assert_array_equal(buffer, series[N_S * N_F:n0 + 1 + N_S * N_F])  # the last n_s n_p steps
+    rolled = jax.jit(lambda b, s: refill_rollout(replay, b, s, 3))(series[:n0 + 1], jnp.int32(n0))
+    np.testing.assert_array_equal(rolled, series[n0 + 1:n0 + 1 + 3 * N_S * N_F])
