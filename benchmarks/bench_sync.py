@@ -131,8 +131,8 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     from mpi4py import MPI
 
     import jaxsync
+    from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.solver import build_system, initial_state
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

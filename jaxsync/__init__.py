@@ -28,9 +28,9 @@ from .parallel.partitioning import Partition, partition
 from .solve.full_system import simulate_full_system
 from .solve.solver import simulate, steady_state
 from .solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
-from .trajectory import Trajectory
+from .trajectory import PartHistory, RunStats, Trajectory
 
-__version__ = "0.1.0"
+__version__ = "0.2.0"
 
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
@@ -40,5 +40,5 @@ __all__ = [
     "Dirichlet", "Problem", "cantilever",
     "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
-    "Trajectory",
+    "Trajectory", "RunStats", "PartHistory",
 ]

@@ -33,8 +33,9 @@ def _worker_sync(out_path: str) -> None:
 
         jax.config.update("jax_enable_x64", True)
         import jaxsync
+        from jaxsync.fem.stepper import build_system, initial_state
         from jaxsync.solve.distributed import DistributedRunner
-        from jaxsync.solve.solver import build_system, drive, initial_state
+        from jaxsync.solve.solver import drive
 
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
@@ -207,8 +208,9 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     pytest.importorskip("mpi4py")
     import jax
 
+    from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.solver import build_system, drive, initial_state
+    from jaxsync.solve.solver import drive
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

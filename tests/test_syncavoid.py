@@ -82,14 +82,14 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
+    from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.solver import build_system
 
     system = build_system(problem, problem.dt)
     runner = DistributedRunner(problem, system, partition, save_every=1)
     online = PredictedPhase(runner, oracle(reference, partition), save_every=1)
     n_dof, _ = shared_dof_layout(partition)
-    state = runner.from_global(jaxsync.solve.solver.initial_state(problem, system))
+    state = runner.from_global(initial_state(problem, system))
     buffer = runner.put(np.zeros((2, N_S * N_P, n_dof)))
     text = online.lowered_text(state, buffer, 2, N_S * N_F).lower()
     for collective in ("all-reduce", "all-gather", "collective-permute", "all-to-all", "reduce-scatter"):

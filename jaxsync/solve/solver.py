@@ -20,24 +20,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ProblemError, StabilityError
-from ..fem.stepper import (  # noqa: F401
-    ExplicitSystem,
-    SolverState,
-    advance,
-    apply_dirichlet,
-    build_system,
-    central_difference,
-    external_force,
-    initial_state,
-    step,
-)
+from ..fem.stepper import ExplicitSystem, SolverState, advance, build_system, initial_state
 from ..pytree import is_traced
 from .checkpoint import fingerprint, load_checkpoint, save_checkpoint
 from .driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
 
-__all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
-           "central_difference", "apply_dirichlet", "external_force", "advance",
-           "simulate", "steady_state"]
+__all__ = ["simulate", "steady_state", "drive", "SingleDeviceRunner"]
 
 _advance_jit = jax.jit(advance, static_argnums=(2, 3))
 
