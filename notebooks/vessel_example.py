@@ -1,7 +1,7 @@
 """Pulsatile lumen pressure in a generated bifurcating coronary-like vessel.
 
 The paper's coronary problem (section 5.2) on a generated mesh: a thick-walled vessel
-that splits into two branches (``jaxsync.fem.geometry.vessel_mesh``, gmsh), clamped at the
+that splits into two branches (``jaxsync.vessel_mesh``, gmsh), clamped at the
 inlet and both outlets, loaded by a lumen pressure pulse between 80 and 120 mmHg
 (1.067e5-1.6e5 barye, period 0.833 s) ramped in over 1 s; E = 6.26e6 dyn/cm^2, nu = 0.4,
 rho = 1 g/cm^3, damping alpha = 0.5 1/s; artificial mass scaling (paper Algorithm 2)
@@ -27,7 +27,7 @@ jax.config.update("jax_enable_x64", True)   # the solver runs in float64
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.geometry import vessel_mesh  # noqa: E402
+from jaxsync import vessel_mesh  # noqa: E402
 
 MMHG = 1333.22  # barye per mmHg
 

@@ -107,10 +107,11 @@ def test_demo_counts_agree_with_the_run(summary):
     assert summary["n_synchronized_steps"] == 25 and summary["n_predicted_steps"] == 1475
 
 
-def test_demo_devices_and_speed(summary):
+def test_demo_devices_and_speed(summary, reference, online):
     assert summary["n_devices"] == 2 and summary["device_kind"] == "cpu"
-    assert summary["speedup"] == pytest.approx(summary["us_per_step_synchronized"]
-                                               / summary["us_per_step_predicted"])
+    # the summary reports the times the runs measured and saved with their trajectories
+    assert summary["us_per_step_synchronized"] == reference.stats.us_per_step
+    assert summary["us_per_step_predicted"] == online.stats.us_per_step_predicted
     assert summary["zeta_sync"] in ("psum", "ppermute") and summary["t_d_us"] > 0
 
 

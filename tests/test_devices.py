@@ -22,7 +22,7 @@ def _run_cli(args, tmp_path, extra_env=None):
 
 
 def test_simulate_gives_each_part_its_own_device(tmp_path):
-    done = _run_cli(["simulate", "--partitions", "3", "--steps", "200", "--save-every", "100",
+    done = _run_cli(["simulate", "--parts", "3", "--steps", "200", "--save-every", "100",
                      "-o", "run.h5", "--no-progress"], tmp_path)
     assert done.returncode == 0, done.stderr
     assert "3 cpu devices, emulated" in done.stdout
@@ -33,7 +33,7 @@ def test_simulate_gives_each_part_its_own_device(tmp_path):
 
 
 def test_the_users_device_count_is_respected(tmp_path):
-    done = _run_cli(["simulate", "--partitions", "2", "--steps", "100", "--save-every", "100",
+    done = _run_cli(["simulate", "--parts", "2", "--steps", "100", "--save-every", "100",
                      "-o", "run.h5", "--no-progress"], tmp_path,
                     {"XLA_FLAGS": "--xla_force_host_platform_device_count=1"})
     assert done.returncode == 0, done.stderr
@@ -81,6 +81,6 @@ def test_request_after_jax_started_changes_nothing():
 
 @pytest.mark.parametrize("command", [["demo", "--parts", "4"]])
 def test_parts_of_a_command_are_read_without_jax(command):
-    from jaxsync.app.cli import _parts_of, build_parser
+    from jaxsync.app.cli import build_parser, parts_of
 
-    assert _parts_of(build_parser().parse_args(command)) == 4
+    assert parts_of(build_parser().parse_args(command)) == 4

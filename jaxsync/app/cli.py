@@ -67,7 +67,6 @@ def parts_of(args) -> int:
     return 0
 
 
-_parts_of = parts_of  # the name tests/test_devices.py imports
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -23,6 +23,7 @@ import argparse
 import inspect
 import os
 
+from jaxsync.options import EpochRule, choices
 from jaxsync.surrogate.fit import LOSS_CURVES_NAME, STATE_NAME, SUMMARY_NAME, train_surrogates
 from jaxsync.surrogate.train import TrainConfig
 
@@ -43,15 +44,17 @@ def _non_negative(text: str) -> int:
 
 
 def _epochs(text: str) -> int | None:
-    """``--epochs`` value: a positive integer, or ``paper`` for the paper's rule (None)."""
-    if text.strip().lower() == "paper":
+    """``--epochs`` value: a positive integer, or an :data:`~jaxsync.options.EpochRule`
+    (``paper``: the paper's rule, None)."""
+    if text.strip().lower() in choices(EpochRule):
         return None
     try:
         if _non_negative(text) >= 1:
             return int(text)
     except argparse.ArgumentTypeError:
         pass
-    raise argparse.ArgumentTypeError(f"expected a positive integer or 'paper', got {text!r}")
+    rules = " or ".join(repr(r) for r in choices(EpochRule))
+    raise argparse.ArgumentTypeError(f"expected a positive integer or {rules}, got {text!r}")
 
 
 def add_train_parser(subparsers) -> argparse.ArgumentParser:

@@ -6,8 +6,9 @@ synchronization-avoiding run and its re-synchronized stretches -- advances throu
 owns what happens between chunks: chunk sizes, compilation ahead of the timed call,
 timing, the divergence check, progress and the per-chunk hook (checkpoints).
 
-The runner protocol (:class:`Runner`): ``chunk_steps(steps_left, preferred)`` (how many
-steps the next call advances), ``compile(state, steps) -> seconds`` (ahead, untimed),
+The runner protocol (:class:`Runner`): attributes ``save_every`` and ``n_nodes`` (of the
+mesh), and methods ``chunk_steps(steps_left, preferred)`` (how many steps the next call
+advances), ``compile(state, steps) -> seconds`` (ahead, untimed) and
 ``advance(state, steps) -> (state, Chunk)``. Runners of synchronized runs also offer
 ``to_global`` / ``from_global`` (a :class:`~jaxsync.fem.stepper.SolverState` of the whole
 mesh, for checkpoints and restarts).
@@ -46,6 +47,7 @@ class Runner(Protocol):
     """What :func:`run_chunks` drives (see the module docstring)."""
 
     save_every: int
+    n_nodes: int
 
     def chunk_steps(self, steps_left: int, preferred: int) -> int: ...
 
@@ -172,7 +174,7 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
     step = first
 
     def segment(upto: int | None = None) -> Segment:
-        disp = np.concatenate(pieces) if pieces else np.zeros((0,) + _field_shape(runner))
+        disp = np.concatenate(pieces) if pieces else np.zeros((0, runner.n_nodes, 3))
         pred = np.concatenate(preds, axis=1) if preds else None
         rec = None if shared is None else [np.concatenate(s) if s else np.zeros((0, 0)) for s in shared]
         if upto is not None:  # keep the snapshots before index `upto` of the last chunk
@@ -213,8 +215,3 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
         if after_chunk is not None:
             after_chunk(segment())
     return segment()
-
-
-def _field_shape(runner) -> tuple:
-    n_nodes = getattr(runner, "n_nodes", 0)
-    return (n_nodes, 3)

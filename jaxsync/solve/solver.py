@@ -124,7 +124,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
         sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
-            :class:`jaxsync.solve.distributed.DistributedRunner`; default: the faster measured).
+            :class:`jaxsync.solve.distributed.DistributedRunner`; default:
+            :func:`jaxsync.parallel.multiprocess.default_sync`).
         shared_every: distributed only: keep each part's shared-node displacements every
             this many steps (a divisor of ``save_every``; default ``save_every``). The
             surrogates train on every step: ``shared_every=1`` keeps that small history

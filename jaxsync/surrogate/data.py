@@ -346,7 +346,7 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
     if not traj.parts:
         raise CheckpointError(
             f"{name} holds no parts: it is not a distributed run; rerun the solver with partitions=n "
-            "(jaxsync simulate --partitions n)"
+            "(jaxsync simulate --parts n)"
         )
     if traj.shared_stride != 1:
         raise CheckpointError(
