@@ -17,6 +17,7 @@ device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import jax
@@ -190,32 +191,39 @@ computed and the copies disappear. Results are bit-identical."""
 
 
 def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
-            synchronize=None, record=None):
+            synchronize=None, record=None, overwrite=None):
     """Run ``n_saves * save_every`` steps; returns (final state, (n_saves, n_nodes, 3)
-    displacements after every ``save_every`` steps). Pure; jit it at the call site.
+    displacements after every ``save_every`` steps). Pure; jit it at the call site. The
+    one time loop of every solver: synchronized, distributed and predicted.
 
+    ``synchronize``: see :func:`step`. ``overwrite(j, new)``, when given, is the
+    overwrite of :func:`step` at the j-th step of this call (j = 0, 1, ...): the
+    synchronization-avoiding solver writes its prediction for that step there.
     ``record``, when given, maps a state to a small array kept after EVERY step (the
     distributed solver records its shared-node displacements, the surrogates' training
     data, while the full field is kept only every ``save_every`` steps); the second
     output is then the pair (saved, recorded (n_saves * save_every, ...))."""
+    # the step index is a loop input only when an overwrite reads it
+    indices = None if overwrite is None else (lambda first, n: first + jnp.arange(n))
 
-    def inner(s, _):
-        s = step(system, s, synchronize)
+    def inner(s, j):
+        s = step(system, s, synchronize, None if overwrite is None else functools.partial(overwrite, j))
         return s, None if record is None else record(s)
 
-    def outer(s, _):
-        s, kept = jax.lax.scan(inner, s, None, length=save_every, unroll=STEP_UNROLL)
+    def outer(s, k):
+        js = None if indices is None else indices(k * save_every, save_every)
+        s, kept = jax.lax.scan(inner, s, js, length=save_every, unroll=STEP_UNROLL)
         return s, (s.displacement, kept)
 
+    ks = None if indices is None else indices(0, n_saves)
     if save_every == 1:  # without a loop of length 1 in each step
-        def saved_step(s, _):
-            s, kept = inner(s, None)
+        def saved_step(s, j):
+            s, kept = inner(s, j)
             return s, (s.displacement, kept)
 
-        state, (saved, kept) = jax.lax.scan(saved_step, state, None, length=n_saves, unroll=STEP_UNROLL)
+        state, (saved, kept) = jax.lax.scan(saved_step, state, ks, length=n_saves, unroll=STEP_UNROLL)
     else:
-        state, (saved, kept) = jax.lax.scan(outer, state, None, length=n_saves)
+        state, (saved, kept) = jax.lax.scan(outer, state, ks, length=n_saves)
         if record is not None:
             kept = kept.reshape(n_saves * save_every, *kept.shape[2:])
     return state, (saved if record is None else (saved, kept))
-

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..fem.stepper import STEP_UNROLL, SolverState, step
+from ..fem.stepper import SolverState, advance
 from ..parallel.exchange import PartSystems
 from ..parallel.spmd import spmd_program
 from ..surrogate.refill import refill_cycle
@@ -37,32 +37,18 @@ __all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejecte
 
 def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
     """One part: ``steps`` solver steps without synchronization, each followed by writing
-    the predicted shared-node displacements ``pred[j]`` into the part's state.
+    the predicted shared-node displacements ``pred[j]`` into the part's state (the
+    stepper's loop, :func:`jaxsync.fem.stepper.advance`, with an overwrite).
 
     Returns (state, saved displacement (steps // save_every, n_local, 3), the predictions
     at the saved steps (steps // save_every, n_dof))."""
     nodes = pred.reshape(pred.shape[0], -1, 3)
 
-    def one_step(st, j):
-        overwrite = lambda new: new.at[part.shared_local].set(nodes[j], mode="drop")  # noqa: E731
-        return step(part.system, st, overwrite=overwrite), None
+    def overwrite(j, new):
+        return new.at[part.shared_local].set(nodes[j], mode="drop")
 
-    def saved_block(st, k):
-        st, _ = jax.lax.scan(one_step, st, k * save_every + jnp.arange(save_every), unroll=STEP_UNROLL)
-        return st, (st.displacement, pred[(k + 1) * save_every - 1])
-
-    def saved_step(st, j):  # save_every = 1: no inner loop (it costs ~50 % per step)
-        st, _ = one_step(st, j)
-        return st, (st.displacement, pred[j])
-
-    if save_every == 1:
-        return _unpack(jax.lax.scan(saved_step, state, jnp.arange(steps), unroll=STEP_UNROLL))
-    return _unpack(jax.lax.scan(saved_block, state, jnp.arange(steps // save_every)))
-
-
-def _unpack(result):
-    state, (disp, kept) = result
-    return state, disp, kept
+    state, disp = advance(part.system, state, steps // save_every, save_every, overwrite=overwrite)
+    return state, disp, pred[save_every - 1:steps:save_every]
 
 
 def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, step0,
