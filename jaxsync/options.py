@@ -22,6 +22,8 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   ``"paper"``, the paper's rule floor(log_gamma(eta_min / eta0)).
 - :data:`ProblemKind`: ``[problem] kind`` of a TOML problem file (:mod:`jaxsync.app.config`):
   the packaged ``"cantilever"`` or a ``"general"`` problem with its own conditions and loads.
+- :data:`MeshGenerator`: ``[mesh] generate`` of a TOML problem file: the ``"box_beam"``
+  (default) or the ``"coronary_tree"`` of :func:`jaxsync.coronary_mesh`.
 """
 
 from __future__ import annotations
@@ -31,8 +33,8 @@ from typing import Literal, get_args
 
 from .errors import ConfigError, JaxsyncError
 
-__all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "choices", "check_option",
-           "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
+__all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
+           "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
 Sync = Literal["psum", "ppermute", "mpi"]
@@ -40,6 +42,7 @@ Compression = Literal["gzip", "lzf", "none"]
 Component = Literal[0, 1, 2]
 EpochRule = Literal["paper"]
 ProblemKind = Literal["cantilever", "general"]
+MeshGenerator = Literal["box_beam", "coronary_tree"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

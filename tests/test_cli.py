@@ -103,3 +103,11 @@ def test_demo_and_train_spell_the_surrogate_options_alike():
         for action in (demo, train):
             assert action.dest == dest and set(flags) <= set(action.option_strings), flags
         assert demo.default == train.default, flags
+
+
+def test_predict_load_parameter_keeps_its_former_spelling():
+    from jaxsync.app.cli import build_parser
+
+    for flag in ("--load-parameter", "--cond"):
+        args = build_parser().parse_args(["predict", "a.h5", "s.h5", flag, "0.4"])
+        assert args.load_parameter == 0.4

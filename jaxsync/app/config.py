@@ -4,7 +4,11 @@ Layout (every table optional; defaults give the paper's cantilever)::
 
     [mesh]                      # either a file ...
     file = "vessel.msh"         # any meshio-readable tetrahedral mesh
-    # ... or the generated box beam
+    # ... or a generated left coronary tree (jaxsync.coronary_mesh; facet sets inlet,
+    # outlet_1 .. outlet_6, outlet, lumen, outer) ...
+    generate = "coronary_tree"
+    target_elements = 8000      # tetrahedra, 5k to 400k
+    # ... or the generated box beam (the default)
     length = 25.0
     width = 1.0
     height = 1.0
@@ -77,7 +81,7 @@ from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from ..fem.material import LinearElastic
 from ..fem.mesh import box_beam, read_mesh
 from ..fem.problem import Dirichlet, Problem, cantilever
-from ..options import ProblemKind, check_option
+from ..options import MeshGenerator, ProblemKind, check_option
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -86,8 +90,8 @@ __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "p
 # (n None: any length >= 1), or a dict for an inline table.
 _PLANE = {"axis": "int", "value": "number"}
 _SCHEMA: dict[str, dict[str, Any]] = {
-    "mesh": {"file": "path", "length": "number", "width": "number", "height": "number",
-             "divisions": ("int", 3)},
+    "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
+             "width": "number", "height": "number", "divisions": ("int", 3)},
     "material": {"E": "number", "nu": "number", "rho": "number"},
     "problem": {"kind": "string", "damping": "number", "body_force": ("number", 3),
                 "t_ramp": "number", "t_off": "number"},
@@ -345,8 +349,13 @@ def problem_from_config(config: dict, *, mesh_file: str | None = None,
 def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scaling_beta):
     mesh_cfg = config.get("mesh", {})
     file = mesh_file or mesh_cfg.get("file")
+    generator = check_option("[mesh] generate", mesh_cfg.get("generate", "box_beam"), MeshGenerator)
     if file:
         mesh = read_mesh(file)
+    elif generator == "coronary_tree":
+        from ..fem.coronary_tree import coronary_mesh
+
+        mesh = coronary_mesh(target_elements=mesh_cfg.get("target_elements"))
     else:
         mesh = box_beam(float(mesh_cfg.get("length", 25.0)), float(mesh_cfg.get("width", 1.0)),
                         float(mesh_cfg.get("height", 1.0)),

@@ -2,14 +2,18 @@
 time step and the sparse mat-vec (no devices, no parts).
 
 Modules: :mod:`~jaxsync.fem.mesh` (meshes, reading gmsh/VTK files), :mod:`~jaxsync.fem.geometry`
-(generated vessel meshes), :mod:`~jaxsync.fem.material`, :mod:`~jaxsync.fem.loads` (body
+(generated vessel meshes), :mod:`~jaxsync.fem.coronary_tree` (a generated left coronary
+tree), :mod:`~jaxsync.fem.material`, :mod:`~jaxsync.fem.loads` (body
 forces, pressure, time functions), :mod:`~jaxsync.fem.problem` (a problem and the paper's
-cantilever), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
+cantilever), :mod:`~jaxsync.fem.coronary` (the paper's coronary case: material, pulsatile
+lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
 :mod:`~jaxsync.fem.element_force` (element forces formed every step),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """
 
+from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
+from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
 from .geometry import vessel_mesh
 from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
 from .material import LinearElastic
@@ -18,8 +22,10 @@ from .problem import Dirichlet, Problem, cantilever
 from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
 from .timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
 
-__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "LinearElastic",
+__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh",
+           "coronary_tree", "CoronaryTree", "VesselSegment", "LinearElastic",
            "TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "BodyForce", "Pressure",
-           "Dirichlet", "Problem", "cantilever", "ExplicitSystem", "SolverState", "build_system",
+           "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
+           "ExplicitSystem", "SolverState", "build_system",
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "mass_scaling",
            "MassScalingWarning"]

@@ -135,31 +135,15 @@ def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
             f"vessel_mesh: size={size:g} cm would give about {n_est:,} tetrahedra, more than "
             f"max_elements={max_elements:,}; choose a larger size (at least "
             f"{size * (n_est / max_elements) ** (1 / 3):.3g} cm) or raise max_elements")
-    try:
-        import gmsh
-    except ImportError as exc:  # pragma: no cover - gmsh is a dependency
-        raise MeshError("vessel_mesh needs the gmsh Python package: pip install gmsh") from exc
-
-    target = None if path is None else os.path.abspath(os.fspath(path))
-    if target is not None:
-        if os.path.isdir(target):
-            raise MeshError(f"vessel_mesh: {target!r} is a directory; give a file name ending in .msh")
-        if not target.endswith(".msh"):
-            raise MeshError(f"vessel_mesh writes gmsh files: the path must end in .msh, got {target!r}")
-        os.makedirs(os.path.dirname(target), exist_ok=True)
-    workdir = tempfile.mkdtemp(prefix=".vessel-", dir=None if target is None else os.path.dirname(target))
-    try:
-        tmp_file = os.path.join(workdir, "vessel.msh")
-        _run_gmsh(gmsh, tmp_file, length=length, radius=radius, wall=wall, branch=branch,
-                  angle=angle, size=size, verbose=verbose)
-        with contextlib.redirect_stdout(io.StringIO()):   # meshio prints a blank line
-            mesh = read_mesh(tmp_file)
-        _check_tags(mesh, branch)
-        if target is not None:
-            os.replace(tmp_file, target)
-    finally:
-        shutil.rmtree(workdir, ignore_errors=True)
-    return mesh
+    return generated_mesh(
+        path, "vessel_mesh",
+        lambda gmsh: _build_and_tag(gmsh, length=length, radius=radius, wall=wall,
+                                    branch=branch, angle=angle),
+        size=size, verbose=verbose,
+        what=f"the vessel (length={length:g}, radius={radius:g}, wall={wall:g}, "
+             f"branch={branch}, size={size:g})",
+        required=["inlet", "outlet", "lumen", "outer"],
+        outlets=["outlet_1", "outlet_2"] if branch else [])
 
 
 def _checked(length, radius, wall, angle, size, branch):
@@ -195,14 +179,63 @@ def _checked(length, radius, wall, angle, size, branch):
     return length, radius, wall, angle, size
 
 
-def _run_gmsh(gmsh, file_name, *, length, radius, wall, branch, angle, size, verbose):
-    """Build, mesh, tag and write the vessel inside one gmsh session, always closed."""
+# ---------------------------------------------------------------------------------------
+# gmsh machinery shared by the generators (also used by :mod:`jaxsync.fem.coronary_tree`)
+# ---------------------------------------------------------------------------------------
+
+def generated_mesh(path, who: str, build, *, size: float, verbose: bool, what: str,
+                   required: list[str], outlets: list[str]) -> Mesh:
+    """Run ``build(gmsh)`` (make the geometry, mesh it, add the physical groups) in a gmsh
+    session set up by :func:`gmsh_model`, write the ``.msh`` to a temporary file, read it
+    back with :func:`jaxsync.read_mesh`, check its facet sets (:func:`check_facet_sets`)
+    and only then move it to ``path`` (None: keep no file). ``who`` names the caller in
+    messages, ``what`` the geometry."""
+    try:
+        import gmsh
+    except ImportError as exc:  # pragma: no cover - gmsh is a dependency
+        raise MeshError(f"{who} needs the gmsh Python package: pip install gmsh") from exc
+    target = _target_path(path, who)
+    workdir = tempfile.mkdtemp(prefix=f".{who}-", dir=None if target is None else os.path.dirname(target))
+    try:
+        tmp_file = os.path.join(workdir, "mesh.msh")
+        with gmsh_model(gmsh, size=size, verbose=verbose, what=what):
+            build(gmsh)
+            gmsh.write(tmp_file)
+        with contextlib.redirect_stdout(io.StringIO()):   # meshio prints a blank line
+            mesh = read_mesh(tmp_file)
+        check_facet_sets(mesh, required, outlets, who)
+        if target is not None:
+            os.replace(tmp_file, target)
+    finally:
+        shutil.rmtree(workdir, ignore_errors=True)
+    return mesh
+
+
+def _target_path(path, who: str) -> str | None:
+    """The absolute ``.msh`` path to write (its folder created), or None."""
+    if path is None:
+        return None
+    target = os.path.abspath(os.fspath(path))
+    if os.path.isdir(target):
+        raise MeshError(f"{who}: {target!r} is a directory; give a file name ending in .msh")
+    if not target.endswith(".msh"):
+        raise MeshError(f"{who} writes gmsh files: the path must end in .msh, got {target!r}")
+    os.makedirs(os.path.dirname(target), exist_ok=True)
+    return target
+
+
+@contextlib.contextmanager
+def gmsh_model(gmsh, *, size: float, verbose: bool, what: str):
+    """A fresh gmsh model with the deterministic :data:`_OPTIONS` and element size
+    ``size`` [cm]. A session this opens is finalized on exit; a caller's session gets its
+    options and current model back. gmsh failures become :class:`MeshError` naming
+    ``what`` with gmsh's last error lines."""
     owns_session = not gmsh.isInitialized()
     if owns_session:
         gmsh.initialize(readConfigFiles=False, interruptible=False)
     saved = {}
     previous_model = None
-    model_name = "jaxsync_vessel"
+    model_name = "jaxsync_mesh"
     try:
         options = dict(_OPTIONS, **{"General.Terminal": 1 if verbose else 0,
                                     "General.Verbosity": 5 if verbose else 0,
@@ -214,37 +247,36 @@ def _run_gmsh(gmsh, file_name, *, length, radius, wall, branch, angle, size, ver
             gmsh.option.setNumber(name, value)
         if not owns_session:
             previous_model = gmsh.model.getCurrent()
-            model_name = f"jaxsync_vessel_{id(file_name):x}"
+            model_name = f"jaxsync_mesh_{id(saved):x}"
         gmsh.logger.start()
         gmsh.model.add(model_name)
-        _build(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
-        gmsh.model.mesh.generate(3)
-        _tag(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
-        gmsh.write(file_name)
+        yield
     except MeshError:
         raise
     except Exception as exc:  # gmsh raises plain Exception with its last error message
-        log = _gmsh_errors(gmsh)
         raise MeshError(
-            f"gmsh could not build the vessel (length={length:g}, radius={radius:g}, "
-            f"wall={wall:g}, branch={branch}, size={size:g}): {exc}{log}; try a different "
+            f"gmsh could not build {what}: {exc}{_gmsh_errors(gmsh)}; try a different "
             "size or geometry, or pass verbose=True to see gmsh's output") from exc
     finally:
+        _close_model(gmsh, owns_session, model_name, saved, previous_model)
+
+
+def _close_model(gmsh, owns_session, model_name, saved, previous_model) -> None:
+    try:
+        if owns_session:
+            gmsh.finalize()
+            return
         try:
-            if owns_session:
-                gmsh.finalize()
-            else:
-                try:
-                    gmsh.logger.stop()
-                    gmsh.model.setCurrent(model_name)
-                    gmsh.model.remove()
-                finally:
-                    for name, value in saved.items():
-                        gmsh.option.setNumber(name, value)
-                    if previous_model:
-                        gmsh.model.setCurrent(previous_model)
-        except Exception:  # cleanup must never hide the original error
-            pass
+            gmsh.logger.stop()
+            gmsh.model.setCurrent(model_name)
+            gmsh.model.remove()
+        finally:
+            for name, value in saved.items():
+                gmsh.option.setNumber(name, value)
+            if previous_model:
+                gmsh.model.setCurrent(previous_model)
+    except Exception:  # cleanup must never hide the original error
+        pass
 
 
 def _gmsh_errors(gmsh) -> str:
@@ -255,6 +287,99 @@ def _gmsh_errors(gmsh) -> str:
     return (" [gmsh: " + " | ".join(lines[-3:]) + "]") if lines else ""
 
 
+def occ_cylinder(occ, start: np.ndarray, end: np.ndarray, r: float,
+                 extend_start: float = 0.0, extend_end: float = 0.0) -> tuple[int, int]:
+    """OCC cylinder (dim, tag) of radius ``r`` [cm] on the segment start-end (3,) [cm],
+    lengthened by ``extend_start`` / ``extend_end`` [cm] beyond its ends."""
+    axis = (end - start) / np.linalg.norm(end - start)
+    a = start - extend_start * axis
+    b = end + extend_end * axis
+    return (3, occ.addCylinder(*a, *(b - a), r))
+
+
+def occ_wall(occ, outers: list, lumens: list, what: str) -> None:
+    """The wall solid: union of the ``outers`` (dim, tag) minus union of the ``lumens``;
+    synchronizes the model and checks that one volume came out."""
+    wall = occ.fuse(outers[:1], outers[1:])[0] if len(outers) > 1 else outers
+    lumen = occ.fuse(lumens[:1], lumens[1:])[0] if len(lumens) > 1 else lumens
+    result, _ = occ.cut(wall, lumen)
+    occ.synchronize()
+    volumes = [tag for dim, tag in result if dim == 3]
+    if len(volumes) != 1:
+        raise MeshError(f"gmsh: {what} came out as {len(volumes)} volumes instead of one; "
+                        "check the radii, wall thickness and angles")
+
+
+def tag_surfaces(gmsh, ends: list[tuple[np.ndarray, np.ndarray, float]], is_lumen, tol: float):
+    """Sort the meshed surfaces: a planar surface through ``ends[k]`` = (point (3,),
+    axis (3,), outer radius) [cm] goes to ``ends[k]``; any other to ``lumen`` when
+    ``is_lumen(nodes (n, 3))``, else to ``outer``. Returns (tags per end, lumen tags,
+    outer tags)."""
+    at_end = [[] for _ in ends]
+    lumen, outer = [], []
+    for _, tag in gmsh.model.getEntities(2):
+        _, coords, _ = gmsh.model.mesh.getNodes(2, tag, includeBoundary=True,
+                                                returnParametricCoord=False)
+        pts = np.asarray(coords, dtype=float).reshape(-1, 3)
+        if len(pts) == 0:
+            raise MeshError(f"gmsh: surface {tag} has no mesh nodes")
+        hit = [k for k, (p, axis, r_out) in enumerate(ends)
+               if abs((pts - p) @ axis).max() <= tol and np.linalg.norm(pts - p, axis=1).max() <= r_out + tol]
+        if hit:
+            at_end[hit[0]].append(tag)
+        else:
+            (lumen if is_lumen(pts) else outer).append(tag)
+    return at_end, lumen, outer
+
+
+def add_physical_groups(gmsh, inlet: list[int], outlets: list[list[int]], lumen: list[int],
+                        outer: list[int], split_outlets: bool) -> None:
+    """Physical groups ``inlet``, ``outlet`` (all outlets), ``outlet_1``... (when
+    ``split_outlets``), ``lumen``, ``outer`` and the volume ``wall``; raises
+    :class:`MeshError` naming any surface that was not found."""
+    missing = [name for name, tags in (("inlet", inlet), ("lumen", lumen), ("outer", outer)) if not tags]
+    missing += [f"outlet_{k + 1}" for k, tags in enumerate(outlets) if not tags]
+    if missing:
+        raise MeshError(f"gmsh: could not find the vessel surfaces {', '.join(missing)}; "
+                        "check the geometry arguments")
+    # Split outlets first, so that their file tags (meshio's gmsh:physical keeps the
+    # first tag of a surface) name them; "outlet" then comes from the cell sets.
+    if split_outlets:
+        for k, tags in enumerate(outlets):
+            gmsh.model.addPhysicalGroup(2, tags, name=f"outlet_{k + 1}")
+    gmsh.model.addPhysicalGroup(2, [t for tags in outlets for t in tags], name="outlet")
+    for name, tags in (("inlet", inlet), ("lumen", lumen), ("outer", outer)):
+        gmsh.model.addPhysicalGroup(2, tags, name=name)
+    gmsh.model.addPhysicalGroup(3, [tag for _, tag in gmsh.model.getEntities(3)], name="wall")
+
+
+def check_facet_sets(mesh: Mesh, required: list[str], outlets: list[str], who: str) -> None:
+    """The read-back mesh must carry every ``required`` and ``outlets`` facet set,
+    non-empty, and the ``outlets`` together must be the ``outlet`` set."""
+    missing = [n for n in required + outlets if len(mesh.facet_sets.get(n, ())) == 0]
+    if missing:
+        raise MeshError(f"{who}: the mesh read back without facet sets {', '.join(missing)} "
+                        f"(found: {', '.join(sorted(mesh.facet_sets)) or 'none'})")
+    if outlets:
+        n_out = len(mesh.facet_sets["outlet"])
+        n_split = sum(len(mesh.facet_sets[n]) for n in outlets)
+        if n_out != n_split:
+            raise MeshError(f"{who}: the mesh read back with {n_out} outlet triangles but "
+                            f"{n_split} in {', '.join(outlets)}; the .msh physical tags were "
+                            "not read as expected")
+
+
+# ---------------------------------------------------------------------------------------
+# the vessel
+# ---------------------------------------------------------------------------------------
+
+def _build_and_tag(gmsh, *, length, radius, wall, branch, angle):
+    """Make, mesh and tag the vessel in the current gmsh model."""
+    _build(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
+    gmsh.model.mesh.generate(3)
+    _tag(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
+
+
 def _build(gmsh, *, length, radius, wall, branch, angle):
     """The wall solid: union of the outer cylinders minus the union of the lumen ones."""
     occ = gmsh.model.occ
@@ -263,32 +388,18 @@ def _build(gmsh, *, length, radius, wall, branch, angle):
     # The lumen cylinders stick out of the open ends so that the cut leaves clean
     # annuli there instead of faces that coincide with the wall's end caps.
     overhang = 0.5 * wall
-
-    def cylinder(start, end, r, extend_start, extend_end):
-        axis = (end - start) / np.linalg.norm(end - start)
-        a = start - extend_start * axis
-        b = end + extend_end * axis
-        return (3, occ.addCylinder(*a, *(b - a), r))
-
     if not branch:
         (start, end), = segments
-        wall_solid = [cylinder(start, end, outer, 0.0, 0.0)]
-        lumen_solid = [cylinder(start, end, radius, overhang, overhang)]
+        outers = [occ_cylinder(occ, start, end, outer)]
+        lumens = [occ_cylinder(occ, start, end, radius, overhang, overhang)]
     else:
         junction = segments[0][1]
-        outers = [cylinder(s, e, outer, 0.0, 0.0) for s, e in segments]
-        lumens = [cylinder(segments[0][0], segments[0][1], radius, overhang, 0.0)]
-        lumens += [cylinder(s, e, radius, 0.0, overhang) for s, e in segments[1:]]
+        outers = [occ_cylinder(occ, s, e, outer) for s, e in segments]
+        lumens = [occ_cylinder(occ, segments[0][0], segments[0][1], radius, overhang, 0.0)]
+        lumens += [occ_cylinder(occ, s, e, radius, 0.0, overhang) for s, e in segments[1:]]
         outers.append((3, occ.addSphere(*junction, outer)))
         lumens.append((3, occ.addSphere(*junction, radius)))
-        wall_solid, _ = occ.fuse(outers[:1], outers[1:])
-        lumen_solid, _ = occ.fuse(lumens[:1], lumens[1:])
-    result, _ = occ.cut(wall_solid, lumen_solid)
-    occ.synchronize()
-    volumes = [tag for dim, tag in result if dim == 3]
-    if len(volumes) != 1:
-        raise MeshError(f"gmsh: the vessel wall came out as {len(volumes)} volumes instead of one; "
-                        "check radius, wall and angle")
+    occ_wall(occ, outers, lumens, "the vessel wall")
 
 
 def _distance_to_centerline(points: np.ndarray, segments) -> np.ndarray:
@@ -305,60 +416,16 @@ def _tag(gmsh, *, length, radius, wall, branch, angle):
     surfaces by the distance of their nodes from the centerline."""
     outer = radius + wall
     segments = vessel_centerline(length=length, branch=branch, angle=angle)
-    inlet_point = segments[0][0]
-    outlet_points = [e for _, e in segments[1:]] if branch else [segments[0][1]]
-    groups = {"inlet": [], "lumen": [], "outer": []}
-    outlets = [[] for _ in outlet_points]
-    tol = 1e-6 * max(length, 1.0)
-    for _, tag in gmsh.model.getEntities(2):
-        _, coords, _ = gmsh.model.mesh.getNodes(2, tag, includeBoundary=True,
-                                                returnParametricCoord=False)
-        pts = np.asarray(coords, dtype=float).reshape(-1, 3)
-        if len(pts) == 0:
-            raise MeshError(f"gmsh: surface {tag} of the vessel has no mesh nodes")
-        centre = pts.mean(axis=0)
-        if np.linalg.norm(pts - inlet_point, axis=1).max() <= outer + tol and \
-                abs((pts - inlet_point)[:, 2]).max() <= tol:
-            groups["inlet"].append(tag)
-            continue
-        hit = None
-        for k, (p_end, (a, b)) in enumerate(zip(outlet_points, segments[-len(outlet_points):])):
-            axis = (b - a) / np.linalg.norm(b - a)
-            if abs((pts - p_end) @ axis).max() <= tol and np.linalg.norm(centre - p_end) <= outer:
-                hit = k
-                break
-        if hit is not None:
-            outlets[hit].append(tag)
-            continue
-        dist = np.median(_distance_to_centerline(pts, segments))
-        groups["lumen" if dist < radius + 0.5 * wall else "outer"].append(tag)
-    missing = [k for k, v in groups.items() if not v] + \
-        [f"outlet_{k + 1}" for k, v in enumerate(outlets) if not v]
-    if missing:
-        raise MeshError(f"gmsh: could not find the vessel surfaces {', '.join(missing)}; "
-                        "check the geometry arguments")
-    # Branch outlets first, so that their file tags (meshio's gmsh:physical keeps the
-    # first tag of a surface) name them; "outlet" then comes from the cell sets.
-    if branch:
-        for k, tags in enumerate(outlets):
-            gmsh.model.addPhysicalGroup(2, tags, name=f"outlet_{k + 1}")
-    gmsh.model.addPhysicalGroup(2, [t for tags in outlets for t in tags], name="outlet")
-    for name, tags in groups.items():
-        gmsh.model.addPhysicalGroup(2, tags, name=name)
-    gmsh.model.addPhysicalGroup(3, [tag for _, tag in gmsh.model.getEntities(3)], name="wall")
+    outlet_segments = segments[1:] if branch else segments
+    ends = [(segments[0][0], _unit(segments[0][1] - segments[0][0]), outer)]
+    ends += [(b, _unit(b - a), outer) for a, b in outlet_segments]
+
+    def is_lumen(pts):
+        return np.median(_distance_to_centerline(pts, segments)) < radius + 0.5 * wall
+
+    at_end, lumen, outer_tags = tag_surfaces(gmsh, ends, is_lumen, tol=1e-6 * max(length, 1.0))
+    add_physical_groups(gmsh, at_end[0], at_end[1:], lumen, outer_tags, split_outlets=branch)
 
 
-def _check_tags(mesh: Mesh, branch: bool) -> None:
-    """The read-back mesh must carry every facet set, each non-empty and on the boundary."""
-    names = ["inlet", "outlet", "lumen", "outer"] + (["outlet_1", "outlet_2"] if branch else [])
-    missing = [n for n in names if len(mesh.facet_sets.get(n, ())) == 0]
-    if missing:
-        raise MeshError(f"the vessel mesh read back without facet sets {', '.join(missing)} "
-                        f"(found: {', '.join(sorted(mesh.facet_sets)) or 'none'})")
-    if branch:
-        n_out = len(mesh.facet_sets["outlet"])
-        n_split = len(mesh.facet_sets["outlet_1"]) + len(mesh.facet_sets["outlet_2"])
-        if n_out != n_split:
-            raise MeshError(f"the vessel mesh read back with {n_out} outlet triangles but "
-                            f"{n_split} in outlet_1 and outlet_2; the .msh physical tags were "
-                            "not read as expected")
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)

@@ -27,8 +27,8 @@ def add_parser(subparsers) -> None:
                         "trajectory's, so that jaxsync report can compare the two)")
     common.add_mode_option(p)
     common.add_sync_option(p)
-    p.add_argument("--cond", type=float, default=None,
-                   help="load parameter for conditional surrogates")
+    p.add_argument("--load-parameter", "--cond", dest="load_parameter", type=float, default=None,
+                   help="load parameter of conditional surrogates (--cond: its former name)")
     common.add_resync_tolerance_option(p)
     p.add_argument("--output", "-o", default="online.h5", help="output trajectory (default: %(default)s)")
     p.add_argument("--force", action="store_true",
@@ -63,7 +63,7 @@ def run(args) -> int:
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=ckpt, n_cri=n_cri,
                                     dt=reference.dt, mode=args.mode,
                                     save_every=args.save_every or reference.save_every,
-                                    load_parameter=args.cond, progress=not args.no_progress,
+                                    load_parameter=args.load_parameter, progress=not args.no_progress,
                                     resync_tolerance=args.resync_tolerance, **common.sync_of(args))
     online.save(args.output, compression=common.compression_of(args))
     print(describe_run(online) + f"; wrote {args.output}")
