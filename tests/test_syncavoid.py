@@ -125,6 +125,22 @@ def test_nan_prediction_names_step_and_part(problem, partition, reference):
                                atol=1e-12 * np.abs(reference.displacement).max())
 
 
+def test_predicted_blow_up_stops_like_a_synchronized_divergence(problem, partition, reference):
+    """Finite but absurd predictions (1e6 cm at the shared nodes from a step on) drive the
+    displacement past the divergence limit: the run stops there, keeping the steps before."""
+    net = oracle(reference, partition)
+    jump = N_CRI + N_S * N_F + 3
+    future = np.asarray(net.future).copy()
+    future[:, jump - N_CRI - 1:] = 1e6
+    net = OraclePredictor(future, first_step=N_CRI + 1, n_s=N_S, n_past=N_P, n_future=N_F)
+    with pytest.raises(StabilityError, match=f"the predicted run diverged by step {jump}") as info:
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net, n_cri=N_CRI)
+    partial = info.value.trajectory
+    assert partial.n_saved == jump
+    np.testing.assert_allclose(partial.displacement, reference.displacement[:jump], rtol=0,
+                               atol=1e-12 * np.abs(reference.displacement).max())
+
+
 def test_full_system_oracle_reproduces_the_reference(problem):
     from jaxsync.solve.full_system import simulate_full_system
 

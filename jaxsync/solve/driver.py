@@ -22,7 +22,7 @@ from typing import Any, Callable, NamedTuple, Protocol
 
 import numpy as np
 
-__all__ = ["Runner", "Chunk", "Segment", "Progress", "Diverged", "run_chunks", "divergence_limit",
+__all__ = ["Runner", "Chunk", "Segment", "Progress", "Diverged", "Stopped", "run_chunks", "divergence_limit",
            "chunk_of_saves"]
 
 
@@ -96,6 +96,13 @@ class Diverged(Exception):
         self.segment, self.step, self.part = segment, step, part
 
 
+class Stopped(Exception):
+    """Raised by a runner's ``advance`` to end :func:`run_chunks` early (a rejected
+    predicted cycle, say); the loop sets ``segment`` to the steps advanced before."""
+
+    segment: Segment | None = None
+
+
 class Progress:
     """One progress bar over a whole run (tqdm), shared by the loop's calls; ``show``
     None shows it for runs of 20 000 steps or more. Use as a context manager: an error
@@ -155,18 +162,18 @@ def _first_bad(chunk: Chunk, limit: float) -> tuple[int, int | None] | None:
 
 def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit: float,
                progress: Progress | None = None, chunk_steps: int = 5000,
-               after_chunk: Callable[[Segment], None] | None = None) -> Segment:
+               after_chunk: Callable[[int, Callable[[], Segment]], None] | None = None) -> Segment:
     """Advance ``state`` from step ``first`` to ``last`` in compiled chunks of ``runner``.
 
     Each chunk's program is compiled ahead of its timed call (so ``seconds`` excludes
     compilation), its snapshots are checked (NaN/Inf, or |d| above ``limit`` [cm]; NaN
     predictions of a predicted chunk are named by part), the progress bar moves, and
-    ``after_chunk(segment so far)`` runs (checkpoints).
+    ``after_chunk(step, segment)`` runs (checkpoints; ``segment()`` builds the segment so
+    far, only when the hook needs it).
 
     Returns the :class:`Segment`. Raises :class:`Diverged` (with the good part of the
-    segment) on divergence; an exception from the runner (e.g. a rejected predicted
-    cycle) propagates with the segment so far in its ``segment`` attribute when it has
-    one.
+    segment) on divergence; a :class:`Stopped` from the runner propagates with the
+    segment so far in its ``segment`` attribute.
     """
     save_every = runner.save_every
     pieces, shared, preds = [], None, []
@@ -176,7 +183,7 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
     def segment(upto: int | None = None) -> Segment:
         disp = np.concatenate(pieces) if pieces else np.zeros((0, runner.n_nodes, 3))
         pred = np.concatenate(preds, axis=1) if preds else None
-        rec = None if shared is None else [np.concatenate(s) if s else np.zeros((0, 0)) for s in shared]
+        rec = None if shared is None else [np.concatenate(s) for s in shared]
         if upto is not None:  # keep the snapshots before index `upto` of the last chunk
             n_keep = len(disp) - len(pieces[-1]) + upto
             disp = disp[:n_keep]
@@ -191,10 +198,9 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
         start = time.perf_counter()
         try:
             new_state, chunk = runner.advance(state, steps)
-        except Exception as exc:
+        except Stopped as stop:
             seconds += time.perf_counter() - start
-            if not hasattr(exc, "segment"):
-                exc.segment = segment()
+            stop.segment = segment()
             raise
         seconds += time.perf_counter() - start
         pieces.append(chunk.displacement)
@@ -213,5 +219,5 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
         if progress is not None:
             progress.update(steps)
         if after_chunk is not None:
-            after_chunk(segment())
+            after_chunk(step, segment)
     return segment()

@@ -27,7 +27,7 @@ from ..parallel.exchange import PartSystems
 from ..parallel.spmd import spmd_program
 from ..surrogate.refill import refill_cycle
 from .distributed import DistributedRunner, to_host
-from .driver import Chunk
+from .driver import Chunk, Stopped
 
 __all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejected",
            "DisagreementMonitor", "mean_over_parts", "overwritten_steps"]
@@ -170,7 +170,7 @@ class PredictedPhase:
 # --------------------------------------------------------------------------- runners
 
 
-class CycleRejected(Exception):
+class CycleRejected(Stopped):
     """A monitored cycle whose es_hat [cm] exceeded the tolerance [cm] (it was not applied)."""
 
     def __init__(self, step: int, es_hat: float, tolerance: float):
@@ -256,9 +256,7 @@ class MonitoredRunner(_PredictedRunnerBase):
         if not es_hat.max() <= tol:
             raise CycleRejected(step0, float(es_hat.max()), tol)
         solver_state, disp = self.phase.apply(solver_state, pred, steps)
-        disp = to_host(disp)
-        return (solver_state, next_buffer, step0 + steps), Chunk(
-            mean_over_parts(self.problem.mesh.n_nodes, self.partition, disp), None, kept)
+        return (solver_state, next_buffer, step0 + steps), self._chunk(disp, kept)
 
 
 def mean_over_parts(n_nodes: int, partition, local) -> np.ndarray:

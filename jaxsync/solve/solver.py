@@ -23,7 +23,7 @@ from ..errors import ProblemError, StabilityError
 from ..fem.stepper import ExplicitSystem, SolverState, advance, build_system, initial_state
 from ..pytree import is_traced
 from .checkpoint import fingerprint, load_checkpoint, save_checkpoint
-from .driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
+from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
 
 __all__ = ["simulate", "steady_state", "drive", "SingleDeviceRunner"]
 
@@ -227,15 +227,15 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
     chunks_done = 0
 
-    def after_chunk(segment: Segment) -> None:
+    def after_chunk(step: int, so_far) -> None:
         nonlocal chunks_done
         chunks_done += 1
-        if chunks_done % checkpoint_chunks == 0 or segment.last == n_steps:
+        if chunks_done % checkpoint_chunks == 0 or step == n_steps:
+            segment = so_far()
             global_state = runner.to_global(segment.state)  # collective in multi-process runs
             if jax.process_index() == 0:  # one writer
                 save_checkpoint(checkpoint, problem_key, global_state, snapshots + [segment.displacement],
-                                 None if recorded is None else
-                                 [rec + [new] for rec, new in zip(recorded, segment.shared)])
+                                _joined(recorded, segment.shared))
 
     bar = progress if isinstance(progress, Progress) else None
     limit = divergence_limit(problem.mesh, blowup_factor)
@@ -269,9 +269,9 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
 
 def _joined(recorded, new):
     """Per part, the earlier shared-history chunks followed by ``new`` (None: none)."""
-    if recorded is None:
-        return None
-    return [rec + ([] if new is None else [values]) for rec, values in zip(recorded, new or [None] * len(recorded))]
+    if recorded is None or new is None:
+        return recorded
+    return [rec + [values] for rec, values in zip(recorded, new)]
 
 
 def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=None, shared_every=None):

@@ -238,51 +238,54 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         predicted.amplitude = max(float(np.abs(v).max(initial=0.0)) for v in shared_sync)
         anchor = _Anchor(anchor_state, _histories(partition, shared_sync, history, n_dof), n_cri)
         step_now = n_cri
-        while step_now < n_steps:
-            bar.label("predicted")
-            state = (runner.from_global(anchor.state), runner.put(anchor.history), step_now)
-            try:
-                segment = run_chunks(predicted, state, step_now, n_steps, kind="predicted", limit=limit,
-                                     progress=bar)
-            except Diverged as bad:
-                partial = _assemble(problem, partition, synced, timeline + [bad.segment], dt, save_every)
-                where = f"the surrogate of part {bad.part} predicted NaN/Inf" if bad.part is not None else \
-                    f"the predicted run diverged (displacement NaN/Inf or above {limit:.3g} cm)"
-                err = StabilityError(
-                    f"{where} for step {bad.step} (t = {bad.step * dt:.6g} s): the network diverged; "
-                    f"retrain it, raise n_cri or give a resync_tolerance. The {partial.n_saved} snapshots "
-                    "saved before are kept (error.trajectory)")
-                err.trajectory = partial
-                raise err from None
-            except CycleRejected as rejected:
-                # back to the anchor, synchronized through the end of the rejected cycle
-                discarded = rejected.segment
-                seconds["discarded"] += discarded.seconds
-                compile_seconds += discarded.compile_seconds
-                resyncs["resynchronized_at"].append(rejected.step)
-                resyncs["es_hat_trigger"].append(rejected.es_hat)
-                resyncs["tolerance_cm"].append(rejected.tolerance)
-                failures = failures + 1 if rejected.step == anchor.step else 0
-                n_discarded += rejected.step - anchor.step
-                target = min(rejected.step + cycle_steps * 2 ** failures, n_steps)
-                bar.label("re-synchronized")
-                bar.set(anchor.step)
-                segment = run_chunks(runner, runner.from_global(anchor.state), anchor.step, target,
-                                     kind="synchronized", limit=limit, progress=bar)
-                seconds["synchronized"] += segment.seconds
+        try:
+            while step_now < n_steps:
+                bar.label("predicted")
+                state = (runner.from_global(anchor.state), runner.put(anchor.history), step_now)
+                try:
+                    segment = run_chunks(predicted, state, step_now, n_steps, kind="predicted", limit=limit,
+                                         progress=bar)
+                except CycleRejected as rejected:
+                    # back to the anchor, synchronized through the end of the rejected cycle
+                    discarded = rejected.segment
+                    seconds["discarded"] += discarded.seconds
+                    compile_seconds += discarded.compile_seconds
+                    resyncs["resynchronized_at"].append(rejected.step)
+                    resyncs["es_hat_trigger"].append(rejected.es_hat)
+                    resyncs["tolerance_cm"].append(rejected.tolerance)
+                    failures = failures + 1 if rejected.step == anchor.step else 0
+                    n_discarded += rejected.step - anchor.step
+                    target = min(rejected.step + cycle_steps * 2 ** failures, n_steps)
+                    bar.label("re-synchronized")
+                    bar.set(anchor.step)
+                    segment = run_chunks(runner, runner.from_global(anchor.state), anchor.step, target,
+                                         kind="synchronized", limit=limit, progress=bar)
+                    seconds["synchronized"] += segment.seconds
+                    compile_seconds += segment.compile_seconds
+                    predicted.amplitude = max([predicted.amplitude]
+                                              + [float(np.abs(v).max(initial=0.0)) for v in segment.shared])
+                    timeline.append(segment)
+                    end_state = runner.to_global(segment.state)
+                    anchor = _Anchor(end_state, _histories(partition, segment.shared, history, n_dof, anchor.history),
+                                     target)
+                    step_now = target
+                    continue
+                seconds["predicted"] += segment.seconds
                 compile_seconds += segment.compile_seconds
-                predicted.amplitude = max([predicted.amplitude]
-                                          + [float(np.abs(v).max(initial=0.0)) for v in segment.shared])
                 timeline.append(segment)
-                end_state = runner.to_global(segment.state)
-                anchor = _Anchor(end_state, _histories(partition, segment.shared, history, n_dof, anchor.history),
-                                 target)
-                step_now = target
-                continue
-            seconds["predicted"] += segment.seconds
-            compile_seconds += segment.compile_seconds
-            timeline.append(segment)
-            step_now = segment.last
+                step_now = segment.last
+        except Diverged as bad:  # predicted, or re-synchronized
+            partial = _assemble(problem, partition, synced, timeline + [bad.segment], dt, save_every)
+            if bad.part is not None:
+                where = (f"the surrogate of part {bad.part} predicted NaN/Inf for step {bad.step}: the network "
+                         "diverged; retrain it, raise n_cri or give a resync_tolerance")
+            else:
+                where = (f"the {bad.segment.kind} run diverged by step {bad.step} (displacement NaN/Inf or "
+                         f"above {limit:.3g} cm); reduce dt (CFL {problem.dt:.4e} s)")
+            err = StabilityError(f"{where} (t = {bad.step * dt:.6g} s). The {partial.n_saved} snapshots "
+                                 "saved before are kept (error.trajectory)")
+            err.trajectory = partial
+            raise err from None
     traj = _assemble(problem, partition, synced, timeline, dt, save_every)
     n_sync = n_cri + sum(seg.n_steps for seg in timeline if seg.kind == "synchronized")
     n_pred = n_steps - n_sync
