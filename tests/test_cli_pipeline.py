@@ -150,6 +150,34 @@ def test_predict_repeats_the_demo_online_run(predicted, online):
     np.testing.assert_allclose(again.displacement, online.displacement, rtol=0, atol=1e-12)
 
 
+def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, online):
+    """--raw-refill writes the n_s interleaved network applications as they are; the
+    default writes their smooth curve from the last known value. Checked on the first
+    predicted cycle against the network applied to the synchronized history."""
+    from jaxsync.surrogate import Surrogate
+    from jaxsync.surrogate.refill import smooth_refill
+
+    path = demo[0] / "raw.h5"
+    run = run_cli(predict_args(demo, path, "--raw-refill"))
+    assert run.code == 0, run.err
+    raw = jaxsync.Trajectory.load(path)
+    surrogate = Surrogate.load(demo[1] / "surrogate" / "surrogate.h5")
+    n_cri, history, every = N_S * 5, N_S * 5, online.save_every
+    for p, part in enumerate(reference.parts):
+        width = part.shared_displacement.shape[1]
+        buffer = np.pad(part.shared_displacement[n_cri + 1 - history:n_cri + 1],
+                        ((0, 0), (0, surrogate.n_dof - width)))
+        network = np.asarray(dataclasses.replace(surrogate, smooth=False).part(p).predict(buffer, n_cri))
+        saved = slice(every - 1, None, every)
+        n = network[saved].shape[0]
+        np.testing.assert_allclose(raw.parts[p].predicted_shared_displacement[:n], network[saved, :width],
+                                   rtol=1e-10, atol=1e-13)
+        smooth = np.asarray(smooth_refill(network, buffer[-1], N_S))
+        np.testing.assert_allclose(online.parts[p].predicted_shared_displacement[:n], smooth[saved, :width],
+                                   rtol=1e-10, atol=1e-13)
+        assert not np.allclose(network[saved, :width], smooth[saved, :width])
+
+
 def test_predict_refuses_an_existing_output(demo, predicted):
     """An existing output is not overwritten without --force (refused before running)."""
     path, _ = predicted

@@ -68,7 +68,8 @@ def test_train_errors(tmp_path):
     sparse = tmp_path / "every5.h5"
     write_trajectory(sparse, save_every=5)
     args = _parser().parse_args(["train", str(sparse), "-o", str(tmp_path / "x"), *SMALL])
-    with pytest.raises(CheckpointError, match="shared_every=1"):
+    with pytest.raises(CheckpointError, match="every 5 steps, which does not divide the sampling stride n_s=2; "
+                                              "rerun the solver with shared_every dividing n_s"):
         args.func(args)
 
     plain = tmp_path / "plain.h5"
@@ -102,10 +103,13 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
                                       config.n_epochs, config.patience, config.epochs_per_call)
     assert (args.n_hidden, args.n_layers, args.epochs, args.checkpoint_every, args.allow_predicted) == (
         32, 2, 300, 50, False)
-    demo = inspect.signature(run_demo).parameters
-    assert (demo["n_hidden"].default, demo["n_layers"].default, demo["epochs"].default, demo["eta0"].default,
-            demo["gamma"].default, demo["batch_size"].default) == (
-        args.n_hidden, args.n_layers, args.epochs, args.eta0, args.gamma, args.batch_size)
+    from jaxsync.app.demo import demo_defaults
+
+    demo = demo_defaults("cantilever")
+    assert all(inspect.signature(run_demo).parameters[k].default is None
+               for k in ("n_hidden", "n_layers", "epochs", "eta0", "gamma", "batch_size", "n_s"))
+    assert (demo.n_hidden, demo.n_layers, demo.epochs, demo.eta0, demo.gamma, demo.batch_size, demo.n_s) == (
+        args.n_hidden, args.n_layers, args.epochs, args.eta0, args.gamma, args.batch_size, args.n_s)
     lib = inspect.signature(train_surrogates).parameters
     assert (lib["n_hidden"].default, lib["n_layers"].default, lib["n_s"].default, lib["checkpoint_every"].default,
             lib["emse_applications"].default) == (args.n_hidden, args.n_layers, args.n_s, args.checkpoint_every,

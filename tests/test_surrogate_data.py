@@ -212,8 +212,6 @@ def test_read_shared_histories_refuses_predicted_runs_unless_allowed(tmp_path):
 
 
 def test_read_shared_histories_errors(tmp_path):
-    with pytest.raises(CheckpointError, match="shared_every=1"):
-        read_shared_histories(_trajectory(save_every=2)[0])
     with pytest.raises(CheckpointError, match="not a distributed run"):
         read_shared_histories(_trajectory(distributed=False)[0])
     with pytest.raises(CheckpointError, match="7 flags for 30 saved steps"):
@@ -265,9 +263,14 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     runs = read_shared_histories(tmp_path / "thin.h5")
     for got, part in zip(runs.histories, every.parts):
         np.testing.assert_array_equal(got, part.shared_displacement)
-    # a thinned shared history is refused for training, with the fix named
+    # a thinned shared history is read with its stride: the rows of every 50th step
     jaxsync.simulate(problem, 300, partitions=parts, save_every=50).save(tmp_path / "coarse.h5")
-    with pytest.raises(CheckpointError, match="shared_every=1"):
-        read_shared_histories(tmp_path / "coarse.h5")
+    coarse = read_shared_histories(tmp_path / "coarse.h5")
+    assert coarse.stride == 50 and coarse.for_sampling(100) == 2
+    for got, part in zip(coarse.histories, every.parts):
+        np.testing.assert_array_equal(got, part.shared_displacement[::50])
+    # a stride that does not divide n_s is refused, with the fix named
+    with pytest.raises(CheckpointError, match="does not divide the sampling stride n_s=80.*shared_every"):
+        coarse.for_sampling(80)
     with pytest.raises(jaxsync.ProblemError, match="divisor"):
         jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=3)

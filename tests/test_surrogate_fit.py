@@ -93,7 +93,7 @@ def test_files_written_into_out_and_several_runs_with_load_parameters(tmp_path):
 
 
 def test_unusable_trajectories_and_settings_are_refused(tmp_path):
-    with pytest.raises(CheckpointError, match="shared_every=1"):
+    with pytest.raises(CheckpointError, match="every 5 steps, which does not divide the sampling stride n_s=2"):
         train_surrogates(oscillator_trajectory(n_steps=300, save_every=5), **SMALL)
     with pytest.raises(ConfigError, match="load parameter"):
         train_surrogates(oscillator_trajectory(n_steps=300), n_cond_repeat=2, **SMALL)
@@ -104,3 +104,25 @@ def test_unusable_trajectories_and_settings_are_refused(tmp_path):
         train_surrogates([oscillator_trajectory(n_steps=300), other], **SMALL)
     with pytest.raises(ConfigError, match="at least one trajectory"):
         train_surrogates([], **SMALL)
+
+
+def test_shared_histories_thinned_to_a_divisor_of_n_s_train_the_same_replicas():
+    """Training samples every n_s steps, so a run that kept its shared nodes only every
+    s steps (s dividing n_s; the memory a long run needs) gives the same windows and the
+    same parameters as one that kept every step; a stride that does not divide n_s is
+    refused. E_mse, which reads every step, is skipped on the thinned run."""
+    import dataclasses
+
+    full = oscillator_trajectory(n_steps=600)
+    thin = dataclasses.replace(
+        full, shared_every=2,
+        parts=tuple(dataclasses.replace(p, shared_displacement=p.shared_displacement[::2]) for p in full.parts))
+    settings = dict(SMALL, n_s=4)
+    a = train_surrogates(full, emse_applications=0, **settings)
+    b = train_surrogates(thin, emse_applications=5, **settings)
+    assert (a.n_train_windows, a.n_val_windows) == (b.n_train_windows, b.n_val_windows) and a.n_train_windows > 0
+    for x, y in zip(jax.tree_util.tree_leaves(a.result.params), jax.tree_util.tree_leaves(b.result.params)):
+        np.testing.assert_array_equal(x, y)
+    assert b.sqrt_e_mse is None and b.e_mse_applications is None
+    with pytest.raises(CheckpointError, match="every 2 steps, which does not divide the sampling stride n_s=3"):
+        train_surrogates(thin, emse_applications=0, **dict(SMALL, n_s=3))

@@ -19,8 +19,9 @@ from jaxsync.surrogate.replicas import init_replicas, replica_params
 N_S, N_P, N_F = 3, 4, 2
 
 
-def _surrogate(q=0, dtype="float32"):
-    """Two replicas (2 and 3 real dofs, width 3) with a non-trivial normalization."""
+def _surrogate(q=0, dtype="float32", smooth=False):
+    """Two replicas (2 and 3 real dofs, width 3) with a non-trivial normalization; the
+    raw refill of the paper unless ``smooth``."""
     arch = LSTMArchitecture(n_dof=3, n_hidden=5, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=q,
                             dtype=dtype)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(9), arch, (2, 3)))
@@ -28,7 +29,24 @@ def _surrogate(q=0, dtype="float32"):
     std = np.array([[0.5, 0.7, 1.0], [0.8, 0.6, 0.4]])
     mask = np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 1.0]])
     return Surrogate(params=params, mean=mean, std=std, dof_mask=mask, load_parameter=np.float32([0.4, 0.4]),
-                     arch=arch, n_s=N_S)
+                     arch=arch, n_s=N_S, smooth=smooth)
+
+
+def _smoothed(raw, last, n_s):
+    """The smooth refill, written independently: block means of n_s rows placed at the
+    block centres (step offsets j n_s + (n_s + 1) / 2 after the known step), np.interp
+    from the known value through them, the line through the last two continued after."""
+    n_f = len(raw) // n_s
+    t = np.arange(1, len(raw) + 1, dtype=float)
+    knots_t = np.r_[0.0, n_s * np.arange(n_f) + (n_s + 1) / 2]
+    knots_v = np.vstack([last, raw.reshape(n_f, n_s, -1).mean(axis=1)])
+    out = np.empty_like(raw)
+    for d in range(raw.shape[1]):
+        out[:, d] = np.interp(t, knots_t, knots_v[:, d])
+        slope = (knots_v[-1, d] - knots_v[-2, d]) / (knots_t[-1] - knots_t[-2])
+        after = t > knots_t[-1]
+        out[after, d] = knots_v[-1, d] + slope * (t[after] - knots_t[-1])
+    return out
 
 
 def _history(n_steps=60):
@@ -40,8 +58,8 @@ def _history(n_steps=60):
 
 def _reference(surrogate, part, series, n, n_cycles):
     """Predictions of steps n + 1 .. by applying the network once per refill index set
-    (paper Algorithm 3) in a Python loop, in float64 around the network; ``series``:
-    step -> known displacement."""
+    (paper Algorithm 3) in a Python loop, in float64 around the network, smoothed with
+    :func:`_smoothed` when the surrogate smooths; ``series``: step -> known displacement."""
     s = surrogate
     params = replica_params(s.params, part)
     mean, std, mask = s.mean[part], s.std[part], s.dof_mask[part]
@@ -55,13 +73,18 @@ def _reference(surrogate, part, series, n, n_cycles):
             z = jnp.asarray((window - mean) / std, s.arch.dtype)
             out = np.asarray(forward(params, s.arch, z, load, jnp.asarray(mask, jnp.float32)), np.float64)
             new.update(zip(targets[i].tolist(), out * std + mean))
+        if surrogate.smooth:
+            start = n + cycle * N_S * N_F
+            steps = range(start + 1, start + 1 + N_S * N_F)
+            smooth = _smoothed(np.stack([new[k] for k in steps]), series[start], N_S) * mask
+            new = dict(zip(steps, smooth))
         series.update(new)  # the next cycle reads these predictions
     return np.stack([series[k] for k in range(n + 1, n + 1 + n_cycles * N_S * N_F)])
 
 
-@pytest.mark.parametrize("q", [0, 2])
-def test_predict_and_rollout_follow_the_refill_index_sets(q):
-    surrogate, history = _surrogate(q), _history()
+@pytest.mark.parametrize("q, smooth", [(0, False), (2, False), (0, True)])
+def test_predict_and_rollout_follow_the_refill_index_sets(q, smooth):
+    surrogate, history = _surrogate(q, smooth=smooth), _history()
     n0 = N_S * N_P + 5  # the buffer holds steps n0 + 1 - n_s n_p .. n0
     buffers = history[:, n0 + 1 - N_S * N_P:n0 + 1]
     n_cycles = 3
@@ -83,6 +106,30 @@ def test_predict_and_rollout_follow_the_refill_index_sets(q):
         assert not np.allclose(np.asarray(other.part(0).predict(buffers[0], n0)), one[0])
 
 
+def test_smooth_refill_removes_the_jitter_between_applications_and_keeps_lines():
+    """Rows from application i carry an error e_i of their own (independent between
+    applications): the raw rows jitter from step to step, the smoothed ones do not (the
+    second difference vanishes inside each segment, a linear signal comes back exactly,
+    the curve starts from the last known value), and the mean of the e_i is all that is
+    left of them."""
+    from jaxsync.surrogate.refill import smooth_refill
+
+    n_s, n_f = 6, 5
+    t = np.arange(1, n_s * n_f + 1, dtype=float)
+    line = 0.2 + 0.03 * t
+    errors = np.random.default_rng(1).normal(0.0, 0.05, n_s)
+    raw = (line + errors[(t.astype(int) - 1) % n_s])[:, None]
+    out = np.asarray(smooth_refill(jnp.asarray(raw), jnp.array([0.2]), n_s))[:, 0]
+    np.testing.assert_allclose(out, _smoothed(raw, np.array([0.2]), n_s)[:, 0], rtol=1e-12, atol=1e-14)
+    exact = np.asarray(smooth_refill(jnp.asarray(line[:, None]), jnp.array([0.2]), n_s))[:, 0]
+    np.testing.assert_allclose(exact, line, rtol=1e-12, atol=1e-14)
+    after_first_centre = t > (n_s + 1) / 2
+    np.testing.assert_allclose(out[after_first_centre], line[after_first_centre] + errors.mean(), atol=1e-12)
+    assert np.abs(np.diff(raw[:, 0], 2)).max() > 0.05 and np.abs(np.diff(out[after_first_centre], 2)).max() < 1e-12
+    with pytest.raises(ConfigError, match="not a multiple of n_s=7"):
+        smooth_refill(jnp.asarray(raw), jnp.array([0.2]), 7)
+
+
 def test_rollout_sizes_and_a_wrong_buffer():
     surrogate, history = _surrogate(), _history()
     buffer = history[0, :N_S * N_P]
@@ -94,7 +141,7 @@ def test_rollout_sizes_and_a_wrong_buffer():
 
 
 def test_save_and_load_round_trip_is_exact(tmp_path):
-    surrogate = _surrogate(q=2)
+    surrogate = _surrogate(q=2, smooth=True)  # smoothing is not stored: a loaded surrogate smooths
     surrogate.save(tmp_path / "s.h5", metadata={"note": "test"})
     loaded = Surrogate.load(tmp_path / "s.h5", load_parameter=0.4)
     assert loaded.arch == surrogate.arch and loaded.n_s == N_S

@@ -53,7 +53,11 @@ def build_parser() -> argparse.ArgumentParser:
 def parts_of(args) -> int:
     """How many parts the command runs (0: none), read without starting JAX."""
     command = getattr(args, "command", None)
-    if command in ("demo", "simulate"):
+    if command == "demo":
+        from .commands.demo import demo_parts
+
+        return demo_parts(args)
+    if command == "simulate":
         return int(args.parts or 0)
     if command in ("predict", "train"):
         path = args.trajectory if command == "predict" else args.trajectories[0]

@@ -79,15 +79,19 @@ def mark_phases(ax, t_switch, spans, label=True):
 
 
 def nodes_figure(times, ref, pred, nodes, component, t_switch, spans, mesh):
-    """Displacement component ``component`` of the reference ``ref`` and prediction
-    ``pred`` (T, n_nodes, 3) at each node of ``nodes`` (label -> id), with the error below."""
-    c = AXES[component]
+    """Displacement component ``component`` (0, 1, 2, or a dict label -> component per
+    node) of the reference ``ref`` and prediction ``pred`` (T, n_nodes, 3) at each node
+    of ``nodes`` (label -> id), with the error below."""
+    components = component if isinstance(component, dict) else {label: component for label in nodes}
+    same = len(set(components.values())) == 1
     k = len(nodes)
     fig = new_figure(8.0, 1.1 + 3.0 * k)
     grid = fig.add_gridspec(2 * k, 1, height_ratios=[2.6, 1.0] * k)
     first = None
     handles = None
     for i, (label, node) in enumerate(nodes.items()):
+        component = components[label]
+        c = AXES[component]
         ax = fig.add_subplot(grid[2 * i], sharex=first)
         first = first or ax
         err_ax = fig.add_subplot(grid[2 * i + 1], sharex=first)
@@ -95,7 +99,7 @@ def nodes_figure(times, ref, pred, nodes, component, t_switch, spans, mesh):
         ax.plot(times, pred[:, node, component], label="synchronization-avoiding (predicted)",
                 **PREDICTED_STYLE)
         err_ax.plot(times, pred[:, node, component] - ref[:, node, component],
-                    label=rf"error $\hat d_{c} - d_{c}$", **ERROR_STYLE)
+                    label=r"error $\hat d - d$", **ERROR_STYLE)
         err_ax.axhline(0.0, color="0.3", lw=0.5)
         for a in (ax, err_ax):
             mark_phases(a, t_switch, spans, label=(a is ax))
@@ -110,7 +114,8 @@ def nodes_figure(times, ref, pred, nodes, component, t_switch, spans, mesh):
             eh = err_ax.get_legend_handles_labels()
             handles = (handles[0] + eh[0], handles[1] + eh[1])
     err_ax.set_xlabel("time t [s]")
-    fig.suptitle(f"Displacement $d_{c}$ at the monitored nodes: synchronized vs predicted")
+    shown = f"$d_{c}$" if same else "the dominant displacement component"
+    fig.suptitle(f"{shown} at the monitored nodes: synchronized vs predicted")
     fig.legend(*handles, loc="outside lower center", ncol=3, fontsize=8)
     return fig
 

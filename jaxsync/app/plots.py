@@ -26,10 +26,12 @@ By default they are chosen from the reference's motion: for each part, the node 
 neither shared nor constrained with the largest amplitude, plus the shared node with the
 largest amplitude. The amplitude of a node is max over time of |d_c| in the plotted
 component c (ties, and a component in which nothing moves, are decided by max over time
-of the norm |d|). Constrained nodes (``fixed_nodes``, the Dirichlet set) and nodes that
-never move in the reference are never chosen; a part without any candidate is named in
-``summary["node_notes"]``. On the cantilever (clamped at x = 0) this picks a node at the
-free end x = 25 for the part that holds it.
+of the norm |d|); with ``component=None`` (a vessel, which moves in every direction) it
+is max over time of |d|, and each node is shown and measured in its own dominant
+component, the one of largest amplitude at that node. Constrained nodes (``fixed_nodes``,
+the Dirichlet set) and nodes that never move in the reference are never chosen; a part
+without any candidate is named in ``summary["node_notes"]``. On the cantilever (clamped
+at x = 0) this picks a node at the free end x = 25 for the part that holds it.
 """
 
 from __future__ import annotations
@@ -129,12 +131,12 @@ def moving_nodes(displacement) -> np.ndarray:
     return np.any(d != d[:1], axis=(0, 2))
 
 
-def _amplitude_order(displacement, component: int) -> np.ndarray:
+def _amplitude_order(displacement, component: int | None) -> np.ndarray:
     """(n_nodes,) rank of every node by amplitude (larger is larger): max_t |d_c|,
-    ties broken by max_t |d|."""
+    ties broken by max_t |d| (component None: max_t |d| alone)."""
     d = np.asarray(displacement)
-    amp_c = np.abs(d[:, :, component]).max(axis=0)
     amp = np.linalg.norm(d, axis=2).max(axis=0)
+    amp_c = amp if component is None else np.abs(d[:, :, component]).max(axis=0)
     rank = np.empty(d.shape[1], dtype=np.int64)
     rank[np.lexsort((amp, amp_c))] = np.arange(d.shape[1])
     return rank
@@ -180,7 +182,7 @@ def _default_nodes(displacement, partition, fixed_nodes, component) -> tuple[dic
     return nodes, notes
 
 
-def report_nodes(mesh, partition, fixed_nodes=(), *, reference=None, component: int = 2,
+def report_nodes(mesh, partition, fixed_nodes=(), *, reference=None, component: int | None = 2,
                  nodes=None) -> dict[str, int]:
     """Label -> node id of the nodes shown in ``displacement_nodes.png``.
 
@@ -190,7 +192,8 @@ def report_nodes(mesh, partition, fixed_nodes=(), *, reference=None, component: 
         fixed_nodes: constrained (Dirichlet) nodes, never chosen by default.
         reference: (T, n_nodes, 3) synchronized displacement (or a Trajectory); needed
             for the default choice.
-        component: displacement component that ranks the amplitudes (2 = z).
+        component: displacement component that ranks the amplitudes (2 = z; None: the
+            norm of the displacement).
         nodes: user-named nodes (see :func:`resolve_nodes`); None for the default choice
             (see the module docstring).
 
@@ -258,7 +261,8 @@ class Comparison:
         reference, predicted: (T, n_nodes, 3) synchronized and online displacement.
         mesh: the mesh.
         partition: the partition of the online run.
-        component: displacement component shown and compared at the nodes (0, 1, 2).
+        component: displacement component shown and compared at the nodes (0, 1, 2), or
+            None: each node's dominant component (:attr:`node_components`).
         nodes: label -> id of the monitored nodes; notes: why a part has none.
         fixed: (n_nodes,) bool, constrained nodes; shared: (n_nodes,) bool, shared nodes.
         t_switch, spans: end of the synchronized phase and re-synchronized intervals
@@ -276,7 +280,7 @@ class Comparison:
     predicted: np.ndarray
     mesh: object
     partition: object
-    component: int
+    component: int | None
     nodes: dict
     notes: list
     fixed: np.ndarray
@@ -290,8 +294,17 @@ class Comparison:
     n_steps: int
     n_synchronized: int
 
+    @property
+    def node_components(self) -> dict[str, int]:
+        """Label -> the component shown and measured at each monitored node: ``component``,
+        or where it is None the node's dominant one (largest max_t |d_c| in the reference)."""
+        if self.component is not None:
+            return {label: self.component for label in self.nodes}
+        return {label: int(np.argmax(np.abs(self.reference[:, node]).max(axis=0)))
+                for label, node in self.nodes.items()}
 
-def compare(reference, online, partition, *, component: Component = DEFAULT_COMPONENT,
+
+def compare(reference, online, partition, *, component: Component | None = DEFAULT_COMPONENT,
             fixed_nodes=(), nodes=None) -> Comparison:
     """Compare ``online`` with ``reference`` (arguments as :func:`write_report`); writes nothing.
 
@@ -306,7 +319,8 @@ def compare(reference, online, partition, *, component: Component = DEFAULT_COMP
     if ref.shape != pred.shape:
         raise ProblemError(f"reference {ref.shape} and online {pred.shape} trajectories differ in shape; "
                            "compare runs of the same mesh saved at the same steps")
-    component = int(check_option("component", component, Component))
+    if component is not None:
+        component = int(check_option("component", component, Component))
     mesh = online.mesh
     n_nodes = ref.shape[1]
     fixed = np.zeros(n_nodes, bool)
@@ -340,7 +354,7 @@ def report_figures(c: Comparison) -> dict:
     """File name -> :class:`matplotlib.figure.Figure` of every figure of the report (the
     shared-node figures only when the online run has predictions at shared nodes)."""
     out = {"displacement_nodes.png": figures.nodes_figure(c.times, c.reference, c.predicted, c.nodes,
-                                                          c.component, c.t_switch, c.spans, c.mesh),
+                                                          c.node_components, c.t_switch, c.spans, c.mesh),
            "l2_error.png": figures.l2_error_figure(c.times, c.l2, c.t_switch, c.spans)}
     if c.shared_errors is not None:
         out["shared_errors.png"] = figures.shared_errors_figure(c.times, c.steps, c.shared_errors,
@@ -352,14 +366,15 @@ def report_figures(c: Comparison) -> dict:
 
 def _node_table(c: Comparison) -> list[dict]:
     rows = []
-    k = c.component
+    components = c.node_components
     for label, node in c.nodes.items():
+        k = components[label]
         err_c = np.abs(c.predicted[:, node, k] - c.reference[:, node, k])
         amp = float(np.abs(c.reference[:, node, k]).max())
         rows.append({
             "label": label, "node": int(node), "coordinates": [float(v) for v in c.mesh.points[node]],
             "shared": bool(c.shared[node]), "constrained": bool(c.fixed[node]),
-            "max_abs_displacement": amp,
+            "component": figures.AXES[k], "max_abs_displacement": amp,
             "max_abs_error": float(err_c.max()),
             "relative_max_error": float(err_c.max() / amp) if amp > 0 else None,
             "final_abs_error": float(err_c[-1]),
@@ -373,6 +388,8 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
     """The entries of ``summary.json`` (see :func:`write_report`), plus ``extra``."""
     table = _node_table(c)
     top = max(table, key=lambda row: row["max_abs_displacement"])
+    interior = [row["relative_max_error"] for row in table
+                if not row["shared"] and row["relative_max_error"] is not None]
     errs = c.shared_errors
     summary_shared = {} if errs is None else {
         "es_final": float(errs.es[-1]), "es_hat_final": float(errs.es_hat[-1]),
@@ -384,11 +401,12 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
         "n_synchronized": c.n_synchronized,
         "n_predicted": c.n_steps - c.n_synchronized,
         "n_parts": c.partition.n_parts,
-        "component": figures.AXES[c.component],
+        "component": "dominant" if c.component is None else figures.AXES[c.component],
         "monitored_node": top["node"],
         "monitored_label": top["label"],
         "tip_max_abs_error": top["max_abs_error"],
         "tip_max_abs_displacement": top["max_abs_displacement"],
+        "interior_max_relative_error": max(interior) if interior else None,
         "l2_error_final": float(c.l2[-1]),
         "l2_error_max": float(c.l2.max()),
         "nodes": {label: int(node) for label, node in c.nodes.items()},
@@ -399,7 +417,7 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
     }
 
 
-def write_report(reference, online, partition, out_dir, *, component: Component = DEFAULT_COMPONENT,
+def write_report(reference, online, partition, out_dir, *, component: Component | None = DEFAULT_COMPONENT,
                  fixed_nodes=(), nodes=None, extra: dict | None = None) -> dict:
     """Write the figures and ``summary.json`` into ``out_dir``; return the summary.
 
@@ -407,7 +425,8 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
         reference: synchronized :class:`jaxsync.Trajectory` with the same saved steps.
         online: synchronization-avoiding :class:`jaxsync.Trajectory`.
         partition: the partition of the online run.
-        component: displacement component shown and compared at the nodes (2 = z).
+        component: displacement component shown and compared at the nodes (2 = z), or
+            None: each node's dominant component.
         fixed_nodes: constrained (Dirichlet) nodes, e.g.
             ``np.unique(problem.dirichlet_dofs()[0] // 3)``; never chosen by default
             (neither are nodes that never move in the reference).
@@ -417,10 +436,12 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
 
     Summary entries about nodes (errors in the plotted component, in cm):
         ``nodes`` (label -> id), ``node_errors`` (one row per monitored node: node,
-        coordinates, shared, constrained, max_abs_displacement (its reference
+        coordinates, shared, constrained, component, max_abs_displacement (its reference
         amplitude), max_abs_error, relative_max_error, final_abs_error, rms_error,
         max_error_norm (of the displacement vector)), ``node_notes`` (parts without a
-        node to show), and ``monitored_node`` / ``monitored_label``: the monitored node
+        node to show), ``interior_max_relative_error`` (the largest relative_max_error of
+        the monitored nodes that are not shared: with the default choice, the worst
+        part's), and ``monitored_node`` / ``monitored_label``: the monitored node
         with the largest reference amplitude. ``tip_max_abs_error`` and
         ``tip_max_abs_displacement`` are kept for compatibility and refer to that node
         (on the cantilever, a node at the free end), not to a fixed geometric tip.

@@ -66,7 +66,7 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         "train",
         help="train the per-part LSTM surrogates on trajectory files",
         description="Train one LSTM encoder-decoder per part on the shared-dof histories of one or more "
-        "distributed trajectory files (saved every step), all parts together.",
+        "distributed trajectory files (shared nodes kept at a stride dividing n_s), all parts together.",
     )
     parser.add_argument("trajectories", nargs="+", help="trajectory HDF5 files (one run each, same partition)")
     parser.add_argument("-o", "--output", default="surrogate_out", help="output directory (default: %(default)s)")

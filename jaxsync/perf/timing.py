@@ -199,7 +199,7 @@ def _part_prediction_times(predictor, n_parts: int, history: int, n_dof: int, de
 def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "preassembled",
                       syncs=("psum", "ppermute"), n_cycles: int = 1, repeats: int = 10,
                       stage_repeats: int = 50, n_s: int = 80, devices=None, seed: int = 0,
-                      dt=None) -> SpeedupReport:
+                      dt=None, prediction_repeats: int | None = None) -> SpeedupReport:
     """Time the synchronized solver (each of ``syncs``) and the synchronization-avoiding
     solver (paper Algorithm 3's predicted phase) in one run, and the stages of both.
 
@@ -226,6 +226,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
         n_cycles, repeats: refill cycles per timed call, timed calls per program.
         stage_repeats: ``repeats`` of the per-part stage timing.
         n_s: refill stride of the default predictor.
+        prediction_repeats: timed calls of each part's prediction alone (default
+            max(repeats, 20); a refill of the vessel's n_s = 1000 takes about a second).
 
     Returns:
         :class:`jaxsync.perf.reports.SpeedupReport`.
@@ -264,7 +266,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     t_step_sync = {m: whole[f"sync:{m}"] for m in syncs}
     best = min(t_step_sync, key=t_step_sync.get)
     t_prediction = _part_prediction_times(predictor, part_info.n_parts, history, n_dof,
-                                          runner.devices[0], max(repeats, 20))
+                                          runner.devices[0],
+                                          max(repeats, 20) if prediction_repeats is None else prediction_repeats)
 
     synchronized = timing_breakdown(problem, part_info, mode=mode, repeats=stage_repeats, dt=dt,
                                     devices=devices, sync=best)

@@ -64,7 +64,10 @@ class Segment:
         kind: a label (``"synchronized"``, ``"predicted"``).
         first, last: step before the first and last step advanced.
         displacement: (n_saved, n_nodes, 3) [cm] at steps first + save_every, ..., last.
-        shared: per part, (last - first, 3 n_shared_p) every step, or None.
+        shared: per part, (last - first, 3 n_shared_p) every step, or None; with
+            ``run_chunks(keep_shared=k)`` only the last rows, at least min(k, last -
+            first) of them.
+        shared_abs_max: the largest |shared| over all the segment's steps (0 without).
         predictions: (n_parts, n_saved, n_dof) or None.
         seconds: wall time of the compiled calls (compilation excluded) [s].
         compile_seconds: time spent compiling [s].
@@ -80,6 +83,7 @@ class Segment:
     seconds: float
     compile_seconds: float
     state: Any
+    shared_abs_max: float = 0.0
 
     @property
     def n_steps(self) -> int:
@@ -162,7 +166,8 @@ def _first_bad(chunk: Chunk, limit: float) -> tuple[int, int | None] | None:
 
 def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit: float,
                progress: Progress | None = None, chunk_steps: int = 5000,
-               after_chunk: Callable[[int, Callable[[], Segment]], None] | None = None) -> Segment:
+               after_chunk: Callable[[int, Callable[[], Segment]], None] | None = None,
+               keep_shared: int | None = None) -> Segment:
     """Advance ``state`` from step ``first`` to ``last`` in compiled chunks of ``runner``.
 
     Each chunk's program is compiled ahead of its timed call (so ``seconds`` excludes
@@ -174,9 +179,14 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
     Returns the :class:`Segment`. Raises :class:`Diverged` (with the good part of the
     segment) on divergence; a :class:`Stopped` from the runner propagates with the
     segment so far in its ``segment`` attribute.
+
+    ``keep_shared``: keep only about the last ``keep_shared`` steps of the shared
+    histories a recording runner returns (whole chunks; the memory of a long
+    re-synchronized stretch stays bounded), their largest |value| still counted.
     """
     save_every = runner.save_every
     pieces, shared, preds = [], None, []
+    shared_max = 0.0
     seconds = compile_seconds = 0.0
     step = first
 
@@ -188,9 +198,10 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
             n_keep = len(disp) - len(pieces[-1]) + upto
             disp = disp[:n_keep]
             pred = None if pred is None else pred[:, :n_keep]
-            rec = None if rec is None else [r[:n_keep * save_every] for r in rec]
+            drop = (len(pieces[-1]) - upto) * save_every  # the last chunk's steps from the bad one on
+            rec = None if rec is None else [r[:len(r) - drop] for r in rec]
         n_steps = len(disp) * save_every
-        return Segment(kind, first, first + n_steps, disp, rec, pred, seconds, compile_seconds, state)
+        return Segment(kind, first, first + n_steps, disp, rec, pred, seconds, compile_seconds, state, shared_max)
 
     while step < last:
         steps = runner.chunk_steps(last - step, chunk_steps)
@@ -210,6 +221,10 @@ def run_chunks(runner: Runner, state, first: int, last: int, *, kind: str, limit
             shared = shared or [[] for _ in chunk.shared]
             for rec, values in zip(shared, chunk.shared):
                 rec.append(values)
+                finite = np.abs(values[np.isfinite(values)])
+                shared_max = max(shared_max, float(finite.max(initial=0.0)))
+                while keep_shared is not None and len(rec) > 1 and sum(map(len, rec[1:])) >= keep_shared:
+                    del rec[0]  # the later chunks hold the last keep_shared steps
         bad = _first_bad(chunk, limit)
         if bad is not None:
             index, part = bad

@@ -258,12 +258,13 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                     target = min(rejected.step + cycle_steps * 2 ** failures, n_steps)
                     bar.label("re-synchronized")
                     bar.set(anchor.step)
+                    # the shared values of the last n_s n_p steps are all the next anchor needs:
+                    # a long stretch keeps only those (bounded memory at the paper's size)
                     segment = run_chunks(runner, runner.from_global(anchor.state), anchor.step, target,
-                                         kind="synchronized", limit=limit, progress=bar)
+                                         kind="synchronized", limit=limit, progress=bar, keep_shared=history)
                     seconds["synchronized"] += segment.seconds
                     compile_seconds += segment.compile_seconds
-                    predicted.amplitude = max([predicted.amplitude]
-                                              + [float(np.abs(v).max(initial=0.0)) for v in segment.shared])
+                    predicted.amplitude = max(predicted.amplitude, segment.shared_abs_max)
                     timeline.append(segment)
                     end_state = runner.to_global(segment.state)
                     anchor = _Anchor(end_state, _histories(partition, segment.shared, history, n_dof, anchor.history),

@@ -298,7 +298,8 @@ class SharedHistories:
     """Per-part shared-dof histories of a distributed trajectory, ready for training.
 
     Attributes:
-        histories: per part, (n_steps, 3 n_shared_p) displacements at every step, float64.
+        histories: per part, (n_rows, 3 n_shared_p) displacements every ``stride`` steps
+            from step 0, float64.
         shared_nodes: per part, (n_shared_p,) int64 global node ids.
         dt: time step (s).
         load_parameter: the run's load parameter alpha_f (the problem parameter
@@ -312,6 +313,19 @@ class SharedHistories:
     dt: float
     load_parameter: float | None
     synchronized: np.ndarray | None = None
+    stride: int = 1
+
+    def for_sampling(self, n_s: int) -> int:
+        """The row stride that samples these histories every ``n_s`` steps.
+
+        Raises:
+            CheckpointError: ``stride`` does not divide ``n_s``."""
+        if n_s % self.stride:
+            raise CheckpointError(
+                f"the trajectory keeps the shared nodes every {self.stride} steps, which does not divide "
+                f"the sampling stride n_s={n_s}; rerun the solver with shared_every dividing n_s "
+                f"(jaxsync simulate --shared-every, e.g. 1 or {n_s}), or choose n_s a multiple of {self.stride}")
+        return n_s // self.stride
 
     @property
     def n_predicted(self) -> int:
@@ -323,21 +337,23 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
     """The per-part shared-dof histories of a distributed trajectory, checked for training.
 
     The trajectory (a :class:`jaxsync.Trajectory` or the path of a file, read with
-    :meth:`jaxsync.Trajectory.load`) must be distributed, keep the shared histories at
-    every step (``shared_stride == 1``, e.g. ``simulate(..., shared_every=1)``), and by
-    default be a synchronized run: a synchronization-avoiding (``jaxsync predict``)
-    trajectory, whose ``synchronized`` flags have False entries, holds surrogate
-    predictions at the shared dofs, and training on them would teach the networks their
-    own errors.
+    :meth:`jaxsync.Trajectory.load`) must be distributed and by default be a synchronized
+    run. Its shared histories may be thinned (``shared_stride`` > 1, e.g.
+    ``simulate(..., save_every=n_s)``): training samples every n_s steps only, so any
+    stride dividing n_s serves (:meth:`SharedHistories.for_sampling`) and a long run need
+    not keep its shared nodes at every step (at the paper's vessel size that would be
+    69 GB for 1e6 steps). A synchronization-avoiding (``jaxsync predict``) trajectory,
+    whose ``synchronized`` flags have False entries, is refused unless
+    ``allow_predicted``: it holds surrogate predictions at the shared dofs, and training
+    on them would teach the networks their own errors.
 
     Args:
         trajectory: a :class:`jaxsync.Trajectory` or a trajectory file.
         allow_predicted: accept a synchronization-avoiding trajectory anyway.
 
     Raises:
-        CheckpointError: missing or foreign file, a run that is not distributed, shared
-            histories not kept at every step, inconsistent shapes, or a predicted
-            trajectory without ``allow_predicted``.
+        CheckpointError: missing or foreign file, a run that is not distributed,
+            inconsistent shapes, or a predicted trajectory without ``allow_predicted``.
     """
     if isinstance(trajectory, Trajectory):
         name, traj = "the trajectory", trajectory
@@ -347,12 +363,6 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
         raise CheckpointError(
             f"{name} holds no parts: it is not a distributed run; rerun the solver with partitions=n "
             "(jaxsync simulate --parts n)"
-        )
-    if traj.shared_stride != 1:
-        raise CheckpointError(
-            f"{name} keeps the shared nodes every {traj.shared_stride} steps; surrogate training needs "
-            "every step: rerun the solver with shared_every=1 (jaxsync simulate --shared-every 1; the full "
-            "field can stay at a larger --save-every)"
         )
     synchronized = None
     if traj.synchronized is not None:
@@ -386,4 +396,4 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
         )
     load = traj.parameters.get("load_parameter")
     return SharedHistories(tuple(histories), tuple(nodes), float(traj.dt), None if load is None else float(load),
-                           synchronized)
+                           synchronized, int(traj.shared_stride))

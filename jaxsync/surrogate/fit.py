@@ -212,7 +212,9 @@ def train_surrogates(
     Args:
         trajectories: a :class:`jaxsync.Trajectory` or trajectory file, or a sequence of
             them (runs of one partition, e.g. different loads), with the shared nodes
-            kept at every step (``simulate(..., shared_every=1)``).
+            kept every step (``simulate(..., shared_every=1)``) or at any stride dividing
+            ``n_s`` (e.g. ``save_every=n_s``: what training reads, and all a long run
+            needs to keep).
         n_s, n_past, n_future: sampling stride (the paper's 80) and window lengths n_p, n_f.
         n_hidden, n_layers, n_cond_repeat, dtype: the architecture
             (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`, whose defaults these are;
@@ -226,7 +228,8 @@ def train_surrogates(
         allow_predicted: accept synchronization-avoiding trajectories (refused by default).
         seed: seed of initialization, shuffling and the train/validation split.
         emse_applications: refill cycles N of sqrt(E_mse) on the first trajectory,
-            clipped to what it holds; 0 skips it.
+            clipped to what it holds; 0 skips it, and so do shared histories not kept at
+            every step (the refill reads every step).
         devices: local devices to spread the parts over (default: as many as divide the
             part count).
         out: output folder for the files listed in the module docstring (None: nothing
@@ -242,8 +245,8 @@ def train_surrogates(
         :class:`TrainedSurrogates`.
 
     Raises:
-        CheckpointError: unusable trajectories (not distributed, shared nodes not kept at
-            every step, predicted, of different partitions) or a training state in
+        CheckpointError: unusable trajectories (not distributed, shared nodes kept at a
+            stride that does not divide n_s, predicted, of different partitions) or a training state in
             ``out`` of other data or settings.
         ConfigError: unusable settings.
     """
@@ -251,9 +254,14 @@ def train_surrogates(
     runs, names = _read_runs(trajectories, allow_predicted)
     loads = _load_parameters(runs, load_parameters, n_cond_repeat)
     n_parts = len(runs[0].histories)
+    row_strides = {run.for_sampling(n_s) for run in runs}
+    if len(row_strides) > 1:
+        raise CheckpointError(f"the trajectories keep their shared nodes at different strides "
+                              f"({sorted({run.stride for run in runs})} steps); train on runs saved alike")
+    row_stride = row_strides.pop()
     datasets = [
-        build_dataset([run.histories[p] for run in runs], n_s, n_past, n_future, train_fraction, val_fraction,
-                      seed, loads)
+        build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, train_fraction,
+                      val_fraction, seed, loads)
         for p in range(n_parts)
     ]
     data = stack_replicas(datasets)
@@ -272,6 +280,8 @@ def train_surrogates(
     surrogate = Surrogate.from_result(result, n_s, load)
     first = runs[0]
     n_app = min(emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
+    if first.stride != 1:  # the refill reads every step of its input history
+        n_app = 0
     sqrt_e_mse = None
     if n_app > 0:
         histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])

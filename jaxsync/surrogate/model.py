@@ -30,7 +30,7 @@ from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
 from jaxsync.surrogate.lstm import LSTMArchitecture
-from jaxsync.surrogate.refill import refill_predict, refill_rollout
+from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.replicas import init_replicas
 
 __all__ = ["Surrogate"]
@@ -48,6 +48,12 @@ class Surrogate:
             networks (ignored by unconditional ones).
         arch: the architecture (static); ``arch.n_dof`` is the padded width.
         n_s: the sampling stride the replicas were trained with (static).
+        smooth: :meth:`predict` returns the refill as one smooth curve from the last
+            known value (:func:`~jaxsync.surrogate.refill.smooth_refill`; static). True by
+            default: the raw refill interleaves n_s independent applications, and the
+            step-to-step jitter it writes into the solver excites high-frequency noise
+            (on the 11-part vessel demo, the worst interior error fell from 12 % to 7 %
+            of the node's amplitude with it). False gives the paper's raw refill.
 
     ``surrogate.part(p)`` (or ``jax.tree_util.tree_map(lambda x: x[p], surrogate)``, as
     vmap and shard_map do) is part p alone: the same type without the leading axis,
@@ -61,6 +67,7 @@ class Surrogate:
     load_parameter: Any
     arch: LSTMArchitecture = static_field()
     n_s: int = static_field()
+    smooth: bool = static_field(default=True)
 
     # ------------------------------------------------------------------ sizes
 
@@ -107,9 +114,13 @@ class Surrogate:
         """One refill of ONE part: the (n_s n_f, n_dof) predictions of steps step + 1 ..
         step + n_s n_f from ``buffer`` (n_s n_p, n_dof), the displacements of steps
         step + 1 - n_s n_p .. step [cm].  The network reads only ``buffer``; ``step`` is
-        the predictor interface of the solver.  Padded dofs are 0."""
+        the predictor interface of the solver.  With ``smooth``, the refill as one smooth
+        curve from ``buffer[-1]`` (:func:`~jaxsync.surrogate.refill.smooth_refill`).
+        Padded dofs are 0."""
         load = self.load_parameter if self.arch.conditional else None
         out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask)
+        if self.smooth:
+            out = smooth_refill(out, buffer[-1], self.n_s)
         return out * self.dof_mask[None]
 
     def rollout(self, buffer, step0, n_cycles: int):

@@ -94,14 +94,19 @@ SURROGATE_OPTIONS = (
 )
 
 
-def add_surrogate_options(parser) -> None:
+def add_surrogate_options(parser, case_defaults: bool = False) -> None:
     """The sampling, network and schedule options of the surrogates
     (:data:`SURROGATE_OPTIONS`), with the defaults of :func:`surrogate_defaults` (the
-    laptop schedule)."""
+    laptop schedule); with ``case_defaults`` they default to None and the command fills
+    in its case's (``jaxsync demo``: :func:`jaxsync.app.demo.demo_defaults`)."""
     defaults = surrogate_defaults()
     for flags, kind, dest, text in SURROGATE_OPTIONS:
-        parser.add_argument(*flags, dest=dest, type=kind, default=defaults[dest],
-                            help=f"{text} (default: %(default)s)")
+        if case_defaults:
+            help_text = f"{text} (default: the case's; cantilever {defaults[dest]})"
+        else:
+            help_text = f"{text} (default: %(default)s)"
+        parser.add_argument(*flags, dest=dest, type=kind, default=None if case_defaults else defaults[dest],
+                            help=help_text)
 
 
 NEGATIVE_NUMBER = r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$"

@@ -30,6 +30,10 @@ def add_parser(subparsers) -> None:
     p.add_argument("--load-parameter", "--cond", dest="load_parameter", type=float, default=None,
                    help="load parameter of conditional surrogates (--cond: its former name)")
     common.add_resync_tolerance_option(p)
+    p.add_argument("--raw-refill", action="store_true",
+                   help="write the paper's raw refill into the solver (n_s interleaved network "
+                        "applications, which jitter from step to step) instead of the default smooth "
+                        "curve through their block means (jaxsync.surrogate.refill.smooth_refill)")
     p.add_argument("--output", "-o", default="online.h5", help="output trajectory (default: %(default)s)")
     p.add_argument("--force", action="store_true",
                    help="overwrite an existing output file (without it the run is refused before "
@@ -60,7 +64,14 @@ def run(args) -> int:
     ckpt = load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
     n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
-    online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=ckpt, n_cri=n_cri,
+    surrogates = ckpt
+    if args.raw_refill:
+        import dataclasses
+
+        from ...surrogate import Surrogate
+
+        surrogates = dataclasses.replace(Surrogate.from_checkpoint(ckpt, args.load_parameter), smooth=False)
+    online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=args.mode,
                                     save_every=args.save_every or reference.save_every,
                                     load_parameter=args.load_parameter, progress=not args.no_progress,

@@ -1,0 +1,152 @@
+"""``jaxsync demo --case vessel``, reduced: a generated coronary tree of a few thousand
+tets in 3 parts, mass-scaled, a short training, the synchronization-avoiding run and the
+report. The summary is checked against the trajectories and independent computations
+(the shared-node errors recomputed node by node, the mass scaling redone), not against
+the code's own definitions."""
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.app.cli import build_parser, parts_of
+from jaxsync.app.demo import SUMMARY_KEYS, VESSEL_KEYS, demo_defaults
+from jaxsync.errors import ConfigError
+from test_cli_pipeline import run_cli
+
+N_STEPS, N_S, N_P, N_PARTS, SIZE = 4000, 20, 5, 3, 3500
+
+
+@pytest.fixture(scope="module")
+def vessel(tmp_path_factory):
+    out = tmp_path_factory.mktemp("vessel") / "demo"
+    run = run_cli(["demo", "--case", "vessel", "--size", SIZE, "--parts", N_PARTS, "--steps", N_STEPS,
+                   "--n-s", N_S, "--n-past", N_P, "--n-future", N_P, "--epochs", "2", "--hidden", "8",
+                   "--resync-tolerance", "none", "--out", out, "--no-progress"])
+    assert run.code == 0, run.err
+    summary = json.loads((out / "summary.json").read_text())
+    reference = jaxsync.Trajectory.load(out / "synchronized.h5")
+    online = jaxsync.Trajectory.load(out / "online.h5")
+    return out, run, summary, reference, online
+
+
+def test_vessel_summary_has_the_cantilever_keys_and_its_own(vessel):
+    summary = vessel[2]
+    for key in SUMMARY_KEYS + VESSEL_KEYS:
+        assert key in summary, key
+    for key in SUMMARY_KEYS + ("es_max", "es_hat_max", "interior_max_relative_error"):
+        assert isinstance(summary[key], str) or np.isfinite(summary[key]), key
+    # the tests' two emulated devices (conftest) hold the 3 parts
+    assert summary["case"] == "vessel" and summary["n_parts"] == N_PARTS and summary["n_devices"] == 2
+    assert summary["n_steps"] == N_STEPS
+    assert summary["n_synchronized"] == N_S * N_P and summary["n_predicted"] == N_STEPS - N_S * N_P
+    assert summary["component"] == "dominant"
+    names = {row["interconnect"]["name"] for row in summary["projection"]["rows"]}
+    assert {"infiniband-hdr", "nvlink-4", "ethernet-10g"} <= names
+    assert summary["projection"]["pattern"]["n_parts"] == N_PARTS
+
+
+def test_vessel_mesh_and_files(vessel):
+    out, _, summary, reference, online = vessel
+    mesh = reference.mesh
+    assert summary["n_elements"] == mesh.n_elements and summary["n_dofs"] == 3 * mesh.n_nodes
+    assert 3000 <= mesh.n_elements <= 4500
+    assert {"inlet", "outlet", "lumen"} <= set(mesh.facet_sets)
+    # the reference keeps the shared nodes every n_s steps only: what training reads
+    assert reference.save_every == N_S and reference.shared_stride == N_S
+    np.testing.assert_array_equal(reference.parts[0].shared_displacement,
+                                  reference.displacement[:, reference.parts[0].shared_nodes].reshape(
+                                      reference.n_saved, -1))
+    assert online.n_saved == N_STEPS // N_S + 1
+    for name in ("displacement_nodes.png", "l2_error.png", "shared_errors.png", "es_tracking.png",
+                 "mass_scaling.png"):
+        assert (out / "report" / name).stat().st_size > 1000, name
+    assert (out / "surrogate" / "surrogate.h5").exists()
+
+
+def test_vessel_shared_node_errors_recomputed_node_by_node(vessel):
+    """es(t) (paper eq. 25): at each shared node, the mean over the parts that hold it of
+    their component-mean absolute error, averaged over the shared nodes; es_hat (eq. 26)
+    the same with the pairs of parts that hold a node. Recomputed here with loops."""
+    _, _, summary, reference, online = vessel
+    steps = np.flatnonzero(~np.asarray(online.synchronized, bool))
+    truth = np.asarray(reference.displacement)[steps]
+    per_node: dict[int, list[np.ndarray]] = {}
+    for part in online.parts:
+        values = np.asarray(part.predicted_shared_displacement).reshape(len(steps), -1, 3)
+        for k, node in enumerate(part.shared_nodes):
+            per_node.setdefault(int(node), []).append(values[:, k])
+    es, es_hat = np.zeros(len(steps)), np.zeros(len(steps))
+    for node, preds in per_node.items():
+        es += np.mean([np.abs(p - truth[:, node]).mean(axis=1) for p in preds], axis=0)
+        pairs = [np.abs(a - b).mean(axis=1) for i, a in enumerate(preds) for b in preds[i + 1:]]
+        es_hat += np.mean(pairs, axis=0)
+    es, es_hat = es / len(per_node), es_hat / len(per_node)
+    assert summary["es_max"] == pytest.approx(es.max(), rel=1e-9)
+    assert summary["es_hat_max"] == pytest.approx(es_hat.max(), rel=1e-9)
+    assert summary["es_final"] == pytest.approx(es[-1], rel=1e-9)
+
+
+def test_vessel_interior_nodes_in_their_dominant_component(vessel):
+    """One monitored node per part, not shared and not clamped, each measured in its own
+    dominant component; the worst relative error recomputed from the trajectories."""
+    _, _, summary, reference, online = vessel
+    ref, pred = np.asarray(reference.displacement), np.asarray(online.displacement)
+    shared = set(np.concatenate([p.shared_nodes for p in online.parts]).tolist())
+    problem = jaxsync.coronary(reference.mesh)
+    clamped = set((problem.dirichlet_dofs()[0] // 3).tolist())
+    rows = [row for row in summary["node_errors"] if not row["shared"]]
+    assert len(rows) == N_PARTS
+    worst = 0.0
+    for part, row in zip(online.parts, rows):
+        node = row["node"]
+        assert node not in shared and node not in clamped
+        amplitude = np.abs(ref[:, node]).max(axis=0)
+        k = int(np.argmax(amplitude))
+        assert row["component"] == "xyz"[k]
+        relative = np.abs(pred[:, node, k] - ref[:, node, k]).max() / amplitude[k]
+        assert row["relative_max_error"] == pytest.approx(relative, rel=1e-9)
+        worst = max(worst, relative)
+    assert summary["interior_max_relative_error"] == pytest.approx(worst, rel=1e-9)
+
+
+def test_vessel_mass_scaling_check(vessel):
+    """The step is 2.5 times the CFL step; the added mass is what jaxsync.mass_scaling
+    adds on the same mesh; the node's motion changes only marginally (paper fig. 19)."""
+    _, _, summary, reference, _ = vessel
+    m = summary["mass_scaling"]
+    problem = jaxsync.coronary(reference.mesh)
+    _, added = jaxsync.mass_scaling(problem, beta=2.5, warn_above_percent=None)
+    assert m["dt_cfl"] == pytest.approx(problem.dt, rel=1e-12)
+    assert m["dt_scaled"] == pytest.approx(2.5 * problem.dt, rel=1e-12) == summary["dt"]
+    assert m["added_mass_percent"] == pytest.approx(added, rel=1e-12) and added > 0
+    assert m["n_steps_cfl"] * m["dt_cfl"] == pytest.approx(m["n_steps_scaled"] * m["dt_scaled"], rel=0.01)
+    assert m["max_abs_displacement"] > 0 and m["relative_difference"] < 0.05
+
+
+def test_vessel_demo_prints_its_table(vessel):
+    text = vessel[1].out
+    assert "coronary tree" in text and "mass scaling" in text and "es / es_hat" in text
+    assert f"{N_STEPS} steps: {N_S * N_P} synchronized, {N_STEPS - N_S * N_P} predicted" in text
+
+
+def test_vessel_defaults_and_devices():
+    d = demo_defaults("vessel")
+    assert (d.n_parts, d.resync_tolerance, d.component, d.shared_every_step) == (11, "1%", None, False)
+    assert demo_defaults("vessel", "paper").n_s == 1000 and demo_defaults("vessel", "paper").n_steps == 1_000_000
+    parser = build_parser()
+    assert parts_of(parser.parse_args(["demo", "--case", "vessel"])) == 11
+    assert parts_of(parser.parse_args(["demo"])) == 2
+    assert parts_of(parser.parse_args(["demo", "--case", "vessel", "--parts", "4"])) == 4
+
+
+def test_vessel_bad_sizes_are_refused(tmp_path):
+    with pytest.raises(ConfigError, match="vessel size 'huge'"):
+        demo_defaults("vessel", "huge")
+    with pytest.raises(ConfigError, match="the vessel case"):
+        demo_defaults("cantilever", "paper")
+    with pytest.raises(ConfigError, match="unknown demo case"):
+        demo_defaults("aorta")
+    run = run_cli(["demo", "--case", "vessel", "--size", "10", "--out", tmp_path / "x", "--no-progress"])
+    assert run.code == 2 and "from 1000 to 2000000" in run.err
