@@ -22,8 +22,9 @@ per part on it (the first half for the cantilever, all of it for the vessel;
 :func:`jaxsync.surrogate.train_surrogates`, as ``jaxsync train``); (3) the
 synchronization-avoiding run from n_cri = n_s n_p on; (4) timing of the compiled
 programs (:func:`jaxsync.perf.timing.speedup_breakdown`), the cost-model projection to
-real interconnects (:func:`jaxsync.perf.costmodel.project`) and the report (figures, ``summary.json``). Every size is an argument; the defaults of a case
-are :func:`demo_defaults`.
+real interconnects (:func:`jaxsync.perf.costmodel.project`) and the report (figures,
+``summary.json``). Every size is an argument; the defaults of a case are
+:func:`demo_defaults`.
 """
 
 from __future__ import annotations
