@@ -170,12 +170,14 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
         network = np.asarray(dataclasses.replace(surrogate, smooth=False).part(p).predict(buffer, n_cri))
         saved = slice(every - 1, None, every)
         n = network[saved].shape[0]
+        # the networks run in float32: compiled and eager agree to its round-off
+        scale = np.abs(network).max()
         np.testing.assert_allclose(raw.parts[p].predicted_shared_displacement[:n], network[saved, :width],
-                                   rtol=1e-10, atol=1e-13)
+                                   rtol=1e-5, atol=1e-6 * scale)
         smooth = np.asarray(smooth_refill(network, buffer[-1], N_S))
         np.testing.assert_allclose(online.parts[p].predicted_shared_displacement[:n], smooth[saved, :width],
-                                   rtol=1e-10, atol=1e-13)
-        assert not np.allclose(network[saved, :width], smooth[saved, :width])
+                                   rtol=1e-5, atol=1e-6 * scale)
+        assert np.abs(network[saved, :width] - smooth[saved, :width]).max() > 1e-3 * scale
 
 
 def test_predict_refuses_an_existing_output(demo, predicted):
