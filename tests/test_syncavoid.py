@@ -386,6 +386,27 @@ def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference)
     assert ResyncTolerance.parse("5%").cm(2.0) == pytest.approx(0.1)
 
 
+def test_tolerance_relative_to_a_given_amplitude(problem, partition, long_reference):
+    """ResyncTolerance(relative=, amplitude=A): the tolerance is that fraction of A at every
+    check, whatever the run has seen (a ramped load's early amplitude is small)."""
+    from jaxsync.solve.syncavoid import ResyncTolerance
+
+    amplitude = max(np.abs(part.shared_displacement[:1001]).max() for part in long_reference.parts)
+    tolerance = ResyncTolerance(relative=0.02, amplitude=float(amplitude))
+    assert tolerance.cm(1e-9) == pytest.approx(0.02 * amplitude, rel=1e-12)
+    net = drifting_oracle(long_reference, partition, drift=(+1e-6, -1e-6))
+    with pytest.warns(RuntimeWarning):
+        traj = simulate_sync_avoiding(problem, 1000, partitions=partition, surrogates=net,
+                                      n_cri=N_CRI, resync_tolerance=tolerance)
+    st = traj.stats
+    assert st.resync_tolerance == f"2 % of {amplitude:.4g} cm" and st.n_resynchronizations >= 1
+    assert all(tol == pytest.approx(0.02 * amplitude, rel=1e-12) for tol in st.tolerance_cm)
+    for bad in (dict(absolute=1e-4, amplitude=1.0), dict(relative=0.01, amplitude=-1.0),
+                dict(relative=0.01, amplitude=float("nan"))):
+        with pytest.raises(ProblemError, match="amplitude"):
+            ResyncTolerance(**bad)
+
+
 def test_resync_tolerance_is_checked(problem, partition, reference):
     for bad in (0.0, -1.0, float("nan"), "small", "-2%", True):
         with pytest.raises(ProblemError, match="resync_tolerance"):

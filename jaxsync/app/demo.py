@@ -266,9 +266,10 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
         + ", ".join(f"{v:.3e}" for v in trained.final_val_loss) + f"; wrote {trained.files['checkpoint']}")
 
     n_cri = d.n_s * d.n_past
-    tolerance = _tolerance_cm(d.resync_tolerance, reference)
+    tolerance = _tolerance(d.resync_tolerance, reference)
+    tolerance_cm = None if tolerance is None else tolerance.cm(0.0)
     log(f"[{next(stage)}/{n_stages}] synchronization-avoiding run: synchronized to step {n_cri}, then predicted"
-        + (f", error control at es_hat <= {tolerance:.3e} cm ({d.resync_tolerance})" if tolerance else ""))
+        + (f", error control at es_hat <= {tolerance_cm:.3e} cm ({tolerance})" if tolerance else ""))
     online = simulate_sync_avoiding(problem, d.n_steps, partitions=parts, surrogates=trained.checkpoint,
                                     n_cri=n_cri, progress=progress, save_every=save_every,
                                     resync_tolerance=tolerance)
@@ -298,7 +299,7 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
         "compile_seconds": reference.stats.compile_seconds + online.stats.compile_seconds,
         "save_every": save_every, "n_s": d.n_s, "n_shared_nodes": int(parts.n_interface),
         "resync_tolerance": None if d.resync_tolerance is None else str(d.resync_tolerance),
-        "resync_tolerance_cm": tolerance, "shared_amplitude_cm": _shared_amplitude(reference),
+        "resync_tolerance_cm": tolerance_cm, "shared_amplitude_cm": _shared_amplitude(reference),
         "projection": cost_projection(timing, parts).to_dict(),
         **{k: v for k, v in online.stats.to_dict().items()
            if k in ("n_synchronized_steps", "n_predicted_steps", "n_discarded_steps", "n_resynchronizations")}})
@@ -322,17 +323,20 @@ def _shared_amplitude(reference) -> float:
     return max(float(np.abs(part.shared_displacement).max(initial=0.0)) for part in reference.parts)
 
 
-def _tolerance_cm(tolerance, reference) -> float | None:
-    """The demo's error-control tolerance in cm: a percentage is of the largest shared-node
-    displacement of the synchronized run the surrogates were trained on. (The library's
-    ``"1%"`` is of the amplitude the online run has seen in its synchronized steps so far:
-    under the vessel's pressure ramp that is a small fraction of the final amplitude, and
-    the tolerance would reject well-trained cycles.)"""
+def _tolerance(tolerance, reference):
+    """The demo's error control, a :class:`~jaxsync.solve.syncavoid.ResyncTolerance`
+    (None: none): a percentage is of the largest shared-node displacement of the
+    synchronized run the surrogates were trained on (under the vessel's pressure ramp the
+    amplitude the online run has seen by n_cri is a small fraction of the final one, and
+    a tolerance of it would reject well-trained cycles)."""
     from ..solve.syncavoid import ResyncTolerance
 
     if tolerance is None:
         return None
-    return ResyncTolerance.parse(tolerance).cm(_shared_amplitude(reference))
+    tolerance = ResyncTolerance.parse(tolerance)
+    if tolerance.relative is None or tolerance.amplitude is not None:
+        return tolerance
+    return dataclasses.replace(tolerance, amplitude=_shared_amplitude(reference))
 
 
 def cost_projection(timing, parts):

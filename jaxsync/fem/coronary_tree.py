@@ -28,6 +28,7 @@ from .geometry import (
     generated_mesh,
     occ_cylinder,
     occ_wall,
+    positive_length,
     tag_surfaces,
 )
 from .mesh import Mesh
@@ -211,13 +212,7 @@ def coronary_mesh(path: str | os.PathLike | None = None, *, size: float | None =
 
 
 def _positive(name: str, value) -> float:
-    try:
-        value = float(value)
-    except (TypeError, ValueError):
-        raise MeshError(f"coronary_mesh: {name} must be a number, got {value!r}") from None
-    if not math.isfinite(value) or value <= 0:
-        raise MeshError(f"coronary_mesh: {name} must be positive and finite, got {value!r}")
-    return value
+    return positive_length("coronary_mesh", name, value)
 
 
 def _chosen_size(tree: CoronaryTree, size, target_elements, wall: float) -> float:

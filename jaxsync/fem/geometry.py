@@ -146,18 +146,23 @@ def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
         outlets=["outlet_1", "outlet_2"] if branch else [])
 
 
+def positive_length(generator: str, name: str, value) -> float:
+    """``value`` as a positive finite float, or a :class:`MeshError` naming the
+    ``generator``'s argument ``name``."""
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise MeshError(f"{generator}: {name} must be a number, got {value!r}") from None
+    if not math.isfinite(number) or number <= 0:
+        raise MeshError(f"{generator}: {name} must be positive and finite, got {value!r}")
+    return number
+
+
 def _checked(length, radius, wall, angle, size, branch):
-    values = {}
-    for name, value in (("length", length), ("radius", radius), ("wall", wall),
-                        ("angle", angle), ("size", size)):
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise MeshError(f"vessel_mesh: {name} must be a number, got {value!r}") from None
-        if not math.isfinite(value) or value <= 0:
-            raise MeshError(f"vessel_mesh: {name} must be positive and finite, got {value!r}")
-        values[name] = value
-    length, radius, wall, angle, size = (values[k] for k in ("length", "radius", "wall", "angle", "size"))
+    length, radius, wall, angle, size = (
+        positive_length("vessel_mesh", name, value)
+        for name, value in (("length", length), ("radius", radius), ("wall", wall), ("angle", angle),
+                            ("size", size)))
     outer = radius + wall
     if size > 2 * outer:
         raise MeshError(f"vessel_mesh: size={size:g} cm is larger than the vessel's outer "

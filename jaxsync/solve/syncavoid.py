@@ -55,20 +55,26 @@ class ResyncTolerance:
     Give it in cm (``ResyncTolerance(absolute=1e-4)``, or just ``1e-4``) or relative to
     the observed amplitude (``ResyncTolerance(relative=0.01)``, or ``"1%"``): a fraction
     of the largest |displacement| at the shared nodes seen in the synchronized steps so
-    far (the amplitude that the run itself has measured; no reference needed).
+    far (the amplitude that the run itself has measured; no reference needed). Under a
+    load that ramps up, that amplitude is small when the prediction starts; ``amplitude``
+    [cm] fixes the one a relative tolerance refers to instead (e.g. the largest shared
+    displacement of the run the surrogates were trained on).
     """
 
     absolute: float | None = None
     relative: float | None = None
+    amplitude: float | None = None
 
     def __post_init__(self):
         if (self.absolute is None) == (self.relative is None):
             raise ProblemError("resync_tolerance: give exactly one of absolute (cm) or relative")
         value = self.absolute if self.absolute is not None else self.relative
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
-                or not value > 0:  # also refuses NaN
+        if not _positive(value):
             raise ProblemError(f"resync_tolerance must be a tolerance > 0 (cm, or a fraction of the "
                                f"amplitude), got {value!r}")
+        if self.amplitude is not None and (self.relative is None or not _positive(self.amplitude)):
+            raise ProblemError(f"resync_tolerance: amplitude={self.amplitude!r} must be a length > 0 [cm] "
+                               "and goes with a relative tolerance")
 
     @classmethod
     def parse(cls, value) -> "ResyncTolerance":
@@ -89,11 +95,22 @@ class ResyncTolerance:
         return cls(absolute=value)  # checked by __post_init__
 
     def cm(self, amplitude: float) -> float:
-        """The tolerance in cm given the observed amplitude [cm]."""
-        return float(self.absolute) if self.absolute is not None else float(self.relative) * amplitude
+        """The tolerance in cm given the observed amplitude [cm] (not used when the
+        tolerance is absolute or has its own ``amplitude``)."""
+        if self.absolute is not None:
+            return float(self.absolute)
+        return float(self.relative) * (amplitude if self.amplitude is None else float(self.amplitude))
 
     def __str__(self) -> str:
-        return f"{self.absolute:g} cm" if self.absolute is not None else f"{100 * self.relative:g} %"
+        if self.absolute is not None:
+            return f"{self.absolute:g} cm"
+        return f"{100 * self.relative:g} %" + ("" if self.amplitude is None else f" of {self.amplitude:.4g} cm")
+
+
+def _positive(value) -> bool:
+    """A real number > 0 (not a bool, not NaN)."""
+    return (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+            and value > 0)
 
 
 @dataclasses.dataclass
