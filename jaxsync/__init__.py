@@ -27,6 +27,7 @@ from .fem.problem import Dirichlet, Problem, cantilever
 from .fem.timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
 from .parallel import devices
 from .parallel.partitioning import Partition, partition
+from .solve.ensemble import ensemble
 from .solve.full_system import simulate_full_system
 from .solve.solver import simulate, steady_state
 from .solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
@@ -40,7 +41,7 @@ __all__ = [
     "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",
+    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
     "Trajectory", "RunStats", "PartHistory",
 ]

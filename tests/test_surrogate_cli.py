@@ -62,6 +62,11 @@ def test_train_writes_checkpoint_curves_and_summary(tmp_path, capsys):
     assert not [p.name for p in out.iterdir() if ".tmp" in p.name]
     printed = capsys.readouterr().out
     assert f"wrote {out / 'surrogate.h5'}, {out / 'loss_curves.png'} and train_summary.json (12 epochs)" in printed
+    # the offline rollout check, printed and in the summary (a 12-epoch network misses 2 %)
+    check = summary["rollout_check"]
+    assert check["tolerance"] == 0.02 and check["passed"] is False and len(check["relative"]) == 2
+    assert (f"offline check: rolled out over {check['n_steps']} steps, shared displacements off by up to "
+            f"{100 * check['relative'][0]:.2f} %") in printed and "ABOVE the tolerance of 2 %" in printed
 
 
 def test_train_errors(tmp_path):

@@ -126,3 +126,91 @@ def test_shared_histories_thinned_to_a_divisor_of_n_s_train_the_same_replicas():
     assert b.sqrt_e_mse is None and b.e_mse_applications is None
     with pytest.raises(CheckpointError, match="every 2 steps, which does not divide the sampling stride n_s=3"):
         train_surrogates(thin, emse_applications=0, **dict(SMALL, n_s=3))
+
+
+def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_its_tolerance():
+    """The rollout check against a rollout written here: one predict per refill cycle, each
+    fed the predictions before it, never the truth after step n_s n_p - 1."""
+    from jaxsync.surrogate.evaluate import RolloutWarning
+
+    traj = oscillator_trajectory(n_steps=300)
+    with pytest.warns(RolloutWarning, match="offline check"):  # 12 epochs of a tiny network: far off
+        trained = train_surrogates(traj, emse_applications=0, rollout_tolerance=1e-3, **SMALL)
+    surrogate, check = trained.surrogate, trained.rollout
+    n_s, n_p, n_f = 2, 6, 5
+    start = n_s * n_p - 1
+    assert check.start == start and check.n_steps == (300 - 1 - start) // (n_s * n_f) * n_s * n_f
+    for p, part in enumerate(traj.parts):
+        truth = np.pad(part.shared_displacement, ((0, 0), (0, 9 - part.shared_displacement.shape[1])))
+        one = jax.tree_util.tree_map(lambda a: a[p], surrogate)  # one part's replica
+        buffer, predicted = truth[:start + 1][-n_s * n_p:], []
+        while len(predicted) * n_s * n_f < check.n_steps:
+            block = np.asarray(one.predict(buffer, start + len(predicted) * n_s * n_f))
+            predicted.append(block)
+            buffer = np.concatenate([buffer, block])[-n_s * n_p:]
+        error = np.abs(np.concatenate(predicted) - truth[start + 1:start + 1 + check.n_steps])
+        real = part.shared_displacement.shape[1]
+        assert check.max_abs_error[p] == pytest.approx(error[:, :real].max(), rel=1e-5)
+        assert check.amplitude[p] == np.abs(part.shared_displacement).max()
+        assert check.mse[p] == pytest.approx(np.mean(np.square(error[:, :real])), rel=1e-5)
+    assert trained.rollout_passed is False
+    summary = trained.summary()["rollout_check"]
+    assert summary["passed"] is False and summary["tolerance"] == 1e-3
+    assert summary["relative"] == pytest.approx((check.max_abs_error / check.amplitude).tolist())
+
+    # within a generous tolerance: no warning; None: not checked
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RolloutWarning)
+        loose = train_surrogates(traj, emse_applications=0, rollout_tolerance=10.0, **SMALL)
+    assert loose.rollout_passed is True
+    unchecked = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, **SMALL)
+    assert unchecked.rollout is None and unchecked.summary()["rollout_check"] is None
+    with pytest.raises(ConfigError, match="rollout_tolerance must be > 0"):
+        train_surrogates(traj, rollout_tolerance=0.0, **SMALL)
+
+
+def test_more_sampling_offsets_take_the_sequences_at_those_phases():
+    history = np.arange(40.0)[:, None] * np.array([[1.0, -2.0]])  # step index per row
+    one = build_dataset([history], 4, 2, 1, train_fraction=1.0, val_fraction=0.2, n_offsets=1)
+    four = build_dataset([history], 4, 2, 1, train_fraction=1.0, val_fraction=0.2, n_offsets=4)
+    two = build_dataset([history], 4, 2, 1, train_fraction=1.0, val_fraction=0.2, n_offsets=2)
+
+    def windows(data):  # back to step indices, as a set of (inputs, target) tuples
+        x = data.normalization.invert(np.concatenate([data.x_train, data.x_val]))[..., 0]
+        y = data.normalization.invert(np.concatenate([data.y_train, data.y_val]))[..., 0]
+        return {tuple(np.round(np.concatenate([a, b])).astype(int)) for a, b in zip(x, y)}
+
+    expected = {offset: {(s, s + 4, s + 8) for s in range(offset, 40 - 8, 4)} for offset in range(4)}
+    assert windows(one) == expected[0]
+    assert windows(two) == expected[0] | expected[2]
+    assert windows(four) == set().union(*expected.values())
+    assert four.x_train.shape[0] + four.x_val.shape[0] == sum(len(w) for w in expected.values())
+    with pytest.raises(ConfigError, match="n_offsets must be an integer from 1 to n_s=4"):
+        build_dataset([history], 4, 2, 1, n_offsets=5)
+
+
+def test_the_conditional_decoder_uses_its_load_parameter():
+    """Trained on two runs told apart by their load parameter, each run's refills are closer
+    to that run given its own parameter than given the other's."""
+    runs = [oscillator_trajectory(n_steps=400, load=load) for load in (1.0, 0.6)]
+    config = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.99, n_epochs=60, epochs_per_call=20, patience=None)
+    trained = train_surrogates(runs, **dict(SMALL, config=config), n_cond_repeat=4, emse_applications=0,
+                               rollout_tolerance=None, train_fraction=1.0)
+    result = trained.result
+    n_s, n_p, n_f = 2, 6, 5
+
+    def refill_error(run, load):
+        surrogate = Surrogate.from_result(result, n_s, load)
+        errors = []
+        for p, part in enumerate(run.parts):
+            truth = np.pad(part.shared_displacement, ((0, 0), (0, 9 - part.shared_displacement.shape[1])))
+            one = jax.tree_util.tree_map(lambda a: a[p], surrogate)
+            for step in range(n_s * n_p - 1, 400 - n_s * n_f - 1, 17):
+                pred = np.asarray(one.predict(truth[step + 1 - n_s * n_p:step + 1], step))
+                errors.append(np.mean(np.square(pred - truth[step + 1:step + 1 + n_s * n_f])))
+        return float(np.mean(errors))
+
+    for run, own, other in ((runs[0], 1.0, 0.6), (runs[1], 0.6, 1.0)):
+        assert refill_error(run, own) < 0.9 * refill_error(run, other)

@@ -73,14 +73,19 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint-name", default=LIBRARY["checkpoint_name"],
                         help="checkpoint file name inside the output directory (default: %(default)s)")
     parser.add_argument("--load-parameter", type=float, nargs="+", default=None,
-                        help="load parameter alpha_f of each trajectory, in order (default: the trajectories' "
-                        "problem parameter 'load_parameter'); needed with --cond-repeat > 0")
+                        help="the condition of each trajectory, in order: its load parameter alpha_f, an "
+                        "initial-condition label, any scalar that tells the runs apart (default: the "
+                        "trajectories' 'load_parameter', which jaxsync.ensemble(labels=...) stores); needed "
+                        "with --cond-repeat > 0")
     parser.add_argument("--n-s", type=int, default=LIBRARY["n_s"],
                         help="sampling stride n_s in steps (default: %(default)s)")
     parser.add_argument("--n-past", type=int, default=LIBRARY["n_past"],
                         help="input snapshots n_p (default: %(default)s)")
     parser.add_argument("--n-future", type=int, default=LIBRARY["n_future"],
                         help="predicted snapshots n_f (default: %(default)s)")
+    parser.add_argument("--offsets", dest="n_offsets", type=int, default=LIBRARY["n_offsets"],
+                        help="sampled sequences taken from each run, at evenly spaced starting steps within n_s "
+                        "(more windows of the same run; default: %(default)s)")
     parser.add_argument("--train-fraction", type=float, default=LIBRARY["train_fraction"],
                         help="leading fraction n_ts of each run used for training (default: %(default)s)")
     parser.add_argument("--val-fraction", type=float, default=LIBRARY["val_fraction"],
@@ -123,6 +128,10 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--emse-applications", type=int, default=LIBRARY["emse_applications"],
                         help="refill cycles N for the E_mse of the summary, clipped to what the first "
                         "trajectory holds; 0 skips it (default: %(default)s)")
+    parser.add_argument("--rollout-tolerance", type=float, default=LIBRARY["rollout_tolerance"], metavar="FRACTION",
+                        help="offline check after training: warn when a part's autonomous rollout over the first "
+                        "trajectory is off by more than this fraction of its shared amplitude; 0 skips it "
+                        "(default: %(default)s)")
     parser.add_argument("--devices", type=int, default=None,
                         help="local devices to spread the parts over (default: as many as divide the part count)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -145,8 +154,9 @@ def run_train(args: argparse.Namespace) -> int:
     trained = train_surrogates(
         args.trajectories, n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
         n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
-        val_fraction=args.val_fraction, load_parameters=args.load_parameter, allow_predicted=args.allow_predicted,
-        seed=args.seed, emse_applications=args.emse_applications, devices=args.devices, out=args.output,
+        val_fraction=args.val_fraction, n_offsets=args.n_offsets, load_parameters=args.load_parameter,
+        allow_predicted=args.allow_predicted, seed=args.seed, emse_applications=args.emse_applications,
+        rollout_tolerance=args.rollout_tolerance or None, devices=args.devices, out=args.output,
         checkpoint_name=args.checkpoint_name, checkpoint_every=args.checkpoint_every,
         progress=not args.no_progress,
     )
@@ -157,6 +167,11 @@ def run_train(args: argparse.Namespace) -> int:
           f"and {SUMMARY_NAME} ({stop}); validation MSE of the kept parameters per part: "
           f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)} "
           f"(best epochs {', '.join(str(int(e)) for e in result.best_epoch)})")
+    if trained.rollout is not None:
+        verdict = "within" if trained.rollout_passed else "ABOVE"
+        print(f"offline check: rolled out over {trained.rollout.n_steps} steps, shared displacements off by up to "
+              f"{', '.join(f'{100 * v:.2f} %' for v in trained.rollout.relative)} of each part's amplitude "
+              f"({verdict} the tolerance of {100 * trained.rollout_tolerance:g} %)")
     return 0
 
 

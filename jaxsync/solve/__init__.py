@@ -11,12 +11,13 @@ of paper Algorithm 1), :mod:`~jaxsync.solve.predictors` (what predicts the share
 
 from .distributed import DistributedRunner
 from .driver import Chunk, Progress, Runner, Segment, run_chunks
+from .ensemble import ensemble
 from .full_system import simulate_full_system
 from .predictors import OraclePredictor
 from .solver import SingleDeviceRunner, drive, simulate, steady_state
 from .syncavoid import ResyncTolerance, describe_run, simulate_sync_avoiding, step_counts
 
-__all__ = ["simulate", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
+__all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
            "ResyncTolerance", "OraclePredictor", "describe_run", "step_counts",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "drive", "SingleDeviceRunner",
            "DistributedRunner"]

@@ -92,6 +92,26 @@ class SingleDeviceRunner:
         return state
 
 
+def check_steps(n_steps, save_every, shared_every, partitions) -> tuple[int, int, int]:
+    """``n_steps``, ``save_every`` and ``shared_every`` (defaulted to ``save_every``) of a
+    run, checked: a multiple of saves, shared histories at a divisor of the save stride and
+    only with parts (``partitions`` not None). Raises :class:`ProblemError`."""
+    n_steps, save_every = int(n_steps), int(save_every)
+    if n_steps < 0 or save_every < 1:
+        raise ProblemError(f"need n_steps >= 0 and save_every >= 1, got {n_steps}, {save_every}")
+    if n_steps % save_every:
+        raise ProblemError(f"n_steps={n_steps} is not a multiple of save_every={save_every}; "
+                           f"use n_steps={n_steps - n_steps % save_every + save_every}")
+    shared_every = save_every if shared_every is None else int(shared_every)
+    if shared_every < 1 or save_every % shared_every:
+        raise ProblemError(f"shared_every={shared_every} must be a positive divisor of "
+                           f"save_every={save_every}")
+    if shared_every != save_every and partitions is None:
+        raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
+                           "run has no shared nodes")
+    return n_steps, save_every, shared_every
+
+
 def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=None,
              mode: str = "preassembled", seed: int = 0, devices=None,
              progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
@@ -151,19 +171,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     from ..trajectory import Trajectory
 
     require_float64("simulate")
-    n_steps, save_every = int(n_steps), int(save_every)
-    if n_steps < 0 or save_every < 1:
-        raise ProblemError(f"need n_steps >= 0 and save_every >= 1, got {n_steps}, {save_every}")
-    if n_steps % save_every:
-        raise ProblemError(f"n_steps={n_steps} is not a multiple of save_every={save_every}; "
-                           f"use n_steps={n_steps - n_steps % save_every + save_every}")
-    shared_every = save_every if shared_every is None else int(shared_every)
-    if shared_every < 1 or save_every % shared_every:
-        raise ProblemError(f"shared_every={shared_every} must be a positive divisor of "
-                           f"save_every={save_every}")
-    if shared_every != save_every and partitions is None:
-        raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
-                           "run has no shared nodes")
+    n_steps, save_every, shared_every = check_steps(n_steps, save_every, shared_every, partitions)
     dt = problem.dt if dt is None else dt
     traced = is_traced(problem.material, problem.damping, problem.loads, dt,
                        problem.initial_displacement, problem.initial_velocity)

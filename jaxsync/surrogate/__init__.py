@@ -17,13 +17,13 @@ The names a user needs are here; everything else stays importable from its modul
                            (:func:`train_replicas`, :class:`TrainConfig`, :class:`TrainResult`)
 :mod:`.training_state`     the resumable state of a training run
 :mod:`.checkpoint`         checkpoint files of trained replicas (:class:`SurrogateCheckpoint`)
-:mod:`.evaluate`           E_mse and the grid search
+:mod:`.evaluate`           the offline rollout check, E_mse and the grid search
 =========================  =================================================================
 """
 
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
 from jaxsync.surrogate.data import build_dataset, stack_replicas
-from jaxsync.surrogate.evaluate import GridSearchResult, e_mse, grid_search
+from jaxsync.surrogate.evaluate import GridSearchResult, RolloutWarning, e_mse, grid_search, rollout_errors
 from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
 from jaxsync.surrogate.lstm import LSTMArchitecture
 from jaxsync.surrogate.model import Surrogate
@@ -34,5 +34,5 @@ __all__ = [
     "train_surrogates", "TrainedSurrogates",
     "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
     "SurrogateCheckpoint", "save_checkpoint", "load_checkpoint",
-    "e_mse", "grid_search", "GridSearchResult",
+    "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
 ]

@@ -158,6 +158,7 @@ def build_dataset(
     val_fraction: float = 0.25,
     split_seed: int = 0,
     load_parameters: Sequence[float] | None = None,
+    n_offsets: int = 1,
 ) -> WindowDataset:
     """Windows of one part from one or several runs.
 
@@ -170,6 +171,11 @@ def build_dataset(
         split_seed: seed of the train/validation permutation. Parts built with the same
             runs and seed get the same split (their windows are aligned in time).
         load_parameters: one scalar per run for the conditional network, or None.
+        n_offsets: sampled sequences taken from each run, starting at the evenly spaced
+            steps k n_s / n_offsets, k = 0 .. n_offsets - 1 (at most n_s). The online
+            refill predicts all n_s interleaved sequences of a run; the paper trains on
+            the one starting at step 0, and more offsets give the networks more of the
+            same signal at other phases (n_offsets times the windows, the same run).
 
     Returns:
         The normalized :class:`WindowDataset`.
@@ -180,6 +186,8 @@ def build_dataset(
         raise ConfigError(f"got {len(load_parameters)} load parameters for {len(runs)} runs; give one per run")
     if not 0.0 < train_fraction <= 1.0:
         raise ConfigError(f"train fraction n_ts must be in (0, 1], got {train_fraction}")
+    if isinstance(n_offsets, bool) or not isinstance(n_offsets, (int, np.integer)) or not 1 <= n_offsets <= n_s:
+        raise ConfigError(f"n_offsets must be an integer from 1 to n_s={n_s}, got {n_offsets!r}")
     n_dof = np.shape(runs[0])[-1]
     xs, ys, loads = [], [], []
     for r, run in enumerate(runs):
@@ -189,10 +197,11 @@ def build_dataset(
         if not np.all(np.isfinite(run)):
             raise ConfigError(f"run {r} holds NaN or Inf displacements; it cannot be used for training")
         n_used = int(np.floor(train_fraction * run.shape[0]))
-        x, y = make_windows(subsample(run[:n_used], n_s), n_past, n_future)
-        xs.append(x)
-        ys.append(y)
-        loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
+        for k in range(n_offsets):
+            x, y = make_windows(subsample(run[:n_used], n_s, (k * n_s) // n_offsets), n_past, n_future)
+            xs.append(x)
+            ys.append(y)
+            loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
     x, y, load = np.concatenate(xs), np.concatenate(ys), np.concatenate(loads)
     train, val = split_indices(x.shape[0], val_fraction, split_seed)
     norm = Normalization.fit(np.concatenate([x[train], y[train]], axis=1))

@@ -1,4 +1,4 @@
-"""Offline evaluation of trained surrogates: E_mse and the grid search.
+"""Offline evaluation of trained surrogates: rollout errors, E_mse and the grid search.
 
 E_mse (paper section 4): starting at step n (default the first step where refill is
 possible, n = n_s n_p - 1), run N refill cycles without ever looking at the truth
@@ -29,7 +29,8 @@ from jaxsync.surrogate.lstm import LSTMArchitecture
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.train import TrainConfig, train_replicas
 
-__all__ = ["max_applications", "e_mse", "GridPoint", "GridSearchResult", "grid_search"]
+__all__ = ["max_applications", "rollout_errors", "RolloutErrors", "RolloutWarning", "e_mse", "GridPoint",
+           "GridSearchResult", "grid_search"]
 
 
 def max_applications(n_steps: int, n_s: int, n_past: int, n_future: int, start: int | None = None) -> int:
@@ -44,13 +45,100 @@ def _rollout_parts(surrogate: Surrogate, buffers, step0, n_cycles: int):
     return jax.vmap(lambda one, buffer: one.rollout(buffer, step0, n_cycles))(surrogate, buffers)
 
 
+class RolloutWarning(UserWarning):
+    """Trained surrogates whose offline rollout misses the accuracy asked for: the online
+    run would likely miss it too (the shared dofs of a predicted run ARE this rollout)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class RolloutErrors:
+    """Errors of an autonomous rollout of every replica against the true histories.
+
+    Attributes:
+        start: step n at which prediction starts; the predicted steps are n+1 .. n +
+            n_steps.
+        n_steps: predicted steps compared.
+        mse: (n_parts,) mean squared error over the predicted steps and the part's real
+            dofs [cm^2] (E_mse).
+        max_abs_error: (n_parts,) largest absolute error at any predicted step and dof [cm].
+        amplitude: (n_parts,) largest absolute true displacement of the part's shared dofs
+            over the whole history given [cm].
+    """
+
+    start: int
+    n_steps: int
+    mse: np.ndarray
+    max_abs_error: np.ndarray
+    amplitude: np.ndarray
+
+    @property
+    def relative(self) -> np.ndarray:
+        """(n_parts,) ``max_abs_error / amplitude``: the offline accuracy check."""
+        return self.max_abs_error / np.where(self.amplitude > 0, self.amplitude, 1.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"start": self.start, "n_steps": self.n_steps, "sqrt_mse": np.sqrt(self.mse).tolist(),
+                "max_abs_error": self.max_abs_error.tolist(), "amplitude": self.amplitude.tolist(),
+                "relative": self.relative.tolist()}
+
+
+def rollout_errors(
+    surrogate: Surrogate,
+    histories: np.ndarray,
+    n_applications: int | None = None,
+    start: int | None = None,
+) -> RolloutErrors:
+    """Run N refill cycles of every replica without looking at the truth after ``start``
+    (:meth:`Surrogate.rollout`, what a predicted run does at its shared dofs) and compare.
+
+    Args:
+        surrogate: the replicas (with the load parameter of this run, for conditional
+            networks).
+        histories: (n_parts, n_steps, n_dof) true displacements at every step, padded
+            with zeros to the surrogate's width; solver units.
+        n_applications: N, refill cycles (default: as many as the history holds).
+        start: current step n at which prediction starts (default n_s n_p - 1, the
+            earliest possible: the online run's n_cri - 1).
+
+    Returns:
+        :class:`RolloutErrors`.
+    """
+    histories = np.asarray(histories)
+    n_s, n_past, n_future = surrogate.n_s, surrogate.n_past, surrogate.n_future
+    if histories.ndim != 3 or histories.shape[0] != surrogate.n_parts or histories.shape[2] != surrogate.n_dof:
+        raise ConfigError(f"histories must have shape (n_parts, n_steps, n_dof) = ({surrogate.n_parts}, n_steps, "
+                          f"{surrogate.n_dof}) for these replicas, got {histories.shape}")
+    n_steps, n_dof = histories.shape[1:]
+    start = n_s * n_past - 1 if start is None else int(start)
+    if start + 1 < n_s * n_past:
+        raise ConfigError(f"rollout start step {start} leaves fewer than n_s*n_p = {n_s * n_past} known steps")
+    available = max_applications(n_steps, n_s, n_past, n_future, start)
+    n_applications = available if n_applications is None else n_applications
+    if n_applications < 1 or n_applications > available:
+        raise ConfigError(
+            f"{n_applications} refill cycles from step {start} need {start + 1 + n_applications * n_s * n_future} "
+            f"steps but the history has {n_steps}; use at most {available} applications or a longer run"
+        )
+    counts = np.asarray(surrogate.dof_counts)
+    mask = padding_mask(counts, n_dof)
+    buffer = histories[:, start + 1 - n_s * n_past:start + 1]
+    pred = np.asarray(_rollout_parts(surrogate, jnp.asarray(buffer), start, n_applications))
+    truth = histories[:, start + 1:start + 1 + pred.shape[1]]
+    error = np.abs(pred - truth) * mask[:, None, :]  # padded predictions are 0, truth padding 0
+    return RolloutErrors(start=start, n_steps=int(pred.shape[1]),
+                         mse=np.square(error).sum(axis=(1, 2)) / (pred.shape[1] * counts),
+                         max_abs_error=error.max(axis=(1, 2)),
+                         amplitude=np.abs(histories * mask[:, None, :]).max(axis=(1, 2)))
+
+
 def e_mse(
     surrogate: Surrogate,
     histories: np.ndarray,
     n_applications: int = 60,
     start: int | None = None,
 ) -> np.ndarray:
-    """E_mse of every replica (paper: N = 60 applications; report its square root).
+    """E_mse of every replica (paper: N = 60 applications; report its square root): the
+    ``mse`` of :func:`rollout_errors`.
 
     Args:
         surrogate: the replicas (with the load parameter of this run, for conditional
@@ -63,28 +151,7 @@ def e_mse(
     Returns:
         (n_parts,) E_mse in squared solver units, over each part's real dofs.
     """
-    histories = np.asarray(histories)
-    n_s, n_past, n_future = surrogate.n_s, surrogate.n_past, surrogate.n_future
-    if histories.ndim != 3 or histories.shape[0] != surrogate.n_parts or histories.shape[2] != surrogate.n_dof:
-        raise ConfigError(f"histories must have shape (n_parts, n_steps, n_dof) = ({surrogate.n_parts}, n_steps, "
-                          f"{surrogate.n_dof}) for these replicas, got {histories.shape}")
-    n_steps, n_dof = histories.shape[1:]
-    start = n_s * n_past - 1 if start is None else int(start)
-    if start + 1 < n_s * n_past:
-        raise ConfigError(f"E_mse start step {start} leaves fewer than n_s*n_p = {n_s * n_past} known steps")
-    available = max_applications(n_steps, n_s, n_past, n_future, start)
-    if n_applications < 1 or n_applications > available:
-        raise ConfigError(
-            f"{n_applications} refill cycles from step {start} need {start + 1 + n_applications * n_s * n_future} "
-            f"steps but the history has {n_steps}; use at most {available} applications or a longer run"
-        )
-    counts = np.asarray(surrogate.dof_counts)
-    mask = padding_mask(counts, n_dof)
-    buffer = histories[:, start + 1 - n_s * n_past:start + 1]
-    pred = np.asarray(_rollout_parts(surrogate, jnp.asarray(buffer), start, n_applications))
-    truth = histories[:, start + 1:start + 1 + pred.shape[1]]
-    sq = np.square(pred - truth) * mask[:, None, :]  # padded predictions are 0, truth padding 0
-    return sq.sum(axis=(1, 2)) / (pred.shape[1] * counts)
+    return rollout_errors(surrogate, histories, n_applications, start).mse
 
 
 # ----------------------------------------------------------------------------- grid search

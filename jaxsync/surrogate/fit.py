@@ -23,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import os
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -33,7 +34,7 @@ from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import atomic_json, atomic_path
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
 from jaxsync.surrogate.data import SharedHistories, build_dataset, read_shared_histories, stack_replicas
-from jaxsync.surrogate.evaluate import e_mse, max_applications
+from jaxsync.surrogate.evaluate import RolloutErrors, RolloutWarning, e_mse, max_applications, rollout_errors
 from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult, train_replicas
@@ -47,7 +48,7 @@ SUMMARY_NAME = "train_summary.json"
 LOSS_CURVES_NAME = "loss_curves.png"
 
 # what the checkpoint's metadata keeps of the summary
-_METADATA_KEYS = ("training", "sampling", "load_parameters", "final_val_loss", "sqrt_e_mse")
+_METADATA_KEYS = ("training", "sampling", "load_parameters", "final_val_loss", "sqrt_e_mse", "rollout_check")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -63,12 +64,19 @@ class TrainedSurrogates:
         trajectories: absolute path of each trajectory (None for one given in memory).
         load_parameters: the load parameter of each run fed to a conditional network, or
             None (unconditional).
-        train_fraction, val_fraction, seed: the sampling settings.
+        train_fraction, val_fraction, seed, n_offsets: the sampling settings.
         n_train_windows, n_val_windows: windows per part.
         checkpoint_every: epochs between writes of the resumable training state.
         train_seconds: wall time of the training call (compilation included).
         e_mse_applications: refill cycles N of ``sqrt_e_mse`` (None: not measured).
         sqrt_e_mse: per part, sqrt(E_mse) on the first trajectory [solver units].
+        rollout: the offline accuracy check: every replica rolled out autonomously from
+            step n_s n_p - 1 (where an online run starts predicting) to the end of the
+            first trajectory, including the steps after ``train_fraction`` that no
+            window was taken from (:func:`~jaxsync.surrogate.evaluate.rollout_errors`);
+            None when not measured (shared histories thinned, or too short a run).
+        rollout_tolerance: the largest ``rollout.relative`` accepted without a
+            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` (None: no check).
         files: the files written, by kind (``checkpoint``, ``loss_curves``, ``summary``);
             empty without ``out``.
     """
@@ -87,7 +95,18 @@ class TrainedSurrogates:
     train_seconds: float
     e_mse_applications: int | None
     sqrt_e_mse: tuple[float, ...] | None
+    rollout: RolloutErrors | None = None
+    rollout_tolerance: float | None = None
+    n_offsets: int = 1
     files: dict[str, str] = dataclasses.field(default_factory=dict)
+
+    @property
+    def rollout_passed(self) -> bool | None:
+        """Every replica's offline rollout error within ``rollout_tolerance`` of its
+        shared amplitude (None: not checked)."""
+        if self.rollout is None or self.rollout_tolerance is None:
+            return None
+        return bool(self.rollout.relative.max() <= self.rollout_tolerance)
 
     @property
     def checkpoint(self) -> SurrogateCheckpoint:
@@ -118,7 +137,7 @@ class TrainedSurrogates:
                          "stopped_at_epoch": result.stopped_epoch,
                          "best_epoch": [int(e) for e in result.best_epoch],
                          "resumed_from_epoch": result.resumed_from, "checkpoint_every": self.checkpoint_every},
-            "sampling": {"n_s": self.surrogate.n_s, "train_fraction": self.train_fraction,
+            "sampling": {"n_s": self.surrogate.n_s, "n_offsets": self.n_offsets, "train_fraction": self.train_fraction,
                          "val_fraction": self.val_fraction, "seed": self.seed,
                          "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows},
             "initial_val_loss": result.initial_val_loss.tolist(),
@@ -134,6 +153,8 @@ class TrainedSurrogates:
             "train_seconds": self.train_seconds,
             "e_mse_applications": self.e_mse_applications,
             "sqrt_e_mse": None if self.sqrt_e_mse is None else list(self.sqrt_e_mse),
+            "rollout_check": None if self.rollout is None else {
+                **self.rollout.to_dict(), "tolerance": self.rollout_tolerance, "passed": self.rollout_passed},
         }
         if self.files:
             out.update(checkpoint=self.files["checkpoint"], loss_curves=self.files["loss_curves"])
@@ -196,10 +217,12 @@ def train_surrogates(
     config: TrainConfig | None = None,
     train_fraction: float = 0.5,
     val_fraction: float = 0.25,
+    n_offsets: int = 1,
     load_parameters: Sequence[float] | None = None,
     allow_predicted: bool = False,
     seed: int = 0,
     emse_applications: int = 60,
+    rollout_tolerance: float | None = 0.02,
     devices: int | None = None,
     out: str | os.PathLike | None = None,
     checkpoint_name: str = "surrogate.h5",
@@ -223,6 +246,9 @@ def train_surrogates(
             the laptop schedule).
         train_fraction, val_fraction: leading fraction n_ts of each run used, fraction of
             windows held out for validation.
+        n_offsets: sampled sequences per run, at evenly spaced starting steps within n_s
+            (:func:`~jaxsync.surrogate.data.build_dataset`; at most the rows per n_s
+            of thinned histories).
         load_parameters: the load parameter of each trajectory (default: their problem
             parameter ``load_parameter``); used with ``n_cond_repeat`` > 0.
         allow_predicted: accept synchronization-avoiding trajectories (refused by default).
@@ -230,6 +256,13 @@ def train_surrogates(
         emse_applications: refill cycles N of sqrt(E_mse) on the first trajectory,
             clipped to what it holds; 0 skips it, and so do shared histories not kept at
             every step (the refill reads every step).
+        rollout_tolerance: the offline check before any online run: every replica is
+            rolled out without the truth from step n_s n_p - 1 to the end of the first
+            trajectory (its held-out steps after ``train_fraction`` included), and a
+            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` is issued when its
+            largest error exceeds this fraction of the part's largest shared
+            displacement (default 2 %, the accuracy the paper asks of the free end);
+            None skips the check. Needs shared histories at every step.
         devices: local devices to spread the parts over (default: as many as divide the
             part count).
         out: output folder for the files listed in the module docstring (None: nothing
@@ -251,6 +284,9 @@ def train_surrogates(
         ConfigError: unusable settings.
     """
     config = TrainConfig() if config is None else config
+    if rollout_tolerance is not None and not rollout_tolerance > 0:
+        raise ConfigError(f"rollout_tolerance must be > 0 (a fraction of the shared amplitude) or None, "
+                          f"got {rollout_tolerance}")
     runs, names = _read_runs(trajectories, allow_predicted)
     loads = _load_parameters(runs, load_parameters, n_cond_repeat)
     n_parts = len(runs[0].histories)
@@ -261,7 +297,7 @@ def train_surrogates(
     row_stride = row_strides.pop()
     datasets = [
         build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, train_fraction,
-                      val_fraction, seed, loads)
+                      val_fraction, seed, loads, n_offsets=n_offsets)
         for p in range(n_parts)
     ]
     data = stack_replicas(datasets)
@@ -282,16 +318,29 @@ def train_surrogates(
     n_app = min(emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
     if first.stride != 1:  # the refill reads every step of its input history
         n_app = 0
-    sqrt_e_mse = None
+    sqrt_e_mse = rollout = None
+    histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
     if n_app > 0:
-        histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
         sqrt_e_mse = tuple(float(v) for v in np.sqrt(e_mse(surrogate, histories, n_app)))
+    if (rollout_tolerance is not None and first.stride == 1
+            and max_applications(histories.shape[1], n_s, n_past, n_future) > 0):
+        rollout = rollout_errors(surrogate, histories)
+        worst = int(np.argmax(rollout.relative))
+        if rollout.relative[worst] > rollout_tolerance:
+            warnings.warn(RolloutWarning(
+                f"the trained surrogates miss the offline check: rolled out without the truth over "
+                f"{rollout.n_steps} steps of the first trajectory, part {worst}'s shared displacements are "
+                f"off by up to {100 * rollout.relative[worst]:.2g} % of their amplitude (tolerance "
+                f"{100 * rollout_tolerance:.2g} %); an online run would likely be as far off. Train longer "
+                "(more epochs or patience), on more data (train_fraction, more runs), or run online with "
+                "error control (resync_tolerance)"), stacklevel=2)
     trained = TrainedSurrogates(
         surrogate=surrogate, result=result, shared_nodes=first.shared_nodes, trajectories=tuple(names),
         load_parameters=None if loads is None else tuple(loads), train_fraction=train_fraction,
         val_fraction=val_fraction, seed=seed, n_train_windows=int(data.x_train.shape[1]),
         n_val_windows=int(data.x_val.shape[1]), checkpoint_every=checkpoint_every, train_seconds=train_seconds,
         e_mse_applications=n_app if sqrt_e_mse is not None else None, sqrt_e_mse=sqrt_e_mse,
+        rollout=rollout, rollout_tolerance=rollout_tolerance, n_offsets=n_offsets,
     )
     if out is None:
         return trained

@@ -1,0 +1,313 @@
+"""Ensembles: several runs of one system, batched into one compiled program.
+
+Surrogate training sets are ensembles of runs that differ only in their load magnitudes,
+Dirichlet values or initial conditions (say 10 cantilever runs with f_z ~ U(0.3, 0.7)).
+:func:`ensemble` advances all of them together: ``jax.vmap`` of the stepper over a
+leading runs axis, compiled once, driven by the one host loop
+(:func:`jaxsync.solve.driver.run_chunks`) with progress and divergence checks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import PartitionError, ProblemError, StabilityError
+from ..fem.stepper import ExplicitSystem, advance, build_system, initial_state
+from ..pytree import is_traced
+from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
+
+__all__ = ["ensemble"]
+
+# Only the per-run data are batched: the stiffness, mass, damping, dt, constrained dofs and
+# load time functions are one copy for all runs.
+_RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, load_vectors=0,
+                           load_times=None, fixed=None, fixed_values=0)
+
+
+def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface):
+    """:func:`advance` of every run: ``system`` with load_vectors (n_runs, n_loads, n_nodes,
+    3) and fixed_values (n_runs, n_nodes, 3), ``states`` with a leading runs axis. Returns
+    (states, saved (n_saves, n_runs, n_nodes, 3)), or with ``interface`` (node ids) the
+    pair (saved, recorded (n_saves * save_every, n_runs, n_interface, 3)) after every step."""
+    record = None if interface is None else (lambda s: s.displacement[interface])
+
+    def one_run(run_system, state):
+        return advance(run_system, state, n_saves, save_every, record=record)
+
+    # runs axis second in the outputs: the host reads each chunk as one field of all runs
+    return jax.vmap(one_run, in_axes=(_RUN_AXES, 0), out_axes=(0, 1))(system, states)
+
+
+_advance_runs_jit = jax.jit(_advance_runs, static_argnums=(2, 3))
+
+
+class _EnsembleRunner:
+    """Advances the stacked states of all runs on one device (a
+    :class:`jaxsync.solve.driver.Runner`). Each chunk shows the runs side by side as one
+    field (n_saves, n_runs * n_nodes, 3), so the host loop's divergence check covers every
+    run; the shared-node record is one array (steps, n_runs, n_interface, 3)."""
+
+    def __init__(self, system: ExplicitSystem, n_runs: int, n_mesh_nodes: int, save_every: int,
+                 interface=None):
+        self.system, self.save_every = system, save_every
+        self.n_runs, self.n_mesh_nodes = n_runs, n_mesh_nodes
+        self.n_nodes = n_runs * n_mesh_nodes
+        self.interface = None if interface is None else jnp.asarray(interface)
+        self.devices = jax.devices()[:1]
+        self.last = None  # (step before the latest chunk, its saved (n_saves, n_runs, n_nodes, 3))
+        self._step = 0
+        self._programs = {}
+
+    def chunk_steps(self, steps_left: int, preferred: int) -> int:
+        return chunk_of_saves(steps_left, preferred, self.save_every)
+
+    def compile(self, states, steps: int) -> float:
+        n_saves = steps // self.save_every
+        if n_saves in self._programs:
+            return 0.0
+        start = time.perf_counter()
+        self._programs[n_saves] = _advance_runs_jit.lower(self.system, states, n_saves, self.save_every,
+                                                          self.interface).compile()
+        return time.perf_counter() - start
+
+    def advance(self, states, steps: int):
+        self.compile(states, steps)
+        states, out = self._programs[steps // self.save_every](self.system, states, self.interface)
+        saved, recorded = out if self.interface is not None else (out, None)
+        saved = np.asarray(saved)
+        self.last, self._step = (self._step, saved), self._step + steps
+        shared = None if recorded is None else [np.asarray(recorded)]
+        return states, Chunk(saved.reshape(len(saved), self.n_nodes, 3), shared)
+
+
+def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, save_every: int = 1,
+             shared_every: int | None = None, seed: int = 0, progress=None, chunk_steps: int = 5000,
+             blowup_factor: float = 1e3) -> tuple:
+    """Integrate several problems of one system together, batched (``jax.vmap`` over runs).
+
+    The runs share one mesh, material, damping, set of constrained dofs, load time
+    functions and density scale; they may differ in their load MAGNITUDES (and spatial
+    load vectors), Dirichlet values and initial displacement / velocity. All advance in
+    one compiled program on one device (one compilation per chunk length for the whole
+    ensemble, not one per run) -- the way to generate surrogate training sets.
+
+    Args:
+        problems: sequence of n_runs :class:`jaxsync.Problem` (e.g.
+            ``jaxsync.cantilever(mesh, body_force=(0, 0, -fz))`` for several fz).
+        n_steps: time steps of every run (a multiple of ``save_every``).
+        partitions: None; or an int n_parts (``jaxsync.partition(mesh, n_parts,
+            seed=seed)``) or a :class:`jaxsync.Partition`: each trajectory then has the
+            per-part shared-node histories of a distributed run (``parts``), laid out as
+            ``jaxsync.simulate(problem, n_steps, partitions=..., save_every=...,
+            shared_every=...)`` gives them. The computation is still the full-mesh stepper
+            on one device; it equals the distributed run to round-off (summation order).
+        labels: optional sequence of n_runs floats (the load magnitude, an
+            initial-condition factor...), stored as ``parameters["load_parameter"]`` of
+            each trajectory: the conditional surrogates' input
+            (:func:`jaxsync.surrogate.data.read_shared_histories`).
+        dt: time step [s]; default the first problem's ``dt`` (CFL rule), checked against
+            the exact stability bound as in :func:`jaxsync.simulate`.
+        save_every: keep the displacement every this many steps (and at t = 0).
+        shared_every: with ``partitions``: keep the shared-node displacements every this
+            many steps (a divisor of ``save_every``; default ``save_every``; 1 for training).
+        seed: METIS seed when ``partitions`` is an int.
+        progress: show a tqdm bar over the batched steps (default: n_steps >= 20000), or a
+            :class:`jaxsync.solve.Progress` to report to.
+        chunk_steps: steps per compiled chunk (rounded to whole saves), between progress and
+            divergence checks.
+        blowup_factor: a displacement above this times the mesh's bounding-box diagonal
+            counts as divergence.
+
+    Returns:
+        A tuple of n_runs :class:`jaxsync.Trajectory`, in the order of ``problems``: each
+        with ``n_steps // save_every + 1`` snapshots, displacement (n_saved, n_nodes, 3)
+        [cm], times [s], and with ``partitions`` the ``parts`` of a distributed run.
+        ``stats.us_per_step`` is the wall time of one BATCHED step, all runs advancing
+        together [us] (per run: divide by n_runs), compilation excluded;
+        ``stats.compile_seconds`` the compilation of the batched program (the same in
+        every trajectory).
+
+    Raises:
+        ProblemError: no problems, problems of different systems (the message names the
+            first differing problem and what differs), a wrong number of labels, bad
+            ``n_steps`` / ``save_every`` / ``shared_every``, or traced inputs (use
+            :func:`jaxsync.simulate` under ``jax.grad``).
+        StabilityError: dt above the stability bound, or a run diverged (NaN/Inf or
+            blow-up): the message names the run; ``error.run`` is its index,
+            ``error.trajectories`` the snapshots of every run before divergence and
+            ``error.trajectory`` those of the diverged run.
+        PartitionError: a partition of another mesh.
+    """
+    from ..precision import require_float64
+    from .solver import _parameters, check_steps
+
+    require_float64("ensemble")
+    problems = tuple(problems)
+    if not problems:
+        raise ProblemError("ensemble needs at least one problem, got an empty sequence")
+    n_runs = len(problems)
+    if labels is not None:
+        labels = tuple(labels)
+        if len(labels) != n_runs:
+            raise ProblemError(f"got {len(labels)} labels for {n_runs} problems; give one label per "
+                               "problem (or labels=None)")
+        try:
+            labels = tuple(float(x) for x in labels)
+        except (TypeError, ValueError) as exc:
+            raise ProblemError(f"labels must be numbers (one float per problem), got {labels!r}") from exc
+    n_steps, save_every, shared_every = check_steps(n_steps, save_every, shared_every, partitions)
+    first = problems[0]
+    dt = first.dt if dt is None else dt
+    for p in problems:
+        if is_traced(p.material, p.damping, p.loads, dt, p.initial_displacement, p.initial_velocity):
+            raise ProblemError("ensemble does not differentiate (traced inputs): run jaxsync.simulate "
+                               "under jax.grad instead")
+    from ..fem.timestep import check_dt
+
+    check_dt(first, dt)
+    dt = float(dt)
+    mesh = first.mesh
+    partition = _partition(mesh, partitions, seed)
+
+    # One system for all runs: check every problem's against the first, keep its per-run data.
+    reference = build_system(first, dt)
+    load_vectors, fixed_values, states = [], [], []
+    for index, problem in enumerate(problems):
+        system = reference if index == 0 else build_system(problem, dt)
+        what = _difference(problem, system, first, reference)
+        if what is not None:
+            raise ProblemError(
+                f"problem {index} of the ensemble differs from problem 0 in its {what}: the runs of an "
+                "ensemble share one system (mesh, material, damping, density scale, constrained dofs and "
+                "load time functions) and may differ only in load magnitudes, Dirichlet values and "
+                f"initial conditions; run problem {index} separately with jaxsync.simulate")
+        load_vectors.append(system.load_vectors)
+        fixed_values.append(system.fixed_values)
+    for problem, loads, values in zip(problems, load_vectors, fixed_values):  # the paper's start, per run
+        states.append(initial_state(problem, dataclasses.replace(reference, load_vectors=loads,
+                                                                 fixed_values=values)))
+    batched = dataclasses.replace(reference, load_vectors=jnp.stack(load_vectors),
+                                  fixed_values=jnp.stack(fixed_values))
+    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+    record = partition is not None and shared_every != save_every
+    runner = _EnsembleRunner(batched, n_runs, mesh.n_nodes, save_every,
+                             partition.shared_nodes if record else None)
+    start_fields = [np.asarray(s.displacement) for s in states]
+
+    def trajectories(segment):
+        """The runs' trajectories from step 0 through ``segment``."""
+        from .solver import _trajectory
+
+        saved = segment.displacement.reshape(len(segment.displacement), n_runs, mesh.n_nodes, 3)
+        out = []
+        for r, problem in enumerate(problems):
+            recorded = None
+            if record:
+                every_step = (np.zeros((0, n_runs, partition.n_interface, 3)) if segment.shared is None
+                              else segment.shared[0])  # None: no step run
+                steps_r = every_step[:, r]
+                recorded = [[start_fields[r][None, part.shared_nodes].reshape(1, -1),
+                             steps_r[:, part.shared_interface].reshape(len(steps_r), 3 * part.n_shared)]
+                            for part in partition.parts]
+            traj = _trajectory(problem, [start_fields[r][None], saved[:, r]], dt, save_every, partition,
+                               recorded, shared_every)
+            if labels is not None:
+                traj = dataclasses.replace(traj, parameters={**_parameters(problem),
+                                                             "load_parameter": labels[r]})
+            out.append(traj)
+        return out
+
+    limit = divergence_limit(mesh, blowup_factor)
+    with (contextlib.nullcontext(progress) if isinstance(progress, Progress)
+          else Progress(n_steps, show=progress, label=f"ensemble of {n_runs}")) as bar:
+        try:
+            segment = run_chunks(runner, stacked, 0, n_steps, kind="synchronized", limit=limit,
+                                 progress=bar, chunk_steps=chunk_steps)
+        except Diverged as bad:
+            raise _diverged(bad, runner, trajectories(bad.segment), limit, dt, first.dt, labels) from None
+    from ..parallel.devices import device_summary
+    from ..trajectory import RunStats
+
+    stats = RunStats(compile_seconds=segment.compile_seconds,
+                     us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
+                     **device_summary(runner.devices))
+    return tuple(dataclasses.replace(traj, stats=stats) for traj in trajectories(segment))
+
+
+def _partition(mesh, partitions, seed):
+    """None, or the :class:`jaxsync.Partition` of ``partitions`` (an int or a Partition)."""
+    from ..parallel.partitioning import Partition, partition
+
+    if partitions is None:
+        return None
+    if not isinstance(partitions, Partition):
+        return partition(mesh, partitions, seed=seed)
+    if partitions.mesh is not mesh and not (partitions.mesh.n_nodes == mesh.n_nodes
+                                            and np.array_equal(partitions.mesh.tets, mesh.tets)):
+        raise PartitionError("the partition was made for another mesh: partition the problems' mesh")
+    return partitions
+
+
+def _difference(problem, system: ExplicitSystem, reference_problem, reference: ExplicitSystem) -> str | None:
+    """What makes ``problem``'s system differ from the reference's, or None."""
+    mesh, ref_mesh = problem.mesh, reference_problem.mesh
+    if mesh is not ref_mesh and not (np.array_equal(mesh.points, ref_mesh.points)
+                                     and np.array_equal(mesh.tets, ref_mesh.tets)):
+        return "mesh (points or tetrahedra)"
+    checks = (
+        ("number of loads", lambda: len(system.load_times) == len(reference.load_times)),
+        ("stiffness (material E, nu)", lambda: _same(system.stiffness, reference.stiffness)),
+        ("lumped mass (density rho or density_scale)", lambda: _same(system.mass, reference.mass)),
+        ("damping", lambda: _same(system.damping, reference.damping)),
+        ("time step", lambda: _same(system.dt, reference.dt)),
+        ("constrained dofs (which dofs are fixed)", lambda: _same(system.fixed, reference.fixed)),
+        ("load time functions (ramp, switch-off time, waveform)",
+         lambda: _same(system.load_times, reference.load_times)),
+    )
+    for what, same in checks:
+        if not same():
+            return what
+    return None
+
+
+def _same(a, b) -> bool:
+    """Equal pytrees: the same structure (node types included) and equal leaves."""
+    leaves_a, tree_a = jax.tree_util.tree_flatten(a)
+    leaves_b, tree_b = jax.tree_util.tree_flatten(b)
+    if tree_a != tree_b:
+        return False
+    for x, y in zip(leaves_a, leaves_b):
+        if np.shape(x) != np.shape(y):
+            return False
+        if isinstance(x, jax.Array) and isinstance(y, jax.Array):
+            if x.dtype != y.dtype or not bool(jnp.array_equal(x, y)):  # on the device
+                return False
+        elif not np.array_equal(np.asarray(x), np.asarray(y)):
+            return False
+    return True
+
+
+def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: float, dt: float, cfl: float,
+              labels) -> StabilityError:
+    """The error of a diverged ensemble, naming the run(s) whose field went bad first."""
+    first_step, saved = runner.last
+    snapshot = saved[(bad.step - first_step) // runner.save_every - 1]  # (n_runs, n_nodes, 3)
+    ok = np.isfinite(snapshot).all(axis=(1, 2)) & (np.abs(snapshot).max(axis=(1, 2), initial=0) <= limit)
+    runs = [int(r) for r in np.flatnonzero(~ok)]
+    run = runs[0]
+    named = f"run {run}" + ("" if labels is None else f" (label {labels[run]:g})")
+    also = f" (also runs {runs[1:]})" if len(runs) > 1 else ""
+    err = StabilityError(
+        f"{named} of the ensemble diverged by step {bad.step} (t = {bad.step * dt:.6g} s){also}: displacement "
+        f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {cfl:.4e} s; reduce dt or check that "
+        f"run's loads and initial conditions. The {partial[run].n_saved} snapshots of each run saved before "
+        "are kept (error.trajectories)")
+    err.run, err.runs = run, tuple(runs)
+    err.trajectories, err.trajectory = tuple(partial), partial[run]
+    return err
