@@ -510,3 +510,34 @@ def test_demo_surrogate_error_control(problem, partition):
     for tol in (1e-2, 1e-3, 1e-4, "1%", "0.1%"):
         assert max_error(tol) <= free * (1 + 1e-9), tol
     assert max_error(1e-7) <= 1e-12 * scale
+
+
+def test_a_conditional_surrogate_takes_the_load_parameter_given_to_the_run(problem, partition, reference):
+    """A Surrogate object (not only a checkpoint) is conditioned on the run's load
+    parameter: the run equals the checkpoint's at that value and differs from the run at
+    the value it was built with; unconditional replicas refuse a value."""
+    import dataclasses
+
+    import jax
+
+    from jaxsync.surrogate import LSTMArchitecture, Surrogate, SurrogateCheckpoint
+    from jaxsync.surrogate.replicas import init_replicas
+
+    n_dof, counts = shared_dof_layout(partition)
+    arch = LSTMArchitecture(n_dof=n_dof, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=2)
+    params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(1), arch, tuple(counts)))
+    scale = np.full((2, n_dof), 1e-3)
+    ckpt = SurrogateCheckpoint(params=params, arch=arch, mean=np.zeros((2, n_dof)), std=scale, n_s=N_S,
+                               dof_counts=tuple(int(c) for c in counts),
+                               shared_nodes=tuple(p.shared_nodes for p in partition.parts))
+    built_at_one = Surrogate.from_checkpoint(ckpt, 1.0)
+    runs = {name: simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=s, n_cri=N_CRI,
+                                         load_parameter=load)
+            for name, s, load in (("object", built_at_one, 0.3), ("checkpoint", ckpt, 0.3),
+                                  ("own", built_at_one, None))}
+    np.testing.assert_array_equal(runs["object"].displacement, runs["checkpoint"].displacement)
+    assert not np.array_equal(runs["object"].displacement, runs["own"].displacement)
+    plain = dataclasses.replace(built_at_one, arch=dataclasses.replace(arch, n_cond_repeat=0))
+    with pytest.raises(CheckpointError, match="unconditional"):
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=plain, n_cri=N_CRI,
+                               load_parameter=0.3)

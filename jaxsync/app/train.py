@@ -12,8 +12,8 @@ it (and ends with the same parameters as an uninterrupted run); a state of other
 options is refused.  It is deleted once the results are written.
 
 The defaults are the laptop schedule of :class:`~jaxsync.surrogate.train.TrainConfig`
-(n_H = 32, n_B = 5, eta0 = 2e-3, gamma = 0.995, 300 epochs, early stop after 100 epochs
-without a better validation loss); the paper's is ``--n-hidden 100 --eta0 5e-4 --gamma
+(n_H = 50, n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200 epochs
+without a better validation loss); the paper's is ``--n-hidden 100 --batch-size 5 --eta0 5e-4 --gamma
 0.9995 --epochs paper`` (13 812 epochs).
 """
 

@@ -32,7 +32,8 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         surrogates: a one-replica checkpoint (path or object) over all 3 n_nodes dofs, a
             :class:`jaxsync.surrogate.Surrogate` or an
             :class:`~jaxsync.solve.predictors.OraclePredictor` (one part).
-        load_parameter: the load parameter of a conditional surrogate.
+        load_parameter: the load parameter of a conditional surrogate (checkpoint or
+            :class:`~jaxsync.surrogate.Surrogate`, whose own it replaces).
         n_cri: last step taken from the reference (>= n_p n_s + 1).
         n_steps: total steps (default: the reference's length).
 
@@ -58,6 +59,8 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
                                   f"the checkpoint has {surrogates.n_parts} replicas with "
                                   f"{list(surrogates.dof_counts)} dofs")
         predictor = Surrogate.from_checkpoint(surrogates, load_parameter)
+    elif isinstance(surrogates, Surrogate):
+        predictor = surrogates.with_load_parameter(load_parameter)
     else:
         predictor = surrogates
     history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future

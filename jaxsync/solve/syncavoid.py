@@ -169,7 +169,9 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         n_cri: last synchronized step; at least n_p n_s (the networks read steps
             n_cri - n_p n_s + 1 .. n_cri).
         save_every: snapshot stride; must divide n_cri, n_steps and n_s n_f.
-        load_parameter: the load parameter of conditional surrogates.
+        load_parameter: the load parameter of conditional surrogates, a checkpoint's or a
+            :class:`~jaxsync.surrogate.Surrogate`'s (which it replaces); any value, trained
+            on or not. Unconditional surrogates refuse one (:class:`CheckpointError`).
         cycles_per_chunk: refill cycles per compiled call of the unmonitored run
             (default: about 20 000 steps).
         resync_tolerance: es_hat above which the run re-synchronizes: a number [cm], a
@@ -214,6 +216,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     if isinstance(surrogates, SurrogateCheckpoint):
         check_compatible(surrogates, [p.shared_nodes for p in partition.parts])
         predictor = Surrogate.from_checkpoint(surrogates, load_parameter)
+    elif isinstance(surrogates, Surrogate):
+        predictor = surrogates.with_load_parameter(load_parameter)
     else:
         predictor = surrogates
     n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future

@@ -18,6 +18,7 @@ also keeps the shared node ids and training metadata).
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Any
 
@@ -144,12 +145,27 @@ class Surrogate:
     def _build(cls, arch, params, mean, std, dof_mask, n_s, load_parameter) -> "Surrogate":
         if arch.conditional and load_parameter is None:
             raise CheckpointError("the surrogates are conditional on a load parameter: pass load_parameter=")
+        if not arch.conditional and load_parameter is not None:
+            raise CheckpointError(f"load_parameter={load_parameter} was given but the surrogates are unconditional "
+                                  "(trained with n_cond_repeat=0) and would ignore it; train with --cond-repeat > 0 "
+                                  "or leave the load parameter out")
         mean = np.asarray(mean)
         n = mean.shape[0]
         return cls(params=params, mean=mean, std=np.asarray(std), dof_mask=np.asarray(dof_mask).astype(mean.dtype),
                    load_parameter=np.full(n, 0.0 if load_parameter is None else float(load_parameter),
                                           dtype=np.float32),
                    arch=arch, n_s=int(n_s))
+
+    def with_load_parameter(self, load_parameter: float | None) -> "Surrogate":
+        """These replicas conditioned on ``load_parameter`` (a value seen in training or
+        not); None returns them unchanged.
+
+        Raises:
+            CheckpointError: a value given to unconditional replicas, which would ignore it."""
+        if load_parameter is None:
+            return self
+        conditioned = self._build(self.arch, self.params, self.mean, self.std, self.dof_mask, self.n_s, load_parameter)
+        return dataclasses.replace(self, load_parameter=conditioned.load_parameter)
 
     @classmethod
     def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2, n_past: int = 20,

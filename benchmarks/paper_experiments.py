@@ -1,0 +1,1050 @@
+"""The paper's cantilever experiment matrix (Tong & Schiavazzi 2022, section 5.1), one case at a time.
+
+Every case trains per-part LSTM surrogates on synchronized runs of the cantilever (the
+library's training defaults: only the case's own parameters n_s, n_p, n_f, n_ts, q and the
+seed are passed; trainings on the 10-run ensembles take the default schedule counted in
+gradient steps, 800 / 10 epochs with the decay gamma ** 10 per epoch) and compares the
+synchronization-avoiding run, predicted from n_cri = n_s n_p on, with the synchronized
+reference:
+
+=====================  ====================================================================
+``default``            the demo's pipeline: coarse cantilever, 2 parts, n_s 150, n_p = n_f 20,
+                       1e5 steps, trained on the first half (the baseline)
+``sequence_length``    (n_p, n_f) in (5, 5), (20, 20), (50, 50), (20, 5)       (figure 9)
+``training_size``      n_ts in 0.2, 0.35, 0.5, 0.75                             (figure 10)
+``refined_6_parts``    box_beam(divisions=(48, 4, 4)), 6 parts, n_s 350, 5e5 steps (11-12)
+``skewed``             body force (0, -0.5, -0.5); y and z at the free end      (figure 13)
+``step_off``           the load switched off at t = 3 s                          (figure 14)
+``initial_conditions`` 10 runs from (1 + u) u_static, u ~ U(-0.25, 0.25) (one ensemble),
+                       an unseen u; unconditional and conditional (q = 12) decoders (15)
+``loads``              10 runs with f_z ~ U(0.3, 0.7), conditional decoder, unseen f_z (16-17)
+``full_system``        one network over every dof of the serial problem, 98 400 steps
+                       predicted without the solver (figures 18-20)
+=====================  ====================================================================
+
+Each case writes ``<out>/<case>/``: ``<case>.json`` (parameters, errors, timings, the
+settings and time of every training, machine), ``<case>.png`` (the paper's figure),
+``series.npz`` (times, free-end displacement and the saved fields of the reference and of
+every online run: what the errors are computed from) and, except in reduced mode,
+``training/<variant>/`` (the surrogate checkpoint, loss curves, ``train_summary.json``). ``--table`` (re)writes
+``<out>/table.md`` from the JSON files found. Targets are recorded (met or not), never
+asserted.
+
+``--reduced`` (the tests): 3 000 steps (4 000 refined on a (12, 2, 2) beam), n_s 10 (20
+refined), n_p = n_f = 5, (n_p, n_f) in (5, 5), (5, 2), n_ts in 0.25, 0.5, ensembles of 3
+runs, the refined case on as many parts as devices (up to 6), n_H 8, one encoder layer, 2
+epochs, no E_mse and no training files: a smoke run of the whole matrix in a few minutes,
+whose errors mean nothing.
+
+Within one process, ``default``, ``sequence_length`` and ``training_size`` share one
+synchronized reference, and their variants with the default settings ((20, 20), n_ts 0.5)
+one training and online run: the JSON says which case computed them (``reused_from``).
+
+Usage:
+    python benchmarks/paper_experiments.py --case NAME [NAME ...] [--reduced] [--mesh FILE]
+        [--steps N] [--seed S] [--out benchmarks/results/experiments] [--quiet]
+    python benchmarks/paper_experiments.py --all [--reduced] ...
+    python benchmarks/paper_experiments.py --table [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import glob
+import inspect
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import time
+import traceback
+import warnings
+
+N_DEVICES = 6  # the refined case's parts, one emulated device each
+
+if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
+    # before jax is imported; in-process callers (the tests) have set their own count
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + f" --xla_force_host_platform_device_count={N_DEVICES}").strip()
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+import jaxsync  # noqa: E402
+from jaxsync.app.plots import tip_node  # noqa: E402
+from jaxsync.io import atomic_json, atomic_path  # noqa: E402
+from jaxsync.surrogate import (  # noqa: E402
+    LSTMArchitecture,
+    Surrogate,
+    TrainConfig,
+    build_dataset,
+    stack_replicas,
+    train_replicas,
+    train_surrogates,
+)
+from jaxsync.surrogate.evaluate import RolloutWarning, rollout_errors  # noqa: E402
+
+CASES = ("default", "sequence_length", "training_size", "refined_6_parts", "skewed", "step_off",
+         "initial_conditions", "loads", "full_system")
+DEFAULT_OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "experiments")
+PAPER_FIGURES = {"default": "7-8", "sequence_length": "9", "training_size": "10", "refined_6_parts": "11-12",
+                 "skewed": "13", "step_off": "14", "initial_conditions": "15", "loads": "16-17",
+                 "full_system": "18-20"}
+# the offline check's tolerance of train_surrogates (the full-system case applies the same)
+ROLLOUT_TOLERANCE = inspect.signature(train_surrogates).parameters["rollout_tolerance"].default
+LIBRARY_N_S = inspect.signature(train_surrogates).parameters["n_s"].default
+# targets (paper section 5.1), as fractions of the free end's largest |z|
+TARGETS = {"fixed": {"tip_max": 0.02, "tip_final": 0.01}, "unseen": {"tip_max": 0.05},
+           "full_system": {"tip_max": 0.02}}
+
+
+# ----------------------------------------------------------------------------- settings
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """The matrix's parameters, paper or reduced (``--reduced``). Training hyperparameters
+    are the library's defaults (:class:`jaxsync.surrogate.TrainConfig`,
+    :class:`jaxsync.surrogate.LSTMArchitecture`) except in reduced mode, where
+    ``train_overrides`` makes the training a smoke test."""
+
+    reduced: bool
+    n_steps: int
+    n_s: int
+    save_every: int
+    n_past: int
+    n_future: int
+    train_fraction: float
+    n_parts: int
+    sequence_variants: tuple
+    training_fractions: tuple
+    refined_divisions: tuple
+    refined_parts: int
+    refined_n_s: int
+    refined_steps: int
+    refined_save_every: int
+    t_off: float
+    n_runs: int
+    n_cond_repeat: int
+    ic_range: float
+    load_range: tuple
+    train_overrides: dict
+
+    def to_dict(self) -> dict:
+        out = dataclasses.asdict(self)
+        out["train_overrides"] = {k: (v.to_dict() if hasattr(v, "to_dict") else v)
+                                  for k, v in self.train_overrides.items()}
+        return out
+
+
+def paper_settings() -> Settings:
+    # n_s: the library's default (train_surrogates); the full field every 50 steps, which
+    # divides n_s = 150, n_cri and the paper's 1e5 steps
+    return Settings(reduced=False, n_steps=100_000, n_s=LIBRARY_N_S, save_every=math.gcd(LIBRARY_N_S, 100_000),
+                    n_past=20, n_future=20, train_fraction=0.5, n_parts=2,
+                    sequence_variants=((5, 5), (20, 20), (50, 50), (20, 5)),
+                    training_fractions=(0.2, 0.35, 0.5, 0.75), refined_divisions=(48, 4, 4), refined_parts=6,
+                    refined_n_s=350, refined_steps=500_000, refined_save_every=1000, t_off=3.0, n_runs=10,
+                    n_cond_repeat=12, ic_range=0.25, load_range=(0.3, 0.7), train_overrides={})
+
+
+def reduced_settings(n_devices: int) -> Settings:
+    """Seconds instead of hours: the tests' settings. Two variants each of the sequence
+    length and training size cases (every distinct network shape costs a compilation);
+    the refined case gets as many parts as there are devices, up to 6 (the tests emulate 2)."""
+    return Settings(reduced=True, n_steps=3000, n_s=10, save_every=10, n_past=5, n_future=5, train_fraction=0.5,
+                    n_parts=2,
+                    sequence_variants=((5, 5), (5, 2)), training_fractions=(0.25, 0.5), refined_divisions=(12, 2, 2),
+                    refined_parts=max(1, min(N_DEVICES, n_devices)), refined_n_s=20, refined_steps=4000,
+                    refined_save_every=20, t_off=0.5, n_runs=3, n_cond_repeat=12, ic_range=0.25,
+                    load_range=(0.3, 0.7),
+                    # a smoke test: every distinct network shape costs a compilation, which
+                    # dominates these runs (one encoder layer compiles about 30 % faster; the
+                    # E_mse measure, about 1.4 s a training, is skipped)
+                    train_overrides={"config": TrainConfig(n_epochs=2), "n_hidden": 8, "n_layers": 1,
+                                     "emse_applications": 0})
+
+
+@dataclasses.dataclass
+class Context:
+    settings: Settings
+    out: str
+    mesh_file: str | None
+    seed: int
+    progress: bool
+    steps: int | None  # --steps: every case's total steps
+    # synchronized references already computed in this process (default, sequence_length
+    # and training_size share one), by what defines them
+    references: dict = dataclasses.field(default_factory=dict)
+    # their variants with the same settings (sequence_length (20, 20) and training_size 0.5
+    # are the default case): the training and online run are reused too
+    online_runs: dict = dataclasses.field(default_factory=dict)
+
+    def n_steps(self, default: int) -> int:
+        return default if self.steps is None else self.steps
+
+    def coarse_mesh(self):
+        return jaxsync.read_mesh(self.mesh_file) if self.mesh_file else jaxsync.box_beam()
+
+    def mesh_name(self) -> str:
+        return os.path.abspath(self.mesh_file) if self.mesh_file else "box_beam()"
+
+
+def log(ctx: Context, text: str) -> None:
+    if ctx.progress:
+        print(text, file=sys.stderr, flush=True)
+
+
+def machine() -> dict:
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=os.path.dirname(os.path.abspath(__file__)),
+                                capture_output=True, text=True, timeout=10).stdout.strip() or None
+    except (OSError, subprocess.SubprocessError):
+        commit = None
+    devices = jax.devices()
+    return {"platform": platform.platform(), "machine": platform.machine(), "cores": os.cpu_count(),
+            "python": sys.version.split()[0], "jax": jax.__version__, "numpy": np.__version__,
+            "jaxsync": jaxsync.__version__, "git_commit": commit, "load_average": os.getloadavg()[0],
+            "n_devices": len(devices), "device_kind": devices[0].device_kind,
+            "xla_flags": os.environ.get("XLA_FLAGS", "")}
+
+
+# ----------------------------------------------------------------------------- metrics
+
+
+def high_frequency_error(reference: np.ndarray, predicted: np.ndarray, excluded_nodes, window: int = 5) -> dict:
+    """The fast part of the error at nodes neither shared nor constrained: the error minus
+    its centred moving average over ``window`` saved snapshots, largest over nodes,
+    components and snapshots, in cm and relative to the model's largest displacement."""
+    diff = np.asarray(predicted, np.float64) - np.asarray(reference, np.float64)
+    keep = np.setdiff1d(np.arange(diff.shape[1]), np.asarray(excluded_nodes, np.int64))
+    diff = diff[:, keep]
+    kernel = np.ones(window) / window
+    smooth = np.apply_along_axis(lambda e: np.convolve(e, kernel, mode="same"), 0, diff)
+    fast = np.abs(diff - smooth)[window:-window]  # the ends see the zero padding
+    amplitude = float(np.linalg.norm(np.asarray(reference), axis=2).max())
+    worst = float(fast.max()) if fast.size else 0.0
+    return {"window_snapshots": window, "max_cm": worst, "relative": worst / amplitude if amplitude > 0 else None}
+
+
+def run_metrics(reference: np.ndarray, predicted: np.ndarray, tip: int, excluded_nodes, *,
+                final_relative_to: str = "final value", component: int = 2) -> dict:
+    """Errors of a predicted run against its reference, both (n_saved, n_nodes, 3) at the
+    same saved steps.
+
+    tip_*: the free-end node's ``component``: largest |error| over the saved steps
+    relative to the largest |reference| (the amplitude), and the final error relative to
+    the final reference value (``final_relative_to="final value"``) or to the amplitude.
+    l2_relative: sqrt(sum (u - u_ref)^2) / sqrt(sum u_ref^2) over all saved steps, nodes
+    and components; l2_relative_final: the same at the last saved step. e_l2: the norm of
+    the error field per saved step [cm]. interior_*: the largest error norm at any node
+    neither shared nor constrained, relative to the largest displacement norm anywhere in
+    the reference (the "noise" the predicted interface injects)."""
+    reference, predicted = np.asarray(reference, np.float64), np.asarray(predicted, np.float64)
+    if reference.shape != predicted.shape:
+        raise ValueError(f"reference {reference.shape} and predicted {predicted.shape} differ in shape")
+    diff = predicted - reference
+    z_ref, z = reference[:, tip, component], predicted[:, tip, component]
+    amplitude = float(np.abs(z_ref).max())
+    tip_error = np.abs(z - z_ref)
+    final_scale = amplitude if final_relative_to == "amplitude" else abs(float(z_ref[-1]))
+    e_l2 = np.linalg.norm(diff.reshape(len(diff), -1), axis=1)
+    norm_ref = float(np.sqrt(np.square(reference).sum()))
+    norm_ref_final = float(np.linalg.norm(reference[-1]))
+    keep = np.setdiff1d(np.arange(reference.shape[1]), np.asarray(excluded_nodes, np.int64))
+    node_error = np.linalg.norm(diff[:, keep], axis=2)
+    model_amplitude = float(np.linalg.norm(reference, axis=2).max())
+    worst = np.unravel_index(int(np.argmax(node_error)), node_error.shape) if node_error.size else (0, 0)
+    return {
+        "component": "xyz"[component], "n_saved": int(len(reference)),
+        "tip_amplitude_cm": amplitude, "tip_max_error_cm": float(tip_error.max()),
+        "tip_max_error_relative": float(tip_error.max() / amplitude) if amplitude > 0 else None,
+        "tip_final_reference_cm": float(z_ref[-1]), "tip_final_predicted_cm": float(z[-1]),
+        "tip_final_error_cm": float(tip_error[-1]), "tip_final_relative_to": final_relative_to,
+        "tip_final_error_relative": float(tip_error[-1] / final_scale) if final_scale > 0 else None,
+        "l2_relative": float(np.sqrt(np.square(diff).sum()) / norm_ref) if norm_ref > 0 else None,
+        "l2_relative_final": float(np.linalg.norm(diff[-1]) / norm_ref_final) if norm_ref_final > 0 else None,
+        "e_l2_max_cm": float(e_l2.max()), "e_l2_final_cm": float(e_l2[-1]),
+        "model_amplitude_cm": model_amplitude,
+        "interior_max_error_cm": float(node_error.max()) if node_error.size else 0.0,
+        "interior_max_error_relative": (float(node_error.max()) / model_amplitude
+                                        if node_error.size and model_amplitude > 0 else None),
+        "interior_worst_node": int(keep[worst[1]]) if node_error.size else None,
+        "interior_worst_time_index": int(worst[0]) if node_error.size else None,
+    }
+
+
+def targets(metrics: dict, kind: str) -> dict:
+    """Which of the paper's targets of ``kind`` ("fixed", "unseen", "full_system") are met."""
+    out = {"kind": kind}
+    goal = TARGETS[kind]
+    out["tip_max_within_percent"] = 100 * goal["tip_max"]
+    out["tip_max_met"] = metrics["tip_max_error_relative"] is not None and \
+        metrics["tip_max_error_relative"] <= goal["tip_max"]
+    if "tip_final" in goal:
+        out["tip_final_within_percent"] = 100 * goal["tip_final"]
+        out["tip_final_met"] = metrics["tip_final_error_relative"] is not None and \
+            metrics["tip_final_error_relative"] <= goal["tip_final"]
+    out["met"] = bool(out["tip_max_met"] and out.get("tip_final_met", True))
+    return out
+
+
+# ----------------------------------------------------------------------------- runs
+
+
+def timed(fn, *args, **kwargs):
+    start = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - start
+
+
+def run_stats(traj, seconds: float) -> dict:
+    st = traj.stats
+    keys = ("us_per_step", "us_per_step_synchronized", "us_per_step_predicted", "compile_seconds",
+            "n_synchronized_steps", "n_predicted_steps", "n_devices", "emulated",
+            "dirichlet_max_abs_predicted")
+    out = {"wall_seconds": seconds}
+    out.update({k: getattr(st, k) for k in keys if getattr(st, k, None) is not None})
+    return out
+
+
+def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_future: int,
+          train_fraction: float, n_cond_repeat: int = 0):
+    """train_surrogates with the case's parameters only (the library's defaults for the
+    rest, or the reduced overrides); the offline check's RolloutWarning is recorded."""
+    kwargs = dict(n_s=n_s, n_past=n_past, n_future=n_future, train_fraction=train_fraction, seed=ctx.seed)
+    if n_cond_repeat:
+        kwargs["n_cond_repeat"] = n_cond_repeat
+    n_runs = len(trajectories) if isinstance(trajectories, (list, tuple)) else 1
+    if n_runs > 1 and not ctx.settings.reduced:
+        # n_runs times the windows of one run: the library's schedule counted in gradient
+        # steps (epochs / n_runs, the per-epoch decay gamma ** n_runs), not in epochs, which
+        # would make it n_runs times longer (about 25 minutes for 10 runs on 2 cores)
+        default = TrainConfig()
+        kwargs["config"] = TrainConfig(n_epochs=math.ceil(default.n_epochs / n_runs),
+                                       gamma=default.gamma ** n_runs,
+                                       patience=math.ceil(default.patience / n_runs))
+    passed = {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in kwargs.items()}
+    kwargs.update(ctx.settings.train_overrides)
+    # reduced mode writes no training files (checkpoint, loss curves: about 1.3 s a training)
+    folder = None if ctx.settings.reduced else folder
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        trained = train_surrogates(trajectories, progress=ctx.progress, out=folder, **kwargs)
+    rollout_warnings = [str(w.message) for w in caught if issubclass(w.category, RolloutWarning)]
+    for w in caught:  # anything else goes on as usual
+        if not issubclass(w.category, RolloutWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    summary = trained.summary()
+    summary.pop("loss_history", None)  # in train_summary.json
+    record = {
+        "case_parameters_passed": passed,
+        "overrides_passed": sorted(ctx.settings.train_overrides),
+        "n_training_runs": n_runs,
+        "train_seconds": trained.train_seconds, "n_epochs_run": trained.result.n_epochs_run,
+        "rollout_relative": None if trained.rollout is None else trained.rollout.relative.tolist(),
+        "rollout_passed": trained.rollout_passed,
+        "rollout_warning": rollout_warnings[0] if rollout_warnings else None,
+        "folder": None if folder is None else os.path.abspath(folder), "summary": summary,
+    }
+    return trained, record
+
+
+def online_run(ctx: Context, problem, parts, trained, n_steps: int, n_cri: int, save_every: int,
+               load_parameter=None):
+    """The synchronization-avoiding run (the checkpoint carries the partition's shared
+    nodes; a conditional network gets the test run's label). The checkpoint, not
+    ``trained.surrogate``: simulate_sync_avoiding applies ``load_parameter`` only when it
+    builds the Surrogate itself, and a given Surrogate keeps the first training run's."""
+    online, seconds = timed(jaxsync.simulate_sync_avoiding, problem, n_steps, partitions=parts,
+                            surrogates=trained.checkpoint, n_cri=n_cri, save_every=save_every,
+                            load_parameter=load_parameter, progress=ctx.progress)
+    return online, run_stats(online, seconds)
+
+
+def excluded_nodes(problem, parts) -> np.ndarray:
+    """Shared nodes and constrained nodes: what the interior ("noise") metric leaves out."""
+    fixed = np.unique(np.asarray(problem.dirichlet_dofs()[0]) // 3)
+    shared = np.asarray(parts.shared_nodes) if parts is not None else np.zeros(0, np.int64)
+    return np.union1d(fixed, shared).astype(np.int64)
+
+
+def check_tip(mesh, parts) -> int:
+    tip = tip_node(mesh)
+    if parts is not None and tip in set(np.asarray(parts.shared_nodes).tolist()):
+        raise RuntimeError(f"the free-end node {tip} is shared by the partition: the metric needs a node the "
+                           "solver computes; try another --seed")
+    return tip
+
+
+def variant_entry(name: str, parameters: dict, training: dict | None, online: dict, metrics: dict, kind: str,
+                  extra: dict | None = None) -> dict:
+    out = {"name": name, "parameters": parameters, "training": training, "online": online, "metrics": metrics,
+           "targets": targets(metrics, kind)}
+    out.update(extra or {})
+    return out
+
+
+def add_series(series: dict, variant: str, times, reference, predicted, tip: int, components=(2,)) -> None:
+    """The time series of one online run: times, the free-end components, both fields."""
+    series[f"{variant}__times"] = np.asarray(times, np.float64)
+    for c in components:
+        axis = "xyz"[c]
+        series[f"{variant}__{axis}_reference"] = np.asarray(reference[:, tip, c], np.float64)
+        series[f"{variant}__{axis}_predicted"] = np.asarray(predicted[:, tip, c], np.float64)
+    series[f"{variant}__field_reference"] = np.asarray(reference, np.float64)
+    series[f"{variant}__field_predicted"] = np.asarray(predicted, np.float64)
+
+
+# ----------------------------------------------------------------------------- cases
+
+
+def fixed_load_case(ctx: Context, name: str, problem, parts, variants, *, n_steps: int, n_s: int, save_every: int,
+                    shared_every: int, final_relative_to: str = "final value", components=(2,), notes=(),
+                    reference_key=None, compare_raw_refill: bool = False):
+    """One synchronized reference, then per variant (name, n_p, n_f, n_ts) a training and
+    an online run compared with it. Cases with the same ``reference_key`` (the default
+    cantilever) share the reference computed first in this process. ``compare_raw_refill``:
+    the same networks also run with the paper's raw refill (``Surrogate.smooth=False``),
+    reported as ``raw_refill`` (the noise measurement of issue 13's item 4)."""
+    key = (reference_key, n_steps, save_every, shared_every, ctx.seed, parts.n_parts)
+    if reference_key is not None and key in ctx.references:
+        reference, stats, parts = ctx.references[key]  # and its partition, whatever METIS gives now
+        stats = {**stats, "reused_from_case": stats.get("reused_from_case", stats["case"])}
+        log(ctx, f"[{name}] synchronized reference: the one of case {stats['reused_from_case']}")
+    else:
+        log(ctx, f"[{name}] synchronized reference: {n_steps} steps, dt {problem.dt:.4e} s, {parts.n_parts} parts")
+        reference, seconds = timed(jaxsync.simulate, problem, n_steps, partitions=parts, save_every=save_every,
+                                   shared_every=shared_every, progress=ctx.progress)
+        stats = {**run_stats(reference, seconds), "case": name}
+        if reference_key is not None:
+            ctx.references[key] = (reference, stats, parts)
+    tip = check_tip(problem.mesh, parts)
+    out = {"reference": stats, "variants": [], "tip_node": tip}
+    series = {}
+    excluded = excluded_nodes(problem, parts)
+    for variant, n_p, n_f, fraction in variants:
+        n_cri = n_s * n_p
+        run_key = (key, n_s, n_p, n_f, fraction)
+        if reference_key is not None and run_key in ctx.online_runs:
+            # the same training (same data, settings and seed: bit-identical) and online run
+            online, training, stats, origin, trained = ctx.online_runs[run_key]
+            training, stats = {**training, "reused_from": origin}, {**stats, "reused_from": origin}
+            log(ctx, f"[{name}/{variant}] training and online run: those of {origin}")
+        else:
+            log(ctx, f"[{name}/{variant}] training (n_s {n_s}, n_p {n_p}, n_f {n_f}, n_ts {fraction})")
+            trained, training = train(ctx, reference, os.path.join(ctx.out, name, "training", variant), n_s=n_s,
+                                      n_past=n_p, n_future=n_f, train_fraction=fraction)
+            log(ctx, f"[{name}/{variant}] online run from n_cri {n_cri}")
+            online, stats = online_run(ctx, problem, parts, trained, n_steps, n_cri, save_every)
+            if reference_key is not None:
+                ctx.online_runs[run_key] = (online, training, stats, f"{name}/{variant}", trained)
+        metrics = run_metrics(reference.displacement, online.displacement, tip, excluded,
+                              final_relative_to=final_relative_to)
+        extra = {}
+        if compare_raw_refill:
+            raw_surrogate = dataclasses.replace(Surrogate.from_checkpoint(trained.checkpoint), smooth=False)
+            log(ctx, f"[{name}/{variant}] online run with the raw refill")
+            raw, raw_seconds = timed(jaxsync.simulate_sync_avoiding, problem, n_steps, partitions=parts,
+                                     surrogates=raw_surrogate, n_cri=n_cri, save_every=save_every,
+                                     progress=ctx.progress)
+            extra["raw_refill"] = {
+                "metrics": run_metrics(reference.displacement, raw.displacement, tip, excluded,
+                                       final_relative_to=final_relative_to),
+                "online": run_stats(raw, raw_seconds),
+                "high_frequency": {"raw": high_frequency_error(reference.displacement, raw.displacement, excluded),
+                                   "smooth": high_frequency_error(reference.displacement, online.displacement,
+                                                                  excluded)}}
+            series[f"{variant}__field_predicted_raw_refill"] = np.asarray(raw.displacement, np.float64)
+        for c in components:
+            if c != 2:
+                extra[f"tip_{'xyz'[c]}"] = run_metrics(reference.displacement, online.displacement, tip, excluded,
+                                                       final_relative_to=final_relative_to, component=c)
+        out["variants"].append(variant_entry(
+            variant, {"n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": fraction, "n_cri": n_cri},
+            training, stats, metrics, "fixed", extra))
+        add_series(series, variant, reference.times, reference.displacement, online.displacement, tip, components)
+    out["notes"] = list(notes)
+    return out, series
+
+
+def case_default(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    problem = jaxsync.cantilever(mesh)
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.n_steps)
+    params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
+              "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5], "t_off": None}
+    out, series = fixed_load_case(ctx, "default", problem, parts,
+                                  [("default", s.n_past, s.n_future, s.train_fraction)],
+                                  n_steps=n_steps, n_s=s.n_s, save_every=s.save_every, shared_every=1,
+                                  reference_key="default cantilever", compare_raw_refill=True)
+    return params, problem, parts, out, series
+
+
+def case_sequence_length(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    problem = jaxsync.cantilever(mesh)
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.n_steps)
+    variants = [(f"np{p}_nf{f}", p, f, s.train_fraction) for p, f in s.sequence_variants]
+    params = {"n_steps": n_steps, "n_s": s.n_s, "variants": [[p, f] for p, f in s.sequence_variants],
+              "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
+              "body_force": [0.0, 0.0, -0.5]}
+    out, series = fixed_load_case(ctx, "sequence_length", problem, parts, variants, n_steps=n_steps, n_s=s.n_s,
+                                  save_every=s.save_every, shared_every=1, reference_key="default cantilever",
+                                  notes=["n_cri = n_s n_p differs between the variants"])
+    return params, problem, parts, out, series
+
+
+def case_training_size(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    problem = jaxsync.cantilever(mesh)
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.n_steps)
+    variants = [(f"nts{f:.2f}", s.n_past, s.n_future, f) for f in s.training_fractions]
+    params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fractions": list(s.training_fractions), "n_parts": s.n_parts, "save_every": s.save_every,
+              "shared_every": 1, "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5]}
+    out, series = fixed_load_case(ctx, "training_size", problem, parts, variants, n_steps=n_steps, n_s=s.n_s,
+                                  save_every=s.save_every, shared_every=1, reference_key="default cantilever")
+    return params, problem, parts, out, series
+
+
+def case_refined(ctx: Context):
+    s = ctx.settings
+    mesh = jaxsync.box_beam(divisions=s.refined_divisions)
+    problem = jaxsync.cantilever(mesh)
+    n_parts = s.refined_parts
+    parts = jaxsync.partition(mesh, n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.refined_steps)
+    n_s, save_every = s.refined_n_s, s.refined_save_every
+    # the shared nodes at every step would take GBs over 5e5 steps: keep them at the
+    # largest stride that divides both n_s and save_every (the offline rollout check,
+    # which reads every step, is then skipped; training reads every n_s-th step only)
+    shared_every = 1 if s.reduced else math.gcd(n_s, save_every)
+    notes = []
+    if len(jax.devices()) < N_DEVICES:
+        notes.append(f"{len(jax.devices())} devices available: {n_parts} parts"
+                     + (" (reduced mode: as many parts as devices, up to 6)" if s.reduced
+                        else " share them (the paper: 6 parts on 6 processors)"))
+    notes.append(f"CFL dt of this mesh {problem.dt:.4e} s; the paper's refined mesh (4 615 tets) has 6.2e-5 s: "
+                 "the generated box mesh's shortest edges differ (its coarse mesh gives 3.50e-4 s against the "
+                 "paper's 2.48e-4 s, the same factor sqrt(2))")
+    if shared_every > 1:
+        notes.append(f"shared nodes kept every {shared_every} steps (memory): no offline rollout check")
+    params = {"n_steps": n_steps, "n_s": n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fraction": s.train_fraction, "n_parts": n_parts, "n_parts_paper": 6,
+              "divisions": list(s.refined_divisions), "save_every": save_every, "shared_every": shared_every,
+              "n_cri": n_s * s.n_past, "n_predicted_steps": n_steps - n_s * s.n_past, "dt": problem.dt,
+              "dt_paper": 6.2e-5, "body_force": [0.0, 0.0, -0.5]}
+    out, series = fixed_load_case(ctx, "refined_6_parts", problem, parts,
+                                  [("refined", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps, n_s=n_s,
+                                  save_every=save_every, shared_every=shared_every, notes=notes)
+    return params, problem, parts, out, series
+
+
+def case_skewed(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    force = (0.0, -0.5, -0.5)
+    problem = jaxsync.cantilever(mesh, body_force=force)
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.n_steps)
+    params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
+              "n_cri": s.n_s * s.n_past, "body_force": list(force)}
+    out, series = fixed_load_case(ctx, "skewed", problem, parts,
+                                  [("skewed", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps, n_s=s.n_s,
+                                  save_every=s.save_every, shared_every=1, components=(1, 2),
+                                  notes=["z is the target component; y is reported under tip_y"])
+    return params, problem, parts, out, series
+
+
+def case_step_off(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    problem = jaxsync.cantilever(mesh, t_off=s.t_off)
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    n_steps = ctx.n_steps(s.n_steps)
+    params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
+              "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5], "t_off": s.t_off}
+    notes = ["final error relative to the free end's amplitude, not to its final value: after the load is "
+             "switched off the beam decays towards rest, so the final reference value is close to 0 and an "
+             "error relative to it would be meaningless"]
+    if s.reduced:
+        notes.append("reduced mode: t_off 0.5 s so that the load is switched off within the short run")
+    out, series = fixed_load_case(ctx, "step_off", problem, parts,
+                                  [("step_off", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps,
+                                  n_s=s.n_s, save_every=s.save_every, shared_every=1, final_relative_to="amplitude",
+                                  notes=notes)
+    return params, problem, parts, out, series
+
+
+def draw_labels(rng, n: int, low: float, high: float):
+    """n training labels and one test label from U(low, high), the test not among them."""
+    train_labels = rng.uniform(low, high, size=n)
+    test = float(rng.uniform(low, high))
+    while np.isclose(train_labels, test, rtol=0, atol=1e-9).any():
+        test = float(rng.uniform(low, high))
+    return [float(v) for v in train_labels], test
+
+
+def ensemble_case(ctx: Context, name: str, make_problem, train_labels, test_label, label_name: str, variants):
+    """Training runs of one ensemble call (labels stored as the load parameter), a test run
+    of an unseen label computed by jaxsync.simulate, and per variant (name, q) a training
+    on all runs and an online run of the test problem."""
+    s = ctx.settings
+    problems = [make_problem(v) for v in train_labels]
+    test_problem = make_problem(test_label)
+    mesh = test_problem.mesh
+    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
+    tip = check_tip(mesh, parts)
+    n_steps = ctx.n_steps(s.n_steps)
+    log(ctx, f"[{name}] ensemble of {len(problems)} training runs ({label_name} = "
+        + ", ".join(f"{v:.4g}" for v in train_labels) + ")")
+    runs, seconds = timed(jaxsync.ensemble, problems, n_steps, partitions=parts, labels=train_labels,
+                          save_every=s.save_every, shared_every=1, progress=ctx.progress)
+    ensemble_stats = run_stats(runs[0], seconds)
+    log(ctx, f"[{name}] test run, unseen {label_name} = {test_label:.4g}")
+    reference, ref_seconds = timed(jaxsync.simulate, test_problem, n_steps, partitions=parts, save_every=s.save_every,
+                                   progress=ctx.progress)
+    out = {"tip_node": tip, "reference": run_stats(reference, ref_seconds),
+           "training_data": {"generated_by": "jaxsync.ensemble (one call)", "n_runs": len(runs),
+                             "label_name": label_name, "labels": list(train_labels), "test_label": test_label,
+                             "test_label_unseen": test_label not in train_labels, "ensemble": ensemble_stats,
+                             "labels_stored": [t.parameters.get("load_parameter") for t in runs]},
+           "variants": [], "notes": []}
+    series = {"training__times": np.asarray(runs[0].times), "training__labels": np.asarray(train_labels),
+              "training__z": np.stack([np.asarray(t.displacement[:, tip, 2]) for t in runs])}
+    excluded = excluded_nodes(test_problem, parts)
+    n_cri = s.n_s * s.n_past
+    for variant, q in variants:
+        log(ctx, f"[{name}/{variant}] training on {len(runs)} runs" + (f", conditional (q = {q})" if q else ""))
+        trained, training = train(ctx, list(runs), os.path.join(ctx.out, name, "training", variant), n_s=s.n_s,
+                                  n_past=s.n_past, n_future=s.n_future, train_fraction=s.train_fraction,
+                                  n_cond_repeat=q)
+        log(ctx, f"[{name}/{variant}] online run from n_cri {n_cri}")
+        online, stats = online_run(ctx, test_problem, parts, trained, n_steps, n_cri, s.n_s,
+                                   load_parameter=test_label if q else None)
+        metrics = run_metrics(reference.displacement, online.displacement, tip, excluded)
+        out["variants"].append(variant_entry(
+            variant, {"n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future, "train_fraction": s.train_fraction,
+                      "n_cri": n_cri, "n_cond_repeat": q, "conditional": bool(q),
+                      "test_label": test_label}, training, stats, metrics, "unseen"))
+        add_series(series, variant, reference.times, reference.displacement, online.displacement, tip)
+    params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
+              "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
+              "n_cri": n_cri, "n_runs": len(runs), "n_cond_repeat": s.n_cond_repeat, "label": label_name,
+              "labels": list(train_labels), "test_label": test_label, "seed": ctx.seed}
+    return params, test_problem, parts, out, series
+
+
+def case_initial_conditions(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    static = np.asarray(jaxsync.steady_state(jaxsync.cantilever(mesh)))
+    rng = np.random.default_rng(ctx.seed)
+    train_labels, test = draw_labels(rng, s.n_runs, -s.ic_range, s.ic_range)
+
+    def make(u):
+        return jaxsync.cantilever(mesh, initial_displacement=(1.0 + u) * static)
+
+    params, problem, parts, out, series = ensemble_case(
+        ctx, "initial_conditions", make, train_labels, test, "u",
+        [("unconditional", 0), ("conditional", s.n_cond_repeat)])
+    params.update(u_range=[-s.ic_range, s.ic_range], static_tip_z_cm=float(static[tip_node(mesh), 2]),
+                  body_force=[0.0, 0.0, -0.5])
+    out["notes"].append("initial displacement (1 + u) times the static solution of the default cantilever, "
+                        "default ramped load; the paper ran the unconditional decoder only")
+    return params, problem, parts, out, series
+
+
+def case_loads(ctx: Context):
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    rng = np.random.default_rng(ctx.seed)
+    train_labels, test = draw_labels(rng, s.n_runs, *s.load_range)
+
+    def make(fz):
+        return jaxsync.cantilever(mesh, body_force=(0.0, 0.0, -fz))
+
+    params, problem, parts, out, series = ensemble_case(ctx, "loads", make, train_labels, test, "f_z",
+                                                        [("conditional", s.n_cond_repeat)])
+    params.update(f_z_range=list(s.load_range))
+    out["notes"].append("body force (0, 0, -f_z), ramped over 1 s; the label is f_z")
+    return params, problem, parts, out, series
+
+
+def case_full_system(ctx: Context):
+    """One network over every dof of the serial problem (build_dataset, stack_replicas,
+    train_replicas with the library's TrainConfig() and LSTMArchitecture defaults), the
+    same offline rollout check as train_surrogates, then simulate_full_system."""
+    s = ctx.settings
+    mesh = ctx.coarse_mesh()
+    problem = jaxsync.cantilever(mesh)
+    n_steps = ctx.n_steps(s.n_steps)
+    n_s, n_p, n_f = s.n_s, s.n_past, s.n_future
+    n_cri = n_s * n_p
+    tip = check_tip(mesh, None)
+    log(ctx, f"[full_system] serial reference saved at every step: {n_steps} steps")
+    reference, seconds = timed(jaxsync.simulate, problem, n_steps, save_every=1, progress=ctx.progress)
+    history = np.asarray(reference.displacement).reshape(n_steps + 1, -1)
+    data = stack_replicas([build_dataset([history], n_s, n_p, n_f, s.train_fraction, split_seed=ctx.seed)])
+    overrides = ctx.settings.train_overrides
+    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_past=n_p, n_future=n_f,
+                            **{k: overrides[k] for k in ("n_hidden", "n_layers") if k in overrides})
+    config = overrides.get("config", TrainConfig())
+    log(ctx, f"[full_system] training one network over {history.shape[1]} dofs")
+    result, train_seconds = timed(train_replicas, data, arch, config, jax.random.key(ctx.seed),
+                                  progress=ctx.progress)
+    surrogate = Surrogate.from_result(result, n_s)
+    folder = None if s.reduced else os.path.join(ctx.out, "full_system", "training", "full_system")
+    if folder is not None:
+        os.makedirs(folder, exist_ok=True)
+        surrogate.save(os.path.join(folder, "surrogate.h5"), metadata={"case": "full_system"})
+    rollout = rollout_errors(surrogate, np.pad(history, ((0, 0), (0, arch.n_dof - history.shape[1])))[None])
+    worst = float(rollout.relative.max())
+    warning = None
+    if worst > ROLLOUT_TOLERANCE:
+        warning = (f"the full-system surrogate misses the offline check: rolled out without the truth over "
+                   f"{rollout.n_steps} steps, off by up to {100 * worst:.2g} % of the amplitude (tolerance "
+                   f"{100 * ROLLOUT_TOLERANCE:.2g} %)")
+    training = {
+        "case_parameters_passed": {"n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": s.train_fraction,
+                                   "seed": ctx.seed},
+        "overrides_passed": sorted(k for k in overrides if k in ("config", "n_hidden", "n_layers")),
+        "n_training_runs": 1, "train_seconds": train_seconds,
+        "n_epochs_run": result.n_epochs_run, "rollout_relative": rollout.relative.tolist(),
+        "rollout_passed": worst <= ROLLOUT_TOLERANCE, "rollout_warning": warning,
+        "folder": None if folder is None else os.path.abspath(folder),
+        "summary": {"architecture": arch.to_dict(), "training": {**config.to_dict(),
+                                                                  "n_epochs_run": result.n_epochs_run,
+                                                                  "stopped_at_epoch": result.stopped_epoch},
+                    "n_train_windows": int(data.x_train.shape[1]), "n_val_windows": int(data.x_val.shape[1]),
+                    "final_val_loss": result.best_val_loss.tolist(), "seconds_per_epoch": result.seconds_per_epoch,
+                    "compile_seconds": result.compile_seconds, "train_seconds": train_seconds,
+                    "rollout_check": {**rollout.to_dict(), "tolerance": ROLLOUT_TOLERANCE}},
+    }
+    if folder is not None:
+        atomic_json(os.path.join(folder, "train_summary.json"), training["summary"])
+    log(ctx, f"[full_system] predicting steps {n_cri + 1}..{n_steps} without the solver")
+    predicted, online_seconds = timed(jaxsync.simulate_full_system, problem, reference, surrogate, n_cri=n_cri)
+    stats = run_stats(predicted, online_seconds)
+    # every case is compared at the snapshots every n_s steps (series.npz keeps those);
+    # the free end is also checked at every step
+    keep = slice(0, None, n_s)
+    ref_field, pred_field = np.asarray(reference.displacement), np.asarray(predicted.displacement)
+    metrics = run_metrics(ref_field[keep], pred_field[keep], tip, excluded_nodes(problem, None))
+    every_step = np.abs(pred_field[:, tip, 2] - ref_field[:, tip, 2])
+    metrics["tip_max_error_relative_every_step"] = float(every_step.max() / np.abs(ref_field[:, tip, 2]).max())
+    fixed, values = problem.dirichlet_dofs()
+    clamped = np.abs(pred_field.reshape(n_steps + 1, -1)[:, fixed] - np.asarray(values)).max(axis=1)
+    metrics["dirichlet_max_abs_predicted_cm"] = predicted.stats.dirichlet_max_abs_predicted
+    out = {"tip_node": tip, "reference": run_stats(reference, seconds),
+           "variants": [variant_entry("full_system", {"n_s": n_s, "n_past": n_p, "n_future": n_f,
+                                                       "train_fraction": s.train_fraction, "n_cri": n_cri},
+                                      training, stats, metrics, "full_system")],
+           "notes": ["metrics at the snapshots every n_s steps; tip_max_error_relative_every_step at every step",
+                     "the network does not enforce the clamp: dirichlet_max_abs_predicted_cm is the largest "
+                     "|predicted displacement| on the clamped dofs (paper figure 20)"]}
+    series = {}
+    add_series(series, "full_system", reference.times[keep], ref_field[keep], pred_field[keep], tip)
+    series["full_system__every_step_times"] = np.asarray(reference.times)
+    series["full_system__every_step_z_reference"] = ref_field[:, tip, 2].copy()
+    series["full_system__every_step_z_predicted"] = pred_field[:, tip, 2].copy()
+    series["full_system__clamped_max_abs_predicted"] = clamped
+    params = {"n_steps": n_steps, "n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": s.train_fraction,
+              "n_parts": 1, "save_every": 1, "metrics_every": n_s, "n_cri": n_cri,
+              "n_predicted_steps": n_steps - n_cri, "n_dof": int(history.shape[1]), "body_force": [0.0, 0.0, -0.5]}
+    return params, problem, None, out, series
+
+
+CASE_FUNCTIONS = {"default": case_default, "sequence_length": case_sequence_length,
+                  "training_size": case_training_size, "refined_6_parts": case_refined, "skewed": case_skewed,
+                  "step_off": case_step_off, "initial_conditions": case_initial_conditions, "loads": case_loads,
+                  "full_system": case_full_system}
+
+
+# ----------------------------------------------------------------------------- figure
+
+
+def case_figure(name: str, record: dict, series: dict, path: str) -> None:
+    """The paper's figure of a case: free-end displacement of the reference and of every
+    variant (training runs faint), its error relative to the amplitude, e_l2, and for the
+    full system the predicted displacement on the clamped end."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    variants = [v["name"] for v in record["variants"]]
+    components = [c for c in "yz" if f"{variants[0]}__{c}_reference" in series]
+    full = "full_system__clamped_max_abs_predicted" in series
+    n_panels = len(components) + 2 + int(full)
+    fig = Figure(figsize=(9, 2.6 * n_panels))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(n_panels, 1, sharex=True)
+    n_cri_times = {v["name"]: v["parameters"]["n_cri"] * record["dt"] for v in record["variants"]}
+    for ax, c in zip(axes, components):
+        if c == "z" and "training__z" in series:
+            for k, z in enumerate(series["training__z"]):
+                ax.plot(series["training__times"], z, color="0.75", lw=0.6,
+                        label="training runs" if k == 0 else None)
+        drawn = set()
+        for v in variants:
+            ref_key = f"{v}__{c}_reference"
+            ref = series[ref_key]
+            key = (len(ref), float(ref[-1]))
+            if key not in drawn:  # variants compared with the same reference: draw it once
+                ax.plot(series[f"{v}__times"], ref, "k-", lw=1.2, label="synchronized" if not drawn else None)
+                drawn.add(key)
+            ax.plot(series[f"{v}__times"], series[f"{v}__{c}_predicted"], "--", lw=1.0, label=f"{v} (predicted)")
+        ax.set_ylabel(f"free-end {c} [cm]")
+        ax.legend(fontsize="x-small", ncol=2)
+    ax = axes[len(components)]
+    for v in variants:
+        z_ref = series[f"{v}__z_reference"]
+        error = 100 * np.abs(series[f"{v}__z_predicted"] - z_ref) / np.abs(z_ref).max()
+        ax.plot(series[f"{v}__times"], error, lw=0.9, label=v)
+    kind = record["variants"][0]["targets"]
+    ax.axhline(kind["tip_max_within_percent"], color="r", ls=":", lw=1.0,
+               label=f"target {kind['tip_max_within_percent']:g} %")
+    ax.set_ylabel("free-end z error\n[% of amplitude]")
+    ax.legend(fontsize="x-small", ncol=2)
+    ax = axes[len(components) + 1]
+    for v in variants:
+        diff = series[f"{v}__field_predicted"] - series[f"{v}__field_reference"]
+        ax.plot(series[f"{v}__times"], np.linalg.norm(diff.reshape(len(diff), -1), axis=1), lw=0.9, label=v)
+    ax.set_ylabel("e_l2 [cm]")
+    ax.legend(fontsize="x-small", ncol=2)
+    if full:
+        ax = axes[-1]
+        ax.plot(series["full_system__every_step_times"], series["full_system__clamped_max_abs_predicted"], lw=0.8)
+        ax.set_ylabel("largest |predicted|\non the clamp [cm]")
+    for ax in axes:
+        for t in sorted(set(n_cri_times.values())):
+            ax.axvline(t, color="0.5", ls=":", lw=0.7)
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    fig.suptitle(f"{name}: {record['description']} (paper figure {record['paper_figures']})"
+                 + (" -- REDUCED smoke run" if record["reduced"] else ""), fontsize="small")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+
+
+# ----------------------------------------------------------------------------- driver
+
+
+DESCRIPTIONS = {
+    "default": "coarse cantilever, 2 parts, the demo's pipeline (baseline)",
+    "sequence_length": "input/output sequence lengths n_p, n_f",
+    "training_size": "training fraction n_ts",
+    "refined_6_parts": "refined cantilever, 6 parts, n_s 350",
+    "skewed": "skewed body force (0, -0.5, -0.5)",
+    "step_off": "load switched off at t_off",
+    "initial_conditions": "initial displacement (1 + u) u_static, unseen u",
+    "loads": "load magnitude f_z, conditional decoder, unseen f_z",
+    "full_system": "one network over every dof, no solver after n_cri",
+}
+
+
+def run_case(ctx: Context, name: str) -> dict:
+    start = time.perf_counter()
+    folder = os.path.join(ctx.out, name)
+    os.makedirs(folder, exist_ok=True)
+    load_before = os.getloadavg()[0]
+    params, problem, parts, out, series = CASE_FUNCTIONS[name](ctx)
+    params = {**params, "seed": ctx.seed, "reduced": ctx.settings.reduced}
+    mesh = problem.mesh
+    record = {
+        "case": name, "description": DESCRIPTIONS[name], "paper_figures": PAPER_FIGURES[name],
+        "reduced": ctx.settings.reduced, "parameters": params,
+        "mesh": {"source": ("box_beam(divisions=%s)" % (tuple(ctx.settings.refined_divisions),)
+                            if name == "refined_6_parts" else ctx.mesh_name()),
+                 "n_nodes": int(mesh.n_nodes), "n_elements": int(mesh.n_elements)},
+        "dt": float(problem.dt), "simulated_seconds": float(params["n_steps"] * problem.dt),
+        "n_parts": 1 if parts is None else int(parts.n_parts),
+        "n_shared_nodes": 0 if parts is None else int(parts.n_interface),
+        **out,
+        "settings": ctx.settings.to_dict(),
+        "targets_met": all(v["targets"]["met"] for v in out["variants"]),
+        "machine": {**machine(), "load_average_before": load_before},
+    }
+    record["wall_seconds"] = time.perf_counter() - start
+    series_path = os.path.join(folder, "series.npz")
+    with atomic_path(series_path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **series)
+    figure_path = os.path.join(folder, f"{name}.png")
+    case_figure(name, record, series, figure_path)
+    record["files"] = {"json": os.path.abspath(os.path.join(folder, f"{name}.json")),
+                       "figure": os.path.abspath(figure_path), "series": os.path.abspath(series_path)}
+    atomic_json(record["files"]["json"], record)
+    return record
+
+
+def percent(value) -> str:
+    return "-" if value is None else f"{100 * value:.3g}"
+
+
+def table_rows(out: str) -> list[dict]:
+    records = []
+    for path in sorted(glob.glob(os.path.join(out, "*", "*.json"))):
+        if os.path.basename(path) != os.path.basename(os.path.dirname(path)) + ".json":
+            continue
+        with open(path) as f:
+            records.append(json.load(f))
+    order = {c: i for i, c in enumerate(CASES)}
+    records.sort(key=lambda r: order.get(r.get("case"), len(order)))
+    rows = []
+    for r in records:
+        for v in r["variants"]:
+            m, tr = v["metrics"], v["training"] or {}
+            rollout = tr.get("rollout_relative")
+            rows.append({
+                "case": r["case"] + (" (reduced)" if r.get("reduced") else ""), "variant": v["name"],
+                "mesh": f"{r['mesh']['n_nodes']} nodes / {r['mesh']['n_elements']} tets", "parts": r["n_parts"],
+                "steps": r["parameters"]["n_steps"],
+                "n_s": tr.get("case_parameters_passed", {}).get("n_s", v["parameters"]["n_s"]),
+                "n_p/n_f": f"{tr.get('case_parameters_passed', {}).get('n_past', v['parameters']['n_past'])}/"
+                           f"{v['parameters']['n_future']}",
+                "training runs": tr.get("n_training_runs", "-"), "epochs run": tr.get("n_epochs_run", "-"),
+                "training s": ("-" if tr.get("train_seconds") is None else f"{tr['train_seconds']:.1f}"
+                               + (f" (that of {tr['reused_from']})" if tr.get("reused_from") else "")),
+                "free-end max %": percent(m["tip_max_error_relative"]),
+                "final %": percent(m["tip_final_error_relative"])
+                + (" (of amplitude)" if m.get("tip_final_relative_to") == "amplitude" else ""),
+                "l2 relative %": percent(m["l2_relative"]),
+                "non-shared node max %": percent(m["interior_max_error_relative"]),
+                "rollout check %": "-" if not rollout else percent(max(rollout)),
+                "targets met": "yes" if v["targets"]["met"] else "no",
+                "n_ts": tr.get("case_parameters_passed", {}).get("train_fraction", v["parameters"].get(
+                    "train_fraction")),
+            })
+    return rows
+
+
+TABLE_COLUMNS = ("case", "variant", "mesh", "steps", "parts", "n_s", "n_p/n_f", "n_ts", "training runs", "epochs run",
+                 "training s", "free-end max %", "final %", "l2 relative %", "non-shared node max %",
+                 "rollout check %", "targets met")
+
+
+def write_table(out: str) -> str:
+    rows = table_rows(out)
+    lines = ["# Paper section 5.1 experiment matrix (benchmarks/paper_experiments.py)", "",
+             "Errors in % of the free end's largest |z| (final: of its final value, or of the amplitude where "
+             "marked); l2 relative over all saved steps and dofs; non-shared node max: largest error at a node "
+             "neither shared nor clamped, in % of the largest displacement in the model; rollout check: the "
+             "offline rollout's largest shared-dof error in % of the part's amplitude (worst part); training s: "
+             "wall time of the training call, compilation included (a network shape compiled earlier in the same "
+             "process is not compiled again, so same-shape trainings after the first look cheap). Targets: "
+             "fixed loads 2 % max and 1 % final, unseen initial condition or load 5 % max, full system 2 % max.",
+             "", "| " + " | ".join(TABLE_COLUMNS) + " |", "|" + "---|" * len(TABLE_COLUMNS)]
+    for row in rows:
+        lines.append("| " + " | ".join(str(row[c]) for c in TABLE_COLUMNS) + " |")
+    path = os.path.join(out, "table.md")
+    with atomic_path(path) as tmp:
+        with open(tmp, "w") as f:
+            f.write("\n".join(lines) + "\n")
+    return path
+
+
+def steps_problem(settings: Settings, name: str, steps: int) -> str | None:
+    """Why ``--steps`` cannot serve case ``name`` (None: it can): it must be a multiple of
+    the case's snapshot stride and leave steps to predict after the largest n_cri."""
+    if name == "refined_6_parts":
+        every, n_cri = settings.refined_save_every, settings.refined_n_s * settings.n_past
+    else:
+        every = settings.save_every
+        n_past = settings.n_past
+        if name == "sequence_length":
+            n_past = max(p for p, _ in settings.sequence_variants)
+        n_cri = settings.n_s * n_past
+    if steps % every:
+        return f"case {name} saves every {every} steps: --steps must be a multiple of it"
+    if steps <= n_cri:
+        return f"case {name} synchronizes up to step n_cri = {n_cri}: --steps must be larger"
+    return None
+
+
+def parse_args(argv):
+    parser = argparse.ArgumentParser(prog="paper_experiments.py", description=__doc__.splitlines()[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter,
+                                     epilog="cases: " + ", ".join(CASES))
+    parser.add_argument("--case", nargs="+", choices=CASES, metavar="NAME",
+                        help="case(s) to run: " + ", ".join(CASES))
+    parser.add_argument("--all", action="store_true", help="run every case, then write the table")
+    parser.add_argument("--table", action="store_true", help="(re)write <out>/table.md from the JSON files found")
+    parser.add_argument("--reduced", action="store_true",
+                        help="small smoke settings (the tests): short runs, 2 epochs, n_H 8, one encoder layer, "
+                             "ensembles of 3")
+    parser.add_argument("--mesh", default=None,
+                        help="coarse mesh file for every case but refined_6_parts (e.g. the paper's "
+                             "beam_coarse.vtk); default: the built-in 104-node box beam")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="total steps of every case (default: the paper's, or the reduced ones)")
+    parser.add_argument("--seed", type=int, default=0, help="METIS, training and label seed")
+    parser.add_argument("--out", default=DEFAULT_OUT, help="root folder: each case writes <out>/<case>/")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
+    args = parser.parse_args(argv)
+    if not (args.case or args.all or args.table):
+        parser.error("nothing to do: give --case NAME, --all or --table")
+    if args.case and args.all:
+        parser.error("give --case or --all, not both")
+    if args.steps is not None and args.steps < 1:
+        parser.error(f"--steps must be >= 1, got {args.steps}")
+    if args.mesh is not None and not os.path.isfile(args.mesh):
+        parser.error(f"--mesh {args.mesh}: no such file")
+    if args.steps is not None:
+        settings = reduced_settings(len(jax.devices())) if args.reduced else paper_settings()
+        for name in CASES if args.all else (args.case or []):
+            problem = steps_problem(settings, name, args.steps)
+            if problem:
+                parser.error(problem)
+    return args
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    settings = reduced_settings(len(jax.devices())) if args.reduced else paper_settings()
+    ctx = Context(settings=settings, out=os.path.abspath(args.out), mesh_file=args.mesh, seed=args.seed,
+                  progress=not args.quiet, steps=args.steps)
+    cases = list(CASES) if args.all else list(dict.fromkeys(args.case or []))
+    failed, times = [], {}
+    for name in cases:
+        start = time.perf_counter()
+        if args.all:
+            try:
+                record = run_case(ctx, name)
+            except Exception:  # keep going: one case's failure does not cost the others
+                traceback.print_exc()
+                failed.append(name)
+                continue
+        else:
+            record = run_case(ctx, name)
+        times[name] = time.perf_counter() - start
+        for v in record["variants"]:
+            m = v["metrics"]
+            print(f"{name}/{v['name']}: free-end max {percent(m['tip_max_error_relative'])} %, final "
+                  f"{percent(m['tip_final_error_relative'])} %, l2 {percent(m['l2_relative'])} %, targets "
+                  f"{'met' if v['targets']['met'] else 'missed'} ({times[name]:.1f} s for the case)", flush=True)
+    print(f"wrote {write_table(ctx.out)}", flush=True)  # after any case too: the table follows the JSONs
+    if failed:
+        print(f"FAILED cases: {', '.join(failed)}", file=sys.stderr, flush=True)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

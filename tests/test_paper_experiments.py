@@ -1,0 +1,283 @@
+"""benchmarks/paper_experiments.py: the paper's cantilever experiment matrix (section 5.1),
+run once in ``--reduced`` mode in-process (2 emulated devices); the errors in every JSON
+are recomputed here from the time series the script saved."""
+
+import importlib.util
+import json
+import os
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import jaxsync
+
+SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
+                      "paper_experiments.py")
+CASES = ("default", "sequence_length", "training_size", "refined_6_parts", "skewed", "step_off",
+         "initial_conditions", "loads", "full_system")
+
+# the reduced settings, written out (not read from the script)
+COMMON = {"n_steps": 3000, "n_s": 10, "train_fraction": 0.5, "n_parts": 2, "seed": 0, "reduced": True}
+EXPECTED = {
+    "default": {**COMMON, "n_past": 5, "n_future": 5, "save_every": 10, "shared_every": 1, "n_cri": 50,
+                "body_force": [0.0, 0.0, -0.5], "t_off": None},
+    "sequence_length": {**COMMON, "variants": [[5, 5], [5, 2]], "save_every": 10, "shared_every": 1},
+    "training_size": {**{k: v for k, v in COMMON.items() if k != "train_fraction"}, "n_past": 5, "n_future": 5,
+                      "train_fractions": [0.25, 0.5], "n_cri": 50},
+    "refined_6_parts": {"n_steps": 4000, "n_s": 20, "n_past": 5, "n_future": 5, "n_parts": 2, "n_parts_paper": 6,
+                        "divisions": [12, 2, 2], "save_every": 20, "shared_every": 1, "n_cri": 100,
+                        "n_predicted_steps": 3900, "seed": 0, "reduced": True},
+    "skewed": {**COMMON, "n_past": 5, "n_future": 5, "n_cri": 50, "body_force": [0.0, -0.5, -0.5]},
+    "step_off": {**COMMON, "n_past": 5, "n_future": 5, "n_cri": 50, "t_off": 0.5},
+    "initial_conditions": {**COMMON, "n_past": 5, "n_future": 5, "n_cri": 50, "n_runs": 3, "n_cond_repeat": 12,
+                           "label": "u", "u_range": [-0.25, 0.25]},
+    "loads": {**COMMON, "n_past": 5, "n_future": 5, "n_cri": 50, "n_runs": 3, "n_cond_repeat": 12, "label": "f_z",
+              "f_z_range": [0.3, 0.7]},
+    "full_system": {**COMMON, "n_past": 5, "n_future": 5, "n_parts": 1, "save_every": 1, "metrics_every": 10,
+                    "n_cri": 50, "n_predicted_steps": 2950, "n_dof": 312},
+}
+VARIANTS = {"default": ["default"], "sequence_length": ["np5_nf5", "np5_nf2"], "training_size": ["nts0.25", "nts0.50"],
+            "refined_6_parts": ["refined"], "skewed": ["skewed"], "step_off": ["step_off"],
+            "initial_conditions": ["unconditional", "conditional"], "loads": ["conditional"],
+            "full_system": ["full_system"]}
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("paper_experiments", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def script():
+    return load_script()
+
+
+@pytest.fixture(scope="module")
+def matrix(script, tmp_path_factory):
+    """The whole matrix, reduced, once: (output root, exit code, {case: record})."""
+    out = tmp_path_factory.mktemp("experiments")
+    rc = script.main(["--all", "--reduced", "--quiet", "--out", str(out)])
+    records = {}
+    for case in CASES:
+        path = out / case / f"{case}.json"
+        if path.exists():
+            records[case] = json.loads(path.read_text())
+    return out, rc, records
+
+
+def test_every_case_writes_its_json_figure_and_series(matrix):
+    out, rc, records = matrix
+    assert rc == 0
+    assert sorted(records) == sorted(CASES)
+    for case in CASES:
+        folder = out / case
+        assert (folder / f"{case}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert (folder / "series.npz").is_file()
+        record = records[case]
+        assert record["case"] == case and record["reduced"] is True
+        assert [v["name"] for v in record["variants"]] == VARIANTS[case]
+        for key in ("parameters", "mesh", "dt", "machine", "wall_seconds", "targets_met", "reference", "files"):
+            assert key in record, (case, key)
+        assert record["machine"]["n_devices"] == len(jax.devices())
+        assert not list(folder.glob(".*.tmp")), "no temporary files left behind"
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_parameters_are_the_reduced_settings(matrix, case):
+    params = matrix[2][case]["parameters"]
+    for key, value in EXPECTED[case].items():
+        assert params[key] == value, (key, params[key], value)
+
+
+def test_refined_case_uses_the_available_devices(matrix):
+    record = matrix[2]["refined_6_parts"]
+    assert record["n_parts"] == min(6, len(jax.devices())) == 2
+    assert record["mesh"]["n_elements"] == 12 * 2 * 2 * 6
+    assert any("devices available" in note for note in record["notes"])
+    assert record["dt"] == pytest.approx(jaxsync.cantilever(jaxsync.box_beam(divisions=(12, 2, 2))).dt)
+
+
+def excluded_nodes(case, record):
+    """Shared and clamped nodes, rebuilt here from the mesh and METIS (seed 0)."""
+    mesh = (jaxsync.box_beam(divisions=(12, 2, 2)) if case == "refined_6_parts" else jaxsync.box_beam())
+    clamped = np.flatnonzero(np.isclose(mesh.points[:, 0], mesh.points[:, 0].min()))
+    if case == "full_system":
+        return clamped
+    shared = jaxsync.partition(mesh, record["n_parts"], seed=0).shared_nodes
+    return np.union1d(clamped, shared)
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_errors_recomputed_from_the_series(matrix, case):
+    out, _, records = matrix
+    record = records[case]
+    series = np.load(out / case / "series.npz")
+    tip = record["tip_node"]
+    excluded = excluded_nodes(case, record)
+    for variant in record["variants"]:
+        v, m = variant["name"], variant["metrics"]
+        ref, pred = series[f"{v}__field_reference"], series[f"{v}__field_predicted"]
+        times = series[f"{v}__times"]
+        assert ref.shape == pred.shape == (len(times), record["mesh"]["n_nodes"], 3) and m["n_saved"] == len(times)
+        z_ref, z = series[f"{v}__z_reference"], series[f"{v}__z_predicted"]
+        np.testing.assert_array_equal(z_ref, ref[:, tip, 2])
+        np.testing.assert_array_equal(z, pred[:, tip, 2])
+        every = record["parameters"].get("metrics_every", record["parameters"]["save_every"])
+        np.testing.assert_allclose(times, np.arange(len(times)) * every * record["dt"], rtol=1e-12, atol=1e-15)
+        # before n_cri the online run is the synchronized one
+        n_sync = variant["parameters"]["n_cri"] // every + 1
+        np.testing.assert_allclose(pred[:n_sync], ref[:n_sync], rtol=0, atol=1e-12 * np.abs(ref).max())
+        amplitude = np.abs(z_ref).max()
+        final_scale = amplitude if m["tip_final_relative_to"] == "amplitude" else abs(z_ref[-1])
+        diff = pred - ref
+        e_l2 = np.sqrt((diff ** 2).reshape(len(diff), -1).sum(axis=1))
+        interior = np.setdiff1d(np.arange(ref.shape[1]), excluded)
+        expected = {
+            "tip_amplitude_cm": amplitude,
+            "tip_max_error_relative": np.abs(z - z_ref).max() / amplitude,
+            "tip_final_error_relative": abs(z[-1] - z_ref[-1]) / final_scale,
+            "l2_relative": np.sqrt((diff ** 2).sum() / (ref ** 2).sum()),
+            "l2_relative_final": np.sqrt((diff[-1] ** 2).sum() / (ref[-1] ** 2).sum()),
+            "e_l2_max_cm": e_l2.max(), "e_l2_final_cm": e_l2[-1],
+            "interior_max_error_relative": (np.sqrt((diff[:, interior] ** 2).sum(axis=2)).max()
+                                            / np.sqrt((ref ** 2).sum(axis=2)).max()),
+        }
+        for key, value in expected.items():
+            assert m[key] == pytest.approx(value, rel=1e-10, abs=1e-300), (v, key)
+        goal = {"initial_conditions": 0.05, "loads": 0.05}.get(case, 0.02)
+        assert variant["targets"]["tip_max_met"] == (m["tip_max_error_relative"] <= goal)
+        assert variant["targets"]["met"] in (True, False)
+    assert record["targets_met"] == all(v["targets"]["met"] for v in record["variants"])
+
+
+def test_variants_with_the_default_settings_reuse_the_default_run(matrix):
+    records = matrix[2]
+    default = records["default"]["variants"][0]
+    assert "reused_from" not in default["training"] and "case" in records["default"]["reference"]
+    for case, variant in (("sequence_length", "np5_nf5"), ("training_size", "nts0.50")):
+        record = records[case]
+        assert record["reference"]["reused_from_case"] == "default"
+        same = next(v for v in record["variants"] if v["name"] == variant)
+        assert same["training"]["reused_from"] == same["online"]["reused_from"] == "default/default"
+        assert same["metrics"] == default["metrics"]
+        other = next(v for v in record["variants"] if v["name"] != variant)
+        assert "reused_from" not in other["training"]
+
+
+def test_final_errors_and_extra_components(matrix):
+    records = matrix[2]
+    assert records["step_off"]["variants"][0]["metrics"]["tip_final_relative_to"] == "amplitude"
+    assert any("amplitude" in note for note in records["step_off"]["notes"])
+    assert records["default"]["variants"][0]["metrics"]["tip_final_relative_to"] == "final value"
+    assert "tip_final_met" in records["default"]["variants"][0]["targets"]
+    assert "tip_final_met" not in records["loads"]["variants"][0]["targets"]  # unseen load: 5 % max only
+    skewed = records["skewed"]["variants"][0]
+    assert skewed["metrics"]["component"] == "z" and skewed["tip_y"]["component"] == "y"
+    series = np.load(matrix[0] / "skewed" / "series.npz")
+    y_ref, y = series["skewed__y_reference"], series["skewed__y_predicted"]
+    assert skewed["tip_y"]["tip_max_error_relative"] == pytest.approx(np.abs(y - y_ref).max() / np.abs(y_ref).max())
+
+
+def test_full_system_reports_the_clamped_end(matrix):
+    out, _, records = matrix
+    variant = records["full_system"]["variants"][0]
+    series = np.load(out / "full_system" / "series.npz")
+    clamped = series["full_system__clamped_max_abs_predicted"]
+    assert len(clamped) == 3001 and not clamped[:51].any()
+    assert variant["metrics"]["dirichlet_max_abs_predicted_cm"] == pytest.approx(clamped.max())
+    assert variant["online"]["dirichlet_max_abs_predicted"] == pytest.approx(clamped.max())
+    every_z = series["full_system__every_step_z_predicted"] - series["full_system__every_step_z_reference"]
+    assert variant["metrics"]["tip_max_error_relative_every_step"] == pytest.approx(
+        np.abs(every_z).max() / np.abs(series["full_system__every_step_z_reference"]).max())
+    assert variant["targets"]["kind"] == "full_system"
+    assert variant["training"]["summary"]["architecture"]["n_dof"] == 312
+
+
+@pytest.mark.parametrize("case, low, high", [("initial_conditions", -0.25, 0.25), ("loads", 0.3, 0.7)])
+def test_ensemble_cases_record_their_training_runs(matrix, case, low, high):
+    record = matrix[2][case]
+    data = record["training_data"]
+    labels = data["labels"]
+    assert data["n_runs"] == len(labels) == 3 and len(set(labels)) == 3
+    assert data["labels_stored"] == labels  # what jaxsync.ensemble stored as the load parameter
+    assert data["test_label"] not in labels and data["test_label_unseen"] is True
+    assert all(low <= x <= high for x in labels + [data["test_label"]])
+    np.testing.assert_allclose(labels, np.random.default_rng(0).uniform(low, high, size=3), rtol=0, atol=0)
+    for variant in record["variants"]:
+        training = variant["training"]
+        assert training["n_training_runs"] == 3
+        conditional = variant["parameters"]["conditional"]
+        assert variant["parameters"]["test_label"] == data["test_label"]
+        assert training["summary"]["architecture"]["n_cond_repeat"] == (12 if conditional else 0)
+        assert training["summary"]["load_parameters"] == (labels if conditional else None)
+        assert variant["targets"]["kind"] == "unseen"
+    series = np.load(matrix[0] / case / "series.npz")
+    assert series["training__z"].shape == (3, 301)
+    np.testing.assert_array_equal(series["training__labels"], labels)
+
+
+def test_training_passes_only_case_parameters(matrix):
+    allowed = {"n_s", "n_past", "n_future", "train_fraction", "seed", "n_cond_repeat"}
+    for case, record in matrix[2].items():
+        for variant in record["variants"]:
+            training = variant["training"]
+            assert set(training["case_parameters_passed"]) <= allowed, case
+            # reduced mode only
+            assert training["overrides_passed"] in (["config", "emse_applications", "n_hidden", "n_layers"],
+                                                    ["config", "n_hidden", "n_layers"])  # (full system)
+            summary = training["summary"]
+            assert summary["architecture"]["n_hidden"] == 8 and summary["architecture"]["n_layers"] == 1
+            assert summary["training"]["n_epochs"] == 2 and training["n_epochs_run"] == 2
+            assert training["train_seconds"] > 0
+            rollout = training["rollout_relative"]
+            assert rollout is None or len(rollout) == record["n_parts"]
+            # 2 epochs cannot pass the offline check: the warning is recorded, not raised
+            if rollout is not None and max(rollout) > 0.02:
+                assert training["rollout_warning"] and "offline check" in training["rollout_warning"]
+                assert training["rollout_passed"] is False
+
+
+def test_table_has_a_row_per_case_and_variant(matrix, script):
+    out, _, records = matrix
+    table = out / "table.md"
+    table.unlink()
+    assert script.main(["--table", "--out", str(out)]) == 0
+    rows = [line for line in table.read_text().splitlines() if line.startswith("| ") and "---" not in line]
+    header, rows = rows[0], rows[1:]
+    assert "free-end max %" in header and "targets met" in header and "rollout check %" in header
+    assert len(rows) == sum(len(VARIANTS[c]) for c in CASES)
+    for case in CASES:
+        for variant in VARIANTS[case]:
+            assert sum(row.startswith(f"| {case} (reduced) | {variant} |") for row in rows) == 1, (case, variant)
+    default = next(row for row in rows if row.startswith("| default (reduced) |"))
+    max_error = 100 * records["default"]["variants"][0]["metrics"]["tip_max_error_relative"]
+    assert f"| {max_error:.3g} |" in default
+
+
+def test_unknown_case_is_a_clear_argparse_error(script, capsys):
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--case", "cantilever_9"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'cantilever_9'" in err and "full_system" in err
+
+
+def test_nothing_to_do_is_an_argparse_error(script, capsys):
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--reduced"])
+    assert exc.value.code == 2
+    assert "give --case NAME, --all or --table" in capsys.readouterr().err
+
+
+def test_steps_that_do_not_fit_a_case_are_refused(script, capsys):
+    with pytest.raises(SystemExit) as exc:
+        script.main(["--case", "default", "--steps", "1234"])
+    assert exc.value.code == 2 and f"saves every {script.paper_settings().save_every} steps" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        script.main(["--case", "sequence_length", "--reduced", "--steps", "50"])
+    assert "n_cri = 50" in capsys.readouterr().err
