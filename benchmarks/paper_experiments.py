@@ -359,9 +359,7 @@ def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_f
 def online_run(ctx: Context, problem, parts, trained, n_steps: int, n_cri: int, save_every: int,
                load_parameter=None):
     """The synchronization-avoiding run (the checkpoint carries the partition's shared
-    nodes; a conditional network gets the test run's label). The checkpoint, not
-    ``trained.surrogate``: simulate_sync_avoiding applies ``load_parameter`` only when it
-    builds the Surrogate itself, and a given Surrogate keeps the first training run's."""
+    nodes, checked against ``parts``; a conditional network gets the test run's label)."""
     online, seconds = timed(jaxsync.simulate_sync_avoiding, problem, n_steps, partitions=parts,
                             surrogates=trained.checkpoint, n_cri=n_cri, save_every=save_every,
                             load_parameter=load_parameter, progress=ctx.progress)
@@ -636,7 +634,7 @@ def ensemble_case(ctx: Context, name: str, make_problem, train_labels, test_labe
                                   n_past=s.n_past, n_future=s.n_future, train_fraction=s.train_fraction,
                                   n_cond_repeat=q)
         log(ctx, f"[{name}/{variant}] online run from n_cri {n_cri}")
-        online, stats = online_run(ctx, test_problem, parts, trained, n_steps, n_cri, s.n_s,
+        online, stats = online_run(ctx, test_problem, parts, trained, n_steps, n_cri, s.save_every,
                                    load_parameter=test_label if q else None)
         metrics = run_metrics(reference.displacement, online.displacement, tip, excluded)
         out["variants"].append(variant_entry(

@@ -107,7 +107,7 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
             args.epochs_per_call) == (config.batch_size, config.eta0, config.gamma, config.eta_min,
                                       config.n_epochs, config.patience, config.epochs_per_call)
     assert (args.n_hidden, args.n_layers, args.epochs, args.checkpoint_every, args.allow_predicted) == (
-        32, 2, 300, 50, False)
+        50, 2, 800, 50, False)
     from jaxsync.app.demo import demo_defaults
 
     demo = demo_defaults("cantilever")
@@ -119,6 +119,8 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
     assert (lib["n_hidden"].default, lib["n_layers"].default, lib["n_s"].default, lib["checkpoint_every"].default,
             lib["emse_applications"].default) == (args.n_hidden, args.n_layers, args.n_s, args.checkpoint_every,
                                                   args.emse_applications)
+    assert (lib["n_offsets"].default, lib["rollout_tolerance"].default) == (args.n_offsets, args.rollout_tolerance)
+    assert (args.n_s, args.batch_size, args.patience) == (150, 10, 200)
     # the old spellings stay
     old = _parser().parse_args(["train", "run.h5", "--hidden", "7", "--layers", "3"])
     assert (old.n_hidden, old.n_layers) == (7, 3)

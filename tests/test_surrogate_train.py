@@ -37,11 +37,11 @@ def test_epoch_rule_and_per_epoch_decay():
     assert n_epoch_rule(1e-2, 0.5, 1e-3) == 3  # 1e-2 * 0.5**3 = 1.25e-3 > 1e-3 > 0.5**4 * 1e-2
     paper = TrainConfig(eta0=5e-4, gamma=0.9995, eta_min=5e-7, n_epochs=None)
     assert paper.resolved_epochs == 13812 and TrainConfig(n_epochs=7).resolved_epochs == 7
-    # laptop defaults (the demo's schedule), the paper's rule on request
+    # laptop defaults (the demo's schedule, the paper's published code's n_B and epochs), the paper's rule on request
     default = TrainConfig()
     assert (default.batch_size, default.eta0, default.gamma, default.n_epochs, default.patience) == (
-        5, 2e-3, 0.995, 300, 100)
-    assert default.resolved_epochs == 300
+        10, 2e-3, 0.995, 800, 200)
+    assert default.resolved_epochs == 800
     assert TrainConfig(n_epochs=None).resolved_epochs == n_epoch_rule(2e-3, 0.995, 5e-7) == 1654
     schedule = learning_rate_schedule(TrainConfig(eta0=1e-3, gamma=0.9), steps_per_epoch=4)
     for step, expected in [(0, 1e-3), (3, 1e-3), (4, 9e-4), (7, 9e-4), (8, 8.1e-4), (41, 1e-3 * 0.9**10)]:
