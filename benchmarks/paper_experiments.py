@@ -472,12 +472,15 @@ def fixed_load_case(ctx: Context, name: str, problem, parts, variants, *, n_step
     return out, series
 
 
-def case_default(ctx: Context):
+def coarse_cantilever(ctx: Context):
+    """(settings, the default cantilever on the coarse mesh, its partition, total steps)."""
     s = ctx.settings
     mesh = ctx.coarse_mesh()
-    problem = jaxsync.cantilever(mesh)
-    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
-    n_steps = ctx.n_steps(s.n_steps)
+    return s, jaxsync.cantilever(mesh), jaxsync.partition(mesh, s.n_parts, seed=ctx.seed), ctx.n_steps(s.n_steps)
+
+
+def case_default(ctx: Context):
+    s, problem, parts, n_steps = coarse_cantilever(ctx)
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
               "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5], "t_off": None}
@@ -489,11 +492,7 @@ def case_default(ctx: Context):
 
 
 def case_sequence_length(ctx: Context):
-    s = ctx.settings
-    mesh = ctx.coarse_mesh()
-    problem = jaxsync.cantilever(mesh)
-    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
-    n_steps = ctx.n_steps(s.n_steps)
+    s, problem, parts, n_steps = coarse_cantilever(ctx)
     variants = [(f"np{p}_nf{f}", p, f, s.train_fraction) for p, f in s.sequence_variants]
     params = {"n_steps": n_steps, "n_s": s.n_s, "variants": [[p, f] for p, f in s.sequence_variants],
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
@@ -505,11 +504,7 @@ def case_sequence_length(ctx: Context):
 
 
 def case_training_size(ctx: Context):
-    s = ctx.settings
-    mesh = ctx.coarse_mesh()
-    problem = jaxsync.cantilever(mesh)
-    parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
-    n_steps = ctx.n_steps(s.n_steps)
+    s, problem, parts, n_steps = coarse_cantilever(ctx)
     variants = [(f"nts{f:.2f}", s.n_past, s.n_future, f) for f in s.training_fractions]
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fractions": list(s.training_fractions), "n_parts": s.n_parts, "save_every": s.save_every,
