@@ -44,6 +44,8 @@ class RunStats:
     Error control: resync_tolerance (as given, e.g. ``"1 %"``), n_resynchronizations,
         resynchronized_at (first step of each rejected cycle), es_hat_trigger (its es_hat
         [cm]) and tolerance_cm (the tolerance then [cm]).
+    Load jumps: load_jumps, the steps where a load's time function jumps that the run
+        stayed synchronized through (None: not looked for).
     Full-system modeling: dirichlet_max_abs_predicted, the largest |predicted value| on
         the Dirichlet dofs [cm].
     """
@@ -67,10 +69,11 @@ class RunStats:
     resynchronized_at: tuple | None = None
     es_hat_trigger: tuple | None = None
     tolerance_cm: tuple | None = None
+    load_jumps: tuple | None = None
     dirichlet_max_abs_predicted: float | None = None
 
     def __post_init__(self):
-        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm"):
+        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "load_jumps"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, tuple):
                 object.__setattr__(self, name, tuple(np.asarray(value).tolist()))

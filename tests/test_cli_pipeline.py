@@ -180,6 +180,27 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
         assert np.abs(network[saved, :width] - smooth[saved, :width]).max() > 1e-3 * scale
 
 
+def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_path):
+    """A config whose load is switched off between steps 499 and 500: predict stays
+    synchronized until the networks' 25 input steps follow the jump (step 524, saved at
+    525); ``--load-jumps predict`` predicts from n_cri = 25 through it."""
+    from importlib import resources
+
+    text = resources.files("jaxsync").joinpath("data/cantilever.toml").read_text()
+    config = tmp_path / "step_off.toml"
+    config.write_text(text.replace("# t_off = 3.0", f"t_off = {499.5 * reference.dt!r}"))
+    kept = run_cli(predict_args(demo, tmp_path / "kept.h5", "--config", config))
+    assert kept.code == 0, kept.err
+    assert "1500 steps: 525 synchronized, 975 predicted (n_cri = 525)" in kept.out
+    assert "synchronized through the load jump at step 500" in kept.out
+    stats = jaxsync.Trajectory.load(tmp_path / "kept.h5").stats
+    assert stats.load_jumps == (500,) and stats.n_cri == 525
+    through = run_cli(predict_args(demo, tmp_path / "through.h5", "--config", config, "--load-jumps", "predict"))
+    assert through.code == 0, through.err
+    assert "1500 steps: 25 synchronized, 1475 predicted" in through.out
+    assert jaxsync.Trajectory.load(tmp_path / "through.h5").stats.load_jumps is None
+
+
 def test_predict_refuses_an_existing_output(demo, predicted):
     """An existing output is not overwritten without --force (refused before running)."""
     path, _ = predicted

@@ -94,3 +94,32 @@ def test_pressure_resultant_on_a_mesh_of_thousands_of_nodes(face, normal):
     on_face = np.zeros(mesh.n_nodes, bool)
     on_face[mesh.facet_nodes(face)] = True
     assert np.abs(force[~on_face]).max() <= 1e-12 * np.abs(force).max()
+
+
+def test_load_jumps_against_a_loop():
+    """The jump steps of a step-off, a ramp shorter than a step, a smooth periodic load and
+    a constant one, each checked against a plain loop over the steps."""
+    from jaxsync.fem.loads import load_jumps
+
+    dt, n_steps = 1e-3, 400
+    t_off = 0.2505  # between steps 250 and 251
+    cases = {
+        "step_off": jaxsync.BodyForce(time=jaxsync.StepOff(t_off, jaxsync.Ramp(0.05))),
+        "short_ramp_after_zero": jaxsync.BodyForce(time=jaxsync.Ramp(0.4 * dt)),
+        "smooth": jaxsync.BodyForce(time=jaxsync.Periodic(np.linspace(0, 0.5, 41),
+                                                          np.sin(np.linspace(0, np.pi, 41)) ** 2, 0.5)),
+        "constant": jaxsync.BodyForce(time=jaxsync.Constant()),
+    }
+    expected = {"step_off": [251], "short_ramp_after_zero": [1], "smooth": [], "constant": []}
+    for name, load in cases.items():
+        g = [float(load.time(k * dt)) for k in range(n_steps + 1)]
+        scale = max(abs(v) for v in g)
+        loop = [k for k in range(1, n_steps + 1) if abs(g[k] - g[k - 1]) > 0.05 * scale]
+        assert loop == expected[name], name
+        np.testing.assert_array_equal(load_jumps([load], n_steps, dt), loop)
+    # several loads: the union; a zero time function has none
+    union = load_jumps([cases["step_off"], cases["short_ramp_after_zero"],
+                        jaxsync.BodyForce(time=jaxsync.StepOff(0.0))], n_steps, dt)
+    np.testing.assert_array_equal(union, [1, 251])
+    # a smaller threshold sees the smooth load's steepest steps (about 2 pi dt / T = 1.3 % of its range)
+    assert len(load_jumps([cases["smooth"]], n_steps, dt, fraction=0.005)) > 0

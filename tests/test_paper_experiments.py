@@ -189,6 +189,9 @@ def test_full_system_reports_the_clamped_end(matrix):
     series = np.load(out / "full_system" / "series.npz")
     clamped = series["full_system__clamped_max_abs_predicted"]
     assert len(clamped) == 3001 and not clamped[:51].any()
+    # the clamped dofs never move in the training data: their normalization has std 0, so
+    # even a 2-epoch network predicts them at exactly their value (the paper's did not)
+    assert clamped.max() == 0.0
     assert variant["metrics"]["dirichlet_max_abs_predicted_cm"] == pytest.approx(clamped.max())
     assert variant["online"]["dirichlet_max_abs_predicted"] == pytest.approx(clamped.max())
     every_z = series["full_system__every_step_z_predicted"] - series["full_system__every_step_z_reference"]
@@ -250,13 +253,42 @@ def test_table_has_a_row_per_case_and_variant(matrix, script):
     rows = [line for line in table.read_text().splitlines() if line.startswith("| ") and "---" not in line]
     header, rows = rows[0], rows[1:]
     assert "free-end max %" in header and "targets met" in header and "rollout check %" in header
-    assert len(rows) == sum(len(VARIANTS[c]) for c in CASES)
+    # and one for the step-off networks predicting through the load jump
+    assert len(rows) == sum(len(VARIANTS[c]) for c in CASES) + 1
+    assert sum(row.startswith("| step_off (reduced) | step_off, predicted through the load jump |")
+               for row in rows) == 1
+    assert "synchronized steps" in header
     for case in CASES:
         for variant in VARIANTS[case]:
             assert sum(row.startswith(f"| {case} (reduced) | {variant} |") for row in rows) == 1, (case, variant)
     default = next(row for row in rows if row.startswith("| default (reduced) |"))
     max_error = 100 * records["default"]["variants"][0]["metrics"]["tip_max_error_relative"]
     assert f"| {max_error:.3g} |" in default
+
+
+def test_step_off_stays_synchronized_through_the_load_jump(matrix):
+    """The step-off online run keeps synchronizing until the networks' input history
+    (n_p n_s steps) follows the jump; the same networks predicting through it from n_cri
+    are reported beside it. The jump step is read here from the load schedule itself."""
+    out, _, records = matrix
+    record = records["step_off"]
+    variant = record["variants"][0]
+    dt, every = record["dt"], record["parameters"]["save_every"]
+    g = np.where(np.arange(record["parameters"]["n_steps"] + 1) * dt < record["parameters"]["t_off"], 1.0, 0.0)
+    jump = int(np.flatnonzero(np.diff(g))[0]) + 1
+    history = record["parameters"]["n_s"] * record["parameters"]["n_past"]
+    n_cri = -(-(jump + history - 1) // every) * every
+    assert variant["online"]["load_jumps"] == [jump]
+    assert variant["online"]["n_cri"] == variant["online"]["n_synchronized_steps"] == n_cri
+    through = variant["predicted_through_load_jumps"]
+    assert through["online"]["n_synchronized_steps"] == record["parameters"]["n_cri"] == 50
+    assert "load_jumps" not in through["online"]
+    series = np.load(out / "step_off" / "series.npz")
+    z_ref, z = series["step_off__z_reference"], series["step_off__z_predicted_through_load_jumps"]
+    assert through["metrics"]["tip_max_error_relative"] == pytest.approx(np.abs(z - z_ref).max() / np.abs(z_ref).max())
+    # synchronized up to n_cri: the kept run equals the reference there
+    z_kept = series["step_off__z_predicted"]
+    np.testing.assert_allclose(z_kept[:n_cri // every + 1], z_ref[:n_cri // every + 1], rtol=0, atol=1e-12)
 
 
 def test_unknown_case_is_a_clear_argparse_error(script, capsys):

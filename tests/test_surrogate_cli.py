@@ -67,6 +67,12 @@ def test_train_writes_checkpoint_curves_and_summary(tmp_path, capsys):
     assert check["tolerance"] == 0.02 and check["passed"] is False and len(check["relative"]) == 2
     assert (f"offline check: rolled out over {check['n_steps']} steps, shared displacements off by up to "
             f"{100 * check['relative'][0]:.2f} %") in printed and "ABOVE the tolerance of 2 %" in printed
+    # two candidates per part by default: which one each part kept, and their losses
+    candidates = summary["candidates"]
+    assert candidates["n_candidates"] == 2 and len(candidates["best_val_loss"]) == 2
+    assert summary["final_val_loss"] == [min(c[p] for c in candidates["best_val_loss"]) for p in range(2)]
+    assert (f"candidates: 2 networks per part, kept candidate {', '.join(map(str, candidates['chosen']))}"
+            in printed)
 
 
 def test_train_errors(tmp_path):
@@ -120,6 +126,8 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
             lib["emse_applications"].default) == (args.n_hidden, args.n_layers, args.n_s, args.checkpoint_every,
                                                   args.emse_applications)
     assert (lib["n_offsets"].default, lib["rollout_tolerance"].default) == (args.n_offsets, args.rollout_tolerance)
+    assert lib["n_candidates"].default == args.n_candidates == demo.n_candidates == 2
+    assert _parser().parse_args(["train", "run.h5", "--candidates", "3"]).n_candidates == 3
     assert (args.n_s, args.batch_size, args.patience) == (150, 10, 200)
     # the old spellings stay
     old = _parser().parse_args(["train", "run.h5", "--hidden", "7", "--layers", "3"])

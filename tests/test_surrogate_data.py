@@ -104,8 +104,21 @@ def test_normalization_fit_apply_invert_and_constant_dof():
     z = norm.apply(data)
     np.testing.assert_allclose(z[:, [0, 2]].mean(axis=0), 0.0, atol=1e-12)
     np.testing.assert_allclose(z[:, [0, 2]].std(axis=0), 1.0, atol=1e-12)
-    assert norm.std[1] == 1.0 and np.all(z[:, 1] == 0.0)  # fixed dof: no 0/0
+    assert norm.std[1] == 0.0 and np.all(z[:, 1] == 0.0)  # fixed dof: no 0/0
     np.testing.assert_allclose(norm.invert(z), data, rtol=1e-14, atol=1e-14)
+    # whatever a network says for the fixed dof, it inverts to its constant (in cm, not 1 cm
+    # per normalized unit); the moving dofs scale by their own spread
+    wrong = z + 0.3
+    back = norm.invert(wrong)
+    assert np.all(back[:, 1] == 7.0)
+    np.testing.assert_allclose(back[:, 0] - data[:, 0], 0.3 * data[:, 0].std(), rtol=1e-12)
+    # JAX arrays (the refill's path) normalize the same way
+    import jax.numpy as jnp
+
+    from jaxsync.surrogate.data import normalize
+    np.testing.assert_allclose(np.asarray(normalize(jnp.asarray(data), jnp.asarray(norm.mean)[None],
+                                                    jnp.asarray(norm.std)[None])),
+                               z, rtol=1e-12, atol=1e-12)
 
 
 def _wave(n_steps, n_dof, phase=0.0):

@@ -1,5 +1,6 @@
 """train_surrogates: trajectories in, a trained Surrogate, its checkpoint and files out."""
 
+import dataclasses
 import json
 
 import jax
@@ -51,13 +52,20 @@ def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path
     trained = train_surrogates(traj, emse_applications=5, **SMALL)
     assert isinstance(trained, TrainedSurrogates) and trained.files == {} and not list(tmp_path.iterdir())
     assert trained.trajectories == (None,) and trained.load_parameters is None
-    # the same as the steps it is made of: windows, train_replicas, E_mse
-    data = stack_replicas([build_dataset([p.shared_displacement], 2, 6, 5, 0.5, 0.25, 0) for p in traj.parts])
+    # the same as the steps it is made of: windows (twice: two candidates per part by
+    # default), train_replicas, the lower validation loss of each part's pair, E_mse
+    datasets = [build_dataset([p.shared_displacement], 2, 6, 5, 0.5, 0.25, 0) for p in traj.parts]
+    data = stack_replicas(datasets * 2)
     assert (trained.n_train_windows, trained.n_val_windows) == data.x_train.shape[1:2] + data.x_val.shape[1:2]
-    result = train_replicas(data, trained.result.arch, SMALL["config"], jax.random.key(0), progress=False)
-    for a, b in zip(jax.tree_util.tree_leaves(result.params), jax.tree_util.tree_leaves(trained.result.params)):
-        np.testing.assert_array_equal(a, b)
-    np.testing.assert_array_equal(result.val_loss, trained.result.val_loss)
+    both = train_replicas(data, trained.result.arch, SMALL["config"], jax.random.key(0), progress=False)
+    losses = both.best_val_loss.reshape(2, 2)  # (candidate, part)
+    chosen = np.argmin(losses, axis=0)
+    assert trained.candidates == {"n_candidates": 2, "chosen": chosen.tolist(), "best_val_loss": losses.tolist()}
+    keep = chosen * 2 + np.arange(2)
+    for a, b in zip(jax.tree_util.tree_leaves(both.params), jax.tree_util.tree_leaves(trained.result.params)):
+        np.testing.assert_array_equal(a[keep], b)
+    np.testing.assert_array_equal(both.val_loss[:, keep], trained.result.val_loss)
+    np.testing.assert_array_equal(trained.result.best_val_loss, losses.min(axis=0))
     surrogate = trained.surrogate
     assert isinstance(surrogate, Surrogate) and surrogate.n_s == 2 and surrogate.dof_counts == (6, 9)
     histories = np.stack([np.pad(p.shared_displacement, ((0, 0), (0, 9 - p.shared_displacement.shape[1])))
@@ -126,6 +134,83 @@ def test_shared_histories_thinned_to_a_divisor_of_n_s_train_the_same_replicas():
     assert b.sqrt_e_mse is None and b.e_mse_applications is None
     with pytest.raises(CheckpointError, match="every 2 steps, which does not divide the sampling stride n_s=3"):
         train_surrogates(thin, emse_applications=0, **dict(SMALL, n_s=3))
+
+
+def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_loss():
+    """Candidate 0 of each part starts from the weights a single-candidate training uses
+    (replica p's key) and sees the same batches: it is that training, to float32
+    round-off; the part keeps the candidate of lower validation loss."""
+    from jaxsync.surrogate.fit import choose_candidates
+
+    traj = oscillator_trajectory(n_steps=300)
+    one = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, n_candidates=1, **SMALL)
+    three = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, n_candidates=3, **SMALL)
+    assert one.candidates is None and one.summary()["candidates"] is None
+    losses = np.asarray(three.candidates["best_val_loss"])
+    assert losses.shape == (3, 2)
+    np.testing.assert_allclose(losses[0], one.result.best_val_loss, rtol=1e-4)
+    assert three.candidates["chosen"] == np.argmin(losses, axis=0).tolist()
+    assert np.all(three.result.best_val_loss <= losses.min(axis=0))
+    assert three.summary()["candidates"] == three.checkpoint.metadata["candidates"] == three.candidates
+    # the selection itself, on a constructed result: replica c * n_parts + p
+    res = one.result
+    fake = dataclasses.replace(res, params=jax.tree_util.tree_map(lambda a: np.concatenate([a, a + 1.0]), res.params),
+                               dof_counts=res.dof_counts * 2, mean=np.concatenate([res.mean, res.mean + 1]),
+                               std=np.concatenate([res.std, res.std]), train_loss=np.tile(res.train_loss, 2),
+                               val_loss=np.concatenate([res.val_loss, res.val_loss * [[0.5, 2.0]]], axis=1),
+                               initial_val_loss=np.tile(res.initial_val_loss, 2),
+                               best_epoch=np.tile(res.best_epoch, 2))
+    picked, info = choose_candidates(fake, 2, 2)
+    assert info["chosen"] == [1, 0]  # part 0's second candidate has half the loss, part 1's twice
+    leaf = jax.tree_util.tree_leaves(res.params)[0]
+    np.testing.assert_array_equal(jax.tree_util.tree_leaves(picked.params)[0], np.stack([leaf[0] + 1.0, leaf[1]]))
+    np.testing.assert_array_equal(picked.mean, [res.mean[0] + 1, res.mean[1]])
+    with pytest.raises(ConfigError, match="n_candidates must be an integer >= 1"):
+        train_surrogates(traj, n_candidates=0, **SMALL)
+
+
+def test_offline_check_starts_after_the_last_load_jump(tmp_path):
+    """A run whose load jumps at step 100 (``parameters["last_load_jump"]``, as simulate
+    writes it, and through a file): the check rolls out from step 100 + n_s n_p - 1, where
+    an online run, synchronized through the jump, starts predicting; its error there
+    equals the rollout_errors of that start."""
+    from jaxsync.surrogate.evaluate import rollout_errors
+
+    traj = oscillator_trajectory(n_steps=300)
+    traj = Trajectory(times=traj.times, displacement=traj.displacement, mesh=traj.mesh, dt=traj.dt, save_every=1,
+                      parameters={"last_load_jump": 100}, parts=traj.parts)
+    traj.save(tmp_path / "jumped.h5")
+    trained = train_surrogates(str(tmp_path / "jumped.h5"), emse_applications=0, rollout_tolerance=10.0, **SMALL)
+    start = 100 + 2 * 6 - 1
+    assert trained.rollout.start == start and trained.summary()["rollout_check"]["start"] == start
+    histories = np.stack([np.pad(p.shared_displacement, ((0, 0), (0, 9 - p.shared_displacement.shape[1])))
+                          for p in traj.parts])
+    again = rollout_errors(trained.surrogate, histories, start=start)
+    np.testing.assert_allclose(trained.rollout.max_abs_error, again.max_abs_error, rtol=1e-12)
+    # no jump: from n_s n_p - 1
+    plain = train_surrogates(oscillator_trajectory(n_steps=300), emse_applications=0, rollout_tolerance=10.0,
+                             **SMALL)
+    assert plain.rollout.start == 2 * 6 - 1
+
+
+def test_simulate_records_the_last_load_jump(tmp_path):
+    """simulate (single device, distributed), ensemble and simulate_sync_avoiding store the
+    last step where a load jumps, read from the schedule here; none without a jump."""
+    problem = jaxsync.cantilever(t_off=40.5 * jaxsync.cantilever().dt)
+    g = np.asarray(problem.loads[0].time(np.arange(101) * problem.dt))
+    jump = int(np.argmax(np.abs(np.diff(g)))) + 1
+    assert jump == 41
+    single = jaxsync.simulate(problem, 100, save_every=10)
+    assert single.parameters["last_load_jump"] == jump
+    runs = jaxsync.ensemble([problem, problem.replace(loads=(jaxsync.BodyForce((0, 0, -0.3), problem.loads[0].time),))],
+                            100, partitions=2, labels=[0.5, 0.3], save_every=10, shared_every=1)
+    assert [r.parameters["last_load_jump"] for r in runs] == [jump, jump]
+    runs[0].save(tmp_path / "r.h5")
+    from jaxsync.surrogate.data import read_shared_histories
+    assert read_shared_histories(str(tmp_path / "r.h5")).last_load_jump == jump
+    assert "last_load_jump" not in jaxsync.simulate(jaxsync.cantilever(), 100, save_every=10).parameters
+    # only jumps within the run count
+    assert "last_load_jump" not in jaxsync.simulate(problem, 40, save_every=10).parameters
 
 
 def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_its_tolerance():

@@ -541,3 +541,85 @@ def test_a_conditional_surrogate_takes_the_load_parameter_given_to_the_run(probl
     with pytest.raises(CheckpointError, match="unconditional"):
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=plain, n_cri=N_CRI,
                                load_parameter=0.3)
+
+
+# --------------------------------------------------------------------------- load jumps
+
+def _step_off(problem, jump_step: int):
+    """The cantilever with its load switched off between steps jump_step - 1 and jump_step
+    (the body force time function is evaluated at t_n = n dt)."""
+    return jaxsync.cantilever(problem.mesh, t_off=(jump_step - 0.5) * problem.dt)
+
+
+@pytest.mark.parametrize("jump, save_every, expected_n_cri", [(51, 1, 70), (53, 10, 80)])
+def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jump, save_every, expected_n_cri):
+    """The first synchronized stretch ends at the first saved step from which the
+    networks' n_p n_s input steps all follow the jump (jump + n_p n_s - 1, rounded up to a
+    saved step); until then the run is the synchronized one, after it the predictions are
+    used (an oracle of the step-off run, so the whole run still equals it)."""
+    stepped = _step_off(problem, jump)
+    g = np.asarray(stepped.loads[0].time(np.arange(N_STEPS + 1) * problem.dt))
+    assert np.argmax(np.abs(np.diff(g))) + 1 == jump  # the test's own reading of the schedule
+    assert expected_n_cri == -(-(jump + N_S * N_P - 1) // save_every) * save_every
+    ref = jaxsync.simulate(stepped, N_STEPS, partitions=partition)
+    traj = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save_every=save_every,
+                                  surrogates=oracle(ref, partition), n_cri=N_CRI)
+    assert traj.stats.n_cri == expected_n_cri and traj.stats.load_jumps == (jump,)
+    assert traj.parameters["last_load_jump"] == jump  # the whole run's, not only its first stretch's
+    assert traj.stats.n_synchronized_steps == expected_n_cri
+    assert traj.stats.n_predicted_steps == N_STEPS - expected_n_cri
+    np.testing.assert_array_equal(traj.synchronized, np.arange(0, N_STEPS + 1, save_every) <= expected_n_cri)
+    np.testing.assert_allclose(traj.displacement, ref.displacement[::save_every], rtol=0,
+                               atol=1e-13 * np.abs(ref.displacement).max())
+    assert "synchronized through the load jump at step" in jaxsync.solve.syncavoid.describe_run(traj)
+    # the paper's way: predicted from N_CRI on, straight through the jump
+    through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save_every=save_every,
+                                     surrogates=oracle(ref, partition), n_cri=N_CRI, load_jumps="predict")
+    assert through.stats.n_cri == N_CRI and through.stats.load_jumps is None
+    assert through.stats.n_synchronized_steps == N_CRI
+
+
+def test_an_oracle_of_the_unswitched_run_is_only_used_after_the_jump(problem, partition):
+    """A predictor that cannot know of the jump (it replays the run whose load stays on):
+    synchronized through the jump, the run equals the step-off run up to the new n_cri and
+    only departs from it afterwards; predicting through it departs right after N_CRI."""
+    jump = 51
+    stepped = _step_off(problem, jump)
+    ref = jaxsync.simulate(stepped, N_STEPS, partitions=partition)
+    blind = oracle(jaxsync.simulate(problem, N_STEPS, partitions=partition), partition)
+    scale = np.abs(ref.displacement).max()
+    kept = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, surrogates=blind, n_cri=N_CRI)
+    err = np.abs(kept.displacement - ref.displacement).max(axis=(1, 2))
+    assert err[:71].max() <= 1e-13 * scale and err[72:].max() > 1e-6 * scale
+    through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, surrogates=blind, n_cri=N_CRI,
+                                     load_jumps="predict")
+    before = slice(N_CRI + 2, jump + 1)  # the two runs' loads agree up to the jump
+    assert np.abs(through.displacement[before] - ref.displacement[before]).max() <= 1e-13 * scale
+    assert np.abs(through.displacement[jump + 2:] - ref.displacement[jump + 2:]).max() > 1e-6 * scale
+
+
+def test_a_jump_near_the_end_keeps_the_whole_run_synchronized(problem, partition, reference):
+    stepped = _step_off(problem, N_STEPS - 5)
+    ref = jaxsync.simulate(stepped, N_STEPS, partitions=partition)
+    with pytest.warns(RuntimeWarning, match="stays synchronized"):
+        traj = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition,
+                                      surrogates=oracle(reference, partition, shift=3), n_cri=N_CRI)
+    assert traj.stats.n_cri == N_STEPS and traj.stats.n_predicted_steps == 0 and traj.synchronized.all()
+    np.testing.assert_allclose(traj.displacement, ref.displacement, rtol=0, atol=1e-13 * np.abs(ref.displacement).max())
+
+
+def test_load_jumps_policy_is_checked_and_saved(problem, partition, reference, tmp_path):
+    with pytest.raises(ProblemError, match="load_jumps='sometimes'.*synchronize"):
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=oracle(reference, partition),
+                               n_cri=N_CRI, load_jumps="sometimes")
+    traj = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=oracle(reference, partition),
+                                  n_cri=N_CRI)
+    assert traj.stats.load_jumps == () and traj.stats.n_cri == N_CRI  # the ramp never jumps
+    traj.save(tmp_path / "a.h5")
+    assert jaxsync.Trajectory.load(tmp_path / "a.h5").stats.load_jumps == ()
+    stepped = _step_off(problem, 51)
+    ref = jaxsync.simulate(stepped, N_STEPS, partitions=partition)
+    jumped = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, surrogates=oracle(ref, partition),
+                                    n_cri=N_CRI)
+    jumped.save(tmp_path / "b.h5")
+    assert jaxsync.Trajectory.load(tmp_path / "b.h5").stats.load_jumps == (51,)

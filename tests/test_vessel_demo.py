@@ -134,6 +134,9 @@ def test_vessel_demo_prints_its_table(vessel):
 def test_vessel_defaults_and_devices():
     d = demo_defaults("vessel")
     assert (d.n_parts, d.resync_tolerance, d.component, d.shared_every_step) == (11, "1%", None, False)
+    assert (d.n_hidden, d.epochs, d.n_candidates) == (32, 300, 1)  # its 11 parts keep the demo short
+    assert parts_of(build_parser().parse_args(["demo", "--candidates", "3"])) == 2
+    assert build_parser().parse_args(["demo", "--candidates", "3"]).n_candidates == 3
     assert demo_defaults("vessel", "paper").n_s == 1000 and demo_defaults("vessel", "paper").n_steps == 1_000_000
     parser = build_parser()
     assert parts_of(parser.parse_args(["demo", "--case", "vessel"])) == 11

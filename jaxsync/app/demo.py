@@ -70,6 +70,7 @@ class DemoDefaults:
         n_steps, n_parts: time steps of both runs, parts (one emulated device each).
         n_s, n_past, n_future, n_hidden, n_layers: sampling and network.
         epochs, batch_size, eta0, gamma: the training schedule.
+        n_candidates: networks trained per part, the lowest validation loss kept.
         train_fraction: the leading fraction n_ts of the synchronized run trained on (the
             cantilever: the first half, the rest is extrapolated; the vessel: all of it,
             since its pressure ramps up over the first second and a first half of a short
@@ -94,6 +95,7 @@ class DemoDefaults:
     batch_size: int
     eta0: float
     gamma: float
+    n_candidates: int
     train_fraction: float
     resync_tolerance: str | float | None
     shared_every_step: bool
@@ -127,14 +129,16 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
 
         from ..surrogate.fit import train_surrogates
 
-        n_s = inspect.signature(train_surrogates).parameters["n_s"].default
-        return DemoDefaults(n_steps=100_000, n_parts=2, n_s=n_s, train_fraction=0.5, resync_tolerance=None,
-                            shared_every_step=True, component=2, **base)
+        library = inspect.signature(train_surrogates).parameters
+        return DemoDefaults(n_steps=100_000, n_parts=2, n_s=library["n_s"].default, train_fraction=0.5,
+                            resync_tolerance=None, shared_every_step=True, component=2,
+                            n_candidates=library["n_candidates"].default, **base)
     paper = _vessel_target(size) >= VESSEL_SIZES["paper"]
-    # n_H 32, 300 epochs of n_B = 10: the 11 replicas train in about 3.5 minutes on 2 cores
-    # (the library's n_H 50 and 800 epochs would take the demo past 15 minutes)
+    # n_H 32, 300 epochs of n_B = 10, one candidate per part: the 11 replicas train in about
+    # 3.5 minutes on 2 cores (the library's n_H 50, 800 epochs and 2 candidates would take
+    # the demo past 15 minutes); its error control re-synchronizes where a network falls short
     return DemoDefaults(n_steps=1_000_000 if paper else 250_000, n_parts=11, n_s=1000, train_fraction=1.0,
-                        resync_tolerance="1%", shared_every_step=False, component=None,
+                        resync_tolerance="1%", shared_every_step=False, component=None, n_candidates=1,
                         **dict(base, n_hidden=32, epochs=300, batch_size=10))
 
 
@@ -180,7 +184,8 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
              n_parts: int | None = None, n_s: int | None = None, n_past: int | None = None,
              n_future: int | None = None, n_hidden: int | None = None, n_layers: int | None = None,
              epochs: int | None = None, batch_size: int | None = None, eta0: float | None = None,
-             gamma: float | None = None, train_fraction: float | None = None, seed: int = 0,
+             gamma: float | None = None, train_fraction: float | None = None, n_candidates: int | None = None,
+             seed: int = 0,
              save_every: int | None = None, resync_tolerance="default", mass_scaling_seconds: float | None = None,
              progress: bool = True, log=print) -> dict:
     """Run the pipeline of ``case`` and write everything into ``out``; return the summary.
@@ -221,7 +226,7 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     defaults = demo_defaults(case, size)
     given = dict(n_steps=n_steps, n_parts=n_parts, n_s=n_s, n_past=n_past, n_future=n_future, n_hidden=n_hidden,
                  n_layers=n_layers, epochs=epochs, batch_size=batch_size, eta0=eta0, gamma=gamma,
-                 train_fraction=train_fraction)
+                 train_fraction=train_fraction, n_candidates=n_candidates)
     d = dataclasses.replace(defaults, **{k: v for k, v in given.items() if v is not None})
     if resync_tolerance != "default":
         d = dataclasses.replace(d, resync_tolerance=resync_tolerance)
@@ -263,14 +268,15 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     reference.save(reference_path)
 
     log(f"[{next(stage)}/{n_stages}] training {d.n_parts} LSTM replicas (n_s={d.n_s}, n_p={d.n_past}, "
-        f"n_f={d.n_future}, n_H={d.n_hidden}, {d.epochs} epochs, n_B={d.batch_size}, on the first "
+        f"n_f={d.n_future}, n_H={d.n_hidden}, {d.epochs} epochs, n_B={d.batch_size}, "
+        f"{d.n_candidates} candidate{'s' if d.n_candidates > 1 else ''} per part, on the first "
         f"{100 * d.train_fraction:g} % of the run)")
     trained = train_surrogates(
         reference_path, n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, n_hidden=d.n_hidden,
         n_layers=d.n_layers, config=TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma,
                                                 n_epochs=d.epochs),
-        train_fraction=d.train_fraction, seed=seed, emse_applications=0, out=os.path.join(out, "surrogate"),
-        progress=progress)
+        train_fraction=d.train_fraction, n_candidates=d.n_candidates, seed=seed, emse_applications=0,
+        out=os.path.join(out, "surrogate"), progress=progress)
     log(f"  {trained.result.n_epochs_run} epochs in {trained.train_seconds:.1f} s; validation MSE per part "
         + ", ".join(f"{v:.3e}" for v in trained.final_val_loss) + f"; wrote {trained.files['checkpoint']}")
 

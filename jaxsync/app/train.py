@@ -86,6 +86,9 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--offsets", dest="n_offsets", type=int, default=LIBRARY["n_offsets"],
                         help="sampled sequences taken from each run, at evenly spaced starting steps within n_s "
                         "(more windows of the same run; default: %(default)s)")
+    parser.add_argument("--candidates", dest="n_candidates", type=int, default=LIBRARY["n_candidates"],
+                        help="networks trained per part from different initial weights, all at once; each "
+                        "part keeps the one of lowest validation loss (default: %(default)s)")
     parser.add_argument("--train-fraction", type=float, default=LIBRARY["train_fraction"],
                         help="leading fraction n_ts of each run used for training (default: %(default)s)")
     parser.add_argument("--val-fraction", type=float, default=LIBRARY["val_fraction"],
@@ -154,7 +157,8 @@ def run_train(args: argparse.Namespace) -> int:
     trained = train_surrogates(
         args.trajectories, n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
         n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
-        val_fraction=args.val_fraction, n_offsets=args.n_offsets, load_parameters=args.load_parameter,
+        val_fraction=args.val_fraction, n_offsets=args.n_offsets, n_candidates=args.n_candidates,
+        load_parameters=args.load_parameter,
         allow_predicted=args.allow_predicted, seed=args.seed, emse_applications=args.emse_applications,
         rollout_tolerance=args.rollout_tolerance or None, devices=args.devices, out=args.output,
         checkpoint_name=args.checkpoint_name, checkpoint_every=args.checkpoint_every,
@@ -167,6 +171,11 @@ def run_train(args: argparse.Namespace) -> int:
           f"and {SUMMARY_NAME} ({stop}); validation MSE of the kept parameters per part: "
           f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)} "
           f"(best epochs {', '.join(str(int(e)) for e in result.best_epoch)})")
+    if trained.candidates is not None:
+        c = trained.candidates
+        print(f"candidates: {c['n_candidates']} networks per part, kept candidate "
+              f"{', '.join(str(k) for k in c['chosen'])} (validation MSE per candidate and part: "
+              + "; ".join(", ".join(f"{v:.3e}" for v in row) for row in c["best_val_loss"]) + ")")
     if trained.rollout is not None:
         verdict = "within" if trained.rollout_passed else "ABOVE"
         print(f"offline check: rolled out over {trained.rollout.n_steps} steps, shared displacements off by up to "

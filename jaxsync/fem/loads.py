@@ -15,7 +15,7 @@ import numpy as np
 from ..errors import ProblemError
 from ..pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
 
-__all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product",
+__all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "load_jumps", "LOAD_JUMP_FRACTION",
            "BodyForce", "Pressure"]
 
 
@@ -146,3 +146,40 @@ class Pressure:
     magnitude: Any
     time: Any = Constant()
     surface: str = static_field(default="pressure")
+
+
+#: A load "jumps" at a step when its time function changes by more than this fraction
+#: of its largest |value| over the run within that one step (a switch-off, a switch-on
+#: after t = 0, a ramp shorter than a step). Smooth loads change by about 2 pi dt / T of
+#: their amplitude per step (T: their shortest time scale), far below it at any stable dt.
+LOAD_JUMP_FRACTION = 0.05
+
+
+def load_jumps(loads, n_steps: int, dt: float, fraction: float = LOAD_JUMP_FRACTION) -> np.ndarray:
+    """The steps n in 1 .. n_steps at which a load's time function jumps: |g(t_n) -
+    g(t_{n-1})| > ``fraction`` max_k |g(t_k)| (t_k = k dt, k = 0 .. n_steps).
+
+    The central-difference step from n uses f(t_n), so a jump at step n first moves
+    d(n + 1): an autonomous surrogate, which sees only past displacements, cannot foresee it.
+
+    Args:
+        loads: :class:`BodyForce` / :class:`Pressure` terms (``Problem.loads``).
+        n_steps: steps of the run.
+        dt: time step [s].
+        fraction: the jump size, a fraction of the load's largest |g| over the run.
+
+    Returns:
+        (n_jumps,) int64, increasing: the union over the loads.
+    """
+    times = np.arange(int(n_steps) + 1, dtype=float) * float(dt)
+    steps = set()
+    for load in loads:
+        g = np.asarray(load.time(times), dtype=float)
+        if g.shape != times.shape:  # a constant returned as a scalar
+            g = np.broadcast_to(g, times.shape)
+        scale = float(np.abs(g).max(initial=0.0))
+        if scale == 0.0:
+            continue
+        jumps = np.flatnonzero(np.abs(np.diff(g)) > fraction * scale) + 1
+        steps.update(jumps.tolist())
+    return np.asarray(sorted(steps), dtype=np.int64)

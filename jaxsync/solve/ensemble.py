@@ -145,7 +145,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
         PartitionError: a partition of another mesh.
     """
     from ..precision import require_float64
-    from .solver import _parameters, check_steps
+    from .solver import check_steps
 
     require_float64("ensemble")
     problems = tuple(problems)
@@ -218,8 +218,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             traj = _trajectory(problem, [start_fields[r][None], saved[:, r]], dt, save_every, partition,
                                recorded, shared_every)
             if labels is not None:
-                traj = dataclasses.replace(traj, parameters={**_parameters(problem),
-                                                             "load_parameter": labels[r]})
+                traj = dataclasses.replace(traj, parameters={**traj.parameters, "load_parameter": labels[r]})
             out.append(traj)
         return out
 

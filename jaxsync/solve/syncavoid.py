@@ -41,7 +41,7 @@ from .distributed import DistributedRunner
 from .driver import Diverged, Progress, Segment, divergence_limit, run_chunks
 from .predicted import CycleRejected, DisagreementMonitor, MonitoredRunner, PredictedPhase, PredictedRunner
 from .predictors import OraclePredictor
-from .solver import drive
+from .solver import _parameters, drive
 
 __all__ = ["ResyncTolerance", "simulate_sync_avoiding", "step_counts", "describe_run"]
 
@@ -138,7 +138,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                            seed: int = 0, devices=None, load_parameter: float | None = None,
                            progress: bool | None = None, cycles_per_chunk: int | None = None,
                            resync_tolerance=None, sync: str | None = None,
-                           blowup_factor: float = 1e3):
+                           load_jumps: str = "synchronize", blowup_factor: float = 1e3):
     """Run paper Algorithm 3: synchronized up to ``n_cri``, then surrogate-predicted.
 
     Error control (beyond the paper, section 6): with ``resync_tolerance``, every refill
@@ -158,6 +158,19 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     stayed below the tolerance were used. When the cycle right after an anchor is
     rejected, the synchronized stretch doubles (1, 2, 4 ... cycles) before the next try.
     Predicted steps that a re-synchronization recomputes are counted as discarded.
+
+    Load jumps (beyond the paper): a load switched off (or on, or any time function that
+    changes by more than 5 % of its range in one step, :func:`jaxsync.fem.loads.load_jumps`)
+    changes the motion in a way no autonomous surrogate can foresee from past
+    displacements; its networks would predict the old motion on (the paper's step-off case,
+    figure 14: 5 % errors for about a second after the jump). The solver knows the load
+    schedule, so by default (``load_jumps="synchronize"``) it stays synchronized through
+    every jump up to the step after which the networks' whole input history (n_p n_s steps)
+    follows the last jump: the first synchronized stretch ends at max(n_cri, last jump +
+    n_p n_s), rounded up to a saved step. A predicted state is never joined back (see above),
+    so a jump late in the run keeps the run synchronized until then; one within the last
+    n_p n_s steps keeps it synchronized to the end (a RuntimeWarning says so).
+    ``load_jumps="predict"`` predicts through them, as the paper did.
 
     Args:
         problem: the problem.
@@ -179,6 +192,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             synchronized steps), or a :class:`ResyncTolerance`; None: never.
         sync: how the synchronized steps sum shared forces (see
             :class:`jaxsync.solve.distributed.DistributedRunner`).
+        load_jumps: ``"synchronize"`` (default) or ``"predict"``: what the run does at the
+            steps where a load's time function jumps (see above).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
@@ -186,7 +201,9 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
         ``shared_displacement`` and ``predicted_shared_displacement``
         (n_predicted_saved, 3 n_shared_p): the part's own predictions at the saved
         predicted steps. ``stats`` (:class:`jaxsync.RunStats`): ``n_synchronized_steps``, ``n_predicted_steps``
-        (they add up to n_steps), ``n_discarded_steps``, ``n_resynchronizations``,
+        (they add up to n_steps), ``n_cri`` (the end of the first synchronized stretch, later
+        than the one given when a load jumps), ``load_jumps`` (the steps synchronized
+        through), ``n_discarded_steps``, ``n_resynchronizations``,
         ``resynchronized_at`` (the first step of each rejected cycle), ``es_hat_trigger``
         (its es_hat) and ``tolerance_cm`` (the tolerance then) [cm], ``resync_tolerance``,
         ``us_per_step_predicted``, ``us_per_step_synchronized``, ``compile_seconds``.
@@ -233,6 +250,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
         raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
+    jumps, n_cri = _synchronize_through_load_jumps(problem, load_jumps, n_cri, n_steps, dt, history, save_every)
     if tolerance is not None and isinstance(predictor, OraclePredictor):
         raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
                            "an OraclePredictor replays fixed values")
@@ -314,6 +332,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     stats = dataclasses.replace(
         synced.stats, us_per_step=None, n_steps=n_steps, n_cri=n_cri,
         n_synchronized_steps=n_sync, n_predicted_steps=n_pred, n_discarded_steps=n_discarded,
+        load_jumps=None if jumps is None else tuple(int(j) for j in jumps),
         compile_seconds=compile_seconds,
         us_per_step_synchronized=1e6 * seconds["synchronized"] / max(n_sync, 1),
         us_per_step_predicted=1e6 * seconds["predicted"] / n_pred if n_pred else None,
@@ -329,7 +348,32 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                 f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
                 "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
                 stacklevel=2)
-    return dataclasses.replace(traj, stats=stats)
+    return dataclasses.replace(traj, stats=stats, parameters={**traj.parameters, **_parameters(problem, n_steps, dt)})
+
+
+def _synchronize_through_load_jumps(problem, policy: str, n_cri: int, n_steps: int, dt: float,
+                                    history: int, save_every: int):
+    """(the load jumps of the run or None, the end of the first synchronized stretch):
+    with ``policy="synchronize"``, n_cri moves to the first saved step at which the
+    networks' input history (the ``history`` steps up to it) lies after the last jump."""
+    from ..fem.loads import load_jumps
+
+    if policy not in ("synchronize", "predict"):
+        raise ProblemError(f"load_jumps={policy!r}: use 'synchronize' (stay synchronized through the steps "
+                           "where a load jumps) or 'predict' (predict through them, as the paper did)")
+    if policy == "predict":
+        return None, n_cri
+    jumps = load_jumps(problem.loads, n_steps, dt)
+    if not len(jumps):
+        return jumps, n_cri
+    needed = int(jumps[-1]) + history - 1  # the history then reads steps jump .. needed: d(jump + 1) on move
+    needed = -(-needed // save_every) * save_every
+    if needed > n_cri and needed >= n_steps:
+        warnings.warn(f"a load jumps at step {int(jumps[-1])} (t = {jumps[-1] * dt:.6g} s), less than n_p n_s = "
+                      f"{history} steps before the end ({n_steps}): no surrogate can foresee the motion after "
+                      "it, so the whole run stays synchronized (load_jumps='predict' predicts through it)",
+                      RuntimeWarning, stacklevel=3)
+    return jumps, min(max(n_cri, needed), n_steps)
 
 
 def step_counts(online) -> tuple[int, int]:
@@ -351,6 +395,10 @@ def describe_run(online) -> str:
     text = f"{n_steps} steps: {n_sync} synchronized, {n_steps - n_sync} predicted"
     if st.n_cri is not None:
         text += f" (n_cri = {st.n_cri})"
+    if st.load_jumps:
+        jumps = list(st.load_jumps)
+        text += (f"; synchronized through the load jump{'s' if len(jumps) > 1 else ''} at step"
+                 f"{'s' if len(jumps) > 1 else ''} {jumps if len(jumps) > 1 else jumps[0]}")
     if st.resync_tolerance is not None:
         at = list(st.resynchronized_at or ())
         text += (f"; tolerance {st.resync_tolerance}: {len(at)} re-synchronization"

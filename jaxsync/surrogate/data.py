@@ -26,6 +26,7 @@ import dataclasses
 import os
 from collections.abc import Sequence
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
@@ -97,7 +98,8 @@ class Normalization:
 
     Attributes:
         mean: (n_dof,) float64, solver units.
-        std: (n_dof,) float64, solver units; dofs that never move get std 1.
+        std: (n_dof,) float64, solver units; 0 for dofs that never move (clamped ones):
+            they normalize to 0 and invert to their constant, whatever a network says.
     """
 
     mean: np.ndarray
@@ -105,20 +107,33 @@ class Normalization:
 
     @classmethod
     def fit(cls, snapshots: np.ndarray) -> "Normalization":
-        """Fit on (..., n_dof) snapshots; constant dofs get std 1 (avoids 0/0)."""
+        """Fit on (..., n_dof) snapshots; constant dofs get std 0.
+
+        A fixed std for them (1 solver unit, as before) would turn a network's small
+        normalized error there into a displacement of that size whatever the problem's
+        scale (0.4 cm on the cantilever's clamp in full-system modeling, whose motion is
+        0.09 cm), and feed it back as the next input.
+        """
         flat = np.asarray(snapshots, dtype=np.float64).reshape(-1, np.shape(snapshots)[-1])
         mean = flat.mean(axis=0)
         std = flat.std(axis=0)
         scale = max(float(np.max(std, initial=0.0)), float(np.max(np.abs(mean), initial=0.0)))
         # A dof whose spread is at round-off level relative to the data is treated as fixed.
-        std = np.where(std > 1e-12 * scale, std, 1.0) if scale > 0 else np.ones_like(std)
+        std = np.where(std > 1e-12 * scale, std, 0.0)
         return cls(mean=mean, std=std)
 
     def apply(self, values):
-        return (values - self.mean) / self.std
+        return normalize(values, self.mean, self.std)
 
     def invert(self, values):
         return values * self.std + self.mean
+
+
+def normalize(values, mean, std):
+    """(values - mean) / std, and 0 where std is 0 (a fixed dof); NumPy or JAX arrays."""
+    xp = np if isinstance(values, np.ndarray) and isinstance(std, np.ndarray) else jnp
+    moving = std > 0
+    return xp.where(moving, (values - mean) / xp.where(moving, std, 1.0), 0.0)
 
 
 # ----------------------------------------------------------------------------- datasets
@@ -315,6 +330,9 @@ class SharedHistories:
             ``load_parameter`` of the trajectory), or None.
         synchronized: (n_steps,) bool flags of a synchronization-avoiding trajectory
             (False where the step was predicted by surrogates), None for a synchronized run.
+        stride: steps between rows of ``histories``.
+        last_load_jump: the last step at which a load of the run jumps (the trajectory's
+            ``parameters["last_load_jump"]``), or None.
     """
 
     histories: tuple[np.ndarray, ...]
@@ -323,6 +341,7 @@ class SharedHistories:
     load_parameter: float | None
     synchronized: np.ndarray | None = None
     stride: int = 1
+    last_load_jump: int | None = None
 
     def for_sampling(self, n_s: int) -> int:
         """The row stride that samples these histories every ``n_s`` steps.
@@ -403,6 +422,6 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
             f"{name}: 'synchronized' has {synchronized.size} flags for {histories[0].shape[0]} saved steps; "
             "the file is damaged"
         )
-    load = traj.parameters.get("load_parameter")
+    load, jump = traj.parameters.get("load_parameter"), traj.parameters.get("last_load_jump")
     return SharedHistories(tuple(histories), tuple(nodes), float(traj.dt), None if load is None else float(load),
-                           synchronized, int(traj.shared_stride))
+                           synchronized, int(traj.shared_stride), None if jump is None else int(jump))

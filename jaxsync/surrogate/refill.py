@@ -31,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
+from jaxsync.surrogate.data import normalize
 from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
 
 __all__ = ["refill_input_steps", "refill_target_steps", "refill_index_sets", "refill_windows",
@@ -139,7 +140,7 @@ def refill_predict(
         raise ConfigError(
             f"refill buffer must have shape (n_s*n_p, n_dof) = {(n_s * n_past, n_dof)}, got {buffer.shape}")
     mean, std = mean[None], std[None]  # one row, broadcast over the buffer's steps
-    z = ((buffer - mean) / std).astype(arch.dtype)
+    z = normalize(buffer, mean, std).astype(arch.dtype)
     windows = refill_windows(z, n_s, n_past)  # (n_s, n_p, n_dof), rows N_p^i
     pred = jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask))(windows)  # (n_s, n_f, n_dof)
     return refill_scatter(pred, n_s).astype(mean.dtype) * std + mean

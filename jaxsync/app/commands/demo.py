@@ -30,7 +30,11 @@ def add_parser(subparsers) -> None:
     p.add_argument("--parts", type=int, default=None,
                    help="number of parts (default: the case's; cantilever 2, vessel 11 as in the paper)")
     common.add_surrogate_options(p, case_defaults=True)
-    p.add_argument("--epochs", type=int, default=None, help="training epochs (default: the case's, 300)")
+    p.add_argument("--epochs", type=int, default=None,
+                   help="training epochs (default: the case's; cantilever 800, vessel 300)")
+    p.add_argument("--candidates", dest="n_candidates", type=int, default=None,
+                   help="networks trained per part, the lowest validation loss kept (default: the case's; "
+                        "cantilever 2, vessel 1)")
     p.add_argument("--seed", type=int, default=0,
                    help="seed of METIS, initialization and shuffling (default: %(default)s)")
     p.add_argument("--save-every", type=int, default=None,
@@ -61,8 +65,8 @@ def run(args) -> int:
     summary = run_demo(args.out, case=args.case, size=args.size, n_steps=args.steps, n_parts=args.parts,
                        n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
                        n_layers=args.n_layers, epochs=args.epochs, eta0=args.eta0, gamma=args.gamma,
-                       seed=args.seed, save_every=args.save_every, resync_tolerance=tolerance,
-                       progress=not args.no_progress)
+                       n_candidates=args.n_candidates, seed=args.seed, save_every=args.save_every,
+                       resync_tolerance=tolerance, progress=not args.no_progress)
     what = "cantilever" if args.case == "cantilever" else f"coronary tree ({summary['n_elements']} tets)"
     print(f"jaxsync demo: synchronization-avoiding {what}")
     print(format_summary(summary))

@@ -34,6 +34,10 @@ def add_parser(subparsers) -> None:
                    help="write the paper's raw refill into the solver (n_s interleaved network "
                         "applications, which jitter from step to step) instead of the default smooth "
                         "curve through their block means (jaxsync.surrogate.refill.smooth_refill)")
+    p.add_argument("--load-jumps", choices=("synchronize", "predict"), default="synchronize",
+                   help="at the steps where a load's time function jumps (a load switched off): stay "
+                        "synchronized until the networks' whole input history follows the last jump "
+                        "(default; no surrogate can foresee it), or predict through them as the paper did")
     p.add_argument("--output", "-o", default="online.h5", help="output trajectory (default: %(default)s)")
     p.add_argument("--force", action="store_true",
                    help="overwrite an existing output file (without it the run is refused before "
@@ -75,7 +79,8 @@ def run(args) -> int:
                                     dt=reference.dt, mode=args.mode,
                                     save_every=args.save_every or reference.save_every,
                                     load_parameter=args.load_parameter, progress=not args.no_progress,
-                                    resync_tolerance=args.resync_tolerance, **common.sync_of(args))
+                                    resync_tolerance=args.resync_tolerance, load_jumps=args.load_jumps,
+                                    **common.sync_of(args))
     online.save(args.output, compression=common.compression_of(args))
     print(describe_run(online) + f"; wrote {args.output}")
     return 0
