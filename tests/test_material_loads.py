@@ -99,7 +99,7 @@ def test_pressure_resultant_on_a_mesh_of_thousands_of_nodes(face, normal):
 def test_load_jumps_against_a_loop():
     """The jump steps of a step-off, a ramp shorter than a step, a smooth periodic load and
     a constant one, each checked against a plain loop over the steps."""
-    from jaxsync.fem.loads import load_jumps
+    from jaxsync.fem.loads import TimeFunction, load_jumps
 
     dt, n_steps = 1e-3, 400
     t_off = 0.2505  # between steps 250 and 251
@@ -121,5 +121,16 @@ def test_load_jumps_against_a_loop():
     union = load_jumps([cases["step_off"], cases["short_ramp_after_zero"],
                         jaxsync.BodyForce(time=jaxsync.StepOff(0.0))], n_steps, dt)
     np.testing.assert_array_equal(union, [1, 251])
+    # a time function written for one scalar t, as the stepper calls it (a constant too)
+    class Switch(TimeFunction):
+        def __call__(self, t):
+            return 2.0 if isinstance(t, float) and t > 1e9 else jnp.where(t < 0.1005, 0.0, 3.0)
+
+    class Unit(TimeFunction):
+        def __call__(self, t):
+            return 1.0
+
+    np.testing.assert_array_equal(load_jumps([jaxsync.BodyForce(time=Switch())], n_steps, dt), [101])
+    np.testing.assert_array_equal(load_jumps([jaxsync.BodyForce(time=Unit())], n_steps, dt), [])
     # a smaller threshold sees the smooth load's steepest steps (about 2 pi dt / T = 1.3 % of its range)
     assert len(load_jumps([cases["smooth"]], n_steps, dt, fraction=0.005)) > 0

@@ -35,7 +35,8 @@ from pathlib import Path
 import pytest
 
 README = Path(__file__).resolve().parents[1] / "README.md"
-TIMEOUT_S = 600          # per group of blocks: the synchronization-avoiding group trains with the defaults (minutes)
+TIMEOUT_S = 900          # per group of blocks (a hang guard): the synchronization-avoiding group trains with
+                         # the defaults, two candidates per part (5-10 minutes on 2 busy cores)
 MARKER = re.compile(r"^\s*#\s*README-test:\s*(?P<kind>\w+)\s*(?P<reason>.*)$")
 KINDS = ("skip", "slow")
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -174,9 +175,9 @@ def load_jumps(loads, n_steps: int, dt: float, fraction: float = LOAD_JUMP_FRACT
     times = np.arange(int(n_steps) + 1, dtype=float) * float(dt)
     steps = set()
     for load in loads:
-        g = np.asarray(load.time(times), dtype=float)
-        if g.shape != times.shape:  # a constant returned as a scalar
-            g = np.broadcast_to(g, times.shape)
+        # vmapped: a time function written for one scalar t (as the stepper calls it) serves
+        g = np.asarray(jax.vmap(lambda t, g=load.time: jnp.asarray(g(t), dtype=float).reshape(()))(
+            jnp.asarray(times)), dtype=float)
         scale = float(np.abs(g).max(initial=0.0))
         if scale == 0.0:
             continue
