@@ -24,7 +24,9 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     The synchronized ``reference`` (saved at every step) supplies the first ``n_cri``
     steps; after that no solver step runs: refill cycles of the single surrogate,
     each consuming earlier predictions, produce all displacements. The network does not
-    know the Dirichlet conditions; their predicted values are reported, not enforced.
+    know the Dirichlet conditions; their predicted values are reported, not enforced (a
+    dof that never moves in the training data normalizes with std 0, so a network trained
+    by jaxsync predicts it at exactly its value).
 
     Args:
         problem: the problem (for its Dirichlet dofs).
