@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ProblemError, StabilityError
+from ..fem.loads import load_jumps
 from ..fem.stepper import ExplicitSystem, SolverState, advance, build_system, initial_state
 from ..pytree import is_traced
 from .checkpoint import fingerprint, load_checkpoint, save_checkpoint
@@ -301,24 +302,21 @@ def _trajectory(problem, snapshots, dt, save_every, partition=None, recorded=Non
         parts = tuple(PartHistory(part.shared_nodes, part.elements, values)
                       for part, values in zip(partition.parts, shared))
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt,
-                      save_every=save_every, parameters=_parameters(problem, n_steps, dt), parts=parts,
+                      save_every=save_every, parameters=_parameters(problem, load_jumps(problem.loads, n_steps, dt)),
+                      parts=parts,
                       shared_every=shared_every if partition is not None else None)
 
 
-def _parameters(problem, n_steps: int | None = None, dt: float | None = None) -> dict:
-    """Problem parameters stored with a trajectory (concrete values only); with the run's
-    ``n_steps`` and ``dt``, also ``last_load_jump``: the last step at which a load jumps
-    (:func:`jaxsync.fem.loads.load_jumps`; absent when none does), which the offline check
-    of :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does."""
-    from ..fem.loads import load_jumps
-
+def _parameters(problem, jumps=None) -> dict:
+    """Problem parameters stored with a trajectory (concrete values only); given the run's
+    load jumps (:func:`jaxsync.fem.loads.load_jumps`), also ``last_load_jump``, the last of
+    them (absent when there is none), which the offline check of
+    :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does."""
     m = problem.material
     out = {}
     for name, value in (("E", m.E), ("nu", m.nu), ("rho", m.rho), ("damping", problem.damping)):
         if not is_traced(value):
             out[name] = float(value)
-    if n_steps is not None:
-        jumps = load_jumps(problem.loads, n_steps, dt)
-        if len(jumps):
-            out["last_load_jump"] = int(jumps[-1])
+    if jumps is not None and len(jumps):
+        out["last_load_jump"] = int(jumps[-1])
     return out

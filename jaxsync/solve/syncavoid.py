@@ -34,6 +34,7 @@ import warnings
 import numpy as np
 
 from ..errors import CheckpointError, ProblemError, StabilityError
+from ..fem.loads import load_jumps as find_load_jumps
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..surrogate.data import shared_dof_layout
 from ..surrogate.model import Surrogate
@@ -250,7 +251,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
         raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
-    jumps, n_cri = _synchronize_through_load_jumps(problem, load_jumps, n_cri, n_steps, dt, history, save_every)
+    all_jumps = find_load_jumps(problem.loads, n_steps, dt)
+    jumps, n_cri = _synchronize_through_load_jumps(all_jumps, load_jumps, n_cri, n_steps, dt, history, save_every)
     if tolerance is not None and isinstance(predictor, OraclePredictor):
         raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
                            "an OraclePredictor replays fixed values")
@@ -348,22 +350,21 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                 f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
                 "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
                 stacklevel=2)
-    return dataclasses.replace(traj, stats=stats, parameters={**traj.parameters, **_parameters(problem, n_steps, dt)})
+    # the whole run's last load jump, not only its first synchronized stretch's
+    return dataclasses.replace(traj, stats=stats, parameters={**traj.parameters, **_parameters(problem, all_jumps)})
 
 
-def _synchronize_through_load_jumps(problem, policy: str, n_cri: int, n_steps: int, dt: float,
+def _synchronize_through_load_jumps(jumps, policy: str, n_cri: int, n_steps: int, dt: float,
                                     history: int, save_every: int):
-    """(the load jumps of the run or None, the end of the first synchronized stretch):
-    with ``policy="synchronize"``, n_cri moves to the first saved step at which the
-    networks' input history (the ``history`` steps up to it) lies after the last jump."""
-    from ..fem.loads import load_jumps
-
+    """(the load jumps synchronized through, or None; the end of the first synchronized
+    stretch) given the run's ``jumps``: with ``policy="synchronize"``, n_cri moves to the
+    first saved step at which the networks' input history (the ``history`` steps up to
+    it) lies after the last jump."""
     if policy not in ("synchronize", "predict"):
         raise ProblemError(f"load_jumps={policy!r}: use 'synchronize' (stay synchronized through the steps "
                            "where a load jumps) or 'predict' (predict through them, as the paper did)")
     if policy == "predict":
         return None, n_cri
-    jumps = load_jumps(problem.loads, n_steps, dt)
     if not len(jumps):
         return jumps, n_cri
     needed = int(jumps[-1]) + history - 1  # the history then reads steps jump .. needed: d(jump + 1) on move

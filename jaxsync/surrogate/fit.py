@@ -344,13 +344,12 @@ def train_surrogates(
     histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
     if n_app > 0:
         sqrt_e_mse = tuple(float(v) for v in np.sqrt(e_mse(surrogate, histories, n_app)))
+    # from where an online run starts predicting: n_s n_p - 1, or after the last load jump
+    # (simulate_sync_avoiding stays synchronized through it by default)
+    start = n_s * n_past - 1 + (first.last_load_jump or 0)
     if (rollout_tolerance is not None and first.stride == 1
-            and max_applications(histories.shape[1], n_s, n_past, n_future) > 0):
-        # from where an online run starts predicting: n_s n_p - 1, or after the last load jump
-        # (simulate_sync_avoiding stays synchronized through it by default)
-        start = n_s * n_past - 1 + (first.last_load_jump or 0)
-        if max_applications(histories.shape[1], n_s, n_past, n_future, start) > 0:
-            rollout = rollout_errors(surrogate, histories, start=start)
+            and max_applications(histories.shape[1], n_s, n_past, n_future, start) > 0):
+        rollout = rollout_errors(surrogate, histories, start=start)
     if rollout is not None:
         worst = int(np.argmax(rollout.relative))
         if rollout.relative[worst] > rollout_tolerance:
