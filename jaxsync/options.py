@@ -24,6 +24,9 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   the packaged ``"cantilever"`` or a ``"general"`` problem with its own conditions and loads.
 - :data:`MeshGenerator`: ``[mesh] generate`` of a TOML problem file: the ``"box_beam"``
   (default) or the ``"coronary_tree"`` of :func:`jaxsync.coronary_mesh`.
+- :data:`ValidationSplit`: which training windows are held out for validation
+  (:func:`jaxsync.surrogate.data.split_indices`): evenly ``"interleaved"`` (default) or the
+  paper's seeded ``"random"`` subset.
 """
 
 from __future__ import annotations
@@ -34,7 +37,7 @@ from typing import Literal, get_args
 from .errors import ConfigError, JaxsyncError
 
 __all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
-           "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
+           "ValidationSplit", "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
 Sync = Literal["psum", "ppermute", "mpi"]
@@ -43,6 +46,7 @@ Component = Literal[0, 1, 2]
 EpochRule = Literal["paper"]
 ProblemKind = Literal["cantilever", "general"]
 MeshGenerator = Literal["box_beam", "coronary_tree"]
+ValidationSplit = Literal["interleaved", "random"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

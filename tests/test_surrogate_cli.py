@@ -53,6 +53,7 @@ def test_train_writes_checkpoint_curves_and_summary(tmp_path, capsys):
     assert summary["load_parameters"] == [1.0, 0.6]
     assert summary["dof_counts"] == [6, 9] and summary["training"]["n_epochs_run"] == 12
     assert summary["sampling"]["n_train_windows"] + summary["sampling"]["n_val_windows"] == 2 * (150 - 11 + 1)
+    assert summary["sampling"]["split"] == "interleaved" and ckpt.metadata["sampling"]["split"] == "interleaved"
     assert len(summary["loss_history"]["val"]) == 12 and len(summary["loss_history"]["val"][0]) == 2
     assert all(f < i for f, i in zip(summary["final_val_loss"], summary["initial_val_loss"]))
     assert summary["e_mse_applications"] == 20 and len(summary["sqrt_e_mse"]) == 2
@@ -128,6 +129,8 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
     assert (lib["n_offsets"].default, lib["rollout_tolerance"].default) == (args.n_offsets, args.rollout_tolerance)
     assert lib["n_candidates"].default == args.n_candidates == demo.n_candidates == 2
     assert _parser().parse_args(["train", "run.h5", "--candidates", "3"]).n_candidates == 3
+    assert lib["split"].default == args.split == "interleaved"
+    assert _parser().parse_args(["train", "run.h5", "--split", "random"]).split == "random"
     assert (args.n_s, args.batch_size, args.patience) == (150, 10, 200)
     # the old spellings stay
     old = _parser().parse_args(["train", "run.h5", "--hidden", "7", "--layers", "3"])

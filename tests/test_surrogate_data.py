@@ -83,18 +83,43 @@ def test_subsample_and_windows():
         subsample(history, 0)
 
 
-def test_split_is_seeded_disjoint_and_75_25():
-    train, val = split_indices(100, 0.25, seed=3)
+@pytest.mark.parametrize("split", ["interleaved", "random"])
+def test_split_is_seeded_disjoint_and_75_25(split):
+    train, val = split_indices(100, 0.25, seed=3, split=split)
     assert len(train) == 75 and len(val) == 25
     assert set(train) | set(val) == set(range(100)) and not set(train) & set(val)
-    again = split_indices(100, 0.25, seed=3)
+    again = split_indices(100, 0.25, seed=3, split=split)
     np.testing.assert_array_equal(train, again[0])
-    other = split_indices(100, 0.25, seed=4)
+    other = split_indices(100, 0.25, seed=4, split=split)
     assert not np.array_equal(val, other[1])
     with pytest.raises(ConfigError):
-        split_indices(1, 0.25, 0)
+        split_indices(1, 0.25, 0, split=split)
     with pytest.raises(ConfigError):
-        split_indices(10, 1.0, 0)
+        split_indices(10, 1.0, 0, split=split)
+
+
+def test_interleaved_split_holds_out_every_4th_window_from_a_seeded_phase():
+    for seed in range(6):  # the default: every 4th from seed % 4, the rest trained on
+        train, val = split_indices(100, 0.25, seed)
+        np.testing.assert_array_equal(val, np.arange(seed % 4, 100, 4))
+        np.testing.assert_array_equal(train, np.setdiff1d(np.arange(100), val))
+    for n_windows, fraction in [(37, 0.25), (101, 0.25), (10, 0.3), (23, 0.5), (7, 0.9)]:
+        n_val = int(round(fraction * n_windows))
+        for seed in range(4):
+            train, val = split_indices(n_windows, fraction, seed)
+            assert len(val) == n_val and len(np.unique(val)) == n_val
+            assert np.array_equal(np.sort(np.concatenate([train, val])), np.arange(n_windows))
+            # evenly spread: consecutive held-out windows are floor/ceil of n/n_val apart,
+            # so no stretch of the run is left out of training or of validation
+            gaps = np.diff(val)
+            assert gaps.min() >= np.floor(n_windows / n_val) and gaps.max() <= np.ceil(n_windows / n_val)
+    # the transient at a run's start: a random split can hold out most of it, the
+    # interleaved one a quarter of any 8 consecutive windows
+    worst_random = max(np.isin(np.arange(8), split_indices(100, 0.25, s, "random")[1]).sum() for s in range(50))
+    assert worst_random >= 4
+    assert all(np.isin(np.arange(8), split_indices(100, 0.25, s)[1]).sum() == 2 for s in range(50))
+    with pytest.raises(ConfigError, match="split must be one of 'interleaved', 'random', got 'odd'"):
+        split_indices(100, 0.25, 0, "odd")
 
 
 def test_normalization_fit_apply_invert_and_constant_dof():

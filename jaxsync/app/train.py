@@ -23,7 +23,7 @@ import argparse
 import inspect
 import os
 
-from jaxsync.options import EpochRule, choices
+from jaxsync.options import EpochRule, ValidationSplit, choices
 from jaxsync.surrogate.fit import LOSS_CURVES_NAME, STATE_NAME, SUMMARY_NAME, train_surrogates
 from jaxsync.surrogate.train import TrainConfig
 
@@ -93,6 +93,9 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         help="leading fraction n_ts of each run used for training (default: %(default)s)")
     parser.add_argument("--val-fraction", type=float, default=LIBRARY["val_fraction"],
                         help="fraction of windows held out for validation (default: %(default)s)")
+    parser.add_argument("--split", choices=choices(ValidationSplit), default=LIBRARY["split"],
+                        help="which windows are held out for validation: every 4th (interleaved, at the default "
+                        "fraction) or a seeded random subset (the paper's) (default: %(default)s)")
     parser.add_argument("--n-hidden", "--hidden", dest="n_hidden", type=int, default=LIBRARY["n_hidden"],
                         help="encoder hidden size n_H (default: %(default)s; paper: 100)")
     parser.add_argument("--n-layers", "--layers", dest="n_layers", type=int, default=LIBRARY["n_layers"],
@@ -157,7 +160,7 @@ def run_train(args: argparse.Namespace) -> int:
     trained = train_surrogates(
         args.trajectories, n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
         n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
-        val_fraction=args.val_fraction, n_offsets=args.n_offsets, n_candidates=args.n_candidates,
+        val_fraction=args.val_fraction, n_offsets=args.n_offsets, split=args.split, n_candidates=args.n_candidates,
         load_parameters=args.load_parameter,
         allow_predicted=args.allow_predicted, seed=args.seed, emse_applications=args.emse_applications,
         rollout_tolerance=args.rollout_tolerance or None, devices=args.devices, out=args.output,

@@ -7,7 +7,8 @@ every time step (step k is row k; units of the solver, cm in the paper).  From i
 2. one snapshot every ``n_s`` steps is kept (:func:`subsample`);
 3. windows of ``n_past`` inputs followed by ``n_future`` targets slide over the kept
    snapshots one snapshot at a time (:func:`make_windows`);
-4. the windows are split 75/25 into training and validation with a seeded permutation;
+4. the windows are split 75/25 into training and validation, every 4th window held out
+   (:func:`split_indices`; the paper's seeded random permutation is an option);
 5. a per-dof normalization (mean, std) is fitted on the training windows and applied to
    everything; it is stored with the model.
 
@@ -30,6 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.options import ValidationSplit, check_option, choices
 from jaxsync.trajectory import Trajectory
 
 # ----------------------------------------------------------------------------- windows
@@ -73,20 +75,47 @@ def make_windows(snapshots: np.ndarray, n_past: int, n_future: int) -> tuple[np.
     return np.ascontiguousarray(windows[:, :n_past]), np.ascontiguousarray(windows[:, n_past:])
 
 
-def split_indices(n_windows: int, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded random split of window indices into training and validation.
+SPLITS = choices(ValidationSplit)
+
+
+def split_indices(n_windows: int, val_fraction: float, seed: int,
+                  split: ValidationSplit = "interleaved") -> tuple[np.ndarray, np.ndarray]:
+    """Seeded split of window indices into training and validation.
+
+    Args:
+        n_windows: windows to split.
+        val_fraction: fraction held out.
+        seed: picks the held-out windows (``random``) or their phase (``interleaved``).
+        split: ``"interleaved"`` (default) holds out evenly spaced windows, every
+            ``n_windows / n_val``-th from a phase set by ``seed`` (every 4th at the
+            default 25 %), so every stretch of a run is trained on and validated on
+            alike; ``"random"`` holds out a seeded random subset. A random subset can
+            hold out half of a run's first windows -- the transient after the load ramp,
+            where an online run starts predicting -- and the networks then never learn
+            it: on the demo's cantilever one random split gave a 4.5 % free-end error
+            where the interleaved one gives 1.2 % (same weights' seed).
 
     Returns:
         ``(train, val)`` sorted index arrays; ``len(val) = round(val_fraction * n_windows)``,
         at least one of each.
     """
+    check_option("the train/validation split", split, ValidationSplit)
     if not 0.0 < val_fraction < 1.0:
         raise ConfigError(f"validation fraction must be in (0, 1), got {val_fraction}")
     if n_windows < 2:
         raise ConfigError(f"need at least 2 windows to split train/validation, got {n_windows}")
     n_val = min(max(int(round(val_fraction * n_windows)), 1), n_windows - 1)
-    perm = np.random.default_rng(seed).permutation(n_windows)
-    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+    if split == "random":
+        perm = np.random.default_rng(seed).permutation(n_windows)
+        return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+    # n_val points spaced n_windows / n_val >= 1 apart, so distinct; the phase cycles
+    # through the stride's positions with the seed (every 4th from seed % 4 at 25 %)
+    stride = n_windows / n_val
+    phases = max(int(round(stride)), 1)
+    phase = ((seed % phases) + 0.5) / phases
+    val = np.floor((np.arange(n_val) + phase) * stride).astype(np.int64)
+    train = np.setdiff1d(np.arange(n_windows), val)
+    return train, val
 
 
 # ----------------------------------------------------------------------------- normalization
@@ -174,6 +203,7 @@ def build_dataset(
     split_seed: int = 0,
     load_parameters: Sequence[float] | None = None,
     n_offsets: int = 1,
+    split: ValidationSplit = "interleaved",
 ) -> WindowDataset:
     """Windows of one part from one or several runs.
 
@@ -183,7 +213,7 @@ def build_dataset(
         n_past, n_future: n_p and n_f.
         train_fraction: n_ts, the leading fraction of each run's steps that may be used.
         val_fraction: fraction of windows held out for validation (paper: 0.25).
-        split_seed: seed of the train/validation permutation. Parts built with the same
+        split_seed: seed of the train/validation split. Parts built with the same
             runs and seed get the same split (their windows are aligned in time).
         load_parameters: one scalar per run for the conditional network, or None.
         n_offsets: sampled sequences taken from each run, starting at the evenly spaced
@@ -191,6 +221,8 @@ def build_dataset(
             refill predicts all n_s interleaved sequences of a run; the paper trains on
             the one starting at step 0, and more offsets give the networks more of the
             same signal at other phases (n_offsets times the windows, the same run).
+        split: ``"interleaved"`` or ``"random"`` (:func:`split_indices`), over the
+            windows of all runs and offsets in order.
 
     Returns:
         The normalized :class:`WindowDataset`.
@@ -218,7 +250,7 @@ def build_dataset(
             ys.append(y)
             loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
     x, y, load = np.concatenate(xs), np.concatenate(ys), np.concatenate(loads)
-    train, val = split_indices(x.shape[0], val_fraction, split_seed)
+    train, val = split_indices(x.shape[0], val_fraction, split_seed, split)
     norm = Normalization.fit(np.concatenate([x[train], y[train]], axis=1))
 
     def prep(a):
