@@ -27,6 +27,9 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
 - :data:`ValidationSplit`: which training windows are held out for validation
   (:func:`jaxsync.surrogate.data.split_indices`): evenly ``"interleaved"`` (default) or the
   paper's seeded ``"random"`` subset.
+- :data:`SurrogateModel`: the surrogate ``jaxsync train --model`` fits
+  (:mod:`jaxsync.surrogate.architecture`): the ``"lstm"`` encoder-decoder (default) or the
+  ``"linear"`` autoregressive baseline, fitted by least squares.
 """
 
 from __future__ import annotations
@@ -37,7 +40,8 @@ from typing import Literal, get_args
 from .errors import ConfigError, JaxsyncError
 
 __all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
-           "ValidationSplit", "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
+           "ValidationSplit", "SurrogateModel", "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION",
+           "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
 Sync = Literal["psum", "ppermute", "mpi"]
@@ -47,6 +51,7 @@ EpochRule = Literal["paper"]
 ProblemKind = Literal["cantilever", "general"]
 MeshGenerator = Literal["box_beam", "coronary_tree"]
 ValidationSplit = Literal["interleaved", "random"]
+SurrogateModel = Literal["lstm", "linear"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

@@ -1,4 +1,5 @@
-"""``jaxsync train``: train the per-part LSTM surrogates on distributed trajectory files.
+"""``jaxsync train``: train the per-part LSTM surrogates on distributed trajectory files
+(``--model linear``: fit the linear autoregressive baseline by least squares instead).
 
 Argument parsing and printing around :func:`jaxsync.surrogate.train_surrogates`, which
 writes, into the output directory: the checkpoint (``surrogate.h5`` by default), the loss
@@ -14,7 +15,9 @@ options is refused.  It is deleted once the results are written.
 The defaults are the laptop schedule of :class:`~jaxsync.surrogate.train.TrainConfig`
 (n_H = 50, n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200 epochs
 without a better validation loss); the paper's is ``--n-hidden 100 --batch-size 5 --eta0 5e-4 --gamma
-0.9995 --epochs paper`` (13 812 epochs).
+0.9995 --epochs paper`` (13 812 epochs).  ``--model linear`` fits the affine map of least
+squares on the same windows (:mod:`jaxsync.surrogate.linear`, ridge ``--regularization``);
+it writes the same files, and the optimization options do not apply to it.
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import argparse
 import inspect
 import os
 
-from jaxsync.options import EpochRule, ValidationSplit, choices
+from jaxsync.options import EpochRule, SurrogateModel, ValidationSplit, choices
 from jaxsync.surrogate.fit import LOSS_CURVES_NAME, STATE_NAME, SUMMARY_NAME, train_surrogates
 from jaxsync.surrogate.train import TrainConfig
 
@@ -66,10 +69,18 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
         "train",
         help="train the per-part LSTM surrogates on trajectory files",
         description="Train one LSTM encoder-decoder per part on the shared-dof histories of one or more "
-        "distributed trajectory files (shared nodes kept at a stride dividing n_s), all parts together.",
+        "distributed trajectory files (shared nodes kept at a stride dividing n_s), all parts together "
+        "(--model linear: fit the linear autoregressive baseline by least squares instead).",
     )
     parser.add_argument("trajectories", nargs="+", help="trajectory HDF5 files (one run each, same partition)")
     parser.add_argument("-o", "--output", default="surrogate_out", help="output directory (default: %(default)s)")
+    parser.add_argument("--model", choices=choices(SurrogateModel), default=LIBRARY["model"],
+                        help="the surrogate: the LSTM encoder-decoder, or the linear autoregressive baseline "
+                        "fitted by least squares on the same windows (unconditional; the optimization options "
+                        "do not apply to it) (default: %(default)s)")
+    parser.add_argument("--regularization", type=float, default=LIBRARY["regularization"], metavar="R",
+                        help="--model linear: ridge parameter relative to the largest squared singular value of "
+                        "the training inputs; 0 is plain least squares (default: %(default)s)")
     parser.add_argument("--checkpoint-name", default=LIBRARY["checkpoint_name"],
                         help="checkpoint file name inside the output directory (default: %(default)s)")
     parser.add_argument("--load-parameter", type=float, nargs="+", default=None,
@@ -152,13 +163,14 @@ def run_train(args: argparse.Namespace) -> int:
         ConfigError, CheckpointError: unusable options or trajectory files.
     """
     state_path = os.path.join(args.output, STATE_NAME)
-    if args.checkpoint_every and os.path.exists(state_path):
+    if args.model == "lstm" and args.checkpoint_every and os.path.exists(state_path):
         print(f"resuming from the training state {state_path}")
     config = TrainConfig(batch_size=args.batch_size, eta0=args.eta0, gamma=args.gamma, eta_min=args.eta_min,
                          n_epochs=args.epochs, epochs_per_call=args.epochs_per_call,
                          patience=args.patience or None)
     trained = train_surrogates(
-        args.trajectories, n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
+        args.trajectories, model=args.model, regularization=args.regularization, n_s=args.n_s, n_past=args.n_past,
+        n_future=args.n_future, n_hidden=args.n_hidden,
         n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
         val_fraction=args.val_fraction, n_offsets=args.n_offsets, split=args.split, n_candidates=args.n_candidates,
         load_parameters=args.load_parameter,
@@ -168,12 +180,16 @@ def run_train(args: argparse.Namespace) -> int:
         progress=not args.no_progress,
     )
     result = trained.result
-    stop = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
-            else f"{result.n_epochs_run} epochs")
+    if trained.model == "linear":
+        how = f"linear, least-squares fit of rank {result.arch.rank} in {result.seconds_per_epoch:.2f} s"
+        kept = ""
+    else:
+        how = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
+               else f"{result.n_epochs_run} epochs")
+        kept = f" (best epochs {', '.join(str(int(e)) for e in result.best_epoch)})"
     print(f"wrote {os.path.join(args.output, args.checkpoint_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
-          f"and {SUMMARY_NAME} ({stop}); validation MSE of the kept parameters per part: "
-          f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)} "
-          f"(best epochs {', '.join(str(int(e)) for e in result.best_epoch)})")
+          f"and {SUMMARY_NAME} ({how}); validation MSE of the kept parameters per part: "
+          f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
     if trained.candidates is not None:
         c = trained.candidates
         print(f"candidates: {c['n_candidates']} networks per part, kept candidate "

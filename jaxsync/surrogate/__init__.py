@@ -1,4 +1,5 @@
-"""LSTM encoder-decoder surrogates of the partition-shared displacements (paper section 3).
+"""LSTM encoder-decoder surrogates of the partition-shared displacements (paper section 3),
+and the linear autoregressive baseline beside them.
 
 The names a user needs are here; everything else stays importable from its module:
 
@@ -9,6 +10,9 @@ The names a user needs are here; everything else stays importable from its modul
 :mod:`.fit`                :func:`train_surrogates`: trajectories in, trained surrogates and
                            files out (``jaxsync train`` and the demo call it)
 :mod:`.lstm`               the network, written by hand (:class:`LSTMArchitecture`)
+:mod:`.linear`             the linear autoregressive baseline, fitted by least squares
+                           (:class:`LinearArchitecture`, :func:`fit_linear`)
+:mod:`.architecture`       dispatch on the architecture: one code path for both models
 :mod:`.refill`             Algorithm 3's refill index sets and ``refill_predict``
 :mod:`.data`               sample-refill windows, normalization, padded replica datasets,
                            reading shared histories from trajectories
@@ -25,12 +29,13 @@ from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, s
 from jaxsync.surrogate.data import build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import GridSearchResult, RolloutWarning, e_mse, grid_search, rollout_errors
 from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
+from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
 from jaxsync.surrogate.lstm import LSTMArchitecture
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
 
 __all__ = [
-    "Surrogate", "LSTMArchitecture",
+    "Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConfig", "fit_linear",
     "train_surrogates", "TrainedSurrogates",
     "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
     "SurrogateCheckpoint", "save_checkpoint", "load_checkpoint",

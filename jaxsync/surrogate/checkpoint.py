@@ -1,14 +1,17 @@
 """Checkpoint files of a set of trained replicas (one file per set, HDF5).
 
-Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`)::
+Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`; the name is
+kept from before the linear surrogate, which the same format holds)::
 
     /params/<path>          stacked, padded parameters, e.g. params/encoder/0/forward/w_d
-                            with shape (n_parts, 4 n_H, n_dof)
+                            with shape (n_parts, 4 n_H, n_dof) (LSTM) or params/w_in with
+                            shape (n_parts, n_p, n_dof, rank) (linear)
     /normalization/mean     (n_parts, n_dof) float64, solver units
     /normalization/std      (n_parts, n_dof) float64
     /dof_counts             (n_parts,) int64, real dofs of each part
     /shared_nodes/<p>       (n_shared_p,) int64 global node ids of part p (optional group)
-    attrs: format, format_version, architecture (JSON), n_s, metadata (JSON),
+    attrs: format, format_version, architecture (JSON, with its ``kind``, "lstm" or
+           "linear"; a file without ``kind`` holds an LSTM), n_s, metadata (JSON),
            checksum_sha256
 
 The checksum is SHA-256 over every dataset (name, dtype, shape, bytes; sorted by name)
@@ -29,10 +32,11 @@ import h5py
 import jax
 import numpy as np
 
-from jaxsync.errors import CheckpointError
+from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum, atomic_h5
+from jaxsync.surrogate.architecture import Architecture, architecture_from_dict, architecture_to_dict, init_params
 from jaxsync.surrogate.data import padding_mask
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, init_params
+from jaxsync.surrogate.lstm import Params
 from jaxsync.surrogate.train import TrainResult
 
 FORMAT_NAME = "jaxsync-lstm-surrogate"
@@ -45,7 +49,9 @@ class SurrogateCheckpoint:
     """Everything needed to run a set of trained replicas.
 
     Attributes:
-        arch: architecture; ``arch.n_dof`` is the padded width.
+        arch: architecture (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture` or
+            :class:`~jaxsync.surrogate.linear.LinearArchitecture`); ``arch.n_dof`` is the
+            padded width.
         params: stacked parameters (leading part axis), numpy arrays.
         mean, std: (n_parts, n_dof) normalization, solver units (padding: 0 and 1).
         dof_counts: real dofs per part.
@@ -55,7 +61,7 @@ class SurrogateCheckpoint:
         metadata: JSON-serializable extras (training configuration, losses...).
     """
 
-    arch: LSTMArchitecture
+    arch: Architecture
     params: Params
     mean: np.ndarray
     std: np.ndarray
@@ -90,7 +96,7 @@ class SurrogateCheckpoint:
         )
 
 
-def _param_paths(arch: LSTMArchitecture):
+def _param_paths(arch: Architecture):
     """(path string, shape, dtype) of every parameter leaf of one replica, in tree order."""
     template = jax.eval_shape(init_params, jax.random.key(0), arch)
     leaves, treedef = jax.tree_util.tree_flatten_with_path(template)
@@ -148,7 +154,7 @@ def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
     attrs = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
-        "architecture": json.dumps(ckpt.arch.to_dict(), sort_keys=True),
+        "architecture": json.dumps(architecture_to_dict(ckpt.arch), sort_keys=True),
         "n_s": int(ckpt.n_s),
         "metadata": metadata,
     }
@@ -214,11 +220,14 @@ def load_checkpoint(
             "corrupted; restore it or retrain with `jaxsync train`"
         )
     try:
-        arch = LSTMArchitecture.from_dict(json.loads(attrs["architecture"]))
+        arch = architecture_from_dict(json.loads(attrs["architecture"]))
         metadata = json.loads(attrs["metadata"])
         n_s = int(attrs["n_s"])
         dof_counts = tuple(int(c) for c in datasets["dof_counts"])
         mean, std = datasets["normalization/mean"], datasets["normalization/std"]
+    except ConfigError as err:
+        raise CheckpointError(f"checkpoint {path} holds an architecture this jaxsync does not know ({err}); "
+                              "use the jaxsync that wrote it or retrain with `jaxsync train`") from err
     except (KeyError, ValueError, TypeError) as err:
         raise CheckpointError(f"checkpoint {path} is incomplete ({err!r}); retrain with `jaxsync train`") from err
     paths, treedef = _param_paths(arch)

@@ -4,7 +4,9 @@ and ``jaxsync demo``.
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
 distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
 builds the sample-refill windows of every part, trains all replicas together
-(:func:`~jaxsync.surrogate.train.train_replicas`), measures sqrt(E_mse) on the first run
+(:func:`~jaxsync.surrogate.train.train_replicas`; with ``model="linear"``, fits the linear
+autoregressive baseline by least squares on the same windows instead,
+:func:`~jaxsync.surrogate.linear.fit_linear`), measures sqrt(E_mse) on the first run
 and returns a :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the
 solver, its checkpoint (with the partition's shared node ids), the loss history and
 timings.  Given an output folder ``out`` it also writes there, each file atomically:
@@ -15,7 +17,8 @@ timings.  Given an output folder ``out`` it also writes there, each file atomica
 * while it trains, ``training_state.h5``, a resumable state rewritten every
   ``checkpoint_every`` epochs: the same call again continues from it and ends with the
   same parameters as an uninterrupted run; a state of other data or settings is refused.
-  It is deleted once the results are written.
+  It is deleted once the results are written (LSTM only: a least-squares fit has no
+  state to resume).
 """
 
 from __future__ import annotations
@@ -32,10 +35,12 @@ import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.options import ValidationSplit
+from jaxsync.options import SurrogateModel, ValidationSplit, check_option
+from jaxsync.surrogate.architecture import architecture_to_dict
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
 from jaxsync.surrogate.data import SharedHistories, build_dataset, read_shared_histories, stack_replicas
 from jaxsync.surrogate.evaluate import RolloutErrors, RolloutWarning, e_mse, max_applications, rollout_errors
+from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearFitConfig, fit_linear
 from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult, train_replicas
@@ -49,7 +54,7 @@ SUMMARY_NAME = "train_summary.json"
 LOSS_CURVES_NAME = "loss_curves.png"
 
 # what the checkpoint's metadata keeps of the summary
-_METADATA_KEYS = ("training", "sampling", "candidates", "load_parameters", "final_val_loss", "sqrt_e_mse",
+_METADATA_KEYS = ("model", "training", "sampling", "candidates", "load_parameters", "final_val_loss", "sqrt_e_mse",
                   "rollout_check")
 
 
@@ -61,14 +66,16 @@ class TrainedSurrogates:
         surrogate: the trained replicas, ready for the solver (conditional networks carry
             the load parameter of the first trajectory).
         result: the optimization: losses per epoch and part, best epochs, early stop,
-            seconds per epoch, compilation time.
+            seconds per epoch, compilation time (a linear surrogate's: the one
+            least-squares solve, :func:`~jaxsync.surrogate.linear.fit_linear`).
         shared_nodes: per part, the global ids of its shared nodes (the partition).
         trajectories: absolute path of each trajectory (None for one given in memory).
         load_parameters: the load parameter of each run fed to a conditional network, or
             None (unconditional).
         train_fraction, val_fraction, seed, n_offsets, split: the sampling settings.
         candidates: with several candidates per part, which one each part kept and every
-            candidate's validation loss (:func:`choose_candidates`); None for one.
+            candidate's validation loss (:func:`choose_candidates`); None for one, and
+            for the linear surrogate (least squares has one solution).
         n_train_windows, n_val_windows: windows per part.
         checkpoint_every: epochs between writes of the resumable training state.
         train_seconds: wall time of the training call (compilation included).
@@ -107,6 +114,11 @@ class TrainedSurrogates:
     files: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
+    def model(self) -> SurrogateModel:
+        """``"lstm"`` or ``"linear"``: the kind of the trained replicas."""
+        return self.result.arch.kind
+
+    @property
     def rollout_passed(self) -> bool | None:
         """Every replica's offline rollout error within ``rollout_tolerance`` of its
         shared amplitude (None: not checked)."""
@@ -128,21 +140,33 @@ class TrainedSurrogates:
         return self.result.best_val_loss
 
     def summary(self) -> dict[str, Any]:
-        """The content of ``train_summary.json`` (JSON-serializable)."""
+        """The content of ``train_summary.json`` (JSON-serializable).
+
+        The keys are the same for both models; where epochs do not apply (the linear
+        surrogate's least-squares fit) ``n_epochs_run``, ``seconds_per_epoch`` and the like
+        are None, ``training`` gives the fit's settings and ``fit_seconds``, and
+        ``loss_history`` has one row (the solve)."""
         result, arch = self.result, self.result.arch
         n_parts = len(result.dof_counts)
+        iterative = self.model != "linear"
+        if iterative:
+            training = {**result.config.to_dict(), "n_epochs_run": result.n_epochs_run,
+                        "stopped_early": result.stopped_epoch is not None,
+                        "stopped_at_epoch": result.stopped_epoch,
+                        "best_epoch": [int(e) for e in result.best_epoch],
+                        "resumed_from_epoch": result.resumed_from, "checkpoint_every": self.checkpoint_every}
+        else:
+            training = {**result.config.to_dict(), "fit_seconds": result.seconds_per_epoch, "n_epochs_run": None,
+                        "candidates": "not applicable: least squares has one solution (n_candidates ignored)"}
         out = {
+            "model": self.model,
             "trajectories": list(self.trajectories),
             "load_parameters": None if self.load_parameters is None else list(self.load_parameters),
             "n_parts": n_parts,
             "dof_counts": list(result.dof_counts),
-            "architecture": arch.to_dict(),
+            "architecture": architecture_to_dict(arch),
             "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
-            "training": {**result.config.to_dict(), "n_epochs_run": result.n_epochs_run,
-                         "stopped_early": result.stopped_epoch is not None,
-                         "stopped_at_epoch": result.stopped_epoch,
-                         "best_epoch": [int(e) for e in result.best_epoch],
-                         "resumed_from_epoch": result.resumed_from, "checkpoint_every": self.checkpoint_every},
+            "training": training,
             "sampling": {"n_s": self.surrogate.n_s, "n_offsets": self.n_offsets, "train_fraction": self.train_fraction,
                          "val_fraction": self.val_fraction, "split": self.split, "seed": self.seed,
                          "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows},
@@ -151,11 +175,11 @@ class TrainedSurrogates:
             "final_train_loss": result.train_loss[-1].tolist(),
             "final_val_loss": result.best_val_loss.tolist(),
             "last_epoch_val_loss": result.val_loss[-1].tolist(),
-            "n_epochs_run": result.n_epochs_run,
+            "n_epochs_run": result.n_epochs_run if iterative else None,
             "stopped_at_epoch": result.stopped_epoch,
-            "seconds_per_epoch": result.seconds_per_epoch,
+            "seconds_per_epoch": result.seconds_per_epoch if iterative else None,
             "gradient_steps_per_second": (result.steps_per_epoch / result.seconds_per_epoch
-                                          if result.seconds_per_epoch > 0 else None),
+                                          if iterative and result.seconds_per_epoch > 0 else None),
             "compile_seconds": result.compile_seconds,
             "train_seconds": self.train_seconds,
             "e_mse_applications": self.e_mse_applications,
@@ -214,6 +238,7 @@ def _load_parameters(runs, given, n_cond_repeat: int) -> list[float] | None:
 def train_surrogates(
     trajectories,
     *,
+    model: SurrogateModel = "lstm",
     n_s: int = 150,
     n_past: int = LSTMArchitecture.n_past,
     n_future: int = LSTMArchitecture.n_future,
@@ -222,6 +247,7 @@ def train_surrogates(
     n_cond_repeat: int = LSTMArchitecture.n_cond_repeat,
     dtype: str = LSTMArchitecture.dtype,
     config: TrainConfig | None = None,
+    regularization: float = DEFAULT_REGULARIZATION,
     train_fraction: float = 0.5,
     val_fraction: float = 0.25,
     n_offsets: int = 1,
@@ -239,7 +265,8 @@ def train_surrogates(
     progress: bool = True,
     callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainedSurrogates:
-    """Train one LSTM surrogate per part on distributed trajectories of one partition.
+    """Train one LSTM surrogate per part on distributed trajectories of one partition
+    (or fit the linear baseline: ``model="linear"``).
 
     Args:
         trajectories: a :class:`jaxsync.Trajectory` or trajectory file, or a sequence of
@@ -247,6 +274,12 @@ def train_surrogates(
             kept every step (``simulate(..., shared_every=1)``) or at any stride dividing
             ``n_s`` (e.g. ``save_every=n_s``: what training reads, and all a long run
             needs to keep).
+        model: ``"lstm"`` (default), the encoder-decoder trained with optax, or
+            ``"linear"``, the affine autoregressive baseline fitted by least squares on
+            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional: needs
+            ``n_cond_repeat`` = 0). The LSTM-only settings (``n_hidden``, ``n_layers``,
+            ``config``, ``n_candidates``, ``checkpoint_every``, ``devices``, ``progress``,
+            ``callback``) are ignored by the linear fit.
         n_s, n_past, n_future: sampling stride and window lengths n_p, n_f. The default
             n_s = 150 (the paper's published code; the paper's text uses 80) makes an
             input window span n_p n_s = 3 000 steps, 0.74 s on the paper's coarse
@@ -257,6 +290,9 @@ def train_surrogates(
             ``n_cond_repeat`` > 0 trains the conditional network).
         config: optimization settings (default :class:`~jaxsync.surrogate.train.TrainConfig`,
             the laptop schedule).
+        regularization: relative ridge parameter of the linear fit
+            (:class:`~jaxsync.surrogate.linear.LinearFitConfig`, whose default this is);
+            ignored by the LSTM.
         train_fraction, val_fraction: leading fraction n_ts of each run used, fraction of
             windows held out for validation.
         n_offsets: sampled sequences per run, at evenly spaced starting steps within n_s
@@ -310,6 +346,12 @@ def train_surrogates(
         ConfigError: unusable settings.
     """
     config = TrainConfig() if config is None else config
+    check_option("model", model, SurrogateModel)
+    if model == "linear":
+        if n_cond_repeat > 0:
+            raise ConfigError("the linear surrogate is unconditional: n_cond_repeat (--cond-repeat) must be 0; "
+                              "train model='lstm' (--model lstm) for a conditional surrogate")
+        fit_config = LinearFitConfig(regularization)  # checked before any data is read
     if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 1:
         raise ConfigError(f"n_candidates must be an integer >= 1 (networks trained per part), got {n_candidates!r}")
     if rollout_tolerance is not None and not rollout_tolerance > 0:
@@ -328,19 +370,27 @@ def train_surrogates(
                       val_fraction, seed, loads, n_offsets=n_offsets, split=split)
         for p in range(n_parts)
     ]
-    # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
-    data = stack_replicas(datasets * int(n_candidates))
-    arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
-                            n_future=n_future, n_cond_repeat=n_cond_repeat, dtype=dtype)
     state_path = None
     if out is not None:
         os.makedirs(out, exist_ok=True)
-        state_path = os.path.join(out, STATE_NAME) if checkpoint_every else None
-    started = time.perf_counter()
-    result = train_replicas(data, arch, config, jax.random.key(seed), progress=progress, devices=devices,
-                            checkpoint=state_path, checkpoint_every=checkpoint_every, callback=callback)
-    train_seconds = time.perf_counter() - started
-    result, candidates = choose_candidates(result, n_parts, int(n_candidates))
+        state_path = os.path.join(out, STATE_NAME) if checkpoint_every and model == "lstm" else None
+    if model == "linear":
+        data = stack_replicas(datasets)
+        started = time.perf_counter()
+        result = fit_linear(data, fit_config, dtype)
+        train_seconds = time.perf_counter() - started
+        candidates = None
+    else:
+        # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
+        data = stack_replicas(datasets * int(n_candidates))
+        arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
+                                n_future=n_future, n_cond_repeat=n_cond_repeat, dtype=dtype)
+        started = time.perf_counter()
+        result = train_replicas(data, arch, config, jax.random.key(seed), progress=progress, devices=devices,
+                                checkpoint=state_path, checkpoint_every=checkpoint_every, callback=callback)
+        train_seconds = time.perf_counter() - started
+        result, candidates = choose_candidates(result, n_parts, int(n_candidates))
+    arch = result.arch
 
     load = None if loads is None else loads[0]
     surrogate = Surrogate.from_result(result, n_s, load)
@@ -365,9 +415,11 @@ def train_surrogates(
                 f"the trained surrogates miss the offline check: rolled out without the truth over "
                 f"{rollout.n_steps} steps of the first trajectory, part {worst}'s shared displacements are "
                 f"off by up to {100 * rollout.relative[worst]:.2g} % of their amplitude (tolerance "
-                f"{100 * rollout_tolerance:.2g} %); an online run would likely be as far off. Train longer "
-                "(more epochs or patience), on more data (train_fraction, more runs), or run online with "
-                "error control (resync_tolerance)"), stacklevel=2)
+                f"{100 * rollout_tolerance:.2g} %); an online run would likely be as far off. "
+                + ("Train longer (more epochs or patience), on more data" if model == "lstm" else
+                   "Fit with another regularization, on more data")
+                + " (train_fraction, more runs), or run online with error control (resync_tolerance)"),
+                stacklevel=2)
     trained = TrainedSurrogates(
         surrogate=surrogate, result=result, shared_nodes=first.shared_nodes, trajectories=tuple(names),
         load_parameters=None if loads is None else tuple(loads), train_fraction=train_fraction,
@@ -431,9 +483,11 @@ def plot_loss_curves(result: TrainResult, path: str | os.PathLike) -> None:
     ax = fig.add_subplot()
     epochs = np.arange(1, result.train_loss.shape[0] + 1)
     best = result.best_epoch
+    marker = "o" if epochs.size == 1 else None  # one row (a least-squares fit): points, not lines
     for p in range(result.train_loss.shape[1]):
-        line, = ax.semilogy(epochs, result.train_loss[:, p], label=f"part {p} train")
-        ax.semilogy(epochs, result.val_loss[:, p], "--", color=line.get_color(), label=f"part {p} validation")
+        line, = ax.semilogy(epochs, result.train_loss[:, p], marker=marker, label=f"part {p} train")
+        ax.semilogy(epochs, result.val_loss[:, p], "--", marker="s" if marker else None, color=line.get_color(),
+                    label=f"part {p} validation")
         if best is not None:
             ax.semilogy([best[p]], [result.val_loss[best[p] - 1, p]], "o", color=line.get_color(), mfc="none",
                         label=f"part {p} best epoch ({best[p]}, kept)")
@@ -441,9 +495,10 @@ def plot_loss_curves(result: TrainResult, path: str | os.PathLike) -> None:
         ax.axvline(result.stopped_epoch, color="0.3", ls=":", lw=1.0,
                    label=f"early stop (epoch {result.stopped_epoch})")
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
-    ax.set_xlabel("epoch")
+    ax.set_xlabel("epoch" if marker is None else "least-squares solve")
     ax.set_ylabel("MSE of normalized displacements [-]")
-    ax.set_title(f"Training of {result.train_loss.shape[1]} LSTM replicas (one per part)")
+    what = "LSTM" if result.arch.kind == "lstm" else result.arch.kind
+    ax.set_title(f"Training of {result.train_loss.shape[1]} {what} replicas (one per part)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")
     fig.tight_layout()

@@ -35,7 +35,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-from typing import Any
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -66,7 +66,11 @@ class LSTMArchitecture:
         n_cond_repeat: q, copies of the load parameter appended to every decoder input;
             0 gives the unconditional network.
         dtype: "float32" (default) or "float64" for the parameters and computation.
+        kind: "lstm" (class attribute, not a field): the model a checkpoint holds
+            (:mod:`jaxsync.surrogate.architecture`).
     """
+
+    kind: ClassVar[str] = "lstm"
 
     n_dof: int
     n_hidden: int = 50
@@ -104,6 +108,13 @@ class LSTMArchitecture:
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
+        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"lstm"``
+        (checkpoints written before the linear surrogate have none)."""
+        values = dict(values)
+        kind = values.pop("kind", cls.kind)
+        if kind != cls.kind:
+            raise ConfigError(f"architecture of kind {kind!r} given to LSTMArchitecture.from_dict; "
+                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(values) - names
         if unknown:

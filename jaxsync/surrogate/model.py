@@ -1,6 +1,8 @@
 """The trained surrogates of a partition as one pytree: :class:`Surrogate`.
 
-One LSTM encoder-decoder per part, padded to the largest part and stacked on a leading
+One network per part -- an LSTM encoder-decoder (:mod:`jaxsync.surrogate.lstm`) or the
+linear autoregressive baseline (:mod:`jaxsync.surrogate.linear`), the same code for both
+(:mod:`jaxsync.surrogate.architecture`) -- padded to the largest part and stacked on a leading
 part axis (:mod:`jaxsync.surrogate.replicas`), with each part's normalization, padding
 mask and load parameter.  The solver places it on the devices like any other stacked
 pytree (each part's replica on the device of its part) and calls, for one part,
@@ -28,6 +30,7 @@ import numpy as np
 
 from jaxsync.errors import CheckpointError
 from jaxsync.pytree import pytree_dataclass, static_field
+from jaxsync.surrogate.architecture import Architecture
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
 from jaxsync.surrogate.lstm import LSTMArchitecture
@@ -39,7 +42,7 @@ __all__ = ["Surrogate"]
 
 @pytree_dataclass
 class Surrogate:
-    """Trained LSTM replicas, one per part, stacked on a leading part axis.
+    """Trained replicas (LSTM or linear), one per part, stacked on a leading part axis.
 
     Attributes:
         params: stacked, padded network parameters (leading part axis).
@@ -47,7 +50,9 @@ class Surrogate:
         dof_mask: (n_parts, n_dof) 1 on real dofs, 0 on padding (dtype of ``mean``).
         load_parameter: (n_parts,) float32 load parameter alpha_f fed to conditional
             networks (ignored by unconditional ones).
-        arch: the architecture (static); ``arch.n_dof`` is the padded width.
+        arch: the architecture (static): :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`
+            or :class:`~jaxsync.surrogate.linear.LinearArchitecture`; ``arch.n_dof`` is the
+            padded width.
         n_s: the sampling stride the replicas were trained with (static).
         smooth: :meth:`predict` returns the refill as one smooth curve from the last
             known value (:func:`~jaxsync.surrogate.refill.smooth_refill`; static). True by
@@ -66,7 +71,7 @@ class Surrogate:
     std: Any
     dof_mask: Any
     load_parameter: Any
-    arch: LSTMArchitecture = static_field()
+    arch: Architecture = static_field()
     n_s: int = static_field()
     smooth: bool = static_field(default=True)
 

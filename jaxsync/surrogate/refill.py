@@ -31,8 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
+from jaxsync.surrogate.architecture import Architecture, forward
 from jaxsync.surrogate.data import normalize
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
+from jaxsync.surrogate.lstm import Params
 
 __all__ = ["refill_input_steps", "refill_target_steps", "refill_index_sets", "refill_windows",
            "refill_scatter", "refill_predict", "smooth_refill", "refill_cycle", "refill_rollout"]
@@ -112,7 +113,7 @@ def _check_refill_args(n, n_s, n_past, n_future, i):
 
 def refill_predict(
     params: Params,
-    arch: LSTMArchitecture,
+    arch: Architecture,
     mean: jax.Array,
     std: jax.Array,
     buffer: jax.Array,
@@ -124,7 +125,7 @@ def refill_predict(
 
     Args:
         params: one replica's parameters.
-        arch: architecture.
+        arch: architecture (LSTM or linear: :mod:`jaxsync.surrogate.architecture`).
         mean, std: (n_dof,) normalization, solver units.
         buffer: (n_s n_p, n_dof) displacements of steps n + 1 - n_s n_p .. n, solver units.
         n_s: sampling stride the network was trained with.

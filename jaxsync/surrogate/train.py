@@ -142,6 +142,12 @@ class TrainConfig:
 class TrainResult:
     """Trained replicas and their loss history.
 
+    The least-squares fit of the linear surrogate
+    (:func:`jaxsync.surrogate.linear.fit_linear`) returns one too: ``arch`` a
+    :class:`~jaxsync.surrogate.linear.LinearArchitecture`, ``config`` a
+    :class:`~jaxsync.surrogate.linear.LinearFitConfig`, one row of losses (the solve),
+    ``seconds_per_epoch`` the solve's wall time and ``steps_per_epoch`` 0.
+
     Attributes:
         params: stacked, padded parameters (leading part axis), numpy arrays: each
             replica's parameters of its best epoch (lowest validation loss).
@@ -164,8 +170,8 @@ class TrainResult:
     """
 
     params: Params
-    arch: LSTMArchitecture
-    config: TrainConfig
+    arch: Any  # LSTMArchitecture, or LinearArchitecture (jaxsync.surrogate.architecture)
+    config: Any  # TrainConfig, or LinearFitConfig
     dof_counts: tuple[int, ...]
     mean: np.ndarray
     std: np.ndarray

@@ -1,0 +1,318 @@
+"""Linear autoregressive surrogate: the baseline beside the LSTM (issue 14).
+
+The same interface as :mod:`jaxsync.surrogate.lstm` -- an architecture, ``init_params``
+and ``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
+of ``n_past`` snapshots (n_p, n_dof) to the next ``n_future`` (n_f, n_dof) -- so that
+:class:`~jaxsync.surrogate.Surrogate`, the refill, the checkpoint and the online solver run
+it unchanged.  The prediction is an affine map of the window::
+
+    vec(y) = vec(x) W + b,     W (n_p n_dof, n_f n_dof),   b (n_f n_dof,)
+
+each future snapshot predicted directly from the inputs (no feedback of predictions
+inside a window), which is the affine predictor of least training MSE: the LSTM's loss,
+on the LSTM's windows (:func:`~jaxsync.surrogate.data.build_dataset`,
+:func:`~jaxsync.surrogate.data.stack_replicas`), minimized exactly.
+
+Structure: W is stored factored, ``W = w_in w_out`` through the ``rank`` directions of
+the training inputs that the fit uses (:func:`fit_linear`: the right singular vectors of
+the centered inputs).  This is the least-squares solution itself, not an approximation --
+it lies in the span of the training inputs -- and its size grows with the number of
+windows, not with n_dof^2: a full W of the 11-part vessel (n_dof = 2 310, n_p = n_f = 20)
+would hold 2.1e9 numbers per part.  Parameters, one replica::
+
+    {"w_in":  (n_p, n_dof, rank),     input directions (orthonormal columns)
+     "w_out": (rank, n_f, n_dof),     their least-squares map to the outputs
+     "b":     (n_f, n_dof)}           bias (the centering)
+
+Replicas are padded like the LSTM's: zeros on padded dofs and on the rank columns a part
+does not use, so a padded replica computes what it would alone and predicts 0 on padding.
+The model is unconditional (no load parameter).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import time
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxsync.errors import ConfigError
+from jaxsync.surrogate.data import ReplicaData
+from jaxsync.surrogate.train import TrainResult
+
+__all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "solve_least_squares",
+           "DEFAULT_REGULARIZATION"]
+
+Params = dict[str, Any]
+
+_DTYPES = ("float32", "float64")
+
+#: Default ridge parameter, relative to the largest squared singular value of the centered
+#: training inputs: lambda = 1e-8 s_max^2 (see :class:`LinearFitConfig`).
+DEFAULT_REGULARIZATION = 1e-8
+
+
+@jax.tree_util.register_static
+@dataclasses.dataclass(frozen=True)
+class LinearArchitecture:
+    """Shape of one linear autoregressive surrogate (static: it never carries arrays).
+
+    Attributes:
+        n_dof: degrees of freedom per snapshot; for replicas the padded width.
+        rank: inner width of the factored map W = w_in w_out (the input directions the
+            least-squares fit uses; at most min(training windows, n_p n_dof)); set by
+            :func:`fit_linear`, padded to the largest over the parts.
+        n_past: n_p, snapshots in an input window.
+        n_future: n_f, snapshots predicted.
+        dtype: "float32" (default, as the LSTM) or "float64" for parameters and computation.
+    """
+
+    kind: ClassVar[str] = "linear"
+
+    n_dof: int
+    rank: int
+    n_past: int = 20
+    n_future: int = 20
+    dtype: str = "float32"
+
+    def __post_init__(self):
+        for name in ("n_dof", "rank", "n_past", "n_future"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"LinearArchitecture.{name} must be a positive integer, got {value!r}")
+        if self.dtype not in _DTYPES:
+            raise ConfigError(f"LinearArchitecture.dtype must be one of {_DTYPES}, got {self.dtype!r}")
+
+    @property
+    def conditional(self) -> bool:
+        """Always False: the linear surrogate takes no load parameter."""
+        return False
+
+    @property
+    def n_cond_repeat(self) -> int:
+        """0: no copies of a load parameter (the LSTM's q)."""
+        return 0
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields (JSON-ready); :func:`jaxsync.surrogate.architecture.architecture_to_dict`
+        adds the ``kind``."""
+        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
+                for f in dataclasses.fields(self)}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> "LinearArchitecture":
+        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"linear"``."""
+        values = dict(values)
+        kind = values.pop("kind", cls.kind)
+        if kind != cls.kind:
+            raise ConfigError(f"architecture of kind {kind!r} given to LinearArchitecture.from_dict; "
+                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(values) - names
+        if unknown:
+            raise ConfigError(f"unknown LinearArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
+        return cls(**values)
+
+
+@dataclasses.dataclass(frozen=True)
+class LinearFitConfig:
+    """Settings of the least-squares fit (the ``config`` of its
+    :class:`~jaxsync.surrogate.train.TrainResult`).
+
+    Attributes:
+        regularization: ridge parameter r, relative: lambda = r s_max^2 with s_max the
+            largest singular value of the centered training inputs, so r does not depend
+            on the number of windows or dofs.  The fit minimizes
+            ||X W - Y||^2 + lambda ||W||^2 (bias not penalized).  Default 1e-8: the
+            windows are float32 (relative round-off ~6e-8), so the inputs have
+            directions of singular value ~1e-7 s_max that are round-off only; unpenalized
+            (r = 0) their gain would be ~1e7 / s_max, amplifying that noise in every
+            prediction and making autoregressive rollouts unstable, while r = 1e-8 caps
+            it at ~10 / s_max.  Directions above 1e-4 s_max (components above ~1e-4 of the
+            data's largest, far below the 2 % offline tolerance) keep more than half their
+            gain, and above 1e-3 s_max more than 99 %.  Measured on the coarse
+            cantilever (2 parts, n_s = 5, n_p = n_f = 4, fitted on 400 synchronized
+            steps, online from step 40): r = 0 diverges, r = 1e-10, 1e-8, 1e-6 reach
+            4.5, 2.7, 3.6 % of the amplitude (on a 1 200-step rollout 1e-10 did best,
+            2.0 against 2.8 %: the best value depends on the data).  r = 0 is the plain
+            minimum-norm least-squares solution (what an exactly linear recurrence in
+            float64 needs to be recovered to round-off).
+    """
+
+    regularization: float = DEFAULT_REGULARIZATION
+
+    def __post_init__(self):
+        r = self.regularization
+        if isinstance(r, bool) or not isinstance(r, (int, float, np.floating)) or not np.isfinite(r) or r < 0:
+            raise ConfigError(f"regularization must be a finite number >= 0 (relative ridge parameter), got {r!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"model": LinearArchitecture.kind, "method": "least_squares",
+                "regularization": float(self.regularization)}
+
+
+# ----------------------------------------------------------------------------- model
+
+
+def _param_shapes(arch: LinearArchitecture) -> dict[str, tuple[int, ...]]:
+    return {"w_in": (arch.n_past, arch.n_dof, arch.rank), "w_out": (arch.rank, arch.n_future, arch.n_dof),
+            "b": (arch.n_future, arch.n_dof)}
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def init_params(key: jax.Array, arch: LinearArchitecture) -> Params:
+    """Zero parameters (the map that predicts the training mean; normalized 0).
+
+    Args:
+        key: unused (the signature of :func:`jaxsync.surrogate.lstm.init_params`).
+        arch: the architecture.
+
+    Returns:
+        The parameter pytree (module docstring), dtype ``arch.dtype``.
+    """
+    del key
+    return {name: jnp.zeros(shape, jnp.dtype(arch.dtype)) for name, shape in _param_shapes(arch).items()}
+
+
+@functools.partial(jax.jit, static_argnames="arch")
+def forward(
+    params: Params,
+    arch: LinearArchitecture,
+    xs: jax.Array,
+    load_parameter: jax.Array | None = None,
+    dof_mask: jax.Array | None = None,
+) -> jax.Array:
+    """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
+
+    Args:
+        params: one replica's parameters.
+        arch: architecture.
+        xs: normalized window (n_p, n_dof).
+        load_parameter: must be None (the linear surrogate is unconditional).
+        dof_mask: optional (n_dof,) padding mask; padded outputs are set to 0.
+
+    Returns:
+        Normalized predictions (n_f, n_dof), dtype ``arch.dtype``.
+    """
+    if xs.ndim != 2 or xs.shape != (arch.n_past, arch.n_dof):
+        raise ConfigError(f"input window must have shape (n_past, n_dof) = {(arch.n_past, arch.n_dof)}, "
+                          f"got {xs.shape}")
+    if load_parameter is not None:
+        raise ConfigError("the linear surrogate is unconditional: it takes no load parameter")
+    xs = xs.astype(arch.dtype)
+    coeffs = jnp.einsum("pd,pdr->r", xs, params["w_in"])
+    ys = jnp.einsum("r,rfd->fd", coeffs, params["w_out"]) + params["b"]
+    if dof_mask is not None:
+        ys = ys * dof_mask.astype(ys.dtype)[None]
+    return ys
+
+
+# ----------------------------------------------------------------------------- fit
+
+
+def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DEFAULT_REGULARIZATION):
+    """Affine least squares ``y ~ x W + b``, W factored through the input directions.
+
+    Minimizes ||(x - x_mean) W - (y - y_mean)||^2 + lambda ||W||^2 with
+    lambda = ``regularization`` s_max^2, from the thin SVD of the centered inputs
+    ``U diag(s) V^T``: W = V diag(s / (s^2 + lambda)) U^T (y - y_mean),
+    b = y_mean - x_mean W.  Singular values at or below ``eps * max(shape) * s_max``
+    (NumPy ``lstsq``'s rank cut) are dropped, so r = 0 is the minimum-norm solution.
+
+    Args:
+        x: (n_windows, n_in) inputs; y: (n_windows, n_out) targets (any float dtype;
+            solved in float64).
+        regularization: relative ridge parameter r >= 0.
+
+    Returns:
+        ``(w_in (n_in, rank), w_out (rank, n_out), b (n_out,))`` float64 with
+        W = w_in @ w_out; rank >= 0 is the number of directions kept.
+    """
+    x = np.asarray(x, np.float64)
+    y = np.asarray(y, np.float64)
+    x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
+    u, s, vt = np.linalg.svd(x - x_mean, full_matrices=False)
+    if s.size == 0 or not s[0] > 0:  # constant inputs: predict the mean
+        return np.zeros((x.shape[1], 0)), np.zeros((0, y.shape[1])), y_mean
+    keep = s > np.finfo(np.float64).eps * max(x.shape) * s[0]
+    s, u, vt = s[keep], u[:, keep], vt[keep]
+    gain = s / (s * s + regularization * s[0] ** 2)
+    w_in = vt.T
+    w_out = gain[:, None] * (u.T @ (y - y_mean))
+    return w_in, w_out, y_mean - (x_mean @ w_in) @ w_out
+
+
+def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask) -> np.ndarray:
+    """(n_parts,) MSE of the stacked replicas over windows, steps and real dofs
+    (normalized units; the LSTM's :func:`~jaxsync.surrogate.train.masked_mse`)."""
+    per_window = jax.vmap(forward, in_axes=(None, None, 0, None, None))
+    pred = np.asarray(jax.vmap(per_window, in_axes=(0, None, 0, None, 0))(params, arch, x, None, dof_mask),
+                      np.float64)
+    if x.shape[1] == 0:  # no windows (e.g. no validation split)
+        return np.full(x.shape[0], np.nan)
+    mask = np.asarray(dof_mask, np.float64)[:, None, None, :]
+    sq = np.square(pred - np.asarray(y, np.float64)) * mask
+    return sq.sum(axis=(1, 2, 3)) / (x.shape[1] * arch.n_future * mask.sum(axis=(1, 2, 3)))
+
+
+def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: str = "float32") -> TrainResult:
+    """Fit one linear surrogate per part by least squares on the training windows.
+
+    Each part is solved alone on its real dofs (:func:`solve_least_squares` with inputs
+    the flattened (n_p, n_dof_p) windows, targets the flattened (n_f, n_dof_p) ones), then
+    zero-padded and stacked like the LSTM's replicas.
+
+    Args:
+        data: the normalized windows of all parts
+            (:func:`~jaxsync.surrogate.data.stack_replicas`; float32 from
+            :func:`~jaxsync.surrogate.data.build_dataset`, or float64 for an exact fit).
+        config: the regularization (default :class:`LinearFitConfig`).
+        dtype: dtype of the stored parameters and of prediction.
+
+    Returns:
+        A :class:`~jaxsync.surrogate.train.TrainResult` of one "epoch" (the solve):
+        ``train_loss`` and ``val_loss`` (1, n_parts) MSE in normalized units,
+        ``initial_val_loss`` that of the zero map (the training mean), ``seconds_per_epoch``
+        the solve's wall time, ``steps_per_epoch`` 0 (no gradient steps), ``config`` the
+        :class:`LinearFitConfig`.
+    """
+    config = LinearFitConfig() if config is None else config
+    if dtype not in _DTYPES:
+        raise ConfigError(f"dtype must be one of {_DTYPES}, got {dtype!r}")
+    if np.any(np.asarray(data.load_parameter_train) != 0):
+        raise ConfigError("the linear surrogate is unconditional: it cannot use load parameters; "
+                          "train the LSTM (model='lstm', n_cond_repeat > 0) for a conditional surrogate")
+    started = time.perf_counter()
+    n_parts, n_windows, n_past, n_dof = data.x_train.shape
+    n_future = data.y_train.shape[2]
+    if n_windows == 0:
+        raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
+    fits = []
+    for p, count in enumerate(data.dof_counts):
+        x = np.asarray(data.x_train[p, :, :, :count]).reshape(n_windows, n_past * count)
+        y = np.asarray(data.y_train[p, :, :, :count]).reshape(n_windows, n_future * count)
+        fits.append(solve_least_squares(x, y, config.regularization))
+    rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
+    arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype)
+    params = {name: np.zeros((n_parts,) + shape) for name, shape in _param_shapes(arch).items()}
+    for p, (count, (w_in, w_out, b)) in enumerate(zip(data.dof_counts, fits)):
+        r = w_in.shape[1]
+        params["w_in"][p, :, :count, :r] = w_in.reshape(n_past, count, r)
+        params["w_out"][p, :r, :, :count] = w_out.reshape(r, n_future, count)
+        params["b"][p, :, :count] = b.reshape(n_future, count)
+    params = {name: value.astype(dtype) for name, value in params.items()}
+    seconds = time.perf_counter() - started
+    mask = data.dof_mask
+    zero = {name: np.zeros_like(value) for name, value in params.items()}
+    return TrainResult(
+        params=params, arch=arch, config=config, dof_counts=tuple(int(c) for c in data.dof_counts),
+        mean=np.asarray(data.mean), std=np.asarray(data.std),
+        train_loss=_masked_mse(params, arch, data.x_train, data.y_train, mask)[None],
+        val_loss=_masked_mse(params, arch, data.x_val, data.y_val, mask)[None],
+        initial_val_loss=_masked_mse(zero, arch, data.x_val, data.y_val, mask),
+        seconds_per_epoch=seconds, compile_seconds=0.0, steps_per_epoch=0,
+    )
