@@ -41,3 +41,8 @@ class PrecisionError(JaxsyncError, RuntimeError):
 
 class PartitionError(JaxsyncError, ValueError):
     """A partition that cannot be made or used (bad part count, empty parts...)."""
+
+
+class InferencePrecisionError(JaxsyncError, ValueError):
+    """Reduced-precision surrogate inference that strays from the full-precision one by
+    more than the stated bound (:func:`jaxsync.surrogate.inference.check_inference_precision`)."""

@@ -14,6 +14,9 @@ The names a user needs are here; everything else stays importable from its modul
                            (:class:`LinearArchitecture`, :func:`fit_linear`)
 :mod:`.architecture`       dispatch on the architecture: one code path for both models
 :mod:`.refill`             Algorithm 3's refill index sets and ``refill_predict``
+:mod:`.inference`          reduced-precision (bfloat16) inference: the check that it keeps
+                           accuracy (:func:`check_inference_precision`,
+                           :func:`reduced_precision`)
 :mod:`.data`               sample-refill windows, normalization, padded replica datasets,
                            reading shared histories from trajectories
 :mod:`.replicas`           padding and stacking one network per part
@@ -29,6 +32,7 @@ from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, s
 from jaxsync.surrogate.data import build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import GridSearchResult, RolloutWarning, e_mse, grid_search, rollout_errors
 from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
+from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
 from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
 from jaxsync.surrogate.lstm import LSTMArchitecture
 from jaxsync.surrogate.model import Surrogate
@@ -40,4 +44,5 @@ __all__ = [
     "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
     "SurrogateCheckpoint", "save_checkpoint", "load_checkpoint",
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
+    "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning",
 ]

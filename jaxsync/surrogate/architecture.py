@@ -3,8 +3,9 @@
 A surrogate model is a module with an architecture class (a static frozen dataclass with
 ``kind``, ``n_dof``, ``n_past``, ``n_future``, ``dtype``, ``conditional``,
 ``to_dict``/``from_dict``), ``init_params(key, arch)`` and
-``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
-(n_p, n_dof) to (n_f, n_dof).  Two exist (:data:`jaxsync.options.SurrogateModel`):
+``forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=None)`` mapping a
+normalized window (n_p, n_dof) to (n_f, n_dof) (``compute_dtype="bfloat16"``: reduced-
+precision inference).  Two exist (:data:`jaxsync.options.SurrogateModel`):
 
 =========  =====================================================  ============================
 kind       architecture                                           module
@@ -76,7 +77,8 @@ def init_params(key: jax.Array, arch: Architecture):
 
 
 def forward(params, arch: Architecture, xs: jax.Array, load_parameter: jax.Array | None = None,
-            dof_mask: jax.Array | None = None) -> jax.Array:
+            dof_mask: jax.Array | None = None, compute_dtype: str | None = None) -> jax.Array:
     """Normalized window (n_p, n_dof) -> predictions (n_f, n_dof) of one replica (the
-    model's own ``forward``)."""
-    return model_module(arch).forward(params, arch, xs, load_parameter, dof_mask)
+    model's own ``forward``); ``compute_dtype="bfloat16"``: reduced-precision inference
+    (bfloat16 operands, float32 accumulation; None: the architecture's dtype)."""
+    return model_module(arch).forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=compute_dtype)

@@ -42,6 +42,7 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
+from jaxsync.surrogate.lstm import check_compute_dtype
 from jaxsync.surrogate.train import TrainResult
 
 __all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "solve_least_squares",
@@ -178,13 +179,14 @@ def init_params(key: jax.Array, arch: LinearArchitecture) -> Params:
     return {name: jnp.zeros(shape, jnp.dtype(arch.dtype)) for name, shape in _param_shapes(arch).items()}
 
 
-@functools.partial(jax.jit, static_argnames="arch")
+@functools.partial(jax.jit, static_argnames=("arch", "compute_dtype"))
 def forward(
     params: Params,
     arch: LinearArchitecture,
     xs: jax.Array,
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
+    compute_dtype: str | None = None,
 ) -> jax.Array:
     """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
 
@@ -194,6 +196,9 @@ def forward(
         xs: normalized window (n_p, n_dof).
         load_parameter: must be None (the linear surrogate is unconditional).
         dof_mask: optional (n_dof,) padding mask; padded outputs are set to 0.
+        compute_dtype: None (``arch.dtype`` throughout) or ``"bfloat16"``: parameters and
+            window rounded to bfloat16, products accumulated in float32 (as the LSTM's,
+            :mod:`jaxsync.surrogate.lstm`).
 
     Returns:
         Normalized predictions (n_f, n_dof), dtype ``arch.dtype``.
@@ -203,9 +208,16 @@ def forward(
                           f"got {xs.shape}")
     if load_parameter is not None:
         raise ConfigError("the linear surrogate is unconditional: it takes no load parameter")
+    check_compute_dtype(compute_dtype)
     xs = xs.astype(arch.dtype)
-    coeffs = jnp.einsum("pd,pdr->r", xs, params["w_in"])
-    ys = jnp.einsum("r,rfd->fd", coeffs, params["w_out"]) + params["b"]
+    if compute_dtype is None:
+        coeffs = jnp.einsum("pd,pdr->r", xs, params["w_in"])
+        ys = jnp.einsum("r,rfd->fd", coeffs, params["w_out"]) + params["b"]
+    else:
+        low = lambda x: x.astype(compute_dtype)  # noqa: E731
+        coeffs = jnp.einsum("pd,pdr->r", low(xs), low(params["w_in"]), preferred_element_type=jnp.float32)
+        ys = jnp.einsum("r,rfd->fd", low(coeffs), low(params["w_out"]), preferred_element_type=jnp.float32)
+        ys = (ys + low(params["b"]).astype(jnp.float32)).astype(arch.dtype)
     if dof_mask is not None:
         ys = ys * dof_mask.astype(ys.dtype)[None]
     return ys

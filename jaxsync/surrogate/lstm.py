@@ -28,6 +28,15 @@ the encoder, 2 n_H in the decoder); the dense layer's weight and bias
 ~ U(-1/sqrt(2 n_H), 1/sqrt(2 n_H)).  Forget-gate biases get no special offset.
 
 Conditional variant: the decoder input is ``[y_prev, alpha_f repeated q times]``.
+
+Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`, issue 14):
+every matrix product takes bfloat16 operands -- the weights, the layer inputs, the hidden
+states and the fed-back predictions, rounded to bfloat16 -- and accumulates in float32
+(``preferred_element_type``); biases are rounded to bfloat16 and added in float32, and the
+gate nonlinearities, the cell state and the outputs stay float32.  The parameters are
+stored as trained; the rounding happens inside the compiled program.  Whether a trained
+network keeps its accuracy this way is measured, not assumed:
+:func:`jaxsync.surrogate.inference.check_inference_precision`.
 """
 
 from __future__ import annotations
@@ -46,6 +55,10 @@ from jaxsync.errors import ConfigError
 Params = dict[str, Any]
 
 _DTYPES = ("float32", "float64")
+
+#: Reduced-precision compute dtypes :func:`forward` accepts (``compute_dtype``); None is
+#: the architecture's own dtype.
+COMPUTE_DTYPES = ("bfloat16",)
 
 
 @jax.tree_util.register_static
@@ -170,10 +183,37 @@ def init_params(key: jax.Array, arch: LSTMArchitecture) -> Params:
 # ----------------------------------------------------------------------------- cell
 
 
+def check_compute_dtype(compute_dtype: str | None) -> None:
+    """Raise :class:`ConfigError` unless ``compute_dtype`` is None or in :data:`COMPUTE_DTYPES`."""
+    if compute_dtype is not None and compute_dtype not in COMPUTE_DTYPES:
+        raise ConfigError(f"reduced-precision compute dtype must be one of {COMPUTE_DTYPES} (or None for the "
+                          f"architecture's dtype), got {compute_dtype!r}")
+
+
+def _reduced(params: Params, compute_dtype: str | None) -> Params:
+    """``params`` rounded to ``compute_dtype`` (unchanged for None)."""
+    if compute_dtype is None:
+        return params
+    return jax.tree_util.tree_map(lambda w: w.astype(compute_dtype), params)
+
+
+def _matmul(a: jax.Array, b: jax.Array) -> jax.Array:
+    """``a @ b``; when either operand (the weights) is bfloat16, both are rounded to
+    bfloat16 and the product accumulates in float32 (the float32 result)."""
+    if jnp.bfloat16 in (a.dtype, b.dtype):
+        return jnp.matmul(a.astype(jnp.bfloat16), b.astype(jnp.bfloat16), preferred_element_type=jnp.float32)
+    return a @ b
+
+
+def _bias(b: jax.Array) -> jax.Array:
+    """A bias as added: float32 when rounded to bfloat16 (the accumulation type)."""
+    return b.astype(jnp.float32) if b.dtype == jnp.bfloat16 else b
+
+
 def _cell_update(w_h: jax.Array, carry: tuple[jax.Array, jax.Array], z_in: jax.Array):
     """Cell step given the input projection ``z_in = W_d d + b`` (4 n_H,)."""
     h, c = carry
-    z = z_in + w_h @ h
+    z = z_in + _matmul(w_h, h)
     f, i, g, o = jnp.split(z, 4, axis=-1)
     c = jax.nn.sigmoid(f) * c + jax.nn.sigmoid(i) * jnp.tanh(g)
     h = jax.nn.sigmoid(o) * jnp.tanh(c)
@@ -191,7 +231,7 @@ def lstm_cell(cell: Params, carry: tuple[jax.Array, jax.Array], d: jax.Array):
     Returns:
         The new ``(h, c)``.
     """
-    return _cell_update(cell["w_h"], carry, cell["w_d"] @ d + cell["b"])
+    return _cell_update(cell["w_h"], carry, _matmul(cell["w_d"], d) + _bias(cell["b"]))
 
 
 def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
@@ -206,7 +246,7 @@ def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
         ``(hs, (h_T, c_T))``: the hidden states (T, H) and the final state.
     """
     # The input projection does not depend on the recursion: one matmul for all steps.
-    z_in = xs @ cell["w_d"].T + cell["b"][None]
+    z_in = _matmul(xs, cell["w_d"].T) + _bias(cell["b"])[None]
 
     def step(carry, z_t):
         carry = _cell_update(cell["w_h"], carry, z_t)
@@ -286,7 +326,7 @@ def decode(
         hc, y_prev = carry
         d = jnp.concatenate([y_prev, repeated_load]) if arch.conditional else y_prev
         hc = lstm_cell(params["decoder"], hc, d)
-        y = dense["w"] @ hc[0] + dense["b"]
+        y = _matmul(dense["w"], hc[0]) + _bias(dense["b"])
         if dof_mask is not None:
             y = y * dof_mask.astype(y.dtype)
         return (hc, y), y
@@ -295,13 +335,14 @@ def decode(
     return ys
 
 
-@functools.partial(jax.jit, static_argnames="arch")
+@functools.partial(jax.jit, static_argnames=("arch", "compute_dtype"))
 def forward(
     params: Params,
     arch: LSTMArchitecture,
     xs: jax.Array,
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
+    compute_dtype: str | None = None,
 ) -> jax.Array:
     """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
 
@@ -311,15 +352,24 @@ def forward(
         xs: normalized window (n_p, n_dof).
         load_parameter: scalar load parameter (conditional networks only).
         dof_mask: optional (n_dof,) padding mask, see :func:`decode`.
+        compute_dtype: None (``arch.dtype`` throughout) or ``"bfloat16"``: bfloat16
+            operands, float32 accumulation (module docstring).
 
     Returns:
-        Normalized predictions (n_f, n_dof).
+        Normalized predictions (n_f, n_dof), dtype ``arch.dtype``.
     """
     if xs.ndim != 2 or xs.shape[1] != arch.n_dof:
         raise ConfigError(f"input window must have shape (n_past, {arch.n_dof}), got {xs.shape}")
+    check_compute_dtype(compute_dtype)
     xs = xs.astype(arch.dtype)
+    if compute_dtype is not None:
+        params = _reduced(params, compute_dtype)
+        # the states and outputs in the accumulation type, float32
+        xs = xs.astype(jnp.float32)
+        if dof_mask is not None:
+            dof_mask = dof_mask.astype(jnp.float32)
     state = encode(params, arch, xs)
-    return decode(params, arch, state, xs[-1], load_parameter, dof_mask)
+    return decode(params, arch, state, xs[-1], load_parameter, dof_mask).astype(arch.dtype)
 
 
 def count_parameters(params: Params) -> int:

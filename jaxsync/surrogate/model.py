@@ -33,7 +33,7 @@ from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
 from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
-from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.lstm import LSTMArchitecture, check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.replicas import init_replicas
 
@@ -60,6 +60,12 @@ class Surrogate:
             step-to-step jitter it writes into the solver excites high-frequency noise
             (on the 11-part vessel demo, the worst interior error fell from 12 % to 7 %
             of the node's amplitude with it). False gives the paper's raw refill.
+        inference_dtype: None (default: the networks compute in ``arch.dtype``) or
+            ``"bfloat16"``: reduced-precision inference, bfloat16 weights and activations
+            with float32 accumulation (:mod:`jaxsync.surrogate.lstm`; static). Set it with
+            :meth:`with_inference_dtype`, and check what it costs in accuracy with
+            :func:`jaxsync.surrogate.inference.check_inference_precision`. A runtime option:
+            checkpoints keep the parameters as trained and do not record it.
 
     ``surrogate.part(p)`` (or ``jax.tree_util.tree_map(lambda x: x[p], surrogate)``, as
     vmap and shard_map do) is part p alone: the same type without the leading axis,
@@ -74,6 +80,7 @@ class Surrogate:
     arch: Architecture = static_field()
     n_s: int = static_field()
     smooth: bool = static_field(default=True)
+    inference_dtype: str | None = static_field(default=None)
 
     # ------------------------------------------------------------------ sizes
 
@@ -124,7 +131,8 @@ class Surrogate:
         curve from ``buffer[-1]`` (:func:`~jaxsync.surrogate.refill.smooth_refill`).
         Padded dofs are 0."""
         load = self.load_parameter if self.arch.conditional else None
-        out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask)
+        out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask,
+                             self.inference_dtype)
         if self.smooth:
             out = smooth_refill(out, buffer[-1], self.n_s)
         return out * self.dof_mask[None]
@@ -171,6 +179,19 @@ class Surrogate:
             return self
         conditioned = self._build(self.arch, self.params, self.mean, self.std, self.dof_mask, self.n_s, load_parameter)
         return dataclasses.replace(self, load_parameter=conditioned.load_parameter)
+
+    def with_inference_dtype(self, dtype: str | None) -> "Surrogate":
+        """These replicas computing in ``dtype``: ``"bfloat16"`` (bfloat16 weights and
+        activations, float32 accumulation) or None (the architecture's own dtype). The
+        parameters are not changed; :meth:`predict`, :meth:`rollout` and the online
+        solver use the reduced precision. Unchecked: measure the deviation with
+        :func:`jaxsync.surrogate.inference.check_inference_precision` (or
+        :func:`~jaxsync.surrogate.inference.reduced_precision`, which does both).
+
+        Raises:
+            ConfigError: an unknown dtype."""
+        check_compute_dtype(dtype)
+        return dataclasses.replace(self, inference_dtype=dtype)
 
     @classmethod
     def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2, n_past: int = 20,

@@ -120,6 +120,7 @@ def refill_predict(
     n_s: int,
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
+    compute_dtype: str | None = None,
 ) -> jax.Array:
     """Predict the next n_s n_f steps from the last n_s n_p steps (one replica, unbatched).
 
@@ -131,6 +132,9 @@ def refill_predict(
         n_s: sampling stride the network was trained with.
         load_parameter: scalar load parameter (conditional networks).
         dof_mask: optional (n_dof,) padding mask.
+        compute_dtype: None or ``"bfloat16"``, the network's reduced-precision inference
+            (:func:`~jaxsync.surrogate.architecture.forward`); the normalization stays in
+            the dtypes of ``buffer`` and ``mean``.
 
     Returns:
         (n_s n_f, n_dof) predicted displacements of steps n + 1 .. n + n_s n_f, in the
@@ -143,7 +147,8 @@ def refill_predict(
     mean, std = mean[None], std[None]  # one row, broadcast over the buffer's steps
     z = normalize(buffer, mean, std).astype(arch.dtype)
     windows = refill_windows(z, n_s, n_past)  # (n_s, n_p, n_dof), rows N_p^i
-    pred = jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask))(windows)  # (n_s, n_f, n_dof)
+    # (n_s, n_f, n_dof)
+    pred = jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask, compute_dtype))(windows)
     return refill_scatter(pred, n_s).astype(mean.dtype) * std + mean
 
 

@@ -1,0 +1,47 @@
+"""benchmarks/bench_surrogates.py --quick, reduced to one case and 1 000 steps: it runs the
+three surrogates online, times them and writes the JSON the README table is made from."""
+
+import importlib.util
+import json
+import os
+import sys
+
+SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
+                      "bench_surrogates.py")
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("bench_surrogates", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_quick_run_writes_every_surrogate_and_timing(tmp_path, capsys):
+    script = load_script()
+    out = tmp_path / "bench_surrogates.json"
+    assert script.main(["--quick", "--case", "default", "--steps", "1000", "--quiet", "--out", str(out)]) == 0
+    record = json.loads(out.read_text())
+    assert {"benchmark", "settings", "seed", "bf16_bound", "cases", "machine", "wall_seconds"} <= set(record)
+    assert record["settings"]["quick"] is True and record["settings"]["n_steps"] == 1000
+    (case,) = record["cases"]
+    assert case["case"] == "default"
+    assert {"reference", "variants", "timing", "break_even", "bf16_check", "tip_node"} <= set(case)
+    assert set(case["variants"]) == {"lstm", "lstm_bf16", "linear"}
+    for name, variant in case["variants"].items():
+        metrics = variant["metrics"]["z"]
+        for key in ("tip_max_error_relative", "tip_final_error_relative", "e_l2_max_cm", "e_l2_final_cm",
+                    "l2_relative"):
+            assert metrics[key] >= 0, (name, key)
+        assert variant["t_d"] >= 0 and variant["zeta"] > 0  # a tiny network may time as 0 after the call cost
+        assert variant["online"]["n_predicted_steps"] > 0
+    assert case["variants"]["lstm_bf16"]["inference_dtype"] == "bfloat16"
+    assert case["variants"]["linear"]["kind"] == "linear" and case["variants"]["lstm"]["kind"] == "lstm"
+    assert set(case["timing"]["t_s"]) == {"psum", "ppermute"}
+    assert {"lstm_bf16", "linear_bf16"} == set(case["bf16_check"])
+    assert case["bf16_check"]["lstm_bf16"]["bound"] == record["bf16_bound"]
+    assert "infiniband-hdr" in case["break_even"]
+    assert set(case["break_even"]["infiniband-hdr"]["pays_off"]) == {"lstm", "lstm_bf16", "linear"}
+    printed = capsys.readouterr().out
+    assert "lstm_bf16" in printed and "break-even" in printed
