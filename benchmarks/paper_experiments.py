@@ -30,6 +30,12 @@ every online run: what the errors are computed from) and, except in reduced mode
 ``<out>/table.md`` from the JSON files found. Targets are recorded (met or not), never
 asserted.
 
+``--model linear`` (issue 14): every case with the linear autoregressive surrogate
+(``train_surrogates(model="linear")``, least squares on the same windows; the full-system
+case fits it over every dof with ``fit_linear``) instead of the LSTM; it is unconditional,
+so the ensemble cases train one unconditional variant (``linear``). Write those elsewhere
+(``--out benchmarks/results/experiments_linear``).
+
 ``--reduced`` (the tests): 3 000 steps (4 000 refined on a (12, 2, 2) beam), n_s 10 (20
 refined), n_p = n_f = 5, (n_p, n_f) in (5, 5), (5, 2), n_ts in 0.25, 0.5, ensembles of 3
 runs, the refined case on as many parts as devices (up to 6), n_H 8, one encoder layer, 2
@@ -79,11 +85,13 @@ import numpy as np  # noqa: E402
 import jaxsync  # noqa: E402
 from jaxsync.app.plots import tip_node  # noqa: E402
 from jaxsync.io import atomic_json, atomic_path  # noqa: E402
+from jaxsync.options import SurrogateModel, choices  # noqa: E402
 from jaxsync.surrogate import (  # noqa: E402
     LSTMArchitecture,
     Surrogate,
     TrainConfig,
     build_dataset,
+    fit_linear,
     stack_replicas,
     train_replicas,
     train_surrogates,
@@ -179,6 +187,7 @@ class Context:
     seed: int
     progress: bool
     steps: int | None  # --steps: every case's total steps
+    model: str = "lstm"  # --model: the surrogate every case trains
     # synchronized references already computed in this process (default, sequence_length
     # and training_size share one), by what defines them
     references: dict = dataclasses.field(default_factory=dict)
@@ -321,10 +330,12 @@ def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_f
     """train_surrogates with the case's parameters only (the library's defaults for the
     rest, or the reduced overrides); the offline check's RolloutWarning is recorded."""
     kwargs = dict(n_s=n_s, n_past=n_past, n_future=n_future, train_fraction=train_fraction, seed=ctx.seed)
+    if ctx.model != "lstm":
+        kwargs["model"] = ctx.model
     if n_cond_repeat:
         kwargs["n_cond_repeat"] = n_cond_repeat
     n_runs = len(trajectories) if isinstance(trajectories, (list, tuple)) else 1
-    if n_runs > 1 and not ctx.settings.reduced:
+    if n_runs > 1 and not ctx.settings.reduced and ctx.model == "lstm":
         # n_runs times the windows of one run: the library's schedule counted in gradient
         # steps (epochs / n_runs, the per-epoch decay gamma ** n_runs), not in epochs, which
         # would make it n_runs times longer (about 25 minutes for 10 runs on 2 cores)
@@ -333,7 +344,7 @@ def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_f
                                        gamma=default.gamma ** n_runs,
                                        patience=math.ceil(default.patience / n_runs))
     passed = {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in kwargs.items()}
-    kwargs.update(ctx.settings.train_overrides)
+    kwargs.update(ctx.settings.train_overrides if ctx.model == "lstm" else {})
     # reduced mode writes no training files (checkpoint, loss curves: about 1.3 s a training)
     folder = None if ctx.settings.reduced else folder
     with warnings.catch_warnings(record=True) as caught:
@@ -347,7 +358,7 @@ def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_f
     summary.pop("loss_history", None)  # in train_summary.json
     record = {
         "case_parameters_passed": passed,
-        "overrides_passed": sorted(ctx.settings.train_overrides),
+        "overrides_passed": sorted(ctx.settings.train_overrides) if ctx.model == "lstm" else [],
         "n_training_runs": n_runs,
         "train_seconds": trained.train_seconds, "n_epochs_run": trained.result.n_epochs_run,
         "rollout_relative": None if trained.rollout is None else trained.rollout.relative.tolist(),
@@ -640,6 +651,8 @@ def ensemble_case(ctx: Context, name: str, make_problem, train_labels, test_labe
               "training__z": np.stack([np.asarray(t.displacement[:, tip, 2]) for t in runs])}
     excluded = excluded_nodes(test_problem, parts)
     n_cri = s.n_s * s.n_past
+    if ctx.model != "lstm":  # unconditional only
+        variants = [(ctx.model, 0)]
     for variant, q in variants:
         log(ctx, f"[{name}/{variant}] training on {len(runs)} runs" + (f", conditional (q = {q})" if q else ""))
         trained, training = train(ctx, list(runs), os.path.join(ctx.out, name, "training", variant), n_s=s.n_s,
@@ -716,9 +729,13 @@ def case_full_system(ctx: Context):
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_past=n_p, n_future=n_f,
                             **{k: overrides[k] for k in ("n_hidden", "n_layers") if k in overrides})
     config = overrides.get("config", TrainConfig())
-    log(ctx, f"[full_system] training one network over {history.shape[1]} dofs")
-    result, train_seconds = timed(train_replicas, data, arch, config, jax.random.key(ctx.seed),
-                                  progress=ctx.progress)
+    log(ctx, f"[full_system] training one {ctx.model} surrogate over {history.shape[1]} dofs")
+    if ctx.model == "linear":
+        result, train_seconds = timed(fit_linear, data)
+        arch, config = result.arch, result.config
+    else:
+        result, train_seconds = timed(train_replicas, data, arch, config, jax.random.key(ctx.seed),
+                                      progress=ctx.progress)
     surrogate = Surrogate.from_result(result, n_s)
     folder = None if s.reduced else os.path.join(ctx.out, "full_system", "training", "full_system")
     if folder is not None:
@@ -734,14 +751,15 @@ def case_full_system(ctx: Context):
     training = {
         "case_parameters_passed": {"n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": s.train_fraction,
                                    "seed": ctx.seed},
-        "overrides_passed": sorted(k for k in overrides if k in ("config", "n_hidden", "n_layers")),
+        "overrides_passed": (sorted(k for k in overrides if k in ("config", "n_hidden", "n_layers"))
+                             if ctx.model == "lstm" else []),
         "n_training_runs": 1, "train_seconds": train_seconds,
         "n_epochs_run": result.n_epochs_run, "rollout_relative": rollout.relative.tolist(),
         "rollout_passed": worst <= ROLLOUT_TOLERANCE, "rollout_warning": warning,
         "folder": None if folder is None else os.path.abspath(folder),
-        "summary": {"architecture": arch.to_dict(), "training": {**config.to_dict(),
-                                                                  "n_epochs_run": result.n_epochs_run,
-                                                                  "stopped_at_epoch": result.stopped_epoch},
+        "summary": {"model": ctx.model, "architecture": {"kind": arch.kind, **arch.to_dict()},
+                    "training": {**config.to_dict(), "n_epochs_run": result.n_epochs_run,
+                                 "stopped_at_epoch": result.stopped_epoch},
                     "n_train_windows": int(data.x_train.shape[1]), "n_val_windows": int(data.x_val.shape[1]),
                     "final_val_loss": result.best_val_loss.tolist(), "seconds_per_epoch": result.seconds_per_epoch,
                     "compile_seconds": result.compile_seconds, "train_seconds": train_seconds,
@@ -889,7 +907,7 @@ def run_case(ctx: Context, name: str) -> dict:
     mesh = problem.mesh
     record = {
         "case": name, "description": DESCRIPTIONS[name], "paper_figures": PAPER_FIGURES[name],
-        "reduced": ctx.settings.reduced, "parameters": params,
+        "reduced": ctx.settings.reduced, "model": ctx.model, "parameters": params,
         "mesh": {"source": ("box_beam(divisions=%s)" % (tuple(ctx.settings.refined_divisions),)
                             if name == "refined_6_parts" else ctx.mesh_name()),
                  "n_nodes": int(mesh.n_nodes), "n_elements": int(mesh.n_elements)},
@@ -938,14 +956,15 @@ def table_rows(out: str) -> list[dict]:
             rollout = tr.get("rollout_relative")
             rows.append({
                 "case": r["case"] + (" (reduced)" if r.get("reduced") else ""), "variant": variant,
+                "model": r.get("model", "lstm"),
                 "mesh": f"{r['mesh']['n_nodes']} nodes / {r['mesh']['n_elements']} tets", "parts": r["n_parts"],
                 "steps": r["parameters"]["n_steps"],
                 "n_s": tr.get("case_parameters_passed", {}).get("n_s", v["parameters"]["n_s"]),
                 "n_p/n_f": f"{tr.get('case_parameters_passed', {}).get('n_past', v['parameters']['n_past'])}/"
                            f"{v['parameters']['n_future']}",
-                "training runs": tr.get("n_training_runs", "-"), "epochs run": tr.get("n_epochs_run", "-"),
+                "training runs": tr.get("n_training_runs", "-"), "epochs run": tr.get("n_epochs_run") or "-",
                 "candidates": (((tr.get("summary") or {}).get("candidates") or {}).get("n_candidates", 1)
-                               if tr else "-"),
+                               if tr and r.get("model", "lstm") == "lstm" else "-"),
                 "training s": ("-" if tr.get("train_seconds") is None else f"{tr['train_seconds']:.1f}"
                                + (f" (that of {tr['reused_from']})" if tr.get("reused_from") else "")),
                 "free-end max %": percent(m["tip_max_error_relative"]),
@@ -962,9 +981,9 @@ def table_rows(out: str) -> list[dict]:
     return rows
 
 
-TABLE_COLUMNS = ("case", "variant", "mesh", "steps", "parts", "n_s", "n_p/n_f", "n_ts", "training runs", "candidates",
-                 "epochs run", "training s", "synchronized steps", "free-end max %", "final %", "l2 relative %",
-                 "non-shared node max %", "rollout check %", "targets met")
+TABLE_COLUMNS = ("case", "variant", "model", "mesh", "steps", "parts", "n_s", "n_p/n_f", "n_ts", "training runs",
+                 "candidates", "epochs run", "training s", "synchronized steps", "free-end max %", "final %",
+                 "l2 relative %", "non-shared node max %", "rollout check %", "targets met")
 
 
 def write_table(out: str) -> str:
@@ -1024,6 +1043,9 @@ def parse_args(argv):
     parser.add_argument("--steps", type=int, default=None,
                         help="total steps of every case (default: the paper's, or the reduced ones)")
     parser.add_argument("--seed", type=int, default=0, help="METIS, training and label seed")
+    parser.add_argument("--model", choices=choices(SurrogateModel), default="lstm",
+                        help="the surrogate every case trains: the LSTM (default) or the linear autoregressive "
+                             "baseline (least squares; unconditional)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="root folder: each case writes <out>/<case>/")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or stage messages")
     args = parser.parse_args(argv)
@@ -1048,7 +1070,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     settings = reduced_settings(len(jax.devices())) if args.reduced else paper_settings()
     ctx = Context(settings=settings, out=os.path.abspath(args.out), mesh_file=args.mesh, seed=args.seed,
-                  progress=not args.quiet, steps=args.steps)
+                  progress=not args.quiet, steps=args.steps, model=args.model)
     cases = list(CASES) if args.all else list(dict.fromkeys(args.case or []))
     failed, times = [], {}
     for name in cases:

@@ -115,7 +115,10 @@ def excluded_nodes(case, record):
 @pytest.mark.parametrize("case", CASES)
 def test_errors_recomputed_from_the_series(matrix, case):
     out, _, records = matrix
-    record = records[case]
+    check_errors_from_series(out, records[case], case)
+
+
+def check_errors_from_series(out, record, case):
     series = np.load(out / case / "series.npz")
     tip = record["tip_node"]
     excluded = excluded_nodes(case, record)
@@ -313,3 +316,35 @@ def test_steps_that_do_not_fit_a_case_are_refused(script, capsys):
     with pytest.raises(SystemExit):
         script.main(["--case", "sequence_length", "--reduced", "--steps", "50"])
     assert "n_cri = 50" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def linear_matrix(script, tmp_path_factory):
+    """Two cases, reduced, with the linear surrogate: (output root, exit code, {case: record}).
+    ``loads`` goes through train_surrogates (as every partitioned case), ``full_system``
+    through fit_linear."""
+    out = tmp_path_factory.mktemp("experiments_linear")
+    cases = ("loads", "full_system")
+    rc = script.main(["--case", *cases, "--reduced", "--quiet", "--model", "linear", "--out", str(out)])
+    return out, rc, {case: json.loads((out / case / f"{case}.json").read_text()) for case in cases}
+
+
+def test_the_linear_model_runs_the_cases_and_says_so(linear_matrix):
+    out, rc, records = linear_matrix
+    assert rc == 0
+    for case, record in records.items():
+        assert record["model"] == "linear"
+        for variant in record["variants"]:
+            summary = variant["training"]["summary"]
+            assert summary["model"] == "linear" and summary["architecture"]["kind"] == "linear", case
+            # the reduced LSTM overrides (n_H 8, 2 epochs) are not passed to a least-squares fit
+            assert variant["training"]["overrides_passed"] == []
+        check_errors_from_series(out, record, case)
+    # unconditional: the ensemble case trains one variant, without the load parameter
+    (loads,) = records["loads"]["variants"]
+    assert loads["name"] == "linear" and loads["parameters"]["n_cond_repeat"] == 0
+    assert loads["training"]["summary"]["load_parameters"] is None
+    assert records["full_system"]["variants"][0]["training"]["summary"]["architecture"]["n_dof"] == 312
+    rows = [line for line in (out / "table.md").read_text().splitlines() if line.startswith("| ")]
+    assert rows[0].startswith("| case | variant | model |")
+    assert any(row.startswith("| loads (reduced) | linear | linear |") for row in rows)
