@@ -3,6 +3,7 @@ three surrogates online, times them and writes the JSON the README table is made
 
 import importlib.util
 import json
+import math
 import os
 import sys
 
@@ -34,7 +35,9 @@ def test_quick_run_writes_every_surrogate_and_timing(tmp_path, capsys):
         for key in ("tip_max_error_relative", "tip_final_error_relative", "e_l2_max_cm", "e_l2_final_cm",
                     "l2_relative"):
             assert metrics[key] >= 0, (name, key)
-        assert variant["t_d"] >= 0 and variant["zeta"] > 0  # a tiny network may time as 0 after the call cost
+        # timings are measurements (never asserted): on a loaded machine a tiny network's
+        # time after the call cost can be 0 or below, and zeta then None
+        assert math.isfinite(variant["t_d"]) and (variant["zeta"] is None or variant["zeta"] > 0)
         assert variant["online"]["n_predicted_steps"] > 0
     assert case["variants"]["lstm_bf16"]["inference_dtype"] == "bfloat16"
     assert case["variants"]["linear"]["kind"] == "linear" and case["variants"]["lstm"]["kind"] == "lstm"
