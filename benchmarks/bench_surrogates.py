@@ -290,7 +290,7 @@ def table(records: list) -> str:
             lines.append(f"{r['case']:<8} {name:<10} {pct(m['tip_max_error_relative']):>9} "
                          f"{pct(m['tip_final_error_relative']):>9} {m['e_l2_max_cm']:>9.2e} "
                          f"{m['e_l2_final_cm']:>9.2e} {pct(m['l2_relative']):>8} {1e6 * v['t_d']:>7.2f} "
-                         f"{v['zeta']:>6.3f}")
+                         + ("     -" if v["zeta"] is None else f"{v['zeta']:>6.3f}"))
         t = r["timing"]
         lines.append(f"{'':<8} t_s psum {1e6 * t['t_s']['psum']:.2f} us, ppermute {1e6 * t['t_s']['ppermute']:.2f} "
                      f"us per step (emulated devices); bf16 deviation: LSTM "

@@ -48,3 +48,7 @@ def test_quick_run_writes_every_surrogate_and_timing(tmp_path, capsys):
     assert set(case["break_even"]["infiniband-hdr"]["pays_off"]) == {"lstm", "lstm_bf16", "linear"}
     printed = capsys.readouterr().out
     assert "lstm_bf16" in printed and "break-even" in printed
+    # a time that came out at or below the call cost (zeta None) is printed as "-"
+    case["variants"]["linear"]["zeta"] = None
+    row = next(line for line in script.table([case]).splitlines() if line.split()[:2] == ["default", "linear"])
+    assert row.split()[-1] == "-"
