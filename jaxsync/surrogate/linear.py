@@ -261,11 +261,11 @@ def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DE
 def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask) -> np.ndarray:
     """(n_parts,) MSE of the stacked replicas over windows, steps and real dofs
     (normalized units; the LSTM's :func:`~jaxsync.surrogate.train.masked_mse`)."""
+    if x.shape[1] == 0:  # no windows (e.g. no validation split)
+        return np.full(x.shape[0], np.nan)
     per_window = jax.vmap(forward, in_axes=(None, None, 0, None, None))
     pred = np.asarray(jax.vmap(per_window, in_axes=(0, None, 0, None, 0))(params, arch, x, None, dof_mask),
                       np.float64)
-    if x.shape[1] == 0:  # no windows (e.g. no validation split)
-        return np.full(x.shape[0], np.nan)
     mask = np.asarray(dof_mask, np.float64)[:, None, None, :]
     sq = np.square(pred - np.asarray(y, np.float64)) * mask
     return sq.sum(axis=(1, 2, 3)) / (x.shape[1] * arch.n_future * mask.sum(axis=(1, 2, 3)))
