@@ -11,6 +11,9 @@ t_s, t_d, t_o and the max-average rows (paper Table 2) come with it. The surroga
 untrained replicas of the chosen architecture (a network's cost does not depend on its
 weights; accuracy is what `jaxsync demo` and `paper_cantilever.py` measure).
 
+Deep halos (:mod:`jaxsync.parallel.halo`), the exact communication-avoiding scheme, are
+timed in the same round-robin for depths k = 1, 2, 4, 8 (``t_step_halo_us``, ``zeta_halo``).
+
 Scenarios (the paper's):
 - ``coarse``: the paper's coarse cantilever on 2 devices, both modes, for the paper's
   network (n_H = 100, 2 layers) and the demo's (n_H = 32, 2 layers);
@@ -69,6 +72,7 @@ from jaxsync.perf.timing import speedup_breakdown  # noqa: E402
 from jaxsync.surrogate import Surrogate  # noqa: E402
 
 N_S, N_P, N_F = 80, 20, 20
+HALO_DEPTHS = (1, 2, 4, 8)  # deep halos timed beside the surrogate: exact, one exchange every k steps
 DEVICES_NOTE = (f"{len(jax.devices())} EMULATED CPU devices (XLA host devices sharing "
                 f"{os.cpu_count()} cores): collectives are thread rendezvous, not messages")
 
@@ -127,7 +131,8 @@ def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
                                                n_past=N_P, n_future=N_F)
     start = time.perf_counter()
     report = speedup_breakdown(problem, part, predictor, mode=cfg["mode"], repeats=repeats,
-                               stage_repeats=stage_repeats, devices=cfg["devices"])
+                               stage_repeats=stage_repeats, devices=cfg["devices"],
+                               halo_depths=HALO_DEPTHS)
     top = report.synchronized.max_average
     costs = roofline.step_costs_for(problem, part, mode=cfg["mode"])[top.part]
     costs = dict(costs, t_d=roofline.surrogate_step_cost(predictor.arch, N_S))
@@ -142,6 +147,8 @@ def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
             "sync": report.sync, "t_step_sync_us": {k: 1e6 * v for k, v in report.t_step_sync.items()},
             "t_step_nosync_us": 1e6 * report.t_step_nosync,
             "t_step_avoiding_us": 1e6 * report.t_step_avoiding, "t_s_us": 1e6 * report.t_s,
+            "t_step_halo_us": {k: 1e6 * v for k, v in report.t_step_halo.items()},
+            "zeta_halo": report.zeta_halo,
             "t_d_us": 1e6 * report.t_d, "t_prediction_ms": 1e3 * report.t_prediction_spmd,
             "t_prediction_alone_ms": 1e3 * max(report.t_prediction),
             "surrogate_pays": report.surrogate_pays,
@@ -258,8 +265,9 @@ def main(argv=None):
               f"n_H {r['n_hidden']:>3}: sync {r['t_step_sync_us']['psum']:9.1f} (psum) "
               f"{r['t_step_sync_us']['ppermute']:9.1f} (ppermute)  avoid {r['t_step_avoiding_us']:9.1f} "
               f"us/step  t_s {r['t_s_us']:8.1f}  t_d {r['t_d_us']:7.2f} (alone "
-              f"{1e3 * r['t_prediction_alone_ms'] / (N_S * N_F):5.2f})  zeta {r['zeta']:5.2f} "
-              f"({r['seconds']:.0f} s)", flush=True)
+              f"{1e3 * r['t_prediction_alone_ms'] / (N_S * N_F):5.2f})  zeta {r['zeta']:5.2f}; deep halos "
+              + " ".join(f"k={k} {t:.1f} (zeta {r['zeta_halo'][k]:.2f})" for k, t in r["t_step_halo_us"].items())
+              + f" ({r['seconds']:.0f} s)", flush=True)
 
     checks = model_check(rows, links)
     proj = projections(rows)

@@ -27,6 +27,23 @@ synchronization (``jaxsync.solve.distributed.DistributedRunner(sync=...)``), tim
 compiled chunk of ``--solver-steps`` steps. The interface sizes: 12 doubles is that
 cantilever's interface; 1002 doubles (334 nodes) stands for a refined mesh.
 
+Then the speed-up with real processes (``kind: speedup``): on the same cantilever, one part
+per process, the same compiled chunks without synchronization (``nosync``), with deep
+halos (``halo-k``: parts grown by k layers exchange both displacement levels every k
+steps, through MPI as ``sync="mpi"`` does; :mod:`jaxsync.parallel.halo`) and the
+synchronization-avoiding program (``avoid-*``: n_s n_f unsynchronized steps and one batched
+refill prediction per cycle, no collective; untrained surrogates of the paper's LSTM,
+n_H = 100 at n_s = 80, of ``jaxsync train``'s default, n_H = 50 at n_s = 150, and of the
+linear model at n_s = 150: the cost of a network does not depend on its weights). zeta is
+the best synchronized solver row (the faster of gloo psum, mpi4jax and the mpi4py
+callback) over each row. Every rank times its own calls after a barrier; the slowest
+rank's time is kept.
+
+Cost model check (``model_check``): latency and bandwidth of each transport fitted to its
+``collective`` rows (``jaxsync.perf.costmodel.fit_interconnect``), the solver's t_s predicted
+from the partition's interface (``sync_time``, one message of the interface for 2
+processes) against the measured t_s = synchronized step - ``nosync`` step.
+
 Rank 0 prints a table and writes JSON (default ``benchmarks/results/sync.json``).
 """
 
@@ -158,9 +175,10 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
         median = comm.allreduce(statistics.median(times), op=MPI.MAX)
         final, _ = compiled(runner.parts, start_state)
         finals[name] = runner.to_global(final).displacement
+        rows_final = finals[name]
         rows.append({"kind": "solver", "method": name, "n_doubles": 3 * runner.partition.n_interface,
                      "steps": steps, "us_per_step_best": 1e6 * best / steps,
-                     "us_per_step_median": 1e6 * median / steps})
+                     "us_per_step_median": 1e6 * median / steps, "final": rows_final})
     reference = finals["psum-gloo"]
     for row in rows:
         d = finals[row["method"]]
@@ -168,13 +186,117 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     return rows
 
 
+def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> list[dict]:
+    """The ``nosync``, ``halo-k`` and ``avoid-*`` rows (module docstring), each with zeta
+    against the best synchronized solver row of ``solver_rows``."""
+    import jax
+    import numpy as np
+    from mpi4py import MPI
+
+    import jaxsync
+    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.predicted import PredictedPhase
+    from jaxsync.surrogate import Surrogate
+    from jaxsync.surrogate.data import shared_dof_layout
+
+    problem = jaxsync.cantilever()
+    system = build_system(problem, problem.dt)
+    state = initial_state(problem, system)
+    n_parts = jax.process_count()
+    backend = "mpi4jax" if multiprocess.mpi4jax_available() else "callback"
+
+    def time_per_step(run, n_steps):
+        comm.Barrier()
+        times = _timed(run, repeats)
+        return (1e6 * comm.allreduce(min(times), op=MPI.MAX) / n_steps,
+                1e6 * comm.allreduce(statistics.median(times), op=MPI.MAX) / n_steps)
+
+    rows, finals = [], {}
+    local = DistributedRunner(problem, system, n_parts, save_every=steps, sync="mpi", allreduce=backend)
+    start = local.from_global(state)
+    programs = {"nosync": (local, local.program(1, synchronize=False), start)}
+    for k in halo_depths:
+        halo = DistributedRunner(problem, system, local.partition, save_every=steps, sync="halo", halo_depth=k)
+        programs[f"halo-{k}"] = (halo, halo.program(1), halo.from_global(state))
+    for name, (runner, program, begin) in programs.items():
+        best, median = time_per_step(lambda p=program, b=begin, r=runner: jax.block_until_ready(p(r.parts, b)),
+                                     steps)
+        finals[name] = runner.to_global(program(runner.parts, begin)[0]).displacement
+        rows.append({"kind": "speedup", "method": name, "steps": steps, "us_per_step_best": best,
+                     "us_per_step_median": median, "transport": runner.transport})
+    n_dof, _ = shared_dof_layout(local.partition)
+    surrogates = {"avoid-lstm-paper": Surrogate.initialized(local.partition, 80, n_hidden=100),
+                  "avoid-lstm-default": Surrogate.initialized(local.partition, 150, n_hidden=50),
+                  "avoid-linear": Surrogate.initialized(local.partition, 150, model="linear")}
+    for name, predictor in surrogates.items():
+        cycle = predictor.n_s * predictor.n_future
+        n_cycles = max(1, round(steps / cycle))
+        online = PredictedPhase(local, predictor, save_every=cycle)
+        buffer = local.put(np.zeros((n_parts, predictor.n_s * predictor.n_past, n_dof)))
+        program = online.prepare(start, buffer, n_cycles, cycle)
+        args = (local.parts, online.predictor, start, buffer, online.step_counter(0))
+        best, median = time_per_step(lambda p=program, a=args: jax.block_until_ready(p(*a)), n_cycles * cycle)
+        rows.append({"kind": "speedup", "method": name, "steps": n_cycles * cycle, "us_per_step_best": best,
+                     "us_per_step_median": median, "n_s": predictor.n_s,
+                     "architecture": predictor.arch.to_dict()})
+    synchronized = min(solver_rows, key=lambda r: r["us_per_step_best"])
+    for row in rows:
+        row["baseline"] = synchronized["method"]
+        row["zeta"] = synchronized["us_per_step_best"] / row["us_per_step_best"]
+    exact = {r["method"]: r for r in solver_rows}
+    for row in rows:
+        if row["method"].startswith("halo-"):
+            # deep halos are exact: their final field equals the synchronized solver's
+            row["max_rel_diff_vs_psum"] = float(np.abs(finals[row["method"]] - exact["psum-gloo"]["final"]).max()
+                                                / np.abs(exact["psum-gloo"]["final"]).max())
+    return rows
+
+
+def model_check(rows, partition) -> list[dict]:
+    """Cost model against the measured multi-process t_s (module docstring)."""
+    import numpy as np
+
+    from jaxsync.errors import JaxsyncError
+    from jaxsync.perf import costmodel
+
+    pattern = costmodel.communication_pattern(partition)
+    nosync = next(r for r in rows if r["method"] == "nosync")["us_per_step_best"]
+    checks = []
+    for method in ("psum-gloo", "mpi4jax", "mpi-callback"):
+        calib = [r for r in rows if r["kind"] == "collective" and r["method"] == method]
+        solver = [r for r in rows if r["kind"] == "solver" and r["method"] == method]
+        if not calib or not solver:
+            continue
+        sizes = np.array([8 * r["n_doubles"] for r in calib])
+        seconds = np.array([1e-6 * r["us_per_step_best"] for r in calib])
+        try:
+            link = costmodel.fit_interconnect(sizes, seconds, name=method,
+                                              source="fitted to this run's collective rows")
+        except JaxsyncError as exc:  # too noisy to fit: the smallest message's time as latency
+            if multiprocess.is_main_process():
+                print(f"cost model fit ({method}): {exc}; latency = the smallest message's time")
+            link = costmodel.Interconnect(method, float(seconds[np.argmin(sizes)]), 1e12,
+                                          "smallest collective of this run")
+        predicted = costmodel.sync_time(pattern, link, "collective")
+        measured = max(solver[0]["us_per_step_best"] - nosync, 1e-3) * 1e-6
+        checks.append({"method": method, "latency_us": 1e6 * link.latency_s,
+                       "bandwidth_GBps": link.bandwidth_Bps / 1e9, "interface_bytes": pattern.interface_bytes,
+                       "predicted_us": 1e6 * predicted, "measured_us": 1e6 * measured,
+                       "relative_error": float(costmodel.relative_error(predicted, measured))})
+    return checks
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[12, 1002],
+    parser.add_argument("--sizes", type=int, nargs="+", default=[12, 120, 1002, 12000],
                         help="interface sizes in doubles (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=2000, help="scan steps per timing (default: %(default)s)")
-    parser.add_argument("--solver-steps", type=int, default=4000,
-                        help="cantilever steps per timing (default: %(default)s)")
+    parser.add_argument("--solver-steps", type=int, default=3200,
+                        help="cantilever steps per timing (default: %(default)s; a multiple of "
+                             "every --halo-depths)")
+    parser.add_argument("--halo-depths", type=int, nargs="*", default=[1, 4, 16, 64],
+                        help="deep-halo depths to time (default: %(default)s)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats (default: %(default)s)")
     parser.add_argument("--json", default=os.path.join(os.path.dirname(os.path.abspath(__file__)),
                                                        "results", "sync.json"))
@@ -190,7 +312,14 @@ def main(argv=None) -> dict:
                              "benchmarks/bench_sync.py")
         comm = multiprocess.world().Dup()
         rows = bench_collectives(args.sizes, args.steps, args.repeats, comm)
-        rows += bench_solver(args.solver_steps, args.repeats, comm)
+        solver_rows = bench_solver(args.solver_steps, args.repeats, comm)
+        rows += solver_rows
+        rows += bench_speedup(args.solver_steps, args.repeats, comm, args.halo_depths, solver_rows)
+        for row in solver_rows:
+            del row["final"]
+        import jaxsync
+
+        checks = model_check(rows, jaxsync.partition(jaxsync.cantilever().mesh, n_proc))
         from mpi4py import MPI
 
         hosts = sorted(set(comm.allgather(socket.gethostname())))
@@ -204,7 +333,7 @@ def main(argv=None) -> dict:
             "python": platform.python_version(),
             "command": "mpiexec -n %d python %s" % (
                 n_proc, " ".join([os.path.relpath(__file__)] + (argv or sys.argv[1:]))),
-            "rows": rows,
+            "rows": rows, "model_check": checks,
         }
         if multiprocess.is_main_process():
             _print_table(result)
@@ -218,10 +347,16 @@ def main(argv=None) -> dict:
 def _print_table(result: dict) -> None:
     print(f"per-step synchronization, {result['processes']} processes on {', '.join(result['hosts'])} "
           f"(jax {result['jax']}, mpi4jax {result['mpi4jax']}, {result['mpi_library']})")
-    print(f"{'what':<11} {'method':<13} {'doubles':>7} {'best us/step':>13} {'median us/step':>15}")
+    print(f"{'what':<11} {'method':<19} {'doubles':>7} {'best us/step':>13} {'median us/step':>15} {'zeta':>6}")
     for row in result["rows"]:
-        print(f"{row['kind']:<11} {row['method']:<13} {row['n_doubles']:>7} "
-              f"{row['us_per_step_best']:>13.2f} {row['us_per_step_median']:>15.2f}")
+        zeta = f"{row['zeta']:6.2f}" if "zeta" in row else ""
+        print(f"{row['kind']:<11} {row['method']:<19} {row.get('n_doubles', ''):>7} "
+              f"{row['us_per_step_best']:>13.2f} {row['us_per_step_median']:>15.2f} {zeta}")
+    print("zeta: the best synchronized solver row over the row (best times)")
+    for c in result["model_check"]:
+        print(f"cost model, {c['method']}: fitted latency {c['latency_us']:.1f} us, bandwidth "
+              f"{c['bandwidth_GBps']:.2f} GB/s; t_s of the solver predicted {c['predicted_us']:.1f} us, "
+              f"measured {c['measured_us']:.1f} us ({100 * c['relative_error']:+.0f} %)")
 
 
 if __name__ == "__main__":

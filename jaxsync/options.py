@@ -10,7 +10,8 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   (sparse K stored once) or ``"recompute"`` (element quantities formed every step).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
   whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
-  Allreduce. There is no fixed default: ``sync=None`` everywhere means
+  Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.halo`): parts grown by k
+  layers exchange displacements every k steps, exactly. There is no fixed default: ``sync=None`` everywhere means
   :func:`jaxsync.parallel.multiprocess.default_sync` (``"psum"`` in one process,
   ``"mpi"`` across CPU processes).
 - :data:`Compression`: HDF5 compression of a trajectory's large datasets
@@ -44,7 +45,7 @@ __all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind
            "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
-Sync = Literal["psum", "ppermute", "mpi"]
+Sync = Literal["psum", "ppermute", "mpi", "halo"]
 Compression = Literal["gzip", "lzf", "none"]
 Component = Literal[0, 1, 2]
 EpochRule = Literal["paper"]

@@ -50,12 +50,18 @@ def test_console_script_help():
 
 @pytest.mark.parametrize("command, flag, literal", [
     ("simulate", "--mode", Mode), ("predict", "--mode", Mode), ("simulate", "--sync", Sync),
-    ("predict", "--sync", Sync),
     ("simulate", "--compression", Compression), ("predict", "--compression", Compression),
     ("report", "--component", Component),
 ])
 def test_choices_come_from_the_option_types(command, flag, literal):
     assert tuple(option(subcommands(build_parser())[command], flag).choices) == choices(literal)
+
+
+def test_predict_offers_every_synchronization_but_deep_halos():
+    # the synchronization-avoiding run records shared-node histories every step, which deep
+    # halos do not keep (the library refuses sync="halo" there too)
+    offered = tuple(option(subcommands(build_parser())["predict"], "--sync").choices)
+    assert offered == tuple(m for m in choices(Sync) if m != "halo")
 
 
 def test_option_tuples_of_the_library_are_the_option_types():
@@ -67,7 +73,7 @@ def test_option_tuples_of_the_library_are_the_option_types():
 
 def test_check_option_names_the_allowed_values():
     assert check_option("mode", "recompute", Mode) == "recompute"
-    with pytest.raises(jaxsync.ConfigError, match=r"sync must be one of 'psum', 'ppermute', 'mpi', got 'nccl'"):
+    with pytest.raises(jaxsync.ConfigError, match=r"sync must be one of 'psum', 'ppermute', 'mpi', 'halo', got 'nccl'"):
         check_option("sync", "nccl", Sync)
     with pytest.raises(jaxsync.ProblemError, match="mode must be one of"):
         check_option("mode", "sparse", Mode, error=jaxsync.ProblemError)

@@ -119,6 +119,20 @@ def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
     assert "diverged" in capsys.readouterr().err
 
 
+def test_simulate_with_deep_halos(tmp_path, capsys):
+    out = tmp_path / "h.h5"
+    assert main(["simulate", "--steps", "200", "--save-every", "10", "--parts", "2", "--sync", "halo",
+                 "--halo-depth", "5", "-o", str(out), "--no-progress"]) == 0
+    single = jaxsync.simulate(jaxsync.cantilever(), 200, save_every=10)
+    scale = np.abs(single.displacement).max()
+    assert np.abs(jaxsync.Trajectory.load(out).displacement - single.displacement).max() <= 1e-12 * scale
+    # save_every and the depth must divide one another: a one-line error with the fix
+    assert main(["simulate", "--steps", "200", "--save-every", "10", "--parts", "2", "--sync", "halo",
+                 "--halo-depth", "3", "-o", str(tmp_path / "bad.h5"), "--no-progress"]) != 0
+    assert "halo_depth=1 or save_every=30" in capsys.readouterr().err
+    assert not (tmp_path / "bad.h5").exists()
+
+
 def test_simulate_timings(tmp_path, capsys):
     path = tmp_path / "t.json"
     assert main(["simulate", "--parts", "2", "--timings", str(path)]) == 0

@@ -39,7 +39,8 @@ def _worker_sync(out_path: str) -> None:
 
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
-        configs = {"psum": dict(sync="psum"), "mpi-callback": dict(sync="mpi", allreduce="callback")}
+        configs = {"psum": dict(sync="psum"), "mpi-callback": dict(sync="mpi", allreduce="callback"),
+                   "halo-4": dict(sync="halo", halo_depth=4)}  # deep halos, exchanged through MPI
         if multiprocess.mpi4jax_available():
             configs["mpi-mpi4jax"] = dict(sync="mpi", allreduce="mpi4jax")
         results = {"default": DistributedRunner(problem, system, 2, save_every=SAVE_EVERY).sync}
@@ -157,7 +158,7 @@ def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
     with np.load(path) as runs:
         assert str(runs["default"]) == "mpi"  # the faster one across processes
         names = set(runs.files) - {"default"}
-        assert {"psum", "mpi-callback"} <= names
+        assert {"psum", "mpi-callback", "halo-4"} <= names
         for name in names:
             assert relative_error(runs[name], reference.displacement) <= 1e-12, name
 

@@ -256,3 +256,24 @@ def test_a_bad_model_is_refused(tmp_path, capsys):
         train_surrogates(path, model="linear", n_cond_repeat=2)
     with pytest.raises(ConfigError, match="regularization must be a finite number >= 0"):
         train_surrogates(path, model="linear", regularization=-1.0)
+
+
+def test_initialized_linear_replicas_for_timing_have_the_widest_rank_and_predict_the_mean():
+    from jaxsync.surrogate import Surrogate
+    from jaxsync.surrogate.data import shared_dof_layout
+
+    part = jaxsync.partition(jaxsync.cantilever().mesh, 2)
+    n_dof, _ = shared_dof_layout(part)
+    surrogate = Surrogate.initialized(part, 4, n_past=3, n_future=5, model="linear")
+    assert (surrogate.arch.kind, surrogate.arch.rank) == ("linear", 3 * n_dof)
+    assert surrogate.params["w_in"].shape == (2, 3, n_dof, 3 * n_dof)
+    # zero weights and unit normalization about 0: the networks predict 0, the training
+    # mean, so a history at rest stays at rest (the smooth refill starts from the history)
+    history = np.random.default_rng(0).standard_normal((2, 4 * 3, n_dof))
+    pred = np.asarray(jax.vmap(lambda s, h: s.predict(h, 0))(surrogate, history))
+    assert pred.shape == (2, 4 * 5, n_dof) and np.all(np.isfinite(pred))
+    rest = np.asarray(jax.vmap(lambda s, h: s.predict(h, 0))(surrogate, np.zeros_like(history)))
+    assert np.all(rest == 0.0)
+    assert Surrogate.initialized(part, 4, model="linear", rank=7).arch.rank == 7
+    with pytest.raises(ConfigError, match="lstm"):
+        Surrogate.initialized(part, 4, model="gru")

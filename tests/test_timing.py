@@ -60,12 +60,28 @@ def test_bad_arguments_are_refused(problem):
         timing_breakdown(problem, 0)
 
 
+def test_breakdown_of_deep_halos_times_the_grown_parts(problem, partition):
+    from jaxsync.parallel.halo import halo_partition
+
+    report = timing_breakdown(problem, partition, n_steps=5, repeats=2, sync="halo", halo_depth=2)
+    grown = halo_partition(partition, 2)
+    assert report.n_steps == 6  # rounded up to whole exchange cycles
+    assert [(r.n_nodes, r.n_elements, r.n_shared) for r in report.rows] == [
+        (p.n_local, len(p.elements), p.n_shared) for p in grown.parts]
+    assert sum(r.n_elements for r in report.rows) > problem.mesh.n_elements  # the redundant work
+    assert report.t_step > 0 and report.rows[0].t_s == report.rows[1].t_s >= 0
+
+
 def test_speedup_breakdown_times_both_solvers(problem, partition, tmp_path):
     from jaxsync.surrogate import Surrogate
 
     predictor = Surrogate.initialized(partition, 4, n_hidden=8, n_layers=1, n_past=3, n_future=5)
-    report = speedup_breakdown(problem, partition, predictor, n_cycles=2, repeats=2, stage_repeats=2)
+    report = speedup_breakdown(problem, partition, predictor, n_cycles=2, repeats=2, stage_repeats=2,
+                               halo_depths=(1, 4))
     assert report.steps_per_prediction == 4 * 5 and report.n_steps == 2 * 4 * 5
+    assert set(report.t_step_halo) == {1, 4} and all(t > 0 for t in report.t_step_halo.values())
+    assert report.zeta_halo[4] == pytest.approx(report.t_step_synchronized / report.t_step_halo[4])
+    assert "deep halos, depth 4" in report.table()
     assert (report.n_s, report.n_past, report.n_future) == (4, 3, 5)
     assert set(report.t_step_sync) == {"psum", "ppermute"} and report.sync in report.t_step_sync
     assert len(report.t_prediction) == 2
@@ -82,6 +98,8 @@ def test_speedup_breakdown_times_both_solvers(problem, partition, tmp_path):
         TimingReport.load_json(tmp_path / "speedup.json")
     with pytest.raises(ProblemError, match="syncs"):
         speedup_breakdown(problem, partition, predictor, syncs=("allgather",))
+    with pytest.raises(ProblemError, match="halo depth 3 does not divide the 40 timed steps"):
+        speedup_breakdown(problem, partition, predictor, n_cycles=2, halo_depths=(3,))
     with pytest.raises(ProblemError, match="2 parts"):
         speedup_breakdown(problem, 1, predictor)
     with pytest.raises(ProblemError, match="n_cycles"):

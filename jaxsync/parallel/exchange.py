@@ -56,11 +56,14 @@ class PartSystems:
         shared_local: (n_parts, n_shared_max) local index of each shared node (padding:
             n_local_max, out of range, so that scatters drop it).
         shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
+        owned: (n_parts, n_local_max) bool, the nodes each part owns, for deep halos
+            (:mod:`jaxsync.parallel.halo`); None for an element partition.
     """
 
     system: ExplicitSystem
     shared_local: Any
     shared_interface: Any
+    owned: Any = None
 
 
 def _pad_to(arrays, length, fill, axis=0):
@@ -73,7 +76,10 @@ def _pad_to(arrays, length, fill, axis=0):
 
 
 def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mode: str) -> PartSystems:
-    """Split the global ``system`` into padded, stacked per-part systems (numpy-backed)."""
+    """Split the global ``system`` into padded, stacked per-part systems (numpy-backed).
+
+    ``partition``: a :class:`Partition`, or a :class:`jaxsync.parallel.halo.HaloPartition`
+    (its grown parts, its halo interface and its owned nodes)."""
     from ..fem.assembly import element_blocks
 
     check_option("mode", mode, Mode, error=ProblemError)
@@ -131,29 +137,35 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
     shared_local = _pad_to([p.shared_local for p in parts], n_shared, n_local).astype(np.int32)
     shared_interface = _pad_to([p.shared_interface for p in parts], n_shared,
                                partition.n_interface).astype(np.int32)
-    return PartSystems(stacked, shared_local, shared_interface)
+    owned = None
+    if getattr(partition, "owned_local", None) is not None:
+        owned = np.zeros((n_parts, n_local), dtype=bool)
+        for p, local in enumerate(partition.owned_local):
+            owned[p, local] = True
+    return PartSystems(stacked, shared_local, shared_interface, owned)
 
 
 def scatter_reverse(local, shared_local, shared_interface, n_interface: int, across=None):
     """Sum the parts' values at shared nodes into the interface vector. Collective: every
     part of every device must call it in the same step.
 
-    ``local`` is a part's (n_local_max, 3) array (partial forces [dyn]); returns the
-    (n_interface + 1, 3) interface vector summed over all parts (the last slot receives
+    ``local`` is a part's (n_local_max, c) array (partial forces [dyn], c = 3; or both
+    displacement levels of deep halos, c = 6); returns the (n_interface + 1, c) interface
+    vector summed over all parts (the last slot receives
     the padding entries, index n_interface, and is never read back). The sum runs over
     the parts on this device (the vmapped axis), then across devices: ``jax.lax.psum``
     over the mesh axis when ``across`` is None, else ``across(interface)`` (the MPI
     Allreduce of :func:`jaxsync.parallel.multiprocess.make_allreduce` with one device per
     process, or a :class:`NeighbourExchange`)."""
-    interface = jnp.zeros((n_interface + 1, 3), local.dtype)
+    interface = jnp.zeros((n_interface + 1,) + local.shape[1:], local.dtype)
     interface = interface.at[shared_interface].add(local[shared_local], mode="clip")
     total = jax.lax.psum(interface, LOCAL_AXIS)  # parts on this device first
     return jax.lax.psum(total, AXIS) if across is None else across(total)
 
 
 def scatter_forward(local, interface, shared_local, shared_interface):
-    """A part's (n_local_max, 3) array with its shared nodes set to the interface values
-    (n_interface + 1, 3) of :func:`scatter_reverse` (local: no communication)."""
+    """A part's (n_local_max, c) array with its shared nodes set to the interface values
+    (n_interface + 1, c) of :func:`scatter_reverse` (local: no communication)."""
     return local.at[shared_local].set(interface[shared_interface], mode="drop")
 
 

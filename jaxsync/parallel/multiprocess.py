@@ -40,10 +40,11 @@ __all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "launched_size", "launched_by_m
            "abort_on_error", "world", "make_allreduce", "mpi4jax_available",
            "default_sync"]
 
-SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi"), defined in jaxsync.options
+SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi", "halo"), defined in jaxsync.options
 """Per-step synchronization across devices and processes: XLA ``psum`` of the whole
 interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of only the
-nodes two devices share, or MPI Allreduce."""
+nodes two devices share, MPI Allreduce, or deep halos (an exchange of displacements every
+k steps, :mod:`jaxsync.parallel.halo`)."""
 
 ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "callback")
 """How the MPI Allreduce is called from the compiled step: ``mpi4jax`` (an XLA FFI custom

@@ -273,6 +273,9 @@ class SpeedupReport(_JsonReport):
         n_s, n_past, n_future: the refill geometry; one prediction serves n_s n_future steps.
         architecture: the surrogate's architecture (dict), or {} for another predictor.
         n_steps: steps per timed call of the whole programs; repeats: timed calls (best kept).
+        t_step_halo: {halo depth k: measured per-step time of the deep-halo SPMD program
+            (:mod:`jaxsync.parallel.halo`: exact, one exchange every k steps) [s]}; empty
+            when none was timed.
     """
 
     synchronized: TimingReport
@@ -289,12 +292,15 @@ class SpeedupReport(_JsonReport):
     architecture: dict
     n_steps: int
     repeats: int
+    t_step_halo: dict = dataclasses.field(default_factory=dict)
 
     _kind = SPEEDUP_KIND
     _what = "speed-up report"
 
     def __post_init__(self):
         object.__setattr__(self, "t_prediction", tuple(float(t) for t in self.t_prediction))
+        # JSON keys are strings: the depths are ints again here
+        object.__setattr__(self, "t_step_halo", {int(k): float(v) for k, v in self.t_step_halo.items()})
         if self.sync not in self.t_step_sync:
             raise ProblemError(f"SpeedupReport.sync={self.sync!r} is not one of the timed "
                                f"synchronizations {sorted(self.t_step_sync)}")
@@ -326,6 +332,12 @@ class SpeedupReport(_JsonReport):
         return self.t_prediction_spmd / self.steps_per_prediction
 
     @property
+    def zeta_halo(self) -> dict:
+        """{k: speed-up of deep halos of depth k over the synchronized baseline}: the exact
+        communication-avoiding scheme beside the surrogate's ``zeta``."""
+        return {k: self.t_step_synchronized / t for k, t in self.t_step_halo.items()}
+
+    @property
     def surrogate_pays(self) -> bool:
         """True when the amortized surrogate cost is below the synchronization it replaces."""
         return self.t_d < self.t_s
@@ -346,6 +358,8 @@ class SpeedupReport(_JsonReport):
                      f"{self.steps_per_prediction} steps; "
                      + ("below" if self.surrogate_pays else "NOT below")
                      + " the synchronization it replaces")
+        for k, t in self.t_step_halo.items():
+            lines.append(f"  deep halos, depth {k:<3}      {1e6 * t:9.2f}   (exact; zeta {self.zeta_halo[k]:.3f})")
         lines.append(f"  zeta = t_t / t_t' = {self.zeta:.3f}")
         return "\n".join(lines)
 
@@ -358,7 +372,7 @@ class SpeedupReport(_JsonReport):
         out["avoiding"] = self.avoiding.to_dict()
         out["t_prediction"] = list(self.t_prediction)
         for name in ("zeta", "t_s", "t_d", "steps_per_prediction", "t_step_synchronized",
-                     "surrogate_pays"):
+                     "surrogate_pays", "zeta_halo"):
             out[name] = getattr(self, name)
         out["kind"] = self._kind
         return out

@@ -55,6 +55,7 @@ from ..errors import ProblemError
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..options import Mode, check_option
 from ..parallel.exchange import build_part_systems
+from ..parallel.halo import HaloPartition, check_halo_depth
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
 from ..solve.distributed import DistributedRunner
@@ -86,10 +87,17 @@ def _start(problem, dt: float, mode: Mode):
     return system, np.asarray(state.displacement), np.asarray(state.previous)
 
 
+def _alone(layout, part):
+    """``layout`` (a :class:`Partition` or a :class:`HaloPartition`) with ``part`` only."""
+    if isinstance(layout, HaloPartition):
+        return dataclasses.replace(layout, parts=(part,), owned_local=(layout.owned_local[part.index],))
+    return dataclasses.replace(layout, parts=(part,))
+
+
 def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps, repeats, device):
     """({variant: seconds per step}, setup seconds) of one part alone on ``device``."""
     start = time.perf_counter()
-    stacked = build_part_systems(problem, system, dataclasses.replace(part_info, parts=(part,)), mode)
+    stacked = build_part_systems(problem, system, _alone(part_info, part), mode)
     setup_s = time.perf_counter() - start
     part_system = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[0], stacked.system), device)
     part_state = jax.device_put(SolverState(d0[part.nodes], dm1[part.nodes],
@@ -106,7 +114,7 @@ def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps,
 
 def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_steps: int | None = None,
                      repeats: int = 100, dt=None, devices=None, seed: int = 0,
-                     sync: str = "psum") -> TimingReport:
+                     sync: str = "psum", halo_depth: int = 1) -> TimingReport:
     """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
 
     Args:
@@ -124,8 +132,11 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
         devices: devices for the distributed program (default as in
             :func:`jaxsync.simulate`); each part's own program runs on the first.
         seed: METIS seed when ``partitions`` is an int.
-        sync: ``"psum"`` or ``"ppermute"``, the synchronization timed as t_s (see
-            :class:`jaxsync.solve.distributed.DistributedRunner`).
+        sync: ``"psum"``, ``"ppermute"`` or ``"halo"``, the synchronization timed as t_s
+            (see :class:`jaxsync.solve.distributed.DistributedRunner`). With ``"halo"``
+            the parts are the grown ones of depth ``halo_depth`` (their redundant work is
+            in t_e, t_m, t_o), t_s is the exchange every k steps per step, and
+            ``n_steps`` is rounded up to a multiple of k.
 
     Returns:
         :class:`jaxsync.perf.reports.TimingReport`, times in seconds per step.
@@ -142,16 +153,18 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
     if n_steps is None:
         n_steps = int(np.clip(round(20000 / max(p.n_local for p in part_info.parts)), 5, 400))
     n_steps, repeats = int(n_steps), int(repeats)
+    if sync == "halo":
+        n_steps = -(-n_steps // check_halo_depth(halo_depth)) * halo_depth
     system, d0, dm1 = _start(problem, dt, mode)
 
     # The distributed program (padded parts on all devices); also places the devices.
     runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                               devices=devices, sync=sync)
+                               devices=devices, sync=sync, halo_depth=halo_depth)
 
     # Each part alone, at its own size, on one device.
     setup_s, local_times = 0.0, []
-    for part in part_info.parts:
-        times, seconds = _local_stage_times(problem, system, part_info, part, d0, dm1, mode,
+    for part in runner.layout.parts:
+        times, seconds = _local_stage_times(problem, system, runner.layout, part, d0, dm1, mode,
                                             n_steps, repeats, runner.devices[0])
         local_times.append(times)
         setup_s += seconds
@@ -169,7 +182,7 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
         t_s = 0.0
 
     rows = []
-    for part, t in zip(part_info.parts, local_times):
+    for part, t in zip(runner.layout.parts, local_times):
         t_force = max(t["force"] - t["other"], 0.0)
         t_m = min(max(t["scatter"] - t["empty"], 0.0), t_force) if mode == "recompute" else t_force
         rows.append(PartTiming(part=part.index, n_nodes=part.n_local, n_elements=len(part.elements),
@@ -199,7 +212,8 @@ def _part_prediction_times(predictor, n_parts: int, history: int, n_dof: int, de
 def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "preassembled",
                       syncs=("psum", "ppermute"), n_cycles: int = 1, repeats: int = 10,
                       stage_repeats: int = 50, n_s: int = 80, devices=None, seed: int = 0,
-                      dt=None, prediction_repeats: int | None = None) -> SpeedupReport:
+                      dt=None, prediction_repeats: int | None = None,
+                      halo_depths: tuple = ()) -> SpeedupReport:
     """Time the synchronized solver (each of ``syncs``) and the synchronization-avoiding
     solver (paper Algorithm 3's predicted phase) in one run, and the stages of both.
 
@@ -228,6 +242,9 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
         n_s: refill stride of the default predictor.
         prediction_repeats: timed calls of each part's prediction alone (default
             max(repeats, 20); a refill of the vessel's n_s = 1000 takes about a second).
+        halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.halo`, the exact
+            communication-avoiding scheme) to time in the same round-robin, each a divisor
+            of the timed steps n_cycles n_s n_f (``t_step_halo`` of the report).
 
     Returns:
         :class:`jaxsync.perf.reports.SpeedupReport`.
@@ -259,11 +276,20 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     calls["nosync"] = (kernels.distributed_step(runner, n_steps, False), (runner.parts, dist_state))
     calls["avoid"] = (online.prepare(dist_state, buffer, n_cycles, cycle_steps),
                       (runner.parts, online.predictor, dist_state, buffer, online.step_counter(0)))
+    for k in halo_depths:
+        if n_steps % check_halo_depth(k):
+            raise ProblemError(f"halo depth {k} does not divide the {n_steps} timed steps "
+                               f"(n_cycles n_s n_f): use a divisor of {n_steps}")
+        halo = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
+                                 devices=devices, sync="halo", halo_depth=k)
+        calls[f"halo:{k}"] = (kernels.distributed_step(halo, n_steps, True),
+                              (halo.parts, halo.from_global(SolverState(d0, dm1, 0))))
     calls["call"] = (kernels.distributed_no_step(runner), (runner.parts, dist_state))
     calls["predict"] = (kernels.prediction_program(runner.device_mesh), (online.predictor, buffer))
     whole = per_step_times(best_times(calls, repeats), n_steps)
     t_prediction_spmd = whole.pop("predict") * n_steps
     t_step_sync = {m: whole[f"sync:{m}"] for m in syncs}
+    t_step_halo = {int(k): whole[f"halo:{k}"] for k in halo_depths}
     best = min(t_step_sync, key=t_step_sync.get)
     t_prediction = _part_prediction_times(predictor, part_info.n_parts, history, n_dof,
                                           runner.devices[0],
@@ -284,4 +310,4 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
                          t_prediction_spmd=t_prediction_spmd,
                          n_s=int(n_s), n_past=int(n_p), n_future=int(n_f),
                          architecture=arch.to_dict() if arch is not None else {},
-                         n_steps=n_steps, repeats=repeats)
+                         n_steps=n_steps, repeats=repeats, t_step_halo=t_step_halo)

@@ -17,6 +17,7 @@ from jax.sharding import PartitionSpec as P
 from ..errors import ConfigError, PartitionError
 from ..fem.stepper import ExplicitSystem, SolverState, advance
 from ..parallel.exchange import PartSystems, build_part_systems, neighbour_exchange, synchronize_forces
+from ..parallel.halo import advance_halo, check_halo_depth, check_save_every, halo_partition
 from ..parallel.partitioning import Partition, partition_from_elements
 from ..parallel.partitioning import partition as make_partition
 from ..parallel.spmd import AXIS, spmd_program
@@ -55,7 +56,8 @@ class DistributedRunner:
 
     def __init__(self, problem, system: ExplicitSystem, partitions, *, save_every: int,
                  mode: str = "preassembled", seed: int = 0, devices=None, sync: str | None = None,
-                 allreduce: str = "auto", comm=None, record_shared: bool = False):
+                 allreduce: str = "auto", comm=None, record_shared: bool = False,
+                 halo_depth: int = 1):
         """
         Args:
             problem, system: the problem and its global :class:`ExplicitSystem`.
@@ -69,8 +71,14 @@ class DistributedRunner:
                 ``"psum"`` (XLA collective over all devices: emulated devices in one
                 process, gloo between CPU processes, NCCL between GPUs), ``"ppermute"``
                 (each device exchanges only the nodes it shares with each neighbouring
-                device: :class:`NeighbourExchange`) or ``"mpi"`` (one device per
-                process, MPI Allreduce called from inside the compiled step).
+                device: :class:`NeighbourExchange`), ``"mpi"`` (one device per
+                process, MPI Allreduce called from inside the compiled step) or
+                ``"halo"`` (deep halos, :mod:`jaxsync.parallel.halo`: every part grown by
+                ``halo_depth`` layers of its neighbours' elements steps alone and
+                exchanges both displacement levels of its halo every ``halo_depth``
+                steps, with a ``psum`` in one process and across GPUs, with the MPI
+                Allreduce of ``"mpi"`` across CPU processes; exact, the same trajectory
+                to round-off).
                 Default: :func:`jaxsync.parallel.multiprocess.default_sync` (``"mpi"`` across
                 processes, measured faster; ``"psum"`` in one process).
             allreduce: with ``sync="mpi"``, ``"mpi4jax"``, ``"callback"`` or ``"auto"``
@@ -79,6 +87,9 @@ class DistributedRunner:
                 ``COMM_WORLD``); rank r runs parts [r k, (r + 1) k), k = n_parts / size.
             record_shared: also keep every part's shared-node displacements after EVERY
                 step (the surrogates' training data; small), whatever ``save_every``.
+            halo_depth: with ``sync="halo"``, k, the steps between two exchanges;
+                ``save_every`` and k must divide one another, and runs advance in whole
+                multiples of the larger.
         """
         from ..options import Sync, check_option
         from ..parallel import multiprocess
@@ -97,13 +108,31 @@ class DistributedRunner:
                 if not np.array_equal(reference, self.partition.element_part):
                     self.partition = partition_from_elements(problem.mesh, reference, seed=seed)
         n_parts = self.partition.n_parts
-        devices = _default_devices(n_parts, devices, sync)
+        # how values cross processes: MPI from inside the step (one device per process), or
+        # XLA's collectives; deep halos exchange through MPI wherever it is the default
+        self.transport = "mpi" if sync == "mpi" or (
+            sync == "halo" and multiprocess.default_sync() == "mpi") else "xla"
+        devices = _default_devices(n_parts, devices, "mpi" if self.transport == "mpi" else sync)
         if n_parts % len(devices):
             raise PartitionError(f"n_parts={n_parts} must be a multiple of the number of devices "
                                  f"({len(devices)})")
         self._part_slice = slice(None)
         self._allreduce = None
-        if sync == "mpi":
+        self.layout = self.partition  # the parts as the program holds them
+        self.halo_depth = None
+        self._unit = save_every  # the steps of the smallest whole chunk
+        if sync == "halo":
+            if record_shared:
+                raise ConfigError(
+                    "sync='halo' cannot record the shared-node displacements after every step "
+                    "(the surrogates' training data, the synchronization-avoiding solver's "
+                    "synchronized phases): use sync='psum' or 'ppermute' there")
+            self.halo_depth = check_halo_depth(halo_depth)
+            self._unit = check_save_every(save_every, self.halo_depth)
+            self.layout = halo_partition(self.partition, self.halo_depth)
+        elif halo_depth != 1:
+            raise ConfigError(f"halo_depth={halo_depth!r} needs sync='halo' (got sync={sync!r})")
+        if self.transport == "mpi":
             if comm is None:
                 comm = multiprocess.world().Dup()  # the step's collectives, apart from others
             size, rank = comm.Get_size(), comm.Get_rank()
@@ -127,13 +156,17 @@ class DistributedRunner:
         self.mode = mode
         self.record_shared = bool(record_shared)
         self.n_nodes = self.partition.mesh.n_nodes
-        host = build_part_systems(problem, system, self.partition, mode)
+        host = build_part_systems(problem, system, self.layout, mode)
         self.n_local = host.system.mass.shape[1]
         self.parts = self.put(host)
         self._advance = {}
-        self._global_index = np.concatenate([p.nodes for p in self.partition.parts])
+        # where each part's local values go in the global field: all local nodes, or with
+        # deep halos the owned ones (the only ones right inside an exchange cycle)
+        kept = ([np.arange(p.n_local) for p in self.layout.parts] if self.halo_depth is None
+                else list(self.layout.owned_local))
+        self._global_index = np.concatenate([p.nodes[k] for p, k in zip(self.layout.parts, kept)])
         self._local_index = np.concatenate(
-            [p.index * self.n_local + np.arange(p.n_local) for p in self.partition.parts])
+            [p.index * self.n_local + k for p, k in zip(self.layout.parts, kept)])
 
     def put(self, tree):
         """Place stacked host arrays (all parts) on the devices, sharded on the part axis.
@@ -153,11 +186,14 @@ class DistributedRunner:
         to time it, paper section 7). ``record=True``: ``saved`` is the pair (full field
         every ``save_every`` steps, shared-node displacements (n_parts, n_steps,
         n_shared_max, 3) after every step; padding slots read 0)."""
-        n_interface = self.partition.n_interface
+        n_interface = self.layout.n_interface
         save_every = self.save_every if save_every is None else save_every
         across = self._allreduce
+        depth = self.halo_depth
 
         def one_part(part: PartSystems, state: SolverState):
+            if depth is not None and synchronize:
+                return advance_halo(part, state, n_saves, save_every, depth, n_interface, across)
             sync = None
             if synchronize:
                 sync = functools.partial(synchronize_forces, shared_local=part.shared_local,
@@ -177,7 +213,11 @@ class DistributedRunner:
         return self._advance[n_saves]
 
     def chunk_steps(self, steps_left: int, preferred: int) -> int:
-        return chunk_of_saves(steps_left, preferred, self.save_every)
+        if steps_left % self._unit:
+            raise ConfigError(f"with deep halos of depth {self.halo_depth} and save_every="
+                              f"{self.save_every}, runs advance in multiples of {self._unit} steps; "
+                              f"got {steps_left} steps: use a multiple of {self._unit}")
+        return chunk_of_saves(steps_left, preferred, self._unit)
 
     def compile(self, state, steps: int) -> float:
         """Compile the program for chunks of ``steps`` steps ahead of time (so that chunk
@@ -220,7 +260,7 @@ class DistributedRunner:
         def split(x):
             x = np.asarray(x)
             return np.stack([np.pad(x[p.nodes], ((0, self.n_local - p.n_local), (0, 0)))
-                             for p in self.partition.parts])
+                             for p in self.layout.parts])
 
         n_parts = self.partition.n_parts
         host = SolverState(split(state.displacement), split(state.previous),

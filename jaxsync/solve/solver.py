@@ -118,7 +118,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
              progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
              checkpoint_every: int | None = None, chunk_steps: int = 5000,
              blowup_factor: float = 1e3, check_stability: bool = True, sync: str | None = None,
-             shared_every: int | None = None):
+             shared_every: int | None = None, halo_depth: int = 1):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -144,9 +144,12 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
         blowup_factor: a displacement larger than this times the mesh's bounding-box
             diagonal counts as divergence.
         check_stability: set False to force a dt through without the bound check.
-        sync: distributed only: ``"psum"``, ``"ppermute"`` or ``"mpi"`` (see
+        sync: distributed only: ``"psum"``, ``"ppermute"``, ``"mpi"`` or ``"halo"`` (see
             :class:`jaxsync.solve.distributed.DistributedRunner`; default:
             :func:`jaxsync.parallel.multiprocess.default_sync`).
+        halo_depth: with ``sync="halo"``, the steps k between two exchanges of the deep
+            halos (:mod:`jaxsync.parallel.halo`, exact); ``save_every`` and k must divide
+            one another and ``n_steps`` be a multiple of the larger.
         shared_every: distributed only: keep each part's shared-node displacements every
             this many steps (a divisor of ``save_every``; default ``save_every``). The
             surrogates train on every step: ``shared_every=1`` keeps that small history
@@ -173,6 +176,16 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
 
     require_float64("simulate")
     n_steps, save_every, shared_every = check_steps(n_steps, save_every, shared_every, partitions)
+    if partitions is None and (sync == "halo" or halo_depth != 1):
+        raise ProblemError("deep halos (sync='halo', halo_depth) need a distributed run: pass "
+                           "partitions=n_parts")
+    if sync == "halo":
+        from ..parallel.halo import check_halo_depth, check_save_every
+
+        unit = check_save_every(save_every, check_halo_depth(halo_depth))
+        if n_steps % unit:
+            raise ProblemError(f"with halo_depth={halo_depth} and save_every={save_every}, n_steps "
+                               f"must be a multiple of {unit}; use n_steps={n_steps - n_steps % unit + unit}")
     dt = problem.dt if dt is None else dt
     traced = is_traced(problem.material, problem.damping, problem.loads, dt,
                        problem.initial_displacement, problem.initial_velocity)
@@ -200,7 +213,7 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
 
         runner = DistributedRunner(problem, system, partitions, save_every=save_every,
                                    mode=mode, seed=seed, devices=devices, sync=sync,
-                                   record_shared=shared_every != save_every)
+                                   record_shared=shared_every != save_every, halo_depth=halo_depth)
         part_info = runner.partition
     return drive(problem, runner, state, n_steps, float(dt), save_every, partition=part_info,
                  progress=progress, checkpoint=checkpoint, checkpoint_every=checkpoint_every,

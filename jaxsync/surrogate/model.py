@@ -195,18 +195,33 @@ class Surrogate:
 
     @classmethod
     def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2, n_past: int = 20,
-                    n_future: int = 20, dtype: str = "float32", seed: int = 0) -> "Surrogate":
-        """Untrained (randomly initialized) replicas for ``partition``, unit normalization.
+                    n_future: int = 20, dtype: str = "float32", seed: int = 0, model: str = "lstm",
+                    rank: int | None = None) -> "Surrogate":
+        """Untrained replicas for ``partition``, unit normalization.
 
         For timing studies: an untrained network costs exactly what a trained one of the
         same architecture costs, and needs no training run.  Its predictions are
         meaningless.  The defaults are the paper's architecture (n_H = 100, 2 layers,
-        n_p = n_f = 20)."""
+        n_p = n_f = 20). ``model="linear"``: the linear autoregressive map instead
+        (:mod:`jaxsync.surrogate.linear`, zero weights) of inner width ``rank`` (default
+        n_p n_dof, the widest a fit can give); ``n_hidden`` and ``n_layers`` are unused."""
+        from jaxsync.options import SurrogateModel, check_option
+
+        check_option("model", model, SurrogateModel)
         n_dof, counts = shared_dof_layout(partition)
+        n = partition.n_parts
+        if model == "linear":
+            from jaxsync.surrogate import linear
+            from jaxsync.surrogate.replicas import stack_params
+
+            arch = linear.LinearArchitecture(n_dof=n_dof, rank=rank or n_past * n_dof, n_past=n_past,
+                                             n_future=n_future, dtype=dtype)
+            params = stack_params([linear.init_params(jax.random.PRNGKey(seed), arch)] * n)
+            return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)),
+                              padding_mask(counts, n_dof), n_s, None)
         arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
                                 n_future=n_future, dtype=dtype)
         params = init_replicas(jax.random.PRNGKey(seed), arch, tuple(int(c) for c in counts))
-        n = partition.n_parts
         # normalization and mask in float64, as a checkpoint stores them
         return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)), padding_mask(counts, n_dof),
                           n_s, None)

@@ -28,21 +28,35 @@ def add_mode_option(parser) -> None:
                              "step (default: %(default)s)")
 
 
-def add_sync_option(parser) -> None:
+def add_sync_option(parser, deep_halos: bool = False) -> None:
     """``--sync``: how the parts sum shared-node forces; left None unless given, so that
-    the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`)."""
-    parser.add_argument("--sync", choices=choices(Sync), default=None,
+    the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`).
+    ``deep_halos``: also offer ``--sync halo`` and ``--halo-depth`` (synchronized runs only)."""
+    methods = [m for m in choices(Sync) if deep_halos or m != "halo"]
+    parser.add_argument("--sync", choices=methods, default=None,
                         help="how parts sum shared-node forces every synchronized step: XLA psum of "
                              "the whole interface (emulated devices, gloo between processes, NCCL "
                              "between GPUs), XLA ppermute exchange of the nodes neighbouring devices "
                              "share, or an MPI Allreduce inside the compiled step, one device per "
-                             "process (default: jaxsync.parallel.multiprocess.default_sync(): mpi "
+                             "process"
+                             + (", or deep halos: parts grown by --halo-depth layers exchange their "
+                                "halo every that many steps, exactly" if deep_halos else "")
+                             + " (default: jaxsync.parallel.multiprocess.default_sync(): mpi "
                              "across CPU processes, psum otherwise)")
+    if deep_halos:
+        parser.add_argument("--halo-depth", type=int, default=None, metavar="K",
+                            help="with --sync halo: steps between two exchanges, the layers of "
+                                 "neighbouring elements each part also holds (default 1; "
+                                 "--save-every and K must divide one another)")
 
 
 def sync_of(args) -> dict:
-    """``{"sync": ...}`` when ``--sync`` was given, else ``{}`` (the library's default)."""
-    return {} if args.sync is None else {"sync": args.sync}
+    """``{"sync": ...}`` when ``--sync`` was given (and ``"halo_depth"`` when
+    ``--halo-depth`` was), else ``{}`` (the library's default)."""
+    out = {} if args.sync is None else {"sync": args.sync}
+    if getattr(args, "halo_depth", None) is not None:
+        out["halo_depth"] = args.halo_depth
+    return out
 
 
 def compression_of(args) -> str | None:

@@ -64,7 +64,7 @@ def add_parser(subparsers) -> None:
                         "under mpiexec -n N: N parts, one per process)")
     # the option's name before `--parts` became the one name of a part count everywhere
     p.add_argument("--partitions", dest="parts", type=int, help=argparse.SUPPRESS)
-    common.add_sync_option(p)
+    common.add_sync_option(p, deep_halos=True)
     common.add_mode_option(p)
     p.add_argument("--seed", type=int, default=0, help="METIS seed (default: %(default)s)")
     p.add_argument("--timings", nargs="?", const="", default=None, metavar="JSON",

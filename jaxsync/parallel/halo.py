@@ -1,0 +1,214 @@
+"""Deep halos: the exact communication-avoiding scheme for central differences.
+
+Every node is *owned* by one part (the lowest-numbered part whose elements touch it).
+With halo depth k, a part holds, besides its owned nodes O (graph distance 0), every node
+within graph distance k of O (the node graph of the mesh: two nodes are neighbours when
+an element holds both), and every element that touches a node within distance k - 1:
+
+    N_0 = O,  N_j = N_(j-1) + neighbours of N_(j-1),
+    elements = those touching N_(k-1),  local nodes = their nodes = N_k.
+
+Why it is exact. The internal force at a node needs every element around it and the
+displacements of its neighbours. If a part starts a cycle with d(n) and d(n-1) right on
+all of N_k, its own step gives the full force on N_(k-1) (all their elements are local),
+so d(n+1) is right on N_(k-1); after j steps d(n+j) is right on N_(k-j), and after k
+steps on N_0 = O, with d(n+k-1) right on N_1. One exchange then copies both displacement
+levels of every non-owned local node from its owner, and the next cycle starts right on
+N_k again: one exchange every k steps instead of one force sum every step, for the cost
+of the redundant work on the halo (which grows with k). k = 1 exchanges every step, like
+the synchronized solver, but displacements instead of forces.
+
+The exchange uses the machinery of :mod:`jaxsync.parallel.exchange` unchanged: the
+*halo interface* numbers every node that is some part's halo node (sorted by global id),
+each part's ``shared_local`` / ``shared_interface`` list its local nodes in that
+interface, the part writes only the values of the nodes it owns (zeros elsewhere), and
+:func:`~jaxsync.parallel.exchange.scatter_reverse` sums them (x + 0 = x: the owner's
+value arrives bit for bit). A :class:`HaloPartition` therefore looks like a
+:class:`~jaxsync.parallel.partitioning.Partition` to
+:func:`~jaxsync.parallel.exchange.build_part_systems` (``mesh``, ``parts``,
+``n_interface``), with the owned nodes added (``owned_local``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import PartitionError
+from ..fem.stepper import SolverState, advance
+from .exchange import scatter_forward, scatter_reverse
+from .partitioning import Part, Partition
+
+__all__ = ["HaloPartition", "halo_partition", "check_halo_depth", "refresh_halo", "advance_halo",
+           "check_save_every"]
+
+
+def check_halo_depth(halo_depth) -> int:
+    """``halo_depth`` as a positive int, or :class:`PartitionError` naming the fix."""
+    if isinstance(halo_depth, bool) or not isinstance(halo_depth, (int, np.integer)) or halo_depth < 1:
+        raise PartitionError(f"halo_depth must be a positive integer (steps between exchanges), "
+                             f"got {halo_depth!r}")
+    return int(halo_depth)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class HaloPartition:
+    """The parts of ``partition`` grown by ``depth`` layers of their neighbours' elements.
+
+    Attributes:
+        partition: the element partition it grows (:class:`Partition`).
+        depth: k, steps between two exchanges.
+        owner: (n_nodes,) the part that owns each node.
+        parts: one :class:`Part` per part, grown: ``elements`` (every element touching a
+            node within distance k - 1 of the owned nodes, increasing global ids),
+            ``nodes`` (N_k, increasing), ``local_tets``, and ``shared_local`` /
+            ``shared_interface``: the part's local nodes in the halo interface.
+        owned_local: per part, (n_owned_p,) local indices of its owned nodes.
+        halo_nodes: (n_interface,) global ids of the halo interface: every node that is a
+            halo (non-owned local) node of some part, increasing.
+    """
+
+    partition: Partition
+    depth: int
+    owner: np.ndarray
+    parts: tuple
+    owned_local: tuple
+    halo_nodes: np.ndarray
+
+    @property
+    def mesh(self):
+        return self.partition.mesh
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.parts)
+
+    @property
+    def n_interface(self) -> int:
+        """Nodes exchanged (each carries 2 levels x 3 components)."""
+        return len(self.halo_nodes)
+
+    @property
+    def sharing_parts(self) -> tuple:
+        """For each halo interface node, the parts that hold it (increasing), as
+        :attr:`Partition.sharing_parts` (so that
+        :func:`jaxsync.perf.costmodel.communication_pattern` takes a halo too, with
+        ``dofs_per_node=6``: two displacement levels)."""
+        holders = [[] for _ in range(self.n_interface)]
+        for part in self.parts:
+            for k in part.shared_interface:
+                holders[k].append(part.index)
+        return tuple(np.asarray(h, dtype=np.int64) for h in holders)
+
+    def redundancy(self) -> float:
+        """Elements held by all parts together over the mesh's elements (1 = no redundant
+        work; grows with the depth)."""
+        return sum(len(p.elements) for p in self.parts) / self.mesh.n_elements
+
+    def summary(self) -> str:
+        """A printable table: owned and local nodes and elements per part."""
+        lines = [f"Halo of depth {self.depth} around {self.n_parts} parts: "
+                 f"{self.n_interface} exchanged nodes, {self.redundancy():.2f}x the elements",
+                 f"{'part':>6} {'elements':>10} {'owned':>8} {'local':>8} {'halo':>8}"]
+        for part, owned in zip(self.parts, self.owned_local):
+            lines.append(f"{part.index:>6} {len(part.elements):>10} {len(owned):>8} "
+                         f"{part.n_local:>8} {part.n_local - len(owned):>8}")
+        return "\n".join(lines)
+
+
+def halo_partition(partition: Partition, depth: int) -> HaloPartition:
+    """Grow the parts of ``partition`` by ``depth`` layers (definitions: module docstring).
+
+    Raises:
+        PartitionError: depth not a positive integer, or a part that owns no node (a part
+            whose every node is shared with a lower-numbered part: use fewer parts).
+    """
+    depth = check_halo_depth(depth)
+    mesh = partition.mesh
+    n_nodes, tets = mesh.n_nodes, mesh.tets
+    n_elements = mesh.n_elements
+    # incidence (elements x nodes) and the node graph (neighbours through an element)
+    incidence = sp.csr_matrix((np.ones(tets.size, dtype=np.int32),
+                               (np.repeat(np.arange(n_elements), 4), tets.ravel())),
+                              shape=(n_elements, n_nodes))
+    graph = (incidence.T @ incidence).tocsr()
+    owner = np.full(n_nodes, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(owner, tets.ravel(), np.repeat(partition.element_part, 4))
+    parts, owned_local, reach = [], [], []
+    for p in range(partition.n_parts):
+        ring = owner == p  # N_0
+        if not ring.any():
+            raise PartitionError(
+                f"part {p} owns no node (every node of it is shared with a lower-numbered part), "
+                f"so deep halos cannot be built: use fewer parts or a finer mesh")
+        for _ in range(depth - 1):  # N_(k-1)
+            ring = ring | (graph @ ring.astype(np.int32) > 0)
+        elements = np.flatnonzero(incidence @ ring.astype(np.int32) > 0)
+        nodes = np.unique(tets[elements])
+        reach.append((elements, nodes))
+    # the halo interface: every node some part holds without owning it
+    in_halo = np.zeros(n_nodes, dtype=bool)
+    for p, (_, nodes) in enumerate(reach):
+        in_halo[nodes[owner[nodes] != p]] = True
+    halo_nodes = np.flatnonzero(in_halo)
+    interface_of = np.full(n_nodes, -1, dtype=np.int64)
+    interface_of[halo_nodes] = np.arange(len(halo_nodes))
+    for p, (elements, nodes) in enumerate(reach):
+        local_of = np.full(n_nodes, -1, dtype=np.int64)
+        local_of[nodes] = np.arange(len(nodes))
+        exchanged = np.flatnonzero(in_halo[nodes])
+        parts.append(Part(index=p, elements=elements, nodes=nodes, local_tets=local_of[tets[elements]],
+                          shared_local=exchanged, shared_interface=interface_of[nodes[exchanged]]))
+        owned_local.append(np.flatnonzero(owner[nodes] == p))
+    return HaloPartition(partition=partition, depth=depth, owner=owner, parts=tuple(parts),
+                         owned_local=tuple(owned_local), halo_nodes=halo_nodes)
+
+
+def check_save_every(save_every: int, depth: int) -> int:
+    """Steps of the smallest whole chunk of a deep-halo run: ``max(save_every, depth)``
+    when one divides the other, else :class:`PartitionError` naming the fix."""
+    if save_every % depth and depth % save_every:
+        raise PartitionError(
+            f"with deep halos, save_every={save_every} and halo_depth={depth} must divide one "
+            f"another (saves fall at whole exchange cycles, or cycles at whole saves); use "
+            f"halo_depth={np.gcd(save_every, depth)} or save_every={np.lcm(save_every, depth)}")
+    return max(save_every, depth)
+
+
+def refresh_halo(part, state: SolverState, n_interface: int, across=None) -> SolverState:
+    """Both displacement levels of one part's non-owned local nodes replaced by their
+    owners' values: one exchange of (n_interface + 1, 6) values. Collective: every part of
+    every device calls it at the same step. ``part``: that part's
+    :class:`jaxsync.parallel.exchange.PartSystems` slice (with ``owned``); ``across``: as
+    in :func:`jaxsync.parallel.exchange.scatter_reverse` (None: ``psum``)."""
+    levels = jnp.concatenate([state.displacement, state.previous], axis=1)  # (n_local, 6)
+    mine = jnp.where(part.owned[:, None], levels, 0.0)  # every node has one owner: x + 0 = x
+    total = scatter_reverse(mine, part.shared_local, part.shared_interface, n_interface, across)
+    levels = scatter_forward(levels, total, part.shared_local, part.shared_interface)
+    return SolverState(levels[:, :3], levels[:, 3:], state.step)
+
+
+def advance_halo(part, state: SolverState, n_saves: int, save_every: int, depth: int,
+                 n_interface: int, across=None):
+    """``n_saves * save_every`` steps of one grown part with an exchange every ``depth``
+    steps (:func:`refresh_halo`): (state, (n_saves, n_local, 3) displacements after every
+    ``save_every`` steps). ``save_every`` and ``depth`` divide one another
+    (:func:`check_save_every`); saved snapshots inside a cycle are right on the owned
+    nodes only (read those), at its end on every local node."""
+    def cycle(s, _):  # depth local steps, then the exchange; saves every save_every steps
+        per_cycle = max(depth // save_every, 1)
+        s, saved = advance(part.system, s, per_cycle, min(save_every, depth))
+        return refresh_halo(part, s, n_interface, across), saved
+
+    if save_every >= depth:
+        def one_save(s, _):
+            s, _ = jax.lax.scan(cycle, s, None, length=save_every // depth)
+            return s, s.displacement
+
+        return jax.lax.scan(one_save, state, None, length=n_saves)
+    state, saved = jax.lax.scan(cycle, state, None, length=n_saves * save_every // depth)
+    return state, saved.reshape(n_saves, *saved.shape[2:])
