@@ -1,7 +1,8 @@
 """Explicit stepper: microseconds per step, bytes moved and achieved bandwidth.
 
-For the default coarse cantilever (312 dofs) and a beam of about 250 000 dofs, side by side
-in the same run:
+For the default coarse cantilever (312 dofs) and beams of 14 823, 51 207 and 265 923 dofs
+(the middle ones about a part of the paper's vessel on 11 parts; ``--quick`` leaves out the
+largest), side by side in the same run:
 
 - ``scipy-csr``: a SciPy CSR loop doing the same update (K d, loads, damping, Dirichlet);
 - ``jax-1dev``: jaxsync's compiled stepper (node-blocked ELL, ``lax.scan``) on one device;
@@ -16,8 +17,10 @@ blocks and column indices once, and the state vectors d(n), d(n-1), d(n+1), lump
 load vector and Dirichlet arrays once each; the gathers of d(n) are assumed to hit cache.
 Achieved bandwidth = bytes / time, compared with this machine's copy bandwidth
 (numpy ``copyto`` of 400 MB: read + write bytes per second), measured in the same run.
-Every time is the best of several calls after an untimed first one
-(:func:`jaxsync.perf.measure.best_time`, the harness of all jaxsync timings).
+SciPy and jaxsync (1 and 2 devices) are timed in rounds in which each is called once, in
+turn, after an untimed first call of each, and the best round kept
+(:func:`jaxsync.perf.measure.best_times`, the harness of all jaxsync timings): a drift of
+the machine's load hits all alike. The alternative layouts are timed apart.
 
 Usage: python benchmarks/bench_stepper.py [--quick] [--out benchmarks/results/stepper.json]
 """
@@ -42,7 +45,7 @@ import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.fem.stepper import advance, build_system, initial_state  # noqa: E402
-from jaxsync.perf.measure import best_time, copy_bandwidth  # noqa: E402
+from jaxsync.perf.measure import best_times, copy_bandwidth  # noqa: E402
 
 # the single-device solver's compiled chunk: (system, state, n_saves, save_every)
 advance_jit = jax.jit(advance, static_argnums=(2, 3))
@@ -54,8 +57,8 @@ def bytes_per_step(n_nodes, width):
     return matrix + vectors
 
 
-def scipy_loop(problem, dt, n_steps, repeats=3):
-    """The same update with SciPy CSR; returns seconds per step and the final state."""
+def scipy_loop(problem, dt, n_steps):
+    """The same update with SciPy CSR: a call of ``n_steps`` steps, ``(fn, args)``."""
     m = problem.material
     K = problem.operators.stiffness(m.lam, m.mu)
     mass = np.repeat(np.asarray(problem.lumped_mass()), 3)
@@ -65,36 +68,35 @@ def scipy_loop(problem, dt, n_steps, repeats=3):
     fixed, values = problem.dirichlet_dofs()
     alpha = float(problem.damping)
     a = 0.5 * alpha * dt
-    d = np.zeros(K.shape[0])
-    prev = np.zeros(K.shape[0])
 
     def run():
-        nonlocal d, prev
+        d = np.zeros(K.shape[0])
+        prev = np.zeros(K.shape[0])
         for n in range(n_steps):
             f = min(n * dt / t_ramp, 1.0) * load  # the cantilever's ramp, in NumPy
             new = (dt * dt * (f - K @ d) / mass + 2 * d - (1 - a) * prev) / (1 + a)
             new[fixed] = values
             prev, d = d, new
 
-    return best_time(run, repeats) / n_steps  # the harness's untimed first call warms the caches
+    return run, ()
 
 
-def jax_single(problem, dt, n_steps, repeats=3):
+def jax_single(problem, dt, n_steps):
     system = build_system(problem, dt)
     state = initial_state(problem, system)
-    return best_time(advance_jit, repeats, system, state, 1, n_steps) / n_steps
+    return advance_jit, (system, state, 1, n_steps)
 
 
-def jax_two_devices(problem, dt, n_steps, repeats=3):
+def jax_two_devices(problem, dt, n_steps):
     from jaxsync.solve.distributed import DistributedRunner
 
     system = build_system(problem, dt)
     state = initial_state(problem, system)
     runner = DistributedRunner(problem, system, 2, save_every=n_steps)
-    return best_time(runner.program(1), repeats, runner.parts, runner.from_global(state)) / n_steps
+    return runner.program(1), (runner.parts, runner.from_global(state))
 
 
-def jax_alternative(problem, dt, n_steps, layout, repeats=3):
+def jax_alternative(problem, dt, n_steps, layout):
     """The same step with another mat-vec layout (for the record)."""
     from jaxsync.pytree import pytree_dataclass
 
@@ -128,32 +130,41 @@ def jax_alternative(problem, dt, n_steps, layout, repeats=3):
     import dataclasses
 
     system = dataclasses.replace(system, stiffness=op)
-    return best_time(advance_jit, repeats, system, state, 1, n_steps) / n_steps
+    return advance_jit, (system, state, 1, n_steps)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="small large-mesh case, few steps")
+    parser.add_argument("--quick", action="store_true", help="leave out the 266k-dof case")
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "stepper.json"))
     args = parser.parse_args(argv)
 
-    # (name, divisions, jax steps, scipy steps, repeats): best of several repeats, since
-    # the short small-mesh timings are sensitive to other activity on the machine
-    cases = [("cantilever-coarse", (25, 1, 1), 20000, 2000, 9),
-             ("beam-250k-dofs", (60, 8, 8) if args.quick else (200, 20, 20), 20, 5, 3)]
+    # (name, divisions, steps per call, repeats). SciPy and jaxsync are timed round-robin
+    # (jaxsync.perf.measure.best_times: the best of ``repeats`` rounds), so that a drift of
+    # the machine hits both alike: timed one after another with 3 repeats, the 14 823-dof
+    # case read 0.78-0.87x SciPy, round-robin with 30 repeats 1.00-1.25x.
+    cases = [("cantilever-coarse", (25, 1, 1), 2000, 15),
+             ("beam-15k-dofs", (60, 8, 8), 100, 30),
+             ("beam-51k-dofs", (100, 12, 12), 40, 15)]
+    if not args.quick:
+        cases.append(("beam-266k-dofs", (200, 20, 20), 10, 7))
     bandwidth = copy_bandwidth() / 1e9  # GB/s
     rows = []
-    for name, divisions, n_jax, n_scipy, repeats in cases:
+    for name, divisions, n_steps, repeats in cases:
         mesh = jaxsync.box_beam(25.0, 1.0, 1.0, divisions)
         problem = jaxsync.cantilever(mesh)
         dt = problem.dt
         width = problem.operators.block_ell[0].shape[1]
         nbytes = bytes_per_step(mesh.n_nodes, width)
-        timings = {"scipy-csr": scipy_loop(problem, dt, n_scipy, repeats),
-                   "jax-1dev": jax_single(problem, dt, n_jax, repeats),
-                   "jax-2dev": jax_two_devices(problem, dt, n_jax, repeats),
-                   "jax-einsum": jax_alternative(problem, dt, n_jax, "einsum"),
-                   "jax-bcoo": jax_alternative(problem, dt, n_jax, "bcoo")}
+        calls = {"scipy-csr": scipy_loop(problem, dt, n_steps),
+                 "jax-1dev": jax_single(problem, dt, n_steps),
+                 "jax-2dev": jax_two_devices(problem, dt, n_steps)}
+        timings = {impl: t / n_steps for impl, t in best_times(calls, repeats).items()}
+        # the slow alternative layouts apart: their large temporaries would evict the others'
+        # working sets between rounds
+        for layout in ("einsum", "bcoo"):
+            fn, fargs = jax_alternative(problem, dt, n_steps, layout)
+            timings[f"jax-{layout}"] = best_times({layout: (fn, fargs)}, max(3, repeats // 3))[layout] / n_steps
         for impl, seconds in timings.items():
             rows.append({"case": name, "dofs": mesh.n_dofs, "impl": impl,
                          "us_per_step": 1e6 * seconds, "bytes_per_step": nbytes,
