@@ -198,6 +198,7 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.predicted import PredictedPhase
     from jaxsync.surrogate import Surrogate
+    from jaxsync.surrogate.architecture import architecture_to_dict
     from jaxsync.surrogate.data import shared_dof_layout
 
     problem = jaxsync.cantilever()
@@ -239,7 +240,7 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
         best, median = time_per_step(lambda p=program, a=args: jax.block_until_ready(p(*a)), n_cycles * cycle)
         rows.append({"kind": "speedup", "method": name, "steps": n_cycles * cycle, "us_per_step_best": best,
                      "us_per_step_median": median, "n_s": predictor.n_s,
-                     "architecture": predictor.arch.to_dict()})
+                     "architecture": architecture_to_dict(predictor.arch)})
     synchronized = min(solver_rows, key=lambda r: r["us_per_step_best"])
     for row in rows:
         row["baseline"] = synchronized["method"]

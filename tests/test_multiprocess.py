@@ -8,6 +8,7 @@ ranks with its ``fork`` launcher on localhost, so nothing leaves the machine.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import socket
@@ -161,6 +162,34 @@ def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
         assert {"psum", "mpi-callback", "halo-4"} <= names
         for name in names:
             assert relative_error(runs[name], reference.displacement) <= 1e-12, name
+
+
+@pytest.mark.mpi
+@needs_mpiexec
+def test_bench_sync_measures_zeta_and_checks_the_cost_model_with_real_processes(tmp_path):
+    bench = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
+                         "bench_sync.py")
+    path = tmp_path / "sync.json"
+    out = _mpiexec(sys.executable, bench, "--sizes", "12", "1200", "--steps", "50", "--solver-steps", "64",
+                   "--repeats", "1", "--halo-depths", "1", "4", "--json", str(path))
+    assert out.returncode == 0, out.stderr
+    result = json.loads(path.read_text())
+    assert result["processes"] == 2 and result["devices_per_process"] == 1
+    solver = {r["method"]: r for r in result["rows"] if r["kind"] == "solver"}
+    speedup = {r["method"]: r for r in result["rows"] if r["kind"] == "speedup"}
+    assert {"psum-gloo", "mpi-callback"} <= set(solver)
+    assert set(speedup) == {"nosync", "halo-1", "halo-4", "avoid-lstm-paper", "avoid-lstm-default",
+                            "avoid-linear"}
+    best = min(r["us_per_step_best"] for r in solver.values())
+    for name, row in speedup.items():
+        assert row["zeta"] == pytest.approx(best / row["us_per_step_best"])
+    for name in ("halo-1", "halo-4"):  # exact, and exchanged through MPI across the processes
+        assert speedup[name]["max_rel_diff_vs_psum"] <= 1e-12 and speedup[name]["transport"] == "mpi"
+    assert speedup["avoid-linear"]["architecture"]["kind"] == "linear"
+    for check in result["model_check"]:  # prediction and measurement, as the model defines them
+        assert check["predicted_us"] > 0 and check["measured_us"] > 0
+        assert check["relative_error"] == pytest.approx(check["predicted_us"] / check["measured_us"] - 1)
+    assert "zeta" in out.stdout and "cost model" in out.stdout
 
 
 @pytest.mark.mpi

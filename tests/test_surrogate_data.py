@@ -190,6 +190,36 @@ def test_several_runs_pool_their_windows_with_load_parameters():
         build_dataset([bad], 3, 5, 4)
 
 
+def test_windows_across_a_load_jump_are_left_out():
+    history = _wave(400, 2)
+    n_s, n_p, n_f = 3, 4, 2
+    all_windows = build_dataset([history], n_s, n_p, n_f, train_fraction=1.0, n_offsets=3)
+    cut = build_dataset([history], n_s, n_p, n_f, train_fraction=1.0, n_offsets=3, load_jumps=[[100.0, 250.5]])
+    # by hand: offset k = 0, 1, 2; window w spans rows k + 3 w .. k + 3 (w + 5); a window is left
+    # out when its first row <= J < its last row for some jump J
+    expected_out, kept = 0, []
+    for k in range(3):
+        x, _ = make_windows(subsample(history, n_s, k), n_p, n_f)
+        for w in range(x.shape[0]):
+            first, last = k + n_s * w, k + n_s * (w + n_p + n_f - 1)
+            out = any(first <= j < last for j in (100.0, 250.5))
+            expected_out += out
+            if not out:
+                kept.append(x[w])
+    total = all_windows.x_train.shape[0] + all_windows.x_val.shape[0]
+    assert cut.n_excluded == expected_out > 0 and all_windows.n_excluded == 0
+    assert cut.x_train.shape[0] + cut.x_val.shape[0] == total - expected_out
+    # the kept windows, in order, split as any other set of windows
+    kept = np.array(kept)
+    train, val = split_indices(len(kept), 0.25, 0, "interleaved")
+    np.testing.assert_allclose(cut.normalization.invert(cut.x_train.astype(np.float64)), kept[train], atol=1e-5)
+    np.testing.assert_allclose(cut.normalization.invert(cut.x_val.astype(np.float64)), kept[val], atol=1e-5)
+    with pytest.raises(ConfigError, match="every one of the .* windows straddles a load jump"):
+        build_dataset([history[:40]], 3, 4, 2, train_fraction=1.0, load_jumps=[[1.0, 10.0, 20.0, 30.0]])
+    with pytest.raises(ConfigError, match="one list per run"):
+        build_dataset([history], 3, 4, 2, load_jumps=[[1.0], [2.0]])
+
+
 def test_stack_replicas_pads_and_masks():
     a = build_dataset([_wave(300, 2)], 2, 4, 3, split_seed=5)
     b = build_dataset([_wave(300, 5, 0.3)], 2, 4, 3, split_seed=5)

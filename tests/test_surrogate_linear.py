@@ -277,3 +277,26 @@ def test_initialized_linear_replicas_for_timing_have_the_widest_rank_and_predict
     assert Surrogate.initialized(part, 4, model="linear", rank=7).arch.rank == 7
     with pytest.raises(ConfigError, match="lstm"):
         Surrogate.initialized(part, 4, model="gru")
+
+
+def test_training_leaves_out_the_windows_across_a_recorded_load_jump(tmp_path):
+    """A run whose load switches off records its jumps; training takes no window across
+    them (counted in the summary) and the fit equals a fit on the kept windows alone."""
+    from jaxsync.surrogate import train_surrogates
+    from jaxsync.surrogate.data import read_shared_histories
+
+    problem = jaxsync.cantilever()
+    t_off = 150.5 * float(problem.dt)
+    problem = dataclasses.replace(problem, loads=(jaxsync.BodyForce(
+        problem.loads[0].vector, jaxsync.StepOff(t_off, problem.loads[0].time)),))
+    reference = jaxsync.simulate(problem, 400, partitions=2)
+    assert reference.parameters["load_jumps"] == [151] and reference.parameters["last_load_jump"] == 151
+    reference.save(tmp_path / "run.h5")
+    histories = read_shared_histories(tmp_path / "run.h5")
+    assert histories.load_jumps == (151,)
+    trained = train_surrogates(tmp_path / "run.h5", model="linear", n_s=5, n_past=4, n_future=4,
+                               train_fraction=1.0, rollout_tolerance=None)
+    kept = [build_dataset([h], 5, 4, 4, train_fraction=1.0, load_jumps=[[151.0]]) for h in histories.histories]
+    assert trained.n_excluded_windows == kept[0].n_excluded == 7  # windows of 8 snapshots 5 steps apart
+    assert trained.summary()["sampling"]["n_excluded_windows"] == 7
+    assert trained.n_train_windows == kept[0].x_train.shape[0]

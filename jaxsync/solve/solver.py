@@ -324,7 +324,8 @@ def _parameters(problem, jumps=None) -> dict:
     """Problem parameters stored with a trajectory (concrete values only); given the run's
     load jumps (:func:`jaxsync.fem.loads.load_jumps`), also ``last_load_jump``, the last of
     them (absent when there is none), which the offline check of
-    :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does."""
+    :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does, and
+    ``load_jumps``, all of them, across which training takes no window."""
     m = problem.material
     out = {}
     for name, value in (("E", m.E), ("nu", m.nu), ("rho", m.rho), ("damping", problem.damping)):
@@ -332,4 +333,5 @@ def _parameters(problem, jumps=None) -> dict:
             out[name] = float(value)
     if jumps is not None and len(jumps):
         out["last_load_jump"] = int(jumps[-1])
+        out["load_jumps"] = [int(j) for j in jumps]  # training leaves out windows across them
     return out

@@ -178,6 +178,8 @@ class WindowDataset:
             none).
         x_val, y_val, load_parameter_val: the validation counterparts.
         normalization: fitted on the training windows.
+        n_excluded: windows left out because they straddle a load jump (``load_jumps`` of
+            :func:`build_dataset`).
     """
 
     x_train: np.ndarray
@@ -187,6 +189,7 @@ class WindowDataset:
     y_val: np.ndarray
     load_parameter_val: np.ndarray
     normalization: Normalization
+    n_excluded: int = 0
 
     @property
     def n_dof(self) -> int:
@@ -204,6 +207,7 @@ def build_dataset(
     load_parameters: Sequence[float] | None = None,
     n_offsets: int = 1,
     split: ValidationSplit = "interleaved",
+    load_jumps: Sequence[Sequence[float]] | None = None,
 ) -> WindowDataset:
     """Windows of one part from one or several runs.
 
@@ -223,6 +227,12 @@ def build_dataset(
             same signal at other phases (n_offsets times the windows, the same run).
         split: ``"interleaved"`` or ``"random"`` (:func:`split_indices`), over the
             windows of all runs and offsets in order.
+        load_jumps: per run, the load jumps (:func:`jaxsync.fem.loads.load_jumps`) in rows
+            of that run (the jump's step over the rows' stride). A window whose rows reach
+            from r0 <= J to r1 > J mixes the response before a jump at J with the one after
+            it, which no autonomous model can foresee (the online run stays synchronized
+            through a jump and predicts only from a history after it): such windows are
+            left out (counted in ``n_excluded``). None: none are.
 
     Returns:
         The normalized :class:`WindowDataset`.
@@ -235,8 +245,11 @@ def build_dataset(
         raise ConfigError(f"train fraction n_ts must be in (0, 1], got {train_fraction}")
     if isinstance(n_offsets, bool) or not isinstance(n_offsets, (int, np.integer)) or not 1 <= n_offsets <= n_s:
         raise ConfigError(f"n_offsets must be an integer from 1 to n_s={n_s}, got {n_offsets!r}")
+    if load_jumps is not None and len(load_jumps) != len(runs):
+        raise ConfigError(f"got load jumps for {len(load_jumps)} runs and {len(runs)} runs; give one list per run")
     n_dof = np.shape(runs[0])[-1]
     xs, ys, loads = [], [], []
+    n_excluded = 0
     for r, run in enumerate(runs):
         run = np.asarray(run, dtype=np.float64)
         if run.ndim != 2 or run.shape[1] != n_dof:
@@ -244,12 +257,24 @@ def build_dataset(
         if not np.all(np.isfinite(run)):
             raise ConfigError(f"run {r} holds NaN or Inf displacements; it cannot be used for training")
         n_used = int(np.floor(train_fraction * run.shape[0]))
+        jumps = np.asarray([] if load_jumps is None else load_jumps[r], dtype=float)
         for k in range(n_offsets):
-            x, y = make_windows(subsample(run[:n_used], n_s, (k * n_s) // n_offsets), n_past, n_future)
+            offset = (k * n_s) // n_offsets
+            x, y = make_windows(subsample(run[:n_used], n_s, offset), n_past, n_future)
+            if jumps.size:
+                first = offset + n_s * np.arange(x.shape[0])  # rows of each window's first and last snapshot
+                last = first + n_s * (n_past + n_future - 1)
+                keep = ~np.any((first[:, None] <= jumps[None, :]) & (last[:, None] > jumps[None, :]), axis=1)
+                n_excluded += int(np.count_nonzero(~keep))
+                x, y = x[keep], y[keep]
             xs.append(x)
             ys.append(y)
             loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
     x, y, load = np.concatenate(xs), np.concatenate(ys), np.concatenate(loads)
+    if x.shape[0] == 0 and n_excluded:
+        raise ConfigError(f"every one of the {n_excluded} training windows straddles a load jump; train on "
+                          f"a longer run, or with a smaller n_s (n_p + n_f snapshots every n_s steps must fit "
+                          f"between the jumps)")
     train, val = split_indices(x.shape[0], val_fraction, split_seed, split)
     norm = Normalization.fit(np.concatenate([x[train], y[train]], axis=1))
 
@@ -259,7 +284,7 @@ def build_dataset(
     return WindowDataset(
         x_train=prep(x[train]), y_train=prep(y[train]), load_parameter_train=load[train].astype(np.float32),
         x_val=prep(x[val]), y_val=prep(y[val]), load_parameter_val=load[val].astype(np.float32),
-        normalization=norm,
+        normalization=norm, n_excluded=n_excluded,
     )
 
 
@@ -365,6 +390,8 @@ class SharedHistories:
         stride: steps between rows of ``histories``.
         last_load_jump: the last step at which a load of the run jumps (the trajectory's
             ``parameters["last_load_jump"]``), or None.
+        load_jumps: every step at which a load of the run jumps (``parameters["load_jumps"]``;
+            for a trajectory written before those were kept, its last one only).
     """
 
     histories: tuple[np.ndarray, ...]
@@ -374,6 +401,7 @@ class SharedHistories:
     synchronized: np.ndarray | None = None
     stride: int = 1
     last_load_jump: int | None = None
+    load_jumps: tuple = ()
 
     def for_sampling(self, n_s: int) -> int:
         """The row stride that samples these histories every ``n_s`` steps.
@@ -455,5 +483,7 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
             "the file is damaged"
         )
     load, jump = traj.parameters.get("load_parameter"), traj.parameters.get("last_load_jump")
+    jumps = traj.parameters.get("load_jumps", [] if jump is None else [jump])
+    jumps = tuple(int(j) for j in np.atleast_1d(jumps))
     return SharedHistories(tuple(histories), tuple(nodes), float(traj.dt), None if load is None else float(load),
-                           synchronized, int(traj.shared_stride), None if jump is None else int(jump))
+                           synchronized, int(traj.shared_stride), None if jump is None else int(jump), jumps)

@@ -77,6 +77,7 @@ class TrainedSurrogates:
             candidate's validation loss (:func:`choose_candidates`); None for one, and
             for the linear surrogate (least squares has one solution).
         n_train_windows, n_val_windows: windows per part.
+        n_excluded_windows: windows per part left out because they straddle a load jump.
         checkpoint_every: epochs between writes of the resumable training state.
         train_seconds: wall time of the training call (compilation included).
         e_mse_applications: refill cycles N of ``sqrt_e_mse`` (None: not measured).
@@ -112,6 +113,7 @@ class TrainedSurrogates:
     split: ValidationSplit = "interleaved"
     candidates: dict | None = None
     files: dict[str, str] = dataclasses.field(default_factory=dict)
+    n_excluded_windows: int = 0
 
     @property
     def model(self) -> SurrogateModel:
@@ -169,7 +171,8 @@ class TrainedSurrogates:
             "training": training,
             "sampling": {"n_s": self.surrogate.n_s, "n_offsets": self.n_offsets, "train_fraction": self.train_fraction,
                          "val_fraction": self.val_fraction, "split": self.split, "seed": self.seed,
-                         "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows},
+                         "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows,
+                         "n_excluded_windows": self.n_excluded_windows},
             "candidates": self.candidates,
             "initial_val_loss": result.initial_val_loss.tolist(),
             "final_train_loss": result.train_loss[-1].tolist(),
@@ -367,7 +370,8 @@ def train_surrogates(
     row_stride = row_strides.pop()
     datasets = [
         build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, train_fraction,
-                      val_fraction, seed, loads, n_offsets=n_offsets, split=split)
+                      val_fraction, seed, loads, n_offsets=n_offsets, split=split,
+                      load_jumps=[[j / run.stride for j in run.load_jumps] for run in runs])
         for p in range(n_parts)
     ]
     state_path = None
@@ -427,7 +431,7 @@ def train_surrogates(
         n_val_windows=int(data.x_val.shape[1]), checkpoint_every=checkpoint_every, train_seconds=train_seconds,
         e_mse_applications=n_app if sqrt_e_mse is not None else None, sqrt_e_mse=sqrt_e_mse,
         rollout=rollout, rollout_tolerance=rollout_tolerance, n_offsets=n_offsets, split=split,
-        candidates=candidates,
+        candidates=candidates, n_excluded_windows=datasets[0].n_excluded,
     )
     if out is None:
         return trained
