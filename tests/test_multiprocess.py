@@ -160,6 +160,7 @@ def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
         assert str(runs["default"]) == "mpi"  # the faster one across processes
         names = set(runs.files) - {"default"}
         assert {"psum", "mpi-callback", "halo-4"} <= names
+        assert ("mpi-mpi4jax" in names) == multiprocess.mpi4jax_available()
         for name in names:
             assert relative_error(runs[name], reference.displacement) <= 1e-12, name
 
@@ -226,6 +227,22 @@ def test_launcher_environment_is_detected():
     assert multiprocess.launched_size({"PMI_SIZE": "4", "PMI_RANK": "1"}) == 4
     assert multiprocess.launched_by_mpi({"OMPI_COMM_WORLD_SIZE": "2"})
     assert not multiprocess.launched_by_mpi({"PMI_SIZE": "1"})
+
+
+@pytest.mark.skipif(not multiprocess.mpi4jax_available(),
+                    reason="mpi4jax not installed: pip install -e '.[mpi]' (README, 'Running on clusters')")
+def test_mpi4jax_allreduce_runs_inside_a_compiled_step():
+    """One rank: the Allreduce through mpi4jax's XLA custom call is the identity."""
+    import jax
+    import jax.numpy as jnp
+
+    allreduce = multiprocess.make_allreduce(None, "auto")
+    x = jnp.arange(12.0).reshape(4, 3)
+    step = jax.jit(lambda v: jax.lax.fori_loop(0, 5, lambda i, c: allreduce(c) * 1.0, v))
+    np.testing.assert_array_equal(np.asarray(step(x)), np.asarray(x))
+    # an XLA custom call into MPI, not a host callback
+    text = jax.jit(allreduce).lower(x).as_text()
+    assert "mpi_allreduce_ffi" in text and "callback" not in text
 
 
 def test_single_process_defaults_to_psum():
