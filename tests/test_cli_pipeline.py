@@ -273,3 +273,20 @@ def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
                  str(tmp_path / "o.h5"), "--no-progress"]) == 2
     assert "partition has 2 parts" in capsys.readouterr().err
     assert not (tmp_path / "o.h5").exists()
+
+
+def test_predict_in_bfloat16_is_checked_first_and_follows_the_float32_run(demo, predicted, tmp_path):
+    path, first = predicted
+    assert first.code == 0, first.err
+    run = run_cli(predict_args(demo, tmp_path / "bf16.h5", "--inference-dtype", "bfloat16"))
+    assert run.code == 0, run.err
+    line = next(line for line in run.out.splitlines() if line.startswith("bfloat16 inference"))
+    assert "bound 1 %" in line
+    deviation = float(line.split("by at most ")[1].split(" %")[0])
+    assert 0 < deviation <= 1.0
+    # the same run up to n_cri (synchronized: no network involved), then the networks computing
+    # in bfloat16 make it differ from the float32 run
+    full, reduced = jaxsync.Trajectory.load(path), jaxsync.Trajectory.load(tmp_path / "bf16.h5")
+    synchronized = full.stats.n_cri // full.save_every + 1
+    np.testing.assert_array_equal(reduced.displacement[:synchronized], full.displacement[:synchronized])
+    assert np.abs(reduced.displacement[synchronized:] - full.displacement[synchronized:]).max() > 0

@@ -34,6 +34,11 @@ def add_parser(subparsers) -> None:
                    help="write the paper's raw refill into the solver (n_s interleaved network "
                         "applications, which jitter from step to step) instead of the default smooth "
                         "curve through their block means (jaxsync.surrogate.refill.smooth_refill)")
+    p.add_argument("--inference-dtype", choices=("float32", "bfloat16"), default=None,
+                   help="compute the networks in bfloat16 (float32 accumulation; jaxsync.surrogate."
+                        "inference): checked first on the synchronized run's shared histories and "
+                        "refused when it deviates from the trained precision by more than 1 %% "
+                        "(default: the networks' own dtype)")
     p.add_argument("--load-jumps", choices=("synchronize", "predict"), default="synchronize",
                    help="at the steps where a load's time function jumps (a load switched off): stay "
                         "synchronized until the networks' whole input history follows the last jump "
@@ -69,12 +74,15 @@ def run(args) -> int:
     n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     surrogates = ckpt
-    if args.raw_refill:
+    if args.raw_refill or args.inference_dtype is not None:
         import dataclasses
 
         from ...surrogate import Surrogate
 
-        surrogates = dataclasses.replace(Surrogate.from_checkpoint(ckpt, args.load_parameter), smooth=False)
+        surrogates = dataclasses.replace(Surrogate.from_checkpoint(ckpt, args.load_parameter),
+                                         smooth=not args.raw_refill)
+    if args.inference_dtype == "bfloat16":
+        surrogates = _reduced_precision(surrogates, reference, args.trajectory)
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=args.mode,
                                     save_every=args.save_every or reference.save_every,
@@ -84,3 +92,21 @@ def run(args) -> int:
     online.save(args.output, compression=common.compression_of(args))
     print(describe_run(online) + f"; wrote {args.output}")
     return 0
+
+
+def _reduced_precision(surrogate, reference, name):
+    """``surrogate`` computing in bfloat16, after the check on ``reference``'s shared
+    histories (:func:`jaxsync.surrogate.inference.reduced_precision`: refused above the
+    default bound, with the deviation in the message)."""
+    from ...errors import ConfigError
+    from ...surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_windows
+
+    if reference.shared_stride != 1:
+        raise ConfigError(f"--inference-dtype bfloat16 checks the reduced precision on the shared "
+                          f"histories of {name} at every step, which keeps them every "
+                          f"{reference.shared_stride} steps: rerun it with --shared-every 1")
+    windows = surrogate_windows(surrogate, [p.shared_displacement for p in reference.parts], max_windows=256)
+    reduced, report = reduced_precision(surrogate, windows, "bfloat16")
+    print(f"bfloat16 inference: deviates from {surrogate.arch.dtype} by at most {100 * report.worst:.3g} % "
+          f"(RMS over {report.n_windows} windows of {name}; bound {100 * DEFAULT_BOUND:.3g} %)")
+    return reduced
