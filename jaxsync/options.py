@@ -31,6 +31,10 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
 - :data:`SurrogateModel`: the surrogate ``jaxsync train --model`` fits
   (:mod:`jaxsync.surrogate.architecture`): the ``"lstm"`` encoder-decoder (default) or the
   ``"linear"`` autoregressive baseline, fitted by least squares.
+- :data:`LoadJumpWindows`: whether training takes the windows that straddle a recorded load
+  jump (``jaxsync train --load-jump-windows``): ``"exclude"`` or ``"keep"``; by default
+  excluded for the linear model and kept for the LSTM (measured, see
+  :func:`jaxsync.surrogate.train_surrogates`).
 """
 
 from __future__ import annotations
@@ -41,8 +45,8 @@ from typing import Literal, get_args
 from .errors import ConfigError, JaxsyncError
 
 __all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
-           "ValidationSplit", "SurrogateModel", "choices", "check_option", "DEFAULT_MODE", "DEFAULT_COMPRESSION",
-           "DEFAULT_COMPONENT"]
+           "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "choices", "check_option", "DEFAULT_MODE",
+           "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
 Sync = Literal["psum", "ppermute", "mpi", "halo"]
@@ -53,6 +57,7 @@ ProblemKind = Literal["cantilever", "general"]
 MeshGenerator = Literal["box_beam", "coronary_tree"]
 ValidationSplit = Literal["interleaved", "random"]
 SurrogateModel = Literal["lstm", "linear"]
+LoadJumpWindows = Literal["exclude", "keep"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

@@ -298,5 +298,19 @@ def test_training_leaves_out_the_windows_across_a_recorded_load_jump(tmp_path):
                                train_fraction=1.0, rollout_tolerance=None)
     kept = [build_dataset([h], 5, 4, 4, train_fraction=1.0, load_jumps=[[151.0]]) for h in histories.histories]
     assert trained.n_excluded_windows == kept[0].n_excluded == 7  # windows of 8 snapshots 5 steps apart
-    assert trained.summary()["sampling"]["n_excluded_windows"] == 7
+    sampling = trained.summary()["sampling"]
+    assert (sampling["n_excluded_windows"], sampling["load_jump_windows"]) == (7, "exclude")
     assert trained.n_train_windows == kept[0].x_train.shape[0]
+    # kept on request (the LSTM's default): every window, as without a jump
+    every = train_surrogates(tmp_path / "run.h5", model="linear", n_s=5, n_past=4, n_future=4,
+                             train_fraction=1.0, rollout_tolerance=None, load_jump_windows="keep")
+    assert every.n_excluded_windows == 0 and every.n_train_windows > trained.n_train_windows
+    with pytest.raises(ConfigError, match="load_jump_windows must be one of 'exclude', 'keep'"):
+        train_surrogates(tmp_path / "run.h5", model="linear", load_jump_windows="drop")
+    # from the command line
+    args = _parser().parse_args(["train", str(tmp_path / "run.h5"), "-o", str(tmp_path / "cli"), "--model", "linear",
+                                 "--n-s", "5", "--n-past", "4", "--n-future", "4", "--train-fraction", "1",
+                                 "--load-jump-windows", "keep", "--rollout-tolerance", "100", "--no-progress"])
+    assert args.func(args) == 0
+    sampling = json.loads((tmp_path / "cli" / "train_summary.json").read_text())["sampling"]
+    assert (sampling["n_excluded_windows"], sampling["load_jump_windows"]) == (0, "keep")

@@ -26,7 +26,7 @@ import argparse
 import inspect
 import os
 
-from jaxsync.options import EpochRule, SurrogateModel, ValidationSplit, choices
+from jaxsync.options import EpochRule, LoadJumpWindows, SurrogateModel, ValidationSplit, choices
 from jaxsync.surrogate.fit import LOSS_CURVES_NAME, STATE_NAME, SUMMARY_NAME, train_surrogates
 from jaxsync.surrogate.train import TrainConfig
 
@@ -107,6 +107,11 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--split", choices=choices(ValidationSplit), default=LIBRARY["split"],
                         help="which windows are held out for validation: every 4th (interleaved, at the default "
                         "fraction) or a seeded random subset (the paper's) (default: %(default)s)")
+    parser.add_argument("--load-jump-windows", choices=choices(LoadJumpWindows), default=None,
+                        help="leave out, or keep, the windows that straddle a load jump the trajectory "
+                        "records (a load switched off); an online run stays synchronized through jumps by "
+                        "default, and needs them kept to predict through one (default: exclude for "
+                        "--model linear, whose fit they bend; keep for the LSTM)")
     parser.add_argument("--n-hidden", "--hidden", dest="n_hidden", type=int, default=LIBRARY["n_hidden"],
                         help="encoder hidden size n_H (default: %(default)s; paper: 100)")
     parser.add_argument("--n-layers", "--layers", dest="n_layers", type=int, default=LIBRARY["n_layers"],
@@ -173,6 +178,7 @@ def run_train(args: argparse.Namespace) -> int:
         n_future=args.n_future, n_hidden=args.n_hidden,
         n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
         val_fraction=args.val_fraction, n_offsets=args.n_offsets, split=args.split, n_candidates=args.n_candidates,
+        load_jump_windows=args.load_jump_windows,
         load_parameters=args.load_parameter,
         allow_predicted=args.allow_predicted, seed=args.seed, emse_applications=args.emse_applications,
         rollout_tolerance=args.rollout_tolerance or None, devices=args.devices, out=args.output,
