@@ -118,7 +118,8 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
              progress: bool | None = None, checkpoint: str | os.PathLike | None = None,
              checkpoint_every: int | None = None, chunk_steps: int = 5000,
              blowup_factor: float = 1e3, check_stability: bool = True, sync: str | None = None,
-             shared_every: int | None = None, halo_depth: int = 1):
+             shared_every: int | None = None, halo_depth: int = 1,
+             gradient_checkpoints: bool | int = True):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -154,6 +155,13 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
             this many steps (a divisor of ``save_every``; default ``save_every``). The
             surrogates train on every step: ``shared_every=1`` keeps that small history
             while the full field is saved only every ``save_every`` steps.
+        gradient_checkpoints: traced runs only (inside ``jax.grad``): ``True`` (default)
+            runs the time loop with recomputation (:mod:`jaxsync.solve.gradients`), so the
+            reverse pass holds about 2 sqrt(n_steps) states instead of every step's, for
+            one more forward pass; ``False``: the plain scan (every step stored, fastest
+            for short runs); an int: a memory budget in bytes for the stored states (the
+            plain scan when every step fits in it, else recomputation). Ignored by
+            untraced runs.
 
     Returns:
         :class:`jaxsync.Trajectory` with ``n_steps // save_every + 1`` snapshots (and,
@@ -169,7 +177,11 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
 
     Differentiable: when the material, damping, loads or dt are JAX tracers (inside
     ``jax.grad``), the whole run is one ``lax.scan`` without progress, divergence checks or
-    checkpoints, and the trajectory holds JAX arrays (single-device solver).
+    checkpoints, and the trajectory holds JAX arrays. Its reverse pass recomputes segments
+    of the run (``gradient_checkpoints``) so that memory grows like sqrt(n_steps). With
+    ``partitions`` the parts run under ``shard_map`` with ``sync="psum"`` (default) or
+    ``"ppermute"`` (``mode``, ``seed`` and ``devices`` as for untraced runs; no
+    ``shared_every``, deep halos or MPI), and the trajectory holds the merged global field.
     """
     from ..precision import require_float64
     from ..trajectory import Trajectory
@@ -196,11 +208,20 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     system = build_system(problem, dt, mode)
     state = initial_state(problem, system)
     if traced:
-        if partitions is not None:
-            raise ProblemError("differentiating through the distributed solver is not supported; "
-                               "use partitions=None (the single-device solver) under jax.grad")
+        from .gradients import advance_for_gradients, partitioned_trajectory
+
         n_saves = n_steps // save_every
-        _, saved = advance(system, state, n_saves, save_every)
+        if n_saves == 0:
+            saved = jnp.zeros((0,) + state.displacement.shape, state.displacement.dtype)
+        elif partitions is None:
+            _, saved = advance_for_gradients(system, state, n_saves, save_every, gradient_checkpoints)
+        else:
+            if shared_every != save_every or sync in ("mpi", "halo"):
+                raise ProblemError("differentiating a distributed run supports sync='psum' or "
+                                   "'ppermute' without shared_every")
+            saved = partitioned_trajectory(problem, system, state, partitions, n_saves=n_saves,
+                                           save_every=save_every, checkpoints=gradient_checkpoints,
+                                           mode=mode, seed=seed, devices=devices, sync=sync)
         displacement = jnp.concatenate([state.displacement[None], saved])
         times = jnp.arange(n_saves + 1, dtype=system.dt.dtype) * save_every * system.dt
         return Trajectory(times=times, displacement=displacement, mesh=problem.mesh,
