@@ -1,0 +1,300 @@
+"""Reverse mode through long explicit runs in bounded memory (recomputation).
+
+``jax.grad`` through the one ``lax.scan`` of :func:`jaxsync.fem.stepper.advance` keeps
+the residuals of every step: two (n_nodes, 3) float64 fields per step (d(n) for the
+derivative of K d(n) in the Lame parameters, d(n-1) for the damping term), so memory
+grows like n_steps. :func:`advance_checkpointed` computes the same values, but splits
+the time loop into segments whose bodies are ``jax.checkpoint``-ed: the forward pass
+keeps only the states at segment boundaries, and the reverse pass recomputes one
+segment at a time from its boundary state (one extra forward run). With segments of
+about sqrt(n_steps) steps the reverse pass holds about 2 sqrt(n_steps) states plus the
+saved outputs, for one more forward pass of compute.
+
+When ``save_every`` exceeds the segment length (few saves, many steps between them),
+the steps of one save are themselves split into checkpointed sub-segments of about
+sqrt(save_every) steps: memory is then n_saves + 2 sqrt(save_every) states, for two
+extra forward passes.
+
+:func:`partitioned_trajectory` runs the same checkpointed loop over parts under
+``jax.shard_map`` (the distributed solver's programs) with traced material, damping,
+loads and dt, so that distributed runs are differentiable too.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ProblemError
+from ..fem.stepper import STEP_UNROLL, ExplicitSystem, SolverState, advance, step
+
+__all__ = ["advance_checkpointed", "advance_for_gradients", "segment_steps_for_budget",
+           "state_bytes", "step_residual_bytes", "partitioned_trajectory"]
+
+
+def state_bytes(n_nodes: int, itemsize: int = 8) -> int:
+    """Bytes of one state's two (n_nodes, 3) displacement levels."""
+    return 2 * 3 * int(n_nodes) * int(itemsize)
+
+
+def step_residual_bytes(system: ExplicitSystem, itemsize: int = 8) -> int:
+    """Estimated bytes reverse mode stores per step of ``system`` (one part's).
+
+    The two displacement levels, plus, for the node-blocked ELL stiffness, the 3 * width
+    gathered (n_nodes, 3) neighbour values of K d(n) (:meth:`BlockEll.matvec` forms one
+    gather per slot and column component; they are the residuals of the derivative in
+    the stiffness blocks): (3 width + 2) fields, 29 on the coarse cantilever, as
+    measured there (compiled temp memory of plain reverse mode / n_steps). For the
+    matrix-free stiffness only the two levels are counted (a lower bound)."""
+    from ..fem.sparse import BlockEll
+
+    n_nodes = int(np.shape(system.mass)[-2])
+    fields = 2
+    if isinstance(system.stiffness, BlockEll):
+        fields += 3 * int(np.shape(system.stiffness.columns)[-1])
+    return fields * 3 * n_nodes * int(itemsize)
+
+
+def segment_steps_for_budget(n_steps: int, bytes_per_step: int, budget_bytes: int | None = None) -> int | None:
+    """Steps per checkpointed segment for a reverse pass through ``n_steps`` steps that
+    store ``bytes_per_step`` each (:func:`step_residual_bytes`).
+
+    Returns None (no checkpointing: the plain scan, one forward pass less) when storing
+    every step, ``n_steps * bytes_per_step``, fits in ``budget_bytes``; otherwise about
+    sqrt(n_steps), the segment length that minimizes the steps held (boundaries plus one
+    segment, about 2 sqrt(n_steps)). ``budget_bytes=None``: always checkpoint. A budget
+    below that cannot be met by two levels of recomputation; the sqrt split is used
+    anyway (the least memory this module offers)."""
+    n_steps = int(n_steps)
+    if budget_bytes is not None and n_steps * int(bytes_per_step) <= int(budget_bytes):
+        return None
+    return max(1, math.isqrt(max(n_steps, 1)))
+
+
+def _checkpointed_scan(body, carry, n: int, length: int, unroll: int = 1):
+    """``lax.scan(body, carry, None, length=n)`` in segments of ``length`` iterations,
+    each ``jax.checkpoint``-ed: the reverse pass keeps the carry at segment boundaries and
+    recomputes one segment at a time. The n % length iterations left over form one more
+    (shorter) checkpointed segment. Outputs are stacked (n, ...) as by the plain scan."""
+    def segment(count):
+        # prevent_cse=False: inside a scan the recomputation cannot be CSE'd away (the
+        # JAX docs' advice), and the CSE barrier would only cost time
+        @functools.partial(jax.checkpoint, prevent_cse=False)
+        def run(c, _):
+            return jax.lax.scan(body, c, None, length=count, unroll=unroll)
+        return run
+
+    n_full, rest = divmod(int(n), int(length))
+    pieces = []
+    if n_full:
+        carry, ys = jax.lax.scan(segment(length), carry, None, length=n_full)
+        pieces.append(jax.tree_util.tree_map(lambda y: y.reshape(n_full * length, *y.shape[2:]), ys))
+    if rest:
+        carry, ys = segment(rest)(carry, None)
+        pieces.append(ys)
+    if len(pieces) == 1:
+        return carry, pieces[0]
+    return carry, jax.tree_util.tree_map(lambda *ys: jnp.concatenate(ys), *pieces)
+
+
+def advance_checkpointed(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
+                         *, segment_steps: int | None = None, synchronize=None):
+    """:func:`jaxsync.fem.stepper.advance` with a bounded-memory reverse pass.
+
+    Args:
+        system: the (possibly traced) :class:`ExplicitSystem` (one part's, under
+            ``shard_map``).
+        state: the :class:`SolverState` to start from, fields (n_nodes, 3) [cm].
+        n_saves, save_every: run ``n_saves * save_every`` steps, keeping the displacement
+            after every ``save_every`` steps (static ints).
+        segment_steps: steps per checkpointed segment, the steps whose states the reverse
+            pass holds at once (default about sqrt(n_saves * save_every)). Segments are
+            whole saves when ``save_every <= segment_steps``; otherwise each save is one
+            checkpointed unit, split into sub-segments of about sqrt(save_every) steps.
+        synchronize: see :func:`jaxsync.fem.stepper.step` (the distributed psum).
+
+    Returns:
+        (final state, (n_saves, n_nodes, 3) saved displacements [cm]), equal in value to
+        ``advance(system, state, n_saves, save_every, synchronize=synchronize)``.
+        Reverse-mode memory: about n_steps / segment_steps boundary states
+        (:func:`state_bytes`) plus segment_steps steps' residuals
+        (:func:`step_residual_bytes`), plus the saved outputs.
+    """
+    n_saves, save_every = int(n_saves), int(save_every)
+    if n_saves < 1 or save_every < 1:
+        raise ProblemError(f"need n_saves >= 1 and save_every >= 1, got {n_saves}, {save_every}")
+    n_steps = n_saves * save_every
+    length = max(1, math.isqrt(n_steps)) if segment_steps is None else max(1, int(segment_steps))
+
+    def one_step(s, _):
+        return step(system, s, synchronize), None
+
+    if save_every <= length:
+        # segments of whole saves; a save's steps run in a plain (unrolled) scan
+        def one_save(s, _):
+            if save_every == 1:
+                s, _ = one_step(s, None)
+            else:
+                s, _ = jax.lax.scan(one_step, s, None, length=save_every, unroll=STEP_UNROLL)
+            return s, s.displacement
+
+        return _checkpointed_scan(one_save, state, n_saves, max(1, length // save_every))
+
+    # long saves: every save is a checkpointed unit (n_saves boundary states), and its
+    # steps run in checkpointed sub-segments of about sqrt(save_every) steps
+    inner = max(1, math.isqrt(save_every))
+
+    def long_save(s, _):
+        s, _ = _checkpointed_scan(one_step, s, save_every, inner, unroll=STEP_UNROLL)
+        return s, s.displacement
+
+    return _checkpointed_scan(long_save, state, n_saves, 1)
+
+
+def advance_for_gradients(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
+                          checkpoints: bool | int = True, synchronize=None):
+    """The time loop of a traced (differentiated) run, per ``checkpoints``:
+
+    * ``True``: :func:`advance_checkpointed` with sqrt(n_steps) segments;
+    * ``False``: the plain :func:`jaxsync.fem.stepper.advance` (reverse mode stores every
+      step: fastest, memory linear in n_steps);
+    * an int: a memory budget [bytes] for the stored states: the plain loop when all
+      steps fit in it (:func:`step_residual_bytes` per step), else sqrt checkpointing
+      (:func:`segment_steps_for_budget`).
+    """
+    if isinstance(checkpoints, bool):
+        segment = max(1, math.isqrt(n_saves * save_every)) if checkpoints else None
+    elif isinstance(checkpoints, (int, np.integer)) and checkpoints > 0:
+        segment = segment_steps_for_budget(n_saves * save_every, step_residual_bytes(system),
+                                           int(checkpoints))
+    else:
+        raise ProblemError(f"gradient_checkpoints must be True, False or a positive memory budget "
+                           f"in bytes, got {checkpoints!r}")
+    if segment is None:
+        return advance(system, state, n_saves, save_every, synchronize=synchronize)
+    return advance_checkpointed(system, state, n_saves, save_every, segment_steps=segment,
+                                synchronize=synchronize)
+
+
+def partitioned_trajectory(problem, system: ExplicitSystem, state: SolverState, partitions, *,
+                           n_saves: int, save_every: int, checkpoints: bool | int = True,
+                           mode: str = "preassembled", seed: int = 0, devices=None,
+                           sync: str | None = None):
+    """The global (n_saves, n_nodes, 3) saved displacements [cm] of a distributed run
+    with traced ``system`` / ``state`` (inside ``jax.grad``): the parts of
+    :class:`jaxsync.solve.distributed.DistributedRunner` advanced by
+    :func:`advance_for_gradients` under ``shard_map``, with the shared-node forces summed
+    by psum (or ``sync="ppermute"``), and merged into the global field in JAX.
+
+    The runner's per-part systems are built on the host in numpy from a concrete stand-in
+    of the problem; the traced values enter as JAX computations: the stiffness blocks as
+    lam K_lambda + mu K_mu (part blocks of each Lame operator, built once each), the mass,
+    loads and Dirichlet values gathered from the global system, damping and dt broadcast.
+    ``sync="psum"`` and ``"ppermute"`` only (``"mpi"`` and ``"halo"`` are refused)."""
+    from types import SimpleNamespace
+
+    from ..fem.material import LinearElastic
+    from ..fem.sparse import BlockEll
+    from ..fem.stepper import build_system
+    from ..options import Mode, Sync, check_option
+    from ..parallel.exchange import PartSystems, build_part_systems, synchronize_forces
+    from ..parallel.spmd import spmd_program
+    from .distributed import DistributedRunner
+
+    check_option("mode", mode, Mode, error=ProblemError)
+    sync = "psum" if sync is None else check_option("sync", sync, Sync)
+    if sync not in ("psum", "ppermute"):
+        raise ProblemError(f"differentiating a distributed run supports sync='psum' or 'ppermute', "
+                           f"got sync={sync!r}")
+    # concrete stand-in: same mesh, Dirichlet conditions and operators, no traced values
+    stand_in = problem.replace(material=LinearElastic(1.0, 0.25, 1.0), damping=0.0, loads=(),
+                               initial_displacement=None, initial_velocity=None)
+    # host-side construction on concrete values, also when called under jit (which would
+    # otherwise stage the stand-in's jnp operations and hand numpy tracers)
+    with jax.ensure_compile_time_eval():
+        stand_in_system = build_system(stand_in, 1.0, mode)
+        runner = DistributedRunner(stand_in, stand_in_system, partitions, save_every=save_every,
+                                   mode=mode, seed=seed, devices=devices, sync=sync)
+        layout = runner.layout
+        n_parts, n_local = layout.n_parts, runner.n_local
+        template = build_part_systems(stand_in, stand_in_system, layout, mode)
+
+        def lame_blocks(lam, mu):  # the parts' blocks of lam K_lambda + mu K_mu, numpy
+            shim = SimpleNamespace(mesh=problem.mesh, material=SimpleNamespace(lam=lam, mu=mu))
+            return build_part_systems(shim, stand_in_system, layout, mode).system.stiffness.blocks
+
+        if mode == "preassembled":
+            blocks_lambda, blocks_mu = lame_blocks(1.0, 0.0), lame_blocks(0.0, 1.0)
+    m = problem.material
+    if mode == "preassembled":
+        stiffness = BlockEll(jnp.asarray(template.system.stiffness.columns),
+                             m.lam * jnp.asarray(blocks_lambda) + m.mu * jnp.asarray(blocks_mu))
+    else:
+        base = template.system.stiffness
+        stiffness = type(base)(jnp.asarray(base.points), jnp.asarray(base.tets), jnp.asarray(base.weight),
+                               jnp.broadcast_to(m.lam, (n_parts,)), jnp.broadcast_to(m.mu, (n_parts,)))
+    # local node p of part k is global node index[k, p]; padding slots (valid False) read fill
+    index = np.zeros((n_parts, n_local), dtype=np.int32)
+    valid = np.zeros((n_parts, n_local), dtype=bool)
+    for k, part in enumerate(layout.parts):
+        index[k, :part.n_local], valid[k, :part.n_local] = part.nodes, True
+
+    def local(field, fill):  # (..., n_nodes, 3) -> (n_parts, ..., n_local, 3)
+        gathered = jnp.moveaxis(jnp.asarray(field)[..., index, :], -3, 0)
+        mask = valid.reshape((n_parts,) + (1,) * (gathered.ndim - 3) + (n_local, 1))
+        return jnp.where(mask, gathered, fill)
+
+    def broadcast(x):
+        return jnp.broadcast_to(x, (n_parts,) + jnp.shape(x))
+
+    parts = PartSystems(
+        ExplicitSystem(stiffness=stiffness, mass=local(system.mass, 1.0),
+                       damping=broadcast(system.damping), dt=broadcast(system.dt),
+                       load_vectors=local(system.load_vectors, 0.0),
+                       load_times=jax.tree_util.tree_map(broadcast, system.load_times),
+                       fixed=jnp.asarray(template.system.fixed),
+                       fixed_values=local(system.fixed_values, 0.0)),
+        jnp.asarray(template.shared_local), jnp.asarray(template.shared_interface))
+    part_state = SolverState(local(state.displacement, 0.0), local(state.previous, 0.0),
+                             jnp.zeros(n_parts, dtype=jnp.int32))
+    n_interface, across = layout.n_interface, runner._allreduce
+
+    def one_part(part: PartSystems, s: SolverState):
+        sync_forces = functools.partial(synchronize_forces, shared_local=part.shared_local,
+                                        shared_interface=part.shared_interface,
+                                        n_interface=n_interface, across=across)
+        return advance_for_gradients(part.system, s, n_saves, save_every, checkpoints, sync_forces)
+
+    program = spmd_program(one_part, runner.device_mesh, n_in=2, n_out=2, jit=False)
+
+    def run(parts, part_state):
+        _, saved = program(parts, part_state)  # saved: (n_parts, n_saves, n_local, 3)
+        # merge in JAX: every local node of every part holds the full value of its node
+        flat = jnp.moveaxis(saved, 0, 1).reshape(n_saves, n_parts * n_local, 3)
+        merged = jnp.zeros((n_saves, problem.mesh.n_nodes, 3), dtype=flat.dtype)
+        return merged.at[:, runner._global_index].set(flat[:, runner._local_index])
+
+    # the program runs on the mesh's devices; the rest of a traced (eager) computation on
+    # the default device: move the inputs there and the result (and, in the reverse pass,
+    # the cotangents: device_put's transpose) back, or eager adds of the two meet arrays
+    # committed to different devices
+    # committed arrays (only when the computation runs eagerly, e.g. under jax.grad alone;
+    # a staged (jitted) computation places everything on the mesh by itself)
+    if not all(_concrete(x) for x in jax.tree_util.tree_leaves((parts, part_state))):
+        return run(parts, part_state)
+    home = jax.sharding.SingleDeviceSharding(jax.devices()[0])
+    spread = jax.sharding.NamedSharding(runner.device_mesh, jax.sharding.PartitionSpec())
+    parts, part_state = jax.device_put((parts, part_state), spread, src=home)
+    return jax.device_put(run(parts, part_state), home, src=spread)
+
+
+def _concrete(x) -> bool:
+    """True when ``x`` has a value now (an array, or a tracer of an eager jax.grad), False
+    when it is staged into a jaxpr (under jit)."""
+    from jax._src import core  # jax.core.is_concrete is deprecated; no public successor
+
+    return not isinstance(x, jax.core.Tracer) or core.is_concrete(x)

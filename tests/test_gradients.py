@@ -1,0 +1,123 @@
+"""Bounded-memory reverse mode (jaxsync.solve.gradients): checkpointed gradients equal
+plain reverse mode and finite differences, hold O(sqrt(n_steps)) states, and distributed
+(2 parts, psum / ppermute) gradients equal single-device ones."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.errors import ProblemError
+from jaxsync.fem.stepper import advance, build_system, initial_state
+from jaxsync.solve.gradients import advance_checkpointed, segment_steps_for_budget, step_residual_bytes
+
+
+@pytest.fixture(scope="module")
+def problem():
+    return jaxsync.cantilever()
+
+
+def tip_node(mesh):
+    x = mesh.points
+    return int(np.argmax(x[:, 0] - 1e-3 * np.abs(x[:, 1]) - 1e-3 * np.abs(x[:, 2])))
+
+
+def make_loss(problem, n_steps, save_every, **kwargs):
+    tip, dt = tip_node(problem.mesh), problem.dt
+
+    def loss(E, alpha):
+        p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
+        traj = jaxsync.simulate(p, n_steps, dt=dt, save_every=save_every, **kwargs)
+        # the tip's vertical history: sensitive to both the stiffness and the damping
+        return jnp.sum(traj.displacement[:, tip, 2] ** 2) / (1e-4 ** 2)
+
+    return loss
+
+
+@pytest.mark.parametrize("save_every", [1, 30, 300])
+def test_checkpointed_gradient_equals_plain_reverse_mode(problem, save_every):
+    args = (1.0e6, 0.5)
+    plain = jax.grad(make_loss(problem, 300, save_every, gradient_checkpoints=False), (0, 1))(*args)
+    ckpt = jax.grad(make_loss(problem, 300, save_every), (0, 1))(*args)
+    for a, b in zip(ckpt, plain):
+        assert float(a) == pytest.approx(float(b), rel=1e-12)
+
+
+def test_checkpointed_advance_equals_advance_in_value(problem):
+    system = build_system(problem, problem.dt)
+    state = initial_state(problem, system)
+    for n_saves, save_every, segment in ((37, 1, None), (5, 13, 4), (3, 50, None), (7, 3, 5)):
+        final, saved = advance(system, state, n_saves, save_every)
+        final_c, saved_c = advance_checkpointed(system, state, n_saves, save_every, segment_steps=segment)
+        np.testing.assert_allclose(saved_c, saved, rtol=0, atol=1e-14 * float(jnp.max(jnp.abs(saved))))
+        np.testing.assert_allclose(final_c.previous, final.previous, rtol=0,
+                                   atol=1e-14 * float(jnp.max(jnp.abs(saved))))
+        assert int(final_c.step) == int(final.step) == n_saves * save_every
+
+
+def test_gradient_equals_central_finite_differences(problem):
+    loss = make_loss(problem, 1000, 10)
+    E0, a0 = 1.0e6, 0.5
+    gE, ga = jax.grad(loss, (0, 1))(E0, a0)
+    hE, ha = 1e-4 * E0, 1e-3  # truncation ~h^2 (1e-8 rel.), round-off ~1e-16 / h
+    fdE = (loss(E0 + hE, a0) - loss(E0 - hE, a0)) / (2 * hE)
+    fda = (loss(E0, a0 + ha) - loss(E0, a0 - ha)) / (2 * ha)
+    assert float(gE) == pytest.approx(float(fdE), rel=1e-6)
+    assert float(ga) == pytest.approx(float(fda), rel=1e-6)
+
+
+def _temp_bytes(problem, n_steps, checkpoints):
+    loss = make_loss(problem, n_steps, n_steps, gradient_checkpoints=checkpoints)
+    compiled = jax.jit(jax.grad(loss, (0, 1))).lower(1.0e6, 0.5).compile()
+    return compiled.memory_analysis().temp_size_in_bytes
+
+
+def test_checkpointed_gradient_keeps_sqrt_states(problem):
+    # compiled temp memory of the gradient (XLA's buffer assignment, CPU): plain reverse
+    # mode stores every step's residuals (linear in n_steps), the checkpointed one the
+    # segment boundaries and one segment (about sqrt(n_steps) steps' residuals)
+    plain = _temp_bytes(problem, 4096, False)
+    small, ckpt = _temp_bytes(problem, 1024, True), _temp_bytes(problem, 4096, True)
+    state = 2 * 3 * problem.mesh.n_nodes * 8  # one step's two displacement levels
+    assert plain > 4096 * state  # every step stored
+    assert ckpt < plain / 20
+    assert ckpt / small < 2.5  # 4x the steps: sqrt growth gives 2x, linear 4x
+
+
+def test_budget_picks_plain_or_sqrt(problem):
+    assert segment_steps_for_budget(100, 10, 10**9) is None
+    assert segment_steps_for_budget(10000, 10, 1000) == 100
+    assert segment_steps_for_budget(10000, 10) == 100
+    # the estimate of a step's residuals matches plain reverse mode's compiled memory
+    per_step = step_residual_bytes(build_system(problem, problem.dt))
+    plain = _temp_bytes(problem, 1024, False)
+    assert 0.8 < plain / (1024 * per_step) < 1.25
+
+
+def test_budget_in_simulate_equals_plain_or_checkpointed(problem):
+    per_step = step_residual_bytes(build_system(problem, problem.dt))
+    args = (1.0e6, 0.5)
+    plain = jax.grad(make_loss(problem, 100, 100, gradient_checkpoints=False), (0, 1))(*args)
+    for budget in (200 * per_step, 10 * per_step):  # fits: plain; does not: sqrt
+        got = jax.grad(make_loss(problem, 100, 100, gradient_checkpoints=budget), (0, 1))(*args)
+        for a, b in zip(got, plain):
+            assert float(a) == pytest.approx(float(b), rel=1e-12)
+
+
+def test_bad_gradient_checkpoints_is_refused(problem):
+    with pytest.raises(ProblemError):
+        jax.grad(make_loss(problem, 20, 1, gradient_checkpoints=-3), (0, 1))(1.0e6, 0.5)
+
+
+@pytest.mark.parametrize("sync, jit", [("psum", True), ("ppermute", False)])
+def test_partitioned_gradient_equals_single_device(problem, sync, jit):
+    args = (1.0e6, 0.5)
+    # 200 steps: long enough that the loss depends on E at O(1) (relative sensitivity 0.08)
+    value, single = jax.value_and_grad(make_loss(problem, 200, 10), (0, 1))(*args)
+    grad = jax.value_and_grad(make_loss(problem, 200, 10, partitions=2, sync=sync), (0, 1))
+    # jitted (staged) and eager: the parts' program placed on the mesh's devices either way
+    value_p, parts = (jax.jit(grad) if jit else grad)(*args)
+    assert float(value_p) == pytest.approx(float(value), rel=1e-12)
+    for a, b in zip(parts, single):
+        assert float(a) == pytest.approx(float(b), rel=1e-10)
