@@ -21,7 +21,6 @@ is GPU-specific code: the point is that the same programs run there.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -115,11 +114,10 @@ def main(argv=None) -> int:
     for r in result["speedup"]:
         print(f"zeta {r['surrogate']:<12} {r['zeta']:.2f} (t_d {r['t_d_us']:.2f} us); deep halos "
               + ", ".join(f"k={k} {z:.2f}" for k, z in r["zeta_halo"].items()))
-    from jaxsync.io import atomic_path
+    from jaxsync.io import atomic_json
 
-    with atomic_path(args.out) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(result, f, indent=2)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    atomic_json(args.out, result)
     print(f"wrote {args.out}")
     return 0
 

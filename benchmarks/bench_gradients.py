@@ -21,7 +21,6 @@ Usage: python benchmarks/bench_gradients.py [--quick] [--out benchmarks/results/
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import time
@@ -99,12 +98,10 @@ def main(argv=None):
     result = {"problem": "coarse cantilever", "n_dofs": problem.mesh.n_dofs, "rows": rows,
               "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
                           "load_average": os.getloadavg()[0], "jax": jax.__version__}}
-    from jaxsync.io import atomic_path
+    from jaxsync.io import atomic_json
 
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    with atomic_path(args.out) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(result, f, indent=2)
+    atomic_json(args.out, result)
     print(f"wrote {args.out}")
 
 

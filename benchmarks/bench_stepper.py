@@ -28,7 +28,6 @@ Usage: python benchmarks/bench_stepper.py [--quick] [--out benchmarks/results/st
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -184,11 +183,10 @@ def main(argv=None):
                           "python": sys.version.split()[0], "jax": jax.__version__,
                           "load_average": os.getloadavg()[0],
                           "devices": f"{len(jax.devices())} emulated CPU devices"}}
-    from jaxsync.io import atomic_path
+    from jaxsync.io import atomic_json
 
-    with atomic_path(args.out) as tmp:
-        with open(tmp, "w") as f:
-            json.dump(result, f, indent=2)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    atomic_json(args.out, result)
     print(f"wrote {args.out}")
 
 

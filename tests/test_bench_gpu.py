@@ -1,24 +1,14 @@
 """benchmarks/bench_gpu.py, the prepared GPU check, dry-run on the CPU: it must keep
 working between the rare sessions that have a GPU."""
 
-import importlib.util
 import json
 import os
-import sys
 
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks", "bench_gpu.py")
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_gpu", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+from benchmark_scripts import load_benchmark
 
 
 def test_dry_run_on_the_cpu_checks_the_programs_and_writes_json(tmp_path, capsys):
-    bench = load_script()
+    bench = load_benchmark("bench_gpu")
     out = tmp_path / "gpu.json"
     assert bench.main(["--platform", "cpu", "--quick", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
@@ -33,6 +23,6 @@ def test_dry_run_on_the_cpu_checks_the_programs_and_writes_json(tmp_path, capsys
 
 
 def test_without_the_platform_it_says_so_and_exits_3(capsys):
-    bench = load_script()
+    bench = load_benchmark("bench_gpu")
     assert bench.main(["--platform", "tpu", "--out", os.devnull]) == 3
     assert "no tpu devices here" in capsys.readouterr().out

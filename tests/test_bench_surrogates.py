@@ -1,26 +1,14 @@
 """benchmarks/bench_surrogates.py --quick, reduced to one case and 1 000 steps: it runs the
 three surrogates online, times them and writes the JSON the README table is made from."""
 
-import importlib.util
 import json
 import math
-import os
-import sys
 
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
-                      "bench_surrogates.py")
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("bench_surrogates", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+from benchmark_scripts import load_benchmark
 
 
 def test_quick_run_writes_every_surrogate_and_timing(tmp_path, capsys):
-    script = load_script()
+    script = load_benchmark("bench_surrogates")
     out = tmp_path / "bench_surrogates.json"
     assert script.main(["--quick", "--case", "default", "--steps", "1000", "--quiet", "--out", str(out)]) == 0
     record = json.loads(out.read_text())

@@ -2,19 +2,15 @@
 run once in ``--reduced`` mode in-process (2 emulated devices); the errors in every JSON
 are recomputed here from the time series the script saved."""
 
-import importlib.util
 import json
-import os
-import sys
 
 import jax
 import numpy as np
 import pytest
 
 import jaxsync
+from benchmark_scripts import load_benchmark
 
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
-                      "paper_experiments.py")
 CASES = ("default", "sequence_length", "training_size", "refined_6_parts", "skewed", "step_off",
          "initial_conditions", "loads", "full_system")
 
@@ -44,17 +40,11 @@ VARIANTS = {"default": ["default"], "sequence_length": ["np5_nf5", "np5_nf2"], "
             "full_system": ["full_system"]}
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("paper_experiments", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # its dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
 
 
 @pytest.fixture(scope="module")
 def script():
-    return load_script()
+    return load_benchmark("paper_experiments")
 
 
 @pytest.fixture(scope="module")

@@ -1,26 +1,13 @@
 """benchmarks/regime_map.py: the cost-model regime map on a synthetic bench_sync JSON, and
 its model checked against the alpha-beta formula by hand."""
 
-import importlib.util
 import json
 import math
-import os
-import sys
 
 import pytest
 
+from benchmark_scripts import load_benchmark
 from jaxsync.perf.costmodel import CommunicationPattern
-
-SCRIPT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
-                      "regime_map.py")
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("regime_map", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def synthetic_sync_json(path):
@@ -34,7 +21,7 @@ def synthetic_sync_json(path):
 
 
 def test_main_writes_png_and_json_from_measured_rows(tmp_path, capsys):
-    script = load_script()
+    script = load_benchmark("regime_map")
     sync = tmp_path / "sync.json"
     synthetic_sync_json(sync)
     assert script.main(["--sync-json", str(sync), "--out-dir", str(tmp_path)]) == 0
@@ -58,7 +45,7 @@ def test_main_writes_png_and_json_from_measured_rows(tmp_path, capsys):
 
 
 def test_missing_sync_json_falls_back_with_a_note(tmp_path, capsys):
-    script = load_script()
+    script = load_benchmark("regime_map")
     assert script.main(["--sync-json", str(tmp_path / "absent.json"), "--out-dir", str(tmp_path)]) == 0
     record = json.loads((tmp_path / "regime_map.json").read_text())
     assert record["inputs"]["t_d_us"] == script.FALLBACK_T_D_US
@@ -70,7 +57,7 @@ def test_missing_sync_json_falls_back_with_a_note(tmp_path, capsys):
 
 
 def test_surrogate_break_even_latency_on_two_parts_by_hand():
-    script = load_script()
+    script = load_benchmark("regime_map")
     # 2 parts sharing 4 nodes: S = 4 * 3 * 8 = 96 bytes; allreduce on 2 parts = one
     # message of S (recursive doubling, 1 round; the ring's 2 messages of S/2 cost more)
     pattern = CommunicationPattern(n_parts=2, n_interface=4, neighbours=(((1, 4),), ((0, 4),)))
@@ -87,7 +74,7 @@ def test_surrogate_break_even_latency_on_two_parts_by_hand():
 
 
 def test_deep_halo_zeta_limits():
-    script = load_script()
+    script = load_benchmark("regime_map")
     pattern = CommunicationPattern(n_parts=2, n_interface=4, neighbours=(((1, 4),), ((0, 4),)))
     halo = CommunicationPattern(n_parts=2, n_interface=12, neighbours=(((1, 12),), ((0, 12),)),
                                 dofs_per_node=6)
