@@ -16,11 +16,12 @@ slower), BCOO is 3-4x slower.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from ..pytree import pytree_dataclass
+from ..pytree import pytree_dataclass, static_field
 
 __all__ = ["BlockEll", "node_adjacency", "block_ell_values", "pad_block_ell"]
 
@@ -33,10 +34,15 @@ class BlockEll:
         columns: (n_rows, width) int32 column node of each slot.
         blocks: (n_rows, 3, width, 3) values, ``blocks[r, i, s, j] = K[3 r + i,
             3 columns[r, s] + j]``; zero in padding slots.
+        symmetric: K = K^T (stiffness and mass matrices assembled from symmetric element
+            matrices). Then reverse mode uses K itself for the transpose product (a
+            gather, like the forward product) instead of the scatter-adds autodiff would
+            write, and keeps only u per product: see :func:`_symmetric_matvec`.
     """
 
     columns: jnp.ndarray
     blocks: jnp.ndarray
+    symmetric: bool = static_field(default=False)
 
     def matvec(self, u):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3).
@@ -48,21 +54,53 @@ class BlockEll:
         and broadcasting its columns instead makes XLA materialize each of the ``width``
         gathers (its fusion heuristics refuse to duplicate a broadcast gather): 1.6x
         slower at 250k dofs (benchmarks/bench_stepper.py)."""
-        u = jnp.asarray(u)
-        n_rows = self.columns.shape[0]
-        y = None
-        for s in range(self.columns.shape[1]):
-            index = jnp.broadcast_to(self.columns[:, s, None], (n_rows, 3))
-            for j in range(3):
-                # Padding slots point at the row's own node, so every index is in bounds.
-                gathered = u[:, j].at[index].get(mode="promise_in_bounds")
-                term = self.blocks[:, :, s, j] * gathered
-                y = term if y is None else y + term
-        return y
+        if self.symmetric:
+            return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u))
+        return _matvec(self.columns, self.blocks, jnp.asarray(u))
 
     @property
     def shape(self) -> tuple[int, int]:
         return self.columns.shape
+
+
+def _matvec(columns, blocks, u):
+    """y = K u (:meth:`BlockEll.matvec`): u (n_cols, 3) -> y (n_rows, 3)."""
+    n_rows = columns.shape[0]
+    y = None
+    for s in range(columns.shape[1]):
+        index = jnp.broadcast_to(columns[:, s, None], (n_rows, 3))
+        for j in range(3):
+            # Padding slots point at the row's own node, so every index is in bounds.
+            gathered = u[:, j].at[index].get(mode="promise_in_bounds")
+            term = blocks[:, :, s, j] * gathered
+            y = term if y is None else y + term
+    return y
+
+
+@jax.custom_vjp
+def _symmetric_matvec(columns, blocks, u):
+    """y = K u for a symmetric K, with a reverse pass written for it: the cotangent of u is
+    K^T y_bar = K y_bar (the forward gather form again, no scatter-add), and that of the
+    blocks the outer product y_bar[r, i] u[columns[r, s], j] (a gather). Autodiff of
+    :func:`_matvec` would instead scatter-add 3 width times per product and keep every
+    gathered neighbour value (3 width (n, 3) fields) for the reverse pass; here only u is
+    kept. Measured on a 1e4-step gradient of the coarse cantilever: 5x faster, 5x less
+    memory (issue 15)."""
+    return _matvec(columns, blocks, u)
+
+
+def _symmetric_matvec_fwd(columns, blocks, u):
+    return _matvec(columns, blocks, u), (columns, blocks, u)
+
+
+def _symmetric_matvec_bwd(residuals, y_bar):
+    columns, blocks, u = residuals
+    u_bar = _matvec(columns, blocks, y_bar)  # K^T y_bar = K y_bar
+    blocks_bar = y_bar[:, :, None, None] * u[columns][:, None, :, :]  # (n_rows, 3, width, 3)
+    return None, blocks_bar, u_bar
+
+
+_symmetric_matvec.defvjp(_symmetric_matvec_fwd, _symmetric_matvec_bwd)
 
 
 def node_adjacency(tets: np.ndarray, n_nodes: int) -> np.ndarray:

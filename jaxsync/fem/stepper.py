@@ -86,7 +86,7 @@ def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
     if mode == "preassembled":
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
         stiffness = BlockEll(jnp.asarray(adjacency),
-                             m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu))
+                             m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu), symmetric=True)
     else:
         mesh = problem.mesh
         stiffness = ElementStiffness(jnp.asarray(mesh.points), jnp.asarray(mesh.tets, dtype=jnp.int32),
@@ -168,7 +168,7 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     adjacency, _, _, M_1 = problem.operators.block_ell
     if problem.density_scale is not None:
         M_1 = block_ell_values(consistent_mass(problem.mesh, problem.density_scale), adjacency)
-    mass = BlockEll(jnp.asarray(adjacency), problem.material.rho * jnp.asarray(M_1))
+    mass = BlockEll(jnp.asarray(adjacency), problem.material.rho * jnp.asarray(M_1), symmetric=True)
     rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - system.stiffness.matvec(d0)
     rhs = free * rhs
 

@@ -112,7 +112,7 @@ def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mo
         padded = [pad_block_ell(c, b, n_local, width) for c, b in zip(columns, blocks)]
         columns = np.stack([c for c, _ in padded])
         blocks = np.stack([b for _, b in padded])
-        stiffness = BlockEll(columns.astype(np.int32), blocks)
+        stiffness = BlockEll(columns.astype(np.int32), blocks, symmetric=True)
     else:
         n_elem = max(len(p.elements) for p in parts)
         tets = _pad_to([p.local_tets for p in parts], n_elem, 0).astype(np.int32)

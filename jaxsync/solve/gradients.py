@@ -44,18 +44,19 @@ def state_bytes(n_nodes: int, itemsize: int = 8) -> int:
 def step_residual_bytes(system: ExplicitSystem, itemsize: int = 8) -> int:
     """Estimated bytes reverse mode stores per step of ``system`` (one part's).
 
-    The two displacement levels, plus, for the node-blocked ELL stiffness, the 3 * width
-    gathered (n_nodes, 3) neighbour values of K d(n) (:meth:`BlockEll.matvec` forms one
-    gather per slot and column component; they are the residuals of the derivative in
-    the stiffness blocks): (3 width + 2) fields, 29 on the coarse cantilever, as
-    measured there (compiled temp memory of plain reverse mode / n_steps). For the
-    matrix-free stiffness only the two levels are counted (a lower bound)."""
+    With the symmetric node-blocked ELL stiffness of :func:`jaxsync.fem.stepper.build_system`,
+    whose product has its own reverse pass (:class:`jaxsync.fem.sparse.BlockEll`,
+    ``symmetric=True``: only u is kept): 3 (n_nodes, 3) fields, as measured on the coarse
+    cantilever (compiled temp memory of plain reverse mode / n_steps: 3.03-3.12 fields).
+    A general BlockEll keeps every gathered neighbour value, 3 width + 2 fields (29 on the
+    cantilever, measured before the symmetric product). For the matrix-free stiffness only
+    the two displacement levels are counted (a lower bound)."""
     from ..fem.sparse import BlockEll
 
     n_nodes = int(np.shape(system.mass)[-2])
     fields = 2
     if isinstance(system.stiffness, BlockEll):
-        fields += 3 * int(np.shape(system.stiffness.columns)[-1])
+        fields = 3 if system.stiffness.symmetric else 2 + 3 * int(np.shape(system.stiffness.columns)[-1])
     return fields * 3 * n_nodes * int(itemsize)
 
 
@@ -232,7 +233,7 @@ def partitioned_trajectory(problem, system: ExplicitSystem, state: SolverState, 
     m = problem.material
     if mode == "preassembled":
         stiffness = BlockEll(jnp.asarray(template.system.stiffness.columns),
-                             m.lam * jnp.asarray(blocks_lambda) + m.mu * jnp.asarray(blocks_mu))
+                             m.lam * jnp.asarray(blocks_lambda) + m.mu * jnp.asarray(blocks_mu), symmetric=True)
     else:
         base = template.system.stiffness
         stiffness = type(base)(jnp.asarray(base.points), jnp.asarray(base.tets), jnp.asarray(base.weight),
