@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import scipy.linalg
+import scipy.sparse
 
 import fem_reference as ref
 import jaxsync
@@ -96,6 +97,40 @@ def test_block_ell_matvec_equals_csr(mesh):
                                atol=1e-12 * abs(K).max())
     # every slot is a real neighbour or padding pointing at the row itself
     assert np.all(adjacency[:, 0] == np.arange(mesh.n_nodes))
+
+
+def test_symmetric_block_ell_reverse_pass_equals_the_transpose_product(mesh):
+    """The symmetric product's own reverse pass against SciPy: the cotangent of u is
+    K^T y_bar, that of the blocks y_bar[r, i] u[columns[r, s], j]; a general BlockEll
+    (autodiff of the gather) gives the same, and for a non-symmetric matrix K^T y_bar."""
+    import jax
+    import jax.numpy as jnp
+
+    K = ref.stiffness(mesh.points, mesh.tets, 1.0e3, 0.3)
+    adjacency = node_adjacency(mesh.tets, mesh.n_nodes)
+    blocks = block_ell_values(K, adjacency)
+    rng = np.random.default_rng(1)
+    u, y_bar = rng.standard_normal((2, mesh.n_nodes, 3))
+    grads = {}
+    for symmetric in (True, False):
+        def product(b, v, symmetric=symmetric):
+            return BlockEll(jnp.asarray(adjacency), b, symmetric=symmetric).matvec(v)
+
+        y, vjp = jax.vjp(product, jnp.asarray(blocks), jnp.asarray(u))
+        grads[symmetric] = vjp(jnp.asarray(y_bar))
+        np.testing.assert_allclose(y, (K @ u.ravel()).reshape(-1, 3), rtol=1e-12, atol=1e-12 * abs(K).max())
+    expected_u = (K.T @ y_bar.ravel()).reshape(-1, 3)
+    expected_blocks = y_bar[:, :, None, None] * u[adjacency][:, None, :, :]
+    for blocks_bar, u_bar in grads.values():
+        np.testing.assert_allclose(u_bar, expected_u, rtol=1e-12, atol=1e-12 * abs(expected_u).max())
+        np.testing.assert_allclose(blocks_bar, expected_blocks, rtol=1e-12, atol=1e-14)
+    # a non-symmetric matrix keeps autodiff's exact transpose
+    skew = K + 0.1 * abs(K).max() * scipy.sparse.triu(K != 0, 1).astype(float)
+    ell = BlockEll(jnp.asarray(adjacency), jnp.asarray(block_ell_values(skew.tocsr(), adjacency)))
+    _, vjp = jax.vjp(ell.matvec, jnp.asarray(u))
+    np.testing.assert_allclose(vjp(jnp.asarray(y_bar))[0], (skew.T @ y_bar.ravel()).reshape(-1, 3),
+                               rtol=1e-12, atol=1e-12 * abs(skew).max())
+    assert abs(skew - skew.T).max() > 0
 
 
 def test_element_blocks_assemble_to_the_stiffness(mesh):
