@@ -4,9 +4,12 @@ working between the rare sessions that have a GPU."""
 import json
 import os
 
+import pytest
+
 from benchmark_scripts import load_benchmark
 
 
+@pytest.mark.slow  # 30 s of compilation; the programs it runs are tested on their own elsewhere
 def test_dry_run_on_the_cpu_checks_the_programs_and_writes_json(tmp_path, capsys):
     bench = load_benchmark("bench_gpu")
     out = tmp_path / "gpu.json"

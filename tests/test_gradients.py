@@ -35,7 +35,7 @@ def make_loss(problem, n_steps, save_every, **kwargs):
     return loss
 
 
-@pytest.mark.parametrize("save_every", [1, 30, 300])
+@pytest.mark.parametrize("save_every", [1, pytest.param(30, marks=pytest.mark.slow), 300])
 def test_checkpointed_gradient_equals_plain_reverse_mode(problem, save_every):
     args = (1.0e6, 0.5)
     plain = jax.grad(make_loss(problem, 300, save_every, gradient_checkpoints=False), (0, 1))(*args)
@@ -110,7 +110,12 @@ def test_bad_gradient_checkpoints_is_refused(problem):
         jax.grad(make_loss(problem, 20, 1, gradient_checkpoints=-3), (0, 1))(1.0e6, 0.5)
 
 
-@pytest.mark.parametrize("sync, jit", [("psum", True), ("ppermute", False)])
+@pytest.mark.parametrize("sync, jit", [
+    ("psum", True),
+    ("ppermute", True),
+    # eager partitioned gradients dispatch op by op: 38 s, so in the slow run only
+    pytest.param("ppermute", False, marks=pytest.mark.slow),
+])
 def test_partitioned_gradient_equals_single_device(problem, sync, jit):
     args = (1.0e6, 0.5)
     # 200 steps: long enough that the loss depends on E at O(1) (relative sensitivity 0.08)
