@@ -36,6 +36,9 @@ import numpy as np
 from ..errors import CheckpointError, ProblemError, StabilityError
 from ..fem.loads import load_jumps as find_load_jumps
 from ..fem.stepper import SolverState, build_system, initial_state
+from ..parallel.partitioning import Partition
+from ..parallel.partitioning import partition as make_partition
+from ..pytree import is_traced
 from ..surrogate.data import shared_dof_layout
 from ..surrogate.model import Surrogate
 from .distributed import DistributedRunner
@@ -139,7 +142,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                            seed: int = 0, devices=None, load_parameter: float | None = None,
                            progress: bool | None = None, cycles_per_chunk: int | None = None,
                            resync_tolerance=None, sync: str | None = None,
-                           load_jumps: str = "synchronize", blowup_factor: float = 1e3):
+                           load_jumps: str = "synchronize", blowup_factor: float = 1e3,
+                           gradient_checkpoints: bool | int = True):
     """Run paper Algorithm 3: synchronized up to ``n_cri``, then surrogate-predicted.
 
     Error control (beyond the paper, section 6): with ``resync_tolerance``, every refill
@@ -222,14 +226,22 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
 
     require_float64("simulate_sync_avoiding")
     n_steps, n_cri, save_every = int(n_steps), int(n_cri), int(save_every)
-    dt = problem.dt if dt is None else float(dt)
+    dt = problem.dt if dt is None else dt
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
         surrogates = load_checkpoint(surrogates)
     tolerance = None if resync_tolerance is None else ResyncTolerance.parse(resync_tolerance)
-    system = build_system(problem, dt, mode)
-    runner = DistributedRunner(problem, system, partitions, save_every=save_every, mode=mode,
-                               seed=seed, devices=devices, sync=sync, record_shared=True)
-    partition = runner.partition
+    traced = is_traced(problem.material, problem.damping, problem.loads, dt, problem.initial_displacement,
+                       problem.initial_velocity, surrogates)
+    if traced:  # inside jax.grad / jit: one traced program (jaxsync.solve.gradients)
+        runner = None
+        partition = (partitions if isinstance(partitions, Partition)
+                     else make_partition(problem.mesh, partitions, seed=seed))
+    else:
+        dt = float(dt)
+        system = build_system(problem, dt, mode)
+        runner = DistributedRunner(problem, system, partitions, save_every=save_every, mode=mode,
+                                   seed=seed, devices=devices, sync=sync, record_shared=True)
+        partition = runner.partition
     n_dof, counts = shared_dof_layout(partition)
     if isinstance(surrogates, SurrogateCheckpoint):
         check_compatible(surrogates, [p.shared_nodes for p in partition.parts])
@@ -251,11 +263,18 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
     if n_cri % save_every or cycle_steps % save_every or n_steps % save_every:
         raise ProblemError(f"save_every={save_every} must divide n_cri={n_cri}, n_steps={n_steps} "
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
-    all_jumps = find_load_jumps(problem.loads, n_steps, dt)
+    all_jumps = _find_load_jumps(problem.loads, n_steps, dt, load_jumps)
     jumps, n_cri = _synchronize_through_load_jumps(all_jumps, load_jumps, n_cri, n_steps, dt, history, save_every)
     if tolerance is not None and isinstance(predictor, OraclePredictor):
         raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
                            "an OraclePredictor replays fixed values")
+    if traced:
+        if tolerance is not None:
+            raise ProblemError("resync_tolerance cannot be used inside jax.grad or jit (it decides on "
+                               "the host whether to re-synchronize): leave it out of differentiated runs")
+        return _traced_run(problem, dt, predictor, partition, n_cri=n_cri, n_steps=n_steps,
+                           save_every=save_every, mode=mode, devices=devices, sync=sync,
+                           checkpoints=gradient_checkpoints, jumps=all_jumps)
 
     # synchronized phase: the full field every save_every steps, shared nodes every step
     limit = divergence_limit(problem.mesh, blowup_factor)
@@ -352,6 +371,44 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                 stacklevel=2)
     # the whole run's last load jump, not only its first synchronized stretch's
     return dataclasses.replace(traj, stats=stats, parameters={**traj.parameters, **_parameters(problem, all_jumps)})
+
+
+def _traced_run(problem, dt, predictor, partition, *, n_cri, n_steps, save_every, mode, devices, sync,
+                checkpoints, jumps):
+    """The run as one traced JAX computation (inside ``jax.grad``/``jit``): a
+    :class:`jaxsync.Trajectory` of JAX arrays (:func:`jaxsync.solve.gradients.sync_avoiding_trajectory`)."""
+    import jax.numpy as jnp
+
+    from ..trajectory import Trajectory
+    from .gradients import sync_avoiding_trajectory
+
+    system = build_system(problem, dt, mode)
+    state = initial_state(problem, system)
+    saved = sync_avoiding_trajectory(problem, system, state, predictor, partition, n_cri=n_cri,
+                                     n_steps=n_steps, save_every=save_every, checkpoints=checkpoints,
+                                     mode=mode, devices=devices, sync=sync)
+    n_saves = n_steps // save_every
+    synchronized = np.arange(n_saves + 1) * save_every <= n_cri
+    return Trajectory(times=jnp.arange(n_saves + 1, dtype=system.dt.dtype) * save_every * system.dt,
+                      displacement=jnp.concatenate([state.displacement[None], saved]), mesh=problem.mesh,
+                      dt=dt, save_every=save_every, parameters=_parameters(problem, jumps),
+                      synchronized=synchronized)
+
+
+def _find_load_jumps(loads, n_steps: int, dt, policy: str) -> np.ndarray:
+    """:func:`jaxsync.fem.loads.load_jumps` of the run; in a traced run whose load time
+    functions (or dt) are traced, a clear error unless jumps are predicted through."""
+    import jax
+
+    try:
+        with jax.ensure_compile_time_eval():
+            return find_load_jumps(loads, n_steps, dt)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        if policy == "predict":
+            return np.zeros(0, dtype=np.int64)
+        raise ProblemError("the load time functions or dt are traced (inside jax.grad), so the steps where a "
+                           "load jumps cannot be found: pass load_jumps='predict', or keep the time "
+                           "functions and dt concrete") from None
 
 
 def _synchronize_through_load_jumps(jumps, policy: str, n_cri: int, n_steps: int, dt: float,
