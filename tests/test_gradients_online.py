@@ -160,3 +160,34 @@ def test_checkpointed_gradient_equals_plain_reverse_mode(problem, partition, sur
 def test_resync_tolerance_refused_in_a_traced_run(problem, partition, surrogate):
     with pytest.raises(ProblemError, match="resync_tolerance"):
         jax.grad(make_loss(problem, partition, resync_tolerance="2%"))(E0, ALPHA0, surrogate)
+
+
+def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, surrogate):
+    """Solver-in-the-loop fine-tuning (jaxsync.solve.finetune): its window loss is the
+    relative error of the host-driven online run against the synchronized one, and Adam on
+    the networks' weights lowers it."""
+    from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+
+    base = with_parameters(problem, E0, ALPHA0)
+    config = FineTuneConfig(n_iterations=6, window_cycles=2, learning_rate=3e-3, n_starts=1, n_validation=1,
+                            validate_every=3)
+    window = N_S * N_P + 2 * N_S * N_F  # 15 synchronized steps, two cycles of 20
+    result = fine_tune_in_the_loop(base, surrogate, partition, n_steps=N_STEPS, config=config)
+    assert result.window_starts.tolist() == [0]
+    # the loss of the given weights, from the solvers themselves
+    online = simulate_sync_avoiding(base, window, partitions=partition, surrogates=surrogate,
+                                    n_cri=N_S * N_P, save_every=N_S, dt=float(problem.dt))
+    synced = jaxsync.simulate(base, N_STEPS, save_every=N_S)
+    amplitude = np.abs(synced.displacement).max()
+    first = N_P + 1  # the saves after the synchronized history (t = 0 is the first row)
+    expected = np.mean((online.displacement[first:] - synced.displacement[first:window // N_S + 1]) ** 2)
+    assert result.amplitude == pytest.approx(amplitude, rel=1e-12)
+    assert result.validation[0, 1] == pytest.approx(expected / amplitude ** 2, rel=1e-9)
+    assert result.loss_history[0] == pytest.approx(result.validation[0, 1], rel=1e-9)
+    # fine-tuning lowered it, and the kept weights are the best validated ones
+    assert result.validation[:, 0].tolist() == [0, 3, 6]
+    assert result.best_iteration > 0 and result.improvement < 0.9
+    tuned = simulate_sync_avoiding(base, window, partitions=partition, surrogates=result.surrogate,
+                                   n_cri=N_S * N_P, save_every=N_S, dt=float(problem.dt))
+    tuned_error = np.mean((tuned.displacement[first:] - synced.displacement[first:window // N_S + 1]) ** 2)
+    assert tuned_error / amplitude ** 2 == pytest.approx(result.validation[:, 1].min(), rel=1e-9)

@@ -150,6 +150,11 @@ def advance_checkpointed(system: ExplicitSystem, state: SolverState, n_saves: in
     # long saves: every save is a checkpointed unit (n_saves boundary states), and its
     # steps run in checkpointed sub-segments of about sqrt(save_every) steps
     inner = max(1, math.isqrt(save_every))
+    if n_saves == 1:
+        # one save: its sub-segments alone (a checkpoint around them would only recompute
+        # the whole run once more, for the same memory)
+        s, _ = _checkpointed_scan(one_step, state, save_every, inner, unroll=STEP_UNROLL)
+        return s, s.displacement[None]
 
     def long_save(s, _):
         s, _ = _checkpointed_scan(one_step, s, save_every, inner, unroll=STEP_UNROLL)
@@ -236,7 +241,9 @@ def sync_avoiding_trajectory(problem, system: ExplicitSystem, state: SolverState
             :class:`~jaxsync.solve.predictors.OraclePredictor`, with ``n_s``, ``n_past``,
             ``n_future`` and ``predict(buffer, step)`` for one part.
         partitions: n_parts or a :class:`jaxsync.Partition` (the predictor's).
-        n_cri, n_steps, save_every: as for ``simulate_sync_avoiding`` (checked there).
+        n_cri, n_steps, save_every: as for ``simulate_sync_avoiding`` (checked there), counted
+            from ``state`` (which may be a state in the middle of a run: its step counter
+            carries on, for the loads' time functions).
     """
     from ..surrogate.data import shared_dof_layout
     from ..surrogate.refill import refill_cycle
@@ -277,7 +284,7 @@ def sync_avoiding_trajectory(problem, system: ExplicitSystem, state: SolverState
             s, disp, _ = overwritten_steps(part, s, pred, cycle_steps, save_every)
             return (s, buffer, last + cycle_steps), disp
 
-        carry = (s, buffer, jnp.asarray(n_cri, dtype=jnp.int32))
+        carry = (s, buffer, s.step)  # the last known step: n_cri after the given state's
         if n_cycles:
             if cycles_per_segment is None:
                 carry, disp = jax.lax.scan(cycle, carry, None, length=n_cycles)
@@ -366,8 +373,9 @@ class _TracedParts:
                            fixed=jnp.asarray(template.system.fixed),
                            fixed_values=local(system.fixed_values, 0.0)),
             jnp.asarray(template.shared_local), jnp.asarray(template.shared_interface))
+        # the step counter carries on from the given state's (load time functions read it)
         self.state = SolverState(local(state.displacement, 0.0), local(state.previous, 0.0),
-                                 jnp.zeros(n_parts, dtype=jnp.int32))
+                                 jnp.broadcast_to(jnp.asarray(state.step, dtype=jnp.int32), (n_parts,)))
         self.runner, self.n_parts, self.n_local = runner, n_parts, n_local
         self.n_nodes = problem.mesh.n_nodes
         # global node of each kept local value, and how many parts hold it (for the mean)
