@@ -51,8 +51,14 @@ def surrogate(problem, partition):
     return dataclasses.replace(s, mean=jnp.asarray(mean), std=jnp.asarray(std))
 
 
-def with_parameters(problem, E, alpha):
-    return problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
+def with_parameters(problem, E, alpha, fz=None):
+    """The cantilever with Young's modulus E, damping alpha and (given fz) the body force
+    (0, 0, fz) on the same time function."""
+    changes = {}
+    if fz is not None:
+        (load,) = problem.loads
+        changes["loads"] = (jaxsync.BodyForce((0.0, 0.0, fz), load.time),)
+    return problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha, **changes)
 
 
 def tip_node(mesh):
@@ -60,20 +66,20 @@ def tip_node(mesh):
     return int(np.argmax(x[:, 0] - 1e-3 * np.abs(x[:, 1]) - 1e-3 * np.abs(x[:, 2])))
 
 
-def online(problem, partition, surrogate, E, alpha, **kwargs):
+def online(problem, partition, surrogate, E, alpha, fz=None, **kwargs):
     # a concrete dt (the base problem's CFL step): the default one follows a traced E, and a
     # traced dt leaves the steps where loads jump unknown
     with jax.ensure_compile_time_eval():
         dt = float(problem.dt)
-    return simulate_sync_avoiding(with_parameters(problem, E, alpha), N_STEPS, partitions=partition,
+    return simulate_sync_avoiding(with_parameters(problem, E, alpha, fz), N_STEPS, partitions=partition,
                                   surrogates=surrogate, n_cri=N_CRI, dt=dt, **kwargs)
 
 
 def make_loss(problem, partition, **kwargs):
     tip = tip_node(problem.mesh)
 
-    def loss(E, alpha, surrogate):
-        traj = online(problem, partition, surrogate, E, alpha, **kwargs)
+    def loss(E, alpha, surrogate, fz=None):
+        traj = online(problem, partition, surrogate, E, alpha, fz, **kwargs)
         # the tip's vertical history after the switch: the predicted phase's motion
         return jnp.sum(traj.displacement[N_CRI:, tip, 2] ** 2) / 1e-8
 
@@ -107,22 +113,30 @@ def moved(surrogate, direction, h):
 
 
 def test_gradients_equal_finite_differences(problem, partition, surrogate):
-    """d/dE, d/dalpha (surrogates fixed) and d/d(weights) along a random direction (solver
-    in the loop) against central differences of the compiled forward program."""
+    """d/dE, d/dalpha, d/d(load) (surrogates fixed) and d/d(weights) along a random
+    direction (solver in the loop) against central differences of the compiled forward
+    program."""
     loss = make_loss(problem, partition)
-    gE, ga, gw = jax.jit(jax.grad(loss, (0, 1, 2)))(E0, ALPHA0, surrogate)
+    fz0 = -0.5
+    gE, ga, gw, gf = jax.jit(jax.grad(loss, (0, 1, 2, 3)))(E0, ALPHA0, surrogate, fz0)
     direction = random_direction(surrogate.params, 7)
     slope = sum(float(jnp.vdot(g, d)) for g, d in zip(jax.tree_util.tree_leaves(gw.params),
                                                        jax.tree_util.tree_leaves(direction)))
-    value = jax.jit(lambda E, alpha, h: loss(E, alpha, moved(surrogate, direction, h)))
-    hE, ha, hw = 1e-4 * E0, 1e-3, 1e-5
-    fdE = (float(value(E0 + hE, ALPHA0, 0.0)) - float(value(E0 - hE, ALPHA0, 0.0))) / (2 * hE)
-    fda = (float(value(E0, ALPHA0 + ha, 0.0)) - float(value(E0, ALPHA0 - ha, 0.0))) / (2 * ha)
-    fdw = (float(value(E0, ALPHA0, hw)) - float(value(E0, ALPHA0, -hw))) / (2 * hw)
-    assert min(abs(float(gE)), abs(float(ga)), abs(slope)) > 0
-    assert float(gE) == pytest.approx(fdE, rel=1e-6)
-    assert float(ga) == pytest.approx(fda, rel=1e-6)
-    assert slope == pytest.approx(fdw, rel=1e-6)
+    value = jax.jit(lambda E, alpha, h, fz: loss(E, alpha, moved(surrogate, direction, h), fz))
+    hE, ha, hw, hf = 1e-4 * E0, 1e-3, 1e-5, 1e-4
+
+    def central(i, h):
+        x = [E0, ALPHA0, 0.0, fz0]
+        plus, minus = list(x), list(x)
+        plus[i] += h
+        minus[i] -= h
+        return (float(value(*plus)) - float(value(*minus))) / (2 * h)
+
+    assert min(abs(float(gE)), abs(float(ga)), abs(slope), abs(float(gf))) > 0
+    assert float(gE) == pytest.approx(central(0, hE), rel=1e-6)
+    assert float(ga) == pytest.approx(central(1, ha), rel=1e-6)
+    assert slope == pytest.approx(central(2, hw), rel=1e-6)
+    assert float(gf) == pytest.approx(central(3, hf), rel=1e-6)
     # no synchronization after n_cri: only the network of the part that holds the tip moves
     # it (the other part's predictions reach the tip through nothing)
     holds_tip = [tip_node(problem.mesh) in set(part.nodes.tolist()) for part in partition.parts]
