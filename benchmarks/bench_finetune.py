@@ -36,28 +36,16 @@ import paper_experiments as pe  # noqa: E402  (the metrics of the experiment mat
 import jaxsync  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
 from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop  # noqa: E402
-from jaxsync.surrogate import Surrogate, TrainConfig, train_surrogates  # noqa: E402
+from jaxsync.surrogate import Surrogate, train_surrogates  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "finetune.json")
 FORCES = {"default": (0.0, 0.0, -0.5), "skewed": (0.0, -0.5, -0.5)}
 
 
-@dataclasses.dataclass(frozen=True)
-class Sizes:
-    n_steps: int
-    n_s: int
-    n_past: int
-    n_future: int
-    save_every: int
-    train_fraction: float
-    train_overrides: dict
-
-
-FULL = Sizes(n_steps=100_000, n_s=150, n_past=20, n_future=20, save_every=50, train_fraction=0.5,
-             train_overrides={})
-QUICK = Sizes(n_steps=3000, n_s=10, n_past=5, n_future=5, save_every=10, train_fraction=0.5,
-              train_overrides={"config": TrainConfig(n_epochs=2), "n_hidden": 8, "n_layers": 1,
-                               "emse_applications": 0})
+def sizes_of(quick: bool):
+    """The experiment matrix's settings (``paper_experiments.py``: the paper's, or the tests'
+    reduced ones): steps, n_s, n_p, n_f, save_every, the training span and overrides."""
+    return pe.reduced_settings(2) if quick else pe.paper_settings()
 
 
 def metrics_of(problem, parts, reference, online, tip):
@@ -67,7 +55,7 @@ def metrics_of(problem, parts, reference, online, tip):
                               "l2_relative_final", "interior_max_error_relative")}
 
 
-def run_case(name: str, sizes: Sizes, config: FineTuneConfig, seed: int, progress: bool) -> dict:
+def run_case(name: str, sizes, config: FineTuneConfig, seed: int, progress: bool) -> dict:
     problem = jaxsync.cantilever(body_force=FORCES[name])
     parts = jaxsync.partition(problem.mesh, 2, seed=seed)
     tip = pe.check_tip(problem.mesh, parts)
@@ -98,8 +86,10 @@ def run_case(name: str, sizes: Sizes, config: FineTuneConfig, seed: int, progres
                                   progress=progress)
     print(f"[{name}] online run, fine-tuned networks", flush=True)
     after, after_seconds = online(tuned.surrogate)
-    return {"case": name, "body_force": list(FORCES[name]), "sizes": dataclasses.asdict(sizes) | {
-                "train_overrides": sorted(sizes.train_overrides)},
+    sized = {k: getattr(sizes, k) for k in ("n_steps", "n_s", "n_past", "n_future", "save_every",
+                                             "train_fraction")}
+    return {"case": name, "body_force": list(FORCES[name]),
+            "sizes": sized | {"train_overrides": sorted(sizes.train_overrides)},
             "train_seconds": train_seconds, "fine_tune": tuned.summary(),
             "fine_tune_loss_history": tuned.loss_history.tolist(),
             "before": metrics_of(problem, parts, reference, before, tip) | {"online_seconds": before_seconds},
@@ -134,7 +124,7 @@ def main(argv=None) -> int:
     parser.add_argument("--quiet", action="store_true")
     parser.add_argument("--out", default=DEFAULT_OUT)
     args = parser.parse_args(argv)
-    sizes = QUICK if args.quick else FULL
+    sizes = sizes_of(args.quick)
     iterations = args.iterations or (4 if args.quick else FineTuneConfig.n_iterations)
     config = FineTuneConfig(n_iterations=iterations, window_cycles=args.window_cycles,
                             learning_rate=args.learning_rate, seed=args.seed,
