@@ -19,7 +19,7 @@ from .errors import (
 )
 from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
 from .fem.coronary_tree import coronary_mesh
-from .fem.geometry import vessel_mesh
+from .fem.geometry import vessel_centerline, vessel_mesh
 from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .fem.material import LinearElastic
 from .fem.mesh import Mesh, MeshWarning, box_beam, read_mesh
@@ -38,7 +38,7 @@ __version__ = "0.2.0"
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
     "CheckpointError", "ConfigError", "PartitionError", "PrecisionError", "Partition", "partition",
-    "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh", "devices",
+    "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",

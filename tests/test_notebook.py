@@ -27,6 +27,38 @@ def test_cantilever_notebook_runs(tmp_path):
 
 
 INVERSE = os.path.join(os.path.dirname(__file__), "..", "notebooks", "inverse.ipynb")
+INVERSE_VESSEL = os.path.join(os.path.dirname(__file__), "..", "notebooks", "inverse_vessel.ipynb")
+
+
+def run_inverse_notebook(path, sizes: dict, names: tuple, tmp_path):
+    """Execute the inverse-problem notebook ``path`` with its first code cell replaced by
+    ``sizes``; returns (its printed text, the variables ``names`` of its namespace at the
+    end, read back as JSON)."""
+    nbformat = pytest.importorskip("nbformat")
+    nbclient = pytest.importorskip("nbclient")
+    pytest.importorskip("optax")
+    nb = nbformat.read(path, as_version=4)
+    assert all(name in nb.cells[1].source for name in sizes)
+    nb.cells[1].source = "\n".join(f"{name} = {value!r}" for name, value in sizes.items())
+    fields = ", ".join(f"{name}=np.asarray({name}).tolist()" for name in names)
+    nb.cells.append(nbformat.v4.new_code_cell(f"import json\nprint('RESULT', json.dumps(dict({fields})))"))
+    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
+                                     resources={"metadata": {"path": str(tmp_path)}})
+    client.execute()
+    outputs = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
+    return outputs, json.loads(outputs.split("RESULT ", 1)[1].splitlines()[0])
+
+
+def check_recovered(result):
+    """The issue's targets from 30 % off: E within 1 %, alpha within 5 %."""
+    assert abs(result["E0"] / result["E_TRUE"] - 1) == pytest.approx(0.3)
+    assert abs(result["ALPHA0"] / result["ALPHA_TRUE"] - 1) == pytest.approx(0.3)
+    E_err = abs(result["E_fit"] / result["E_TRUE"] - 1)
+    alpha_err = abs(result["alpha_fit"] / result["ALPHA_TRUE"] - 1)
+    assert E_err < 0.01 and alpha_err < 0.05, (E_err, alpha_err)
+
+
+FIT = ("E_fit", "alpha_fit", "E0", "ALPHA0", "E_TRUE", "ALPHA_TRUE", "grad0", "fd", "iterations")
 
 
 def test_inverse_notebook_runs(tmp_path):
@@ -34,28 +66,30 @@ def test_inverse_notebook_runs(tmp_path):
     # one period, but with the ramp's transient): the gradient through simulate matches
     # central differences, and L-BFGS from 30 % off reaches the issue's targets (E within
     # 1 %, alpha within 5 %) from observations with 1 % noise
-    nbformat = pytest.importorskip("nbformat")
-    nbclient = pytest.importorskip("nbclient")
-    pytest.importorskip("optax")
-    nb = nbformat.read(INVERSE, as_version=4)
-    sizes = nb.cells[1]
-    assert "N_STEPS" in sizes.source and "MAX_ITERS" in sizes.source
-    sizes.source = "N_STEPS = 6000\nSAVE_EVERY = 100\nMAX_ITERS = 12"
-    nb.cells.append(nbformat.v4.new_code_cell(
-        "import json\nprint('RESULT', json.dumps(dict(E_fit=E_fit, alpha_fit=alpha_fit, E0=E0, "
-        "ALPHA0=ALPHA0, E_TRUE=E_TRUE, ALPHA_TRUE=ALPHA_TRUE, grad0=np.asarray(grad0).tolist(), "
-        "fd=np.asarray(fd).tolist(), loss=history['loss'], iterations=iterations)))"))
-    client = nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                                     resources={"metadata": {"path": str(tmp_path)}})
-    client.execute()
-    outputs = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
+    outputs, result = run_inverse_notebook(INVERSE, {"N_STEPS": 6000, "SAVE_EVERY": 100, "MAX_ITERS": 12},
+                                           FIT + ("history",), tmp_path)
     assert "SUMMARY: E error" in outputs
-    result = json.loads(outputs.split("RESULT ", 1)[1].splitlines()[0])
     np.testing.assert_allclose(result["grad0"], result["fd"], rtol=1e-5)
-    assert result["loss"][-1] < result["loss"][0] / 100
-    E_err = abs(result["E_fit"] / result["E_TRUE"] - 1)
-    alpha_err = abs(result["alpha_fit"] / result["ALPHA_TRUE"] - 1)
-    assert abs(result["E0"] / result["E_TRUE"] - 1) == pytest.approx(0.3)
-    assert abs(result["ALPHA0"] / result["ALPHA_TRUE"] - 1) == pytest.approx(0.3)
-    assert E_err < 0.01 and alpha_err < 0.05, (E_err, alpha_err)
+    assert result["history"]["loss"][-1] < result["history"]["loss"][0] / 100
+    check_recovered(result)
     assert 1 <= result["iterations"] <= 12
+
+
+def test_inverse_vessel_notebook_runs(tmp_path):
+    # the vessel inverse problem at reduced size (coarser mesh, 400 steps: about 0.35 s of
+    # the mass-scaled wall ringing after the pressure step, alpha t = 0.18): the gradient
+    # through simulate matches central differences, and the two-stage L-BFGS (E alone over
+    # the first 0.2 s, then E and alpha over the whole window) from 30 % off lowers the loss
+    # to the noise level and reaches E within 1 % and alpha within 5 % from observations
+    # with 1 % noise (at this size: errors of 0.01 % and 0.02-0.3 % with noise seeds 0-2)
+    pytest.importorskip("gmsh")
+    outputs, result = run_inverse_notebook(
+        INVERSE_VESSEL, {"MESH_SIZE": 0.12, "N_STEPS": 400, "SAVE_EVERY": 4, "MAX_ITERS": 12},
+        FIT + ("history", "final_loss", "NOISE", "windows"), tmp_path)
+    assert "SUMMARY: E = " in outputs
+    np.testing.assert_allclose(result["grad0"], result["fd"], rtol=1e-4)
+    assert len(result["windows"]) == 2 and result["windows"][-1] == 400
+    assert result["history"]["loss"][-1] < result["history"]["loss"][0] / 100
+    assert result["final_loss"] < 2 * result["NOISE"] ** 2
+    check_recovered(result)
+    assert 1 <= result["iterations"] <= 24

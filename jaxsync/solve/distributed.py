@@ -117,7 +117,10 @@ class DistributedRunner:
             raise PartitionError(f"n_parts={n_parts} must be a multiple of the number of devices "
                                  f"({len(devices)})")
         self._part_slice = slice(None)
-        self._allreduce = None
+        # how a step sums shared values beyond the vmapped parts of one device: None (psum
+        # over the device axis), an MPI Allreduce or a NeighbourExchange (the ``across`` of
+        # jaxsync.parallel.exchange.synchronize_forces)
+        self.across = None
         self.layout = self.partition  # the parts as the program holds them
         self.halo_depth = None
         self._unit = save_every  # the steps of the smallest whole chunk
@@ -146,9 +149,9 @@ class DistributedRunner:
                                      f"ranks; use a multiple of {size} parts")
             per_rank = n_parts // size
             self._part_slice = slice(rank * per_rank, (rank + 1) * per_rank)
-            self._allreduce = multiprocess.make_allreduce(comm, allreduce)
+            self.across = multiprocess.make_allreduce(comm, allreduce)
         if sync == "ppermute":
-            self._allreduce = neighbour_exchange(self.partition, len(devices))
+            self.across = neighbour_exchange(self.partition, len(devices))
         self.devices = devices
         self.device_mesh = DeviceMesh(np.array(devices), (AXIS,))
         self.sharding = NamedSharding(self.device_mesh, P(AXIS))
@@ -161,11 +164,13 @@ class DistributedRunner:
         self.parts = self.put(host)
         self._advance = {}
         # where each part's local values go in the global field: all local nodes, or with
-        # deep halos the owned ones (the only ones right inside an exchange cycle)
+        # deep halos the owned ones (the only ones right inside an exchange cycle);
+        # global_index[i] is the global node of flat local slot local_index[i] (part p's
+        # slot k is p * n_local + k)
         kept = ([np.arange(p.n_local) for p in self.layout.parts] if self.halo_depth is None
                 else list(self.layout.owned_local))
-        self._global_index = np.concatenate([p.nodes[k] for p, k in zip(self.layout.parts, kept)])
-        self._local_index = np.concatenate(
+        self.global_index = np.concatenate([p.nodes[k] for p, k in zip(self.layout.parts, kept)])
+        self.local_index = np.concatenate(
             [p.index * self.n_local + k for p, k in zip(self.layout.parts, kept)])
 
     def put(self, tree):
@@ -188,7 +193,7 @@ class DistributedRunner:
         n_shared_max, 3) after every step; padding slots read 0)."""
         n_interface = self.layout.n_interface
         save_every = self.save_every if save_every is None else save_every
-        across = self._allreduce
+        across = self.across
         depth = self.halo_depth
 
         def one_part(part: PartSystems, state: SolverState):
@@ -248,7 +253,7 @@ class DistributedRunner:
         flat = local.reshape(local.shape[0], *lead, self.n_local, 3)
         flat = np.moveaxis(flat, 0, -3).reshape(*lead, -1, 3)  # (..., n_parts * n_local, 3)
         out = np.zeros((*lead, self.partition.mesh.n_nodes, 3), dtype=flat.dtype)
-        out[..., self._global_index, :] = flat[..., self._local_index, :]
+        out[..., self.global_index, :] = flat[..., self.local_index, :]
         return out
 
     def to_global(self, state) -> SolverState:

@@ -379,7 +379,7 @@ class _TracedParts:
         self.runner, self.n_parts, self.n_local = runner, n_parts, n_local
         self.n_nodes = problem.mesh.n_nodes
         # global node of each kept local value, and how many parts hold it (for the mean)
-        self._global, self._local = runner._global_index, runner._local_index
+        self._global, self._local = runner.global_index, runner.local_index
         self._count = np.bincount(self._global, minlength=self.n_nodes).astype(float)
 
     def synchronize(self, part: PartSystems):
@@ -388,7 +388,7 @@ class _TracedParts:
 
         return functools.partial(synchronize_forces, shared_local=part.shared_local,
                                  shared_interface=part.shared_interface,
-                                 n_interface=self.runner.layout.n_interface, across=self.runner._allreduce)
+                                 n_interface=self.runner.layout.n_interface, across=self.runner.across)
 
     def run(self, per_part, *args):
         """``per_part(*one_part_args) -> (n_saved, n_local, 3)`` over all parts under
