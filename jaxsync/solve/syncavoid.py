@@ -199,6 +199,17 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
             :class:`jaxsync.solve.distributed.DistributedRunner`).
         load_jumps: ``"synchronize"`` (default) or ``"predict"``: what the run does at the
             steps where a load's time function jumps (see above).
+        gradient_checkpoints: traced runs only (see below): ``True`` (default) recomputes
+            segments in the reverse pass (memory ~ sqrt(n_steps)), ``False`` stores every
+            step, an int is a memory budget [bytes] for the synchronized phase.
+
+    Differentiable: when the material, damping, loads, dt or the surrogate's arrays are JAX
+    tracers (inside ``jax.grad`` or ``jit``), the run is one traced program
+    (:func:`jaxsync.solve.gradients.sync_avoiding_trajectory`) with no progress, divergence
+    checks or error control (``resync_tolerance`` is refused), and the trajectory holds JAX
+    arrays (``displacement``, ``times``; ``synchronized`` flags; no per-part histories or
+    timings). Give a concrete ``dt``: the default CFL step follows a traced E, and the steps
+    where loads jump cannot be found from a traced dt (or pass ``load_jumps="predict"``).
 
     Returns:
         :class:`jaxsync.Trajectory` with ``synchronized`` flags (True at the snapshots of
