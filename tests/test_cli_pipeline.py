@@ -11,6 +11,7 @@ import io
 import json
 import warnings
 
+import jax
 import numpy as np
 import pytest
 
@@ -290,3 +291,47 @@ def test_predict_in_bfloat16_is_checked_first_and_follows_the_float32_run(demo, 
     synchronized = full.stats.n_cri // full.save_every + 1
     np.testing.assert_array_equal(reduced.displacement[:synchronized], full.displacement[:synchronized])
     assert np.abs(reduced.displacement[synchronized:] - full.displacement[synchronized:]).max() > 0
+
+
+# ----------------------------------------------------------------------------- fine-tuning
+
+
+def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
+    """``jaxsync finetune`` on the demo's files: windows within the training half, the best
+    validated weights written with the partition and a record of the fine-tuning; refuses
+    to overwrite; ``jaxsync predict`` runs the new checkpoint."""
+    from jaxsync.surrogate.checkpoint import load_checkpoint
+
+    _, out, _ = demo
+    trained = out / "surrogate" / "surrogate.h5"
+    tuned = tmp_path / "tuned.h5"
+    args = ["finetune", out / "synchronized.h5", trained, "-o", tuned, "--iterations", "3",
+            "--window-cycles", "1", "--learning-rate", "1e-2", "--no-progress"]
+    run = run_cli(args)
+    assert run.code == 0, run.err
+    assert "validation loss x" in run.out and f"first {N_STEPS // 2} steps" in run.out
+    before, after = load_checkpoint(trained), load_checkpoint(tuned)
+    record = after.metadata["fine_tuned"]
+    assert record["span_steps"] == N_STEPS // 2 and record["config"]["n_iterations"] == 3
+    assert record["config"]["window_cycles"] == 1 and record["config"]["learning_rate"] == 1e-2
+    # every window lies within the training half: start + n_s n_p + one cycle <= 750
+    assert max(record["window_starts"]) + 2 * N_S * 5 <= N_STEPS // 2
+    losses = [v for _, v in record["validation"]]
+    assert record["improvement"] == pytest.approx(min(losses) / losses[0])
+    changed = any(not np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(before.params),
+                                                           jax.tree_util.tree_leaves(after.params)))
+    assert changed == (record["best_iteration"] > 0)
+    for a, b in zip((before.mean, before.std), (after.mean, after.std)):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(before.shared_nodes, after.shared_nodes):
+        np.testing.assert_array_equal(a, b)
+    assert after.metadata["sampling"] == before.metadata["sampling"]
+    # an existing output is refused before any work
+    written = tuned.read_bytes()
+    again = run_cli(args)
+    assert again.code == 2 and "--force" in again.err
+    assert tuned.read_bytes() == written
+    predict = predict_args(demo, tmp_path / "tuned_online.h5")
+    predict[2] = tuned
+    online = run_cli(predict)
+    assert online.code == 0, online.err

@@ -1,4 +1,4 @@
-"""The ``jaxsync`` command line: ``demo``, ``simulate``, ``train``, ``predict``, ``report``.
+"""The ``jaxsync`` command line: ``demo``, ``simulate``, ``train``, ``predict``, ``finetune``, ``report``.
 
 This module builds the parser from the subcommand modules (:mod:`jaxsync.app.commands`;
 ``train`` from :mod:`jaxsync.app.train`) and dispatches to the chosen one. Errors of the
@@ -20,7 +20,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from .commands import demo, predict, report, simulate
+from .commands import demo, finetune, predict, report, simulate
 
 __all__ = ["build_parser", "main", "parts_of"]
 
@@ -46,6 +46,7 @@ def build_parser() -> argparse.ArgumentParser:
     simulate.add_parser(subparsers)
     add_train_parser(subparsers)
     predict.add_parser(subparsers)
+    finetune.add_parser(subparsers)
     report.add_parser(subparsers)
     return parser
 
@@ -59,8 +60,8 @@ def parts_of(args) -> int:
         return demo_parts(args)
     if command == "simulate":
         return int(args.parts or 0)
-    if command in ("predict", "train"):
-        path = args.trajectory if command == "predict" else args.trajectories[0]
+    if command in ("predict", "finetune", "train"):
+        path = args.trajectories[0] if command == "train" else args.trajectory
         try:
             import h5py
 
