@@ -11,7 +11,39 @@ from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Syn
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
            "add_surrogate_options", "accept_negative_numbers", "refuse_to_overwrite", "process_count",
-           "is_main_process", "barrier"]
+           "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run"]
+
+
+def add_trained_run_arguments(parser) -> None:
+    """TRAJECTORY and CHECKPOINT, ``--config`` and ``--mesh``: a synchronized run and the
+    surrogates trained on it (``predict``, ``finetune``)."""
+    parser.add_argument("trajectory", help="synchronized distributed trajectory (HDF5) the surrogates were "
+                                           "trained on: it defines the partition")
+    parser.add_argument("checkpoint", help="surrogate checkpoint written by jaxsync train")
+    parser.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
+    parser.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
+
+
+def load_trained_run(args):
+    """(reference trajectory, its partition, the problem, the checkpoint checked against the
+    partition) of :func:`add_trained_run_arguments`' arguments; the problem's mesh must be the
+    trajectory's (:class:`jaxsync.PartitionError` otherwise)."""
+    import numpy as np
+
+    from ...errors import PartitionError
+    from ...parallel.partitioning import partition_of
+    from ...surrogate.checkpoint import load_checkpoint
+    from ...trajectory import Trajectory
+    from ..config import load_config, problem_from_config
+
+    reference = Trajectory.load(args.trajectory)
+    part = partition_of(reference)
+    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh)
+    if (problem.mesh.n_nodes != reference.mesh.n_nodes
+            or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
+        raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
+                             "pass the same --config/--mesh as the synchronized run")
+    return reference, part, problem, load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
 
 
 def add_compression_option(parser) -> None:

@@ -18,11 +18,7 @@ def add_parser(subparsers) -> None:
                     "same state, gradients through the solver and all the networks together (Adam); "
                     "the weights with the lowest loss on validation windows are kept and written to "
                     "--output. The problem comes from a TOML file (default: the packaged cantilever).")
-    p.add_argument("trajectory", help="synchronized distributed trajectory (HDF5) the surrogates were "
-                                      "trained on: its partition, dt and length")
-    p.add_argument("checkpoint", help="surrogate checkpoint written by jaxsync train")
-    p.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
-    p.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
+    common.add_trained_run_arguments(p)
     p.add_argument("--span", type=int, default=None,
                    help="windows lie within the first SPAN steps (default: the part of the trajectory "
                         "the checkpoint was trained on, its train_fraction; else the whole trajectory)")
@@ -45,25 +41,12 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import dataclasses
 
-    import numpy as np
-
-    from ...errors import ConfigError, PartitionError
-    from ...parallel.partitioning import partition_of
+    from ...errors import ConfigError
     from ...solve.finetune import FineTuneConfig, fine_tune_in_the_loop
     from ...surrogate import Surrogate
-    from ...surrogate.checkpoint import load_checkpoint
-    from ...trajectory import Trajectory
-    from ..config import load_config, problem_from_config
 
     common.refuse_to_overwrite([args.output], force=args.force)
-    reference = Trajectory.load(args.trajectory)
-    part = partition_of(reference)
-    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh)
-    if (problem.mesh.n_nodes != reference.mesh.n_nodes
-            or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
-        raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
-                             "pass the same --config/--mesh as the synchronized run")
-    ckpt = load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
+    reference, part, problem, ckpt = common.load_trained_run(args)
     if ckpt.arch.conditional:
         raise ConfigError("fine-tuning conditional surrogates (trained on several runs with load "
                           "parameters) is not supported: fine-tune unconditional ones")

@@ -13,11 +13,7 @@ def add_parser(subparsers) -> None:
                     "surrogates of CHECKPOINT replace the synchronization. The partition is the "
                     "one of TRAJECTORY (the synchronized run the surrogates were trained on); "
                     "the problem comes from a TOML file (default: the packaged cantilever).")
-    p.add_argument("trajectory", help="synchronized distributed trajectory (HDF5) that defines "
-                                      "the partition")
-    p.add_argument("checkpoint", help="surrogate checkpoint written by jaxsync train")
-    p.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
-    p.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
+    common.add_trained_run_arguments(p)
     p.add_argument("--n-cri", type=int, default=None,
                    help="last synchronized step (default and minimum: n_p n_s)")
     p.add_argument("--steps", type=int, default=None,
@@ -53,24 +49,10 @@ def add_parser(subparsers) -> None:
 
 
 def run(args) -> int:
-    import numpy as np
-
-    from ...errors import PartitionError
-    from ...parallel.partitioning import partition_of
     from ...solve.syncavoid import describe_run, simulate_sync_avoiding
-    from ...surrogate.checkpoint import load_checkpoint
-    from ...trajectory import Trajectory
-    from ..config import load_config, problem_from_config
 
     common.refuse_to_overwrite([args.output], force=args.force)
-    reference = Trajectory.load(args.trajectory)
-    part = partition_of(reference)
-    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh)
-    if (problem.mesh.n_nodes != reference.mesh.n_nodes
-            or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
-        raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
-                             "pass the same --config/--mesh as the synchronized run")
-    ckpt = load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
+    reference, part, problem, ckpt = common.load_trained_run(args)
     n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     surrogates = ckpt
