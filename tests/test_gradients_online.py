@@ -205,3 +205,12 @@ def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, sur
                                    n_cri=N_S * N_P, save_every=N_S, dt=float(problem.dt))
     tuned_error = np.mean((tuned.displacement[first:] - synced.displacement[first:window // N_S + 1]) ** 2)
     assert tuned_error / amplitude ** 2 == pytest.approx(result.validation[:, 1].min(), rel=1e-9)
+
+
+def test_fine_tuning_refuses_surrogates_of_another_partition(problem, surrogate):
+    from jaxsync import CheckpointError
+    from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+
+    with pytest.raises(CheckpointError, match="partition they were trained on"):
+        fine_tune_in_the_loop(problem, surrogate, jaxsync.partition(problem.mesh, 4), n_steps=N_STEPS,
+                              config=FineTuneConfig(n_iterations=1, n_starts=1, n_validation=1))

@@ -65,6 +65,12 @@ class PartSystems:
     shared_interface: Any
     owned: Any = None
 
+    def shared_displacement(self, state):
+        """One part's (n_shared_max, 3) displacements at its shared nodes in ``state``
+        (padding slots read 0): what the distributed solver records after every step, the
+        surrogates' training data and input history."""
+        return state.displacement.at[self.shared_local].get(mode="fill", fill_value=0.0)
+
 
 def _pad_to(arrays, length, fill, axis=0):
     out = []

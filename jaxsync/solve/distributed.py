@@ -191,26 +191,25 @@ class DistributedRunner:
         to time it, paper section 7). ``record=True``: ``saved`` is the pair (full field
         every ``save_every`` steps, shared-node displacements (n_parts, n_steps,
         n_shared_max, 3) after every step; padding slots read 0)."""
-        n_interface = self.layout.n_interface
         save_every = self.save_every if save_every is None else save_every
-        across = self.across
         depth = self.halo_depth
 
         def one_part(part: PartSystems, state: SolverState):
             if depth is not None and synchronize:
-                return advance_halo(part, state, n_saves, save_every, depth, n_interface, across)
-            sync = None
-            if synchronize:
-                sync = functools.partial(synchronize_forces, shared_local=part.shared_local,
-                                         shared_interface=part.shared_interface,
-                                         n_interface=n_interface, across=across)
-            shared = None
-            if record:
-                def shared(s):
-                    return s.displacement.at[part.shared_local].get(mode="fill", fill_value=0.0)
-            return advance(part.system, state, n_saves, save_every, synchronize=sync, record=shared)
+                return advance_halo(part, state, n_saves, save_every, depth, self.layout.n_interface, self.across)
+            return advance(part.system, state, n_saves, save_every,
+                           synchronize=self.force_sum(part) if synchronize else None,
+                           record=part.shared_displacement if record else None)
 
         return spmd_program(one_part, self.device_mesh, n_in=2, n_out=2)
+
+    def force_sum(self, part: PartSystems):
+        """One part's shared-node force sum, the ``synchronize`` of
+        :func:`jaxsync.fem.stepper.step` (:func:`synchronize_forces` across this runner's
+        devices and processes)."""
+        return functools.partial(synchronize_forces, shared_local=part.shared_local,
+                                 shared_interface=part.shared_interface,
+                                 n_interface=self.layout.n_interface, across=self.across)
 
     def _compiled(self, n_saves: int):
         if n_saves not in self._advance:

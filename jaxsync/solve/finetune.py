@@ -69,7 +69,8 @@ class FineTuneConfig:
                 raise ConfigError(f"FineTuneConfig.{name} must be an integer >= 1, got {value!r}")
         for name in ("learning_rate", "clip_norm"):
             value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not value > 0:
+            if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+                    or not value > 0:
                 raise ConfigError(f"FineTuneConfig.{name} must be > 0, got {value!r}")
         if self.n_validation > self.n_starts:
             raise ConfigError(f"FineTuneConfig.n_validation={self.n_validation} exceeds n_starts={self.n_starts}")

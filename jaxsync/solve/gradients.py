@@ -208,7 +208,7 @@ def partitioned_trajectory(problem, system: ExplicitSystem, state: SolverState, 
 
     def one_part(part: PartSystems, s: SolverState):
         return advance_for_gradients(part.system, s, n_saves, save_every, checkpoints,
-                                     traced.synchronize(part))[1]
+                                     traced.runner.force_sum(part))[1]
 
     return traced.run(one_part, traced.parts, traced.state)
 
@@ -252,6 +252,14 @@ def sync_avoiding_trajectory(problem, system: ExplicitSystem, state: SolverState
     traced = _TracedParts(problem, system, state, partitions, save_every=save_every, mode=mode,
                           seed=seed, devices=devices, sync=sync)
     n_dof, _ = shared_dof_layout(traced.runner.partition)
+    n_parts = traced.runner.partition.n_parts
+    made_for = (getattr(predictor, "n_parts", n_parts), getattr(predictor, "n_dof", n_dof))
+    if made_for != (n_parts, n_dof):
+        from ..errors import CheckpointError
+
+        raise CheckpointError(f"the surrogates were made for {made_for[0]} parts of {made_for[1]} shared dofs "
+                              f"but this partition has {n_parts} parts of up to {n_dof}: pass the "
+                              "partition they were trained on")
     history = predictor.n_s * predictor.n_past
     cycle_steps = predictor.n_s * predictor.n_future
     before = n_cri - history  # synchronized steps before the recorded history
@@ -262,7 +270,7 @@ def sync_avoiding_trajectory(problem, system: ExplicitSystem, state: SolverState
     cycles_per_segment = max(1, math.isqrt(n_cycles)) if checkpoints is not False else None
 
     def one_part(part: PartSystems, predict, s: SolverState):
-        synchronize = traced.synchronize(part)
+        synchronize = traced.runner.force_sum(part)
         pieces = []
         if before_saves:
             s, saved = advance_for_gradients(part.system, s, before_saves, save_every, checkpoints, synchronize)
@@ -270,10 +278,8 @@ def sync_avoiding_trajectory(problem, system: ExplicitSystem, state: SolverState
         if before_rest:
             s, _ = advance(part.system, s, 1, before_rest, synchronize=synchronize)
 
-        def shared(x):  # padding slots read 0, as in the solver's recorded history
-            return x.displacement.at[part.shared_local].get(mode="fill", fill_value=0.0)
-
-        s, (every_step, recorded) = advance(part.system, s, history, 1, synchronize=synchronize, record=shared)
+        s, (every_step, recorded) = advance(part.system, s, history, 1, synchronize=synchronize,
+                                            record=part.shared_displacement)
         pieces.append(every_step[first_save::save_every])
         buffer = recorded.reshape(history, -1)
         buffer = jnp.pad(buffer, ((0, 0), (0, n_dof - buffer.shape[1])))
@@ -381,14 +387,6 @@ class _TracedParts:
         # global node of each kept local value, and how many parts hold it (for the mean)
         self._global, self._local = runner.global_index, runner.local_index
         self._count = np.bincount(self._global, minlength=self.n_nodes).astype(float)
-
-    def synchronize(self, part: PartSystems):
-        """The shared-node force sum of one part (:func:`synchronize_forces`)."""
-        from ..parallel.exchange import synchronize_forces
-
-        return functools.partial(synchronize_forces, shared_local=part.shared_local,
-                                 shared_interface=part.shared_interface,
-                                 n_interface=self.runner.layout.n_interface, across=self.runner.across)
 
     def run(self, per_part, *args):
         """``per_part(*one_part_args) -> (n_saved, n_local, 3)`` over all parts under
