@@ -24,7 +24,7 @@ from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .fem.material import LinearElastic
 from .fem.mesh import Mesh, MeshWarning, box_beam, read_mesh
 from .fem.problem import Dirichlet, Problem, cantilever
-from .fem.timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
+from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
 from .parallel import devices
 from .parallel.partitioning import Partition, partition
 from .solve.ensemble import ensemble
@@ -41,7 +41,7 @@ __all__ = [
     "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "mass_scaling", "MassScalingWarning",
+    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
     "Trajectory", "RunStats", "PartHistory",
 ]

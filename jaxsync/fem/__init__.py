@@ -20,12 +20,12 @@ from .material import LinearElastic
 from .mesh import Mesh, MeshWarning, box_beam, read_mesh
 from .problem import Dirichlet, Problem, cantilever
 from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
-from .timestep import MassScalingWarning, cfl_dt, mass_scaling, max_stable_dt
+from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh",
            "coronary_tree", "CoronaryTree", "VesselSegment", "LinearElastic",
            "TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "BodyForce", "Pressure",
            "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
            "ExplicitSystem", "SolverState", "build_system",
-           "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "mass_scaling",
+           "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "MassScalingWarning"]

@@ -31,6 +31,10 @@ class UnitOperators:
         K_mu: (n_dofs, n_dofs) stiffness for lambda = 0, mu = 1 [cm].
         M_1: (n_dofs, n_dofs) consistent mass for unit density [cm^3].
         volumes: (n_elements,) element volumes [cm^3].
+        stable_step_memo: exact stability bounds already computed on this mesh, by
+            (nu, density scaling, Dirichlet dofs), for E = rho = 1
+            (:func:`jaxsync.fem.timestep.max_stable_dt`): a pure function's memo, so that
+            problems derived with ``replace`` (new E, damping, loads) do not solve again.
     """
 
     mesh: Mesh
@@ -38,6 +42,7 @@ class UnitOperators:
     K_mu: sp.csr_matrix
     M_1: sp.csr_matrix
     volumes: np.ndarray
+    stable_step_memo: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @functools.cached_property
     def block_ell(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

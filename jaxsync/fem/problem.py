@@ -107,10 +107,18 @@ class Problem:
 
     @property
     def dt(self):
-        """The paper's CFL time step [s] (see :func:`jaxsync.fem.timestep.cfl_dt`)."""
-        from .timestep import cfl_dt
+        """The default time step [s]: the paper's CFL step, or alpha_s times the exact
+        stability bound where that is smaller (nearly incompressible materials); see
+        :attr:`time_step` for which rule set it and :func:`jaxsync.fem.timestep.stable_step`."""
+        return self.time_step.dt
 
-        return cfl_dt(self)
+    @property
+    def time_step(self):
+        """The default step with its rule and both bounds
+        (:class:`jaxsync.fem.timestep.StableStep`)."""
+        from .timestep import stable_step
+
+        return stable_step(self)
 
     def dirichlet_dofs(self) -> tuple[np.ndarray, np.ndarray]:
         """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs."""
@@ -164,12 +172,12 @@ class Problem:
         dofs, _ = self.dirichlet_dofs()
         m = self.material
         try:
-            dt = f"{float(self.dt):.4e} s"
-        except TypeError:
-            dt = "traced"
+            step = self.time_step.describe()
+        except ProblemError:  # traced nu
+            step = "time step: traced"
         return (f"{self.mesh!r}\n"
                 f"material: E={m.E} dyn/cm^2, nu={m.nu}, rho={m.rho} g/cm^3; damping alpha={self.damping} 1/s\n"
-                f"Dirichlet dofs: {len(dofs)}; loads: {len(self.loads)}; CFL dt: {dt}")
+                f"Dirichlet dofs: {len(dofs)}; loads: {len(self.loads)}; {step}")
 
 
 def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping=0.5,

@@ -1,31 +1,77 @@
-"""Stable time step: the paper's CFL rule, the exact bound, and artificial mass scaling.
+"""Stable time step: the default rule, the exact bound, and artificial mass scaling.
 
 CFL rule of the paper's published code: ``dt = alpha_s * min_e h_e / c_e`` with
 ``h_e = 2 * (shortest edge of e) / sqrt(24)`` (the in-sphere diameter of a regular
 tetrahedron with that edge), ``c_e = sqrt(E / (rho_e (1 - nu^2)))`` and alpha_s = 0.9.
-The exact stability bound of the undamped central difference scheme with lumped mass is
-``2 / omega_max``, omega_max^2 the largest eigenvalue of M^-1 K on the free dofs.
+The exact stability bound of the central difference scheme with lumped mass (with or
+without mass-proportional damping) is ``2 / omega_max``, omega_max^2 the largest
+eigenvalue of M^-1 K on the free dofs.
+
+The paper's c_e is the plate wave speed: it ignores the dilatational wave speed
+sqrt((lambda + 2 mu) / rho), which grows without bound as nu -> 0.5, so for nearly
+incompressible tissue (nu >= ~0.44 on the cantilever) the paper's rule lies above the
+exact bound and the run diverges. The default step (:func:`stable_step`,
+``Problem.dt``) is therefore ``min(paper CFL step, alpha_s * 2 / omega_max)``: the paper's
+step wherever it is at most alpha_s times the bound (every case of the paper), never
+above the bound.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import numpy as np
 
-from ..errors import StabilityError
+from ..errors import ProblemError, StabilityError
 
-__all__ = ["ALPHA_S", "MassScalingWarning", "element_size", "element_dt", "cfl_dt",
-           "max_stable_dt", "mass_scaling"]
+__all__ = ["ALPHA_S", "MassScalingWarning", "StableStep", "element_size", "element_dt", "cfl_dt",
+           "max_stable_dt", "stable_step", "check_dt", "divergence_advice", "mass_scaling"]
 
 ALPHA_S = 0.9
 
 MASS_SCALING_WARN_PERCENT = 10.0
 """Default threshold of :func:`mass_scaling`'s warning: added mass in percent."""
 
+_DENSE_EIGEN_DOFS = 400
+"""Up to this many free dofs the largest eigenvalue comes from a dense solver."""
+
 
 class MassScalingWarning(UserWarning):
     """Artificial mass scaling added more mass than the caller's threshold."""
+
+
+@dataclasses.dataclass(frozen=True)
+class StableStep:
+    """The default time step of a problem and the rule that set it.
+
+    Attributes:
+        dt: the step [s]: ``min(cfl, alpha_s * exact)`` (a JAX tracer when E or rho is).
+        rule: ``"cfl"`` (the paper's CFL rule set it) or ``"exact"`` (alpha_s times the
+            exact bound set it, because the CFL rule is above alpha_s times the bound).
+        cfl: the paper's CFL step [s].
+        exact: the exact stability bound 2 / omega_max [s].
+        alpha_s: the safety factor applied to the exact bound.
+    """
+
+    dt: float
+    rule: str
+    cfl: float
+    exact: float
+    alpha_s: float = ALPHA_S
+
+    def describe(self) -> str:
+        """One line: the step, the rule that set it and the exact bound."""
+        try:
+            dt, cfl, exact = float(self.dt), float(self.cfl), float(self.exact)
+        except TypeError:  # traced material
+            return f"time step set by the {'CFL rule' if self.rule == 'cfl' else 'exact bound'} (traced)"
+        if self.rule == "cfl":
+            return (f"dt {dt:.4e} s (paper's CFL rule; exact stability bound 2/omega_max "
+                    f"{exact:.4e} s)")
+        return (f"dt {dt:.4e} s ({self.alpha_s:g} x the exact stability bound 2/omega_max "
+                f"{exact:.4e} s; the paper's CFL rule, {cfl:.4e} s, is above it: it ignores "
+                "the dilatational wave speed, which grows as nu -> 0.5)")
 
 
 def element_size(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
@@ -57,47 +103,127 @@ def cfl_dt(problem, alpha_s: float = ALPHA_S):
     return dt if is_traced(dt) else float(dt)
 
 
-def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0) -> float:
-    """Exact stability bound 2 / omega_max [s] by power iteration on the symmetric form
-    M^-1/2 K M^-1/2 restricted to the free dofs (lumped mass, concrete material only).
+def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
+    """2 / omega_max [s] of ``problem`` with E = 1 and rho = 1 (its nu, density scaling and
+    Dirichlet set), memoised on the problem's operators: the bound of any E and rho is
+    this times sqrt(rho / E), so traced E or rho (inside ``jax.grad``) need no solve."""
+    nu = problem.material.nu
+    from ..pytree import is_traced
 
-    The Rayleigh quotient is iterated until its relative change is below ``tol``.
-    """
-    m = problem.material
-    K = problem.operators.stiffness(m.lam, m.mu)
-    mass = np.repeat(np.asarray(problem.lumped_mass(), dtype=float), 3)
+    if is_traced(nu):
+        raise ProblemError(
+            "the default time step depends on nu through the exact stability bound, an "
+            "eigenvalue computed on the host, so it cannot follow a traced nu: pass dt= "
+            "explicitly (for instance the problem.dt of the problem at a concrete nu)")
+    nu = float(nu)
     fixed, _ = problem.dirichlet_dofs()
+    scale = problem.density_scale
+    key = (nu, None if scale is None else np.asarray(scale, dtype=float).tobytes(), fixed.tobytes())
+    memo = problem.operators.stable_step_memo
+    if key in memo:
+        return memo[key]
+    from .assembly import lumped_mass
+
+    lam, mu = nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), 1.0 / (2.0 * (1.0 + nu))
+    K = problem.operators.stiffness(lam, mu)
+    mass = np.repeat(np.asarray(lumped_mass(problem.mesh, scale), dtype=float), 3)
     free = np.setdiff1d(np.arange(K.shape[0]), fixed)
-    Kf = K[free][:, free].tocsr()
+    if len(free) == 0:
+        raise StabilityError("every dof is prescribed: there is no free motion to bound")
     s = 1.0 / np.sqrt(mass[free])
-    x = np.random.default_rng(seed).standard_normal(len(free))
-    x /= np.linalg.norm(x)
-    lam_old = 0.0
-    for _ in range(max_iter):
-        y = s * (Kf @ (s * x))
-        lam = float(x @ y)
-        x = y / np.linalg.norm(y)
-        if abs(lam - lam_old) <= tol * abs(lam):
-            break
-        lam_old = lam
-    return 2.0 / np.sqrt(lam)
+    # the symmetric form M^-1/2 K M^-1/2 has the eigenvalues of M^-1 K
+    A = K[free][:, free].multiply(s[:, None]).multiply(s[None, :]).tocsr()
+    if len(free) <= _DENSE_EIGEN_DOFS:
+        import scipy.linalg
+
+        largest = float(scipy.linalg.eigvalsh(A.toarray())[-1])
+    else:
+        import scipy.sparse.linalg as sla
+
+        v0 = np.random.default_rng(seed).standard_normal(len(free))
+        try:
+            largest = float(sla.eigsh(A, k=1, which="LA", tol=tol, maxiter=max_iter, v0=v0,
+                                      return_eigenvectors=False)[0])
+        except sla.ArpackNoConvergence as exc:
+            if not len(exc.eigenvalues):
+                raise StabilityError(
+                    "the largest eigenvalue of M^-1 K (the exact stability bound) did not "
+                    f"converge in {max_iter} iterations: pass dt= explicitly, or raise "
+                    "max_iter") from None
+            largest = float(np.max(exc.eigenvalues))
+    memo[key] = bound = float(2.0 / np.sqrt(largest))
+    return bound
+
+
+def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):
+    """Exact stability bound 2 / omega_max [s] of the central difference scheme: omega_max^2
+    the largest eigenvalue of the symmetric form M^-1/2 K M^-1/2 restricted to the free
+    dofs (lumped mass), dense for small problems, else Lanczos (ARPACK) to relative
+    accuracy ``tol``. Mass-proportional damping does not change the bound.
+
+    The eigenvalue is computed once per mesh, nu, density scaling and Dirichlet set (for
+    E = rho = 1) and scaled by sqrt(rho / E), so the bound is traced when E or rho are
+    (a Python float otherwise); a traced nu raises :class:`jaxsync.ProblemError`.
+    """
+    import jax.numpy as jnp
+
+    from ..pytree import is_traced
+
+    m = problem.material
+    unit = _unit_bound(problem, tol, max_iter, seed)
+    if is_traced(m.E, m.rho):
+        return unit * jnp.sqrt(m.rho / m.E)
+    return unit * float(np.sqrt(float(m.rho) / float(m.E)))
+
+
+def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
+    """The default time step ``min(paper CFL step, alpha_s * 2 / omega_max)`` and its rule.
+
+    Both steps scale as sqrt(rho / E), so which of them is smaller depends only on nu, the
+    mesh, the density scaling and the Dirichlet set: the rule is decided without the
+    values of E and rho, and ``dt`` is traced when they are."""
+    cfl = cfl_dt(problem, alpha_s)
+    exact = max_stable_dt(problem)
+    m = problem.material
+    # the same comparison at E = rho = 1: valid for traced E and rho alike
+    h = element_size(problem.mesh.points, problem.mesh.tets)
+    scale = 1.0 if problem.density_scale is None else np.asarray(problem.density_scale, dtype=float)
+    cfl_unit = float(np.min(alpha_s * h * np.sqrt(scale * (1.0 - float(m.nu) ** 2))))
+    if cfl_unit <= alpha_s * _unit_bound(problem, 1e-10, 20000, 0):
+        return StableStep(dt=cfl, rule="cfl", cfl=cfl, exact=exact, alpha_s=alpha_s)
+    return StableStep(dt=alpha_s * exact, rule="exact", cfl=cfl, exact=exact, alpha_s=alpha_s)
 
 
 def check_dt(problem, dt: float) -> None:
-    """Raise :class:`StabilityError` when ``dt`` exceeds the exact bound 2/omega_max.
-
-    The power iteration runs only when ``dt`` is above the (conservative) CFL step."""
+    """Raise :class:`StabilityError` when ``dt`` exceeds the exact bound 2/omega_max."""
     dt = float(dt)
     if not dt > 0 or not np.isfinite(dt):
         raise StabilityError(f"time step must be positive and finite, got dt={dt}")
-    if dt <= problem.dt:
+    step = stable_step(problem)
+    if dt <= step.dt:
         return
-    bound = max_stable_dt(problem)
-    if dt > bound:
+    if dt > step.exact:
         raise StabilityError(
-            f"dt={dt:.4e} s is above the stability bound 2/omega_max={bound:.4e} s of the "
-            f"central difference scheme (CFL step {problem.dt:.4e} s): use a smaller dt, "
-            "or jaxsync.mass_scaling to raise the stable step")
+            f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s of the "
+            f"central difference scheme: use dt <= {step.alpha_s * step.exact:.4e} s (the "
+            f"default step is {step.dt:.4e} s), or jaxsync.mass_scaling to raise the stable step")
+
+
+def divergence_advice(problem, dt: float) -> str:
+    """What to do about a run that diverged at step ``dt`` [s]: the step that would work
+    when ``dt`` is above the exact bound, else the other likely causes."""
+    try:
+        step = stable_step(problem)
+    except (ProblemError, StabilityError):
+        return f"dt={float(dt):.4e} s; reduce dt"
+    dt = float(dt)
+    if dt > step.exact:
+        return (f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s: "
+                f"rerun with dt <= {step.alpha_s * step.exact:.4e} s (or leave dt unset: the "
+                f"default step is {step.dt:.4e} s)")
+    return (f"dt={dt:.4e} s is within the stability bound 2/omega_max={step.exact:.4e} s, so "
+            "the step is not the cause: check the loads' magnitudes, that every part of the "
+            "mesh is supported (an unsupported piece moves as a rigid body), and blowup_factor")
 
 
 def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None = None,
@@ -108,7 +234,9 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     Every element whose own CFL step is below the target ``dt_hat = beta * problem.dt``
     (or ``dt_target``) gets density ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``, which
     raises its step to exactly dt_hat. The scaled problem's ``dt`` (the default step of
-    :func:`jaxsync.simulate`) is then dt_hat, or the unscaled CFL step when that is larger.
+    :func:`jaxsync.simulate`, :func:`stable_step`) is then dt_hat, or the unscaled CFL step
+    when that is larger, unless alpha_s times the scaled problem's exact bound is smaller
+    (nearly incompressible materials): then that.
 
     Added mass slows the dynamics of the scaled elements, so a large increase changes the
     result: a :class:`MassScalingWarning` (with the percentage and dt_hat) is issued when

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..errors import PartitionError, ProblemError, StabilityError
 from ..fem.stepper import ExplicitSystem, advance, build_system, initial_state
+from ..fem.timestep import divergence_advice
 from ..pytree import is_traced
 from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
 
@@ -229,7 +230,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             segment = run_chunks(runner, stacked, 0, n_steps, kind="synchronized", limit=limit,
                                  progress=bar, chunk_steps=chunk_steps)
         except Diverged as bad:
-            raise _diverged(bad, runner, trajectories(bad.segment), limit, dt, first.dt, labels) from None
+            raise _diverged(bad, runner, trajectories(bad.segment), limit, dt, first, labels) from None
     from ..parallel.devices import device_summary
     from ..trajectory import RunStats
 
@@ -292,7 +293,7 @@ def _same(a, b) -> bool:
     return True
 
 
-def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: float, dt: float, cfl: float,
+def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: float, dt: float, problem,
               labels) -> StabilityError:
     """The error of a diverged ensemble, naming the run(s) whose field went bad first."""
     first_step, saved = runner.last
@@ -302,9 +303,10 @@ def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: floa
     run = runs[0]
     named = f"run {run}" + ("" if labels is None else f" (label {labels[run]:g})")
     also = f" (also runs {runs[1:]})" if len(runs) > 1 else ""
+    advice = divergence_advice(problem, dt)
     err = StabilityError(
         f"{named} of the ensemble diverged by step {bad.step} (t = {bad.step * dt:.6g} s){also}: displacement "
-        f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {cfl:.4e} s; reduce dt or check that "
+        f"is NaN/Inf or above {limit:.3g} cm. {advice}; check that "
         f"run's loads and initial conditions. The {partial[run].n_saved} snapshots of each run saved before "
         "are kept (error.trajectories)")
     err.run, err.runs = run, tuple(runs)

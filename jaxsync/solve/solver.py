@@ -125,8 +125,9 @@ def simulate(problem, n_steps: int, *, dt=None, save_every: int = 1, partitions=
     Args:
         problem: a :class:`jaxsync.Problem`.
         n_steps: number of time steps (a multiple of ``save_every``).
-        dt: time step [s]; default ``problem.dt`` (the paper's CFL rule). A dt above the
-            CFL step is checked against the exact bound 2/omega_max and refused above it.
+        dt: time step [s]; default ``problem.dt``: the paper's CFL step, or 0.9 times the
+            exact bound 2/omega_max where that is smaller (``problem.time_step`` says which).
+            A dt above the default is checked against the exact bound and refused above it.
         save_every: keep the displacement every this many steps (and at t = 0).
         partitions: None for the single-device solver; an int n_parts or a
             :class:`jaxsync.Partition` for the distributed solver (paper Algorithm 1,
@@ -289,12 +290,14 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
                                  limit=limit, progress=bar, chunk_steps=chunk_steps,
                                  after_chunk=None if checkpoint is None else after_chunk)
         except Diverged as bad:
+            from ..fem.timestep import divergence_advice
+
             partial = _trajectory(problem, snapshots + [bad.segment.displacement], dt, save_every, partition,
                                   _joined(recorded, bad.segment.shared), shared_every)
             err = StabilityError(
                 f"the run diverged by step {bad.step} (t = {bad.step * dt:.6g} s): displacement "
-                f"is NaN/Inf or above {limit:.3g} cm. dt={dt:.4e} s vs CFL {problem.dt:.4e} s; "
-                f"reduce dt. The {partial.n_saved} snapshots saved before are kept "
+                f"is NaN/Inf or above {limit:.3g} cm. {divergence_advice(problem, dt)}. "
+                f"The {partial.n_saved} snapshots saved before are kept "
                 "(error.trajectory)")
             err.trajectory = partial
             raise err from None

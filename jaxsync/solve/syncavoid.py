@@ -36,6 +36,7 @@ import numpy as np
 from ..errors import CheckpointError, ProblemError, StabilityError
 from ..fem.loads import load_jumps as find_load_jumps
 from ..fem.stepper import SolverState, build_system, initial_state
+from ..fem.timestep import divergence_advice
 from ..parallel.partitioning import Partition
 from ..parallel.partitioning import partition as make_partition
 from ..pytree import is_traced
@@ -353,7 +354,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, partitions, surrogates, n_c
                          "diverged; retrain it, raise n_cri or give a resync_tolerance")
             else:
                 where = (f"the {bad.segment.kind} run diverged by step {bad.step} (displacement NaN/Inf or "
-                         f"above {limit:.3g} cm); reduce dt (CFL {problem.dt:.4e} s)")
+                         f"above {limit:.3g} cm); {divergence_advice(problem, dt)}")
             err = StabilityError(f"{where} (t = {bad.step * dt:.6g} s). The {partial.n_saved} snapshots "
                                  "saved before are kept (error.trajectory)")
             err.trajectory = partial
