@@ -52,7 +52,7 @@ def main(argv=None):
     if not (os.path.exists(reference_path) and os.path.exists(checkpoint)):
         from jaxsync.app.demo import run_demo
 
-        run_demo(args.demo)
+        run_demo(args.demo, force=True)
     reference = jaxsync.Trajectory.load(reference_path)
     parts = partition_of(reference)
     problem = jaxsync.cantilever()

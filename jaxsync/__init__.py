@@ -12,6 +12,7 @@ from .errors import (
                      JaxsyncError,
                      MaterialError,
                      MeshError,
+                     OutputError,
                      PartitionError,
                      PrecisionError,
                      ProblemError,
@@ -37,11 +38,12 @@ __version__ = "0.2.0"
 
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
-    "CheckpointError", "ConfigError", "PartitionError", "PrecisionError", "Partition", "partition",
+    "CheckpointError", "ConfigError", "OutputError", "PartitionError", "PrecisionError", "Partition", "partition",
     "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling", "MassScalingWarning",
+    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
+    "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
     "Trajectory", "RunStats", "PartHistory",
 ]

@@ -46,3 +46,10 @@ class PartitionError(JaxsyncError, ValueError):
 class InferencePrecisionError(JaxsyncError, ValueError):
     """Reduced-precision surrogate inference that strays from the full-precision one by
     more than the stated bound (:func:`jaxsync.surrogate.inference.check_inference_precision`)."""
+
+
+class OutputError(JaxsyncError, OSError):
+    """An output file or folder that cannot be written: a location that is not a
+    writable folder (found before anything runs, :func:`jaxsync.io.check_writable`), or
+    a write that failed (a full disk...). Also an :class:`OSError`, as the failure it
+    reports."""

@@ -4,6 +4,13 @@ content checksums.
 Every file jaxsync writes goes through :func:`atomic_path`: it is written under a
 temporary name in the target folder and renamed over the target only when complete, so
 a failed or interrupted write never replaces a good file.
+
+Writing can fail after a long computation (a full disk, a folder that became read-only):
+:func:`atomic_path` then raises :class:`OutputError` (a :class:`jaxsync.JaxsyncError`
+and an :class:`OSError`) naming the file, and :func:`check_writable` finds an unusable
+location before anything runs. Inside :func:`recording_writes` every completed file is
+recorded, so that a command can say which of its files were written (and kept) when a
+later one fails.
 """
 
 from __future__ import annotations
@@ -17,8 +24,79 @@ from typing import Any, Mapping
 
 import numpy as np
 
+from .errors import OutputError
+
 __all__ = ["atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
-           "STALE_TEMP_AGE_S"]
+           "STALE_TEMP_AGE_S", "OutputError", "check_writable", "recording_writes", "note_written",
+           "os_reason"]
+
+
+_RECORDERS: list[list[str]] = []
+
+
+@contextlib.contextmanager
+def recording_writes():
+    """Yield a list that collects the absolute path of every file completed inside the
+    block (by :func:`atomic_path`, or given to :func:`note_written`), in order."""
+    log: list[str] = []
+    _RECORDERS.append(log)
+    try:
+        yield log
+    finally:
+        _RECORDERS.remove(log)
+
+
+def note_written(path: str | os.PathLike) -> None:
+    """Record ``path`` as written in every active :func:`recording_writes` (for files
+    written another way than through :func:`atomic_path`)."""
+    full = os.path.abspath(os.fspath(path))
+    for log in _RECORDERS:
+        if full not in log:
+            log.append(full)
+
+
+def os_reason(exc: BaseException) -> str:
+    """An OS error's reason on one line (``No space left on device [Errno 28]``)."""
+    if isinstance(exc, OSError) and exc.strerror:
+        text = f"{exc.strerror} [Errno {exc.errno}]" if exc.errno else exc.strerror
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+def check_writable(path: str | os.PathLike, *, what: str = "output", folder: bool = False,
+                   option: str | None = None) -> None:
+    """Raise :class:`OutputError`, before anything runs, unless ``path`` can be written.
+
+    ``path`` is a file (``folder=False``: it must not be a folder, and its folder must
+    be writable) or a folder that the writer fills (``folder=True``: it must not be a
+    file). A folder that does not exist yet counts as writable when the nearest one
+    above it that exists is a writable folder (the writers create the rest). Writable
+    means that a temporary file can really be created and removed there (permission
+    bits say nothing for root, nor for read-only mounts). ``what`` names the output in
+    the message and ``option`` the command-line option that chooses another location.
+    """
+    path = os.fspath(path)
+    full = os.path.abspath(path)
+    fix = f"choose another location{f' with {option}' if option else ''}"
+    if not folder and os.path.isdir(full):
+        raise OutputError(f"cannot write the {what} {path}: it is a folder; give a file name ({fix})")
+    probe = full if folder else os.path.dirname(full)
+    while not os.path.lexists(probe):
+        parent = os.path.dirname(probe)
+        if parent == probe:
+            break
+        probe = parent
+    if not os.path.isdir(probe):
+        raise OutputError(f"cannot write the {what} {path}: {probe} is a file, not a folder; {fix}")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=".jaxsync-write-check.", dir=probe)
+    except OSError as exc:
+        raise OutputError(f"cannot write the {what} {path}: the folder {probe} is not writable "
+                          f"({os_reason(exc)}); {fix}, or make the folder writable") from None
+    os.close(fd)
+    with contextlib.suppress(OSError):
+        os.remove(tmp)
 
 STALE_TEMP_AGE_S = 3600.0
 """A temporary file of :func:`atomic_path` whose writer cannot be checked (another host,
@@ -38,22 +116,37 @@ def atomic_path(path: str | os.PathLike):
     theirs."""
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
-    os.makedirs(folder, exist_ok=True)
     prefix = f".{os.path.basename(path)}."
-    _remove_stale_temporaries(folder, prefix)
-    fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{_host_tag()}.", suffix=".tmp",
-                               dir=folder)
-    os.close(fd)
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the usual permissions
+    try:
+        os.makedirs(folder, exist_ok=True)
+        _remove_stale_temporaries(folder, prefix)
+        fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{_host_tag()}.", suffix=".tmp",
+                                   dir=folder)
+        os.close(fd)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600 files; give the usual permissions
+    except OutputError:
+        raise
+    except OSError as exc:
+        raise _write_failure(path, exc) from exc
     try:
         yield tmp
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             os.remove(tmp)
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError):
+            raise _write_failure(path, exc) from exc
         raise
+    note_written(path)
+
+
+def _write_failure(path: str, exc: OSError) -> OutputError:
+    """The :class:`OutputError` of a failed write of ``path`` (the previous file, if
+    any, is left as it was)."""
+    return OutputError(f"could not write {path}: {os_reason(exc)} (free space, or choose another "
+                       "location, and run again)")
 
 
 def _host_tag() -> str:

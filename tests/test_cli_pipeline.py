@@ -136,6 +136,29 @@ def test_demo_prints_the_summary(demo):
     assert "1500 steps: 25 synchronized, 1475 predicted" in text
 
 
+def test_demo_files_name_the_demo_folder_not_its_staging_folder(demo, summary):
+    """The run is written beside the folder and moved in at the end: no path in what it
+    wrote or printed names the staging folder, and none is left behind."""
+    folder, out, run = demo
+    assert sorted(p.name for p in folder.iterdir() if p.name.startswith("demo")) == ["demo"]
+    assert summary["report"] == str(out / "report")
+    trained = json.loads((out / "surrogate" / "train_summary.json").read_text())
+    assert trained["trajectories"] == [str(out / "synchronized.h5")]
+    assert trained["checkpoint"] == str(out / "surrogate" / "surrogate.h5")
+    for path in out.rglob("*.json"):
+        assert ".partial-" not in path.read_text(), path
+    assert ".partial-" not in run.out and str(out / "surrogate" / "surrogate.h5") in run.out
+
+
+def test_a_second_demo_into_the_folder_is_refused_without_force(demo):
+    _, out, _ = demo
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*")}
+    run = run_cli(["demo", "--steps", N_STEPS, "--out", out, "--no-progress"])
+    assert run.code == 2 and run.err.startswith("error:") and run.err.count("\n") == 1, run.err
+    assert str(out) in run.err and "--force" in run.err
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*")} == before
+
+
 # ----------------------------------------------------------------------------- predict
 
 

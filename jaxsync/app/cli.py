@@ -3,7 +3,11 @@
 This module builds the parser from the subcommand modules (:mod:`jaxsync.app.commands`;
 ``train`` from :mod:`jaxsync.app.train`) and dispatches to the chosen one. Errors of the
 package's own types are printed as one line (``error: ...``) with exit status 2; anything
-else is a bug and keeps its traceback.
+else is a bug and keeps its traceback. Every command checks the locations it will write
+before it computes anything; a write that fails all the same (a full disk) is such an
+error too (:class:`jaxsync.io.OutputError`), and its line names the files written before
+it, which are kept. The package's own warnings are shown as one line (``warning: ...``;
+:func:`jaxsync.app.commands.common.package_warnings`).
 
 Under ``mpiexec -n N`` (N > 1, detected from the launcher's environment) every rank joins
 the others through ``jax.distributed`` before using JAX (:mod:`jaxsync.parallel.multiprocess`),
@@ -18,6 +22,7 @@ still accepts its former ``--partitions``), ``--mode``, ``--sync``, ``--compress
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from .commands import demo, finetune, predict, report, simulate
@@ -72,6 +77,20 @@ def parts_of(args) -> int:
     return 0
 
 
+def _run(args) -> int:
+    """Run the chosen command: the package's warnings as one line each, and a failed
+    write (:class:`jaxsync.io.OutputError`) told with the files written before it."""
+    from ..io import OutputError, recording_writes
+    from .commands.common import package_warnings, written_and_kept
+
+    with recording_writes() as written, package_warnings():
+        try:
+            return int(args.func(args) or 0)
+        except OutputError as exc:
+            raise OutputError(f"{exc}; {written_and_kept(written)}") from exc
+        except KeyboardInterrupt as exc:
+            exc.written = list(dict.fromkeys(written))  # what main's line names as kept
+            raise
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -89,20 +108,22 @@ def main(argv: list[str] | None = None) -> int:
         with abort_on_error():
             initialize()
             _enable_x64()
-            return int(args.func(args) or 0)
+            return _run(args)
     from ..parallel.devices import request_cpu_devices
 
     request_cpu_devices(parts_of(args))  # one emulated CPU device per part, before JAX starts
     _enable_x64()
     try:
-        return int(args.func(args) or 0)
+        return _run(args)
     except JaxsyncError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:  # Ctrl-C: one line, the shell's status for SIGINT
-        print("interrupted: no output file was written or replaced (files appear only when "
-              "complete); a run with --checkpoint resumes from it when started again",
-              file=sys.stderr)
+    except KeyboardInterrupt as exc:  # Ctrl-C: one line, the shell's status for SIGINT
+        kept = [p for p in getattr(exc, "written", ()) if os.path.exists(p)]
+        done = (f"the files completed before were kept ({', '.join(kept)}), no other was written or replaced"
+                if kept else "no output file was written or replaced")
+        print(f"interrupted: {done} (files appear only when complete); a run with --checkpoint resumes "
+              "from it when started again", file=sys.stderr)
         return 130
 
 

@@ -33,12 +33,14 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import shutil
+import tempfile
 import time
 
 import numpy as np
 
 __all__ = ["run_demo", "format_summary", "demo_defaults", "DemoDefaults", "SUMMARY_KEYS", "VESSEL_KEYS",
-           "CASES", "VESSEL_SIZES", "vessel_problem"]
+           "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "install_folder"]
 
 CASES = ("cantilever", "vessel")
 
@@ -57,6 +59,10 @@ VESSEL_KEYS = ("es_max", "es_hat_max", "es_hat_tracking", "interior_max_relative
                "projection", "n_elements", "n_dofs", "n_shared_nodes")
 """Keys the vessel case adds (es, es_hat and their correlation, the mass-scaling check,
 the cost-model projection to 11 real processors, the mesh's size)."""
+
+DEMO_FILES = ("summary.json", "synchronized.h5", "online.h5", "surrogate", "report")
+"""What a demo writes into its folder: a folder holding any of them holds a demo (which
+``jaxsync demo`` replaces only with ``--force``)."""
 
 MASS_SCALING_BETA = 2.5
 """The vessel's step over its CFL step (paper: 5e-6 / 2.02e-6 = 2.48)."""
@@ -187,8 +193,15 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
              gamma: float | None = None, train_fraction: float | None = None, n_candidates: int | None = None,
              seed: int = 0,
              save_every: int | None = None, resync_tolerance="default", mass_scaling_seconds: float | None = None,
-             progress: bool = True, log=print) -> dict:
+             progress: bool = True, log=print, force: bool = False) -> dict:
     """Run the pipeline of ``case`` and write everything into ``out``; return the summary.
+
+    ``out`` is refused before anything runs when it holds the files of a demo
+    (:data:`DEMO_FILES`) unless ``force``, or cannot be written. The run writes into a
+    fresh folder beside ``out`` (``<out>.partial-<pid>@<host>.<random>``) that takes the place
+    of ``out`` only when complete (:func:`install_folder`): an interrupted or failed run
+    leaves ``out`` as it was (its staging folder removed), never old and new files
+    mixed. Every path printed or stored in the files names ``out``.
 
     Every size left None takes the case's default (:func:`demo_defaults`);
     ``resync_tolerance="default"`` too (None: no error control; a percentage is of the
@@ -213,8 +226,41 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     :data:`VESSEL_KEYS`).
 
     Raises:
-        ConfigError: an unknown case or size.
+        ConfigError: an unknown case or size; ``out`` holds a demo and ``force`` is False.
+        OutputError: ``out`` cannot be written (before anything runs), or a write failed.
     """
+    defaults = demo_defaults(case, size)
+    given = dict(n_steps=n_steps, n_parts=n_parts, n_s=n_s, n_past=n_past, n_future=n_future, n_hidden=n_hidden,
+                 n_layers=n_layers, epochs=epochs, batch_size=batch_size, eta0=eta0, gamma=gamma,
+                 train_fraction=train_fraction, n_candidates=n_candidates)
+    d = dataclasses.replace(defaults, **{k: v for k, v in given.items() if v is not None})
+    if resync_tolerance != "default":
+        d = dataclasses.replace(d, resync_tolerance=resync_tolerance)
+    final = os.path.abspath(os.fspath(out))
+    check_demo_output(final, force=force)  # before anything runs
+    staging = _staging_folder(final)
+    try:
+        summary = _pipeline(staging, final, d, case=case, size=size, seed=seed, save_every=save_every,
+                            mass_scaling_seconds=mass_scaling_seconds, progress=progress, log=log)
+        _retarget_paths(staging, final)
+        install_folder(staging, final)
+    except BaseException as exc:
+        shutil.rmtree(staging, ignore_errors=True)
+        if isinstance(exc, OSError):
+            from ..io import OutputError, os_reason
+
+            kept = (f"{final} is left as it was" if os.path.exists(final) else f"{final} was not created")
+            reason = str(exc) if isinstance(exc, OutputError) else f"could not write {final}: {os_reason(exc)}"
+            raise OutputError(f"{reason.replace(staging, final)}; the demo's new files were discarded and "
+                              f"{kept}") from exc
+        raise
+    return summary
+
+
+def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_every, mass_scaling_seconds,
+              progress, log) -> dict:
+    """The stages of :func:`run_demo`, writing into the folder ``out``; every path that
+    is printed or stored names ``final``, where the folder is moved at the end."""
     from .. import cantilever, partition, simulate
     from ..io import atomic_json
     from ..parallel.devices import device_summary
@@ -223,14 +269,6 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     from ..surrogate.train import TrainConfig
     from .plots import write_report
 
-    defaults = demo_defaults(case, size)
-    given = dict(n_steps=n_steps, n_parts=n_parts, n_s=n_s, n_past=n_past, n_future=n_future, n_hidden=n_hidden,
-                 n_layers=n_layers, epochs=epochs, batch_size=batch_size, eta0=eta0, gamma=gamma,
-                 train_fraction=train_fraction, n_candidates=n_candidates)
-    d = dataclasses.replace(defaults, **{k: v for k, v in given.items() if v is not None})
-    if resync_tolerance != "default":
-        d = dataclasses.replace(d, resync_tolerance=resync_tolerance)
-    os.makedirs(out, exist_ok=True)
     started = time.perf_counter()
     extra: dict = {"case": case}
     if case == "vessel":
@@ -278,7 +316,8 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
         train_fraction=d.train_fraction, n_candidates=d.n_candidates, seed=seed, emse_applications=0,
         out=os.path.join(out, "surrogate"), progress=progress)
     log(f"  {trained.result.n_epochs_run} epochs in {trained.train_seconds:.1f} s; validation MSE per part "
-        + ", ".join(f"{v:.3e}" for v in trained.final_val_loss) + f"; wrote {trained.files['checkpoint']}")
+        + ", ".join(f"{v:.3e}" for v in trained.final_val_loss)
+        + f"; wrote {os.path.join(final, os.path.relpath(trained.files['checkpoint'], out))}")
 
     n_cri = d.n_s * d.n_past
     tolerance = _tolerance(d.resync_tolerance, reference)
@@ -328,9 +367,123 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     extra["wall_seconds"] = time.perf_counter() - started
     summary = write_report(reference, online, parts, os.path.join(out, "report"), component=d.component,
                            fixed_nodes=fixed_nodes, extra=extra)
-    summary["report"] = os.path.abspath(os.path.join(out, "report"))
+    summary["report"] = os.path.join(final, "report")
     atomic_json(os.path.join(out, "summary.json"), summary)
     return summary
+
+
+def check_demo_output(out: str, *, force: bool = False) -> None:
+    """Refuse, before anything runs, a demo folder ``out`` that holds the files of a
+    demo (:data:`DEMO_FILES`) unless ``force`` (:class:`jaxsync.ConfigError`), or that
+    cannot be written (:class:`jaxsync.io.OutputError`: the run is staged beside it, so
+    the folder above must be writable too)."""
+    from ..errors import ConfigError
+    from ..io import check_writable
+
+    out = os.path.abspath(os.fspath(out))
+    if os.path.isdir(out) and not force:
+        found = [name for name in DEMO_FILES if os.path.lexists(os.path.join(out, name))]
+        if found:
+            raise ConfigError(f"{out} holds the files of an earlier demo ({', '.join(found)}); pass --force to "
+                              "replace them, or choose another folder with -o/--out")
+    check_writable(out, what="demo folder", folder=True, option="-o/--out")
+    check_writable(os.path.dirname(out), what="folder of the demo folder", folder=True, option="-o/--out")
+
+
+_STAGING = ".partial-"
+_ASIDE = ".old-"
+
+
+def _staging_folder(final: str) -> str:
+    """A new, empty folder beside ``final`` for the run's files
+    (``<name>.partial-<pid>@<host>.<random>``), after removing the staging and set-aside
+    folders of ``final`` left by runs on this host that are gone (killed hard)."""
+    return _new_folder_beside(final, _STAGING, clean=True)
+
+
+def _new_folder_beside(final: str, marker: str, *, clean: bool = False) -> str:
+    import re
+
+    from ..io import _host_tag, _process_alive
+
+    parent, name = os.path.split(final)
+    os.makedirs(parent, exist_ok=True)
+    host = _host_tag()
+    if clean:
+        left = re.compile(re.escape(name) + r"(?:" + re.escape(_STAGING) + "|" + re.escape(_ASIDE)
+                          + r")(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+$")
+        for entry in os.listdir(parent):
+            match = left.match(entry)
+            full = os.path.join(parent, entry)
+            if (match and match.group(2) == host and not _process_alive(int(match.group(1)))
+                    and os.path.isdir(full) and not os.path.islink(full)):
+                shutil.rmtree(full, ignore_errors=True)
+    return tempfile.mkdtemp(prefix=f"{name}{marker}{os.getpid()}@{host}.", dir=parent)
+
+
+def _retarget_paths(staging: str, final: str) -> None:
+    """Make the JSON files of ``staging`` name ``final`` where they name a path in
+    ``staging`` (``surrogate/train_summary.json`` names its trajectory and files)."""
+    import json
+
+    from ..io import atomic_json
+
+    def retarget(value):
+        if isinstance(value, str) and (value == staging or value.startswith(staging + os.sep)):
+            return final + value[len(staging):]
+        if isinstance(value, list):
+            return [retarget(v) for v in value]
+        if isinstance(value, dict):
+            return {k: retarget(v) for k, v in value.items()}
+        return value
+
+    for folder, _, names in os.walk(staging):
+        for name in names:
+            if name.endswith(".json"):
+                path = os.path.join(folder, name)
+                with open(path) as f:
+                    data = json.load(f)
+                new = retarget(data)
+                if new != data:
+                    atomic_json(path, new)
+
+
+def install_folder(staging: str, final: str) -> None:
+    """Put the complete folder ``staging`` in the place of ``final``.
+
+    ``final`` absent: one rename. Present: it is renamed aside
+    (``<name>.old-<pid>@<host>.<random>``), ``staging`` renamed in, the entries of the old folder
+    that are not a demo's (:data:`DEMO_FILES`; a user's own files) moved into the new one,
+    and the old folder deleted. ``final`` holds the old set or the new one at every moment
+    but the one between the two renames."""
+    if not os.path.lexists(final):
+        os.rename(staging, final)
+        return
+    aside = _new_folder_beside(final, _ASIDE)
+    os.rmdir(aside)  # a free name beside final
+    os.rename(final, aside)
+    try:
+        os.rename(staging, final)
+    except BaseException:
+        os.rename(aside, final)  # put the old folder back
+        raise
+    kept = []  # a user's own files, that could not be moved: the old folder stays
+    for entry in os.listdir(aside):
+        if entry in DEMO_FILES:
+            continue
+        try:
+            if os.path.lexists(os.path.join(final, entry)):
+                raise FileExistsError(entry)
+            os.rename(os.path.join(aside, entry), os.path.join(final, entry))
+        except OSError:
+            kept.append(entry)
+    if kept:
+        import warnings
+
+        warnings.warn(f"{final}: the earlier folder, with {', '.join(kept)}, is kept as {aside}", UserWarning,
+                      stacklevel=2)
+    else:
+        shutil.rmtree(aside, ignore_errors=True)
 
 
 def _shared_amplitude(reference) -> float:

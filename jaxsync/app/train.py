@@ -167,6 +167,13 @@ def run_train(args: argparse.Namespace) -> int:
     Raises:
         ConfigError, CheckpointError: unusable options or trajectory files.
     """
+    from jaxsync.app.commands.common import check_outputs
+
+    # before any data is read: the folder (created if missing) and every file written into it
+    check_outputs((args.output, "output folder", "-o", True),
+                  *((os.path.join(args.output, name), "output", "-o" if name != args.checkpoint_name
+                     else "-o/--checkpoint-name")
+                    for name in (args.checkpoint_name, LOSS_CURVES_NAME, SUMMARY_NAME, STATE_NAME)))
     state_path = os.path.join(args.output, STATE_NAME)
     if args.model == "lstm" and args.checkpoint_every and os.path.exists(state_path):
         print(f"resuming from the training state {state_path}")

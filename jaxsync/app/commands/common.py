@@ -1,17 +1,22 @@
 """Helpers shared by the subcommands: options that several commands take, output files
-that must not be overwritten, and the processes of an ``mpiexec`` run."""
+that must not be overwritten and locations that must be writable before anything runs,
+writes that fail as one ``error:`` line, the package's warnings as one ``warning:`` line,
+and the processes of an ``mpiexec`` run."""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
+import sys
 
 from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Sync, choices
 
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
            "add_surrogate_options", "accept_negative_numbers", "refuse_to_overwrite", "process_count",
-           "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run"]
+           "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run", "check_outputs",
+           "writing", "written_and_kept", "is_package_warning", "package_warnings", "report_warnings"]
 
 
 def add_trained_run_arguments(parser) -> None:
@@ -209,3 +214,107 @@ def barrier() -> None:
         from ...parallel.multiprocess import world
 
         world().Barrier()
+
+
+def check_outputs(*outputs) -> None:
+    """Refuse, before anything runs, output locations that cannot be written: each of
+    ``outputs`` is ``(path, what, option)`` for a file, or ``(path, what, option, True)``
+    for a folder the command fills; None paths are skipped
+    (:func:`jaxsync.io.check_writable`; :class:`jaxsync.io.OutputError` naming the path,
+    why, and the option that chooses another location)."""
+    from ...io import check_writable
+
+    for path, what, option, *folder in outputs:
+        if path:
+            check_writable(path, what=what, option=option, folder=bool(folder and folder[0]))
+
+
+def _stat(path: str):
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
+@contextlib.contextmanager
+def writing(*paths):
+    """Write ``paths`` inside the block: an :class:`OSError` (a full disk...) becomes one
+    :class:`jaxsync.io.OutputError` naming them, and each of them the block did replace
+    or create counts as written (:func:`jaxsync.io.note_written`), also on failure; the
+    files written before are kept."""
+    from ...io import OutputError, note_written, os_reason
+
+    paths = [os.fspath(p) for p in paths]
+    before = {p: _stat(p) for p in paths}
+    try:
+        yield
+    except OSError as exc:
+        changed = [p for p in paths if _stat(p) is not None and _stat(p) != before[p]]
+        for p in changed:
+            note_written(p)
+        if isinstance(exc, OutputError):
+            raise
+        failed = [p for p in paths if p not in changed] or paths
+        raise OutputError(f"could not write {', '.join(failed)}: {os_reason(exc)} (free space, or choose "
+                          "another location, and run again)") from exc
+    for p in paths:
+        if os.path.exists(p):
+            note_written(p)
+
+
+def written_and_kept(written) -> str:
+    """What a failed command leaves: the files of ``written`` (from
+    :func:`jaxsync.io.recording_writes`) that exist, for its error line."""
+    kept = [p for p in dict.fromkeys(written) if os.path.exists(p)]
+    if not kept:
+        return "no output file was written"
+    return f"written before the failure and kept: {', '.join(kept)}"
+
+
+def is_package_warning(category) -> bool:
+    """True for the warning classes of jaxsync itself (MeshWarning, MassScalingWarning,
+    RolloutWarning, ReducedPrecisionWarning and any later one: every Warning subclass
+    defined in the package)."""
+    return (isinstance(category, type) and issubclass(category, Warning)
+            and getattr(category, "__module__", "").split(".")[0] == "jaxsync")
+
+
+def _show_package_warning(message) -> None:
+    if process_count() > 1 and not is_main_process():
+        return  # rank 0 speaks for all
+    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr)
+
+
+@contextlib.contextmanager
+def package_warnings():
+    """Inside the block, the package's own warnings (:func:`is_package_warning`) are
+    shown as one line, ``warning: <message>``, on stderr (by rank 0 of an ``mpiexec``
+    run), instead of Python's two lines with the source line that raised them; any other
+    warning goes where it went before (Python's display, or a recorder around the
+    block). Which warnings are shown follows the filters as usual."""
+    import warnings
+
+    with warnings.catch_warnings():
+        previous = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if is_package_warning(category):
+                _show_package_warning(message)
+            else:
+                previous(message, category, filename, lineno, file, line)
+
+        warnings.showwarning = show
+        yield
+
+
+def report_warnings(caught) -> None:
+    """Show warnings recorded with ``warnings.catch_warnings(record=True)``: the
+    package's own as one ``warning: ...`` line on stderr, any other as Python shows it."""
+    import warnings
+
+    for w in caught:
+        if is_package_warning(w.category):
+            _show_package_warning(w.message)
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

@@ -15,15 +15,19 @@ def add_parser(subparsers) -> None:
                     "part, synchronization-avoiding run, report. --case cantilever (default): the built-in "
                     "coarse cantilever with two parts, a few minutes on a 2-core laptop. --case vessel: the "
                     "paper's coronary case on a generated coronary tree with 11 parts, mass scaling (with "
-                    "the check of paper figure 19) and error control at 1 %%; --size small (default, "
+                    "the check of paper figure 19) and error control at 1 %; --size small (default, "
                     "about 5 000 tets, within 15 minutes on a 2-core laptop) or paper (about 250 000 "
                     "dofs and 1e6 steps: hours to days). Prints a summary table and writes trajectories, "
-                    "the checkpoint, figures and summary.json into --out.")
+                    "the checkpoint, figures and summary.json into --out; a folder that holds an earlier demo is "
+                    "replaced only with --force, and only once the new run is complete.")
     p.add_argument("--case", choices=("cantilever", "vessel"), default="cantilever",
                    help="the problem (default: %(default)s)")
     p.add_argument("--size", default="small",
                    help="vessel only: small, paper, or a target tetrahedron count (default: %(default)s)")
     p.add_argument("--out", "-o", default="jaxsync-demo", help="output folder (default: %(default)s)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the files of an earlier demo in --out (without it the run is refused "
+                        "before it starts); the new files take their place only when the run is complete")
     p.add_argument("--steps", type=int, default=None,
                    help="time steps of both runs (default: the case's; cantilever 100000, 35 s as in the "
                         "paper; vessel small 250000, about 2 s; vessel paper 1000000, 5 s as in the paper)")
@@ -66,7 +70,7 @@ def run(args) -> int:
                        n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
                        n_layers=args.n_layers, epochs=args.epochs, eta0=args.eta0, gamma=args.gamma,
                        n_candidates=args.n_candidates, seed=args.seed, save_every=args.save_every,
-                       resync_tolerance=tolerance, progress=not args.no_progress)
+                       resync_tolerance=tolerance, progress=not args.no_progress, force=args.force)
     what = "cantilever" if args.case == "cantilever" else f"coronary tree ({summary['n_elements']} tets)"
     print(f"jaxsync demo: synchronization-avoiding {what}")
     print(format_summary(summary))

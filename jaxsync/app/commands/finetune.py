@@ -46,6 +46,7 @@ def run(args) -> int:
     from ...surrogate import Surrogate
 
     common.refuse_to_overwrite([args.output], force=args.force)
+    common.check_outputs((args.output, "fine-tuned checkpoint", "-o"))
     reference, part, problem, ckpt = common.load_trained_run(args)
     if ckpt.arch.conditional:
         raise ConfigError("fine-tuning conditional surrogates (trained on several runs with load "
@@ -64,7 +65,8 @@ def run(args) -> int:
     metadata = {**ckpt.metadata, "fine_tuned": {**result.summary(), "span_steps": span,
                                                 "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
                                                 "from_checkpoint": str(args.checkpoint)}}
-    result.surrogate.save(args.output, shared_nodes=ckpt.shared_nodes, metadata=metadata)
+    with common.writing(args.output):
+        result.surrogate.save(args.output, shared_nodes=ckpt.shared_nodes, metadata=metadata)
     kept = ("the trained weights (no step lowered the validation loss)" if result.best_iteration == 0
             else f"the weights of step {result.best_iteration}")
     print(f"fine-tuned on {config.n_iterations} windows of {config.window_cycles} refill cycles within the first "

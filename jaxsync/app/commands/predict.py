@@ -52,6 +52,7 @@ def run(args) -> int:
     from ...solve.syncavoid import describe_run, simulate_sync_avoiding
 
     common.refuse_to_overwrite([args.output], force=args.force)
+    common.check_outputs((args.output, "output trajectory", "-o"))
     reference, part, problem, ckpt = common.load_trained_run(args)
     n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
@@ -71,7 +72,8 @@ def run(args) -> int:
                                     load_parameter=args.load_parameter, progress=not args.no_progress,
                                     resync_tolerance=args.resync_tolerance, load_jumps=args.load_jumps,
                                     **common.sync_of(args))
-    online.save(args.output, compression=common.compression_of(args))
+    with common.writing(args.output):
+        online.save(args.output, compression=common.compression_of(args))
     print(describe_run(online) + f"; wrote {args.output}")
     return 0
 

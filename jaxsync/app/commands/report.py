@@ -63,7 +63,9 @@ def run(args) -> int:
     from ...parallel.partitioning import partition_of
     from ...trajectory import Trajectory
     from ..plots import constrained_nodes, write_report
+    from .common import check_outputs
 
+    check_outputs((args.out, "report folder", "-o", True))
     reference = Trajectory.load(args.reference)
     online = Trajectory.load(args.online)
     reference = same_steps(reference, online, args.reference, args.online)

@@ -102,18 +102,51 @@ def xdmf_files(xdmf: str) -> list[str]:
 
 
 def report_warnings(caught) -> None:
-    """Show warnings recorded while building the problem: the package's own as one
-    ``warning: ...`` line on stderr, any other as Python shows it."""
-    import warnings
+    """Show warnings recorded while building the problem
+    (:func:`jaxsync.app.commands.common.report_warnings`: the package's own as one
+    ``warning: ...`` line on stderr, any other as Python shows it)."""
+    common.report_warnings(caught)
 
-    from ...fem.mesh import MeshWarning
-    from ...fem.timestep import MassScalingWarning
 
-    for w in caught:
-        if issubclass(w.category, (MeshWarning, MassScalingWarning)):
-            print(f"warning: {w.message}", file=sys.stderr)
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+def check_locations(output, xdmf, checkpoint, timings_path=None) -> None:
+    """Refuse, before anything runs, output locations that cannot be written."""
+    if timings_path is not None:
+        common.check_outputs((timings_path, "timings JSON", "--timings"))
+        return
+    common.check_outputs((output, "trajectory", "-o"),
+                         *((path, "XDMF output", "--xdmf") for path in (xdmf_files(xdmf) if xdmf else [])),
+                         (checkpoint, "checkpoint", "--checkpoint"))
+
+
+def checkpoint_step(checkpoint: str | None) -> int:
+    """The step a run resumes from: that of the solver checkpoint ``checkpoint`` (0 when
+    there is none, or it is not one: the solver then refuses it with the reason)."""
+    if not checkpoint or not os.path.exists(checkpoint):
+        return 0
+    try:
+        import h5py
+
+        with h5py.File(checkpoint, "r") as f:
+            if f.attrs.get("kind") != "jaxsync-solver-checkpoint":
+                return 0
+            return int(f.attrs["step"])
+    except Exception:  # noqa: BLE001 - unreadable: the solver says why
+        return 0
+
+
+def devices_text(st, parts) -> str:
+    """``2 cpu devices in 2 processes, emulated, 2 parts per device`` from a run's
+    statistics (``n_devices``: every process's devices together)."""
+    n_devices = int(st.n_devices or 1)
+    n_processes = int(getattr(st, "n_processes", None) or 1)
+    text = f"{n_devices} {st.device_kind} device{'s' if n_devices > 1 else ''}"
+    if n_processes > 1:
+        text += f" in {n_processes} processes"
+    if st.emulated:
+        text += ", emulated"
+    if parts and parts > n_devices:
+        text += f", {parts // n_devices} parts per device"
+    return text
 
 
 def run(args) -> int:
@@ -132,9 +165,11 @@ def run(args) -> int:
         timings_path = args.timings or os.path.splitext(output)[0] + ".timings.json"
         if main_rank:
             common.refuse_to_overwrite([timings_path], force=args.force)
+            check_locations(output, xdmf, checkpoint, timings_path)
     elif main_rank:  # the writer; checked before the mesh is read and anything runs
         common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []),
                                    force=args.force or resuming, checkpoint=checkpoint)
+        check_locations(output, xdmf, checkpoint)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         problem, run_config = problem_from_config(config, mesh_file=args.mesh,
@@ -151,7 +186,8 @@ def run(args) -> int:
                                   **sync)
         if main_rank:
             print(report.table())
-            report.save_json(timings_path)
+            with common.writing(timings_path):
+                report.save_json(timings_path)
             print(f"wrote {timings_path}")
         return 0
     return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, xdmf=xdmf,
@@ -177,6 +213,7 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
                   f"{run_config.added_mass_percent:.2f} % of the total")
         if n_processes > 1:
             print(f"{n_processes} processes, {parts} parts")
+    first_step = checkpoint_step(checkpoint)  # where a resumed run starts
     start = time.perf_counter()
     try:
         trajectory = solver.simulate(problem, n_steps, dt=dt, save_every=save_every,
@@ -192,7 +229,8 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
         if partial is not None and partial.n_saved:
             root, ext = os.path.splitext(output)
             partial_path = f"{root}.partial{ext or '.h5'}"
-            partial.save(partial_path)
+            with common.writing(partial_path):
+                partial.save(partial_path)
             print(f"saved the {partial.n_saved} snapshots before divergence to {partial_path}",
                   file=sys.stderr)
         common.barrier()
@@ -203,16 +241,17 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
     if run_config.added_mass_percent is not None:
         trajectory = dataclasses.replace(trajectory, parameters={
             **trajectory.parameters, "added_mass_percent": float(run_config.added_mass_percent)})
-    trajectory.save(output, compression=common.compression_of(args))
+    with common.writing(output):
+        trajectory.save(output, compression=common.compression_of(args))
     st = trajectory.stats
     speed = (f"{st.us_per_step:.1f} us/step, compilation {st.compile_seconds:.2f} s not included"
              if st.us_per_step is not None else "no steps run")
-    shared = (f", {parts // st.n_devices} parts per device"
-              if parts and parts > st.n_devices else "")
-    print(f"{n_steps} steps in {elapsed:.2f} s ({speed}; {st.n_devices} {st.device_kind} "
-          f"device{'s' if st.n_devices > 1 else ''}{', emulated' if st.emulated else ''}"
-          f"{shared}); wrote {output}")
+    ran = max(int(n_steps) - first_step, 0)
+    steps = (f"resumed from step {first_step} of {n_steps} (checkpoint {checkpoint}): {ran} steps"
+             if first_step else f"{ran} steps")
+    print(f"{steps} in {elapsed:.2f} s ({speed}; {devices_text(st, parts)}); wrote {output}")
     if xdmf:
-        trajectory.to_xdmf(xdmf)
+        with common.writing(*xdmf_files(xdmf)):
+            trajectory.to_xdmf(xdmf)
         print(f"wrote {xdmf}")
     return 0
