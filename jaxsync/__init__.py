@@ -23,7 +23,7 @@ from .fem.coronary_tree import coronary_mesh
 from .fem.geometry import vessel_centerline, vessel_mesh
 from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
 from .fem.material import LinearElastic
-from .fem.mesh import Mesh, MeshWarning, box_beam, read_mesh
+from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
 from .fem.problem import Dirichlet, Problem, cantilever
 from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
 from .parallel import devices
@@ -39,7 +39,8 @@ __version__ = "0.2.0"
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
     "CheckpointError", "ConfigError", "OutputError", "PartitionError", "PrecisionError", "Partition", "partition",
-    "Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
+    "Mesh", "MeshWarning", "read_mesh", "merge_coincident_nodes",
+    "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
     "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
     "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",

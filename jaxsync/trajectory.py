@@ -34,8 +34,9 @@ class RunStats:
             steps of a synchronization-avoiding run [us].
         compile_seconds: time spent compiling [s].
         seconds_discarded: time spent on predicted steps that were recomputed [s].
-    Devices: n_devices, device_kind, platform, emulated (several CPU devices emulated in
-        one process, sharing its cores).
+    Devices: n_devices (those of every process of the run together), n_processes (None:
+        files written before it was recorded, one process), device_kind, platform,
+        emulated (several CPU devices emulated in one process, sharing its cores).
     Steps of a synchronization-avoiding run (they add up: n_synchronized_steps +
     n_predicted_steps = n_steps):
         n_steps, n_cri (last step of the first synchronized stretch),
@@ -56,6 +57,7 @@ class RunStats:
     compile_seconds: float | None = None
     seconds_discarded: float | None = None
     n_devices: int | None = None
+    n_processes: int | None = None
     device_kind: str | None = None
     platform: str | None = None
     emulated: bool | None = None

@@ -60,7 +60,8 @@ def test_device_summary_and_run_statistics():
     import jax
 
     info = device_summary()
-    assert info == {"n_devices": 2, "device_kind": "cpu", "platform": "cpu", "emulated": True}
+    assert info == {"n_devices": 2, "n_processes": 1, "device_kind": "cpu", "platform": "cpu",
+                    "emulated": True}
     assert device_summary(jax.devices()[:1])["emulated"] is False
     problem = jaxsync.cantilever()
     single = jaxsync.simulate(problem, 20)
@@ -68,6 +69,23 @@ def test_device_summary_and_run_statistics():
     split = jaxsync.simulate(problem, 20, partitions=2)
     assert split.stats.n_devices == 2 and split.stats.emulated
     np.testing.assert_allclose(split.displacement, single.displacement, rtol=0, atol=1e-13)
+
+
+def test_device_summary_counts_the_devices_and_processes_of_a_multi_process_run():
+    """Devices of two processes (a psum across them), or each process's own device of a
+    run that reaches the others through MPI: both are 2 devices in 2 processes."""
+    import types
+
+    import jax
+
+    def device(process):
+        return types.SimpleNamespace(platform="cpu", device_kind="cpu", process_index=process)
+
+    spread = device_summary([device(0), device(1)])
+    assert (spread["n_devices"], spread["n_processes"], spread["emulated"]) == (2, 2, False)
+    own = device_summary(jax.devices()[:1], processes=2)
+    assert (own["n_devices"], own["n_processes"], own["emulated"]) == (2, 2, False)
+    assert device_summary(jax.devices(), processes=1)["n_processes"] == 1
 
 
 def test_request_after_jax_started_changes_nothing():

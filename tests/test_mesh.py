@@ -303,3 +303,88 @@ def test_a_surface_in_two_physical_groups_is_in_both_facet_sets(tmp_path):
     assert np.all(x[left_nodes] == 0.0)
     assert set(np.flatnonzero(np.isclose(x, 0.0))) == set(left_nodes)
     assert set(np.flatnonzero(np.isclose(x, 0.0) | np.isclose(x, 2.0))) == set(ends)
+
+
+def split_beam():
+    """The box beam with its nodes at x = 12 doubled: the elements beyond x = 12 use the
+    copies, so the two halves touch without being connected."""
+    beam = jaxsync.box_beam(25.0, 1.0, 1.0, (25, 2, 2))
+    points, tets = beam.points, beam.tets
+    at_cut = np.flatnonzero(np.isclose(points[:, 0], 12.0))
+    copy_of = np.full(len(points), -1)
+    copy_of[at_cut] = len(points) + np.arange(len(at_cut))
+    beyond = points[tets].mean(axis=1)[:, 0] > 12.0
+    split = tets.copy()
+    on_cut = beyond[:, None] & (copy_of[tets] >= 0)
+    split[on_cut] = copy_of[tets][on_cut]
+    return beam, np.vstack([points, points[at_cut]]), split, len(at_cut)
+
+
+def test_a_mesh_cut_by_coincident_nodes_is_flagged_and_can_be_merged(tmp_path):
+    beam, points, tets, n_copies = split_beam()
+    with pytest.warns(MeshWarning) as caught:
+        cut = validated_mesh(points, tets)
+    messages = [str(w.message) for w in caught]
+    assert any(f"{n_copies} pairs of coincident nodes" in m for m in messages)
+    assert any("2 disconnected pieces" in m for m in messages)
+    assert int(jaxsync.fem.mesh.connected_components(cut).max()) == 1
+    # read from a file as a user would
+    path = tmp_path / "split.vtu"
+    meshio.write(str(path), meshio.Mesh(points, [("tetra", tets)]))
+    with pytest.warns(MeshWarning) as caught:
+        read = jaxsync.read_mesh(path)
+    assert any("the mesh is cut there" in str(w.message) for w in caught)
+    # merged: the original beam (same nodes, same elements), one piece, no warning
+    merged = jaxsync.fem.mesh.merge_coincident_nodes(read)
+    assert merged.n_nodes == beam.n_nodes
+    np.testing.assert_array_equal(merged.points, beam.points)
+    np.testing.assert_array_equal(merged.tets, beam.tets)
+    assert np.all(jaxsync.fem.mesh.connected_components(merged) == 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        validated_mesh(merged.points, merged.tets)
+
+
+def test_merging_keeps_facet_sets():
+    beam, points, tets, _ = split_beam()
+    # the end face x = 25 lies beyond the cut: its triangles use copied nodes only if on the cut
+    with pytest.warns(MeshWarning):
+        cut = validated_mesh(points, tets, facet_sets={"x1": beam.facet_sets["x1"]})
+    merged = jaxsync.fem.mesh.merge_coincident_nodes(cut)
+    np.testing.assert_array_equal(merged.facet_sets["x1"], beam.facet_sets["x1"])
+
+
+def test_separate_pieces_are_flagged():
+    cube = unit_cube_tets()
+    points, tets = cube.points, cube.tets
+    far = points + np.array([5.0, 0.0, 0.0])
+    with pytest.warns(MeshWarning, match="2 disconnected pieces") as caught:
+        validated_mesh(np.vstack([points, far]), np.vstack([tets, tets + len(points)]))
+    assert not any("coincident" in str(w.message) for w in caught)
+
+
+def test_generated_meshes_raise_no_topology_warning():
+    for mesh in (jaxsync.box_beam(), jaxsync.box_beam(25.0, 1.0, 1.0, (50, 4, 4))):
+        assert len(jaxsync.fem.mesh.coincident_nodes(mesh)) == 0
+        assert np.all(jaxsync.fem.mesh.connected_components(mesh) == 0)
+
+
+def test_merging_drops_the_faces_of_the_cut_and_refuses_to_collapse_elements():
+    beam, points, tets, n_copies = split_beam()
+    # a facet set holding both faces of the cut: the triangles at x = 12 on either side
+    x = points[:, 0]
+    faces = np.array([[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]])
+    tris = np.sort(tets[:, faces].reshape(-1, 3), axis=1)
+    on_cut = np.isclose(x[tris], 12.0).all(axis=1)
+    cut_faces = np.unique(tris[on_cut], axis=0)
+    assert len(cut_faces) == 2 * 2 * 2 * 2  # 2 x 2 quads, 2 triangles each, on both sides
+    with pytest.warns(MeshWarning):
+        cut = validated_mesh(points, tets, facet_sets={"cut": cut_faces})
+    assert len(cut.facet_sets["cut"]) == 16
+    merged = jaxsync.merge_coincident_nodes(cut)
+    assert len(merged.facet_sets["cut"]) == 0  # interior after the merge
+    # a tolerance so large that an element's own nodes merge: refused
+    with pytest.raises(MeshError, match="collapse element"):
+        jaxsync.merge_coincident_nodes(merged, tol=2.0)
+    with pytest.raises(MeshError, match="tolerance"):
+        jaxsync.fem.mesh.coincident_nodes(merged, tol=-1.0)

@@ -152,6 +152,27 @@ def test_cli_two_processes_equal_the_single_process_run(tmp_path, reference):
 
 @pytest.mark.mpi
 @needs_mpiexec
+def test_two_process_run_records_every_device_and_process_and_resumes(tmp_path, reference):
+    """Each of the 2 processes has one device: the stats count 2 devices in 2 processes
+    (they used to say 1 device, that of the writing rank). The run checkpoints across the
+    processes (the state gathered from both, one writer) and resumes from it exactly."""
+    common = ["simulate", "--save-every", str(SAVE_EVERY), "-o", "run.h5", "--no-progress",
+              "--checkpoint", "ck.h5", "--checkpoint-every", str(SAVE_EVERY)]
+    first = _mpiexec(*_jaxsync_cli(), *common, "--steps", "300", cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    stats = jaxsync.Trajectory.load(tmp_path / "run.h5").stats
+    assert (stats.n_devices, stats.n_processes, stats.emulated) == (2, 2, False)
+    assert "2 cpu devices in 2 processes" in first.stdout
+    resumed = _mpiexec(*_jaxsync_cli(), *common, "--steps", "600", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resumed from step 300" in resumed.stdout
+    traj = jaxsync.Trajectory.load(tmp_path / "run.h5")
+    assert (traj.stats.n_devices, traj.stats.n_processes) == (2, 2)
+    assert relative_error(traj.displacement, reference.displacement[:7]) <= 1e-12
+
+
+@pytest.mark.mpi
+@needs_mpiexec
 def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
     path = tmp_path / "sync.npz"
     out = _mpiexec(sys.executable, __file__, "sync", str(path))

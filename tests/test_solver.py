@@ -11,6 +11,7 @@ import fem_reference as ref
 import jaxsync
 from jaxsync import CheckpointError, ProblemError, StabilityError
 from jaxsync.solve import Progress
+from jaxsync.solve.checkpoint import committed_step
 
 
 @pytest.fixture(scope="module")
@@ -234,9 +235,34 @@ def test_interrupted_run_resumes(problem, tmp_path):
     full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
     with pytest.raises(KeyboardInterrupt):
         jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt,
-                         progress=InterruptAfter(4))
+                         checkpoint_every=1000, progress=InterruptAfter(4))
+    assert committed_step(ckpt) == 3000
     resumed = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
+
+
+@pytest.mark.parametrize("seconds", [0.0, 1e9])
+def test_checkpoints_come_by_wall_time_unless_an_interval_is_given(problem, tmp_path, monkeypatch,
+                                                                    seconds):
+    """Without checkpoint_every a run checkpoints once CHECKPOINT_SECONDS have passed since
+    its last checkpoint (here: after every chunk, or never before its end); an interval
+    in steps is kept to whatever the clock says."""
+    import jaxsync.solve.checkpoint as checkpoint
+
+    monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", seconds)
+    by_clock, by_steps = tmp_path / "clock.ckpt.h5", tmp_path / "steps.ckpt.h5"
+    with pytest.raises(KeyboardInterrupt):
+        jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_clock,
+                         progress=InterruptAfter(4))
+    assert committed_step(by_clock) == (600 if seconds == 0 else None)
+    with pytest.raises(KeyboardInterrupt):
+        jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_steps,
+                         checkpoint_every=400, progress=InterruptAfter(4))
+    assert committed_step(by_steps) == 400
+    done = jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_clock)
+    assert committed_step(by_clock) == 1000  # always at the end
+    np.testing.assert_array_equal(done.displacement,
+                                  jaxsync.simulate(problem, 1000, save_every=20).displacement)
 
 
 def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(problem, tmp_path):
@@ -246,7 +272,9 @@ def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(pr
     kwargs = dict(partitions=2, save_every=50, shared_every=1, chunk_steps=500)
     full = jaxsync.simulate(problem, 2000, **kwargs)
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 2000, checkpoint=ckpt, progress=InterruptAfter(3), **kwargs)
+        jaxsync.simulate(problem, 2000, checkpoint=ckpt, checkpoint_every=500,
+                         progress=InterruptAfter(3), **kwargs)
+    assert committed_step(ckpt) == 1000
     resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     for a, b in zip(resumed.parts, full.parts):
@@ -283,9 +311,11 @@ def test_altered_checkpoint_is_refused(problem, tmp_path, tamper):
     jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=ckpt)
     shutil.copy(ckpt, intact)
     with h5py.File(ckpt, "r+") as f:
-        if tamper == "step":
-            f.attrs["step"] = 200
-        else:
+        if tamper == "step":  # the committed step of both commit slots
+            commits = f["commit"][...]
+            commits[:, 1] -= 20
+            f["commit"][...] = commits
+        else:  # every state slot, or every snapshot
             data = f[tamper][...]
             data[..., :10, :] = 0.05
             f[tamper][...] = data
@@ -296,15 +326,186 @@ def test_altered_checkpoint_is_refused(problem, tmp_path, tamper):
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
 
-def test_checkpoint_without_checksum_is_refused(problem, tmp_path):
+def _layout1_checkpoint(path, source, problem, dt, save_every, *, checksum=True):
+    """A checkpoint as jaxsync wrote them before layout 2 (every array rewritten at each
+    checkpoint, one checksum over them), from the checkpoint ``source``."""
     import h5py
 
-    ckpt = tmp_path / "old.ckpt.h5"
-    jaxsync.simulate(problem, 200, save_every=20, chunk_steps=200, checkpoint=ckpt)
-    with h5py.File(ckpt, "r+") as f:
-        del f.attrs["checksum"]
+    from jaxsync.io import array_checksum
+    from jaxsync.solve.checkpoint import fingerprint, load_checkpoint
+
+    key = fingerprint(problem, dt, save_every)
+    state, snapshots, _ = load_checkpoint(source, key, 10**9)
+    arrays = {"displacement": np.asarray(state.displacement), "previous": np.asarray(state.previous),
+              "snapshots": np.concatenate(snapshots)}
+    with h5py.File(path, "w") as f:
+        f.attrs["kind"] = "jaxsync-solver-checkpoint"
+        f.attrs["fingerprint"] = key
+        f.attrs["step"] = int(state.step)
+        if checksum:
+            f.attrs["checksum"] = array_checksum(arrays, {"kind": "jaxsync-solver-checkpoint",
+                                                          "fingerprint": key, "step": int(state.step)})
+        for name, array in arrays.items():
+            f[name] = array
+
+
+def test_checkpoint_of_the_previous_layout_resumes_or_without_checksum_is_refused(problem, tmp_path):
+    new, old, bare = tmp_path / "new.ckpt.h5", tmp_path / "old.ckpt.h5", tmp_path / "bare.ckpt.h5"
+    jaxsync.simulate(problem, 200, save_every=20, chunk_steps=200, checkpoint=new)
+    _layout1_checkpoint(old, new, problem, float(problem.dt), 20)
+    _layout1_checkpoint(bare, new, problem, float(problem.dt), 20, checksum=False)
+    full = jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200)
+    resumed = jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=old)
+    np.testing.assert_array_equal(resumed.displacement, full.displacement)
     with pytest.raises(CheckpointError, match="no checksum.*delete it to start over"):
-        jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=ckpt)
+        jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=bare)
+
+
+def test_checkpoints_append_only_their_new_rows(problem, tmp_path, monkeypatch):
+    """The file is written whole once (atomically), then every checkpoint writes its new
+    rows and its commit in place: the file keeps its size and structure, and no checkpoint
+    rewrites the snapshots before it (that made checkpointed runs 1.8x slower)."""
+    import h5py
+
+    import jaxsync.solve.checkpoint as checkpoint
+
+    whole = []
+    atomic_h5 = checkpoint.atomic_h5
+    monkeypatch.setattr(checkpoint, "atomic_h5", lambda path: whole.append(path) or atomic_h5(path))
+    ckpt = tmp_path / "run.ckpt.h5"
+    kwargs = dict(save_every=20, chunk_steps=200, checkpoint=ckpt, checkpoint_every=200)
+    first = jaxsync.simulate(problem, 1000, **kwargs)  # 5 checkpoints
+    assert len(whole) == 1
+    with h5py.File(ckpt, "r") as f:
+        assert f["snapshots"].shape == (51, problem.mesh.n_nodes, 3)  # room for the whole run
+        assert f["commit"][:, :2].tolist() == [[5, 1000], [4, 800]]  # (sequence, step) per slot
+        assert int(f.attrs["step"]) == 1000 == checkpoint.committed_step(ckpt)
+    np.testing.assert_array_equal(first.displacement,
+                                  jaxsync.simulate(problem, 1000, save_every=20).displacement)
+    # a resumed run writes the file whole once more (room for its longer run), then appends
+    resumed = jaxsync.simulate(problem, 2000, **kwargs)
+    assert len(whole) == 2
+    np.testing.assert_array_equal(resumed.displacement,
+                                  jaxsync.simulate(problem, 2000, save_every=20).displacement)
+
+
+def _storage(path):
+    """(file bytes, [(offset, size)] of every dataset's raw data)."""
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        regions = [(f[name].id.get_offset(), f[name].id.get_storage_size()) for name in f]
+    with open(path, "rb") as fh:
+        return np.frombuffer(fh.read(), dtype=np.uint8), regions
+
+
+def _toy_writer(path, n_steps=30):
+    """A CheckpointWriter of a made-up run (5 nodes, one part recorded), and its blocks."""
+    from jaxsync.fem.stepper import SolverState
+    from jaxsync.solve.checkpoint import CheckpointWriter
+
+    def state(step):
+        return SolverState(np.full((5, 3), step + 0.5), np.full((5, 3), step - 0.5), np.int32(step))
+
+    def rows(i):  # the snapshots and shared rows of the i-th checkpoint (10 steps)
+        return [np.full((10, 5, 3), float(i))], [[np.full((10, 4), -float(i))]]
+
+    writer = CheckpointWriter(path, "toy", [np.zeros((1, 5, 3))], [[np.zeros((1, 4))]],
+                              n_steps=n_steps, save_every=1)
+    return writer, state, rows
+
+
+def test_a_checkpoint_after_the_first_changes_only_rows_and_its_commit(tmp_path):
+    """After the whole file is written, a checkpoint writes into the datasets' storage
+    (allocated at the start) and the 8 bytes of the step attribute only: no HDF5
+    structure changes, so a crash cannot damage what the last commit points at."""
+    path = tmp_path / "toy.h5"
+    writer, state, rows = _toy_writer(path)
+    writer.commit(state(10), *rows(1))
+    before, regions = _storage(path)
+    writer.commit(state(20), *rows(2))
+    after, regions_after = _storage(path)
+    assert regions_after == regions and len(after) == len(before)
+    outside = np.ones(len(before), bool)
+    for offset, size in regions:
+        outside[offset:offset + size] = False
+    changed = np.nonzero((before != after) & outside)[0]
+    assert len(changed) and changed.max() - changed.min() < 8  # the int64 step attribute
+
+
+_CRASH_CHILD = """
+import os, signal, sys
+import h5py
+sys.path.insert(0, sys.argv[3])
+from test_solver import _toy_writer
+writer, state, rows = _toy_writer(sys.argv[1])
+writer.commit(state(10), *rows(1))
+writer.commit(state(20), *rows(2))
+calls, kill_at = [0], int(sys.argv[2])
+def counted(write):
+    def wrapper(*args, **kwargs):
+        if calls[0] == kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)  # no HDF5 close, no buffer flushed
+        calls[0] += 1
+        return write(*args, **kwargs)
+    return wrapper
+h5py.Dataset.__setitem__ = counted(h5py.Dataset.__setitem__)
+h5py.AttributeManager.modify = counted(h5py.AttributeManager.modify)
+writer.commit(state(30), *rows(3))
+"""
+
+
+def test_a_process_killed_at_any_write_of_a_checkpoint_leaves_a_correct_one(tmp_path):
+    """A process killed (SIGKILL) before each write of its third checkpoint, in turn:
+    what it leaves resumes from the second checkpoint (commit not complete) or the third,
+    every row and the state exactly as committed; never anything else."""
+    import signal
+    import subprocess
+    import sys
+
+    from jaxsync.solve.checkpoint import committed_step, load_checkpoint
+
+    writes = 7  # snapshots, shared rows, 2 state slots, commit, its checksum, step hint
+    here = os.path.dirname(os.path.abspath(__file__))
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    children = [subprocess.Popen([sys.executable, "-c", _CRASH_CHILD, str(tmp_path / f"k{k}.h5"),
+                                  str(k), here], env=env, stderr=subprocess.PIPE, text=True)
+                for k in range(writes + 1)]
+    for k, child in enumerate(children):
+        _, err = child.communicate(timeout=120)
+        assert child.returncode == (-signal.SIGKILL if k < writes else 0), err
+        state, snapshots, shared = load_checkpoint(tmp_path / f"k{k}.h5", "toy", 30, n_recorded=1)
+        step = int(state.step)
+        assert step == (20 if k < 6 else 30), k  # complete once its checksum is written
+        if k != 5:  # killed between the commit and its checksum: the hint may say either
+            assert committed_step(tmp_path / f"k{k}.h5") == (20 if k < 5 else 30)
+        n = step // 10
+        np.testing.assert_array_equal(state.displacement, np.full((5, 3), step + 0.5))
+        np.testing.assert_array_equal(state.previous, np.full((5, 3), step - 0.5))
+        expected = np.concatenate([np.zeros((1, 5, 3))] + [np.full((10, 5, 3), float(i)) for i in range(1, n + 1)])
+        np.testing.assert_array_equal(snapshots[0], expected)
+        np.testing.assert_array_equal(shared[0][0], -expected[:, :4, 0])
+
+
+def test_a_damaged_last_commit_resumes_from_the_one_before(problem, tmp_path):
+    """A torn last commit (here its checksum overwritten) fails its check; the run then
+    resumes from the previous commit, which a checkpoint never overwrites, bit for bit."""
+    import h5py
+
+    ckpt = tmp_path / "run.ckpt.h5"
+    kwargs = dict(save_every=20, chunk_steps=200)
+    jaxsync.simulate(problem, 600, checkpoint=ckpt, checkpoint_every=200, **kwargs)  # at 200, 400, 600
+    with h5py.File(ckpt, "r+") as f:
+        last = int(np.argmax(f["commit"][:, 0]))
+        assert int(f["commit"][last, 1]) == 600
+        f["commit_checksum"][last] = b"0" * 64
+    from jaxsync.solve.checkpoint import fingerprint, load_checkpoint
+
+    state, _, _ = load_checkpoint(ckpt, fingerprint(problem, float(problem.dt), 20), 1000)
+    assert int(state.step) == 400
+    resumed = jaxsync.simulate(problem, 1000, checkpoint=ckpt, **kwargs)
+    np.testing.assert_array_equal(resumed.displacement,
+                                  jaxsync.simulate(problem, 1000, **kwargs).displacement)
 
 
 def test_diverging_run_stops_with_the_stability_error_and_keeps_snapshots(problem):

@@ -29,7 +29,23 @@ def test_hdf5_round_trip(trajectory, tmp_path):
     assert {k: back.parameters[k] for k in ("E", "nu", "rho", "damping")} == {
         "E": 1.0e6, "nu": 0.3, "rho": 1.0, "damping": 0.5}
     assert back.stats == trajectory.stats  # run statistics, apart from the physics
-    assert back.stats.us_per_step > 0 and back.stats.n_devices == 1
+    assert back.stats.us_per_step > 0 and back.stats.n_devices == 1 and back.stats.n_processes == 1
+
+
+def test_stats_of_a_file_written_before_process_counts_load(trajectory, tmp_path):
+    """Files of a jaxsync that stored no ``stat_n_processes`` still load (it is None);
+    a count of several processes round-trips."""
+    import dataclasses
+
+    import h5py
+
+    path = tmp_path / "t.h5"
+    dataclasses.replace(trajectory, stats=trajectory.stats.merged(n_devices=4, n_processes=2)).save(path)
+    assert jaxsync.Trajectory.load(path).stats.n_processes == 2
+    with h5py.File(path, "r+") as f:
+        del f.attrs["stat_n_processes"]
+    back = jaxsync.Trajectory.load(path)
+    assert back.stats.n_processes is None and back.stats.n_devices == 4
 
 
 def test_parts_round_trip(trajectory, tmp_path):

@@ -18,11 +18,16 @@ import numpy as np
 
 from ..errors import MeshError
 
-__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "tet_volumes", "to_skfem"]
+__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "tet_volumes", "to_skfem",
+           "coincident_nodes", "connected_components", "merge_coincident_nodes"]
+
+COINCIDENT_TOLERANCE = 1e-9
+"""Nodes closer than this times the bounding-box diagonal count as coincident."""
 
 
 class MeshWarning(UserWarning):
-    """Something in a mesh was repaired at load (inverted elements, unused nodes)."""
+    """Something in a mesh was repaired at load (inverted elements, unused nodes), or looks
+    wrong (coincident nodes that cut it, disconnected pieces)."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -209,7 +214,132 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
             kept[name] = new_index[tri[ok]]
         facet_sets = kept
         points, src = points[used], src[used]
-    return Mesh(points=points, tets=tets, facet_sets=facet_sets, source_node_ids=src)
+    mesh = Mesh(points=points, tets=tets, facet_sets=facet_sets, source_node_ids=src)
+    warn_about_topology(mesh, origin=origin, stacklevel=4)
+    return mesh
+
+
+def coincident_nodes(mesh: Mesh, tol: float | None = None) -> np.ndarray:
+    """(n_pairs, 2) int64 pairs (i, j), i < j, of distinct nodes at most ``tol`` [cm] apart
+    (default :data:`COINCIDENT_TOLERANCE` times the bounding-box diagonal).
+
+    Found with a k-d tree (``scipy.spatial.cKDTree.query_pairs``): O(n log n), and unlike
+    rounding to a grid it cannot miss a pair that straddles a grid line."""
+    from scipy.spatial import cKDTree
+
+    points = mesh.points
+    if len(points) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    if tol is None:
+        tol = COINCIDENT_TOLERANCE * float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    elif not np.isfinite(tol) or tol < 0:
+        raise MeshError(f"coincident-node tolerance must be a finite distance >= 0 [cm], got {tol}")
+    pairs = cKDTree(points).query_pairs(float(tol), output_type="ndarray")
+    return np.sort(np.asarray(pairs, dtype=np.int64).reshape(-1, 2), axis=1)
+
+
+def _components(n: int, edges: np.ndarray) -> np.ndarray:
+    """(n,) connected-component label of each vertex of the graph with ``edges`` (k, 2)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components as components
+
+    graph = sp.coo_matrix((np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    return components(graph, directed=False)[1]
+
+
+def connected_components(mesh: Mesh) -> np.ndarray:
+    """(n_elements,) int64 label of the piece each element belongs to: elements that
+    share a node are connected (labels 0, 1, ... in order of each piece's first element;
+    all 0 for a connected mesh)."""
+    tets = mesh.tets
+    # node graph with edges node0-node1, node0-node2, node0-node3 of each element: the same
+    # pieces as the element-node incidence graph, with 3 edges per element
+    edges = np.stack([np.repeat(tets[:, 0], 3), tets[:, 1:].ravel()], axis=1)
+    label = _components(mesh.n_nodes, edges)[tets[:, 0]]
+    _, first, inverse = np.unique(label, return_index=True, return_inverse=True)
+    rank = np.empty(len(first), dtype=np.int64)
+    rank[np.argsort(first)] = np.arange(len(first))
+    return rank[inverse.ravel()]
+
+
+def merge_coincident_nodes(mesh: Mesh, tol: float | None = None) -> Mesh:
+    """The mesh with every group of coincident nodes (:func:`coincident_nodes`) replaced
+    by its lowest-numbered node.
+
+    Use it on a mesh cut by doubled nodes (two parts that meet at the same coordinates
+    without sharing nodes, so that they are not connected). Nodes keep their order;
+    elements and facet sets are renumbered; ``source_node_ids`` keeps each kept node's
+    number in the file. A triangle that a facet set holds twice after the merge (the two
+    faces of the cut, now one interior face) is dropped from that set.
+
+    Args:
+        mesh: the mesh to repair.
+        tol: distance [cm] at or below which nodes coincide; default
+            :data:`COINCIDENT_TOLERANCE` times the bounding-box diagonal.
+
+    Returns:
+        A new :class:`Mesh` (``mesh`` itself when no nodes coincide).
+
+    Raises:
+        MeshError: the merge would collapse an element (two of its own nodes coincide).
+    """
+    pairs = coincident_nodes(mesh, tol)
+    if len(pairs) == 0:
+        return mesh
+    n = mesh.n_nodes
+    group = _components(n, pairs)
+    representative = np.full(group.max() + 1, n, dtype=np.int64)
+    np.minimum.at(representative, group, np.arange(n))
+    target = representative[group]  # each node's kept copy
+    kept = target == np.arange(n)
+    remap = (np.cumsum(kept) - 1)[target]
+    tets = remap[mesh.tets]
+    ordered = np.sort(tets, axis=1)
+    collapsed = np.flatnonzero((ordered[:, 1:] == ordered[:, :-1]).any(axis=1))
+    if collapsed.size:
+        e = int(collapsed[0])
+        raise MeshError(
+            f"merging coincident nodes would collapse element {e} (nodes {mesh.tets[e].tolist()}; "
+            f"{collapsed.size} such elements): two of its own nodes lie at the same place; pass a "
+            "smaller tol, or remove the degenerate elements")
+    facet_sets = {}
+    for name, tri in mesh.facet_sets.items():
+        tri = remap[tri]
+        if len(tri):
+            _, inverse, counts = np.unique(np.sort(tri, axis=1), axis=0, return_inverse=True,
+                                           return_counts=True)
+            tri = tri[counts[inverse.ravel()] == 1]
+        facet_sets[name] = tri
+    return Mesh(points=mesh.points[kept], tets=tets, facet_sets=facet_sets,
+                source_node_ids=mesh.source_node_ids[kept])
+
+
+def warn_about_topology(mesh: Mesh, *, origin: str = "mesh", stacklevel: int = 2) -> None:
+    """:class:`MeshWarning` when coincident nodes are used by different elements (the mesh
+    is cut there: the two sides are not connected) or when the mesh falls into several
+    disconnected pieces (a piece without its own support moves as a rigid body). Both
+    checks are O(n log n) (k-d tree, sparse connected components)."""
+    pairs = coincident_nodes(mesh)
+    labels = connected_components(mesh)
+    n_pieces = int(labels.max()) + 1
+    fix = "merge them with jaxsync.merge_coincident_nodes(mesh)"
+    if len(pairs):
+        where = mesh.points[pairs[0, 0]]
+        warnings.warn(
+            f"{origin}: {len(pairs)} pairs of coincident nodes are used by different elements "
+            f"(first at ({where[0]:.6g}, {where[1]:.6g}, {where[2]:.6g})): the mesh is cut there, "
+            f"its sides are not connected and move independently; {fix}, or fix the mesh export "
+            "(in gmsh: Coherence, or Geometry.Tolerance); if the cut is intended (a crack, a "
+            "contact gap), ignore this", MeshWarning, stacklevel=stacklevel)
+    if n_pieces > 1:
+        sizes = np.bincount(labels)
+        shown = ", ".join(str(int(k)) for k in sizes[:8]) + (", ..." if n_pieces > 8 else "")
+        cause = (" (the coincident nodes above cut it: merge them)" if len(pairs)
+                 else "; jaxsync.fem.mesh.connected_components(mesh) labels them")
+        warnings.warn(
+            f"{origin}: the mesh falls into {n_pieces} disconnected pieces of {shown} elements"
+            f"{cause}; a piece without its own Dirichlet support moves as a rigid body",
+            MeshWarning, stacklevel=stacklevel)
 
 
 _TETRA_TYPES = ("tetra",)

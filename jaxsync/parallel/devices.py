@@ -45,14 +45,28 @@ def request_cpu_devices(n: int) -> bool:
     return True
 
 
-def device_summary(devices=None) -> dict:
-    """{"n_devices", "device_kind", "platform", "emulated"} of ``devices`` (default: all
-    of JAX's devices); ``emulated`` is True for several CPU devices in one process (they
-    share the machine's cores and memory)."""
+def device_summary(devices=None, *, processes: int | None = None) -> dict:
+    """{"n_devices", "n_processes", "device_kind", "platform", "emulated"} of a run on
+    ``devices`` (default: all of JAX's devices, those of every process).
+
+    ``n_devices`` counts the devices of every process of the run and ``n_processes`` the
+    processes: with ``devices`` spread over processes (a ``psum`` across them), the
+    processes they belong to; ``processes``: the run's processes when each passes only its
+    own ``devices`` and reaches the others otherwise (MPI), so that the run holds
+    ``processes`` times as many devices. ``emulated`` is True for several CPU devices in
+    one process (they share the machine's cores and memory)."""
     import jax
 
     devices = list(jax.devices() if devices is None else devices)
     platform = devices[0].platform if devices else "none"
-    return {"n_devices": len(devices), "device_kind": devices[0].device_kind if devices else "none",
+    if processes is not None and int(processes) > 1:
+        n_processes = int(processes)
+        n_devices = len(devices) * n_processes
+    else:
+        n_processes = len({getattr(d, "process_index", 0) for d in devices}) or 1
+        n_devices = len(devices)
+    return {"n_devices": n_devices, "n_processes": n_processes,
+            "device_kind": devices[0].device_kind if devices else "none",
             "platform": platform,
-            "emulated": bool(platform == "cpu" and len(devices) > 1 and jax.process_count() == 1)}
+            "emulated": bool(platform == "cpu" and len(devices) > 1 and n_processes == 1
+                             and jax.process_count() == 1)}

@@ -23,7 +23,7 @@ from ..errors import ProblemError, StabilityError
 from ..fem.loads import load_jumps
 from ..fem.stepper import ExplicitSystem, SolverState, advance, build_system, initial_state
 from ..pytree import is_traced
-from .checkpoint import fingerprint, load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
 from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
 
 __all__ = ["simulate", "steady_state", "drive", "SingleDeviceRunner"]
@@ -268,25 +268,36 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
                                                       0 if recorded is None else len(recorded))
     step_now = int(state.step)
     saves_per_chunk = max(1, int(chunk_steps) // save_every)
-    checkpoint_chunks = max(1, math.ceil((checkpoint_every or chunk_steps) / (saves_per_chunk * save_every)))
-    chunks_done = 0
+    stepped = runner
+    if checkpoint is not None:
+        # every checkpoint_every steps (whole chunks), or by default at most one per
+        # CHECKPOINT_SECONDS of wall time; always at the end
+        schedule = CheckpointSchedule(
+            math.ceil(checkpoint_every / (saves_per_chunk * save_every)) if checkpoint_every else None)
+        # each checkpoint appends the chunks since the last one (never all the run so far)
+        writer = CheckpointWriter(checkpoint, problem_key, snapshots, recorded, n_steps=n_steps,
+                                  save_every=save_every) if jax.process_index() == 0 else None  # one writer
+        stepped = watch_chunks(runner)
+        pending = []
 
     def after_chunk(step: int, so_far) -> None:
-        nonlocal chunks_done
-        chunks_done += 1
-        if chunks_done % checkpoint_chunks == 0 or step == n_steps:
-            segment = so_far()
-            global_state = runner.to_global(segment.state)  # collective in multi-process runs
-            if jax.process_index() == 0:  # one writer
-                save_checkpoint(checkpoint, problem_key, global_state, snapshots + [segment.displacement],
-                                _joined(recorded, segment.shared))
+        new_state, chunk = stepped.last
+        pending.append(chunk)
+        if schedule.due(step == n_steps):
+            global_state = runner.to_global(new_state)  # collective in multi-process runs
+            if writer is not None:
+                writer.commit(global_state, [c.displacement for c in pending],
+                              None if recorded is None else [list(rows) for rows in
+                                                             zip(*(c.shared for c in pending))])
+            pending.clear()
+            schedule.written()
 
     bar = progress if isinstance(progress, Progress) else None
     limit = divergence_limit(problem.mesh, blowup_factor)
     with (contextlib.nullcontext(bar) if bar is not None
           else Progress(n_steps, show=progress, label=label, initial=step_now)) as bar:
         try:
-            segment = run_chunks(runner, runner.from_global(state), step_now, n_steps, kind="synchronized",
+            segment = run_chunks(stepped, runner.from_global(state), step_now, n_steps, kind="synchronized",
                                  limit=limit, progress=bar, chunk_steps=chunk_steps,
                                  after_chunk=None if checkpoint is None else after_chunk)
         except Diverged as bad:
@@ -306,9 +317,11 @@ def drive(problem, runner, state: SolverState, n_steps: int, dt: float, save_eve
     from ..parallel.devices import device_summary
     from ..trajectory import RunStats
 
+    # a runner reaching the other processes through MPI holds one device of each of them
+    processes = jax.process_count() if getattr(runner, "transport", None) == "mpi" else None
     stats = RunStats(compile_seconds=segment.compile_seconds,
                      us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
-                     **device_summary(runner.devices))
+                     **device_summary(runner.devices, processes=processes))
     traj = dataclasses.replace(traj, stats=stats)
     return (traj, runner.to_global(segment.state)) if return_state else traj
 
