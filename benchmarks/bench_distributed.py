@@ -182,7 +182,8 @@ def run_baseline(divisions, n_steps, log, repeats=3, jax_repeats=5) -> dict:
     # jaxsync's compiled chunks of n_steps steps from the same start: on 2 emulated devices
     # (the distributed runner's program) and on one device (the single-device solver's)
     system, state = start["system"], start["state"]
-    runner = DistributedRunner(problem, system, partition, save_every=n_steps, devices=jax.devices()[:2])
+    runner = DistributedRunner(problem, system, partition, save_every=n_steps,
+                               sync=jaxsync.Psum(devices=jax.devices()[:2]))
     local_start = runner.from_global(state)
     distributed, one_device = runner.program(1), jax.jit(advance, static_argnums=(2, 3))
     entry["jaxsync_2_devices_s_per_step"] = best_time(distributed, jax_repeats, runner.parts, local_start) / n_steps

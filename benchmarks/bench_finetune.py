@@ -7,8 +7,8 @@ synchronization-avoiding run over all 1e5 steps; then
 :func:`jaxsync.solve.finetune.fine_tune_in_the_loop` on windows inside the training half
 (n_s n_p synchronized steps, then ``--window-cycles`` refill cycles, against the
 synchronized run), and the same online run with the fine-tuned networks. The errors are
-those of ``paper_experiments.py`` (free-end max and final error, interior noise, relative
-L2 over the run), measured over the whole run: the second half was never seen by either
+those of the experiment matrix (``experiments.run_metrics``: free-end max and final error,
+interior noise, relative L2 over the run), measured over the whole run: the second half was never seen by either
 training.
 
 Usage:
@@ -26,31 +26,30 @@ import argparse
 import dataclasses
 import os
 import sys
-import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-import paper_experiments as pe  # noqa: E402  (the metrics of the experiment matrix)
+import experiments  # noqa: E402  (the settings, cases and metrics of the experiment matrix)
 
 import jaxsync  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
 from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop  # noqa: E402
-from jaxsync.surrogate import Surrogate, train_surrogates  # noqa: E402
+from jaxsync.surrogate import Surrogate  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "finetune.json")
-FORCES = {"default": (0.0, 0.0, -0.5), "skewed": (0.0, -0.5, -0.5)}
+FORCES = experiments.BODY_FORCES
 
 
 def sizes_of(quick: bool):
-    """The experiment matrix's settings (``paper_experiments.py``: the paper's, or the tests'
+    """The experiment matrix's settings (``experiments.py``: the paper's, or the tests'
     reduced ones): steps, n_s, n_p, n_f, save_every, the training span and overrides."""
-    return pe.reduced_settings(2) if quick else pe.paper_settings()
+    return experiments.reduced_settings(2) if quick else experiments.paper_settings()
 
 
 def metrics_of(problem, parts, reference, online, tip):
-    excluded = pe.excluded_nodes(problem, parts)
-    m = pe.run_metrics(reference.displacement, online.displacement, tip, excluded)
+    excluded = experiments.excluded_nodes(problem, parts)
+    m = experiments.run_metrics(reference.displacement, online.displacement, tip, excluded)
     return {k: m[k] for k in ("tip_max_error_relative", "tip_final_error_relative", "l2_relative",
                               "l2_relative_final", "interior_max_error_relative")}
 
@@ -58,32 +57,31 @@ def metrics_of(problem, parts, reference, online, tip):
 def run_case(name: str, sizes, config: FineTuneConfig, seed: int, progress: bool) -> dict:
     problem = jaxsync.cantilever(body_force=FORCES[name])
     parts = jaxsync.partition(problem.mesh, 2, seed=seed)
-    tip = pe.check_tip(problem.mesh, parts)
+    tip = experiments.check_tip(problem.mesh, parts)
     n_cri = sizes.n_s * sizes.n_past
     print(f"[{name}] synchronized reference: {sizes.n_steps} steps", flush=True)
-    reference = jaxsync.simulate(problem, sizes.n_steps, partitions=parts, save_every=sizes.save_every,
-                                 shared_every=1, progress=progress)
+    reference = jaxsync.simulate(problem, sizes.n_steps, partitions=parts, save=jaxsync.SaveAt(sizes.save_every, 1),
+                                 executor=jaxsync.HostExecutor(progress=progress))
     print(f"[{name}] training (library defaults)", flush=True)
-    start = time.perf_counter()
-    trained = train_surrogates(reference, n_s=sizes.n_s, n_past=sizes.n_past, n_future=sizes.n_future,
-                               train_fraction=sizes.train_fraction, seed=seed, progress=progress,
-                               **sizes.train_overrides)
-    train_seconds = time.perf_counter() - start
-    surrogate = Surrogate.from_checkpoint(trained.checkpoint)
+    (trained, training), train_seconds = experiments.timed(
+        experiments.train, reference, dict(n_s=sizes.n_s, n_past=sizes.n_past, n_future=sizes.n_future,
+                                           train_fraction=sizes.train_fraction, seed=seed),
+        overrides=sizes.train_overrides, progress=progress)
+    if training["rollout_warning"]:
+        print(f"[{name}] {training['rollout_warning']}", flush=True)
+    surrogate = Surrogate.from_saved(trained.saved)
 
     def online(s):
-        start = time.perf_counter()
-        traj = jaxsync.simulate_sync_avoiding(problem, sizes.n_steps, partitions=parts, surrogates=s,
-                                              n_cri=n_cri, save_every=sizes.save_every, progress=progress)
-        return traj, time.perf_counter() - start
+        return experiments.timed(jaxsync.simulate_sync_avoiding, problem, sizes.n_steps, partitions=parts,
+                                 surrogates=s, n_cri=n_cri, save=sizes.save_every,
+                                 executor=jaxsync.HostExecutor(progress=progress))
 
     print(f"[{name}] online run, trained networks", flush=True)
     before, before_seconds = online(surrogate)
     print(f"[{name}] fine-tuning in the loop ({config.n_iterations} windows of {config.window_cycles} cycles)",
           flush=True)
     span = int(sizes.train_fraction * sizes.n_steps)  # the steps the networks were trained on
-    tuned = fine_tune_in_the_loop(problem, surrogate, parts, n_steps=span, config=config, seed=seed,
-                                  progress=progress)
+    tuned = fine_tune_in_the_loop(problem, surrogate, parts, n_steps=span, config=config, progress=progress)
     print(f"[{name}] online run, fine-tuned networks", flush=True)
     after, after_seconds = online(tuned.surrogate)
     sized = {k: getattr(sizes, k) for k in ("n_steps", "n_s", "n_past", "n_future", "save_every",
@@ -134,7 +132,7 @@ def main(argv=None) -> int:
     text = table(rows)
     print(text)
     atomic_json(args.out, {"rows": rows, "config": dataclasses.asdict(config), "quick": args.quick,
-                           "machine": pe.machine(), "table": text})
+                           "machine": experiments.machine(), "table": text})
     return 0
 
 

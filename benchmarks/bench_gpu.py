@@ -26,6 +26,8 @@ import platform
 import sys
 import time
 
+import jaxsync
+
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench_stepper's SciPy loop
 
@@ -53,7 +55,6 @@ def main(argv=None) -> int:
     import numpy as np
     from bench_stepper import bytes_per_step, scipy_loop
 
-    import jaxsync
     from jaxsync.fem.stepper import advance, build_system, initial_state
     from jaxsync.perf.measure import best_times, describe_devices
     from jaxsync.perf.timing import speedup_breakdown
@@ -80,13 +81,14 @@ def main(argv=None) -> int:
     problem = jaxsync.cantilever()
     part = jaxsync.partition(problem.mesh, 2)
     on = devices[:2] if len(devices) >= 2 else devices[:1]
-    single = jaxsync.simulate(problem, 2000, save_every=100, devices=devices[:1], progress=False)
+    single = jaxsync.simulate(problem, 2000, save=100, executor=jaxsync.HostExecutor(progress=False))
     scale = np.abs(single.displacement).max()
-    for sync, extra in (("psum", {}), ("ppermute", {}), ("halo", {"halo_depth": 4})):
+    for strategy, extra in ((jaxsync.Psum(on), {}), (jaxsync.Ppermute(on), {}), (jaxsync.Halo(4, on),
+                                                                                 {"halo_depth": 4})):
         start = time.perf_counter()
-        run = jaxsync.simulate(problem, 2000, save_every=100, partitions=part, devices=on, sync=sync,
-                               progress=False, **extra)
-        result["distributed"].append({"sync": sync, **extra, "n_devices": len(on),
+        run = jaxsync.simulate(problem, 2000, save=100, partitions=part, sync=strategy,
+                               executor=jaxsync.HostExecutor(progress=False))
+        result["distributed"].append({"sync": strategy.name, **extra, "n_devices": len(on),
                                       "max_rel_diff_vs_single": float(np.abs(run.displacement - single.displacement
                                                                              ).max() / scale),
                                       "seconds": time.perf_counter() - start})
@@ -97,8 +99,9 @@ def main(argv=None) -> int:
     if args.quick:  # a dry run: one surrogate (the programs are the same), shorter refill cycles
         surrogates = {"linear": Surrogate.initialized(part, 15, model="linear")}
     for name, predictor in surrogates.items():
-        report = speedup_breakdown(problem, part, predictor, devices=on, repeats=3 if args.quick else 10,
-                                   stage_repeats=3 if args.quick else 20, halo_depths=(1, 4))
+        report = speedup_breakdown(problem, part, predictor, syncs=(jaxsync.Psum(on), jaxsync.Ppermute(on)),
+                                   repeats=3 if args.quick else 10, stage_repeats=3 if args.quick else 20,
+                                   halo_depths=(1, 4))
         result["speedup"].append({"surrogate": name, "zeta": report.zeta, "sync": report.sync,
                                   "t_step_sync_us": {k: 1e6 * v for k, v in report.t_step_sync.items()},
                                   "t_step_avoiding_us": 1e6 * report.t_step_avoiding, "t_d_us": 1e6 * report.t_d,

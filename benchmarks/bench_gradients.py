@@ -80,7 +80,8 @@ def make_loss(problem, n_steps, checkpoints):
 
     def loss(E, alpha):
         p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
-        traj = jaxsync.simulate(p, n_steps, dt=dt, save_every=n_steps, gradient_checkpoints=checkpoints)
+        adjoint = jaxsync.Recompute() if checkpoints else jaxsync.StoreAll()
+        traj = jaxsync.simulate(p, n_steps, dt=dt, save=n_steps, executor=jaxsync.TracedExecutor(adjoint))
         return traj.displacement[-1, tip, 2]
 
     return loss
@@ -92,7 +93,7 @@ def make_objective(problem, n_steps, save_every, **kwargs):
 
     def objective(E, alpha):
         p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
-        traj = jaxsync.simulate(p, n_steps, dt=dt, save_every=save_every, **kwargs)
+        traj = jaxsync.simulate(p, n_steps, dt=dt, save=save_every, **kwargs)
         return jnp.mean(jnp.sum(traj.displacement[:, tip, :] ** 2, axis=-1)) / (1e-4 ** 2)
 
     return objective

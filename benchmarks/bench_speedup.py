@@ -130,8 +130,8 @@ def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
     predictor = Surrogate.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
                                                n_past=N_P, n_future=N_F)
     start = time.perf_counter()
-    report = speedup_breakdown(problem, part, predictor, mode=cfg["mode"], repeats=repeats,
-                               stage_repeats=stage_repeats, devices=cfg["devices"],
+    report = speedup_breakdown(problem, part, predictor, mode=cfg["mode"], repeats=repeats, stage_repeats=stage_repeats,
+                               syncs=(jaxsync.Psum(cfg["devices"]), jaxsync.Ppermute(cfg["devices"])),
                                halo_depths=HALO_DEPTHS)
     top = report.synchronized.max_average
     costs = roofline.step_costs_for(problem, part, mode=cfg["mode"])[top.part]

@@ -1,6 +1,6 @@
 """Cheaper surrogates measured against the LSTM (issue 14): online accuracy against t_d.
 
-For the default and the skewed cantilever case of ``benchmarks/paper_experiments.py``
+For the default and the skewed cantilever case of the experiment matrix (``experiments.py``)
 (coarse beam, 2 parts, 1e5 steps, n_s 150, n_p = n_f = 20, trained on the first half):
 the synchronized reference, then the synchronization-avoiding run from n_cri = n_s n_p
 with each surrogate:
@@ -17,7 +17,7 @@ with each surrogate:
 ``linear``     the linear autoregressive baseline, fitted here on the same windows (seconds)
 =============  ================================================================================
 
-Accuracy (``paper_experiments.run_metrics``, the experiments' definitions): the free end's
+Accuracy (``experiments.run_metrics``, the experiment matrix's definitions): the free end's
 z error, largest over the saved steps in % of its largest |z| and final in % of its final
 value, and e_l2 (the norm of the error field per saved step, cm; largest and final) and
 its relative l2 over the run; the skewed case also reports y.
@@ -65,7 +65,7 @@ import numpy as np  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-import paper_experiments as experiments  # noqa: E402
+import experiments  # noqa: E402  (the settings, cases, metrics and training of the experiment matrix)
 
 import jaxsync  # noqa: E402
 from jaxsync.fem.stepper import SolverState, build_system, initial_state  # noqa: E402
@@ -76,13 +76,12 @@ from jaxsync.perf.costmodel import INTERCONNECTS, communication_pattern, sync_ti
 from jaxsync.perf.measure import best_times, per_step_times  # noqa: E402
 from jaxsync.solve.distributed import DistributedRunner  # noqa: E402
 from jaxsync.solve.predicted import PredictedPhase  # noqa: E402
-from jaxsync.surrogate import Surrogate, TrainConfig, train_surrogates  # noqa: E402
-from jaxsync.surrogate.evaluate import RolloutWarning  # noqa: E402
+from jaxsync.surrogate import Surrogate, TrainingChecks  # noqa: E402
 from jaxsync.surrogate.inference import DEFAULT_BOUND, check_inference_precision, surrogate_windows  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "bench_surrogates.json")
-CASES = {"default": (0.0, 0.0, -0.5), "skewed": (0.0, -0.5, -0.5)}
+CASES = experiments.BODY_FORCES
 VARIANTS = ("lstm", "lstm_bf16", "linear")
 
 
@@ -101,10 +100,7 @@ class Settings:
     check_windows: int
 
     def to_dict(self) -> dict:
-        out = dataclasses.asdict(self)
-        out["train_overrides"] = {k: (v.to_dict() if hasattr(v, "to_dict") else v)
-                                  for k, v in self.train_overrides.items()}
-        return out
+        return experiments.settings_record(self)
 
 
 def full_settings() -> Settings:
@@ -115,10 +111,11 @@ def full_settings() -> Settings:
 
 
 def quick_settings() -> Settings:
-    return Settings(quick=True, n_steps=3000, n_s=10, n_past=5, n_future=5, save_every=10, train_fraction=0.5,
-                    train_overrides={"config": TrainConfig(n_epochs=2), "n_hidden": 8, "n_layers": 1,
-                                     "emse_applications": 0},
-                    timing_repeats=3, timing_cycles=2, check_windows=50)
+    """The experiment matrix's reduced settings (its smoke training), few timing repeats."""
+    reduced = experiments.reduced_settings(2)
+    return Settings(quick=True, n_steps=reduced.n_steps, n_s=reduced.n_s, n_past=reduced.n_past,
+                    n_future=reduced.n_future, save_every=reduced.save_every, train_fraction=reduced.train_fraction,
+                    train_overrides=reduced.train_overrides, timing_repeats=3, timing_cycles=2, check_windows=50)
 
 
 def log(text: str, quiet: bool) -> None:
@@ -127,22 +124,20 @@ def log(text: str, quiet: bool) -> None:
 
 
 def fit(reference, settings: Settings, seed: int, model: str, quiet: bool):
-    """train_surrogates with the case's parameters (the library's defaults for the rest);
-    the offline check's RolloutWarning is recorded, not raised."""
-    kwargs = dict(n_s=settings.n_s, n_past=settings.n_past, n_future=settings.n_future,
-                  train_fraction=settings.train_fraction, seed=seed, model=model, progress=not quiet)
+    """``experiments.train`` with the case's parameters (the library's defaults for the
+    rest; the LSTM with the settings' overrides, the linear surrogate with their E_mse
+    measure only); the offline check's RolloutWarning is recorded, not raised."""
+    parameters = dict(n_s=settings.n_s, n_past=settings.n_past, n_future=settings.n_future,
+                      train_fraction=settings.train_fraction, seed=seed, model=model)
     if model == "lstm":
-        kwargs.update(settings.train_overrides)
+        overrides = settings.train_overrides
     else:
-        kwargs["emse_applications"] = settings.train_overrides.get("emse_applications", 60)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        start = time.perf_counter()
-        trained = train_surrogates(reference, **kwargs)
-        seconds = time.perf_counter() - start
-    flagged = [str(w.message) for w in caught if issubclass(w.category, RolloutWarning)]
-    return trained.checkpoint, {"source": "trained here", "model": model, "train_seconds": seconds,
-                                "rollout_warning": flagged[0] if flagged else None}
+        overrides = {"emse_applications": settings.train_overrides.get("emse_applications",
+                                                                       TrainingChecks.emse_applications)}
+    (trained, record), seconds = experiments.timed(experiments.train, reference, parameters, overrides=overrides,
+                                                   progress=not quiet)
+    return trained.saved, {"source": "trained here", "model": model, "train_seconds": seconds,
+                                "rollout_warning": record["rollout_warning"]}
 
 
 def lstm_checkpoint(case: str, reference, settings: Settings, seed: int, path: str | None, quiet: bool):
@@ -229,16 +224,17 @@ def run_case(case: str, settings: Settings, seed: int, checkpoint: str | None, q
     excluded = experiments.excluded_nodes(problem, parts)
     log(f"[{case}] synchronized reference: {settings.n_steps} steps", quiet)
     reference, seconds = experiments.timed(jaxsync.simulate, problem, settings.n_steps, partitions=parts,
-                                           save_every=settings.save_every, shared_every=1, progress=not quiet)
+                                           save=jaxsync.SaveAt(settings.save_every, 1),
+                                           executor=jaxsync.HostExecutor(progress=not quiet))
     record = {"case": case, "body_force": list(CASES[case]), "n_steps": settings.n_steps, "n_parts": parts.n_parts,
               "tip_node": tip, "reference": experiments.run_stats(reference, seconds), "variants": {}}
 
     lstm_source, lstm_record = lstm_checkpoint(case, reference, settings, seed, checkpoint, quiet)
-    lstm = Surrogate.from_checkpoint(lstm_source)
+    lstm = Surrogate.from_saved(lstm_source)
     log(f"[{case}] fitting the linear surrogate", quiet)
     linear_ckpt, linear_record = fit(reference, dataclasses.replace(settings, n_s=lstm.n_s, n_past=lstm.n_past,
                                                                     n_future=lstm.n_future), seed, "linear", quiet)
-    linear = Surrogate.from_checkpoint(linear_ckpt)
+    linear = Surrogate.from_saved(linear_ckpt)
 
     # the check of reduced-precision inference on the reference's own windows
     histories = [p.shared_displacement for p in reference.parts]
@@ -260,7 +256,7 @@ def run_case(case: str, settings: Settings, seed: int, checkpoint: str | None, q
         log(f"[{case}/{name}] online run from n_cri {n_cri}", quiet)
         online, seconds = experiments.timed(jaxsync.simulate_sync_avoiding, problem, settings.n_steps,
                                             partitions=parts, surrogates=surrogate, n_cri=n_cri,
-                                            save_every=settings.save_every, progress=not quiet)
+                                            save=settings.save_every, executor=jaxsync.HostExecutor(progress=not quiet))
         metrics = {"xyz"[c]: experiments.run_metrics(reference.displacement, online.displacement, tip, excluded,
                                                      component=c) for c in components}
         record["variants"][name] = {"surrogate": sources[name], "architecture": surrogate.arch.to_dict(),

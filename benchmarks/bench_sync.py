@@ -59,6 +59,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+import jaxsync
 from jaxsync.parallel import multiprocess  # noqa: E402  (imports no JAX state)
 
 
@@ -147,7 +148,6 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     import numpy as np
     from mpi4py import MPI
 
-    import jaxsync
     from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.solve.distributed import DistributedRunner
 
@@ -161,8 +161,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     configs.append(("mpi", "callback", "mpi-callback"))
     rows, finals = [], {}
     for sync, backend, name in configs:
-        runner = DistributedRunner(problem, system, n_parts, save_every=steps, sync=sync,
-                                   allreduce=backend)
+        runner = DistributedRunner(problem, system, n_parts, save_every=steps, sync=jaxsync.Mpi(allreduce=backend))
         start_state = runner.from_global(state)
         compiled = runner.program(1)
 
@@ -193,7 +192,6 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     import numpy as np
     from mpi4py import MPI
 
-    import jaxsync
     from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.predicted import PredictedPhase
@@ -214,11 +212,11 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
                 1e6 * comm.allreduce(statistics.median(times), op=MPI.MAX) / n_steps)
 
     rows, finals = [], {}
-    local = DistributedRunner(problem, system, n_parts, save_every=steps, sync="mpi", allreduce=backend)
+    local = DistributedRunner(problem, system, n_parts, save_every=steps, sync=jaxsync.Mpi(allreduce=backend))
     start = local.from_global(state)
     programs = {"nosync": (local, local.program(1, synchronize=False), start)}
     for k in halo_depths:
-        halo = DistributedRunner(problem, system, local.partition, save_every=steps, sync="halo", halo_depth=k)
+        halo = DistributedRunner(problem, system, local.partition, save_every=steps, sync=jaxsync.Halo(k))
         programs[f"halo-{k}"] = (halo, halo.program(1), halo.from_global(state))
     for name, (runner, program, begin) in programs.items():
         best, median = time_per_step(lambda p=program, b=begin, r=runner: jax.block_until_ready(p(r.parts, b)),

@@ -31,9 +31,10 @@ every online run: what the errors are computed from) and, except in reduced mode
 asserted.
 
 ``--model linear`` (issue 14): every case with the linear autoregressive surrogate
-(``train_surrogates(model="linear")``, least squares on the same windows; the full-system
-case fits it over every dof with ``fit_linear``) instead of the LSTM; it is unconditional,
-so the ensemble cases train one unconditional variant (``linear``). Write those elsewhere
+(``train_surrogates(architecture=ArchitectureChoice(model="linear"))``, least squares on
+the same windows; the full-system case fits it over every dof with ``fit_linear``) instead
+of the LSTM; it is unconditional, so the ensemble cases train one unconditional variant
+(``linear``). Write those elsewhere
 (``--out benchmarks/results/experiments_linear``).
 
 ``--reduced`` (the tests): 3 000 steps (4 000 refined on a (12, 2, 2) beam), n_s 10 (20
@@ -45,6 +46,10 @@ whose errors mean nothing.
 Within one process, ``default``, ``sequence_length`` and ``training_size`` share one
 synchronized reference, and their variants with the default settings ((20, 20), n_ts 0.5)
 one training and online run: the JSON says which case computed them (``reused_from``).
+
+The settings, the metrics and the training wrapper, which other benchmark scripts use
+too, are in ``experiments.py``; this script runs the cases, draws their figures and
+writes the table.
 
 Usage:
     python benchmarks/paper_experiments.py --case NAME [NAME ...] [--reduced] [--mesh FILE]
@@ -58,18 +63,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import glob
-import inspect
 import json
 import math
 import os
-import platform
-import subprocess
 import sys
 import time
 import traceback
-import warnings
 
-N_DEVICES = 6  # the refined case's parts, one emulated device each
+N_DEVICES = 6  # the refined case's parts (experiments.PAPER_REFINED_PARTS), one emulated device each
 
 if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
     # before jax is imported; in-process callers (the tests) have set their own count
@@ -82,21 +83,39 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import experiments  # noqa: E402
+from experiments import (  # noqa: E402
+    BODY_FORCES,
+    Settings,
+    check_tip,
+    excluded_nodes,
+    high_frequency_error,
+    paper_settings,
+    reduced_settings,
+    run_metrics,
+    run_stats,
+    targets,
+    timed,
+)
+
 import jaxsync  # noqa: E402
 from jaxsync.app.plots import tip_node  # noqa: E402
 from jaxsync.io import atomic_json, atomic_path  # noqa: E402
+from jaxsync.metrics import l2_error, node_error  # noqa: E402
 from jaxsync.options import SurrogateModel, choices  # noqa: E402
 from jaxsync.surrogate import (  # noqa: E402
     LSTMArchitecture,
     Surrogate,
     TrainConfig,
+    TrainingChecks,
     build_dataset,
     fit_linear,
     stack_replicas,
     train_replicas,
-    train_surrogates,
 )
-from jaxsync.surrogate.evaluate import RolloutWarning, rollout_errors  # noqa: E402
+from jaxsync.surrogate.evaluate import rollout_errors  # noqa: E402
 
 CASES = ("default", "sequence_length", "training_size", "refined_6_parts", "skewed", "step_off",
          "initial_conditions", "loads", "full_system")
@@ -105,78 +124,7 @@ PAPER_FIGURES = {"default": "7-8", "sequence_length": "9", "training_size": "10"
                  "skewed": "13", "step_off": "14", "initial_conditions": "15", "loads": "16-17",
                  "full_system": "18-20"}
 # the offline check's tolerance of train_surrogates (the full-system case applies the same)
-ROLLOUT_TOLERANCE = inspect.signature(train_surrogates).parameters["rollout_tolerance"].default
-LIBRARY_N_S = inspect.signature(train_surrogates).parameters["n_s"].default
-# targets (paper section 5.1), as fractions of the free end's largest |z|
-TARGETS = {"fixed": {"tip_max": 0.02, "tip_final": 0.01}, "unseen": {"tip_max": 0.05},
-           "full_system": {"tip_max": 0.02}}
-
-
-# ----------------------------------------------------------------------------- settings
-
-
-@dataclasses.dataclass(frozen=True)
-class Settings:
-    """The matrix's parameters, paper or reduced (``--reduced``). Training hyperparameters
-    are the library's defaults (:class:`jaxsync.surrogate.TrainConfig`,
-    :class:`jaxsync.surrogate.LSTMArchitecture`) except in reduced mode, where
-    ``train_overrides`` makes the training a smoke test."""
-
-    reduced: bool
-    n_steps: int
-    n_s: int
-    save_every: int
-    n_past: int
-    n_future: int
-    train_fraction: float
-    n_parts: int
-    sequence_variants: tuple
-    training_fractions: tuple
-    refined_divisions: tuple
-    refined_parts: int
-    refined_n_s: int
-    refined_steps: int
-    refined_save_every: int
-    t_off: float
-    n_runs: int
-    n_cond_repeat: int
-    ic_range: float
-    load_range: tuple
-    train_overrides: dict
-
-    def to_dict(self) -> dict:
-        out = dataclasses.asdict(self)
-        out["train_overrides"] = {k: (v.to_dict() if hasattr(v, "to_dict") else v)
-                                  for k, v in self.train_overrides.items()}
-        return out
-
-
-def paper_settings() -> Settings:
-    # n_s: the library's default (train_surrogates); the full field every 50 steps, which
-    # divides n_s = 150, n_cri and the paper's 1e5 steps
-    return Settings(reduced=False, n_steps=100_000, n_s=LIBRARY_N_S, save_every=math.gcd(LIBRARY_N_S, 100_000),
-                    n_past=20, n_future=20, train_fraction=0.5, n_parts=2,
-                    sequence_variants=((5, 5), (20, 20), (50, 50), (20, 5)),
-                    training_fractions=(0.2, 0.35, 0.5, 0.75), refined_divisions=(48, 4, 4), refined_parts=6,
-                    refined_n_s=350, refined_steps=500_000, refined_save_every=1000, t_off=3.0, n_runs=10,
-                    n_cond_repeat=12, ic_range=0.25, load_range=(0.3, 0.7), train_overrides={})
-
-
-def reduced_settings(n_devices: int) -> Settings:
-    """Seconds instead of hours: the tests' settings. Two variants each of the sequence
-    length and training size cases (every distinct network shape costs a compilation);
-    the refined case gets as many parts as there are devices, up to 6 (the tests emulate 2)."""
-    return Settings(reduced=True, n_steps=3000, n_s=10, save_every=10, n_past=5, n_future=5, train_fraction=0.5,
-                    n_parts=2,
-                    sequence_variants=((5, 5), (5, 2)), training_fractions=(0.25, 0.5), refined_divisions=(12, 2, 2),
-                    refined_parts=max(1, min(N_DEVICES, n_devices)), refined_n_s=20, refined_steps=4000,
-                    refined_save_every=20, t_off=0.5, n_runs=3, n_cond_repeat=12, ic_range=0.25,
-                    load_range=(0.3, 0.7),
-                    # a smoke test: every distinct network shape costs a compilation, which
-                    # dominates these runs (one encoder layer compiles about 30 % faster; the
-                    # E_mse measure, about 1.4 s a training, is skipped)
-                    train_overrides={"config": TrainConfig(n_epochs=2), "n_hidden": 8, "n_layers": 1,
-                                     "emse_applications": 0})
+ROLLOUT_TOLERANCE = TrainingChecks.rollout_tolerance
 
 
 @dataclasses.dataclass
@@ -204,194 +152,58 @@ class Context:
     def mesh_name(self) -> str:
         return os.path.abspath(self.mesh_file) if self.mesh_file else "box_beam()"
 
+    def executor(self) -> jaxsync.HostExecutor:
+        return jaxsync.HostExecutor(progress=self.progress)
+
 
 def log(ctx: Context, text: str) -> None:
     if ctx.progress:
         print(text, file=sys.stderr, flush=True)
 
 
-def machine() -> dict:
-    try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=os.path.dirname(os.path.abspath(__file__)),
-                                capture_output=True, text=True, timeout=10).stdout.strip() or None
-    except (OSError, subprocess.SubprocessError):
-        commit = None
-    devices = jax.devices()
-    return {"platform": platform.platform(), "machine": platform.machine(), "cores": os.cpu_count(),
-            "python": sys.version.split()[0], "jax": jax.__version__, "numpy": np.__version__,
-            "jaxsync": jaxsync.__version__, "git_commit": commit, "load_average": os.getloadavg()[0],
-            "n_devices": len(devices), "device_kind": devices[0].device_kind,
-            "xla_flags": os.environ.get("XLA_FLAGS", "")}
-
-
-# ----------------------------------------------------------------------------- metrics
-
-
-def high_frequency_error(reference: np.ndarray, predicted: np.ndarray, excluded_nodes, window: int = 5) -> dict:
-    """The fast part of the error at nodes neither shared nor constrained: the error minus
-    its centred moving average over ``window`` saved snapshots, largest over nodes,
-    components and snapshots, in cm and relative to the model's largest displacement."""
-    diff = np.asarray(predicted, np.float64) - np.asarray(reference, np.float64)
-    keep = np.setdiff1d(np.arange(diff.shape[1]), np.asarray(excluded_nodes, np.int64))
-    diff = diff[:, keep]
-    kernel = np.ones(window) / window
-    smooth = np.apply_along_axis(lambda e: np.convolve(e, kernel, mode="same"), 0, diff)
-    fast = np.abs(diff - smooth)[window:-window]  # the ends see the zero padding
-    amplitude = float(np.linalg.norm(np.asarray(reference), axis=2).max())
-    worst = float(fast.max()) if fast.size else 0.0
-    return {"window_snapshots": window, "max_cm": worst, "relative": worst / amplitude if amplitude > 0 else None}
-
-
-def run_metrics(reference: np.ndarray, predicted: np.ndarray, tip: int, excluded_nodes, *,
-                final_relative_to: str = "final value", component: int = 2) -> dict:
-    """Errors of a predicted run against its reference, both (n_saved, n_nodes, 3) at the
-    same saved steps.
-
-    tip_*: the free-end node's ``component``: largest |error| over the saved steps
-    relative to the largest |reference| (the amplitude), and the final error relative to
-    the final reference value (``final_relative_to="final value"``) or to the amplitude.
-    l2_relative: sqrt(sum (u - u_ref)^2) / sqrt(sum u_ref^2) over all saved steps, nodes
-    and components; l2_relative_final: the same at the last saved step. e_l2: the norm of
-    the error field per saved step [cm]. interior_*: the largest error norm at any node
-    neither shared nor constrained, relative to the largest displacement norm anywhere in
-    the reference (the "noise" the predicted interface injects)."""
-    reference, predicted = np.asarray(reference, np.float64), np.asarray(predicted, np.float64)
-    if reference.shape != predicted.shape:
-        raise ValueError(f"reference {reference.shape} and predicted {predicted.shape} differ in shape")
-    diff = predicted - reference
-    z_ref, z = reference[:, tip, component], predicted[:, tip, component]
-    amplitude = float(np.abs(z_ref).max())
-    tip_error = np.abs(z - z_ref)
-    final_scale = amplitude if final_relative_to == "amplitude" else abs(float(z_ref[-1]))
-    e_l2 = np.linalg.norm(diff.reshape(len(diff), -1), axis=1)
-    norm_ref = float(np.sqrt(np.square(reference).sum()))
-    norm_ref_final = float(np.linalg.norm(reference[-1]))
-    keep = np.setdiff1d(np.arange(reference.shape[1]), np.asarray(excluded_nodes, np.int64))
-    node_error = np.linalg.norm(diff[:, keep], axis=2)
-    model_amplitude = float(np.linalg.norm(reference, axis=2).max())
-    worst = np.unravel_index(int(np.argmax(node_error)), node_error.shape) if node_error.size else (0, 0)
-    return {
-        "component": "xyz"[component], "n_saved": int(len(reference)),
-        "tip_amplitude_cm": amplitude, "tip_max_error_cm": float(tip_error.max()),
-        "tip_max_error_relative": float(tip_error.max() / amplitude) if amplitude > 0 else None,
-        "tip_final_reference_cm": float(z_ref[-1]), "tip_final_predicted_cm": float(z[-1]),
-        "tip_final_error_cm": float(tip_error[-1]), "tip_final_relative_to": final_relative_to,
-        "tip_final_error_relative": float(tip_error[-1] / final_scale) if final_scale > 0 else None,
-        "l2_relative": float(np.sqrt(np.square(diff).sum()) / norm_ref) if norm_ref > 0 else None,
-        "l2_relative_final": float(np.linalg.norm(diff[-1]) / norm_ref_final) if norm_ref_final > 0 else None,
-        "e_l2_max_cm": float(e_l2.max()), "e_l2_final_cm": float(e_l2[-1]),
-        "model_amplitude_cm": model_amplitude,
-        "interior_max_error_cm": float(node_error.max()) if node_error.size else 0.0,
-        "interior_max_error_relative": (float(node_error.max()) / model_amplitude
-                                        if node_error.size and model_amplitude > 0 else None),
-        "interior_worst_node": int(keep[worst[1]]) if node_error.size else None,
-        "interior_worst_time_index": int(worst[0]) if node_error.size else None,
-    }
-
-
-def targets(metrics: dict, kind: str) -> dict:
-    """Which of the paper's targets of ``kind`` ("fixed", "unseen", "full_system") are met."""
-    out = {"kind": kind}
-    goal = TARGETS[kind]
-    out["tip_max_within_percent"] = 100 * goal["tip_max"]
-    out["tip_max_met"] = metrics["tip_max_error_relative"] is not None and \
-        metrics["tip_max_error_relative"] <= goal["tip_max"]
-    if "tip_final" in goal:
-        out["tip_final_within_percent"] = 100 * goal["tip_final"]
-        out["tip_final_met"] = metrics["tip_final_error_relative"] is not None and \
-            metrics["tip_final_error_relative"] <= goal["tip_final"]
-    out["met"] = bool(out["tip_max_met"] and out.get("tip_final_met", True))
-    return out
-
-
 # ----------------------------------------------------------------------------- runs
-
-
-def timed(fn, *args, **kwargs):
-    start = time.perf_counter()
-    out = fn(*args, **kwargs)
-    return out, time.perf_counter() - start
-
-
-def run_stats(traj, seconds: float) -> dict:
-    st = traj.stats
-    keys = ("us_per_step", "us_per_step_synchronized", "us_per_step_predicted", "compile_seconds",
-            "n_synchronized_steps", "n_predicted_steps", "n_cri", "load_jumps", "n_devices", "emulated",
-            "dirichlet_max_abs_predicted")
-    out = {"wall_seconds": seconds}
-    out.update({k: getattr(st, k) for k in keys if getattr(st, k, None) is not None})
-    if "load_jumps" in out:
-        out["load_jumps"] = list(out["load_jumps"])
-    return out
 
 
 def train(ctx: Context, trajectories, folder: str, *, n_s: int, n_past: int, n_future: int,
           train_fraction: float, n_cond_repeat: int = 0):
-    """train_surrogates with the case's parameters only (the library's defaults for the
-    rest, or the reduced overrides); the offline check's RolloutWarning is recorded."""
-    kwargs = dict(n_s=n_s, n_past=n_past, n_future=n_future, train_fraction=train_fraction, seed=ctx.seed)
+    """:func:`experiments.train` with the case's parameters only (the library's defaults
+    for the rest, or the reduced overrides); reduced mode writes no training files
+    (checkpoint, loss curves: about 1.3 s a training)."""
+    parameters = dict(n_s=n_s, n_past=n_past, n_future=n_future, train_fraction=train_fraction, seed=ctx.seed)
     if ctx.model != "lstm":
-        kwargs["model"] = ctx.model
+        parameters["model"] = ctx.model
     if n_cond_repeat:
-        kwargs["n_cond_repeat"] = n_cond_repeat
+        parameters["n_cond_repeat"] = n_cond_repeat
     n_runs = len(trajectories) if isinstance(trajectories, (list, tuple)) else 1
     if n_runs > 1 and not ctx.settings.reduced and ctx.model == "lstm":
         # n_runs times the windows of one run: the library's schedule counted in gradient
         # steps (epochs / n_runs, the per-epoch decay gamma ** n_runs), not in epochs, which
         # would make it n_runs times longer (about 25 minutes for 10 runs on 2 cores)
         default = TrainConfig()
-        kwargs["config"] = TrainConfig(n_epochs=math.ceil(default.n_epochs / n_runs),
-                                       gamma=default.gamma ** n_runs,
-                                       patience=math.ceil(default.patience / n_runs))
-    passed = {k: (v.to_dict() if hasattr(v, "to_dict") else v) for k, v in kwargs.items()}
-    kwargs.update(ctx.settings.train_overrides if ctx.model == "lstm" else {})
-    # reduced mode writes no training files (checkpoint, loss curves: about 1.3 s a training)
-    folder = None if ctx.settings.reduced else folder
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        trained = train_surrogates(trajectories, progress=ctx.progress, out=folder, **kwargs)
-    rollout_warnings = [str(w.message) for w in caught if issubclass(w.category, RolloutWarning)]
-    for w in caught:  # anything else goes on as usual
-        if not issubclass(w.category, RolloutWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    summary = trained.summary()
-    summary.pop("loss_history", None)  # in train_summary.json
-    record = {
-        "case_parameters_passed": passed,
-        "overrides_passed": sorted(ctx.settings.train_overrides) if ctx.model == "lstm" else [],
-        "n_training_runs": n_runs,
-        "train_seconds": trained.train_seconds, "n_epochs_run": trained.result.n_epochs_run,
-        "rollout_relative": None if trained.rollout is None else trained.rollout.relative.tolist(),
-        "rollout_passed": trained.rollout_passed,
-        "rollout_warning": rollout_warnings[0] if rollout_warnings else None,
-        "folder": None if folder is None else os.path.abspath(folder), "summary": summary,
-    }
-    return trained, record
+        parameters["config"] = TrainConfig(n_epochs=math.ceil(default.n_epochs / n_runs),
+                                           gamma=default.gamma ** n_runs,
+                                           patience=math.ceil(default.patience / n_runs))
+    return experiments.train(trajectories, parameters,
+                             overrides=ctx.settings.train_overrides if ctx.model == "lstm" else {},
+                             folder=None if ctx.settings.reduced else folder, progress=ctx.progress)
 
 
-def online_run(ctx: Context, problem, parts, trained, n_steps: int, n_cri: int, save_every: int,
-               load_parameter=None, load_jumps: str = "synchronize"):
-    """The synchronization-avoiding run (the checkpoint carries the partition's shared
-    nodes, checked against ``parts``; a conditional network gets the test run's label)."""
+def online_run(ctx: Context, problem, parts, surrogates, n_steps: int, n_cri: int, save_every: int,
+               load_jumps: str = "synchronize"):
+    """The synchronization-avoiding run and its record."""
     online, seconds = timed(jaxsync.simulate_sync_avoiding, problem, n_steps, partitions=parts,
-                            surrogates=trained.checkpoint, n_cri=n_cri, save_every=save_every,
-                            load_parameter=load_parameter, progress=ctx.progress, load_jumps=load_jumps)
+                            surrogates=surrogates, n_cri=n_cri, save=save_every, load_jumps=load_jumps,
+                            executor=ctx.executor())
     return online, run_stats(online, seconds)
 
 
-def excluded_nodes(problem, parts) -> np.ndarray:
-    """Shared nodes and constrained nodes: what the interior ("noise") metric leaves out."""
-    fixed = np.unique(np.asarray(problem.dirichlet_dofs()[0]) // 3)
-    shared = np.asarray(parts.shared_nodes) if parts is not None else np.zeros(0, np.int64)
-    return np.union1d(fixed, shared).astype(np.int64)
-
-
-def check_tip(mesh, parts) -> int:
-    tip = tip_node(mesh)
-    if parts is not None and tip in set(np.asarray(parts.shared_nodes).tolist()):
-        raise RuntimeError(f"the free-end node {tip} is shared by the partition: the metric needs a node the "
-                           "solver computes; try another --seed")
-    return tip
+def surrogates_of(trained, load_parameter=None):
+    """What the online run predicts with: the surrogate file's record (its shared nodes are
+    checked against the partition), or for a conditional network its surrogate with the
+    test run's label."""
+    if load_parameter is None:
+        return trained.saved
+    return Surrogate.from_saved(trained.saved, load_parameter)
 
 
 def variant_entry(name: str, parameters: dict, training: dict | None, online: dict, metrics: dict, kind: str,
@@ -416,36 +228,78 @@ def add_series(series: dict, variant: str, times, reference, predicted, tip: int
 # ----------------------------------------------------------------------------- cases
 
 
-def fixed_load_case(ctx: Context, name: str, problem, parts, variants, *, n_steps: int, n_s: int, save_every: int,
-                    shared_every: int, final_relative_to: str = "final value", components=(2,), notes=(),
-                    reference_key=None, compare_raw_refill: bool = False, compare_load_jumps: bool = False):
-    """One synchronized reference, then per variant (name, n_p, n_f, n_ts) a training and
-    an online run compared with it. Cases with the same ``reference_key`` (the default
-    cantilever) share the reference computed first in this process. ``compare_raw_refill``:
-    the same networks also run with the paper's raw refill (``Surrogate.smooth=False``),
-    reported as ``raw_refill`` (the noise measurement of issue 13's item 4).
-    ``compare_load_jumps``: the same networks also predict through the load jumps (the
-    paper's way, ``load_jumps="predict"``), reported as ``predicted_through_load_jumps``."""
-    key = (reference_key, n_steps, save_every, shared_every, ctx.seed, parts.n_parts)
-    if reference_key is not None and key in ctx.references:
+@dataclasses.dataclass(frozen=True)
+class FixedLoad:
+    """A case of one synchronized reference and, per variant (name, n_p, n_f, n_ts), a
+    training and an online run compared with it (:func:`fixed_load_case`).
+
+    Attributes:
+        name: the case.
+        problem, parts: the problem and its partition.
+        variants: (name, n_p, n_f, n_ts) of every variant.
+        n_steps, n_s: total steps; the sampling stride.
+        save: the reference's snapshots (the full field every ``save.every`` steps, the
+            shared nodes every ``save.shared_every``); the online runs save every
+            ``save.every`` steps.
+        final_relative_to: the final free-end error relative to the "final value" or to
+            the "amplitude" (:func:`experiments.run_metrics`).
+        components: the free-end components reported (2 = z, the targets' one).
+        notes: the case's notes.
+        reference_key: cases with the same key (the default cantilever) share the
+            reference computed first in this process, and the training and online run of
+            variants of the same settings.
+        compare_raw_refill: the same networks also run with the paper's raw refill
+            (``Surrogate.smooth=False``), reported as ``raw_refill`` (the noise measurement
+            of issue 13's item 4).
+        compare_load_jumps: the same networks also predict through the load jumps (the
+            paper's way, ``load_jumps="predict"``), reported as
+            ``predicted_through_load_jumps``.
+    """
+
+    name: str
+    problem: object
+    parts: object
+    variants: tuple
+    n_steps: int
+    n_s: int
+    save: jaxsync.SaveAt
+    final_relative_to: str = "final value"
+    components: tuple = (2,)
+    notes: tuple = ()
+    reference_key: str | None = None
+    compare_raw_refill: bool = False
+    compare_load_jumps: bool = False
+
+
+def fixed_load_case(ctx: Context, case: FixedLoad):
+    """The reference and every variant of ``case``: (the record's entries, the series)."""
+    name, problem, parts, n_steps, n_s = case.name, case.problem, case.parts, case.n_steps, case.n_s
+    save_every = case.save.every
+    key = (case.reference_key, n_steps, save_every, case.save.shared_every, ctx.seed, parts.n_parts)
+    if case.reference_key is not None and key in ctx.references:
         reference, stats, parts = ctx.references[key]  # and its partition, whatever METIS gives now
         stats = {**stats, "reused_from_case": stats.get("reused_from_case", stats["case"])}
         log(ctx, f"[{name}] synchronized reference: the one of case {stats['reused_from_case']}")
     else:
         log(ctx, f"[{name}] synchronized reference: {n_steps} steps, dt {problem.dt:.4e} s, {parts.n_parts} parts")
-        reference, seconds = timed(jaxsync.simulate, problem, n_steps, partitions=parts, save_every=save_every,
-                                   shared_every=shared_every, progress=ctx.progress)
+        reference, seconds = timed(jaxsync.simulate, problem, n_steps, partitions=parts, save=case.save,
+                                   executor=ctx.executor())
         stats = {**run_stats(reference, seconds), "case": name}
-        if reference_key is not None:
+        if case.reference_key is not None:
             ctx.references[key] = (reference, stats, parts)
     tip = check_tip(problem.mesh, parts)
     out = {"reference": stats, "variants": [], "tip_node": tip}
     series = {}
     excluded = excluded_nodes(problem, parts)
-    for variant, n_p, n_f, fraction in variants:
+
+    def metrics_of(predicted, component=2):
+        return run_metrics(reference.displacement, predicted.displacement, tip, excluded,
+                           final_relative_to=case.final_relative_to, component=component)
+
+    for variant, n_p, n_f, fraction in case.variants:
         n_cri = n_s * n_p
         run_key = (key, n_s, n_p, n_f, fraction)
-        if reference_key is not None and run_key in ctx.online_runs:
+        if case.reference_key is not None and run_key in ctx.online_runs:
             # the same training (same data, settings and seed: bit-identical) and online run
             online, training, stats, origin, trained = ctx.online_runs[run_key]
             training, stats = {**training, "reused_from": origin}, {**stats, "reused_from": origin}
@@ -455,45 +309,39 @@ def fixed_load_case(ctx: Context, name: str, problem, parts, variants, *, n_step
             trained, training = train(ctx, reference, os.path.join(ctx.out, name, "training", variant), n_s=n_s,
                                       n_past=n_p, n_future=n_f, train_fraction=fraction)
             log(ctx, f"[{name}/{variant}] online run from n_cri {n_cri}")
-            online, stats = online_run(ctx, problem, parts, trained, n_steps, n_cri, save_every)
-            if reference_key is not None:
+            online, stats = online_run(ctx, problem, parts, surrogates_of(trained), n_steps, n_cri, save_every)
+            if case.reference_key is not None:
                 ctx.online_runs[run_key] = (online, training, stats, f"{name}/{variant}", trained)
-        metrics = run_metrics(reference.displacement, online.displacement, tip, excluded,
-                              final_relative_to=final_relative_to)
+        metrics = metrics_of(online)
         extra = {}
-        if compare_raw_refill:
-            raw_surrogate = dataclasses.replace(Surrogate.from_checkpoint(trained.checkpoint), smooth=False)
+        if case.compare_raw_refill:
+            raw_surrogate = dataclasses.replace(Surrogate.from_saved(trained.saved), smooth=False)
             log(ctx, f"[{name}/{variant}] online run with the raw refill")
-            raw, raw_seconds = timed(jaxsync.simulate_sync_avoiding, problem, n_steps, partitions=parts,
-                                     surrogates=raw_surrogate, n_cri=n_cri, save_every=save_every,
-                                     progress=ctx.progress)
+            raw, raw_stats = online_run(ctx, problem, parts, raw_surrogate, n_steps, n_cri, save_every)
             extra["raw_refill"] = {
-                "metrics": run_metrics(reference.displacement, raw.displacement, tip, excluded,
-                                       final_relative_to=final_relative_to),
-                "online": run_stats(raw, raw_seconds),
+                "metrics": metrics_of(raw), "online": raw_stats,
                 "high_frequency": {"raw": high_frequency_error(reference.displacement, raw.displacement, excluded),
                                    "smooth": high_frequency_error(reference.displacement, online.displacement,
                                                                   excluded)}}
             series[f"{variant}__field_predicted_raw_refill"] = np.asarray(raw.displacement, np.float64)
-        if compare_load_jumps:
+        if case.compare_load_jumps:
             log(ctx, f"[{name}/{variant}] online run predicting through the load jumps")
-            through, through_stats = online_run(ctx, problem, parts, trained, n_steps, n_cri, save_every,
-                                                load_jumps="predict")
-            through_metrics = run_metrics(reference.displacement, through.displacement, tip, excluded,
-                                          final_relative_to=final_relative_to)
+            through, through_stats = online_run(ctx, problem, parts, surrogates_of(trained), n_steps, n_cri,
+                                                save_every, load_jumps="predict")
+            through_metrics = metrics_of(through)
             extra["predicted_through_load_jumps"] = {"metrics": through_metrics, "online": through_stats,
                                                      "targets": targets(through_metrics, "fixed")}
             series[f"{variant}__z_predicted_through_load_jumps"] = np.asarray(through.displacement[:, tip, 2],
                                                                               np.float64)
-        for c in components:
+        for c in case.components:
             if c != 2:
-                extra[f"tip_{'xyz'[c]}"] = run_metrics(reference.displacement, online.displacement, tip, excluded,
-                                                       final_relative_to=final_relative_to, component=c)
+                extra[f"tip_{'xyz'[c]}"] = metrics_of(online, component=c)
         out["variants"].append(variant_entry(
             variant, {"n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": fraction, "n_cri": n_cri},
             training, stats, metrics, "fixed", extra))
-        add_series(series, variant, reference.times, reference.displacement, online.displacement, tip, components)
-    out["notes"] = list(notes)
+        add_series(series, variant, reference.times, reference.displacement, online.displacement, tip,
+                   case.components)
+    out["notes"] = list(case.notes)
     return out, series
 
 
@@ -508,34 +356,33 @@ def case_default(ctx: Context):
     s, problem, parts, n_steps = coarse_cantilever(ctx)
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
-              "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5], "t_off": None}
-    out, series = fixed_load_case(ctx, "default", problem, parts,
-                                  [("default", s.n_past, s.n_future, s.train_fraction)],
-                                  n_steps=n_steps, n_s=s.n_s, save_every=s.save_every, shared_every=1,
-                                  reference_key="default cantilever", compare_raw_refill=True)
+              "n_cri": s.n_s * s.n_past, "body_force": list(BODY_FORCES["default"]), "t_off": None}
+    out, series = fixed_load_case(ctx, FixedLoad(
+        "default", problem, parts, (("default", s.n_past, s.n_future, s.train_fraction),), n_steps, s.n_s,
+        jaxsync.SaveAt(s.save_every, 1), reference_key="default cantilever", compare_raw_refill=True))
     return params, problem, parts, out, series
 
 
 def case_sequence_length(ctx: Context):
     s, problem, parts, n_steps = coarse_cantilever(ctx)
-    variants = [(f"np{p}_nf{f}", p, f, s.train_fraction) for p, f in s.sequence_variants]
+    variants = tuple((f"np{p}_nf{f}", p, f, s.train_fraction) for p, f in s.sequence_variants)
     params = {"n_steps": n_steps, "n_s": s.n_s, "variants": [[p, f] for p, f in s.sequence_variants],
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
-              "body_force": [0.0, 0.0, -0.5]}
-    out, series = fixed_load_case(ctx, "sequence_length", problem, parts, variants, n_steps=n_steps, n_s=s.n_s,
-                                  save_every=s.save_every, shared_every=1, reference_key="default cantilever",
-                                  notes=["n_cri = n_s n_p differs between the variants"])
+              "body_force": list(BODY_FORCES["default"])}
+    out, series = fixed_load_case(ctx, FixedLoad(
+        "sequence_length", problem, parts, variants, n_steps, s.n_s, jaxsync.SaveAt(s.save_every, 1),
+        reference_key="default cantilever", notes=("n_cri = n_s n_p differs between the variants",)))
     return params, problem, parts, out, series
 
 
 def case_training_size(ctx: Context):
     s, problem, parts, n_steps = coarse_cantilever(ctx)
-    variants = [(f"nts{f:.2f}", s.n_past, s.n_future, f) for f in s.training_fractions]
+    variants = tuple((f"nts{f:.2f}", s.n_past, s.n_future, f) for f in s.training_fractions)
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fractions": list(s.training_fractions), "n_parts": s.n_parts, "save_every": s.save_every,
-              "shared_every": 1, "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5]}
-    out, series = fixed_load_case(ctx, "training_size", problem, parts, variants, n_steps=n_steps, n_s=s.n_s,
-                                  save_every=s.save_every, shared_every=1, reference_key="default cantilever")
+              "shared_every": 1, "n_cri": s.n_s * s.n_past, "body_force": list(BODY_FORCES["default"])}
+    out, series = fixed_load_case(ctx, FixedLoad("training_size", problem, parts, variants, n_steps, s.n_s,
+                                                 jaxsync.SaveAt(s.save_every, 1), reference_key="default cantilever"))
     return params, problem, parts, out, series
 
 
@@ -565,27 +412,27 @@ def case_refined(ctx: Context):
               "train_fraction": s.train_fraction, "n_parts": n_parts, "n_parts_paper": 6,
               "divisions": list(s.refined_divisions), "save_every": save_every, "shared_every": shared_every,
               "n_cri": n_s * s.n_past, "n_predicted_steps": n_steps - n_s * s.n_past, "dt": problem.dt,
-              "dt_paper": 6.2e-5, "body_force": [0.0, 0.0, -0.5]}
-    out, series = fixed_load_case(ctx, "refined_6_parts", problem, parts,
-                                  [("refined", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps, n_s=n_s,
-                                  save_every=save_every, shared_every=shared_every, notes=notes)
+              "dt_paper": 6.2e-5, "body_force": list(BODY_FORCES["default"])}
+    out, series = fixed_load_case(ctx, FixedLoad(
+        "refined_6_parts", problem, parts, (("refined", s.n_past, s.n_future, s.train_fraction),), n_steps, n_s,
+        jaxsync.SaveAt(save_every, shared_every), notes=tuple(notes)))
     return params, problem, parts, out, series
 
 
 def case_skewed(ctx: Context):
     s = ctx.settings
     mesh = ctx.coarse_mesh()
-    force = (0.0, -0.5, -0.5)
+    force = BODY_FORCES["skewed"]
     problem = jaxsync.cantilever(mesh, body_force=force)
     parts = jaxsync.partition(mesh, s.n_parts, seed=ctx.seed)
     n_steps = ctx.n_steps(s.n_steps)
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
               "n_cri": s.n_s * s.n_past, "body_force": list(force)}
-    out, series = fixed_load_case(ctx, "skewed", problem, parts,
-                                  [("skewed", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps, n_s=s.n_s,
-                                  save_every=s.save_every, shared_every=1, components=(1, 2),
-                                  notes=["z is the target component; y is reported under tip_y"])
+    out, series = fixed_load_case(ctx, FixedLoad(
+        "skewed", problem, parts, (("skewed", s.n_past, s.n_future, s.train_fraction),), n_steps, s.n_s,
+        jaxsync.SaveAt(s.save_every, 1), components=(1, 2),
+        notes=("z is the target component; y is reported under tip_y",)))
     return params, problem, parts, out, series
 
 
@@ -597,7 +444,7 @@ def case_step_off(ctx: Context):
     n_steps = ctx.n_steps(s.n_steps)
     params = {"n_steps": n_steps, "n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future,
               "train_fraction": s.train_fraction, "n_parts": s.n_parts, "save_every": s.save_every, "shared_every": 1,
-              "n_cri": s.n_s * s.n_past, "body_force": [0.0, 0.0, -0.5], "t_off": s.t_off}
+              "n_cri": s.n_s * s.n_past, "body_force": list(BODY_FORCES["default"]), "t_off": s.t_off}
     notes = ["final error relative to the free end's amplitude, not to its final value: after the load is "
              "switched off the beam decays towards rest, so the final reference value is close to 0 and an "
              "error relative to it would be meaningless",
@@ -606,10 +453,10 @@ def case_step_off(ctx: Context):
              "predicting through it from n_cri, as the paper did, are reported as predicted_through_load_jumps"]
     if s.reduced:
         notes.append("reduced mode: t_off 0.5 s so that the load is switched off within the short run")
-    out, series = fixed_load_case(ctx, "step_off", problem, parts,
-                                  [("step_off", s.n_past, s.n_future, s.train_fraction)], n_steps=n_steps,
-                                  n_s=s.n_s, save_every=s.save_every, shared_every=1, final_relative_to="amplitude",
-                                  notes=notes, compare_load_jumps=True)
+    out, series = fixed_load_case(ctx, FixedLoad(
+        "step_off", problem, parts, (("step_off", s.n_past, s.n_future, s.train_fraction),), n_steps, s.n_s,
+        jaxsync.SaveAt(s.save_every, 1), final_relative_to="amplitude", notes=tuple(notes),
+        compare_load_jumps=True))
     return params, problem, parts, out, series
 
 
@@ -636,11 +483,11 @@ def ensemble_case(ctx: Context, name: str, make_problem, train_labels, test_labe
     log(ctx, f"[{name}] ensemble of {len(problems)} training runs ({label_name} = "
         + ", ".join(f"{v:.4g}" for v in train_labels) + ")")
     runs, seconds = timed(jaxsync.ensemble, problems, n_steps, partitions=parts, labels=train_labels,
-                          save_every=s.save_every, shared_every=1, progress=ctx.progress)
+                          save=jaxsync.SaveAt(s.save_every, 1), executor=ctx.executor())
     ensemble_stats = run_stats(runs[0], seconds)
     log(ctx, f"[{name}] test run, unseen {label_name} = {test_label:.4g}")
-    reference, ref_seconds = timed(jaxsync.simulate, test_problem, n_steps, partitions=parts, save_every=s.save_every,
-                                   progress=ctx.progress)
+    reference, ref_seconds = timed(jaxsync.simulate, test_problem, n_steps, partitions=parts, save=s.save_every,
+                                   executor=ctx.executor())
     out = {"tip_node": tip, "reference": run_stats(reference, ref_seconds),
            "training_data": {"generated_by": "jaxsync.ensemble (one call)", "n_runs": len(runs),
                              "label_name": label_name, "labels": list(train_labels), "test_label": test_label,
@@ -659,8 +506,8 @@ def ensemble_case(ctx: Context, name: str, make_problem, train_labels, test_labe
                                   n_past=s.n_past, n_future=s.n_future, train_fraction=s.train_fraction,
                                   n_cond_repeat=q)
         log(ctx, f"[{name}/{variant}] online run from n_cri {n_cri}")
-        online, stats = online_run(ctx, test_problem, parts, trained, n_steps, n_cri, s.save_every,
-                                   load_parameter=test_label if q else None)
+        online, stats = online_run(ctx, test_problem, parts, surrogates_of(trained, test_label if q else None),
+                                   n_steps, n_cri, s.save_every)
         metrics = run_metrics(reference.displacement, online.displacement, tip, excluded)
         out["variants"].append(variant_entry(
             variant, {"n_s": s.n_s, "n_past": s.n_past, "n_future": s.n_future, "train_fraction": s.train_fraction,
@@ -688,7 +535,7 @@ def case_initial_conditions(ctx: Context):
         ctx, "initial_conditions", make, train_labels, test, "u",
         [("unconditional", 0), ("conditional", s.n_cond_repeat)])
     params.update(u_range=[-s.ic_range, s.ic_range], static_tip_z_cm=float(static[tip_node(mesh), 2]),
-                  body_force=[0.0, 0.0, -0.5])
+                  body_force=list(BODY_FORCES["default"]))
     out["notes"].append("initial displacement (1 + u) times the static solution of the default cantilever, "
                         "default ramped load; the paper ran the unconditional decoder only")
     return params, problem, parts, out, series
@@ -722,7 +569,7 @@ def case_full_system(ctx: Context):
     n_cri = n_s * n_p
     tip = check_tip(mesh, None)
     log(ctx, f"[full_system] serial reference saved at every step: {n_steps} steps")
-    reference, seconds = timed(jaxsync.simulate, problem, n_steps, save_every=1, progress=ctx.progress)
+    reference, seconds = timed(jaxsync.simulate, problem, n_steps, save=1, executor=ctx.executor())
     history = np.asarray(reference.displacement).reshape(n_steps + 1, -1)
     data = stack_replicas([build_dataset([history], n_s, n_p, n_f, s.train_fraction, split_seed=ctx.seed)])
     overrides = ctx.settings.train_overrides
@@ -775,8 +622,7 @@ def case_full_system(ctx: Context):
     keep = slice(0, None, n_s)
     ref_field, pred_field = np.asarray(reference.displacement), np.asarray(predicted.displacement)
     metrics = run_metrics(ref_field[keep], pred_field[keep], tip, excluded_nodes(problem, None))
-    every_step = np.abs(pred_field[:, tip, 2] - ref_field[:, tip, 2])
-    metrics["tip_max_error_relative_every_step"] = float(every_step.max() / np.abs(ref_field[:, tip, 2]).max())
+    metrics["tip_max_error_relative_every_step"] = node_error(ref_field, pred_field, tip, 2).relative
     fixed, values = problem.dirichlet_dofs()
     clamped = np.abs(pred_field.reshape(n_steps + 1, -1)[:, fixed] - np.asarray(values)).max(axis=1)
     metrics["dirichlet_max_abs_predicted_cm"] = predicted.stats.dirichlet_max_abs_predicted
@@ -797,7 +643,8 @@ def case_full_system(ctx: Context):
     series["full_system__clamped_max_abs_predicted"] = clamped
     params = {"n_steps": n_steps, "n_s": n_s, "n_past": n_p, "n_future": n_f, "train_fraction": s.train_fraction,
               "n_parts": 1, "save_every": 1, "metrics_every": n_s, "n_cri": n_cri,
-              "n_predicted_steps": n_steps - n_cri, "n_dof": int(history.shape[1]), "body_force": [0.0, 0.0, -0.5]}
+              "n_predicted_steps": n_steps - n_cri, "n_dof": int(history.shape[1]),
+              "body_force": list(BODY_FORCES["default"])}
     return params, problem, None, out, series
 
 
@@ -861,8 +708,8 @@ def case_figure(name: str, record: dict, series: dict, path: str) -> None:
     ax.legend(fontsize="x-small", ncol=2)
     ax = axes[len(components) + 1]
     for v in variants:
-        diff = series[f"{v}__field_predicted"] - series[f"{v}__field_reference"]
-        ax.plot(series[f"{v}__times"], np.linalg.norm(diff.reshape(len(diff), -1), axis=1), lw=0.9, label=v)
+        ax.plot(series[f"{v}__times"], l2_error(series[f"{v}__field_reference"], series[f"{v}__field_predicted"]),
+                lw=0.9, label=v)
     ax.set_ylabel("e_l2 [cm]")
     ax.legend(fontsize="x-small", ncol=2)
     if full:
@@ -917,7 +764,7 @@ def run_case(ctx: Context, name: str) -> dict:
         **out,
         "settings": ctx.settings.to_dict(),
         "targets_met": all(v["targets"]["met"] for v in out["variants"]),
-        "machine": {**machine(), "load_average_before": load_before},
+        "machine": {**experiments.machine(), "load_average_before": load_before},
     }
     record["wall_seconds"] = time.perf_counter() - start
     series_path = os.path.join(folder, "series.npz")

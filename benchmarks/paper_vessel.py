@@ -135,8 +135,9 @@ def measure(args) -> dict:
     print(parts.summary(), flush=True)
 
     n = int(args.prefix_steps)
-    sync = jaxsync.simulate(problem, n, partitions=parts, save_every=n, progress=not args.no_progress)
-    single = jaxsync.simulate(problem_cfl, n, save_every=n, progress=not args.no_progress)
+    sync = jaxsync.simulate(problem, n, partitions=parts, save=n,
+                            executor=jaxsync.HostExecutor(progress=not args.no_progress))
+    single = jaxsync.simulate(problem_cfl, n, save=n, executor=jaxsync.HostExecutor(progress=not args.no_progress))
     record["steps"] = {"prefix_steps": n,
                        "us_per_step_synchronized_11_emulated": sync.stats.us_per_step,
                        "compile_seconds_synchronized": sync.stats.compile_seconds,

@@ -31,8 +31,21 @@ from .parallel.partitioning import Partition, partition
 from .solve.ensemble import ensemble
 from .solve.full_system import simulate_full_system
 from .solve.solver import simulate, steady_state
-from .solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
-from .trajectory import PartHistory, RunStats, Trajectory
+from .solve.strategies import (
+                               Halo,
+                               HostExecutor,
+                               Mpi,
+                               Ppermute,
+                               Psum,
+                               Recompute,
+                               ResyncTolerance,
+                               SaveAt,
+                               SolverCheckpoint,
+                               StoreAll,
+                               TracedExecutor,
+)
+from .solve.syncavoid import simulate_sync_avoiding
+from .trajectory import PartHistory, Result, RunStats, Trajectory
 
 __version__ = "0.2.0"
 
@@ -46,5 +59,7 @@ __all__ = [
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
     "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
-    "Trajectory", "RunStats", "PartHistory",
+    "Trajectory", "RunStats", "PartHistory", "Result",
+    "SaveAt", "Psum", "Ppermute", "Mpi", "Halo", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
+    "Recompute", "StoreAll",
 ]

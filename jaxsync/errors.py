@@ -24,11 +24,24 @@ class ProblemError(JaxsyncError, ValueError):
 
 
 class StabilityError(JaxsyncError, RuntimeError):
-    """A time step above the stability bound, or a run that diverged (NaN/Inf, blow-up)."""
+    """A time step above the stability bound, or a run that diverged (NaN/Inf, blow-up).
+
+    Attributes:
+        trajectory: a diverged run's snapshots saved before divergence (a
+            :class:`jaxsync.Trajectory` whose ``result`` is ``Result.DIVERGED``), or None.
+        trajectories: an ensemble's partial trajectories, one per run, or None.
+        run: the ensemble run that diverged first (None otherwise); runs: all that did.
+    """
+
+    def __init__(self, message: str, *, trajectory=None, trajectories=None, run=None, runs=None):
+        super().__init__(message)
+        self.trajectory, self.trajectories = trajectory, trajectories
+        self.run, self.runs = run, runs
 
 
 class CheckpointError(JaxsyncError, RuntimeError):
-    """A checkpoint or data file that does not fit the run that tries to use it."""
+    """A file jaxsync reads -- a trajectory, a surrogate file, a solver checkpoint, a training
+    state -- that cannot be read or does not fit the run that tries to use it."""
 
 
 class ConfigError(JaxsyncError, ValueError):

@@ -26,7 +26,7 @@ import numpy as np
 
 from .errors import OutputError
 
-__all__ = ["atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
+__all__ = ["host_tag", "process_alive", "atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
            "STALE_TEMP_AGE_S", "OutputError", "check_writable", "recording_writes", "note_written",
            "os_reason"]
 
@@ -120,7 +120,7 @@ def atomic_path(path: str | os.PathLike):
     try:
         os.makedirs(folder, exist_ok=True)
         _remove_stale_temporaries(folder, prefix)
-        fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{_host_tag()}.", suffix=".tmp",
+        fd, tmp = tempfile.mkstemp(prefix=f"{prefix}{os.getpid()}@{host_tag()}.", suffix=".tmp",
                                    dir=folder)
         os.close(fd)
         umask = os.umask(0)
@@ -149,15 +149,18 @@ def _write_failure(path: str, exc: OSError) -> OutputError:
                        "location, and run again)")
 
 
-def _host_tag() -> str:
-    """This host's name as it goes into temporary file names (letters, digits, '-')."""
+def host_tag() -> str:
+    """This host's name as it goes into temporary file and folder names (letters, digits,
+    '-'): with the writer's pid it tells whether a leftover is stale."""
     import re
     import socket
 
     return re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
 
 
-def _process_alive(pid: int) -> bool:
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` of this host still runs (True when it cannot be told, so
+    that its files are kept)."""
     if pid <= 0:
         return False
     try:
@@ -183,13 +186,13 @@ def _remove_stale_temporaries(folder: str, prefix: str) -> None:
         names = [n for n in os.listdir(folder) if n.startswith(prefix) and n.endswith(".tmp")]
     except OSError:
         return
-    host, now = _host_tag(), time.time()
+    host, now = host_tag(), time.time()
     for name in names:
         full = os.path.join(folder, name)
         match = owned.match(name)
         try:
             if match and match.group(2) == host:
-                stale = not _process_alive(int(match.group(1)))
+                stale = not process_alive(int(match.group(1)))
             elif match or legacy.match(name):
                 stale = now - os.stat(full).st_mtime > STALE_TEMP_AGE_S
             else:

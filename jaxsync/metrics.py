@@ -4,6 +4,9 @@ All functions take plain NumPy arrays; T is the number of compared snapshots, n 
 number of nodes, N_a the number of shared nodes, n_c the number of parts.
 
 - :func:`l2_error` e(t) = ||d(t) - d_hat(t)||_2 over all dofs (eq. 24).
+- :func:`node_error` at one node (one displacement component, or the vector): the largest
+  error over the run, also as a fraction of the node's largest amplitude, the final and
+  the rms error (the free end of the paper's figures, the monitored nodes of a report).
 - :func:`shared_node_errors` at the shared nodes, where every node is predicted by each
   of the (at least two) parts that hold it:
   es(t): mean over shared nodes and over the parts predicting them of the component-mean
@@ -24,7 +27,7 @@ import numpy as np
 
 from .errors import ProblemError
 
-__all__ = ["l2_error", "SharedNodeErrors", "shared_node_errors", "predictions_by_node",
+__all__ = ["l2_error", "NodeError", "node_error", "SharedNodeErrors", "shared_node_errors", "predictions_by_node",
            "EstimateQuality", "estimate_quality"]
 
 
@@ -39,6 +42,61 @@ def l2_error(reference: np.ndarray, predicted: np.ndarray) -> np.ndarray:
         raise ProblemError(f"l2_error needs equal shapes, got {reference.shape} and {predicted.shape}")
     diff = (predicted - reference).reshape(len(reference), -1)
     return np.linalg.norm(diff, axis=1)
+
+
+@dataclasses.dataclass(frozen=True)
+class NodeError:
+    """The error of one node's displacement over the compared snapshots: of one component
+    c (|.| the absolute value) or of the displacement vector (|.| the Euclidean norm).
+
+    Attributes:
+        node: the node id.
+        component: 0, 1, 2 (x, y, z), or None for the vector.
+        amplitude: max_t |d(t)|, the node's largest amplitude in the reference [cm].
+        max_error: max_t |d_hat(t) - d(t)| [cm].
+        final_error: |d_hat - d| at the last snapshot [cm].
+        rms_error: sqrt(mean_t |d_hat(t) - d(t)|^2) [cm].
+    """
+
+    node: int
+    component: int | None
+    amplitude: float
+    max_error: float
+    final_error: float
+    rms_error: float
+
+    @property
+    def relative(self) -> float | None:
+        """max_error / amplitude: the largest error as a fraction of the node's largest
+        amplitude (None where the node never moves in the reference)."""
+        return self.max_error / self.amplitude if self.amplitude > 0 else None
+
+
+def node_error(reference: np.ndarray, predicted: np.ndarray, node: int, component: int | None = None) -> NodeError:
+    """The error at ``node`` of ``predicted`` against ``reference``.
+
+    Args:
+        reference, predicted: (T, n, 3) displacements at the same snapshots.
+        node: the node id.
+        component: 0, 1 or 2 (x, y, z); None: the displacement vector (its norm).
+    """
+    reference, predicted = np.asarray(reference), np.asarray(predicted)
+    if reference.shape != predicted.shape or reference.ndim != 3 or reference.shape[2] != 3:
+        raise ProblemError(f"node_error needs two (T, n, 3) arrays of equal shapes, got {reference.shape} and "
+                           f"{predicted.shape}")
+    if not 0 <= int(node) < reference.shape[1]:
+        raise ProblemError(f"node {node} is not one of the {reference.shape[1]} nodes")
+    if component is not None and component not in (0, 1, 2):
+        raise ProblemError(f"component must be 0, 1, 2 (x, y, z) or None (the vector), got {component!r}")
+    node = int(node)
+    if component is None:
+        error = np.linalg.norm(predicted[:, node] - reference[:, node], axis=1)
+        size = np.linalg.norm(reference[:, node], axis=1)
+    else:
+        error = np.abs(predicted[:, node, component] - reference[:, node, component])
+        size = np.abs(reference[:, node, component])
+    return NodeError(node=node, component=component, amplitude=float(size.max()), max_error=float(error.max()),
+                     final_error=float(error[-1]), rms_error=float(np.sqrt(np.mean(error ** 2))))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -35,6 +35,10 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   jump (``jaxsync train --load-jump-windows``): ``"exclude"`` or ``"keep"``; by default
   excluded for the linear model and kept for the LSTM (measured, see
   :func:`jaxsync.surrogate.train_surrogates`).
+- :data:`LoadJumps`: what a synchronization-avoiding run does where a load's time function
+  jumps (:func:`jaxsync.simulate_sync_avoiding`): ``"synchronize"`` (stay synchronized until
+  the networks' input history follows the jump) or ``"predict"`` (predict through it, as the
+  paper did).
 """
 
 from __future__ import annotations
@@ -45,7 +49,8 @@ from typing import Literal, get_args
 from .errors import ConfigError, JaxsyncError
 
 __all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
-           "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "choices", "check_option", "DEFAULT_MODE",
+           "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "choices", "check_option",
+           "DEFAULT_MODE",
            "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
 Mode = Literal["preassembled", "recompute"]
@@ -58,6 +63,7 @@ MeshGenerator = Literal["box_beam", "coronary_tree"]
 ValidationSplit = Literal["interleaved", "random"]
 SurrogateModel = Literal["lstm", "linear"]
 LoadJumpWindows = Literal["exclude", "keep"]
+LoadJumps = Literal["synchronize", "predict"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

@@ -8,47 +8,65 @@ replaces a good file.
 from __future__ import annotations
 
 import dataclasses
+import enum
+import json
 import os
 import shutil
 import tempfile
 from typing import Any
 
+import jax
 import numpy as np
 
 from .errors import CheckpointError
 from .fem.mesh import Mesh
 from .io import atomic_h5
 
-__all__ = ["Trajectory", "RunStats", "PartHistory"]
+__all__ = ["Trajectory", "RunStats", "PartHistory", "Result"]
 
 FORMAT_VERSION = 1
+
+
+class Result(enum.IntEnum):
+    """How a run ended (``Trajectory.result``; under ``jit`` an int32 array of these codes).
+
+    - ``SUCCESSFUL``: every step ran and every saved value is finite.
+    - ``DIVERGED``: the displacement became NaN/Inf or blew up; a host run stops there and
+      keeps the snapshots saved before (``StabilityError.trajectory``), a traced run goes
+      on and says so here.
+    """
+
+    SUCCESSFUL = 0
+    DIVERGED = 1
 
 
 @dataclasses.dataclass(frozen=True)
 class RunStats:
     """How a run went, apart from the physics (every field None when not measured).
 
-    Timing (compiled chunks only; compilation is counted apart):
-        us_per_step: wall time per step of a synchronized run [us].
-        us_per_step_synchronized, us_per_step_predicted: the same for the two kinds of
-            steps of a synchronization-avoiding run [us].
-        compile_seconds: time spent compiling [s].
-        seconds_discarded: time spent on predicted steps that were recomputed [s].
-    Devices: n_devices (those of every process of the run together), n_processes (None:
-        files written before it was recorded, one process), device_kind, platform,
-        emulated (several CPU devices emulated in one process, sharing its cores).
-    Steps of a synchronization-avoiding run (they add up: n_synchronized_steps +
-    n_predicted_steps = n_steps):
-        n_steps, n_cri (last step of the first synchronized stretch),
-        n_synchronized_steps, n_predicted_steps, n_discarded_steps (predicted, then
-        recomputed synchronized after a rejected cycle).
-    Error control: resync_tolerance (as given, e.g. ``"1 %"``), n_resynchronizations,
-        resynchronized_at (first step of each rejected cycle), es_hat_trigger (its es_hat
-        [cm]) and tolerance_cm (the tolerance then [cm]).
-    Load jumps: load_jumps, the steps where a load's time function jumps that the run
-        stayed synchronized through (None: not looked for).
-    Full-system modeling: dirichlet_max_abs_predicted, the largest |predicted value| on
-        the Dirichlet dofs [cm].
+    - Timing (compiled chunks only; compilation is counted apart): ``us_per_step``, the
+      wall time per step of a synchronized run [us]; ``us_per_step_synchronized`` and
+      ``us_per_step_predicted``, the same for the two kinds of steps of a
+      synchronization-avoiding run [us]; ``compile_seconds``, the time spent compiling
+      [s]; ``seconds_discarded``, the time spent on predicted steps that were recomputed
+      [s].
+    - Devices: ``n_devices`` (those of every process of the run together),
+      ``n_processes`` (None: files written before it was recorded, one process),
+      ``device_kind``, ``platform``, ``emulated`` (several CPU devices emulated in one
+      process, sharing its cores).
+    - Steps of a synchronization-avoiding run (``n_synchronized_steps`` +
+      ``n_predicted_steps`` = ``n_steps``): ``n_steps``, ``n_cri`` (the last step of the
+      first synchronized stretch), ``n_synchronized_steps``, ``n_predicted_steps``,
+      ``n_discarded_steps`` (predicted, then recomputed synchronized after a rejected
+      cycle).
+    - Error control: ``resync_tolerance`` (as given, e.g. ``"1 %"``),
+      ``n_resynchronizations``, ``resynchronized_at`` (the first step of each rejected
+      cycle), ``es_hat_trigger`` (its es_hat [cm]) and ``tolerance_cm`` (the tolerance then
+      [cm]).
+    - Load jumps: ``load_jumps``, the steps where a load's time function jumps that the run
+      stayed synchronized through (None: not looked for).
+    - Full-system modeling: ``dirichlet_max_abs_predicted``, the largest |predicted value|
+      on the Dirichlet dofs [cm].
     """
 
     us_per_step: float | None = None
@@ -147,6 +165,11 @@ class Trajectory:
             counts and re-synchronizations).
         shared_every: steps between the entries of each part's ``shared_displacement``
             (None: ``save_every``, one per snapshot). Surrogate training needs 1.
+        result: how the run ended (:class:`Result`; a JAX int32 array in a traced run,
+            None: not recorded, files of an older jaxsync).
+
+    A pytree (the arrays, ``dt``, the parts and ``result`` are its leaves), so a traced run
+    can return it from ``jit``.
     """
 
     times: Any
@@ -159,6 +182,7 @@ class Trajectory:
     synchronized: Any = None
     stats: RunStats = RunStats()
     shared_every: int | None = None
+    result: Any = None
 
     def __post_init__(self):
         if isinstance(self.stats, dict):
@@ -209,6 +233,8 @@ class Trajectory:
             f.attrs["dt"] = float(self.dt)
             f.attrs["save_every"] = int(self.save_every)
             f.attrs["shared_every"] = self.shared_stride
+            if self.result is not None:
+                f.attrs["result"] = int(self.result)
             for key, value in self.parameters.items():
                 f.attrs[f"param_{key}"] = value
             for key, value in self.stats.to_dict().items():
@@ -265,11 +291,13 @@ class Trajectory:
                     parts = tuple(_part_history(f["parts"][str(p)]) for p in range(int(f.attrs["n_parts"])))
                 synchronized = f["synchronized"][...] if "synchronized" in f else None
                 shared_every = f.attrs.get("shared_every")
+                result = f.attrs.get("result")
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
                            dt=float(f.attrs["dt"]), save_every=int(f.attrs["save_every"]),
                            parameters=params, parts=parts, synchronized=synchronized,
                            stats=RunStats.from_dict(stats),
-                           shared_every=None if shared_every is None else int(shared_every))
+                           shared_every=None if shared_every is None else int(shared_every),
+                           result=None if result is None else Result(int(result)))
         except CheckpointError:
             raise
         except Exception as exc:
@@ -329,3 +357,39 @@ def _attribute_value(value):
     if getattr(value, "ndim", 0) > 0:
         return value.tolist()
     return value.item() if hasattr(value, "item") else value
+
+
+class _Frozen:
+    """A dict as hashable static data of a pytree (compared and hashed by its content)."""
+
+    def __init__(self, mapping: dict):
+        self.mapping = dict(mapping)
+        self._key = json.dumps(self.mapping, sort_keys=True, default=repr)
+
+    def __eq__(self, other):
+        return isinstance(other, _Frozen) and other._key == self._key
+
+    def __hash__(self):
+        return hash(self._key)
+
+
+def _flatten_trajectory(t: Trajectory):
+    children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result)
+    return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every)
+
+
+def _unflatten_trajectory(aux, children) -> Trajectory:
+    mesh, save_every, parameters, stats, shared_every = aux
+    times, displacement, dt, parts, synchronized, result = children
+    t = object.__new__(Trajectory)  # without __post_init__: leaves may be placeholders
+    for name, value in (("times", times), ("displacement", displacement), ("mesh", mesh), ("dt", dt),
+                        ("save_every", save_every), ("parameters", dict(parameters.mapping)),
+                        ("parts", tuple(parts)), ("synchronized", synchronized), ("stats", stats),
+                        ("shared_every", shared_every), ("result", result)):
+        object.__setattr__(t, name, value)
+    return t
+
+
+jax.tree_util.register_pytree_node(Trajectory, _flatten_trajectory, _unflatten_trajectory)
+jax.tree_util.register_dataclass(PartHistory, data_fields=["shared_nodes", "elements", "shared_displacement",
+                                                           "predicted_shared_displacement"], meta_fields=[])

@@ -73,7 +73,7 @@ def main(argv=None) -> dict:
     print(f"mass scaling: dt {float(problem.dt):.3e} s -> {float(scaled.dt):.3e} s, "
           f"total mass +{added:.2f} %")
 
-    traj = jaxsync.simulate(scaled, args.steps, save_every=args.save_every)
+    traj = jaxsync.simulate(scaled, args.steps, save=args.save_every)
     traj.save(os.path.join(args.out, "vessel.h5"))
     traj.to_xdmf(os.path.join(args.out, "vessel.xdmf"))
 

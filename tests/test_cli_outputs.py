@@ -8,7 +8,6 @@ Tests run as root, for whom permission bits do not count: an unwritable location
 path under a regular file (``afile/out.h5``) or in /proc."""
 
 import errno
-import functools
 import json
 import os
 import types
@@ -241,7 +240,7 @@ def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeyp
     """A real run (100 steps) interrupted once the synchronized run is written: the old
     demo is untouched, the new files are gone with their staging folder."""
     import jaxsync.surrogate.fit
-    from jaxsync.app.demo import run_demo
+    from jaxsync.app.demo import DemoSettings, run_demo
 
     out = tmp_path / "demo"
     (out / "surrogate").mkdir(parents=True)
@@ -250,7 +249,6 @@ def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeyp
         (out / name).write_bytes(data)
     seen = {}
 
-    @functools.wraps(jaxsync.surrogate.fit.train_surrogates)  # the demo reads its defaults
     def interrupt(reference_path, **kwargs):
         seen["reference"] = reference_path
         seen["written"] = jaxsync.Trajectory.load(reference_path).n_saved
@@ -258,8 +256,8 @@ def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeyp
 
     monkeypatch.setattr(jaxsync.surrogate.fit, "train_surrogates", interrupt)
     with pytest.raises(KeyboardInterrupt):
-        run_demo(str(out), n_steps=100, n_s=5, n_past=2, n_future=2, epochs=1, n_hidden=4, progress=False,
-                 log=lambda *a: None, force=True)
+        run_demo(str(out), DemoSettings(n_steps=100, n_s=5, n_past=2, n_future=2, epochs=1, n_hidden=4),
+                 progress=False, log=lambda *a: None, force=True)
     staging = os.path.dirname(seen["reference"])
     assert os.path.dirname(staging) == str(tmp_path) and os.path.basename(staging).startswith("demo.partial-")
     assert seen["written"] > 1  # the new synchronized run was complete, in the staging folder
@@ -306,7 +304,7 @@ def test_install_folder_replaces_a_demo_and_keeps_a_users_files(tmp_path):
 
 
 def test_paths_stored_in_the_staged_json_name_the_final_folder(tmp_path):
-    from jaxsync.app.demo import _retarget_paths
+    from jaxsync.app.demo import retarget_paths
 
     staging, final = str(tmp_path / "d.partial-1@h.x"), str(tmp_path / "d")
     os.makedirs(os.path.join(staging, "surrogate"))
@@ -314,7 +312,7 @@ def test_paths_stored_in_the_staged_json_name_the_final_folder(tmp_path):
             "checkpoint": os.path.join(staging, "surrogate", "surrogate.h5")}
     with open(os.path.join(staging, "surrogate", "train_summary.json"), "w") as f:
         json.dump(data, f)
-    _retarget_paths(staging, final)
+    retarget_paths(staging, final)
     with open(os.path.join(staging, "surrogate", "train_summary.json")) as f:
         assert json.load(f) == {"trajectories": [os.path.join(final, "synchronized.h5")], "n": 1,
                                 "other": staging + "x",
@@ -322,14 +320,14 @@ def test_paths_stored_in_the_staged_json_name_the_final_folder(tmp_path):
 
 
 def test_stale_staging_folders_of_dead_runs_are_removed(tmp_path):
-    from jaxsync.app.demo import _staging_folder
-    from jaxsync.io import _host_tag
+    from jaxsync.app.demo import staging_folder
+    from jaxsync.io import host_tag
 
-    dead = tmp_path / f"demo.partial-999999999@{_host_tag()}.abc"
+    dead = tmp_path / f"demo.partial-999999999@{host_tag()}.abc"
     other_host = tmp_path / "demo.partial-999999999@elsewhere.abc"
     dead.mkdir()
     other_host.mkdir()
-    staging = _staging_folder(str(tmp_path / "demo"))
+    staging = staging_folder(str(tmp_path / "demo"))
     assert sorted(os.listdir(tmp_path)) == sorted([os.path.basename(staging), other_host.name])
 
 

@@ -144,7 +144,7 @@ def test_demo_files_name_the_demo_folder_not_its_staging_folder(demo, summary):
     assert summary["report"] == str(out / "report")
     trained = json.loads((out / "surrogate" / "train_summary.json").read_text())
     assert trained["trajectories"] == [str(out / "synchronized.h5")]
-    assert trained["checkpoint"] == str(out / "surrogate" / "surrogate.h5")
+    assert trained["surrogate"] == str(out / "surrogate" / "surrogate.h5")
     for path in out.rglob("*.json"):
         assert ".partial-" not in path.read_text(), path
     assert ".partial-" not in run.out and str(out / "surrogate" / "surrogate.h5") in run.out
@@ -323,7 +323,7 @@ def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
     """``jaxsync finetune`` on the demo's files: windows within the training half, the best
     validated weights written with the partition and a record of the fine-tuning; refuses
     to overwrite; ``jaxsync predict`` runs the new checkpoint."""
-    from jaxsync.surrogate.checkpoint import load_checkpoint
+    from jaxsync.surrogate.saved import load_surrogate
 
     _, out, _ = demo
     trained = out / "surrogate" / "surrogate.h5"
@@ -333,7 +333,7 @@ def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
     run = run_cli(args)
     assert run.code == 0, run.err
     assert "validation loss x" in run.out and f"first {N_STEPS // 2} steps" in run.out
-    before, after = load_checkpoint(trained), load_checkpoint(tuned)
+    before, after = load_surrogate(trained), load_surrogate(tuned)
     record = after.metadata["fine_tuned"]
     assert record["span_steps"] == N_STEPS // 2 and record["config"]["n_iterations"] == 3
     assert record["config"]["window_cycles"] == 1 and record["config"]["learning_rate"] == 1e-2

@@ -21,7 +21,7 @@ def test_simulate_from_the_packaged_config(tmp_path, capsys):
                  "--xdmf", str(tmp_path / "c.xdmf"), "--no-progress"]) == 0
     traj = jaxsync.Trajectory.load(out)
     assert traj.displacement.shape == (5, 104, 3)
-    expected = jaxsync.simulate(jaxsync.cantilever(), 400, save_every=100)
+    expected = jaxsync.simulate(jaxsync.cantilever(), 400, save=100)
     np.testing.assert_array_equal(traj.displacement, expected.displacement)
     assert (tmp_path / "c.xdmf").exists()
     assert "wrote" in capsys.readouterr().out
@@ -106,7 +106,7 @@ def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
 
     def diverging(problem, n_steps, **kwargs):
         err = jaxsync.StabilityError("the run diverged by step 7")
-        err.trajectory = jaxsync.simulate(problem, 10, save_every=5)
+        err.trajectory = jaxsync.simulate(problem, 10, save=5)
         raise err
 
     monkeypatch.setattr(jaxsync.solve.solver, "simulate", diverging)
@@ -123,7 +123,7 @@ def test_simulate_with_deep_halos(tmp_path, capsys):
     out = tmp_path / "h.h5"
     assert main(["simulate", "--steps", "200", "--save-every", "10", "--parts", "2", "--sync", "halo",
                  "--halo-depth", "5", "-o", str(out), "--no-progress"]) == 0
-    single = jaxsync.simulate(jaxsync.cantilever(), 200, save_every=10)
+    single = jaxsync.simulate(jaxsync.cantilever(), 200, save=10)
     scale = np.abs(single.displacement).max()
     assert np.abs(jaxsync.Trajectory.load(out).displacement - single.displacement).max() <= 1e-12 * scale
     # save_every and the depth must divide one another: a one-line error with the fix
@@ -213,7 +213,7 @@ def test_resumed_run_replaces_its_own_output_without_force(tmp_path):
     assert main(base) == 0
     assert main(base + ["--steps", "40"]) == 0  # continues from the checkpoint
     problem, _ = problem_from_config(load_config(cfg))
-    direct = jaxsync.simulate(problem, 40, save_every=10)
+    direct = jaxsync.simulate(problem, 40, save=10)
     np.testing.assert_array_equal(jaxsync.Trajectory.load(out).displacement, direct.displacement)
     # the checkpoint must not be one of the outputs
     assert main(["simulate", str(cfg), "-o", str(tmp_path / "x.h5"), "--checkpoint",
@@ -227,6 +227,18 @@ def test_negative_dt_reaches_the_package_check(tmp_path, capsys, dt):
     err = capsys.readouterr().err
     assert err.startswith("error: time step must be positive") and "expected one argument" not in err
     assert not (tmp_path / "n.h5").exists()
+
+
+def test_negative_numbers_are_joined_to_their_option():
+    """What lets ``--dt -1e-4`` through argparse (public parse_known_args, no private
+    setting): a negative number after an option becomes its ``=`` value."""
+    from jaxsync.app.commands.common import join_negative_values
+
+    assert join_negative_values(["--dt", "-1e-4", "-o", "-.5", "--steps", "10"]) == [
+        "--dt=-1e-4", "-o=-.5", "--steps", "10"]
+    assert join_negative_values(["--dt=-1e-4", "-1e-4"]) == ["--dt=-1e-4", "-1e-4"]  # already given
+    assert join_negative_values(["--", "--dt", "-1"]) == ["--", "--dt", "-1"]  # positionals after --
+    assert join_negative_values(["--dt", "-x"]) == ["--dt", "-x"]  # not a number
 
 
 def test_mass_scaling_from_the_command_line(tmp_path, capsys):

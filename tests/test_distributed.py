@@ -14,7 +14,7 @@ def problem():
 
 @pytest.fixture(scope="module")
 def references(problem):
-    return {mode: jaxsync.simulate(problem, 2000, save_every=10, mode=mode)
+    return {mode: jaxsync.simulate(problem, 2000, save=10, mode=mode)
             for mode in ("preassembled", "recompute")}
 
 
@@ -29,7 +29,7 @@ def test_two_devices_are_available():
 @pytest.mark.parametrize("mode", ["preassembled", "recompute"])
 @pytest.mark.parametrize("n_parts", [1, 2, 4])
 def test_distributed_equals_single_device(problem, references, mode, n_parts):
-    traj = jaxsync.simulate(problem, 2000, save_every=10, partitions=n_parts, mode=mode)
+    traj = jaxsync.simulate(problem, 2000, save=10, partitions=n_parts, mode=mode)
     assert relative_error(traj.displacement, references[mode].displacement) <= 1e-12
     assert len(traj.parts) == n_parts
 
@@ -52,14 +52,14 @@ def test_dirichlet_nodes_on_part_boundaries(problem):
     fixed, _ = problem.dirichlet_dofs()
     assert np.intersect1d(fixed // 3, part.shared_nodes).size > 0
     for mode in ("preassembled", "recompute"):
-        reference = jaxsync.simulate(problem, 2000, save_every=10, mode=mode)
-        traj = jaxsync.simulate(problem, 2000, save_every=10, partitions=part, mode=mode)
+        reference = jaxsync.simulate(problem, 2000, save=10, mode=mode)
+        traj = jaxsync.simulate(problem, 2000, save=10, partitions=part, mode=mode)
         assert relative_error(traj.displacement, reference.displacement) <= 1e-12
         assert np.all(traj.displacement[:, fixed // 3] == 0.0)
 
 
 def test_shared_displacement_is_the_global_displacement(problem, tmp_path):
-    traj = jaxsync.simulate(problem, 400, save_every=1, partitions=2)
+    traj = jaxsync.simulate(problem, 400, save=1, partitions=2)
     path = tmp_path / "d.h5"
     traj.save(path)
     back = jaxsync.Trajectory.load(path)
@@ -77,10 +77,11 @@ def test_shared_displacement_is_the_global_displacement(problem, tmp_path):
 
 
 def test_several_parts_per_device_and_checkpoint_resume(problem, tmp_path):
-    full = jaxsync.simulate(problem, 3000, save_every=30, partitions=4, chunk_steps=600)
+    full = jaxsync.simulate(problem, 3000, save=30, executor=jaxsync.HostExecutor(chunk_steps=600), partitions=4)
     ckpt = tmp_path / "c.h5"
-    jaxsync.simulate(problem, 1200, save_every=30, partitions=4, chunk_steps=600, checkpoint=ckpt)
-    resumed = jaxsync.simulate(problem, 3000, save_every=30, partitions=4, chunk_steps=600,
+    jaxsync.simulate(problem, 1200, save=30, executor=jaxsync.HostExecutor(chunk_steps=600), partitions=4,
+                     checkpoint=ckpt)
+    resumed = jaxsync.simulate(problem, 3000, save=30, executor=jaxsync.HostExecutor(chunk_steps=600), partitions=4,
                                checkpoint=ckpt)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
@@ -116,7 +117,7 @@ def test_element_forces_equal_stiffness_times_u():
 def test_ppermute_neighbour_exchange_equals_psum(problem, references, n_parts):
     """sync="ppermute" (neighbour exchange between devices) gives the psum's result; with 4
     parts on the 2 devices, each device first sums its own two parts."""
-    traj = jaxsync.simulate(problem, 2000, save_every=10, partitions=n_parts, sync="ppermute")
+    traj = jaxsync.simulate(problem, 2000, save=10, partitions=n_parts, sync="ppermute")
     assert relative_error(traj.displacement, references["preassembled"].displacement) <= 1e-12
 
 

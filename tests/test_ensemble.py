@@ -42,14 +42,14 @@ def part(mesh):
 @pytest.fixture(scope="module")
 def generated(problems, part):
     """3 runs of 300 steps in chunks of 100, saved every 10 steps, shared nodes every step."""
-    return jaxsync.ensemble(problems, 300, partitions=part, labels=FZ, save_every=10, shared_every=1,
-                            chunk_steps=100)
+    return jaxsync.ensemble(problems, 300, partitions=part, labels=FZ, save=jaxsync.SaveAt(10, 1),
+                            executor=jaxsync.HostExecutor(chunk_steps=100))
 
 
 def test_ensemble_equals_separate_distributed_runs(problems, part, generated):
     assert len(generated) == len(problems)
     for problem, traj in zip(problems, generated):
-        ref = jaxsync.simulate(problem, 300, partitions=part, save_every=10, shared_every=1)
+        ref = jaxsync.simulate(problem, 300, partitions=part, save=jaxsync.SaveAt(10, 1))
         assert traj.displacement.shape == ref.displacement.shape == (31, problem.mesh.n_nodes, 3)
         assert relative_error(traj.displacement, ref.displacement) <= 1e-12
         np.testing.assert_array_equal(traj.times, ref.times)
@@ -76,7 +76,7 @@ def test_linearity_and_superposition(mesh, static):
     runs = [jaxsync.cantilever(mesh, body_force=(0, 0, -0.3)), jaxsync.cantilever(mesh, body_force=(0, 0, -0.7)),
             loaded, loaded.replace(initial_displacement=c * static), unloaded.replace(initial_displacement=static),
             loaded.replace(dirichlet=moved_clamp), unloaded.replace(dirichlet=moved_clamp)]
-    trajs = jaxsync.ensemble(runs, 200, save_every=5, chunk_steps=100)
+    trajs = jaxsync.ensemble(runs, 200, save=5, executor=jaxsync.HostExecutor(chunk_steps=100))
     assert not trajs[0].parts and "load_parameter" not in trajs[0].parameters  # no partitions, no labels
     d = [t.displacement for t in trajs]
     assert np.abs(d[0]).max() > 0
@@ -90,7 +90,7 @@ def test_batch_compiles_once(problems, caplog):
     """Three runs, four chunks: one compilation of the batched stepper."""
     jax.clear_caches()  # count from a cold start, whatever ran before
     with jax.log_compiles(), caplog.at_level(logging.WARNING):
-        trajs = jaxsync.ensemble(problems, 200, save_every=5, chunk_steps=50)
+        trajs = jaxsync.ensemble(problems, 200, save=5, executor=jaxsync.HostExecutor(chunk_steps=50))
     compiled = [r for r in caplog.records if "_advance_runs" in r.getMessage() and "XLA compilation" in r.getMessage()]
     assert len(compiled) == 1
     assert len(trajs) == 3 and trajs[0].n_saved == 41
@@ -127,9 +127,9 @@ def test_refuses_bad_arguments(mesh):
     with pytest.raises(ProblemError, match="at least one problem"):
         jaxsync.ensemble([], 10)
     with pytest.raises(ProblemError, match="not a multiple of save_every"):
-        jaxsync.ensemble(runs, 10, save_every=3)
+        jaxsync.ensemble(runs, 10, save=3)
     with pytest.raises(ProblemError, match="shared_every needs a distributed run"):
-        jaxsync.ensemble(runs, 10, save_every=2, shared_every=1)
+        jaxsync.ensemble(runs, 10, save=jaxsync.SaveAt(2, 1))
     with pytest.raises(StabilityError, match="stability bound"):
         jaxsync.ensemble(runs, 10, dt=100 * runs[0].dt)
 
@@ -139,8 +139,8 @@ def test_divergence_names_the_run(mesh):
     runs = [jaxsync.cantilever(mesh), jaxsync.cantilever(mesh, body_force=(0, 0, -1e12)),
             jaxsync.cantilever(mesh, body_force=(0, 0, -0.6))]
     with pytest.raises(StabilityError, match=r"run 1 \(label 1e\+12\) of the ensemble diverged") as info:
-        jaxsync.ensemble(runs, 100, save_every=5, chunk_steps=50, labels=(0.5, 1e12, 0.6), partitions=2,
-                         shared_every=1)
+        jaxsync.ensemble(runs, 100, save=jaxsync.SaveAt(5, 1), executor=jaxsync.HostExecutor(chunk_steps=50),
+                         labels=(0.5, 1e12, 0.6), partitions=2)
     err = info.value
     assert err.run == 1 and err.runs == (1,)
     assert len(err.trajectories) == 3 and err.trajectory is err.trajectories[1]

@@ -10,7 +10,7 @@ import pytest
 import jaxsync
 from jaxsync.errors import ProblemError
 from jaxsync.fem.stepper import advance, build_system, initial_state
-from jaxsync.solve.gradients import advance_checkpointed, segment_steps_for_budget, step_residual_bytes
+from jaxsync.solve.remat import advance_recomputing, segment_steps_for_budget, step_residual_bytes
 
 
 @pytest.fixture(scope="module")
@@ -23,12 +23,13 @@ def tip_node(mesh):
     return int(np.argmax(x[:, 0] - 1e-3 * np.abs(x[:, 1]) - 1e-3 * np.abs(x[:, 2])))
 
 
-def make_loss(problem, n_steps, save_every, **kwargs):
+def make_loss(problem, n_steps, save_every, adjoint=None, **kwargs):
     tip, dt = tip_node(problem.mesh), problem.dt
+    executor = kwargs.pop("executor", None if adjoint is None else jaxsync.TracedExecutor(adjoint))
 
     def loss(E, alpha):
         p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
-        traj = jaxsync.simulate(p, n_steps, dt=dt, save_every=save_every, **kwargs)
+        traj = jaxsync.simulate(p, n_steps, dt=dt, save=save_every, executor=executor, **kwargs)
         # the tip's vertical history: sensitive to both the stiffness and the damping
         return jnp.sum(traj.displacement[:, tip, 2] ** 2) / (1e-4 ** 2)
 
@@ -38,7 +39,7 @@ def make_loss(problem, n_steps, save_every, **kwargs):
 @pytest.mark.parametrize("save_every", [1, pytest.param(30, marks=pytest.mark.slow), 300])
 def test_checkpointed_gradient_equals_plain_reverse_mode(problem, save_every):
     args = (1.0e6, 0.5)
-    plain = jax.grad(make_loss(problem, 300, save_every, gradient_checkpoints=False), (0, 1))(*args)
+    plain = jax.grad(make_loss(problem, 300, save_every, adjoint=jaxsync.StoreAll()), (0, 1))(*args)
     ckpt = jax.grad(make_loss(problem, 300, save_every), (0, 1))(*args)
     for a, b in zip(ckpt, plain):
         assert float(a) == pytest.approx(float(b), rel=1e-12)
@@ -49,7 +50,7 @@ def test_checkpointed_advance_equals_advance_in_value(problem):
     state = initial_state(problem, system)
     for n_saves, save_every, segment in ((37, 1, None), (5, 13, 4), (3, 50, None), (7, 3, 5)):
         final, saved = advance(system, state, n_saves, save_every)
-        final_c, saved_c = advance_checkpointed(system, state, n_saves, save_every, segment_steps=segment)
+        final_c, saved_c = advance_recomputing(system, state, n_saves, save_every, segment_steps=segment)
         np.testing.assert_allclose(saved_c, saved, rtol=0, atol=1e-14 * float(jnp.max(jnp.abs(saved))))
         np.testing.assert_allclose(final_c.previous, final.previous, rtol=0,
                                    atol=1e-14 * float(jnp.max(jnp.abs(saved))))
@@ -68,7 +69,7 @@ def test_gradient_equals_central_finite_differences(problem):
 
 
 def _temp_bytes(problem, n_steps, checkpoints):
-    loss = make_loss(problem, n_steps, n_steps, gradient_checkpoints=checkpoints)
+    loss = make_loss(problem, n_steps, n_steps, jaxsync.Recompute() if checkpoints else jaxsync.StoreAll())
     compiled = jax.jit(jax.grad(loss, (0, 1))).lower(1.0e6, 0.5).compile()
     return compiled.memory_analysis().temp_size_in_bytes
 
@@ -98,16 +99,21 @@ def test_budget_picks_plain_or_sqrt(problem):
 def test_budget_in_simulate_equals_plain_or_checkpointed(problem):
     per_step = step_residual_bytes(build_system(problem, problem.dt))
     args = (1.0e6, 0.5)
-    plain = jax.grad(make_loss(problem, 100, 100, gradient_checkpoints=False), (0, 1))(*args)
+    plain = jax.grad(make_loss(problem, 100, 100, adjoint=jaxsync.StoreAll()), (0, 1))(*args)
     for budget in (200 * per_step, 10 * per_step):  # fits: plain; does not: sqrt
-        got = jax.grad(make_loss(problem, 100, 100, gradient_checkpoints=budget), (0, 1))(*args)
+        got = jax.grad(make_loss(problem, 100, 100, jaxsync.Recompute(budget_bytes=budget)), (0, 1))(*args)
         for a, b in zip(got, plain):
             assert float(a) == pytest.approx(float(b), rel=1e-12)
 
 
-def test_bad_gradient_checkpoints_is_refused(problem):
-    with pytest.raises(ProblemError):
-        jax.grad(make_loss(problem, 20, 1, gradient_checkpoints=-3), (0, 1))(1.0e6, 0.5)
+def test_bad_adjoint_is_refused(problem):
+    with pytest.raises(ProblemError, match="positive integer"):
+        jaxsync.Recompute(budget_bytes=-3)
+    with pytest.raises(ProblemError, match="Recompute"):
+        jaxsync.TracedExecutor(adjoint=True)
+    # the host executor needs concrete values: refused inside jax.grad, with the fix
+    with pytest.raises(ProblemError, match="TracedExecutor"):
+        jax.grad(make_loss(problem, 20, 1, executor=jaxsync.HostExecutor()), (0, 1))(1.0e6, 0.5)
 
 
 @pytest.mark.parametrize("sync, jit", [

@@ -90,13 +90,13 @@ def make_loss(problem, partition, **kwargs):
 def test_traced_run_equals_the_solver(problem, partition, surrogate, save_every):
     # save_every=10 does not divide the 25 steps before the recorded history: a save falls
     # inside it (the traced program's split of the synchronized phase)
-    solver = online(problem, partition, surrogate, E0, ALPHA0, save_every=save_every)
+    solver = online(problem, partition, surrogate, E0, ALPHA0, save=save_every)
     traced = jax.jit(lambda E: online(problem, partition, surrogate, E, ALPHA0,
-                                      save_every=save_every).displacement)(E0)
+                                      save=save_every).displacement)(E0)
     assert traced.shape == solver.displacement.shape == (N_STEPS // save_every + 1, problem.mesh.n_nodes, 3)
     scale = np.abs(solver.displacement).max()
     # the predictions moved the run off the synchronized one (the check is not vacuous)
-    synced = jaxsync.simulate(with_parameters(problem, E0, ALPHA0), N_STEPS, save_every=save_every)
+    synced = jaxsync.simulate(with_parameters(problem, E0, ALPHA0), N_STEPS, save=save_every)
     assert np.abs(solver.displacement - synced.displacement).max() > 1e-3 * scale
     np.testing.assert_allclose(np.asarray(traced), solver.displacement, rtol=0, atol=1e-12 * scale)
 
@@ -164,8 +164,9 @@ def test_gradients_equal_finite_differences_of_the_solver(problem, partition, su
 
 @pytest.mark.slow
 def test_checkpointed_gradient_equals_plain_reverse_mode(problem, partition, surrogate):
-    grad = {c: jax.jit(jax.grad(make_loss(problem, partition, gradient_checkpoints=c), (0, 1, 2)))(
-        E0, ALPHA0, surrogate) for c in (True, False)}
+    adjoints = {True: jaxsync.Recompute(), False: jaxsync.StoreAll()}
+    grad = {c: jax.jit(jax.grad(make_loss(problem, partition, executor=jaxsync.TracedExecutor(adjoints[c])),
+                                (0, 1, 2)))(E0, ALPHA0, surrogate) for c in (True, False)}
     for a, b in zip(jax.tree_util.tree_leaves(grad[True]), jax.tree_util.tree_leaves(grad[False])):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10,
                                    atol=1e-12 * float(np.abs(np.asarray(b)).max(initial=0.0)))
@@ -190,8 +191,8 @@ def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, sur
     assert result.window_starts.tolist() == [0]
     # the loss of the given weights, from the solvers themselves
     online = simulate_sync_avoiding(base, window, partitions=partition, surrogates=surrogate,
-                                    n_cri=N_S * N_P, save_every=N_S, dt=float(problem.dt))
-    synced = jaxsync.simulate(base, N_STEPS, save_every=N_S)
+                                    n_cri=N_S * N_P, save=N_S, dt=float(problem.dt))
+    synced = jaxsync.simulate(base, N_STEPS, save=N_S)
     amplitude = np.abs(synced.displacement).max()
     first = N_P + 1  # the saves after the synchronized history (t = 0 is the first row)
     expected = np.mean((online.displacement[first:] - synced.displacement[first:window // N_S + 1]) ** 2)
@@ -202,7 +203,7 @@ def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, sur
     assert result.validation[:, 0].tolist() == [0, 3, 6]
     assert result.best_iteration > 0 and result.improvement < 0.9
     tuned = simulate_sync_avoiding(base, window, partitions=partition, surrogates=result.surrogate,
-                                   n_cri=N_S * N_P, save_every=N_S, dt=float(problem.dt))
+                                   n_cri=N_S * N_P, save=N_S, dt=float(problem.dt))
     tuned_error = np.mean((tuned.displacement[first:] - synced.displacement[first:window // N_S + 1]) ** 2)
     assert tuned_error / amplitude ** 2 == pytest.approx(result.validation[:, 1].min(), rel=1e-9)
 

@@ -2,6 +2,8 @@
 written here, the algorithm replayed in NumPy on those tables against a global SciPy
 run, and the SPMD runs equal to the psum-synchronized solver to round-off."""
 
+import argparse
+
 import numpy as np
 import pytest
 
@@ -151,26 +153,26 @@ def test_numpy_replay_of_the_halo_tables_equals_the_global_run(problem, n_parts)
 @pytest.mark.parametrize("n_parts", [2, 4, 8])
 def test_deep_halos_equal_the_psum_run_to_round_off(problem, n_parts, mode):
     part = jaxsync.partition(problem.mesh, n_parts, seed=0)
-    reference = jaxsync.simulate(problem, 24, save_every=6, partitions=part, mode=mode, sync="psum",
-                                 progress=False)
+    reference = jaxsync.simulate(problem, 24, save=6, executor=jaxsync.HostExecutor(progress=False), partitions=part,
+                                 mode=mode, sync="psum")
     scale = np.abs(reference.displacement).max()
     for depth in (1, 2, 3):
-        run = jaxsync.simulate(problem, 24, save_every=6, partitions=part, mode=mode, sync="halo",
-                               halo_depth=depth, progress=False)
+        run = jaxsync.simulate(problem, 24, save=6, executor=jaxsync.HostExecutor(progress=False),
+                               sync=jaxsync.Halo(depth), partitions=part, mode=mode)
         assert np.abs(run.displacement - reference.displacement).max() <= 1e-12 * scale
 
 
 def test_saves_inside_an_exchange_cycle_and_chunks(problem):
     part = jaxsync.partition(problem.mesh, 4, seed=0)
-    reference = jaxsync.simulate(problem, 24, save_every=1, partitions=part, progress=False)
+    reference = jaxsync.simulate(problem, 24, save=1, executor=jaxsync.HostExecutor(progress=False), partitions=part)
     scale = np.abs(reference.displacement).max()
     # a save every step inside cycles of 4 steps (owned nodes are right at every step),
     # and chunks of 8 steps (the state crosses chunk boundaries after an exchange)
-    run = jaxsync.simulate(problem, 24, save_every=1, partitions=part, sync="halo", halo_depth=4,
-                           chunk_steps=8, progress=False)
+    run = jaxsync.simulate(problem, 24, save=1, executor=jaxsync.HostExecutor(progress=False, chunk_steps=8),
+                           sync=jaxsync.Halo(4), partitions=part)
     assert np.abs(run.displacement - reference.displacement).max() <= 1e-12 * scale
-    run = jaxsync.simulate(problem, 24, save_every=2, partitions=part, sync="halo", halo_depth=4,
-                           progress=False)
+    run = jaxsync.simulate(problem, 24, save=2, executor=jaxsync.HostExecutor(progress=False), sync=jaxsync.Halo(4),
+                           partitions=part)
     assert np.abs(run.displacement - reference.displacement[::2]).max() <= 1e-12 * scale
     # the parts' element lists stay the element partition's (not the grown ones)
     assert [p.elements.tolist() for p in run.parts] == [p.elements.tolist() for p in part.parts]
@@ -179,17 +181,19 @@ def test_saves_inside_an_exchange_cycle_and_chunks(problem):
 def test_deep_halo_input_errors_name_the_fix(problem):
     part = jaxsync.partition(problem.mesh, 2, seed=0)
     with pytest.raises(PartitionError, match="divide one another.*halo_depth=1 or save_every=6"):
-        jaxsync.simulate(problem, 12, save_every=3, partitions=part, sync="halo", halo_depth=2)
+        jaxsync.simulate(problem, 12, save=3, sync=jaxsync.Halo(2), partitions=part)
     with pytest.raises(ProblemError, match="multiple of 4; use n_steps=12"):
-        jaxsync.simulate(problem, 10, save_every=2, partitions=part, sync="halo", halo_depth=4)
+        jaxsync.simulate(problem, 10, save=2, sync=jaxsync.Halo(4), partitions=part)
     with pytest.raises(ProblemError, match="partitions=n_parts"):
         jaxsync.simulate(problem, 12, sync="halo")
     with pytest.raises(PartitionError, match="positive integer"):
-        jaxsync.simulate(problem, 12, partitions=part, sync="halo", halo_depth=0)
-    with pytest.raises(ConfigError, match="needs sync='halo'"):
-        jaxsync.simulate(problem, 12, partitions=part, sync="psum", halo_depth=2)
+        jaxsync.simulate(problem, 12, partitions=part, sync=jaxsync.Halo(0))
+    with pytest.raises(ConfigError, match="needs --sync halo"):  # the command line's two options
+        from jaxsync.app.commands.common import sync_of
+
+        sync_of(argparse.Namespace(sync="psum", halo_depth=2))
     with pytest.raises(ConfigError, match="sync='psum' or 'ppermute'"):
-        jaxsync.simulate(problem, 12, save_every=6, partitions=part, sync="halo", shared_every=1)
+        jaxsync.simulate(problem, 12, save=jaxsync.SaveAt(6, 1), partitions=part, sync="halo")
 
 
 def test_a_part_that_owns_nothing_is_refused():

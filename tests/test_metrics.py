@@ -72,3 +72,37 @@ def test_estimate_quality_against_numpy_by_hand():
     assert q.underestimated == 1.0
     with pytest.raises(ProblemError):
         estimate_quality(np.ones(3), np.ones(4))
+
+
+def test_node_error_against_numpy():
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(7, 4, 3))
+    pred = ref + 0.1 * rng.normal(size=(7, 4, 3))
+    from jaxsync.metrics import node_error
+
+    for component in (0, 1, 2):
+        out = node_error(ref, pred, 2, component)
+        err = np.abs(pred[:, 2, component] - ref[:, 2, component])
+        amplitude = np.abs(ref[:, 2, component]).max()
+        assert (out.node, out.component) == (2, component)
+        assert out.amplitude == pytest.approx(amplitude, rel=1e-15)
+        assert out.max_error == pytest.approx(err.max(), rel=1e-15)
+        assert out.relative == pytest.approx(err.max() / amplitude, rel=1e-15)
+        assert out.final_error == pytest.approx(err[-1], rel=1e-15)
+        assert out.rms_error == pytest.approx(np.sqrt((err ** 2).sum() / 7), rel=1e-14)
+    # the vector: norms in place of absolute values
+    out = node_error(ref, pred, 1)
+    err = np.sqrt(((pred[:, 1] - ref[:, 1]) ** 2).sum(axis=1))
+    amplitude = np.sqrt((ref[:, 1] ** 2).sum(axis=1)).max()
+    assert out.component is None
+    assert out.relative == pytest.approx(err.max() / amplitude, rel=1e-14)
+    assert out.final_error == pytest.approx(err[-1], rel=1e-14)
+    # a node that never moves has no relative error
+    ref[:, 0] = 0.0
+    assert node_error(ref, pred, 0, 2).relative is None
+    with pytest.raises(ProblemError, match="equal shapes"):
+        node_error(ref, pred[:-1], 0)
+    with pytest.raises(ProblemError, match="not one of the 4 nodes"):
+        node_error(ref, pred, 4)
+    with pytest.raises(ProblemError, match="component"):
+        node_error(ref, pred, 0, 3)

@@ -34,21 +34,19 @@ def _worker_sync(out_path: str) -> None:
 
         jax.config.update("jax_enable_x64", True)
         import jaxsync
-        from jaxsync.fem.stepper import build_system, initial_state
+        from jaxsync.fem.stepper import build_system
         from jaxsync.solve.distributed import DistributedRunner
-        from jaxsync.solve.solver import drive
 
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
-        configs = {"psum": dict(sync="psum"), "mpi-callback": dict(sync="mpi", allreduce="callback"),
-                   "halo-4": dict(sync="halo", halo_depth=4)}  # deep halos, exchanged through MPI
+        configs = {"psum": jaxsync.Psum(), "mpi-callback": jaxsync.Mpi(allreduce="callback"),
+                   "halo-4": jaxsync.Halo(4)}  # deep halos, exchanged through MPI
         if multiprocess.mpi4jax_available():
-            configs["mpi-mpi4jax"] = dict(sync="mpi", allreduce="mpi4jax")
+            configs["mpi-mpi4jax"] = jaxsync.Mpi(allreduce="mpi4jax")
         results = {"default": DistributedRunner(problem, system, 2, save_every=SAVE_EVERY).sync}
-        for name, kwargs in configs.items():
-            runner = DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, **kwargs)
-            traj = drive(problem, runner, initial_state(problem, system), STEPS, float(problem.dt),
-                         SAVE_EVERY, partition=runner.partition)
+        for name, sync in configs.items():
+            traj = jaxsync.simulate(problem, STEPS, save=SAVE_EVERY, partitions=2, sync=sync,
+                                    executor=jaxsync.HostExecutor(progress=False))
             results[name] = traj.displacement
         if multiprocess.is_main_process():
             default = results.pop("default")
@@ -129,7 +127,7 @@ def _jaxsync_cli() -> list[str]:
 
 @pytest.fixture(scope="module")
 def reference():
-    return jaxsync.simulate(jaxsync.cantilever(), STEPS, save_every=SAVE_EVERY)
+    return jaxsync.simulate(jaxsync.cantilever(), STEPS, save=SAVE_EVERY)
 
 
 def relative_error(a, b):
@@ -276,18 +274,16 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     pytest.importorskip("mpi4py")
     import jax
 
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem.stepper import build_system
     from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.solver import drive
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
     backends = ["callback"] + (["mpi4jax"] if multiprocess.mpi4jax_available() else [])
     for backend in backends:
-        runner = DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, sync="mpi",
-                                   allreduce=backend, devices=jax.devices()[:1])
-        traj = drive(problem, runner, initial_state(problem, system), STEPS, float(problem.dt),
-                     SAVE_EVERY, partition=runner.partition)
+        traj = jaxsync.simulate(problem, STEPS, save=SAVE_EVERY, partitions=2,
+                                sync=jaxsync.Mpi(allreduce=backend, devices=jax.devices()[:1]),
+                                executor=jaxsync.HostExecutor(progress=False))
         assert relative_error(traj.displacement, reference.displacement) <= 1e-12, backend
     with pytest.raises(jaxsync.ConfigError, match="one device"):
         DistributedRunner(problem, system, 2, save_every=SAVE_EVERY, sync="mpi")

@@ -52,7 +52,7 @@ def fake_online(reference, partition, resync=((200, 240), (320, 330)), n_cri_sna
 @pytest.fixture(scope="module")
 def cantilever_case():
     problem = jaxsync.cantilever()
-    reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
+    reference = jaxsync.simulate(problem, N_STEPS, save=SAVE_EVERY)
     parts = jaxsync.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 
@@ -60,7 +60,7 @@ def cantilever_case():
 @pytest.fixture(scope="module")
 def vessel_case():
     problem = vessel_like()
-    reference = jaxsync.simulate(problem, N_STEPS, save_every=SAVE_EVERY)
+    reference = jaxsync.simulate(problem, N_STEPS, save=SAVE_EVERY)
     parts = jaxsync.partition(problem.mesh, 2)
     return problem, reference, parts, fake_online(reference, parts)
 

@@ -119,7 +119,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
-    from jaxsync.parallel.exchange import build_part_systems
+    from jaxsync.parallel.layout import PartLayout, part_systems
 
     part_info = jaxsync.partition(problem.mesh, 2, seed=0)
     system = build_system(problem, problem.dt)
@@ -127,8 +127,8 @@ def test_per_part_costs_match_the_part_systems(problem):
     assert len(per_part) == 2
     for part, costs in zip(part_info.parts, per_part):
         # the part's own system at its own size, as jaxsync.perf.timing times it
-        alone = build_part_systems(problem, system, dataclasses.replace(part_info, parts=(part,)),
-                                   "preassembled").system.stiffness
+        alone = part_systems(problem, system, PartLayout.of(dataclasses.replace(part_info, parts=(part,))),
+                             "preassembled").system.stiffness
         assert costs["t_m"].bytes == alone.columns.nbytes + alone.blocks.nbytes + 2 * 24 * part.n_local
         n_sh, n_a = part.n_shared, part_info.n_interface
         assert n_sh > 0

@@ -77,7 +77,7 @@ def test_steady_state_matches_scipy_solve(problem):
 def test_damped_run_converges_to_steady_state(problem):
     # alpha = 4/s damps the first bending mode (omega ~ 2.5 rad/s) within ~8 s
     damped = problem.replace(damping=4.0)
-    traj = jaxsync.simulate(damped, 40000, save_every=40000)
+    traj = jaxsync.simulate(damped, 40000, save=40000)
     u = jaxsync.steady_state(damped)
     err = np.linalg.norm(traj.displacement[-1] - u) / np.linalg.norm(u)
     assert err < 1e-6
@@ -154,7 +154,7 @@ def test_grad_matches_finite_differences(problem):
 
     def tip_z(E, alpha):
         p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
-        traj = jaxsync.simulate(p, 400, dt=dt, save_every=400)
+        traj = jaxsync.simulate(p, 400, dt=dt, save=400)
         return traj.displacement[-1, tip, 2]
 
     E0, a0 = 1.0e6, 0.5
@@ -173,7 +173,7 @@ def test_grad_with_respect_to_nu_rho_and_load_is_finite_and_matches_fd(problem):
     def tip_z(nu, rho, load):
         p = problem.replace(material=jaxsync.LinearElastic(1.0e6, nu, rho),
                             loads=(jaxsync.BodyForce(jnp.array([0.0, 0.0, -1.0]) * load),))
-        return jaxsync.simulate(p, 300, dt=dt, save_every=300).displacement[-1, tip, 2]
+        return jaxsync.simulate(p, 300, dt=dt, save=300).displacement[-1, tip, 2]
 
     grads = jax.grad(tip_z, argnums=(0, 1, 2))(0.3, 1.0, 0.5)
     # linear in the load: d(tip)/d(load) = tip / load
@@ -189,27 +189,27 @@ def test_grad_with_respect_to_nu_rho_and_load_is_finite_and_matches_fd(problem):
 
 def test_save_every_and_times(problem):
     full = jaxsync.simulate(problem, 600)
-    thinned = jaxsync.simulate(problem, 600, save_every=200)
+    thinned = jaxsync.simulate(problem, 600, save=200)
     assert thinned.displacement.shape == (4, problem.mesh.n_nodes, 3)
     np.testing.assert_array_equal(thinned.displacement, full.displacement[::200])
     np.testing.assert_allclose(thinned.times, np.arange(4) * 200 * problem.dt)
     with pytest.raises(ProblemError, match="multiple of save_every"):
-        jaxsync.simulate(problem, 601, save_every=200)
+        jaxsync.simulate(problem, 601, save=200)
 
 
 def test_chunking_does_not_change_the_result(problem):
-    a = jaxsync.simulate(problem, 3000, save_every=10, chunk_steps=3000)
-    b = jaxsync.simulate(problem, 3000, save_every=10, chunk_steps=700)
+    a = jaxsync.simulate(problem, 3000, save=10, executor=jaxsync.HostExecutor(chunk_steps=3000))
+    b = jaxsync.simulate(problem, 3000, save=10, executor=jaxsync.HostExecutor(chunk_steps=700))
     np.testing.assert_array_equal(a.displacement, b.displacement)
 
 
 def test_resumed_run_equals_uninterrupted_bit_for_bit(problem, tmp_path):
     ckpt = tmp_path / "run.ckpt.h5"
-    full = jaxsync.simulate(problem, 6000, save_every=20, chunk_steps=1000)
-    first = jaxsync.simulate(problem, 2000, save_every=20, chunk_steps=1000, checkpoint=ckpt)
+    full = jaxsync.simulate(problem, 6000, save=20, executor=jaxsync.HostExecutor(chunk_steps=1000))
+    first = jaxsync.simulate(problem, 2000, save=20, executor=jaxsync.HostExecutor(chunk_steps=1000), checkpoint=ckpt)
     assert os.path.exists(ckpt)
     np.testing.assert_array_equal(first.displacement, full.displacement[:101])
-    resumed = jaxsync.simulate(problem, 6000, save_every=20, chunk_steps=1000, checkpoint=ckpt)
+    resumed = jaxsync.simulate(problem, 6000, save=20, executor=jaxsync.HostExecutor(chunk_steps=1000), checkpoint=ckpt)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     np.testing.assert_array_equal(resumed.times, full.times)
 
@@ -232,12 +232,13 @@ def test_interrupted_run_resumes(problem, tmp_path):
     """A run killed mid-way (here: interrupted in its fourth chunk) resumes from its last
     checkpoint and matches the uninterrupted run."""
     ckpt = tmp_path / "run.ckpt.h5"
-    full = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000)
+    full = jaxsync.simulate(problem, 5000, save=50, executor=jaxsync.HostExecutor(chunk_steps=1000))
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt,
-                         checkpoint_every=1000, progress=InterruptAfter(4))
+        jaxsync.simulate(problem, 5000, save=50,
+                         executor=jaxsync.HostExecutor(progress=InterruptAfter(4), chunk_steps=1000),
+                         checkpoint=jaxsync.SolverCheckpoint(ckpt, every=1000))
     assert committed_step(ckpt) == 3000
-    resumed = jaxsync.simulate(problem, 5000, save_every=50, chunk_steps=1000, checkpoint=ckpt)
+    resumed = jaxsync.simulate(problem, 5000, save=50, executor=jaxsync.HostExecutor(chunk_steps=1000), checkpoint=ckpt)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
 
@@ -252,50 +253,53 @@ def test_checkpoints_come_by_wall_time_unless_an_interval_is_given(problem, tmp_
     monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", seconds)
     by_clock, by_steps = tmp_path / "clock.ckpt.h5", tmp_path / "steps.ckpt.h5"
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_clock,
-                         progress=InterruptAfter(4))
+        jaxsync.simulate(problem, 1000, save=20,
+                         executor=jaxsync.HostExecutor(progress=InterruptAfter(4), chunk_steps=200),
+                         checkpoint=by_clock)
     assert committed_step(by_clock) == (600 if seconds == 0 else None)
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_steps,
-                         checkpoint_every=400, progress=InterruptAfter(4))
+        jaxsync.simulate(problem, 1000, save=20,
+                         executor=jaxsync.HostExecutor(progress=InterruptAfter(4), chunk_steps=200),
+                         checkpoint=jaxsync.SolverCheckpoint(by_steps, every=400))
     assert committed_step(by_steps) == 400
-    done = jaxsync.simulate(problem, 1000, save_every=20, chunk_steps=200, checkpoint=by_clock)
+    done = jaxsync.simulate(problem, 1000, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=by_clock)
     assert committed_step(by_clock) == 1000  # always at the end
     np.testing.assert_array_equal(done.displacement,
-                                  jaxsync.simulate(problem, 1000, save_every=20).displacement)
+                                  jaxsync.simulate(problem, 1000, save=20).displacement)
 
 
 def test_interrupted_distributed_run_resumes_with_every_step_shared_histories(problem, tmp_path):
     """The parts' every-step shared histories (the training data) survive a resume:
     equal to the uninterrupted run's; a checkpoint without them is refused."""
     ckpt = tmp_path / "run.ckpt.h5"
-    kwargs = dict(partitions=2, save_every=50, shared_every=1, chunk_steps=500)
-    full = jaxsync.simulate(problem, 2000, **kwargs)
+    kwargs = dict(partitions=2, save=jaxsync.SaveAt(50, shared_every=1))
+    chunks = jaxsync.HostExecutor(chunk_steps=500)
+    full = jaxsync.simulate(problem, 2000, executor=chunks, **kwargs)
     with pytest.raises(KeyboardInterrupt):
-        jaxsync.simulate(problem, 2000, checkpoint=ckpt, checkpoint_every=500,
-                         progress=InterruptAfter(3), **kwargs)
+        jaxsync.simulate(problem, 2000, executor=jaxsync.HostExecutor(progress=InterruptAfter(3), chunk_steps=500),
+                         checkpoint=jaxsync.SolverCheckpoint(ckpt, every=500), **kwargs)
     assert committed_step(ckpt) == 1000
-    resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, **kwargs)
+    resumed = jaxsync.simulate(problem, 2000, checkpoint=ckpt, executor=chunks, **kwargs)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     for a, b in zip(resumed.parts, full.parts):
         assert a.shared_displacement.shape == (2001, b.shared_displacement.shape[1])
         np.testing.assert_array_equal(a.shared_displacement, b.shared_displacement)
     coarse = tmp_path / "coarse.ckpt.h5"
-    jaxsync.simulate(problem, 1000, partitions=2, save_every=50, checkpoint=coarse)
+    jaxsync.simulate(problem, 1000, partitions=2, save=50, checkpoint=coarse)
     with pytest.raises(CheckpointError, match="every-step shared histories"):
-        jaxsync.simulate(problem, 2000, checkpoint=coarse, **kwargs)
+        jaxsync.simulate(problem, 2000, checkpoint=coarse, executor=chunks, **kwargs)
 
 
 def test_foreign_or_corrupt_checkpoint_is_refused(problem, tmp_path):
     ckpt = tmp_path / "run.ckpt.h5"
-    jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
+    jaxsync.simulate(problem, 1000, save=10, checkpoint=ckpt)
     with pytest.raises(CheckpointError, match="different problem"):
-        jaxsync.simulate(problem.replace(damping=0.1), 2000, save_every=10, checkpoint=ckpt)
+        jaxsync.simulate(problem.replace(damping=0.1), 2000, save=10, checkpoint=ckpt)
     with pytest.raises(CheckpointError, match="beyond n_steps"):
-        jaxsync.simulate(problem, 500, save_every=10, checkpoint=ckpt)
+        jaxsync.simulate(problem, 500, save=10, checkpoint=ckpt)
     ckpt.write_bytes(b"not an hdf5 file")
     with pytest.raises(CheckpointError, match="cannot read"):
-        jaxsync.simulate(problem, 1000, save_every=10, checkpoint=ckpt)
+        jaxsync.simulate(problem, 1000, save=10, checkpoint=ckpt)
 
 
 @pytest.mark.parametrize("tamper", ["displacement", "previous", "snapshots", "step"])
@@ -308,7 +312,7 @@ def test_altered_checkpoint_is_refused(problem, tmp_path, tamper):
     import h5py
 
     ckpt, intact = tmp_path / "run.ckpt.h5", tmp_path / "intact.ckpt.h5"
-    jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=ckpt)
+    jaxsync.simulate(problem, 400, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=ckpt)
     shutil.copy(ckpt, intact)
     with h5py.File(ckpt, "r+") as f:
         if tamper == "step":  # the committed step of both commit slots
@@ -320,9 +324,9 @@ def test_altered_checkpoint_is_refused(problem, tmp_path, tamper):
             data[..., :10, :] = 0.05
             f[tamper][...] = data
     with pytest.raises(CheckpointError, match="fails its checksum.*delete it to start over"):
-        jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200, checkpoint=ckpt)
-    resumed = jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200, checkpoint=intact)
-    full = jaxsync.simulate(problem, 800, save_every=20, chunk_steps=200)
+        jaxsync.simulate(problem, 800, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=ckpt)
+    resumed = jaxsync.simulate(problem, 800, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=intact)
+    full = jaxsync.simulate(problem, 800, save=20, executor=jaxsync.HostExecutor(chunk_steps=200))
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
 
 
@@ -351,14 +355,14 @@ def _layout1_checkpoint(path, source, problem, dt, save_every, *, checksum=True)
 
 def test_checkpoint_of_the_previous_layout_resumes_or_without_checksum_is_refused(problem, tmp_path):
     new, old, bare = tmp_path / "new.ckpt.h5", tmp_path / "old.ckpt.h5", tmp_path / "bare.ckpt.h5"
-    jaxsync.simulate(problem, 200, save_every=20, chunk_steps=200, checkpoint=new)
+    jaxsync.simulate(problem, 200, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=new)
     _layout1_checkpoint(old, new, problem, float(problem.dt), 20)
     _layout1_checkpoint(bare, new, problem, float(problem.dt), 20, checksum=False)
-    full = jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200)
-    resumed = jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=old)
+    full = jaxsync.simulate(problem, 400, save=20, executor=jaxsync.HostExecutor(chunk_steps=200))
+    resumed = jaxsync.simulate(problem, 400, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=old)
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     with pytest.raises(CheckpointError, match="no checksum.*delete it to start over"):
-        jaxsync.simulate(problem, 400, save_every=20, chunk_steps=200, checkpoint=bare)
+        jaxsync.simulate(problem, 400, save=20, executor=jaxsync.HostExecutor(chunk_steps=200), checkpoint=bare)
 
 
 def test_checkpoints_append_only_their_new_rows(problem, tmp_path, monkeypatch):
@@ -373,7 +377,8 @@ def test_checkpoints_append_only_their_new_rows(problem, tmp_path, monkeypatch):
     atomic_h5 = checkpoint.atomic_h5
     monkeypatch.setattr(checkpoint, "atomic_h5", lambda path: whole.append(path) or atomic_h5(path))
     ckpt = tmp_path / "run.ckpt.h5"
-    kwargs = dict(save_every=20, chunk_steps=200, checkpoint=ckpt, checkpoint_every=200)
+    kwargs = dict(save=20, executor=jaxsync.HostExecutor(chunk_steps=200),
+                  checkpoint=jaxsync.SolverCheckpoint(ckpt, every=200))
     first = jaxsync.simulate(problem, 1000, **kwargs)  # 5 checkpoints
     assert len(whole) == 1
     with h5py.File(ckpt, "r") as f:
@@ -381,12 +386,12 @@ def test_checkpoints_append_only_their_new_rows(problem, tmp_path, monkeypatch):
         assert f["commit"][:, :2].tolist() == [[5, 1000], [4, 800]]  # (sequence, step) per slot
         assert int(f.attrs["step"]) == 1000 == checkpoint.committed_step(ckpt)
     np.testing.assert_array_equal(first.displacement,
-                                  jaxsync.simulate(problem, 1000, save_every=20).displacement)
+                                  jaxsync.simulate(problem, 1000, save=20).displacement)
     # a resumed run writes the file whole once more (room for its longer run), then appends
     resumed = jaxsync.simulate(problem, 2000, **kwargs)
     assert len(whole) == 2
     np.testing.assert_array_equal(resumed.displacement,
-                                  jaxsync.simulate(problem, 2000, save_every=20).displacement)
+                                  jaxsync.simulate(problem, 2000, save=20).displacement)
 
 
 def _storage(path):
@@ -493,8 +498,8 @@ def test_a_damaged_last_commit_resumes_from_the_one_before(problem, tmp_path):
     import h5py
 
     ckpt = tmp_path / "run.ckpt.h5"
-    kwargs = dict(save_every=20, chunk_steps=200)
-    jaxsync.simulate(problem, 600, checkpoint=ckpt, checkpoint_every=200, **kwargs)  # at 200, 400, 600
+    kwargs = dict(save=20, executor=jaxsync.HostExecutor(chunk_steps=200))
+    jaxsync.simulate(problem, 600, checkpoint=jaxsync.SolverCheckpoint(ckpt, every=200), **kwargs)  # at 200, 400, 600
     with h5py.File(ckpt, "r+") as f:
         last = int(np.argmax(f["commit"][:, 0]))
         assert int(f["commit"][last, 1]) == 600
@@ -511,8 +516,8 @@ def test_a_damaged_last_commit_resumes_from_the_one_before(problem, tmp_path):
 def test_diverging_run_stops_with_the_stability_error_and_keeps_snapshots(problem):
     dt = 1.5 * jaxsync.max_stable_dt(problem)
     with pytest.raises(StabilityError, match="diverged") as info:
-        jaxsync.simulate(problem, 20000, dt=dt, save_every=10, check_stability=False,
-                         chunk_steps=1000)
+        jaxsync.simulate(problem, 20000, dt=dt, save=10,
+                         executor=jaxsync.HostExecutor(chunk_steps=1000, check_stability=False))
     partial = info.value.trajectory
     assert partial.n_saved >= 1
     assert np.all(np.isfinite(partial.displacement))

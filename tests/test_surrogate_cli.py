@@ -9,8 +9,15 @@ import pytest
 
 from jaxsync.app.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import TrainConfig, train_surrogates
-from jaxsync.surrogate.checkpoint import check_compatible, load_checkpoint
+from jaxsync.surrogate import (
+    ArchitectureChoice,
+    Sampling,
+    TrainConfig,
+    TrainingChecks,
+    TrainingState,
+    train_surrogates,
+)
+from jaxsync.surrogate.saved import check_compatible, load_surrogate
 from test_surrogate_fit import NODES, write_trajectory
 
 
@@ -42,7 +49,7 @@ def test_train_writes_checkpoint_curves_and_summary(tmp_path, capsys):
                                  "--emse-applications", "20", *SMALL])
     assert args.func(args) == 0
 
-    ckpt = load_checkpoint(out / "surrogate.h5")
+    ckpt = load_surrogate(out / "surrogate.h5")
     check_compatible(ckpt, NODES)
     assert ckpt.dof_counts == (6, 9) and ckpt.arch.n_dof == 9 and ckpt.n_s == 2
     assert ckpt.arch.n_hidden == 6 and ckpt.arch.n_past == 6 and ckpt.arch.n_future == 5
@@ -104,32 +111,32 @@ def test_train_errors(tmp_path):
 
 
 def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
-    import inspect
-
-    from jaxsync.app.demo import run_demo
+    from jaxsync.app.demo import DemoSettings
 
     args = _parser().parse_args(["train", "run.h5"])
     config = TrainConfig()
     assert (args.batch_size, args.eta0, args.gamma, args.eta_min, args.epochs, args.patience,
             args.epochs_per_call) == (config.batch_size, config.eta0, config.gamma, config.eta_min,
                                       config.n_epochs, config.patience, config.epochs_per_call)
-    assert (args.n_hidden, args.n_layers, args.epochs, args.checkpoint_every, args.allow_predicted) == (
+    assert (args.n_hidden, args.n_layers, args.epochs, args.state_every, args.allow_predicted) == (
         50, 2, 800, 50, False)
     from jaxsync.app.demo import demo_defaults
 
     demo = demo_defaults("cantilever")
-    assert all(inspect.signature(run_demo).parameters[k].default is None
+    # what the demo is not told keeps its case's default
+    assert all(getattr(DemoSettings(), k) is None
                for k in ("n_hidden", "n_layers", "epochs", "eta0", "gamma", "batch_size", "n_s"))
+    assert DemoSettings().applied_to(demo) == demo
     assert (demo.n_hidden, demo.n_layers, demo.epochs, demo.eta0, demo.gamma, demo.batch_size, demo.n_s) == (
         args.n_hidden, args.n_layers, args.epochs, args.eta0, args.gamma, args.batch_size, args.n_s)
-    lib = inspect.signature(train_surrogates).parameters
-    assert (lib["n_hidden"].default, lib["n_layers"].default, lib["n_s"].default, lib["checkpoint_every"].default,
-            lib["emse_applications"].default) == (args.n_hidden, args.n_layers, args.n_s, args.checkpoint_every,
-                                                  args.emse_applications)
-    assert (lib["n_offsets"].default, lib["rollout_tolerance"].default) == (args.n_offsets, args.rollout_tolerance)
-    assert lib["n_candidates"].default == args.n_candidates == demo.n_candidates == 2
+    arch, sampling, checks = ArchitectureChoice(), Sampling(), TrainingChecks()
+    assert (arch.n_hidden, arch.n_layers, sampling.n_s, TrainingState.every,
+            checks.emse_applications) == (args.n_hidden, args.n_layers, args.n_s, args.state_every,
+                                          args.emse_applications)
+    assert (sampling.n_offsets, checks.rollout_tolerance) == (args.n_offsets, args.rollout_tolerance)
+    assert config.n_candidates == args.n_candidates == demo.n_candidates == 2
     assert _parser().parse_args(["train", "run.h5", "--candidates", "3"]).n_candidates == 3
-    assert lib["split"].default == args.split == "interleaved"
+    assert sampling.split == args.split == "interleaved"
     assert _parser().parse_args(["train", "run.h5", "--split", "random"]).split == "random"
     assert (args.n_s, args.batch_size, args.patience) == (150, 10, 200)
     # the old spellings stay
@@ -140,14 +147,14 @@ def test_defaults_fit_a_laptop_and_agree_with_python_and_the_demo():
     assert paper.epochs is None
     assert TrainConfig(eta0=paper.eta0, gamma=paper.gamma, eta_min=paper.eta_min,
                        n_epochs=paper.epochs).resolved_epochs == 13812
-    for bad in (["--epochs", "0"], ["--epochs", "many"], ["--patience", "-1"], ["--checkpoint-every", "x"]):
+    for bad in (["--epochs", "0"], ["--epochs", "many"], ["--patience", "-1"], ["--state-every", "x"]):
         with pytest.raises(SystemExit):
             _parser().parse_args(["train", "run.h5", *bad])
 
 
 def test_train_resumes_after_an_interruption(tmp_path, capsys):
     path = write_trajectory(tmp_path / "run.h5", n_steps=300)
-    common = ["train", str(path), *SMALL, "--checkpoint-every", "6", "--emse-applications", "0"]
+    common = ["train", str(path), *SMALL, "--state-every", "6", "--emse-applications", "0"]
     whole = _parser().parse_args([*common, "-o", str(tmp_path / "whole")])
     assert whole.func(whole) == 0
 
@@ -159,9 +166,10 @@ def test_train_resumes_after_an_interruption(tmp_path, capsys):
 
     out = tmp_path / "out"
     with pytest.raises(KeyboardInterrupt):
-        train_surrogates(path, n_s=2, n_past=6, n_future=5, n_hidden=6, n_layers=1, emse_applications=0,
-                         config=TrainConfig(batch_size=8, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=6),
-                         out=out, checkpoint_every=6, progress=False, callback=killed)
+        train_surrogates(path, architecture=ArchitectureChoice(n_hidden=6, n_layers=1),
+                         sampling=Sampling(n_s=2, n_past=6, n_future=5), checks=TrainingChecks(emse_applications=0),
+                         optimizer=TrainConfig(batch_size=8, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=6),
+                         state=TrainingState(out, every=6), progress=False, callback=killed)
     assert (out / "training_state.h5").exists() and not (out / "surrogate.h5").exists()
 
     # another run into that folder, with other options, is refused ...
@@ -175,7 +183,7 @@ def test_train_resumes_after_an_interruption(tmp_path, capsys):
     assert f"resuming from the training state {out / 'training_state.h5'}" in capsys.readouterr().out
     summary = json.loads((out / "train_summary.json").read_text())
     assert summary["training"]["resumed_from_epoch"] == 6 and summary["n_epochs_run"] == 12
-    a, b = load_checkpoint(tmp_path / "whole" / "surrogate.h5"), load_checkpoint(out / "surrogate.h5")
+    a, b = load_surrogate(tmp_path / "whole" / "surrogate.h5"), load_surrogate(out / "surrogate.h5")
     for x, y in zip(jax_leaves(a.params), jax_leaves(b.params)):
         np.testing.assert_array_equal(x, y)
     assert summary["loss_history"] == json.loads((tmp_path / "whole" / "train_summary.json").read_text())[

@@ -322,7 +322,7 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     problem = jaxsync.cantilever()
     parts = jaxsync.partition(problem.mesh, 2)
     every = jaxsync.simulate(problem, 300, partitions=parts)
-    thin = jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=1)
+    thin = jaxsync.simulate(problem, 300, partitions=parts, save=jaxsync.SaveAt(50, 1))
     assert thin.n_saved == 7 and thin.shared_stride == 1
     np.testing.assert_array_equal(thin.displacement, every.displacement[::50])
     for a, b in zip(thin.parts, every.parts):
@@ -332,7 +332,7 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     for got, part in zip(runs.histories, every.parts):
         np.testing.assert_array_equal(got, part.shared_displacement)
     # a thinned shared history is read with its stride: the rows of every 50th step
-    jaxsync.simulate(problem, 300, partitions=parts, save_every=50).save(tmp_path / "coarse.h5")
+    jaxsync.simulate(problem, 300, partitions=parts, save=50).save(tmp_path / "coarse.h5")
     coarse = read_shared_histories(tmp_path / "coarse.h5")
     assert coarse.stride == 50 and coarse.for_sampling(100) == 2
     for got, part in zip(coarse.histories, every.parts):
@@ -341,4 +341,4 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
     with pytest.raises(CheckpointError, match="does not divide the sampling stride n_s=80.*shared_every"):
         coarse.for_sampling(80)
     with pytest.raises(jaxsync.ProblemError, match="divisor"):
-        jaxsync.simulate(problem, 300, partitions=parts, save_every=50, shared_every=3)
+        jaxsync.simulate(problem, 300, partitions=parts, save=jaxsync.SaveAt(50, 3))

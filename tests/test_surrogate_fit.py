@@ -9,7 +9,17 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import Surrogate, TrainConfig, TrainedSurrogates, load_checkpoint, train_surrogates
+from jaxsync.surrogate import (
+    ArchitectureChoice,
+    Sampling,
+    Surrogate,
+    TrainConfig,
+    TrainedSurrogates,
+    TrainingChecks,
+    TrainingState,
+    load_surrogate,
+    train_surrogates,
+)
 from jaxsync.surrogate.data import build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import e_mse
 from jaxsync.surrogate.train import train_replicas
@@ -41,15 +51,16 @@ def write_trajectory(path, **kwargs):
     return path
 
 
-SMALL = dict(n_s=2, n_past=6, n_future=5, n_hidden=6, n_layers=1,
-             config=TrainConfig(batch_size=8, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=6),
-             progress=False)
+ARCH = ArchitectureChoice(n_hidden=6, n_layers=1)
+SAMPLING = Sampling(n_s=2, n_past=6, n_future=5)
+CONFIG = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=6)
+SMALL = dict(architecture=ARCH, sampling=SAMPLING, optimizer=CONFIG, progress=False)
 
 
 def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     traj = oscillator_trajectory(n_steps=300)
-    trained = train_surrogates(traj, emse_applications=5, **SMALL)
+    trained = train_surrogates(traj, checks=TrainingChecks(emse_applications=5), **SMALL)
     assert isinstance(trained, TrainedSurrogates) and trained.files == {} and not list(tmp_path.iterdir())
     assert trained.trajectories == (None,) and trained.load_parameters is None
     # the same as the steps it is made of: windows (twice: two candidates per part by
@@ -57,7 +68,7 @@ def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path
     datasets = [build_dataset([p.shared_displacement], 2, 6, 5, 0.5, 0.25, 0) for p in traj.parts]
     data = stack_replicas(datasets * 2)
     assert (trained.n_train_windows, trained.n_val_windows) == data.x_train.shape[1:2] + data.x_val.shape[1:2]
-    both = train_replicas(data, trained.result.arch, SMALL["config"], jax.random.key(0), progress=False)
+    both = train_replicas(data, trained.result.arch, CONFIG, jax.random.key(0), progress=False)
     losses = both.best_val_loss.reshape(2, 2)  # (candidate, part)
     chosen = np.argmin(losses, axis=0)
     assert trained.candidates == {"n_candidates": 2, "chosen": chosen.tolist(), "best_val_loss": losses.tolist()}
@@ -73,7 +84,7 @@ def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path
     np.testing.assert_array_equal(trained.sqrt_e_mse, np.sqrt(e_mse(surrogate, histories, 5)))
     assert trained.e_mse_applications == 5
     # the checkpoint holds the partition and the metadata of the summary
-    ckpt = trained.checkpoint
+    ckpt = trained.saved
     assert [n.tolist() for n in ckpt.shared_nodes] == [n.tolist() for n in NODES]
     summary = trained.summary()
     assert ckpt.metadata["final_val_loss"] == summary["final_val_loss"] == trained.final_val_loss.tolist()
@@ -84,29 +95,32 @@ def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path
 def test_files_written_into_out_and_several_runs_with_load_parameters(tmp_path):
     paths = [write_trajectory(tmp_path / f"run{k}.h5", load=load, n_steps=300) for k, load in enumerate((1.0, 0.6))]
     out = tmp_path / "out"
-    trained = train_surrogates(paths, n_cond_repeat=2, emse_applications=0, out=out, checkpoint_every=6, **SMALL)
+    trained = train_surrogates(paths, **dict(SMALL, architecture=dataclasses.replace(ARCH, n_cond_repeat=2)),
+                               checks=TrainingChecks(emse_applications=0), state=TrainingState(out, every=6))
+    trained = trained.write(out)
     assert trained.load_parameters == (1.0, 0.6) and trained.sqrt_e_mse is None
     assert trained.surrogate.arch.conditional and float(trained.surrogate.load_parameter[0]) == 1.0
     assert sorted(p.name for p in out.iterdir()) == ["loss_curves.png", "surrogate.h5", "train_summary.json"]
-    assert trained.files["checkpoint"] == str((out / "surrogate.h5").resolve())
+    assert trained.files["surrogate"] == str((out / "surrogate.h5").resolve())
     saved = json.loads((out / "train_summary.json").read_text())
     assert saved == json.loads(json.dumps(trained.summary()))
     assert saved["trajectories"] == [str(p.resolve()) for p in paths] and saved["load_parameters"] == [1.0, 0.6]
     loaded = Surrogate.load(out / "surrogate.h5", load_parameter=1.0)
     for a, b in zip(jax.tree_util.tree_leaves(loaded), jax.tree_util.tree_leaves(trained.surrogate)):
         np.testing.assert_array_equal(a, b)
-    assert load_checkpoint(out / "surrogate.h5").metadata == trained.checkpoint.metadata
+    assert load_surrogate(out / "surrogate.h5").metadata == trained.saved.metadata
     with pytest.raises(CheckpointError, match="conditional"):
         Surrogate.load(out / "surrogate.h5")
 
 
 def test_unusable_trajectories_and_settings_are_refused(tmp_path):
+    conditional = dict(SMALL, architecture=dataclasses.replace(ARCH, n_cond_repeat=2))
     with pytest.raises(CheckpointError, match="every 5 steps, which does not divide the sampling stride n_s=2"):
         train_surrogates(oscillator_trajectory(n_steps=300, save_every=5), **SMALL)
     with pytest.raises(ConfigError, match="load parameter"):
-        train_surrogates(oscillator_trajectory(n_steps=300), n_cond_repeat=2, **SMALL)
+        train_surrogates(oscillator_trajectory(n_steps=300), **conditional)
     with pytest.raises(ConfigError, match="2 values for 1 trajectories"):
-        train_surrogates(oscillator_trajectory(n_steps=300), n_cond_repeat=2, load_parameters=[1, 2], **SMALL)
+        train_surrogates(oscillator_trajectory(n_steps=300), load_parameters=[1, 2], **conditional)
     other = oscillator_trajectory(n_steps=300, nodes=(np.array([3, 8]), np.array([3, 9, 11])))
     with pytest.raises(CheckpointError, match="trajectory 1 belongs to another partition than trajectory 0"):
         train_surrogates([oscillator_trajectory(n_steps=300), other], **SMALL)
@@ -125,15 +139,16 @@ def test_shared_histories_thinned_to_a_divisor_of_n_s_train_the_same_replicas():
     thin = dataclasses.replace(
         full, shared_every=2,
         parts=tuple(dataclasses.replace(p, shared_displacement=p.shared_displacement[::2]) for p in full.parts))
-    settings = dict(SMALL, n_s=4)
-    a = train_surrogates(full, emse_applications=0, **settings)
-    b = train_surrogates(thin, emse_applications=5, **settings)
+    settings = dict(SMALL, sampling=dataclasses.replace(SAMPLING, n_s=4))
+    a = train_surrogates(full, checks=TrainingChecks(emse_applications=0), **settings)
+    b = train_surrogates(thin, checks=TrainingChecks(emse_applications=5), **settings)
     assert (a.n_train_windows, a.n_val_windows) == (b.n_train_windows, b.n_val_windows) and a.n_train_windows > 0
     for x, y in zip(jax.tree_util.tree_leaves(a.result.params), jax.tree_util.tree_leaves(b.result.params)):
         np.testing.assert_array_equal(x, y)
     assert b.sqrt_e_mse is None and b.e_mse_applications is None
     with pytest.raises(CheckpointError, match="every 2 steps, which does not divide the sampling stride n_s=3"):
-        train_surrogates(thin, emse_applications=0, **dict(SMALL, n_s=3))
+        train_surrogates(thin, checks=TrainingChecks(emse_applications=0),
+                         **dict(SMALL, sampling=dataclasses.replace(SAMPLING, n_s=3)))
 
 
 def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_loss():
@@ -143,15 +158,17 @@ def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_l
     from jaxsync.surrogate.fit import choose_candidates
 
     traj = oscillator_trajectory(n_steps=300)
-    one = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, n_candidates=1, **SMALL)
-    three = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, n_candidates=3, **SMALL)
+    unchecked = TrainingChecks(emse_applications=0, rollout_tolerance=None)
+    one = train_surrogates(traj, checks=unchecked, **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=1)))
+    three = train_surrogates(traj, checks=unchecked,
+                             **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=3)))
     assert one.candidates is None and one.summary()["candidates"] is None
     losses = np.asarray(three.candidates["best_val_loss"])
     assert losses.shape == (3, 2)
     np.testing.assert_allclose(losses[0], one.result.best_val_loss, rtol=1e-4)
     assert three.candidates["chosen"] == np.argmin(losses, axis=0).tolist()
     assert np.all(three.result.best_val_loss <= losses.min(axis=0))
-    assert three.summary()["candidates"] == three.checkpoint.metadata["candidates"] == three.candidates
+    assert three.summary()["candidates"] == three.saved.metadata["candidates"] == three.candidates
     # the selection itself, on a constructed result: replica c * n_parts + p
     res = one.result
     fake = dataclasses.replace(res, params=jax.tree_util.tree_map(lambda a: np.concatenate([a, a + 1.0]), res.params),
@@ -166,7 +183,7 @@ def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_l
     np.testing.assert_array_equal(jax.tree_util.tree_leaves(picked.params)[0], np.stack([leaf[0] + 1.0, leaf[1]]))
     np.testing.assert_array_equal(picked.mean, [res.mean[0] + 1, res.mean[1]])
     with pytest.raises(ConfigError, match="n_candidates must be an integer >= 1"):
-        train_surrogates(traj, n_candidates=0, **SMALL)
+        train_surrogates(traj, **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=0)))
 
 
 def test_offline_check_starts_after_the_last_load_jump(tmp_path):
@@ -180,7 +197,8 @@ def test_offline_check_starts_after_the_last_load_jump(tmp_path):
     traj = Trajectory(times=traj.times, displacement=traj.displacement, mesh=traj.mesh, dt=traj.dt, save_every=1,
                       parameters={"last_load_jump": 100}, parts=traj.parts)
     traj.save(tmp_path / "jumped.h5")
-    trained = train_surrogates(str(tmp_path / "jumped.h5"), emse_applications=0, rollout_tolerance=10.0, **SMALL)
+    loose = TrainingChecks(emse_applications=0, rollout_tolerance=10.0)
+    trained = train_surrogates(str(tmp_path / "jumped.h5"), checks=loose, **SMALL)
     start = 100 + 2 * 6 - 1
     assert trained.rollout.start == start and trained.summary()["rollout_check"]["start"] == start
     histories = np.stack([np.pad(p.shared_displacement, ((0, 0), (0, 9 - p.shared_displacement.shape[1])))
@@ -188,8 +206,7 @@ def test_offline_check_starts_after_the_last_load_jump(tmp_path):
     again = rollout_errors(trained.surrogate, histories, start=start)
     np.testing.assert_allclose(trained.rollout.max_abs_error, again.max_abs_error, rtol=1e-12)
     # no jump: from n_s n_p - 1
-    plain = train_surrogates(oscillator_trajectory(n_steps=300), emse_applications=0, rollout_tolerance=10.0,
-                             **SMALL)
+    plain = train_surrogates(oscillator_trajectory(n_steps=300), checks=loose, **SMALL)
     assert plain.rollout.start == 2 * 6 - 1
 
 
@@ -200,17 +217,17 @@ def test_simulate_records_the_last_load_jump(tmp_path):
     g = np.asarray(problem.loads[0].time(np.arange(101) * problem.dt))
     jump = int(np.argmax(np.abs(np.diff(g)))) + 1
     assert jump == 41
-    single = jaxsync.simulate(problem, 100, save_every=10)
+    single = jaxsync.simulate(problem, 100, save=10)
     assert single.parameters["last_load_jump"] == jump
     runs = jaxsync.ensemble([problem, problem.replace(loads=(jaxsync.BodyForce((0, 0, -0.3), problem.loads[0].time),))],
-                            100, partitions=2, labels=[0.5, 0.3], save_every=10, shared_every=1)
+                            100, partitions=2, labels=[0.5, 0.3], save=jaxsync.SaveAt(10, 1))
     assert [r.parameters["last_load_jump"] for r in runs] == [jump, jump]
     runs[0].save(tmp_path / "r.h5")
     from jaxsync.surrogate.data import read_shared_histories
     assert read_shared_histories(str(tmp_path / "r.h5")).last_load_jump == jump
-    assert "last_load_jump" not in jaxsync.simulate(jaxsync.cantilever(), 100, save_every=10).parameters
+    assert "last_load_jump" not in jaxsync.simulate(jaxsync.cantilever(), 100, save=10).parameters
     # only jumps within the run count
-    assert "last_load_jump" not in jaxsync.simulate(problem, 40, save_every=10).parameters
+    assert "last_load_jump" not in jaxsync.simulate(problem, 40, save=10).parameters
 
 
 def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_its_tolerance():
@@ -220,7 +237,7 @@ def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_i
 
     traj = oscillator_trajectory(n_steps=300)
     with pytest.warns(RolloutWarning, match="offline check"):  # 12 epochs of a tiny network: far off
-        trained = train_surrogates(traj, emse_applications=0, rollout_tolerance=1e-3, **SMALL)
+        trained = train_surrogates(traj, checks=TrainingChecks(emse_applications=0, rollout_tolerance=1e-3), **SMALL)
     surrogate, check = trained.surrogate, trained.rollout
     n_s, n_p, n_f = 2, 6, 5
     start = n_s * n_p - 1
@@ -248,12 +265,12 @@ def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_i
 
     with warnings.catch_warnings():
         warnings.simplefilter("error", RolloutWarning)
-        loose = train_surrogates(traj, emse_applications=0, rollout_tolerance=10.0, **SMALL)
+        loose = train_surrogates(traj, checks=TrainingChecks(emse_applications=0, rollout_tolerance=10.0), **SMALL)
     assert loose.rollout_passed is True
-    unchecked = train_surrogates(traj, emse_applications=0, rollout_tolerance=None, **SMALL)
+    unchecked = train_surrogates(traj, checks=TrainingChecks(emse_applications=0, rollout_tolerance=None), **SMALL)
     assert unchecked.rollout is None and unchecked.summary()["rollout_check"] is None
     with pytest.raises(ConfigError, match="rollout_tolerance must be > 0"):
-        train_surrogates(traj, rollout_tolerance=0.0, **SMALL)
+        train_surrogates(traj, checks=TrainingChecks(rollout_tolerance=0.0), **SMALL)
 
 
 def test_more_sampling_offsets_take_the_sequences_at_those_phases():
@@ -281,8 +298,10 @@ def test_the_conditional_decoder_uses_its_load_parameter():
     to that run given its own parameter than given the other's."""
     runs = [oscillator_trajectory(n_steps=400, load=load) for load in (1.0, 0.6)]
     config = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.99, n_epochs=60, epochs_per_call=20, patience=None)
-    trained = train_surrogates(runs, **dict(SMALL, config=config), n_cond_repeat=4, emse_applications=0,
-                               rollout_tolerance=None, train_fraction=1.0)
+    trained = train_surrogates(runs, **dict(SMALL, optimizer=config,
+                                            architecture=dataclasses.replace(ARCH, n_cond_repeat=4),
+                                            sampling=dataclasses.replace(SAMPLING, train_fraction=1.0)),
+                               checks=TrainingChecks(emse_applications=0, rollout_tolerance=None))
     result = trained.result
     n_s, n_p, n_f = 2, 6, 5
 

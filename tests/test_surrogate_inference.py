@@ -15,8 +15,8 @@ from jaxsync.solve.syncavoid import simulate_sync_avoiding
 from jaxsync.surrogate import (
     LinearArchitecture,
     LSTMArchitecture,
+    SavedSurrogate,
     Surrogate,
-    SurrogateCheckpoint,
     TrainConfig,
     build_dataset,
     lstm,
@@ -187,8 +187,8 @@ def test_the_online_solver_runs_with_bfloat16_inference():
                            for part in reference.parts])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=8, n_layers=1, n_past=n_p, n_future=n_f)
     result = train_replicas(data, arch, TrainConfig(n_epochs=3), jax.random.key(0), progress=False)
-    ckpt = SurrogateCheckpoint.from_result(result, n_s, [p.shared_nodes for p in partition.parts])
-    full = Surrogate.from_checkpoint(ckpt)
+    ckpt = SavedSurrogate.from_result(result, n_s, [p.shared_nodes for p in partition.parts])
+    full = Surrogate.from_saved(ckpt)
     windows = surrogate_windows(full, [p.shared_displacement for p in reference.parts])
     low, report = reduced_precision(full, windows)
     assert report.passed

@@ -17,15 +17,18 @@ from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum
 from jaxsync.solve.syncavoid import simulate_sync_avoiding
 from jaxsync.surrogate import (
+    ArchitectureChoice,
     LinearArchitecture,
     LinearFitConfig,
     LSTMArchitecture,
+    Sampling,
+    SavedSurrogate,
     Surrogate,
-    SurrogateCheckpoint,
+    TrainingChecks,
     build_dataset,
     fit_linear,
-    load_checkpoint,
-    save_checkpoint,
+    load_surrogate,
+    save_surrogate,
     stack_replicas,
     train_surrogates,
 )
@@ -117,16 +120,16 @@ def test_the_same_recurrence_through_the_training_windows_and_the_refill():
 def _linear_checkpoint():
     data = stack_replicas([build_dataset([h], N_S, N_P, N_F) for h in mixed_oscillators(300, 1)])
     result = fit_linear(data)
-    return SurrogateCheckpoint.from_result(result, N_S, (np.array([1]), np.array([1, 4])), metadata={"note": "x"})
+    return SavedSurrogate.from_result(result, N_S, (np.array([1]), np.array([1, 4])), metadata={"note": "x"})
 
 
 def test_linear_checkpoint_round_trip_is_exact(tmp_path):
     ckpt = _linear_checkpoint()
     path = tmp_path / "linear.h5"
-    save_checkpoint(path, ckpt)
+    save_surrogate(path, ckpt)
     with h5py.File(path) as f:
         assert json.loads(f.attrs["architecture"])["kind"] == "linear"
-    loaded = load_checkpoint(path)
+    loaded = load_surrogate(path)
     assert loaded.arch == ckpt.arch and isinstance(loaded.arch, LinearArchitecture)
     assert loaded.metadata == ckpt.metadata and loaded.metadata["training"]["model"] == "linear"
     for name in ("w_in", "w_out", "b"):
@@ -134,7 +137,7 @@ def test_linear_checkpoint_round_trip_is_exact(tmp_path):
         assert loaded.params[name].tobytes() == ckpt.params[name].tobytes()
     # the Surrogate of the file predicts what the one in memory does
     buffer = pad(mixed_oscillators(300, 3)[0])[:N_S * N_P]
-    a, b = Surrogate.from_checkpoint(ckpt).part(0), Surrogate.load(path).part(0)
+    a, b = Surrogate.from_saved(ckpt).part(0), Surrogate.load(path).part(0)
     np.testing.assert_array_equal(a.predict(buffer, N_S * N_P - 1), b.predict(buffer, N_S * N_P - 1))
     assert architecture_from_dict(architecture_to_dict(ckpt.arch)) == ckpt.arch
 
@@ -154,19 +157,19 @@ def test_an_lstm_checkpoint_written_before_the_linear_model_still_loads(tmp_path
     """Files written before this change store the architecture without a 'kind': an LSTM."""
     arch = LSTMArchitecture(n_dof=4, n_hidden=3, n_layers=1, n_past=N_P, n_future=N_F)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, (4,)))
-    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((1, 4)), std=np.ones((1, 4)),
-                               dof_counts=(4,), n_s=N_S)
+    ckpt = SavedSurrogate(arch=arch, params=params, mean=np.zeros((1, 4)), std=np.ones((1, 4)),
+                          dof_counts=(4,), n_s=N_S)
     path = tmp_path / "old.h5"
-    save_checkpoint(path, ckpt)
+    save_surrogate(path, ckpt)
     with h5py.File(path) as f:
         assert json.loads(f.attrs["architecture"]) == {"kind": "lstm", **arch.to_dict()}
     _rewrite_architecture(path, arch.to_dict())  # what the earlier version wrote
-    loaded = load_checkpoint(path)
+    loaded = load_surrogate(path)
     assert loaded.arch == arch and isinstance(loaded.arch, LSTMArchitecture)
     # an unknown kind is refused with a message that names the fix
     _rewrite_architecture(path, {"kind": "gru", **arch.to_dict()})
     with pytest.raises(CheckpointError, match="architecture kind must be one of 'lstm', 'linear'.*retrain"):
-        load_checkpoint(path)
+        load_surrogate(path)
     with pytest.raises(ConfigError, match="kind 'linear' given to LSTMArchitecture"):
         LSTMArchitecture.from_dict({"kind": "linear", **arch.to_dict()})
 
@@ -227,7 +230,7 @@ def test_jaxsync_train_model_linear_writes_checkpoint_and_summary(tmp_path, caps
                                  "--n-past", "6", "--n-future", "5", "--emse-applications", "5", "--no-progress"])
     with pytest.warns(RolloutWarning, match="Fit with another regularization"):
         assert args.func(args) == 0
-    ckpt = load_checkpoint(out / "surrogate.h5", shared_nodes_per_part=NODES)
+    ckpt = load_surrogate(out / "surrogate.h5", shared_nodes_per_part=NODES)
     assert isinstance(ckpt.arch, LinearArchitecture) and ckpt.arch.n_dof == 9 and ckpt.dof_counts == (6, 9)
     assert ckpt.metadata["model"] == "linear" and ckpt.metadata["training"]["regularization"] == 1e-8
     summary = json.loads((out / "train_summary.json").read_text())
@@ -240,9 +243,10 @@ def test_jaxsync_train_model_linear_writes_checkpoint_and_summary(tmp_path, caps
     assert (out / "loss_curves.png").read_bytes()[:4] == b"\x89PNG" and not (out / "training_state.h5").exists()
     assert "(linear, least-squares fit of rank" in capsys.readouterr().out
     # the surrogate of the file is the one train_surrogates returns in memory
-    trained = train_surrogates(path, model="linear", n_s=2, n_past=6, n_future=5, emse_applications=0,
-                               rollout_tolerance=None)
-    assert trained.model == "linear" and trained.checkpoint.arch == ckpt.arch
+    trained = train_surrogates(path, architecture=ArchitectureChoice(model="linear"),
+                               sampling=Sampling(n_s=2, n_past=6, n_future=5),
+                               checks=TrainingChecks(emse_applications=0, rollout_tolerance=None))
+    assert trained.model == "linear" and trained.saved.arch == ckpt.arch
 
 
 def test_a_bad_model_is_refused(tmp_path, capsys):
@@ -251,11 +255,11 @@ def test_a_bad_model_is_refused(tmp_path, capsys):
     assert "invalid choice: 'gru' (choose from 'lstm', 'linear')" in capsys.readouterr().err
     path = write_trajectory(tmp_path / "run.h5")
     with pytest.raises(ConfigError, match="model must be one of 'lstm', 'linear', got 'gru'"):
-        train_surrogates(path, model="gru")
+        train_surrogates(path, architecture=ArchitectureChoice(model="gru"))
     with pytest.raises(ConfigError, match="linear surrogate is unconditional.*--model lstm"):
-        train_surrogates(path, model="linear", n_cond_repeat=2)
+        train_surrogates(path, architecture=ArchitectureChoice(model="linear", n_cond_repeat=2))
     with pytest.raises(ConfigError, match="regularization must be a finite number >= 0"):
-        train_surrogates(path, model="linear", regularization=-1.0)
+        train_surrogates(path, architecture=ArchitectureChoice(model="linear", regularization=-1.0))
 
 
 def test_initialized_linear_replicas_for_timing_have_the_widest_rank_and_predict_the_mean():
@@ -294,19 +298,20 @@ def test_training_leaves_out_the_windows_across_a_recorded_load_jump(tmp_path):
     reference.save(tmp_path / "run.h5")
     histories = read_shared_histories(tmp_path / "run.h5")
     assert histories.load_jumps == (151,)
-    trained = train_surrogates(tmp_path / "run.h5", model="linear", n_s=5, n_past=4, n_future=4,
-                               train_fraction=1.0, rollout_tolerance=None)
+    linear, windows = ArchitectureChoice(model="linear"), Sampling(n_s=5, n_past=4, n_future=4, train_fraction=1.0)
+    unchecked = TrainingChecks(rollout_tolerance=None)
+    trained = train_surrogates(tmp_path / "run.h5", architecture=linear, sampling=windows, checks=unchecked)
     kept = [build_dataset([h], 5, 4, 4, train_fraction=1.0, load_jumps=[[151.0]]) for h in histories.histories]
     assert trained.n_excluded_windows == kept[0].n_excluded == 7  # windows of 8 snapshots 5 steps apart
     sampling = trained.summary()["sampling"]
     assert (sampling["n_excluded_windows"], sampling["load_jump_windows"]) == (7, "exclude")
     assert trained.n_train_windows == kept[0].x_train.shape[0]
     # kept on request (the LSTM's default): every window, as without a jump
-    every = train_surrogates(tmp_path / "run.h5", model="linear", n_s=5, n_past=4, n_future=4,
-                             train_fraction=1.0, rollout_tolerance=None, load_jump_windows="keep")
+    every = train_surrogates(tmp_path / "run.h5", architecture=linear, checks=unchecked,
+                             sampling=dataclasses.replace(windows, load_jump_windows="keep"))
     assert every.n_excluded_windows == 0 and every.n_train_windows > trained.n_train_windows
     with pytest.raises(ConfigError, match="load_jump_windows must be one of 'exclude', 'keep'"):
-        train_surrogates(tmp_path / "run.h5", model="linear", load_jump_windows="drop")
+        train_surrogates(tmp_path / "run.h5", architecture=linear, sampling=Sampling(load_jump_windows="drop"))
     # from the command line
     args = _parser().parse_args(["train", str(tmp_path / "run.h5"), "-o", str(tmp_path / "cli"), "--model", "linear",
                                  "--n-s", "5", "--n-past", "4", "--n-future", "4", "--train-fraction", "1",

@@ -10,7 +10,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import LSTMArchitecture, Surrogate, SurrogateCheckpoint, load_checkpoint
+from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate, load_surrogate
 from jaxsync.surrogate.data import shared_dof_layout
 from jaxsync.surrogate.lstm import forward
 from jaxsync.surrogate.refill import refill_cycle, refill_index_sets, refill_rollout
@@ -151,11 +151,11 @@ def test_save_and_load_round_trip_is_exact(tmp_path):
     for x, y in zip(a, b):
         x, y = np.asarray(x), np.asarray(y)
         assert x.dtype == y.dtype and x.tobytes() == y.tobytes()
-    ckpt = load_checkpoint(tmp_path / "s.h5")
+    ckpt = load_surrogate(tmp_path / "s.h5")
     assert ckpt.metadata == {"note": "test"} and ckpt.dof_counts == (2, 3) and ckpt.shared_nodes is None
-    assert Surrogate.from_checkpoint(ckpt, 0.4).dof_counts == (2, 3)
+    assert Surrogate.from_saved(ckpt, 0.4).dof_counts == (2, 3)
     with pytest.raises(CheckpointError, match="conditional on a load parameter"):
-        Surrogate.from_checkpoint(ckpt)
+        Surrogate.from_saved(ckpt)
     with pytest.raises(CheckpointError, match="does not exist"):
         Surrogate.load(tmp_path / "missing.h5")
 
@@ -173,8 +173,8 @@ def test_initialized_replicas_fit_the_partition_and_save_with_its_nodes(tmp_path
     np.testing.assert_array_equal(again.params["dense"]["w"], surrogate.params["dense"]["w"])
     nodes = [p.shared_nodes for p in part.parts]
     surrogate.save(tmp_path / "s.h5", shared_nodes=nodes)
-    ckpt = load_checkpoint(tmp_path / "s.h5", shared_nodes_per_part=nodes)  # the partition check passes
-    assert isinstance(ckpt, SurrogateCheckpoint) and ckpt.n_parts == 2
+    ckpt = load_surrogate(tmp_path / "s.h5", shared_nodes_per_part=nodes)  # the partition check passes
+    assert isinstance(ckpt, SavedSurrogate) and ckpt.n_parts == 2
     default = Surrogate.initialized(part, 80)
     assert (default.arch.n_hidden, default.arch.n_layers, default.n_past, default.n_future, default.arch.dtype) == (
         100, 2, 20, 20, "float32")

@@ -4,6 +4,8 @@ import csv
 import dataclasses
 import io
 import json
+import os
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -11,7 +13,7 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import Surrogate
+from jaxsync.surrogate import ArchitectureChoice, Sampling, Surrogate, TrainingState
 from jaxsync.surrogate.data import build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import e_mse, grid_search, max_applications
 from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
@@ -168,11 +170,12 @@ def test_e_mse_is_the_mean_squared_rollout_error_over_real_dofs():
 
 def test_grid_search_tabulates_every_combination_and_chooses_the_best(tmp_path):
     part0, part1, _ = _two_part_runs()
-    arch = LSTMArchitecture(n_dof=1, n_hidden=4, n_layers=1, n_past=5, n_future=4)
+    arch = ArchitectureChoice(n_hidden=4, n_layers=1)
     config = TrainConfig(eta0=1e-2, gamma=0.9, n_epochs=4, epochs_per_call=4)
     # Each combination compiles its own program: keep the grid at two points here.
-    result = grid_search([part0, part1], 2, arch, config, batch_sizes=[16], hidden_sizes=[4, 8],
-                         learning_rates=[1e-2], key=jax.random.key(0), n_applications=10)
+    result = grid_search([part0, part1], batch_sizes=[16], hidden_sizes=[4, 8], learning_rates=[1e-2],
+                         architecture=arch, sampling=Sampling(n_s=2, n_past=5, n_future=4), optimizer=config,
+                         n_applications=10)
     assert [(p.batch_size, p.n_hidden, p.eta0) for p in result.points] == [(16, 4, 1e-2), (16, 8, 1e-2)]
     for p in result.points:
         assert len(p.sqrt_e_mse) == 2 and all(np.isfinite(p.sqrt_e_mse))
@@ -239,15 +242,16 @@ def test_best_parameters_are_kept_and_early_stopping_is_exact():
     assert frozen.stopped_epoch == 5 and list(frozen.best_epoch) == [1, 1]
 
 
-def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path):
+def test_training_resumes_from_its_state_with_the_same_result(tmp_path):
     data, arch = _small_problem()
     config = TrainConfig(batch_size=4, eta0=1e-2, gamma=0.95, n_epochs=12, epochs_per_call=4)
     key = jax.random.key(5)
-    whole = train_replicas(data, arch, config, key, progress=False, checkpoint=tmp_path / "whole.h5",
-                           checkpoint_every=4)
-    assert whole.resumed_from == 0 and (tmp_path / "whole.h5").exists()
+    whole_state = TrainingState(tmp_path / "whole", every=4)
+    whole = train_replicas(data, arch, config, key, progress=False, state=whole_state)
+    assert whole.resumed_from == 0 and os.path.exists(whole_state.path)
 
-    path = tmp_path / "state.h5"
+    state = TrainingState(tmp_path / "state", every=4)
+    path = Path(state.path)
     saves = []
 
     def killed_after_second_save(progress):
@@ -257,11 +261,10 @@ def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path):
             raise KeyboardInterrupt  # the process dies right after writing epoch 8
 
     with pytest.raises(KeyboardInterrupt):
-        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4,
-                       callback=killed_after_second_save)
+        train_replicas(data, arch, config, key, progress=False, state=state, callback=killed_after_second_save)
     assert saves == [4, 8] and path.exists()
 
-    resumed = train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    resumed = train_replicas(data, arch, config, key, progress=False, state=state)
     assert resumed.resumed_from == 8 and resumed.n_epochs_run == 12
     for a, b in zip(jax.tree_util.tree_leaves(whole.params), jax.tree_util.tree_leaves(resumed.params)):
         np.testing.assert_array_equal(a, b)
@@ -269,27 +272,26 @@ def test_training_resumes_from_its_checkpoint_with_the_same_result(tmp_path):
     np.testing.assert_array_equal(whole.train_loss, resumed.train_loss)
     np.testing.assert_array_equal(whole.best_epoch, resumed.best_epoch)
     # a finished state resumes to the same result without training
-    again = train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+    again = train_replicas(data, arch, config, key, progress=False, state=state)
     assert again.resumed_from == 12
     np.testing.assert_array_equal(again.params["dense"]["w"], whole.params["dense"]["w"])
 
     # a state of other settings or data is refused, naming the difference
     with pytest.raises(CheckpointError, match="config.eta0: 0.01 there, 0.02 here"):
-        train_replicas(data, arch, dataclasses.replace(config, eta0=2e-2), key, progress=False, checkpoint=path,
-                       checkpoint_every=4)
-    with pytest.raises(CheckpointError, match="checkpoint_every: 4 there, 6 here"):
-        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=6)
+        train_replicas(data, arch, dataclasses.replace(config, eta0=2e-2), key, progress=False, state=state)
+    with pytest.raises(CheckpointError, match="state_every: 4 there, 6 here"):
+        train_replicas(data, arch, config, key, progress=False, state=dataclasses.replace(state, every=6))
     with pytest.raises(CheckpointError, match="key"):
-        train_replicas(data, arch, config, jax.random.key(6), progress=False, checkpoint=path, checkpoint_every=4)
+        train_replicas(data, arch, config, jax.random.key(6), progress=False, state=state)
     other = dataclasses.replace(data, x_train=data.x_train * 1.01)
     with pytest.raises(CheckpointError, match="data differ"):
-        train_replicas(other, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+        train_replicas(other, arch, config, key, progress=False, state=state)
     import h5py
 
     with h5py.File(path, "r+") as fh:  # damaged after it was written
         fh["history/val_loss"][0, 0] += 1.0
     with pytest.raises(CheckpointError, match="checksum"):
-        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+        train_replicas(data, arch, config, key, progress=False, state=state)
     path.write_bytes(b"not hdf5")
     with pytest.raises(CheckpointError, match="delete it to start over"):
-        train_replicas(data, arch, config, key, progress=False, checkpoint=path, checkpoint_every=4)
+        train_replicas(data, arch, config, key, progress=False, state=state)

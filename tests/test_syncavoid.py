@@ -74,7 +74,7 @@ def test_wrong_overwrite_timing_is_detected(problem, partition, reference):
 def test_oracle_with_save_every_and_four_parts(problem, reference):
     part4 = jaxsync.partition(problem.mesh, 4)
     ref4 = jaxsync.simulate(problem, N_STEPS - 10, partitions=part4)
-    traj = simulate_sync_avoiding(problem, N_STEPS - 10, partitions=part4, save_every=10,
+    traj = simulate_sync_avoiding(problem, N_STEPS - 10, partitions=part4, save=10,
                                   surrogates=oracle(ref4, part4, n_steps=N_STEPS - 10), n_cri=N_CRI)
     np.testing.assert_allclose(traj.displacement, ref4.displacement[::10], rtol=0,
                                atol=1e-13 * np.abs(ref4.displacement).max())
@@ -107,16 +107,16 @@ def test_n_cri_too_small(problem, partition, reference):
 
 def test_save_every_must_divide(problem, partition, reference):
     with pytest.raises(ProblemError, match="save_every"):
-        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, save_every=3,
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, save=3,
                                surrogates=oracle(reference, partition), n_cri=N_CRI)
 
 
 def test_nan_prediction_names_step_and_part(problem, partition, reference):
     poison = N_CRI + N_S * N_F + 7
     with pytest.raises(StabilityError, match=f"part 1 predicted NaN/Inf for step {poison}") as info:
-        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, cycles_per_chunk=1,
-                               surrogates=oracle(reference, partition, poison_step=poison),
-                               n_cri=N_CRI)
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
+                               executor=jaxsync.HostExecutor(cycles_per_chunk=1),
+                               surrogates=oracle(reference, partition, poison_step=poison), n_cri=N_CRI)
     partial = info.value.trajectory
     # every snapshot before the poisoned step is kept (steps 0 .. poison - 1), and the
     # oracle replays the synchronized run, so they are the reference's
@@ -163,14 +163,14 @@ def test_full_system_needs_one_replica_over_all_dofs(problem, partition, referen
     import jax
 
     from jaxsync.solve.full_system import simulate_full_system
-    from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint
+    from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
     from jaxsync.surrogate.replicas import init_replicas
 
     counts = (12, 12)
     arch = LSTMArchitecture(n_dof=12, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
-    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((2, 12), np.float32),
-                               std=np.ones((2, 12), np.float32), dof_counts=counts, n_s=N_S)
+    ckpt = SavedSurrogate(arch=arch, params=params, mean=np.zeros((2, 12), np.float32),
+                          std=np.ones((2, 12), np.float32), dof_counts=counts, n_s=N_S)
     with pytest.raises(CheckpointError, match="one surrogate over all 312 dofs"):
         simulate_full_system(problem, jaxsync.simulate(problem, N_STEPS), ckpt, n_cri=N_CRI)
 
@@ -178,16 +178,16 @@ def test_full_system_needs_one_replica_over_all_dofs(problem, partition, referen
 def test_surrogates_of_another_partition_are_refused(problem, reference):
     import jax
 
-    from jaxsync.surrogate import LSTMArchitecture, SurrogateCheckpoint
+    from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
     from jaxsync.surrogate.replicas import init_replicas
 
     other = jaxsync.partition(problem.mesh, 4)
     counts = tuple(3 * p.n_shared for p in other.parts)
     arch = LSTMArchitecture(n_dof=max(counts), n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(0), arch, counts))
-    ckpt = SurrogateCheckpoint(arch=arch, params=params, mean=np.zeros((4, arch.n_dof), np.float32),
-                               std=np.ones((4, arch.n_dof), np.float32), dof_counts=counts, n_s=N_S,
-                               shared_nodes=tuple(p.shared_nodes for p in other.parts))
+    ckpt = SavedSurrogate(arch=arch, params=params, mean=np.zeros((4, arch.n_dof), np.float32),
+                          std=np.ones((4, arch.n_dof), np.float32), dof_counts=counts, n_s=N_S,
+                          shared_nodes=tuple(p.shared_nodes for p in other.parts))
     with pytest.raises(CheckpointError, match="partition has 2 parts"):
         simulate_sync_avoiding(problem, N_STEPS, partitions=2, surrogates=ckpt, n_cri=N_CRI)
 
@@ -200,7 +200,7 @@ def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, parti
     from jaxsync.metrics import l2_error, predictions_by_node, shared_node_errors
     from jaxsync.surrogate import (
         LSTMArchitecture,
-        SurrogateCheckpoint,
+        SavedSurrogate,
         TrainConfig,
         build_dataset,
         stack_replicas,
@@ -212,7 +212,7 @@ def test_trained_surrogates_run_online_and_metrics_are_consistent(problem, parti
                                          train_fraction=1.0) for p in range(2)])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=8, n_layers=1, n_past=N_P, n_future=N_F)
     result = train_replicas(data, arch, TrainConfig(n_epochs=3), jax.random.key(0), progress=False)
-    ckpt = SurrogateCheckpoint.from_result(result, N_S, [p.shared_nodes for p in partition.parts])
+    ckpt = SavedSurrogate.from_result(result, N_S, [p.shared_nodes for p in partition.parts])
     online = simulate_sync_avoiding(problem, 400, partitions=partition, surrogates=ckpt, n_cri=N_CRI)
     assert np.all(np.isfinite(online.displacement))
     np.testing.assert_array_equal(online.displacement[:N_CRI + 1], long_ref.displacement[:N_CRI + 1])
@@ -238,8 +238,8 @@ def test_resync_tolerance_never_reached_changes_nothing(problem, partition):
     """The monitored run (each cycle predicted, checked, then stepped) equals the fused
     unmonitored program when nothing triggers."""
     net = untrained(partition)
-    plain = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net,
-                                   n_cri=N_CRI, cycles_per_chunk=1)
+    plain = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net, n_cri=N_CRI,
+                                   executor=jaxsync.HostExecutor(cycles_per_chunk=1))
     watched = simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=net,
                                      n_cri=N_CRI, resync_tolerance=np.inf)
     np.testing.assert_array_equal(watched.displacement, plain.displacement)
@@ -438,7 +438,7 @@ def briefly_trained(problem, partition):
     under-trained network would."""
     from jaxsync.surrogate import (
         LSTMArchitecture,
-        SurrogateCheckpoint,
+        SavedSurrogate,
         TrainConfig,
         build_dataset,
         stack_replicas,
@@ -451,7 +451,7 @@ def briefly_trained(problem, partition):
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=16, n_layers=1, n_past=10, n_future=10)
     result = train_replicas(data, arch, TrainConfig(n_epochs=30, eta0=3e-3, gamma=0.98),
                             jax.random.key(0), progress=False)
-    return reference, SurrogateCheckpoint.from_result(result, 20, [p.shared_nodes for p in partition.parts])
+    return reference, SavedSurrogate.from_result(result, 20, [p.shared_nodes for p in partition.parts])
 
 
 def test_a_tolerance_never_makes_a_trained_run_worse(problem, partition, briefly_trained):
@@ -484,24 +484,24 @@ def test_demo_surrogate_error_control(problem, partition):
     worse.)"""
     from jaxsync.surrogate import (
         LSTMArchitecture,
-        SurrogateCheckpoint,
+        SavedSurrogate,
         TrainConfig,
         build_dataset,
         stack_replicas,
         train_replicas,
     )
 
-    reference = jaxsync.simulate(problem, 100_000, partitions=partition, save_every=80, shared_every=1)
+    reference = jaxsync.simulate(problem, 100_000, partitions=partition, save=jaxsync.SaveAt(80, 1))
     data = stack_replicas([build_dataset([p.shared_displacement], 80, 20, 20) for p in reference.parts])
     arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=32, n_past=20, n_future=20)
     result = train_replicas(data, arch, TrainConfig(), jax.random.key(0), progress=False)
-    ckpt = SurrogateCheckpoint.from_result(result, 80, [p.shared_nodes for p in partition.parts])
+    ckpt = SavedSurrogate.from_result(result, 80, [p.shared_nodes for p in partition.parts])
 
     def max_error(tol):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             traj = simulate_sync_avoiding(problem, 100_000, partitions=partition, surrogates=ckpt,
-                                          n_cri=1600, save_every=80, resync_tolerance=tol)
+                                          n_cri=1600, save=80, resync_tolerance=tol)
         return np.abs(traj.displacement - reference.displacement).max()
 
     free = max_error(None)
@@ -520,27 +520,27 @@ def test_a_conditional_surrogate_takes_the_load_parameter_given_to_the_run(probl
 
     import jax
 
-    from jaxsync.surrogate import LSTMArchitecture, Surrogate, SurrogateCheckpoint
+    from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate
     from jaxsync.surrogate.replicas import init_replicas
 
     n_dof, counts = shared_dof_layout(partition)
     arch = LSTMArchitecture(n_dof=n_dof, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=2)
     params = jax.tree_util.tree_map(np.asarray, init_replicas(jax.random.key(1), arch, tuple(counts)))
     scale = np.full((2, n_dof), 1e-3)
-    ckpt = SurrogateCheckpoint(params=params, arch=arch, mean=np.zeros((2, n_dof)), std=scale, n_s=N_S,
-                               dof_counts=tuple(int(c) for c in counts),
-                               shared_nodes=tuple(p.shared_nodes for p in partition.parts))
-    built_at_one = Surrogate.from_checkpoint(ckpt, 1.0)
-    runs = {name: simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=s, n_cri=N_CRI,
-                                         load_parameter=load)
-            for name, s, load in (("object", built_at_one, 0.3), ("checkpoint", ckpt, 0.3),
-                                  ("own", built_at_one, None))}
+    ckpt = SavedSurrogate(params=params, arch=arch, mean=np.zeros((2, n_dof)), std=scale, n_s=N_S,
+                          dof_counts=tuple(int(c) for c in counts),
+                          shared_nodes=tuple(p.shared_nodes for p in partition.parts))
+    built_at_one = Surrogate.from_saved(ckpt, 1.0)
+    at_03 = {"object": built_at_one.with_load_parameter(0.3), "checkpoint": Surrogate.from_saved(ckpt, 0.3),
+             "own": built_at_one}
+    runs = {name: simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=s, n_cri=N_CRI)
+            for name, s in at_03.items()}
     np.testing.assert_array_equal(runs["object"].displacement, runs["checkpoint"].displacement)
     assert not np.array_equal(runs["object"].displacement, runs["own"].displacement)
     plain = dataclasses.replace(built_at_one, arch=dataclasses.replace(arch, n_cond_repeat=0))
     with pytest.raises(CheckpointError, match="unconditional"):
-        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=plain, n_cri=N_CRI,
-                               load_parameter=0.3)
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=plain.with_load_parameter(0.3),
+                               n_cri=N_CRI)
 
 
 # --------------------------------------------------------------------------- load jumps
@@ -562,7 +562,7 @@ def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jum
     assert np.argmax(np.abs(np.diff(g))) + 1 == jump  # the test's own reading of the schedule
     assert expected_n_cri == -(-(jump + N_S * N_P - 1) // save_every) * save_every
     ref = jaxsync.simulate(stepped, N_STEPS, partitions=partition)
-    traj = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save_every=save_every,
+    traj = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save=save_every,
                                   surrogates=oracle(ref, partition), n_cri=N_CRI)
     assert traj.stats.n_cri == expected_n_cri and traj.stats.load_jumps == (jump,)
     assert traj.parameters["last_load_jump"] == jump  # the whole run's, not only its first stretch's
@@ -573,7 +573,7 @@ def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jum
                                atol=1e-13 * np.abs(ref.displacement).max())
     assert "synchronized through the load jump at step" in jaxsync.solve.syncavoid.describe_run(traj)
     # the paper's way: predicted from N_CRI on, straight through the jump
-    through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save_every=save_every,
+    through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save=save_every,
                                      surrogates=oracle(ref, partition), n_cri=N_CRI, load_jumps="predict")
     assert through.stats.n_cri == N_CRI and through.stats.load_jumps is None
     assert through.stats.n_synchronized_steps == N_CRI

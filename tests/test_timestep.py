@@ -108,7 +108,7 @@ def test_mass_scaling_warns_above_the_threshold():
 def test_mass_scaled_problem_runs_at_the_target_step_by_default():
     problem = graded_cantilever()
     scaled, _ = jaxsync.mass_scaling(problem, beta=2.0, warn_above_percent=None)
-    traj = jaxsync.simulate(scaled, 20, save_every=10)
+    traj = jaxsync.simulate(scaled, 20, save=10)
     assert traj.dt == pytest.approx(2.0 * problem.dt, rel=1e-12)
     with pytest.raises(StabilityError, match="positive and finite"):
         jaxsync.mass_scaling(problem, beta=float("nan"))
@@ -130,7 +130,7 @@ def test_default_step_of_nearly_incompressible_tissue_is_stable(nu):
     assert problem.dt == pytest.approx(0.9 * bound, rel=1e-12)
     assert problem.dt <= bound
     assert "exact stability bound" in problem.summary()
-    traj = jaxsync.simulate(problem, 20_000, save_every=100)
+    traj = jaxsync.simulate(problem, 20_000, save=100)
     u = np.asarray(traj.displacement)
     assert np.isfinite(u).all()
     # ground truth: a ramped load's response stays within twice the static deflection
@@ -195,6 +195,6 @@ def test_divergence_names_the_step_that_works():
     problem = _with_nu(jaxsync.cantilever(), 0.45)
     bound = jaxsync.max_stable_dt(problem)
     with pytest.raises(StabilityError, match=f"dt <= {0.9 * bound:.4e}"):
-        jaxsync.simulate(problem, 2000, dt=1.1 * bound, check_stability=False)
+        jaxsync.simulate(problem, 2000, dt=1.1 * bound, executor=jaxsync.HostExecutor(check_stability=False))
     with pytest.raises(StabilityError, match=f"use dt <= {0.9 * bound:.4e}"):
         jaxsync.simulate(problem, 10, dt=1.1 * bound)

@@ -63,7 +63,7 @@ def test_bad_arguments_are_refused(problem):
 def test_breakdown_of_deep_halos_times_the_grown_parts(problem, partition):
     from jaxsync.parallel.halo import halo_partition
 
-    report = timing_breakdown(problem, partition, n_steps=5, repeats=2, sync="halo", halo_depth=2)
+    report = timing_breakdown(problem, partition, n_steps=5, repeats=2, sync=jaxsync.Halo(2))
     grown = halo_partition(partition, 2)
     assert report.n_steps == 6  # rounded up to whole exchange cycles
     assert [(r.n_nodes, r.n_elements, r.n_shared) for r in report.rows] == [

@@ -12,7 +12,7 @@ from jaxsync.trajectory import PartHistory
 
 @pytest.fixture(scope="module")
 def trajectory():
-    return jaxsync.simulate(jaxsync.cantilever(), 500, save_every=50)
+    return jaxsync.simulate(jaxsync.cantilever(), 500, save=50)
 
 
 def test_hdf5_round_trip(trajectory, tmp_path):
@@ -133,9 +133,9 @@ def dead_pid():
 def test_stale_temporaries_of_dead_writers_are_removed(tmp_path):
     import time
 
-    from jaxsync.io import STALE_TEMP_AGE_S, _host_tag
+    from jaxsync.io import STALE_TEMP_AGE_S, host_tag
 
-    host = _host_tag()
+    host = host_tag()
     files = {
         # (name, age in s) -> kept?
         (f".t.h5.{dead_pid()}@{host}.abcd1234.tmp", 0): False,  # writer gone
@@ -195,7 +195,7 @@ def test_compression_options_round_trip(tmp_path, compression):
     import h5py
 
     problem = jaxsync.cantilever()
-    traj = jaxsync.simulate(problem, 400, save_every=10, partitions=2, shared_every=1)
+    traj = jaxsync.simulate(problem, 400, save=jaxsync.SaveAt(10, 1), partitions=2)
     path = tmp_path / f"{compression}.h5"
     traj.save(path, compression=compression)
     back = jaxsync.Trajectory.load(path)

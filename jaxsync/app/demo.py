@@ -39,8 +39,9 @@ import time
 
 import numpy as np
 
-__all__ = ["run_demo", "format_summary", "demo_defaults", "DemoDefaults", "SUMMARY_KEYS", "VESSEL_KEYS",
-           "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "install_folder"]
+__all__ = ["run_demo", "format_summary", "demo_defaults", "DemoDefaults", "DemoSettings", "SUMMARY_KEYS", "VESSEL_KEYS",
+           "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "install_folder",
+           "staging_folder", "retarget_paths"]
 
 CASES = ("cantilever", "vessel")
 
@@ -70,7 +71,7 @@ MASS_SCALING_BETA = 2.5
 
 @dataclasses.dataclass(frozen=True)
 class DemoDefaults:
-    """The defaults of one demo case (every one an argument of :func:`run_demo`).
+    """The defaults of one demo case (every one can be changed: :class:`DemoSettings`).
 
     Attributes:
         n_steps, n_parts: time steps of both runs, parts (one emulated device each).
@@ -110,9 +111,9 @@ class DemoDefaults:
 
 def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDefaults:
     """The defaults of ``case`` (and, for the vessel, ``size``): the cantilever's are
-    the library's (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`,
-    :class:`~jaxsync.surrogate.train.TrainConfig`, the n_s of
-    :func:`~jaxsync.surrogate.train_surrogates`, the paper's 1e5 steps);
+    the library's (:class:`~jaxsync.surrogate.Sampling`,
+    :class:`~jaxsync.surrogate.ArchitectureChoice`,
+    :class:`~jaxsync.surrogate.train.TrainConfig`, the paper's 1e5 steps);
     the vessel's follow the paper's section 5.2 (11 parts, n_s = 1000; 1e6 steps at the
     paper's size, 2.5e5 steps, about 2 s, at the small one), with error control at 1 %,
     trained on the whole synchronized run with n_B = 10.
@@ -120,7 +121,8 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     Raises:
         ConfigError: an unknown case or size.
     """
-    from ..surrogate.lstm import LSTMArchitecture as Arch
+    from ..surrogate.architecture import ArchitectureChoice as Arch
+    from ..surrogate.data import Sampling
     from ..surrogate.train import TrainConfig as Train
 
     _check_case(case)
@@ -128,17 +130,12 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
         from ..errors import ConfigError
 
         raise ConfigError(f"size={size!r} is for the vessel case (--case vessel); the cantilever has one size")
-    base = dict(n_past=Arch.n_past, n_future=Arch.n_future, n_hidden=Arch.n_hidden, n_layers=Arch.n_layers,
+    base = dict(n_past=Sampling.n_past, n_future=Sampling.n_future, n_hidden=Arch.n_hidden, n_layers=Arch.n_layers,
                 epochs=Train.n_epochs, batch_size=Train.batch_size, eta0=Train.eta0, gamma=Train.gamma)
     if case == "cantilever":
-        import inspect
-
-        from ..surrogate.fit import train_surrogates
-
-        library = inspect.signature(train_surrogates).parameters
-        return DemoDefaults(n_steps=100_000, n_parts=2, n_s=library["n_s"].default, train_fraction=0.5,
+        return DemoDefaults(n_steps=100_000, n_parts=2, n_s=Sampling.n_s, train_fraction=0.5,
                             resync_tolerance=None, shared_every_step=True, component=2,
-                            n_candidates=library["n_candidates"].default, **base)
+                            n_candidates=Train.n_candidates, **base)
     paper = _vessel_target(size) >= VESSEL_SIZES["paper"]
     # n_H 32, 300 epochs of n_B = 10, one candidate per part: the 11 replicas train in about
     # 3.5 minutes on 2 cores (the library's n_H 50, 800 epochs and 2 candidates would take
@@ -186,14 +183,56 @@ def vessel_problem(size: str | int = "small", *, beta: float = MASS_SCALING_BETA
     return problem, scaled, float(added)
 
 
-def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n_steps: int | None = None,
-             n_parts: int | None = None, n_s: int | None = None, n_past: int | None = None,
-             n_future: int | None = None, n_hidden: int | None = None, n_layers: int | None = None,
-             epochs: int | None = None, batch_size: int | None = None, eta0: float | None = None,
-             gamma: float | None = None, train_fraction: float | None = None, n_candidates: int | None = None,
-             seed: int = 0,
-             save_every: int | None = None, resync_tolerance="default", mass_scaling_seconds: float | None = None,
-             progress: bool = True, log=print, force: bool = False) -> dict:
+@dataclasses.dataclass(frozen=True)
+class DemoSettings:
+    """What a demo run changes of its case's defaults (:func:`demo_defaults`): every field
+    left None keeps the case's value.
+
+    Attributes:
+        n_steps, n_parts, n_s, n_past, n_future, n_hidden, n_layers, epochs, batch_size,
+            eta0, gamma, train_fraction, n_candidates: as in :class:`DemoDefaults`.
+        resync_tolerance: error control of the predicted run: ``"default"`` (the case's),
+            None (none), a number [cm] or a percentage string (of the largest shared-node
+            displacement of the synchronized run, the surrogates' training data; passed on
+            in cm).
+        save_every: full-field snapshot stride of both runs; divides n_s n_p and n_s n_f
+            (default: the largest divisor of n_s that divides n_steps).
+        mass_scaling_seconds: the vessel's mass-scaling check runs over this physical
+            time [s] (default: the first half of the run up to 50 000 tets, 0.05 s above,
+            where single-device runs at the CFL step take hours).
+    """
+
+    n_steps: int | None = None
+    n_parts: int | None = None
+    n_s: int | None = None
+    n_past: int | None = None
+    n_future: int | None = None
+    n_hidden: int | None = None
+    n_layers: int | None = None
+    epochs: int | None = None
+    batch_size: int | None = None
+    eta0: float | None = None
+    gamma: float | None = None
+    train_fraction: float | None = None
+    n_candidates: int | None = None
+    resync_tolerance: str | float | None = "default"
+    save_every: int | None = None
+    mass_scaling_seconds: float | None = None
+
+    def applied_to(self, defaults: DemoDefaults) -> DemoDefaults:
+        """``defaults`` with the fields these settings give."""
+        given = {f.name: getattr(self, f.name) for f in dataclasses.fields(DemoDefaults)
+                 if hasattr(self, f.name) and getattr(self, f.name) is not None}
+        given.pop("resync_tolerance", None)
+        d = dataclasses.replace(defaults, **given)
+        if self.resync_tolerance != "default":
+            d = dataclasses.replace(d, resync_tolerance=self.resync_tolerance)
+        return d
+
+
+def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "cantilever",
+             size: str | int = "small", seed: int = 0, progress: bool = True, log=print,
+             force: bool = False) -> dict:
     """Run the pipeline of ``case`` and write everything into ``out``; return the summary.
 
     ``out`` is refused before anything runs when it holds the files of a demo
@@ -203,20 +242,15 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
     leaves ``out`` as it was (its staging folder removed), never old and new files
     mixed. Every path printed or stored in the files names ``out``.
 
-    Every size left None takes the case's default (:func:`demo_defaults`);
-    ``resync_tolerance="default"`` too (None: no error control; a percentage is of the
-    largest shared-node displacement of the synchronized run, the surrogates' training
-    data, and is passed on in cm).
-
     Args:
         out: output folder.
+        settings: :class:`DemoSettings`, what to change of the case's defaults
+            (:func:`demo_defaults`); None: the defaults.
         case: ``"cantilever"`` or ``"vessel"``.
         size: the vessel's size, ``"small"``, ``"paper"`` or a target tetrahedron count.
-        save_every: full-field snapshot stride of both runs; divides n_s n_p and n_s n_f
-            (default: the largest divisor of n_s that divides n_steps)
-        mass_scaling_seconds: the vessel's mass-scaling check runs over this physical
-            time [s] (default: the first half of the run up to 50 000 tets, 0.05 s above,
-            where single-device runs at the CFL step take hours).
+        seed: seed of METIS, initialization and shuffling.
+        progress: progress bars; log: where the stage lines go.
+        force: replace a folder that holds a demo.
 
     Files: ``synchronized.h5`` (reference every ``save_every`` steps, per-part shared
     histories every step for the cantilever, every n_s steps for the vessel),
@@ -229,20 +263,16 @@ def run_demo(out: str, *, case: str = "cantilever", size: str | int = "small", n
         ConfigError: an unknown case or size; ``out`` holds a demo and ``force`` is False.
         OutputError: ``out`` cannot be written (before anything runs), or a write failed.
     """
-    defaults = demo_defaults(case, size)
-    given = dict(n_steps=n_steps, n_parts=n_parts, n_s=n_s, n_past=n_past, n_future=n_future, n_hidden=n_hidden,
-                 n_layers=n_layers, epochs=epochs, batch_size=batch_size, eta0=eta0, gamma=gamma,
-                 train_fraction=train_fraction, n_candidates=n_candidates)
-    d = dataclasses.replace(defaults, **{k: v for k, v in given.items() if v is not None})
-    if resync_tolerance != "default":
-        d = dataclasses.replace(d, resync_tolerance=resync_tolerance)
+    settings = DemoSettings() if settings is None else settings
+    d = settings.applied_to(demo_defaults(case, size))
+    save_every, mass_scaling_seconds = settings.save_every, settings.mass_scaling_seconds
     final = os.path.abspath(os.fspath(out))
     check_demo_output(final, force=force)  # before anything runs
-    staging = _staging_folder(final)
+    staging = staging_folder(final)
     try:
         summary = _pipeline(staging, final, d, case=case, size=size, seed=seed, save_every=save_every,
                             mass_scaling_seconds=mass_scaling_seconds, progress=progress, log=log)
-        _retarget_paths(staging, final)
+        retarget_paths(staging, final)
         install_folder(staging, final)
     except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
@@ -261,10 +291,11 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
               progress, log) -> dict:
     """The stages of :func:`run_demo`, writing into the folder ``out``; every path that
     is printed or stored names ``final``, where the folder is moved at the end."""
-    from .. import cantilever, partition, simulate
+    from .. import HostExecutor, SaveAt, cantilever, partition, simulate
     from ..io import atomic_json
     from ..parallel.devices import device_summary
     from ..solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
     from ..surrogate.fit import train_surrogates
     from ..surrogate.train import TrainConfig
     from .plots import write_report
@@ -300,8 +331,8 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
 
     log(f"[{next(stage)}/{n_stages}] synchronized run: {d.n_steps} steps, dt = {problem.dt:.4e} s, on "
         f"{devices['n_devices']} {devices['device_kind']} device(s){' (emulated)' if devices['emulated'] else ''}")
-    reference = simulate(problem, d.n_steps, partitions=parts, progress=progress, save_every=save_every,
-                         shared_every=shared_every)
+    reference = simulate(problem, d.n_steps, partitions=parts, save=SaveAt(save_every, shared_every),
+                         executor=HostExecutor(progress=progress))
     reference_path = os.path.join(out, "synchronized.h5")
     reference.save(reference_path)
 
@@ -309,24 +340,27 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         f"n_f={d.n_future}, n_H={d.n_hidden}, {d.epochs} epochs, n_B={d.batch_size}, "
         f"{d.n_candidates} candidate{'s' if d.n_candidates > 1 else ''} per part, on the first "
         f"{100 * d.train_fraction:g} % of the run)")
+    surrogate_folder = os.path.join(out, "surrogate")
     trained = train_surrogates(
-        reference_path, n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, n_hidden=d.n_hidden,
-        n_layers=d.n_layers, config=TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma,
-                                                n_epochs=d.epochs),
-        train_fraction=d.train_fraction, n_candidates=d.n_candidates, seed=seed, emse_applications=0,
-        out=os.path.join(out, "surrogate"), progress=progress)
+        reference_path, architecture=ArchitectureChoice(n_hidden=d.n_hidden, n_layers=d.n_layers),
+        sampling=Sampling(n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, train_fraction=d.train_fraction,
+                          seed=seed),
+        optimizer=TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma, n_epochs=d.epochs,
+                              n_candidates=d.n_candidates),
+        checks=TrainingChecks(emse_applications=0), state=TrainingState(surrogate_folder),
+        progress=progress).write(surrogate_folder)
     log(f"  {trained.result.n_epochs_run} epochs in {trained.train_seconds:.1f} s; validation MSE per part "
         + ", ".join(f"{v:.3e}" for v in trained.final_val_loss)
-        + f"; wrote {os.path.join(final, os.path.relpath(trained.files['checkpoint'], out))}")
+        + f"; wrote {os.path.join(final, os.path.relpath(trained.files['surrogate'], out))}")
 
     n_cri = d.n_s * d.n_past
     tolerance = _tolerance(d.resync_tolerance, reference)
     tolerance_cm = None if tolerance is None else tolerance.cm(0.0)
     log(f"[{next(stage)}/{n_stages}] synchronization-avoiding run: synchronized to step {n_cri}, then predicted"
         + (f", error control at es_hat <= {tolerance_cm:.3e} cm ({tolerance})" if tolerance else ""))
-    online = simulate_sync_avoiding(problem, d.n_steps, partitions=parts, surrogates=trained.checkpoint,
-                                    n_cri=n_cri, progress=progress, save_every=save_every,
-                                    resync_tolerance=tolerance)
+    online = simulate_sync_avoiding(problem, d.n_steps, partitions=parts, surrogates=trained.saved,
+                                    n_cri=n_cri, save=save_every, resync_tolerance=tolerance,
+                                    executor=HostExecutor(progress=progress))
     online.save(os.path.join(out, "online.h5"))
     log("  " + describe_run(online))
 
@@ -394,7 +428,7 @@ _STAGING = ".partial-"
 _ASIDE = ".old-"
 
 
-def _staging_folder(final: str) -> str:
+def staging_folder(final: str) -> str:
     """A new, empty folder beside ``final`` for the run's files
     (``<name>.partial-<pid>@<host>.<random>``), after removing the staging and set-aside
     folders of ``final`` left by runs on this host that are gone (killed hard)."""
@@ -404,24 +438,24 @@ def _staging_folder(final: str) -> str:
 def _new_folder_beside(final: str, marker: str, *, clean: bool = False) -> str:
     import re
 
-    from ..io import _host_tag, _process_alive
+    from ..io import host_tag, process_alive
 
     parent, name = os.path.split(final)
     os.makedirs(parent, exist_ok=True)
-    host = _host_tag()
+    host = host_tag()
     if clean:
         left = re.compile(re.escape(name) + r"(?:" + re.escape(_STAGING) + "|" + re.escape(_ASIDE)
                           + r")(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+$")
         for entry in os.listdir(parent):
             match = left.match(entry)
             full = os.path.join(parent, entry)
-            if (match and match.group(2) == host and not _process_alive(int(match.group(1)))
+            if (match and match.group(2) == host and not process_alive(int(match.group(1)))
                     and os.path.isdir(full) and not os.path.islink(full)):
                 shutil.rmtree(full, ignore_errors=True)
     return tempfile.mkdtemp(prefix=f"{name}{marker}{os.getpid()}@{host}.", dir=parent)
 
 
-def _retarget_paths(staging: str, final: str) -> None:
+def retarget_paths(staging: str, final: str) -> None:
     """Make the JSON files of ``staging`` name ``final`` where they name a path in
     ``staging`` (``surrogate/train_summary.json`` names its trajectory and files)."""
     import json
@@ -530,7 +564,7 @@ def mass_scaling_check(problem_cfl, problem_scaled, added_percent: float, second
     displacement vector [cm]), ``relative_difference`` (their ratio), and the curves
     ``times``, ``cfl``, ``scaled`` (the node's displacement norm [cm]) for the figure.
     """
-    from .. import simulate
+    from .. import HostExecutor, simulate
 
     dt_cfl, dt_scaled = float(problem_cfl.dt), float(problem_scaled.dt)
     n_scaled = max(1, int(round(seconds / dt_scaled)))
@@ -538,8 +572,8 @@ def mass_scaling_check(problem_cfl, problem_scaled, added_percent: float, second
     samples = 200
     every_cfl, every_scaled = max(1, n_cfl // samples), max(1, n_scaled // samples)
     n_cfl, n_scaled = n_cfl - n_cfl % every_cfl, n_scaled - n_scaled % every_scaled
-    cfl = simulate(problem_cfl, n_cfl, save_every=every_cfl, progress=progress)
-    scaled = simulate(problem_scaled, n_scaled, save_every=every_scaled, progress=progress)
+    cfl = simulate(problem_cfl, n_cfl, save=every_cfl, executor=HostExecutor(progress=progress))
+    scaled = simulate(problem_scaled, n_scaled, save=every_scaled, executor=HostExecutor(progress=progress))
     d_cfl, d_scaled = np.asarray(cfl.displacement), np.asarray(scaled.displacement)
     node = int(np.argmax(np.linalg.norm(d_cfl, axis=2).max(axis=0)))
     t = np.asarray(cfl.times)

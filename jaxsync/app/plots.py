@@ -43,7 +43,7 @@ from collections.abc import Mapping
 import numpy as np
 
 from ..errors import ConfigError, ProblemError
-from ..metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors
+from ..metrics import estimate_quality, l2_error, node_error, predictions_by_node, shared_node_errors
 from ..options import DEFAULT_COMPONENT, Component, check_option
 from . import figures
 
@@ -369,17 +369,14 @@ def _node_table(c: Comparison) -> list[dict]:
     components = c.node_components
     for label, node in c.nodes.items():
         k = components[label]
-        err_c = np.abs(c.predicted[:, node, k] - c.reference[:, node, k])
-        amp = float(np.abs(c.reference[:, node, k]).max())
+        e = node_error(c.reference, c.predicted, node, k)
         rows.append({
             "label": label, "node": int(node), "coordinates": [float(v) for v in c.mesh.points[node]],
             "shared": bool(c.shared[node]), "constrained": bool(c.fixed[node]),
-            "component": figures.AXES[k], "max_abs_displacement": amp,
-            "max_abs_error": float(err_c.max()),
-            "relative_max_error": float(err_c.max() / amp) if amp > 0 else None,
-            "final_abs_error": float(err_c[-1]),
-            "rms_error": float(np.sqrt(np.mean(err_c ** 2))),
-            "max_error_norm": float(np.linalg.norm(c.predicted[:, node] - c.reference[:, node], axis=1).max()),
+            "component": figures.AXES[k], "max_abs_displacement": e.amplitude,
+            "max_abs_error": e.max_error, "relative_max_error": e.relative,
+            "final_abs_error": e.final_error, "rms_error": e.rms_error,
+            "max_error_norm": node_error(c.reference, c.predicted, node).max_error,
         })
     return rows
 

@@ -1,18 +1,24 @@
 """``jaxsync train``: train the per-part LSTM surrogates on distributed trajectory files
 (``--model linear``: fit the linear autoregressive baseline by least squares instead).
 
-Argument parsing and printing around :func:`jaxsync.surrogate.train_surrogates`, which
-writes, into the output directory: the checkpoint (``surrogate.h5`` by default), the loss
+Argument parsing and printing around :func:`jaxsync.surrogate.train_surrogates` and
+:meth:`~jaxsync.surrogate.TrainedSurrogates.write`, which writes, into the output
+directory: the surrogate file (``surrogate.h5`` by default, ``--surrogate-name``), the loss
 curves (``loss_curves.png``) and a JSON summary (``train_summary.json``).  Every file is
 written under a temporary name and moved into place, so a failed run leaves earlier
 results intact.
 
 While it trains, ``training_state.h5`` in the output directory holds a resumable state,
-rewritten every ``--checkpoint-every`` epochs: the same command run again continues from
-it (and ends with the same parameters as an uninterrupted run); a state of other data or
-options is refused.  It is deleted once the results are written.
+rewritten every ``--state-every`` epochs (:class:`~jaxsync.surrogate.TrainingState`): the
+same command run again continues from it (and ends with the same parameters as an
+uninterrupted run); a state of other data or options is refused.  It is deleted once the
+results are written.
 
-The defaults are the laptop schedule of :class:`~jaxsync.surrogate.train.TrainConfig`
+Every default is the library's, read from its settings dataclasses
+(:class:`~jaxsync.surrogate.ArchitectureChoice`, :class:`~jaxsync.surrogate.Sampling`,
+:class:`~jaxsync.surrogate.TrainConfig`, :class:`~jaxsync.surrogate.TrainingChecks`,
+:class:`~jaxsync.surrogate.TrainingState`): the laptop schedule of
+:class:`~jaxsync.surrogate.train.TrainConfig`
 (n_H = 50, n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200 epochs
 without a better validation loss); the paper's is ``--n-hidden 100 --batch-size 5 --eta0 5e-4 --gamma
 0.9995 --epochs paper`` (13 812 epochs).  ``--model linear`` fits the affine map of least
@@ -23,20 +29,22 @@ it writes the same files, and the optimization options do not apply to it.
 from __future__ import annotations
 
 import argparse
-import inspect
 import os
 
 from jaxsync.options import EpochRule, LoadJumpWindows, SurrogateModel, ValidationSplit, choices
-from jaxsync.surrogate.fit import LOSS_CURVES_NAME, STATE_NAME, SUMMARY_NAME, train_surrogates
+from jaxsync.surrogate.architecture import ArchitectureChoice
+from jaxsync.surrogate.data import Sampling
+from jaxsync.surrogate.evaluate import TrainingChecks
+from jaxsync.surrogate.fit import LOSS_CURVES_NAME, SUMMARY_NAME, SURROGATE_NAME, train_surrogates
 from jaxsync.surrogate.train import TrainConfig
+from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
 
-# the defaults are those of the library: the optimization's and train_surrogates' own
-DEFAULTS = TrainConfig()
-LIBRARY = {name: p.default for name, p in inspect.signature(train_surrogates).parameters.items()}
+# the defaults are those of the library's settings
+ARCHITECTURE, SAMPLING, DEFAULTS, CHECKS = ArchitectureChoice(), Sampling(), TrainConfig(), TrainingChecks()
 
 
 def _non_negative(text: str) -> int:
-    """An integer >= 0 (``--patience``, ``--checkpoint-every``)."""
+    """An integer >= 0 (``--patience``, ``--state-every``)."""
     try:
         value = int(text)
     except ValueError:
@@ -74,49 +82,50 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser.add_argument("trajectories", nargs="+", help="trajectory HDF5 files (one run each, same partition)")
     parser.add_argument("-o", "--output", default="surrogate_out", help="output directory (default: %(default)s)")
-    parser.add_argument("--model", choices=choices(SurrogateModel), default=LIBRARY["model"],
+    parser.add_argument("--model", choices=choices(SurrogateModel), default=ARCHITECTURE.model,
                         help="the surrogate: the LSTM encoder-decoder, or the linear autoregressive baseline "
                         "fitted by least squares on the same windows (unconditional; the optimization options "
                         "do not apply to it) (default: %(default)s)")
-    parser.add_argument("--regularization", type=float, default=LIBRARY["regularization"], metavar="R",
+    parser.add_argument("--regularization", type=float, default=ARCHITECTURE.regularization, metavar="R",
                         help="--model linear: ridge parameter relative to the largest squared singular value of "
                         "the training inputs; 0 is plain least squares (default: %(default)s)")
-    parser.add_argument("--checkpoint-name", default=LIBRARY["checkpoint_name"],
-                        help="checkpoint file name inside the output directory (default: %(default)s)")
+    parser.add_argument("--surrogate-name", dest="surrogate_name", default=SURROGATE_NAME,
+                        help="name of the surrogate file (the trained networks) inside the output directory "
+                        "(default: %(default)s)")
     parser.add_argument("--load-parameter", type=float, nargs="+", default=None,
                         help="the condition of each trajectory, in order: its load parameter alpha_f, an "
                         "initial-condition label, any scalar that tells the runs apart (default: the "
                         "trajectories' 'load_parameter', which jaxsync.ensemble(labels=...) stores); needed "
                         "with --cond-repeat > 0")
-    parser.add_argument("--n-s", type=int, default=LIBRARY["n_s"],
+    parser.add_argument("--n-s", type=int, default=SAMPLING.n_s,
                         help="sampling stride n_s in steps (default: %(default)s)")
-    parser.add_argument("--n-past", type=int, default=LIBRARY["n_past"],
+    parser.add_argument("--n-past", type=int, default=SAMPLING.n_past,
                         help="input snapshots n_p (default: %(default)s)")
-    parser.add_argument("--n-future", type=int, default=LIBRARY["n_future"],
+    parser.add_argument("--n-future", type=int, default=SAMPLING.n_future,
                         help="predicted snapshots n_f (default: %(default)s)")
-    parser.add_argument("--offsets", dest="n_offsets", type=int, default=LIBRARY["n_offsets"],
+    parser.add_argument("--offsets", dest="n_offsets", type=int, default=SAMPLING.n_offsets,
                         help="sampled sequences taken from each run, at evenly spaced starting steps within n_s "
                         "(more windows of the same run; default: %(default)s)")
-    parser.add_argument("--candidates", dest="n_candidates", type=int, default=LIBRARY["n_candidates"],
+    parser.add_argument("--candidates", dest="n_candidates", type=int, default=DEFAULTS.n_candidates,
                         help="networks trained per part from different initial weights, all at once; each "
                         "part keeps the one of lowest validation loss (default: %(default)s)")
-    parser.add_argument("--train-fraction", type=float, default=LIBRARY["train_fraction"],
+    parser.add_argument("--train-fraction", type=float, default=SAMPLING.train_fraction,
                         help="leading fraction n_ts of each run used for training (default: %(default)s)")
-    parser.add_argument("--val-fraction", type=float, default=LIBRARY["val_fraction"],
+    parser.add_argument("--val-fraction", type=float, default=SAMPLING.val_fraction,
                         help="fraction of windows held out for validation (default: %(default)s)")
-    parser.add_argument("--split", choices=choices(ValidationSplit), default=LIBRARY["split"],
+    parser.add_argument("--split", choices=choices(ValidationSplit), default=SAMPLING.split,
                         help="which windows are held out for validation: every 4th (interleaved, at the default "
                         "fraction) or a seeded random subset (the paper's) (default: %(default)s)")
-    parser.add_argument("--load-jump-windows", choices=choices(LoadJumpWindows), default=None,
+    parser.add_argument("--load-jump-windows", choices=choices(LoadJumpWindows), default=SAMPLING.load_jump_windows,
                         help="leave out, or keep, the windows that straddle a load jump the trajectory "
                         "records (a load switched off); an online run stays synchronized through jumps by "
                         "default, and needs them kept to predict through one (default: exclude for "
                         "--model linear, whose fit they bend; keep for the LSTM)")
-    parser.add_argument("--n-hidden", "--hidden", dest="n_hidden", type=int, default=LIBRARY["n_hidden"],
+    parser.add_argument("--n-hidden", "--hidden", dest="n_hidden", type=int, default=ARCHITECTURE.n_hidden,
                         help="encoder hidden size n_H (default: %(default)s; paper: 100)")
-    parser.add_argument("--n-layers", "--layers", dest="n_layers", type=int, default=LIBRARY["n_layers"],
+    parser.add_argument("--n-layers", "--layers", dest="n_layers", type=int, default=ARCHITECTURE.n_layers,
                         help="bidirectional encoder layers k (default: %(default)s)")
-    parser.add_argument("--cond-repeat", type=int, default=LIBRARY["n_cond_repeat"],
+    parser.add_argument("--cond-repeat", type=int, default=ARCHITECTURE.n_cond_repeat,
                         help="copies q of the load parameter fed to the decoder; 0 = unconditional "
                         "(default: %(default)s; paper: 12)")
     parser.add_argument("--batch-size", type=int, default=DEFAULTS.batch_size,
@@ -138,19 +147,19 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         "(default: %(default)s)")
     parser.add_argument("--epochs-per-call", type=int, default=DEFAULTS.epochs_per_call,
                         help="epochs per compiled call between progress updates (default: %(default)s)")
-    parser.add_argument("--checkpoint-every", type=_non_negative, default=LIBRARY["checkpoint_every"], metavar="N",
+    parser.add_argument("--state-every", type=_non_negative, default=TrainingState.every, metavar="N",
                         help=f"write the resumable training state {STATE_NAME} into the output directory "
                         "every N epochs; rerunning the same command resumes from it; 0 disables it "
                         "(default: %(default)s)")
     parser.add_argument("--allow-predicted", action="store_true",
                         help="accept synchronization-avoiding (jaxsync predict) trajectories, whose shared "
                         "dofs were partly predicted by surrogates, as training data (refused by default)")
-    parser.add_argument("--seed", type=int, default=LIBRARY["seed"],
+    parser.add_argument("--seed", type=int, default=SAMPLING.seed,
                         help="seed of initialization, shuffling and the train/validation split (default: %(default)s)")
-    parser.add_argument("--emse-applications", type=int, default=LIBRARY["emse_applications"],
+    parser.add_argument("--emse-applications", type=int, default=CHECKS.emse_applications,
                         help="refill cycles N for the E_mse of the summary, clipped to what the first "
                         "trajectory holds; 0 skips it (default: %(default)s)")
-    parser.add_argument("--rollout-tolerance", type=float, default=LIBRARY["rollout_tolerance"], metavar="FRACTION",
+    parser.add_argument("--rollout-tolerance", type=float, default=CHECKS.rollout_tolerance, metavar="FRACTION",
                         help="offline check after training: warn when a part's autonomous rollout over the first "
                         "trajectory is off by more than this fraction of its shared amplitude; 0 skips it "
                         "(default: %(default)s)")
@@ -171,27 +180,28 @@ def run_train(args: argparse.Namespace) -> int:
 
     # before any data is read: the folder (created if missing) and every file written into it
     check_outputs((args.output, "output folder", "-o", True),
-                  *((os.path.join(args.output, name), "output", "-o" if name != args.checkpoint_name
-                     else "-o/--checkpoint-name")
-                    for name in (args.checkpoint_name, LOSS_CURVES_NAME, SUMMARY_NAME, STATE_NAME)))
-    state_path = os.path.join(args.output, STATE_NAME)
-    if args.model == "lstm" and args.checkpoint_every and os.path.exists(state_path):
-        print(f"resuming from the training state {state_path}")
-    config = TrainConfig(batch_size=args.batch_size, eta0=args.eta0, gamma=args.gamma, eta_min=args.eta_min,
-                         n_epochs=args.epochs, epochs_per_call=args.epochs_per_call,
-                         patience=args.patience or None)
+                  *((os.path.join(args.output, name), "output", "-o" if name != args.surrogate_name
+                     else "-o/--surrogate-name")
+                    for name in (args.surrogate_name, LOSS_CURVES_NAME, SUMMARY_NAME, STATE_NAME)))
+    state = TrainingState(args.output, every=args.state_every) if args.state_every else None
+    if args.model == "lstm" and state is not None and os.path.exists(state.path):
+        print(f"resuming from the training state {state.path}")
     trained = train_surrogates(
-        args.trajectories, model=args.model, regularization=args.regularization, n_s=args.n_s, n_past=args.n_past,
-        n_future=args.n_future, n_hidden=args.n_hidden,
-        n_layers=args.n_layers, n_cond_repeat=args.cond_repeat, config=config, train_fraction=args.train_fraction,
-        val_fraction=args.val_fraction, n_offsets=args.n_offsets, split=args.split, n_candidates=args.n_candidates,
-        load_jump_windows=args.load_jump_windows,
-        load_parameters=args.load_parameter,
-        allow_predicted=args.allow_predicted, seed=args.seed, emse_applications=args.emse_applications,
-        rollout_tolerance=args.rollout_tolerance or None, devices=args.devices, out=args.output,
-        checkpoint_name=args.checkpoint_name, checkpoint_every=args.checkpoint_every,
-        progress=not args.no_progress,
-    )
+        args.trajectories,
+        architecture=ArchitectureChoice(model=args.model, n_hidden=args.n_hidden, n_layers=args.n_layers,
+                                        n_cond_repeat=args.cond_repeat, regularization=args.regularization),
+        sampling=Sampling(n_s=args.n_s, n_past=args.n_past, n_future=args.n_future,
+                          train_fraction=args.train_fraction, val_fraction=args.val_fraction,
+                          n_offsets=args.n_offsets, split=args.split, load_jump_windows=args.load_jump_windows,
+                          seed=args.seed),
+        optimizer=TrainConfig(batch_size=args.batch_size, eta0=args.eta0, gamma=args.gamma, eta_min=args.eta_min,
+                              n_epochs=args.epochs, epochs_per_call=args.epochs_per_call,
+                              patience=args.patience or None, n_candidates=args.n_candidates),
+        checks=TrainingChecks(emse_applications=args.emse_applications,
+                              rollout_tolerance=args.rollout_tolerance or None),
+        load_parameters=args.load_parameter, allow_predicted=args.allow_predicted, state=state,
+        devices=args.devices, progress=not args.no_progress,
+    ).write(args.output, surrogate_name=args.surrogate_name)
     result = trained.result
     if trained.model == "linear":
         how = f"linear, least-squares fit of rank {result.arch.rank} in {result.seconds_per_epoch:.2f} s"
@@ -200,7 +210,7 @@ def run_train(args: argparse.Namespace) -> int:
         how = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
                else f"{result.n_epochs_run} epochs")
         kept = f" (best epochs {', '.join(str(int(e)) for e in result.best_epoch)})"
-    print(f"wrote {os.path.join(args.output, args.checkpoint_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
+    print(f"wrote {os.path.join(args.output, args.surrogate_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
           f"and {SUMMARY_NAME} ({how}); validation MSE of the kept parameters per part: "
           f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
     if trained.candidates is not None:

@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import MeshError
 from .geometry import (
-    _MAX_ELEMENTS,
+    MAX_ELEMENTS,
     add_physical_groups,
     generated_mesh,
     occ_cylinder,
@@ -225,9 +225,9 @@ def _chosen_size(tree: CoronaryTree, size, target_elements, wall: float) -> floa
     n_min = estimated_tree_elements(tree, size=coarsest, wall=wall)
     if size is None:
         target = _DEFAULT_TARGET if target_elements is None else _positive("target_elements", target_elements)
-        if target > _MAX_ELEMENTS:
+        if target > MAX_ELEMENTS:
             raise MeshError(f"coronary_mesh: target_elements={target:,.0f} is above the limit of "
-                            f"{_MAX_ELEMENTS:,} tetrahedra; ask for fewer")
+                            f"{MAX_ELEMENTS:,} tetrahedra; ask for fewer")
         if target < n_min:
             raise MeshError(f"coronary_mesh: target_elements={target:,.0f} is too coarse for the "
                             f"thinnest branch; ask for at least {n_min:,}")
@@ -237,10 +237,10 @@ def _chosen_size(tree: CoronaryTree, size, target_elements, wall: float) -> floa
         raise MeshError(f"coronary_mesh: size={size:g} cm is larger than the thinnest branch's "
                         f"outer radius {coarsest:g} cm; choose a size of at most {coarsest:g} cm")
     n_est = estimated_tree_elements(tree, size=size, wall=wall)
-    if n_est > _MAX_ELEMENTS:
+    if n_est > MAX_ELEMENTS:
         raise MeshError(f"coronary_mesh: size={size:g} cm would give about {n_est:,} tetrahedra, "
-                        f"more than {_MAX_ELEMENTS:,}; choose a larger size (at least "
-                        f"{_size_for(tree, _MAX_ELEMENTS, wall):.3g} cm) or use target_elements")
+                        f"more than {MAX_ELEMENTS:,}; choose a larger size (at least "
+                        f"{_size_for(tree, MAX_ELEMENTS, wall):.3g} cm) or use target_elements")
     return size
 
 

@@ -32,7 +32,9 @@ __all__ = ["vessel_mesh", "estimated_elements", "vessel_centerline"]
 #: estimate errs on the high side.
 _TETS_PER_SIZE_CUBED = 8.5
 
-_MAX_ELEMENTS = 2_000_000
+MAX_ELEMENTS = 2_000_000
+"""The largest mesh the generators make (tetrahedra): beyond it gmsh needs more memory than
+a workstation has; ask for fewer elements or a larger size."""
 
 # gmsh options set for every run (recorded and restored when the caller already holds
 # an initialized gmsh session).
@@ -88,7 +90,7 @@ def estimated_elements(*, length: float = 3.0, radius: float = 0.175, wall: floa
 def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
                 radius: float = 0.175, wall: float = 0.05, branch: bool = False,
                 angle: float = 30.0, size: float = 0.05,
-                max_elements: int = _MAX_ELEMENTS, verbose: bool = False) -> Mesh:
+                max_elements: int = MAX_ELEMENTS, verbose: bool = False) -> Mesh:
     """Mesh a thick-walled vessel (a coronary-like artery) with linear tetrahedra.
 
     A tube of lumen radius ``radius`` and wall thickness ``wall`` along the centerline of

@@ -24,7 +24,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
 from ..pytree import pytree_dataclass
 from .sparse import BlockEll
 
@@ -37,7 +36,9 @@ class ExplicitSystem:
     """Everything one explicit step needs, as JAX arrays (a pytree).
 
     Attributes:
-        stiffness: K in node-blocked ELL form [dyn/cm].
+        stiffness: the internal-force operator, ``stiffness.matvec(u)`` = f_int(u) [dyn]
+            (:mod:`jaxsync.fem.internal_force`: K in node-blocked ELL form, or formed
+            element by element).
         mass: (n_nodes, 3) lumped mass per dof [g].
         damping: alpha [1/s].
         dt: time step [s].
@@ -72,25 +73,16 @@ class SolverState:
     step: Any
 
 
-def build_system(problem, dt, mode: str = "preassembled") -> ExplicitSystem:
+def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     """Assemble the JAX-side system of ``problem`` for time step ``dt`` [s].
 
-    ``mode`` selects the internal force: ``"preassembled"`` (K stored in node-blocked
-    ELL form) or ``"recompute"`` (element quantities formed every step, paper Remark 2).
+    ``mode``: the internal force's model (:func:`jaxsync.fem.internal_force.force_model`:
+    ``"preassembled"``, K stored in node-blocked ELL form, or ``"recompute"``, element
+    quantities formed every step, paper Remark 2; or a force model itself).
     Traceable in the material, damping, load magnitudes and dt (differentiable)."""
-    from ..options import Mode, check_option
-    from .element_force import ElementStiffness
+    from .internal_force import force_model
 
-    check_option("mode", mode, Mode, error=ProblemError)
-    m = problem.material
-    if mode == "preassembled":
-        adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
-        stiffness = BlockEll(jnp.asarray(adjacency),
-                             m.lam * jnp.asarray(K_lambda) + m.mu * jnp.asarray(K_mu), symmetric=True)
-    else:
-        mesh = problem.mesh
-        stiffness = ElementStiffness(jnp.asarray(mesh.points), jnp.asarray(mesh.tets, dtype=jnp.int32),
-                                     jnp.ones(mesh.n_elements), m.lam, m.mu)
+    stiffness = force_model(mode).operator(problem)
     mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
     vectors, times = problem.load_vectors()
     n = problem.mesh.n_nodes

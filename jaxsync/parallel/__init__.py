@@ -2,26 +2,27 @@
 SPMD builder, devices and processes.
 
 Modules: :mod:`~jaxsync.parallel.partitioning` (METIS parts, owned/shared nodes),
-:mod:`~jaxsync.parallel.exchange` (per-part systems; ``scatter_reverse`` /
-``scatter_forward`` of shared-node values), :mod:`~jaxsync.parallel.spmd`
+:mod:`~jaxsync.parallel.layout` (padded local numbering, per-part systems, split and merge of
+fields), :mod:`~jaxsync.parallel.exchange` (``scatter_reverse`` / ``scatter_forward`` of
+shared-node values), :mod:`~jaxsync.parallel.halo` (deep halos), :mod:`~jaxsync.parallel.spmd`
 (:func:`spmd_program`, the builder of every SPMD program), :mod:`~jaxsync.parallel.devices`
 (emulated CPU devices), :mod:`~jaxsync.parallel.multiprocess` (``mpiexec`` runs).
 """
 
 from . import devices, multiprocess
 from .exchange import (
+                       Exchange,
                        NeighbourExchange,
-                       PartSystems,
-                       build_part_systems,
                        neighbour_exchange,
                        scatter_forward,
                        scatter_reverse,
                        synchronize_forces,
 )
+from .layout import PartLayout, PartSystems, part_systems
 from .partitioning import Part, Partition, partition, partition_from_elements, partition_of
 from .spmd import AXIS, LOCAL_AXIS, spmd_program
 
 __all__ = ["Partition", "Part", "partition", "partition_from_elements", "partition_of",
-           "PartSystems", "build_part_systems", "scatter_reverse", "scatter_forward",
+           "PartLayout", "PartSystems", "part_systems", "Exchange", "scatter_reverse", "scatter_forward",
            "synchronize_forces", "NeighbourExchange", "neighbour_exchange",
            "spmd_program", "AXIS", "LOCAL_AXIS", "devices", "multiprocess"]

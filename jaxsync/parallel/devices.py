@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["request_cpu_devices", "device_summary", "user_chose_devices"]
+__all__ = ["request_cpu_devices", "device_summary", "user_chose_devices", "jax_started"]
 
 
 def user_chose_devices(environ=None) -> bool:
@@ -36,13 +36,27 @@ def request_cpu_devices(n: int) -> bool:
     used, and the run's statistics say how many). Harmless on machines with GPUs: the CPU
     devices are only the fallback there."""
     import jax
-    from jax._src import xla_bridge
 
     n = int(n)
-    if n < 2 or user_chose_devices() or xla_bridge.backends_are_initialized():
+    if n < 2 or user_chose_devices() or jax_started():
         return False
     jax.config.update("jax_num_cpu_devices", n)
     return True
+
+
+def jax_started() -> bool:
+    """True once JAX has initialized its backends (after its first array or device query:
+    device counts and collectives can no longer change). Found through the public config:
+    JAX refuses a new CPU device count once started."""
+    import jax
+
+    current = jax.config.jax_num_cpu_devices
+    try:
+        jax.config.update("jax_num_cpu_devices", 2 if current != 2 else 3)
+    except RuntimeError:
+        return True
+    jax.config.update("jax_num_cpu_devices", current)
+    return False
 
 
 def device_summary(devices=None, *, processes: int | None = None) -> dict:

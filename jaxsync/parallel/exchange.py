@@ -14,141 +14,57 @@ dolfinx's index maps:
 part holds the full force at all its local nodes, and the update of a shared node is
 identical on every part that holds it.
 
-Parts are padded to equal sizes (nodes, elements, neighbours, shared nodes) so that one
-SPMD program serves all; padding nodes have unit mass, zero stiffness and are fixed at
-zero. With n_parts a multiple of the device count, each device carries several parts
-(a vmapped axis); the sum then runs over both the local part axis and the devices.
-
-Two ways to form the internal force (paper Remark 2): ``"preassembled"``, the part's
-sparse stiffness stored once (node-blocked ELL), and ``"recompute"``, where the element
-geometry, strains and stresses are formed every step (standing in for nonlinear
-materials).
+Parts are padded to equal sizes (:mod:`jaxsync.parallel.layout`) so that one SPMD program
+serves all. With n_parts a multiple of the device count, each device carries several
+parts (a vmapped axis); the sum then runs over both the local part axis and the devices.
+An :class:`Exchange` holds what a program needs to call these verbs: the interface size,
+how values cross devices and processes, and the halo depth of deep halos.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import dataclasses
+import functools
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.sparse as sp
 
-from ..errors import PartitionError, ProblemError
-from ..fem.element_force import ElementStiffness
-from ..fem.sparse import BlockEll, block_ell_values, node_adjacency, pad_block_ell
-from ..fem.stepper import ExplicitSystem
-from ..options import Mode, check_option
+from ..errors import PartitionError
 from ..pytree import pytree_dataclass, static_field
 from .partitioning import Partition
 from .spmd import AXIS, LOCAL_AXIS
 
-__all__ = ["PartSystems", "build_part_systems", "synchronize_forces", "scatter_reverse",
-           "scatter_forward", "NeighbourExchange", "neighbour_exchange", "AXIS", "LOCAL_AXIS"]
+__all__ = ["Exchange", "synchronize_forces", "scatter_reverse", "scatter_forward", "NeighbourExchange",
+           "neighbour_exchange", "AXIS", "LOCAL_AXIS"]
 
 
-@pytree_dataclass
-class PartSystems:
-    """Per-part explicit systems stacked on a leading part axis (all arrays (n_parts, ...)).
+@dataclasses.dataclass(frozen=True, eq=False)
+class Exchange:
+    """How the parts of one SPMD program complete their shared values.
 
     Attributes:
-        system: :class:`ExplicitSystem` in local numbering, padded to n_local_max nodes.
-        shared_local: (n_parts, n_shared_max) local index of each shared node (padding:
-            n_local_max, out of range, so that scatters drop it).
-        shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
-        owned: (n_parts, n_local_max) bool, the nodes each part owns, for deep halos
-            (:mod:`jaxsync.parallel.halo`); None for an element partition.
+        n_interface: interface nodes (of the partition, or of a halo's exchanged nodes).
+        across: how the interface vector summed over a device's parts is summed across
+            devices: None (``jax.lax.psum`` over the device axis), a
+            :class:`NeighbourExchange`, or an MPI Allreduce
+            (:func:`jaxsync.parallel.multiprocess.make_allreduce`).
+        halo_depth: None (the parts sum their forces every step) or k, deep halos
+            (:mod:`jaxsync.parallel.halo`: both displacement levels every k steps).
     """
 
-    system: ExplicitSystem
-    shared_local: Any
-    shared_interface: Any
-    owned: Any = None
+    n_interface: int
+    across: Callable | None = None
+    halo_depth: int | None = None
 
-    def shared_displacement(self, state):
-        """One part's (n_shared_max, 3) displacements at its shared nodes in ``state``
-        (padding slots read 0): what the distributed solver records after every step, the
-        surrogates' training data and input history."""
-        return state.displacement.at[self.shared_local].get(mode="fill", fill_value=0.0)
-
-
-def _pad_to(arrays, length, fill, axis=0):
-    out = []
-    for a in arrays:
-        pad = [(0, 0)] * a.ndim
-        pad[axis] = (0, length - a.shape[axis])
-        out.append(np.pad(a, pad, constant_values=fill))
-    return np.stack(out)
-
-
-def build_part_systems(problem, system: ExplicitSystem, partition: Partition, mode: str) -> PartSystems:
-    """Split the global ``system`` into padded, stacked per-part systems (numpy-backed).
-
-    ``partition``: a :class:`Partition`, or a :class:`jaxsync.parallel.halo.HaloPartition`
-    (its grown parts, its halo interface and its owned nodes)."""
-    from ..fem.assembly import element_blocks
-
-    check_option("mode", mode, Mode, error=ProblemError)
-    if partition.mesh is not problem.mesh and not (
-            partition.mesh.n_nodes == problem.mesh.n_nodes
-            and np.array_equal(partition.mesh.tets, problem.mesh.tets)):
-        raise PartitionError("the partition was made for another mesh: partition problem.mesh")
-    parts = partition.parts
-    n_parts = len(parts)
-    n_local = max(p.n_local for p in parts)
-    n_shared = max(max(p.n_shared for p in parts), 1)
-    mass = np.asarray(system.mass)
-    loads = np.asarray(system.load_vectors)
-    fixed, fixed_values = np.asarray(system.fixed), np.asarray(system.fixed_values)
-    m = problem.material
-    lam, mu = float(m.lam), float(m.mu)
-
-    if mode == "preassembled":
-        k_lambda, k_mu = element_blocks(problem.mesh)
-        columns, blocks = [], []
-        for part in parts:
-            dofs = (3 * part.local_tets[:, :, None] + np.arange(3)).reshape(-1, 12)
-            rows, cols = np.repeat(dofs, 12, axis=1).ravel(), np.tile(dofs, (1, 12)).ravel()
-            values = (lam * k_lambda[part.elements] + mu * k_mu[part.elements]).ravel()
-            K = sp.coo_matrix((values, (rows, cols)), shape=(3 * part.n_local,) * 2).tocsr()
-            adjacency = node_adjacency(part.local_tets, part.n_local)
-            columns.append(adjacency)
-            blocks.append(block_ell_values(K, adjacency))
-        width = max(c.shape[1] for c in columns)
-        padded = [pad_block_ell(c, b, n_local, width) for c, b in zip(columns, blocks)]
-        columns = np.stack([c for c, _ in padded])
-        blocks = np.stack([b for _, b in padded])
-        stiffness = BlockEll(columns.astype(np.int32), blocks, symmetric=True)
-    else:
-        n_elem = max(len(p.elements) for p in parts)
-        tets = _pad_to([p.local_tets for p in parts], n_elem, 0).astype(np.int32)
-        for p, part in enumerate(parts):  # padding elements repeat element 0, with weight 0
-            tets[p, len(part.elements):] = part.local_tets[0]
-        weight = _pad_to([np.ones(len(p.elements)) for p in parts], n_elem, 0.0)
-        points = _pad_to([problem.mesh.points[p.nodes] for p in parts], n_local, 0.0)
-        stiffness = ElementStiffness(points, tets, weight, np.full(n_parts, lam), np.full(n_parts, mu))
-
-    def local(array, fill):
-        return _pad_to([array[p.nodes] for p in parts], n_local, fill)
-
-    # (n_loads, n_nodes, 3) -> (n_parts, n_loads, n_local_max, 3)
-    local_loads = np.moveaxis(local(np.moveaxis(loads, 0, 1), 0.0), 2, 1)
-    stacked = ExplicitSystem(
-        stiffness=stiffness, mass=local(mass, 1.0),
-        damping=np.full(n_parts, float(system.damping)), dt=np.full(n_parts, float(system.dt)),
-        load_vectors=local_loads,
-        load_times=jax.tree_util.tree_map(lambda x: np.full((n_parts,) + np.shape(x), x),
-                                          system.load_times),
-        fixed=local(fixed, True), fixed_values=local(fixed_values, 0.0))
-    shared_local = _pad_to([p.shared_local for p in parts], n_shared, n_local).astype(np.int32)
-    shared_interface = _pad_to([p.shared_interface for p in parts], n_shared,
-                               partition.n_interface).astype(np.int32)
-    owned = None
-    if getattr(partition, "owned_local", None) is not None:
-        owned = np.zeros((n_parts, n_local), dtype=bool)
-        for p, local in enumerate(partition.owned_local):
-            owned[p, local] = True
-    return PartSystems(stacked, shared_local, shared_interface, owned)
+    def force_sum(self, part) -> Callable:
+        """One part's shared-node force sum (the ``synchronize`` of
+        :func:`jaxsync.fem.stepper.step`), for ``part`` a
+        :class:`jaxsync.parallel.layout.PartSystems` of one part."""
+        return functools.partial(synchronize_forces, shared_local=part.shared_local,
+                                 shared_interface=part.shared_interface, n_interface=self.n_interface,
+                                 across=self.across)
 
 
 def scatter_reverse(local, shared_local, shared_interface, n_interface: int, across=None):

@@ -25,8 +25,8 @@ interface, the part writes only the values of the nodes it owns (zeros elsewhere
 :func:`~jaxsync.parallel.exchange.scatter_reverse` sums them (x + 0 = x: the owner's
 value arrives bit for bit). A :class:`HaloPartition` therefore looks like a
 :class:`~jaxsync.parallel.partitioning.Partition` to
-:func:`~jaxsync.parallel.exchange.build_part_systems` (``mesh``, ``parts``,
-``n_interface``), with the owned nodes added (``owned_local``).
+:class:`~jaxsync.parallel.layout.PartLayout` (``mesh``, ``parts``, ``n_interface``), with
+the owned nodes added (``owned_local``).
 """
 
 from __future__ import annotations
@@ -192,23 +192,30 @@ def refresh_halo(part, state: SolverState, n_interface: int, across=None) -> Sol
     return SolverState(levels[:, :3], levels[:, 3:], state.step)
 
 
-def advance_halo(part, state: SolverState, n_saves: int, save_every: int, depth: int,
-                 n_interface: int, across=None):
-    """``n_saves * save_every`` steps of one grown part with an exchange every ``depth``
-    steps (:func:`refresh_halo`): (state, (n_saves, n_local, 3) displacements after every
-    ``save_every`` steps). ``save_every`` and ``depth`` divide one another
-    (:func:`check_save_every`); saved snapshots inside a cycle are right on the owned
-    nodes only (read those), at its end on every local node."""
+def advance_halo(part, state: SolverState, n_saves: int, save_every: int, exchange, *, loop=None):
+    """``n_saves * save_every`` steps of one grown part with an exchange every
+    ``exchange.halo_depth`` steps (:func:`refresh_halo`; ``exchange`` a
+    :class:`jaxsync.parallel.exchange.Exchange`): (state, (n_saves, n_local, 3)
+    displacements after every ``save_every`` steps). ``save_every`` and the depth divide
+    one another (:func:`check_save_every`); saved snapshots inside a cycle are right on the
+    owned nodes only (read those), at its end on every local node.
+
+    ``loop(body, carry, n) -> (carry, stacked outputs)`` runs the outer loop (of saves, or
+    of exchange cycles when a cycle holds several saves): ``lax.scan`` by default; the
+    traced executor passes a recomputing one (:func:`jaxsync.solve.remat.recomputing_scan`)."""
+    depth = exchange.halo_depth
+    loop = (lambda body, c, n: jax.lax.scan(body, c, None, length=n)) if loop is None else loop
+
     def cycle(s, _):  # depth local steps, then the exchange; saves every save_every steps
         per_cycle = max(depth // save_every, 1)
         s, saved = advance(part.system, s, per_cycle, min(save_every, depth))
-        return refresh_halo(part, s, n_interface, across), saved
+        return refresh_halo(part, s, exchange.n_interface, exchange.across), saved
 
     if save_every >= depth:
         def one_save(s, _):
             s, _ = jax.lax.scan(cycle, s, None, length=save_every // depth)
             return s, s.displacement
 
-        return jax.lax.scan(one_save, state, None, length=n_saves)
-    state, saved = jax.lax.scan(cycle, state, None, length=n_saves * save_every // depth)
+        return loop(one_save, state, n_saves)
+    state, saved = loop(cycle, state, n_saves * save_every // depth)
     return state, saved.reshape(n_saves, *saved.shape[2:])

@@ -124,9 +124,9 @@ def initialize(*, cpu_devices: int | None = 1, coordinator_address: str | None =
     if jax.distributed.is_initialized():
         return jax.process_count()
     comm = world()  # fail early and clearly when mpi4py is missing
-    from jax._src import xla_bridge
+    from .devices import jax_started
 
-    if xla_bridge.backends_are_initialized():
+    if jax_started():
         raise ConfigError("JAX was used before jaxsync.parallel.multiprocess.initialize(): call it at the "
                           "start of the program, before creating arrays or calling jax.devices()")
     jax.config.update("jax_cpu_collectives_implementation", "gloo")

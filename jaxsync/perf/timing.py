@@ -54,12 +54,13 @@ import numpy as np
 from ..errors import ProblemError
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..options import Mode, check_option
-from ..parallel.exchange import build_part_systems
-from ..parallel.halo import HaloPartition, check_halo_depth
+from ..parallel.halo import HaloPartition
+from ..parallel.layout import PartLayout, part_systems
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
 from ..solve.distributed import DistributedRunner
 from ..solve.predicted import PredictedPhase
+from ..solve.strategies import Halo, Ppermute, Psum, sync_strategy
 from ..surrogate.data import shared_dof_layout
 from ..surrogate.model import Surrogate
 from . import kernels
@@ -76,8 +77,8 @@ def _check_counts(**values) -> None:
             raise ProblemError(f"{name} must be a positive integer, got {value!r}")
 
 
-def _partition_of(problem, partitions, seed: int):
-    return partitions if isinstance(partitions, Partition) else partition(problem.mesh, partitions, seed=seed)
+def _partition_of(problem, partitions):
+    return partitions if isinstance(partitions, Partition) else partition(problem.mesh, partitions)
 
 
 def _start(problem, dt: float, mode: Mode):
@@ -97,7 +98,7 @@ def _alone(layout, part):
 def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps, repeats, device):
     """({variant: seconds per step}, setup seconds) of one part alone on ``device``."""
     start = time.perf_counter()
-    stacked = build_part_systems(problem, system, _alone(part_info, part), mode)
+    stacked = part_systems(problem, system, PartLayout.of(_alone(part_info, part)), mode)
     setup_s = time.perf_counter() - start
     part_system = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[0], stacked.system), device)
     part_state = jax.device_put(SolverState(d0[part.nodes], dm1[part.nodes],
@@ -113,13 +114,12 @@ def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps,
 
 
 def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_steps: int | None = None,
-                     repeats: int = 100, dt=None, devices=None, seed: int = 0,
-                     sync: str = "psum", halo_depth: int = 1) -> TimingReport:
+                     repeats: int = 100, dt=None, sync="psum") -> TimingReport:
     """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
 
     Args:
         problem: a :class:`jaxsync.Problem` (concrete, not traced).
-        partitions: int n_parts (METIS, ``seed``) or a :class:`jaxsync.Partition`.
+        partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2).
         n_steps: steps per timed call; about 1 ms per call is a good choice (the per-call
             cost is measured and removed, so short calls lose no accuracy). Default
@@ -129,14 +129,12 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
             compilation of 5-6 small programs per part.
         dt: time step [s] of the timed steps, which start from the paper's initial
             state; default ``problem.dt`` (the speed does not depend on it).
-        devices: devices for the distributed program (default as in
-            :func:`jaxsync.simulate`); each part's own program runs on the first.
-        seed: METIS seed when ``partitions`` is an int.
-        sync: ``"psum"``, ``"ppermute"`` or ``"halo"``, the synchronization timed as t_s
-            (see :class:`jaxsync.solve.distributed.DistributedRunner`). With ``"halo"``
-            the parts are the grown ones of depth ``halo_depth`` (their redundant work is
-            in t_e, t_m, t_o), t_s is the exchange every k steps per step, and
-            ``n_steps`` is rounded up to a multiple of k.
+        sync: the exchange timed as t_s, :class:`jaxsync.Psum`, :class:`jaxsync.Ppermute`
+            or :class:`jaxsync.Halo` (or their names), with the devices of the distributed
+            program (default as in :func:`jaxsync.simulate`; each part's own program runs
+            on the first). With a halo the parts are the grown ones of its depth k (their
+            redundant work is in t_e, t_m, t_o), t_s is the exchange every k steps per
+            step, and ``n_steps`` is rounded up to a multiple of k.
 
     Returns:
         :class:`jaxsync.perf.reports.TimingReport`, times in seconds per step.
@@ -149,22 +147,22 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
     check_option("mode", mode, Mode, error=ProblemError)
     _check_counts(n_steps=n_steps, repeats=repeats)
     dt = float(problem.dt if dt is None else dt)
-    part_info = _partition_of(problem, partitions, seed)
+    part_info = _partition_of(problem, partitions)
+    sync = sync_strategy(sync)
     if n_steps is None:
         n_steps = int(np.clip(round(20000 / max(p.n_local for p in part_info.parts)), 5, 400))
     n_steps, repeats = int(n_steps), int(repeats)
-    if sync == "halo":
-        n_steps = -(-n_steps // check_halo_depth(halo_depth)) * halo_depth
+    if isinstance(sync, Halo):
+        n_steps = -(-n_steps // sync.depth) * sync.depth
     system, d0, dm1 = _start(problem, dt, mode)
 
     # The distributed program (padded parts on all devices); also places the devices.
-    runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                               devices=devices, sync=sync, halo_depth=halo_depth)
+    runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode, sync=sync)
 
     # Each part alone, at its own size, on one device.
     setup_s, local_times = 0.0, []
     for part in runner.layout.parts:
-        times, seconds = _local_stage_times(problem, system, runner.layout, part, d0, dm1, mode,
+        times, seconds = _local_stage_times(problem, system, runner.layout.partition, part, d0, dm1, mode,
                                             n_steps, repeats, runner.devices[0])
         local_times.append(times)
         setup_s += seconds
@@ -211,8 +209,7 @@ def _part_prediction_times(predictor, n_parts: int, history: int, n_dof: int, de
 
 def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "preassembled",
                       syncs=("psum", "ppermute"), n_cycles: int = 1, repeats: int = 10,
-                      stage_repeats: int = 50, n_s: int = 80, devices=None, seed: int = 0,
-                      dt=None, prediction_repeats: int | None = None,
+                      stage_repeats: int = 50, dt=None, prediction_repeats: int | None = None,
                       halo_depths: tuple = ()) -> SpeedupReport:
     """Time the synchronized solver (each of ``syncs``) and the synchronization-avoiding
     solver (paper Algorithm 3's predicted phase) in one run, and the stages of both.
@@ -229,17 +226,19 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
 
     Args:
         problem: a :class:`jaxsync.Problem`.
-        partitions: int n_parts (METIS, ``seed``) or a :class:`jaxsync.Partition`.
+        partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         predictor: a :class:`jaxsync.surrogate.Surrogate` (trained or not) or
             :class:`~jaxsync.solve.predictors.OraclePredictor`; default: untrained replicas of the
-            paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at stride ``n_s``
-            (:meth:`jaxsync.surrogate.Surrogate.initialized`): the cost does not depend on the
+            paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at the paper's stride
+            n_s = 80 (:meth:`jaxsync.surrogate.Surrogate.initialized`; another stride:
+            ``Surrogate.initialized(partition, n_s)``): the cost does not depend on the
             weights.
         mode: ``"preassembled"`` or ``"recompute"``.
-        syncs: synchronizations to time for the baseline (the faster one is kept).
+        syncs: exchanges to time for the baseline (the faster one is kept):
+            :class:`jaxsync.Psum` and/or :class:`jaxsync.Ppermute`, or their names; the
+            first one's devices run every program.
         n_cycles, repeats: refill cycles per timed call, timed calls per program.
         stage_repeats: ``repeats`` of the per-part stage timing.
-        n_s: refill stride of the default predictor.
         prediction_repeats: timed calls of each part's prediction alone (default
             max(repeats, 20); a refill of the vessel's n_s = 1000 takes about a second).
         halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.halo`, the exact
@@ -250,14 +249,18 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
         :class:`jaxsync.perf.reports.SpeedupReport`.
     """
     require_float64("speedup_breakdown")
-    if not syncs or any(m not in ("psum", "ppermute") for m in syncs):
-        raise ProblemError(f"syncs must name 'psum' and/or 'ppermute', got {syncs!r}")
+    strategies = [sync_strategy(m) if isinstance(m, str) and m in ("psum", "ppermute") else m for m in syncs]
+    if not strategies or any(not isinstance(m, (Psum, Ppermute)) for m in strategies):
+        raise ProblemError(f"syncs must name 'psum' and/or 'ppermute' (or be jaxsync.Psum() / Ppermute()), "
+                           f"got {syncs!r}")
+    syncs = tuple(m.name for m in strategies)
+    devices = strategies[0].devices
     _check_counts(n_cycles=n_cycles, repeats=repeats)
-    part_info = _partition_of(problem, partitions, seed)
+    part_info = _partition_of(problem, partitions)
     if part_info.n_parts < 2:
         raise ProblemError("the synchronization-avoiding solver needs at least 2 parts")
     if predictor is None:
-        predictor = Surrogate.initialized(part_info, n_s, seed=seed)
+        predictor = Surrogate.initialized(part_info, 80)
     n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future
     cycle_steps, history = n_s * n_f, n_s * n_p
     n_steps = n_cycles * cycle_steps
@@ -265,8 +268,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     system, d0, dm1 = _start(problem, dt, mode)
     n_dof, _ = shared_dof_layout(part_info)
 
-    runners = {m: DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                                    devices=devices, sync=m) for m in syncs}
+    runners = {m.name: DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
+                                         sync=type(m)(devices)) for m in strategies}
     runner = runners[syncs[0]]
     dist_state = runner.from_global(SolverState(d0, dm1, 0))
     online = PredictedPhase(runner, predictor, save_every=cycle_steps)
@@ -277,11 +280,11 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     calls["avoid"] = (online.prepare(dist_state, buffer, n_cycles, cycle_steps),
                       (runner.parts, online.predictor, dist_state, buffer, online.step_counter(0)))
     for k in halo_depths:
-        if n_steps % check_halo_depth(k):
+        if n_steps % Halo(k).depth:
             raise ProblemError(f"halo depth {k} does not divide the {n_steps} timed steps "
                                f"(n_cycles n_s n_f): use a divisor of {n_steps}")
         halo = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                                 devices=devices, sync="halo", halo_depth=k)
+                                 sync=Halo(k, devices))
         calls[f"halo:{k}"] = (kernels.distributed_step(halo, n_steps, True),
                               (halo.parts, halo.from_global(SolverState(d0, dm1, 0))))
     calls["call"] = (kernels.distributed_no_step(runner), (runner.parts, dist_state))
@@ -296,7 +299,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
                                           max(repeats, 20) if prediction_repeats is None else prediction_repeats)
 
     synchronized = timing_breakdown(problem, part_info, mode=mode, repeats=stage_repeats, dt=dt,
-                                    devices=devices, sync=best)
+                                    sync={"psum": Psum, "ppermute": Ppermute}[best](devices))
     # every part's prediction runs at the same time in the program: each pays the SPMD time
     t_d = t_prediction_spmd / cycle_steps
     rows = tuple(dataclasses.replace(r, t_s=0.0, t_d=t_d, t_t=r.t_local + t_d)

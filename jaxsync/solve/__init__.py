@@ -1,23 +1,48 @@
-"""The solve layer: runs of the explicit solver, driven by the one host loop.
+"""The solve layer: runs of the explicit solver.
 
-Modules: :mod:`~jaxsync.solve.driver` (the host loop :func:`run_chunks`, the runner
-protocol, progress), :mod:`~jaxsync.solve.solver` (:func:`simulate` on one device or over
-parts, checkpoints, :func:`steady_state`), :mod:`~jaxsync.solve.distributed` (the runner
-of paper Algorithm 1), :mod:`~jaxsync.solve.predictors` (what predicts the shared nodes),
-:mod:`~jaxsync.solve.predicted` (the predicted phase and its runners),
-:mod:`~jaxsync.solve.syncavoid` (paper Algorithm 3 with error control),
-:mod:`~jaxsync.solve.full_system` (one surrogate for every dof).
+A run is a schedule of phases (:mod:`~jaxsync.solve.phases`: synchronized and predicted
+steps, the pure per-part functions both executors call), run by one of two executors:
+:mod:`~jaxsync.solve.host` (compiled chunks driven from Python through the one host loop
+of :mod:`~jaxsync.solve.driver`: progress, divergence checks, checkpoints, error control)
+or :mod:`~jaxsync.solve.traced` (one JAX program, differentiable, its reverse pass from
+:mod:`~jaxsync.solve.remat`). The options of a run are the objects of
+:mod:`~jaxsync.solve.strategies`.
+
+Entry points: :func:`simulate` (:mod:`~jaxsync.solve.solver`), :func:`simulate_sync_avoiding`
+(:mod:`~jaxsync.solve.syncavoid`, paper Algorithm 3 with error control), :func:`ensemble`,
+:func:`simulate_full_system` (one surrogate for every dof), :func:`steady_state`. The parts
+of a distributed run: :mod:`~jaxsync.solve.distributed`; the predicted phase's runners:
+:mod:`~jaxsync.solve.predicted`; predictors: :mod:`~jaxsync.solve.predictors`; resumable
+checkpoints: :mod:`~jaxsync.solve.checkpoint`; the trajectory of a run:
+:mod:`~jaxsync.solve.record`.
 """
 
-from .distributed import DistributedRunner
+from .distributed import DistributedParts, DistributedRunner
 from .driver import Chunk, Progress, Runner, Segment, run_chunks
 from .ensemble import ensemble
 from .full_system import simulate_full_system
+from .host import SingleDeviceRunner
+from .phases import Predicted, Synchronized
 from .predictors import OraclePredictor
-from .solver import SingleDeviceRunner, drive, simulate, steady_state
-from .syncavoid import ResyncTolerance, describe_run, simulate_sync_avoiding, step_counts
+from .solver import simulate, steady_state
+from .strategies import (
+                         Halo,
+                         HostExecutor,
+                         Mpi,
+                         Ppermute,
+                         Psum,
+                         Recompute,
+                         ResyncTolerance,
+                         SaveAt,
+                         SolverCheckpoint,
+                         StoreAll,
+                         TracedExecutor,
+)
+from .syncavoid import describe_run, simulate_sync_avoiding, step_counts
 
 __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
            "ResyncTolerance", "OraclePredictor", "describe_run", "step_counts",
-           "Runner", "Chunk", "Segment", "Progress", "run_chunks", "drive", "SingleDeviceRunner",
-           "DistributedRunner"]
+           "Psum", "Ppermute", "Mpi", "Halo", "SaveAt", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
+           "Recompute", "StoreAll", "Synchronized", "Predicted",
+           "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
+           "DistributedParts", "DistributedRunner"]

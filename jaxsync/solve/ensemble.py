@@ -2,9 +2,10 @@
 
 Surrogate training sets are ensembles of runs that differ only in their load magnitudes,
 Dirichlet values or initial conditions (say 10 cantilever runs with f_z ~ U(0.3, 0.7)).
-:func:`ensemble` advances all of them together: ``jax.vmap`` of the stepper over a
-leading runs axis, compiled once, driven by the one host loop
-(:func:`jaxsync.solve.driver.run_chunks`) with progress and divergence checks.
+:func:`ensemble` advances all of them together: ``jax.vmap`` over a leading runs axis of
+the synchronized phase (:func:`jaxsync.solve.phases.synchronized_steps`), compiled once,
+driven by the one host loop (:func:`jaxsync.solve.driver.run_chunks`) with progress and
+divergence checks -- or, for traced inputs, as one traced program (differentiable).
 """
 
 from __future__ import annotations
@@ -18,10 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import PartitionError, ProblemError, StabilityError
-from ..fem.stepper import ExplicitSystem, advance, build_system, initial_state
+from ..fem.stepper import ExplicitSystem, build_system, initial_state
 from ..fem.timestep import divergence_advice
 from ..pytree import is_traced
+from ..trajectory import Result
 from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
+from .phases import synchronized_steps
+from .record import synchronized_trajectory
+from .strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
 
 __all__ = ["ensemble"]
 
@@ -31,15 +36,16 @@ _RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, loa
                            load_times=None, fixed=None, fixed_values=0)
 
 
-def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface):
-    """:func:`advance` of every run: ``system`` with load_vectors (n_runs, n_loads, n_nodes,
-    3) and fixed_values (n_runs, n_nodes, 3), ``states`` with a leading runs axis. Returns
-    (states, saved (n_saves, n_runs, n_nodes, 3)), or with ``interface`` (node ids) the
-    pair (saved, recorded (n_saves * save_every, n_runs, n_interface, 3)) after every step."""
+def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface, adjoint=None):
+    """The synchronized phase of every run: ``system`` with load_vectors (n_runs, n_loads,
+    n_nodes, 3) and fixed_values (n_runs, n_nodes, 3), ``states`` with a leading runs axis.
+    Returns (states, saved (n_saves, n_runs, n_nodes, 3)), or with ``interface`` (node ids)
+    the pair (saved, recorded (n_saves * save_every, n_runs, n_interface, 3)) after every
+    step. ``adjoint``: as for :func:`jaxsync.solve.phases.synchronized_steps`."""
     record = None if interface is None else (lambda s: s.displacement[interface])
 
     def one_run(run_system, state):
-        return advance(run_system, state, n_saves, save_every, record=record)
+        return synchronized_steps(run_system, state, n_saves, save_every, record=record, adjoint=adjoint)
 
     # runs axis second in the outputs: the host reads each chunk as one field of all runs
     return jax.vmap(one_run, in_axes=(_RUN_AXES, 0), out_axes=(0, 1))(system, states)
@@ -87,9 +93,7 @@ class _EnsembleRunner:
         return states, Chunk(saved.reshape(len(saved), self.n_nodes, 3), shared)
 
 
-def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, save_every: int = 1,
-             shared_every: int | None = None, seed: int = 0, progress=None, chunk_steps: int = 5000,
-             blowup_factor: float = 1e3) -> tuple:
+def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, save=1, executor=None) -> tuple:
     """Integrate several problems of one system together, batched (``jax.vmap`` over runs).
 
     The runs share one mesh, material, damping, set of constrained dofs, load time
@@ -101,33 +105,27 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     Args:
         problems: sequence of n_runs :class:`jaxsync.Problem` (e.g.
             ``jaxsync.cantilever(mesh, body_force=(0, 0, -fz))`` for several fz).
-        n_steps: time steps of every run (a multiple of ``save_every``).
-        partitions: None; or an int n_parts (``jaxsync.partition(mesh, n_parts,
-            seed=seed)``) or a :class:`jaxsync.Partition`: each trajectory then has the
-            per-part shared-node histories of a distributed run (``parts``), laid out as
-            ``jaxsync.simulate(problem, n_steps, partitions=..., save_every=...,
-            shared_every=...)`` gives them. The computation is still the full-mesh stepper
-            on one device; it equals the distributed run to round-off (summation order).
+        n_steps: time steps of every run (a multiple of the save stride).
+        partitions: None; or an int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`:
+            each trajectory then has the per-part shared-node histories of a distributed
+            run (``parts``), laid out as ``jaxsync.simulate(problem, n_steps,
+            partitions=..., save=...)`` gives them. The computation is still the full-mesh
+            stepper on one device; it equals the distributed run to round-off.
         labels: optional sequence of n_runs floats (the load magnitude, an
             initial-condition factor...), stored as ``parameters["load_parameter"]`` of
             each trajectory: the conditional surrogates' input
             (:func:`jaxsync.surrogate.data.read_shared_histories`).
-        dt: time step [s]; default the first problem's ``dt`` (CFL rule), checked against
-            the exact stability bound as in :func:`jaxsync.simulate`.
-        save_every: keep the displacement every this many steps (and at t = 0).
-        shared_every: with ``partitions``: keep the shared-node displacements every this
-            many steps (a divisor of ``save_every``; default ``save_every``; 1 for training).
-        seed: METIS seed when ``partitions`` is an int.
-        progress: show a tqdm bar over the batched steps (default: n_steps >= 20000), or a
-            :class:`jaxsync.solve.Progress` to report to.
-        chunk_steps: steps per compiled chunk (rounded to whole saves), between progress and
-            divergence checks.
-        blowup_factor: a displacement above this times the mesh's bounding-box diagonal
-            counts as divergence.
+        dt: time step [s]; default the first problem's ``dt``, checked against the exact
+            stability bound as in :func:`jaxsync.simulate`.
+        save: an int or a :class:`jaxsync.SaveAt` (with ``partitions``, ``shared_every=1``
+            keeps the shared-node displacements after every step, for training).
+        executor: :class:`jaxsync.HostExecutor` (default for concrete inputs: progress over
+            the batched steps, chunks, divergence checks) or :class:`jaxsync.TracedExecutor`
+            (default for traced inputs: one differentiable program).
 
     Returns:
         A tuple of n_runs :class:`jaxsync.Trajectory`, in the order of ``problems``: each
-        with ``n_steps // save_every + 1`` snapshots, displacement (n_saved, n_nodes, 3)
+        with ``n_steps // every + 1`` snapshots, displacement (n_saved, n_nodes, 3)
         [cm], times [s], and with ``partitions`` the ``parts`` of a distributed run.
         ``stats.us_per_step`` is the wall time of one BATCHED step, all runs advancing
         together [us] (per run: divide by n_runs), compilation excluded;
@@ -137,8 +135,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     Raises:
         ProblemError: no problems, problems of different systems (the message names the
             first differing problem and what differs), a wrong number of labels, bad
-            ``n_steps`` / ``save_every`` / ``shared_every``, or traced inputs (use
-            :func:`jaxsync.simulate` under ``jax.grad``).
+            ``n_steps`` / ``save``.
         StabilityError: dt above the stability bound, or a run diverged (NaN/Inf or
             blow-up): the message names the run; ``error.run`` is its index,
             ``error.trajectories`` the snapshots of every run before divergence and
@@ -146,7 +143,6 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
         PartitionError: a partition of another mesh.
     """
     from ..precision import require_float64
-    from .solver import check_steps
 
     require_float64("ensemble")
     problems = tuple(problems)
@@ -162,26 +158,31 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             labels = tuple(float(x) for x in labels)
         except (TypeError, ValueError) as exc:
             raise ProblemError(f"labels must be numbers (one float per problem), got {labels!r}") from exc
-    n_steps, save_every, shared_every = check_steps(n_steps, save_every, shared_every, partitions)
+    save = SaveAt.of(save)
+    n_steps = save.check_steps(n_steps)
+    if partitions is None and save.records_every_step:
+        raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
+                           "run has no shared nodes")
     first = problems[0]
     dt = first.dt if dt is None else dt
-    for p in problems:
-        if is_traced(p.material, p.damping, p.loads, dt, p.initial_displacement, p.initial_velocity):
-            raise ProblemError("ensemble does not differentiate (traced inputs): run jaxsync.simulate "
-                               "under jax.grad instead")
-    from ..fem.timestep import check_dt
+    traced = any(is_traced(p.material, p.damping, p.loads, dt, p.initial_displacement, p.initial_velocity)
+                 for p in problems)
+    executor = choose_executor(executor, traced)
+    if isinstance(executor, HostExecutor) and executor.check_stability:
+        from ..fem.timestep import check_dt
 
-    check_dt(first, dt)
-    dt = float(dt)
+        check_dt(first, dt)
+    if not traced:
+        dt = float(dt)
     mesh = first.mesh
-    partition = _partition(mesh, partitions, seed)
+    partition = _partition(mesh, partitions)
 
     # One system for all runs: check every problem's against the first, keep its per-run data.
     reference = build_system(first, dt)
     load_vectors, fixed_values, states = [], [], []
     for index, problem in enumerate(problems):
         system = reference if index == 0 else build_system(problem, dt)
-        what = _difference(problem, system, first, reference)
+        what = None if traced else _difference(problem, system, first, reference)
         if what is not None:
             raise ProblemError(
                 f"problem {index} of the ensemble differs from problem 0 in its {what}: the runs of an "
@@ -196,58 +197,79 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     batched = dataclasses.replace(reference, load_vectors=jnp.stack(load_vectors),
                                   fixed_values=jnp.stack(fixed_values))
     stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
-    record = partition is not None and shared_every != save_every
-    runner = _EnsembleRunner(batched, n_runs, mesh.n_nodes, save_every,
-                             partition.shared_nodes if record else None)
-    start_fields = [np.asarray(s.displacement) for s in states]
+    record = partition is not None and save.records_every_step
+    interface = partition.shared_nodes if record else None
+    start_fields = [s.displacement for s in states]
 
-    def trajectories(segment):
-        """The runs' trajectories from step 0 through ``segment``."""
-        from .solver import _trajectory
-
-        saved = segment.displacement.reshape(len(segment.displacement), n_runs, mesh.n_nodes, 3)
+    def trajectories(saved, every_step, stats=None, result=None):
+        """The runs' trajectories from step 0: ``saved`` (n_saves, n_runs, n_nodes, 3),
+        ``every_step`` (n_steps, n_runs, n_interface, 3) or None."""
+        xp = jnp if traced else np
         out = []
         for r, problem in enumerate(problems):
             recorded = None
             if record:
-                every_step = (np.zeros((0, n_runs, partition.n_interface, 3)) if segment.shared is None
-                              else segment.shared[0])  # None: no step run
                 steps_r = every_step[:, r]
-                recorded = [[start_fields[r][None, part.shared_nodes].reshape(1, -1),
-                             steps_r[:, part.shared_interface].reshape(len(steps_r), 3 * part.n_shared)]
+                recorded = [xp.concatenate([start_fields[r][None, part.shared_nodes].reshape(1, -1),
+                                            steps_r[:, part.shared_interface].reshape(len(steps_r),
+                                                                                     3 * part.n_shared)])
                             for part in partition.parts]
-            traj = _trajectory(problem, [start_fields[r][None], saved[:, r]], dt, save_every, partition,
-                               recorded, shared_every)
+            displacement = xp.concatenate([xp.asarray(start_fields[r])[None], saved[:, r]])
+            traj = synchronized_trajectory(problem, displacement, dt, save, partition, recorded, stats=stats,
+                                           result=result if result is None or np.ndim(result) == 0 else result[r])
             if labels is not None:
                 traj = dataclasses.replace(traj, parameters={**traj.parameters, "load_parameter": labels[r]})
             out.append(traj)
         return out
 
-    limit = divergence_limit(mesh, blowup_factor)
-    with (contextlib.nullcontext(progress) if isinstance(progress, Progress)
-          else Progress(n_steps, show=progress, label=f"ensemble of {n_runs}")) as bar:
+    if isinstance(executor, TracedExecutor):
+        n_saves = n_steps // save.every
+        if n_saves == 0:
+            return tuple(trajectories(jnp.zeros((0, n_runs, mesh.n_nodes, 3)), None))
+        _, out = _advance_runs(batched, stacked, n_saves, save.every,
+                               None if interface is None else jnp.asarray(interface), executor.adjoint)
+        saved, every_step = out if record else (out, None)
+        finite = jnp.isfinite(saved).all(axis=(0, 2, 3))
+        result = jnp.where(finite, jnp.int32(Result.SUCCESSFUL), jnp.int32(Result.DIVERGED))
+        return tuple(trajectories(saved, every_step, result=result))
+
+    start_fields = [np.asarray(f) for f in start_fields]
+    runner = _EnsembleRunner(batched, n_runs, mesh.n_nodes, save.every, interface)
+
+    def from_segment(segment, result):
+        saved = segment.displacement.reshape(len(segment.displacement), n_runs, mesh.n_nodes, 3)
+        every_step = None
+        if record:
+            every_step = (np.zeros((0, n_runs, partition.n_interface, 3)) if segment.shared is None
+                          else segment.shared[0])  # None: no step run
+        return trajectories(saved, every_step, result=result)
+
+    limit = divergence_limit(mesh, executor.blowup_factor)
+    with (contextlib.nullcontext(executor.progress) if isinstance(executor.progress, Progress)
+          else Progress(n_steps, show=executor.progress, label=f"ensemble of {n_runs}")) as bar:
         try:
             segment = run_chunks(runner, stacked, 0, n_steps, kind="synchronized", limit=limit,
-                                 progress=bar, chunk_steps=chunk_steps)
+                                 progress=bar, chunk_steps=executor.chunk_steps)
         except Diverged as bad:
-            raise _diverged(bad, runner, trajectories(bad.segment), limit, dt, first, labels) from None
+            raise _diverged(bad, runner, from_segment(bad.segment, Result.DIVERGED), limit, dt, first,
+                            labels) from None
     from ..parallel.devices import device_summary
     from ..trajectory import RunStats
 
     stats = RunStats(compile_seconds=segment.compile_seconds,
                      us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
                      **device_summary(runner.devices))
-    return tuple(dataclasses.replace(traj, stats=stats) for traj in trajectories(segment))
+    return tuple(dataclasses.replace(traj, stats=stats) for traj in from_segment(segment, Result.SUCCESSFUL))
 
 
-def _partition(mesh, partitions, seed):
+def _partition(mesh, partitions):
     """None, or the :class:`jaxsync.Partition` of ``partitions`` (an int or a Partition)."""
     from ..parallel.partitioning import Partition, partition
 
     if partitions is None:
         return None
     if not isinstance(partitions, Partition):
-        return partition(mesh, partitions, seed=seed)
+        return partition(mesh, partitions)
     if partitions.mesh is not mesh and not (partitions.mesh.n_nodes == mesh.n_nodes
                                             and np.array_equal(partitions.mesh.tets, mesh.tets)):
         raise PartitionError("the partition was made for another mesh: partition the problems' mesh")
@@ -304,11 +326,9 @@ def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: floa
     named = f"run {run}" + ("" if labels is None else f" (label {labels[run]:g})")
     also = f" (also runs {runs[1:]})" if len(runs) > 1 else ""
     advice = divergence_advice(problem, dt)
-    err = StabilityError(
+    return StabilityError(
         f"{named} of the ensemble diverged by step {bad.step} (t = {bad.step * dt:.6g} s){also}: displacement "
         f"is NaN/Inf or above {limit:.3g} cm. {advice}; check that "
         f"run's loads and initial conditions. The {partial[run].n_saved} snapshots of each run saved before "
-        "are kept (error.trajectories)")
-    err.run, err.runs = run, tuple(runs)
-    err.trajectories, err.trajectory = tuple(partial), partial[run]
-    return err
+        "are kept (error.trajectories)", trajectory=partial[run], trajectories=tuple(partial), run=run,
+        runs=tuple(runs))

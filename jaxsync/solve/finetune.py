@@ -5,7 +5,7 @@ run's shared-node history: each network learns to predict its boundary from the 
 Online, each refill reads the network's own earlier predictions, and the solver's response
 to them; small errors then compound cycle after cycle. Fine-tuning in the loop trains every
 part's network on what the online run actually does: the loss is the error of the coupled
-synchronization-avoiding run (:func:`jaxsync.solve.gradients.sync_avoiding_trajectory`, all
+synchronization-avoiding run (the traced executor, :func:`jaxsync.solve.traced.run_traced`, all
 parts, their networks and the unsynchronized solver together) over a window of refill
 cycles, against the synchronized run from the same state, and its gradient flows through
 the solver steps into the weights of every network.
@@ -31,7 +31,11 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..fem.stepper import SolverState, advance, build_system, initial_state
-from .gradients import sync_avoiding_trajectory
+from .distributed import DistributedParts
+from .phases import Predicted, Synchronized
+from .predictors import predictor_for
+from .strategies import Recompute
+from .traced import run_traced
 
 __all__ = ["FineTuneConfig", "FineTuneResult", "fine_tune_in_the_loop"]
 
@@ -116,20 +120,20 @@ class FineTuneResult:
 
 
 def fine_tune_in_the_loop(problem, surrogate, partitions, *, n_steps: int, config: FineTuneConfig | None = None,
-                          dt=None, mode: str = "preassembled", seed: int = 0, devices=None,
-                          progress: bool = False) -> FineTuneResult:
+                          dt=None, mode: str = "preassembled", sync=None, progress: bool = False) -> FineTuneResult:
     """Fine-tune every part's network on the error of the coupled online run.
 
     Args:
         problem: the problem the surrogates were trained on.
         surrogate: a :class:`jaxsync.surrogate.Surrogate` for ``partitions`` (e.g.
-            ``Surrogate.from_checkpoint(trained.checkpoint)``); its ``params`` are tuned, the
+            ``Surrogate.from_saved(trained.saved)``); its ``params`` are tuned, the
             normalization and the rest are kept.
         partitions: n_parts or the :class:`jaxsync.Partition` the surrogates were trained on.
         n_steps: the end of the span windows are drawn from [steps] (the steps of the
             training data that the networks were fitted on: no window reads beyond it).
         config: :class:`FineTuneConfig`.
-        dt, mode, seed, devices: as for :func:`jaxsync.simulate`.
+        dt, mode, sync: as for :func:`jaxsync.simulate` (``sync``: ``"psum"``, ``"ppermute"``
+            or ``"halo"`` strategies, which carry the devices).
         progress: a tqdm bar over the iterations.
 
     Returns:
@@ -154,15 +158,17 @@ def fine_tune_in_the_loop(problem, surrogate, partitions, *, n_steps: int, confi
                           f"{config.window_cycles} cycles of {cycle}); n_steps={n_steps} is too short: "
                           "use fewer window_cycles or a longer span")
     starts = np.unique(np.linspace(first, last, config.n_starts).round().astype(int) // save_every * save_every)
+    distributed = DistributedParts(problem, partitions, sync, mode=mode)
+    predictor_for(surrogate, distributed.partition)  # made for this partition
+    schedule = (Synchronized(history), Predicted(window - history))
     system = build_system(problem, dt, mode)
     states, amplitude = _start_states(system, initial_state(problem, system), starts, int(n_steps), save_every)
     n_saves, n_history_saves = window // save_every, history // save_every
 
     def window_loss(params, start: SolverState):
         tuned = dataclasses.replace(surrogate, params=params)
-        online = sync_avoiding_trajectory(problem, system, start, tuned, partitions, n_cri=history,
-                                          n_steps=window, save_every=save_every, mode=mode, seed=seed,
-                                          devices=devices)
+        online = run_traced(problem, system, start, schedule, save_every=save_every, adjoint=Recompute(),
+                            distributed=distributed, predictor=tuned).saved
         _, reference = advance(system, start, n_saves, save_every)
         error = (online - jax.lax.stop_gradient(reference))[n_history_saves:]
         return jnp.mean(error ** 2) / amplitude ** 2

@@ -17,8 +17,7 @@ from ..surrogate.refill import refill_rollout
 __all__ = ["simulate_full_system"]
 
 
-def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps: int | None = None,
-                         load_parameter: float | None = None):
+def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps: int | None = None):
     """Full-system modeling (paper "Full system modeling"): one surrogate predicts every dof.
 
     The synchronized ``reference`` (saved at every step) supplies the first ``n_cri``
@@ -31,11 +30,11 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     Args:
         problem: the problem (for its Dirichlet dofs).
         reference: :class:`jaxsync.Trajectory` saved at every step, at least n_cri + 1 long.
-        surrogates: a one-replica checkpoint (path or object) over all 3 n_nodes dofs, a
-            :class:`jaxsync.surrogate.Surrogate` or an
+        surrogates: one predictor over all 3 n_nodes dofs: a one-replica
+            :class:`jaxsync.surrogate.Surrogate` (a conditional one with its load parameter,
+            ``Surrogate.with_load_parameter``), the record of its surrogate file
+            (:func:`jaxsync.surrogate.load_surrogate`), or an
             :class:`~jaxsync.solve.predictors.OraclePredictor` (one part).
-        load_parameter: the load parameter of a conditional surrogate (checkpoint or
-            :class:`~jaxsync.surrogate.Surrogate`, whose own it replaces).
         n_cri: last step taken from the reference (>= n_p n_s + 1).
         n_steps: total steps (default: the reference's length).
 
@@ -45,7 +44,7 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
     from ..precision import require_float64
-    from ..surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint
+    from ..surrogate.saved import SavedSurrogate
     from ..trajectory import RunStats, Trajectory
 
     require_float64("simulate_full_system")
@@ -53,18 +52,16 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         raise ProblemError("full-system modeling needs the reference saved at every step")
     n_steps = reference.n_saved - 1 if n_steps is None else int(n_steps)
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
-        surrogates = load_checkpoint(surrogates)
+        raise ProblemError(f"surrogates={surrogates!r} is a path: load the surrogate file first, "
+                           "jaxsync.surrogate.load_surrogate(path)")
     n_dof = problem.mesh.n_dofs
-    if isinstance(surrogates, SurrogateCheckpoint):
+    if isinstance(surrogates, SavedSurrogate):
         if surrogates.n_parts != 1 or surrogates.dof_counts[0] != n_dof:
             raise CheckpointError(f"full-system modeling needs one surrogate over all {n_dof} dofs; "
-                                  f"the checkpoint has {surrogates.n_parts} replicas with "
+                                  f"the surrogate file has {surrogates.n_parts} replicas with "
                                   f"{list(surrogates.dof_counts)} dofs")
-        predictor = Surrogate.from_checkpoint(surrogates, load_parameter)
-    elif isinstance(surrogates, Surrogate):
-        predictor = surrogates.with_load_parameter(load_parameter)
-    else:
-        predictor = surrogates
+        surrogates = Surrogate.from_saved(surrogates)
+    predictor = surrogates
     history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
     if n_cri < history:
         raise ProblemError(f"n_cri={n_cri} is too small: the first refill reads the n_p * n_s = "

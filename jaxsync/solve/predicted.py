@@ -1,16 +1,13 @@
-"""The predicted phase of the synchronization-avoiding solver (paper Algorithm 3).
+"""The host executor's runners of the predicted phase (paper Algorithm 3).
 
-One part, pure: a refill cycle predicts the part's shared-node displacements for the next
-n_s n_f steps from its last n_p n_s (:func:`predict_cycle`), then advances n_s n_f solver
-steps with no synchronization, each followed by overwriting the shared dofs with the
-prediction (:func:`overwritten_steps`). No collective runs in these programs.
-
-All parts: :class:`PredictedPhase` compiles them as SPMD programs
-(:func:`jaxsync.parallel.spmd.spmd_program`), and two runners of the host loop
-(:mod:`jaxsync.solve.driver`) drive them: :class:`PredictedRunner` (the fused program,
-predictions made inside the loop, several cycles per call) and :class:`MonitoredRunner`
-(each cycle predicted first, its es_hat checked, then applied; a rejected cycle raises
-:class:`CycleRejected`).
+:class:`PredictedPhase` compiles the phase's per-part functions
+(:mod:`jaxsync.solve.phases`: :func:`~jaxsync.solve.phases.predicted_cycles`, and for
+the monitored run its two halves :func:`~jaxsync.solve.phases.predict_cycle` and
+:func:`~jaxsync.solve.phases.overwritten_steps`) as SPMD programs on the run's devices;
+no collective runs in them. Two runners of the host loop (:mod:`jaxsync.solve.driver`)
+drive them: :class:`PredictedRunner` (the fused program, predictions made inside the
+loop, several cycles per call) and :class:`MonitoredRunner` (each cycle predicted first,
+its es_hat checked, then applied; a rejected cycle raises :class:`CycleRejected`).
 """
 
 from __future__ import annotations
@@ -19,77 +16,32 @@ import functools
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from ..fem.stepper import SolverState, advance
-from ..parallel.exchange import PartSystems
-from ..parallel.spmd import spmd_program
-from ..surrogate.refill import refill_cycle
 from .distributed import DistributedRunner, to_host
 from .driver import Chunk, Stopped
+from .phases import overwritten_steps, predict_cycle, predicted_cycles
 
-__all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejected",
-           "DisagreementMonitor", "mean_over_parts", "overwritten_steps"]
-
-
-# --------------------------------------------------------------------------- one part, pure
-
-def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
-    """One part: ``steps`` solver steps without synchronization, each followed by writing
-    the predicted shared-node displacements ``pred[j]`` into the part's state (the
-    stepper's loop, :func:`jaxsync.fem.stepper.advance`, with an overwrite).
-
-    Returns (state, saved displacement (steps // save_every, n_local, 3), the predictions
-    at the saved steps (steps // save_every, n_dof))."""
-    nodes = pred.reshape(pred.shape[0], -1, 3)
-
-    def overwrite(j, new):
-        return new.at[part.shared_local].set(nodes[j], mode="drop")
-
-    state, disp = advance(part.system, state, steps // save_every, save_every, overwrite=overwrite)
-    return state, disp, pred[save_every - 1:steps:save_every]
+__all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejected", "DisagreementMonitor"]
 
 
-def _predicted_cycles(part: PartSystems, predictor, state: SolverState, buffer, step0,
-                      n_cycles: int, steps: int, save_every: int):
-    """One part: ``n_cycles`` refill cycles of ``steps`` unsynchronized steps each, the
-    predictions made inside the loop (the fused program of the unmonitored run).
+def _fused(part, predictor, state, buffer, step0, *, n_cycles: int, steps: int, save_every: int):
+    """One part, ``n_cycles`` refill cycles with the predictions made inside the loop:
+    (state, buffer, saved (n_cycles, steps // save_every, n_local, 3), predictions at the
+    saved steps (n_cycles, steps // save_every, n_dof))."""
+    (state, buffer, _), (saved, kept) = predicted_cycles(part, predictor, (state, buffer, step0), n_cycles,
+                                                         steps, save_every)
+    return state, buffer, saved, kept
 
-    Returns (state, buffer, saved displacement (n_cycles, steps // save_every, n_local, 3),
-    saved predictions (n_cycles, steps // save_every, n_dof))."""
-
-    def cycle(carry, c):
-        state, buffer = carry
-        pred, buffer = refill_cycle(predictor, buffer, step0 + c * steps)
-        state, disp, kept = overwritten_steps(part, state, pred, steps, save_every)
-        return (state, buffer), (disp, kept)
-
-    cycles = jnp.arange(n_cycles, dtype=jnp.result_type(step0))  # the dtype of the step counter
-    (state, buffer), (disp, kept) = jax.lax.scan(cycle, (state, buffer), cycles)
-    return state, buffer, disp, kept
-
-
-def _rollout(predictor, buffer, step0, steps: int, save_every: int):
-    """One part, one refill cycle predicted ahead of the solver (the monitored run checks
-    it before using it): (predictions (L, n_dof), moved buffer, the predictions at the
-    saved steps (steps // save_every, n_dof))."""
-    pred, buffer = refill_cycle(predictor, buffer, step0)
-    return pred, buffer, pred[save_every - 1:steps:save_every]
-
-
-def _apply(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
-    """One part: the steps of one cycle with already made predictions ``pred``."""
-    state, disp, _ = overwritten_steps(part, state, pred, steps, save_every)
-    return state, disp
-
-
-# --------------------------------------------------------------------------- SPMD programs
 
 class PredictedPhase:
     """Compiles and runs the predicted phase under ``shard_map`` (no collectives): the
     fused program (predict and step, ``n_cycles`` cycles per call) and, for the monitored
-    run, the two halves (predict one cycle; step it with the predictions)."""
+    run, the two halves (predict one cycle; step it with the predictions).
+
+    ``runner``: the run's :class:`DistributedRunner` (its placed parts and devices);
+    ``predictor``: stacked on the part axis (placed here); ``save_every``: the stride of
+    the saved snapshots."""
 
     def __init__(self, runner: DistributedRunner, predictor, save_every: int):
         self.runner = runner
@@ -99,13 +51,14 @@ class PredictedPhase:
         self.compile_seconds = 0.0
 
     def _spmd(self, body, n_in: int, n_out: int):
-        return spmd_program(body, self.runner.device_mesh, n_in=n_in, n_out=n_out)
+        return self.runner.distributed.spmd(body, n_in=n_in, n_out=n_out)
 
     def program(self, n_cycles: int, steps: int):
+        """The jitted fused program ``(parts, predictor, state, buffer, step0) -> (state,
+        buffer, saved, predictions)`` of ``n_cycles`` cycles of ``steps`` steps."""
         key = ("jit", n_cycles, steps)
         if key not in self._compiled:
-            body = functools.partial(_predicted_cycles, n_cycles=n_cycles, steps=steps,
-                                     save_every=self.save_every)
+            body = functools.partial(_fused, n_cycles=n_cycles, steps=steps, save_every=self.save_every)
             # step0 is a per-part copy of the step counter (sharded like the rest)
             self._compiled[key] = self._spmd(body, 5, 4)
         return self._compiled[key]
@@ -139,12 +92,12 @@ class PredictedPhase:
             self.runner.parts, self.predictor, state, buffer, self.step_counter(step0))
 
     def _rollout_program(self, buffer, steps: int):
-        build = lambda: self._spmd(functools.partial(_rollout, steps=steps,  # noqa: E731
+        build = lambda: self._spmd(functools.partial(predict_cycle, steps=steps,  # noqa: E731
                                                      save_every=self.save_every), 3, 3)
         return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self.step_counter(0)))
 
     def _apply_program(self, state, pred, steps: int):
-        build = lambda: self._spmd(functools.partial(_apply, steps=steps,  # noqa: E731
+        build = lambda: self._spmd(functools.partial(overwritten_steps, steps=steps,  # noqa: E731
                                                      save_every=self.save_every), 3, 2)
         return self._ahead(("apply", steps), build, lambda: (self.runner.parts, state, pred()))
 
@@ -167,9 +120,6 @@ class PredictedPhase:
         return self._apply_program(state, lambda: pred, steps)(self.runner.parts, state, pred)
 
 
-# --------------------------------------------------------------------------- runners
-
-
 class CycleRejected(Stopped):
     """A monitored cycle whose es_hat [cm] exceeded the tolerance [cm] (it was not applied)."""
 
@@ -182,11 +132,11 @@ class _PredictedRunnerBase:
     """What both predicted runners share: the compiled phase, the global field of the
     parts' local fields, and the state ``(per-part SolverState, buffer, step)``."""
 
-    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int):
-        self.phase, self.problem = phase, problem
+    def __init__(self, phase: PredictedPhase, cycle_steps: int):
+        self.phase = phase
         self.partition = phase.runner.partition
         self.save_every, self.cycle_steps = phase.save_every, cycle_steps
-        self.n_nodes = problem.mesh.n_nodes
+        self.n_nodes = phase.runner.n_nodes
 
     def _compiled_delta(self, compile_something) -> float:
         before = self.phase.compile_seconds
@@ -199,15 +149,15 @@ class _PredictedRunnerBase:
         disp, pred = to_host(disp), to_host(pred)
         disp = disp.reshape(disp.shape[0], -1, *disp.shape[-2:])
         pred = pred.reshape(pred.shape[0], -1, pred.shape[-1])
-        return Chunk(mean_over_parts(self.problem.mesh.n_nodes, self.partition, disp), None, pred)
+        return Chunk(self.phase.runner.merge(disp, mean=True), None, pred)
 
 
 class PredictedRunner(_PredictedRunnerBase):
     """The unmonitored predicted phase: ``cycles_per_chunk`` refill cycles per compiled
     call (the fused program), the last partial cycle alone."""
 
-    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int, cycles_per_chunk: int):
-        super().__init__(phase, problem, cycle_steps)
+    def __init__(self, phase: PredictedPhase, cycle_steps: int, cycles_per_chunk: int):
+        super().__init__(phase, cycle_steps)
         self.cycles_per_chunk = cycles_per_chunk
 
     def _split(self, steps: int) -> tuple[int, int]:
@@ -231,14 +181,12 @@ class PredictedRunner(_PredictedRunnerBase):
 
 class MonitoredRunner(_PredictedRunnerBase):
     """The monitored predicted phase: one refill cycle per call, predicted ahead, its
-    es_hat (paper eq. 26) checked at the saved steps against ``tolerance(amplitude)``
-    before the solver uses it; :class:`CycleRejected` when above (or not finite).
-    ``amplitude`` [cm] is set by the caller as the run observes it."""
+    es_hat (paper eq. 26) checked at the saved steps against ``tolerance`` [cm] before the
+    solver uses it; :class:`CycleRejected` when above (or not finite)."""
 
-    def __init__(self, phase: PredictedPhase, problem, cycle_steps: int, tolerance, monitor):
-        super().__init__(phase, problem, cycle_steps)
-        self.tolerance, self.monitor = tolerance, monitor
-        self.amplitude = 0.0
+    def __init__(self, phase: PredictedPhase, cycle_steps: int, tolerance: float, monitor):
+        super().__init__(phase, cycle_steps)
+        self.tolerance, self.monitor = float(tolerance), monitor
 
     def chunk_steps(self, steps_left: int, preferred: int) -> int:
         return min(self.cycle_steps, steps_left)
@@ -251,25 +199,11 @@ class MonitoredRunner(_PredictedRunnerBase):
         solver_state, buffer, step0 = state
         pred, next_buffer, kept = self.phase.rollout(buffer, step0, steps)
         kept = to_host(kept)  # (P, steps / save_every, n_dof)
-        tol = self.tolerance.cm(self.amplitude)
         es_hat = self.monitor.es_hat(kept) if np.isfinite(kept).all() else np.array([np.inf])
-        if not es_hat.max() <= tol:
-            raise CycleRejected(step0, float(es_hat.max()), tol)
+        if not es_hat.max() <= self.tolerance:
+            raise CycleRejected(step0, float(es_hat.max()), self.tolerance)
         solver_state, disp = self.phase.apply(solver_state, pred, steps)
         return (solver_state, next_buffer, step0 + steps), self._chunk(disp, kept)
-
-
-def mean_over_parts(n_nodes: int, partition, local) -> np.ndarray:
-    """(..., n_nodes, 3) global field from per-part local fields (P, ..., n_local_max, 3):
-    the mean over the parts that hold each node (they differ at shared nodes after
-    prediction)."""
-    local = np.asarray(local)
-    total = np.zeros(local.shape[1:-2] + (n_nodes, 3))
-    count = np.zeros(n_nodes)
-    for p, part in enumerate(partition.parts):
-        total[..., part.nodes, :] += local[p, ..., :part.n_local, :]
-        count[part.nodes] += 1
-    return total / count[:, None]
 
 
 class DisagreementMonitor:

@@ -17,9 +17,10 @@ from typing import Any
 
 import jax
 
+from ..errors import CheckpointError, ProblemError
 from ..pytree import pytree_dataclass, static_field
 
-__all__ = ["OraclePredictor"]
+__all__ = ["OraclePredictor", "predictor_for"]
 
 
 @pytree_dataclass
@@ -44,3 +45,34 @@ class OraclePredictor:
     def predict(self, buffer, step):
         length = self.n_s * self.n_future
         return jax.lax.dynamic_slice_in_dim(self.future, step + 1 - self.first_step, length, axis=0)
+
+
+def predictor_for(surrogates, partition):
+    """The predictor of ``surrogates`` for ``partition``, checked to fit it.
+
+    ``surrogates``: a :class:`jaxsync.surrogate.Surrogate` or :class:`OraclePredictor`
+    (anything with ``predict``, ``n_s``, ``n_past``, ``n_future``), or the record of a
+    surrogate file (its shared node ids checked against the partition's). Raises
+    :class:`~jaxsync.errors.ProblemError` for anything else (a path: with the fix) and
+    :class:`~jaxsync.errors.CheckpointError` for surrogates of another partition."""
+    from ..surrogate.data import shared_dof_layout
+    from ..surrogate.model import Surrogate
+    from ..surrogate.saved import SavedSurrogate, check_compatible
+
+    if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
+        raise ProblemError(f"surrogates={surrogates!r} is a path: load the surrogate file first, "
+                           "jaxsync.surrogate.load_surrogate(path) (its shared nodes are checked against the "
+                           "partition), or jaxsync.surrogate.Surrogate.load(path)")
+    n_dof, _ = shared_dof_layout(partition)
+    if isinstance(surrogates, SavedSurrogate):
+        check_compatible(surrogates, [p.shared_nodes for p in partition.parts])
+        surrogates = Surrogate.from_saved(surrogates)
+    if not all(hasattr(surrogates, a) for a in ("predict", "n_s", "n_past", "n_future")):
+        raise ProblemError(f"surrogates must be a jaxsync.surrogate.Surrogate, an OraclePredictor or a loaded "
+                           f"surrogate file, got {type(surrogates).__name__}")
+    made_for = (getattr(surrogates, "n_parts", partition.n_parts), getattr(surrogates, "n_dof", n_dof))
+    if made_for != (partition.n_parts, n_dof):
+        raise CheckpointError(f"the surrogates were made for {made_for[0]} parts of {made_for[1]} shared dofs "
+                              f"but this partition has {partition.n_parts} parts of up to {n_dof}: pass the "
+                              "partition they were trained on, or retrain on this one")
+    return surrogates

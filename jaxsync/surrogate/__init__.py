@@ -7,42 +7,56 @@ The names a user needs are here; everything else stays importable from its modul
 :mod:`.model`              :class:`Surrogate`: the trained replicas of a partition as one
                            pytree, with ``predict`` (one refill) and ``rollout`` (refill
                            cycles); what the solver runs
-:mod:`.fit`                :func:`train_surrogates`: trajectories in, trained surrogates and
-                           files out (``jaxsync train`` and the demo call it)
+:mod:`.fit`                :func:`train_surrogates`: trajectories in, trained surrogates out
+                           (``jaxsync train`` and the demo call it);
+                           :meth:`TrainedSurrogates.write` writes their files
 :mod:`.lstm`               the network, written by hand (:class:`LSTMArchitecture`)
 :mod:`.linear`             the linear autoregressive baseline, fitted by least squares
                            (:class:`LinearArchitecture`, :func:`fit_linear`)
-:mod:`.architecture`       dispatch on the architecture: one code path for both models
+:mod:`.architecture`       dispatch on the architecture: one code path for both models;
+                           :class:`ArchitectureChoice`, the model and size to train
 :mod:`.refill`             Algorithm 3's refill index sets and ``refill_predict``
 :mod:`.inference`          reduced-precision (bfloat16) inference: the check that it keeps
                            accuracy (:func:`check_inference_precision`,
                            :func:`reduced_precision`)
-:mod:`.data`               sample-refill windows, normalization, padded replica datasets,
-                           reading shared histories from trajectories
+:mod:`.data`               sample-refill windows (:class:`Sampling`, their settings),
+                           normalization, padded replica datasets, reading shared
+                           histories from trajectories
 :mod:`.replicas`           padding and stacking one network per part
 :mod:`.train`              optax training of all replicas in one program
                            (:func:`train_replicas`, :class:`TrainConfig`, :class:`TrainResult`)
-:mod:`.training_state`     the resumable state of a training run
-:mod:`.checkpoint`         checkpoint files of trained replicas (:class:`SurrogateCheckpoint`)
-:mod:`.evaluate`           the offline rollout check, E_mse and the grid search
+:mod:`.training_state`     the resumable state of a training run (:class:`TrainingState`:
+                           where and how often it is written)
+:mod:`.saved`              surrogate files of trained replicas (:class:`SavedSurrogate`)
+:mod:`.evaluate`           the offline rollout check, E_mse (:class:`TrainingChecks`) and
+                           the grid search
 =========================  =================================================================
 """
 
-from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
-from jaxsync.surrogate.data import build_dataset, stack_replicas
-from jaxsync.surrogate.evaluate import GridSearchResult, RolloutWarning, e_mse, grid_search, rollout_errors
+from jaxsync.surrogate.architecture import ArchitectureChoice
+from jaxsync.surrogate.data import Sampling, build_dataset, stack_replicas
+from jaxsync.surrogate.evaluate import (
+    GridSearchResult,
+    RolloutWarning,
+    TrainingChecks,
+    e_mse,
+    grid_search,
+    rollout_errors,
+)
 from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
 from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
 from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
 from jaxsync.surrogate.lstm import LSTMArchitecture
 from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
+from jaxsync.surrogate.training_state import TrainingState
 
 __all__ = [
     "Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConfig", "fit_linear",
-    "train_surrogates", "TrainedSurrogates",
+    "train_surrogates", "TrainedSurrogates", "ArchitectureChoice", "Sampling", "TrainingChecks", "TrainingState",
     "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
-    "SurrogateCheckpoint", "save_checkpoint", "load_checkpoint",
+    "SavedSurrogate", "save_surrogate", "load_surrogate",
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
     "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning",
 ]

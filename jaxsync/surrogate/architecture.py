@@ -14,14 +14,20 @@ kind       architecture                                           module
 "linear"   :class:`~jaxsync.surrogate.linear.LinearArchitecture`  :mod:`jaxsync.surrogate.linear`
 =========  =====================================================  ============================
 
-The refill (:mod:`jaxsync.surrogate.refill`) and the checkpoint files
-(:mod:`jaxsync.surrogate.checkpoint`) go through :func:`forward`, :func:`init_params`,
+The refill (:mod:`jaxsync.surrogate.refill`) and the surrogate files
+(:mod:`jaxsync.surrogate.saved`) go through :func:`forward`, :func:`init_params`,
 :func:`architecture_to_dict` and :func:`architecture_from_dict`, so
 :class:`~jaxsync.surrogate.Surrogate` and the solver hold either model alike.
+
+:class:`ArchitectureChoice` is what a user chooses before any data are read: the model and
+its sizes (:func:`jaxsync.surrogate.train_surrogates` makes the architecture from it once
+the padded width n_dof, and for the linear model the rank, are known).
 """
 
 from __future__ import annotations
 
+import dataclasses
+import numbers
 from types import ModuleType
 from typing import Any, Union
 
@@ -30,11 +36,11 @@ import jax
 from jaxsync.errors import ConfigError
 from jaxsync.options import SurrogateModel, check_option
 from jaxsync.surrogate import linear, lstm
-from jaxsync.surrogate.linear import LinearArchitecture
+from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearArchitecture, LinearFitConfig
 from jaxsync.surrogate.lstm import LSTMArchitecture
 
-__all__ = ["Architecture", "MODELS", "model_module", "architecture_to_dict", "architecture_from_dict",
-           "init_params", "forward"]
+__all__ = ["Architecture", "ArchitectureChoice", "MODELS", "model_module", "architecture_to_dict",
+           "architecture_from_dict", "init_params", "forward"]
 
 Architecture = Union[LSTMArchitecture, LinearArchitecture]
 
@@ -43,6 +49,66 @@ MODELS: dict[str, tuple[type, ModuleType]] = {
     LSTMArchitecture.kind: (LSTMArchitecture, lstm),
     LinearArchitecture.kind: (LinearArchitecture, linear),
 }
+
+
+@dataclasses.dataclass(frozen=True)
+class ArchitectureChoice:
+    """The surrogate to train and its size, chosen before the data are read: the
+    ``architecture`` of :func:`jaxsync.surrogate.train_surrogates` and
+    :func:`jaxsync.surrogate.grid_search`.
+
+    The window lengths n_p, n_f are the :class:`~jaxsync.surrogate.data.Sampling`'s; the
+    padded width n_dof (and the linear model's rank) come from the data. The defaults are
+    those of :class:`~jaxsync.surrogate.lstm.LSTMArchitecture` and
+    :class:`~jaxsync.surrogate.linear.LinearFitConfig`, as ``jaxsync train`` uses them.
+
+    Attributes:
+        model: ``"lstm"`` (default), the encoder-decoder trained with optax, or
+            ``"linear"``, the affine autoregressive baseline fitted by least squares on
+            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional).
+        n_hidden: n_H, hidden size of each encoder direction (default 50; the paper's
+            text uses 100). LSTM only.
+        n_layers: k, stacked bidirectional encoder layers (default 2). LSTM only.
+        n_cond_repeat: q, copies of the load parameter fed to the decoder; > 0 trains the
+            conditional network (paper: 12), which needs a load parameter per trajectory.
+            Default 0; must be 0 for the linear model.
+        dtype: ``"float32"`` (default) or ``"float64"``: parameters and computation, both
+            models.
+        regularization: relative ridge parameter r >= 0 of the linear fit (default 1e-8,
+            :class:`~jaxsync.surrogate.linear.LinearFitConfig`). Linear only.
+    """
+
+    model: SurrogateModel = "lstm"
+    n_hidden: int = LSTMArchitecture.n_hidden
+    n_layers: int = LSTMArchitecture.n_layers
+    n_cond_repeat: int = LSTMArchitecture.n_cond_repeat
+    dtype: str = LSTMArchitecture.dtype
+    regularization: float = DEFAULT_REGULARIZATION
+
+    def __post_init__(self):
+        check_option("model", self.model, SurrogateModel)
+        for name, low, what in (("n_hidden", 1, "encoder hidden size n_H"), ("n_layers", 1, "encoder layers k"),
+                                ("n_cond_repeat", 0, "copies q of the load parameter; 0: unconditional")):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
+                raise ConfigError(f"ArchitectureChoice.{name} must be an integer >= {low} ({what}), got {value!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise ConfigError(f"ArchitectureChoice.dtype must be 'float32' or 'float64', got {self.dtype!r}")
+        if self.model == "linear" and self.n_cond_repeat > 0:
+            raise ConfigError("the linear surrogate is unconditional: n_cond_repeat (--cond-repeat) must be 0; "
+                              "train model='lstm' (--model lstm) for a conditional surrogate")
+        LinearFitConfig(self.regularization)  # refuses a bad regularization, naming it
+
+    @property
+    def fit_config(self) -> LinearFitConfig:
+        """The least-squares settings of the linear model (its ``regularization``)."""
+        return LinearFitConfig(self.regularization)
+
+    def lstm(self, n_dof: int, n_past: int, n_future: int) -> LSTMArchitecture:
+        """The LSTM of this choice for windows of ``n_past`` -> ``n_future`` snapshots of
+        ``n_dof`` (padded) dofs."""
+        return LSTMArchitecture(n_dof=n_dof, n_hidden=self.n_hidden, n_layers=self.n_layers, n_past=n_past,
+                                n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype)
 
 
 def model_module(arch: Architecture) -> ModuleType:
@@ -55,14 +121,14 @@ def model_module(arch: Architecture) -> ModuleType:
 
 
 def architecture_to_dict(arch: Architecture) -> dict[str, Any]:
-    """``{"kind": ..., **arch.to_dict()}`` (JSON-ready): what checkpoints and summaries store."""
+    """``{"kind": ..., **arch.to_dict()}`` (JSON-ready): what surrogate files and summaries store."""
     model_module(arch)
     return {"kind": arch.kind, **arch.to_dict()}
 
 
 def architecture_from_dict(values: dict[str, Any]) -> Architecture:
     """Inverse of :func:`architecture_to_dict`.  A dict without ``kind`` is an LSTM's
-    (checkpoints written before the linear surrogate existed).
+    (surrogate files written before the linear surrogate existed).
 
     Raises:
         ConfigError: an unknown kind or fields of another architecture.

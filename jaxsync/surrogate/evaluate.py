@@ -5,6 +5,9 @@ possible, n = n_s n_p - 1), run N refill cycles without ever looking at the trut
 (:meth:`jaxsync.surrogate.Surrogate.rollout`) and average the squared error over the
 N n_s n_f predicted steps and the part's real dofs, in solver units (cm^2 in the paper);
 its square root is reported.
+
+:class:`TrainingChecks` holds what :func:`jaxsync.surrogate.train_surrogates` measures after
+training (sqrt(E_mse) and the offline rollout check).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import dataclasses
 import functools
 import io
 import itertools
+import math
+import numbers
 import os
 from collections.abc import Sequence
 from typing import Any
@@ -24,13 +29,13 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.surrogate.data import build_dataset, padding_mask, stack_replicas
-from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.architecture import ArchitectureChoice
+from jaxsync.surrogate.data import Sampling, build_dataset, padding_mask, stack_replicas
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.train import TrainConfig, train_replicas
 
-__all__ = ["max_applications", "rollout_errors", "RolloutErrors", "RolloutWarning", "e_mse", "GridPoint",
-           "GridSearchResult", "grid_search"]
+__all__ = ["max_applications", "rollout_errors", "RolloutErrors", "RolloutWarning", "e_mse", "TrainingChecks",
+           "GridPoint", "GridSearchResult", "grid_search"]
 
 
 def max_applications(n_steps: int, n_s: int, n_past: int, n_future: int, start: int | None = None) -> int:
@@ -154,6 +159,41 @@ def e_mse(
     return rollout_errors(surrogate, histories, n_applications, start).mse
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainingChecks:
+    """What :func:`jaxsync.surrogate.train_surrogates` measures on the trained replicas
+    (its ``checks``), on the first trajectory. The defaults are ``jaxsync train``'s.
+
+    Attributes:
+        emse_applications: refill cycles N of sqrt(E_mse) (:func:`e_mse`; paper: N = 60,
+            the default), clipped to what the trajectory holds; 0 skips it, and so do
+            shared histories not kept at every step (the refill reads every step).
+        rollout_tolerance: the offline check before any online run: every replica is
+            rolled out without the truth from step n_s n_p - 1 (or, where a load of the
+            run jumps, n_s n_p - 1 steps after the last jump: an online run stays
+            synchronized through it) to the end of the trajectory (its held-out steps
+            after ``train_fraction`` included, :func:`rollout_errors`), and a
+            :class:`RolloutWarning` is issued when its largest error exceeds this
+            fraction of the part's largest shared displacement. Default 0.02 (2 %, the
+            accuracy the paper asks of the free end); None skips the check. Needs shared
+            histories at every step.
+    """
+
+    emse_applications: int = 60
+    rollout_tolerance: float | None = 0.02
+
+    def __post_init__(self):
+        n = self.emse_applications
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 0:
+            raise ConfigError(f"emse_applications must be an integer >= 0 (refill cycles of E_mse; 0 skips it), "
+                              f"got {n!r}")
+        tol = self.rollout_tolerance
+        if tol is not None and (isinstance(tol, bool) or not isinstance(tol, numbers.Real)
+                                or not math.isfinite(tol) or not tol > 0):
+            raise ConfigError(f"rollout_tolerance must be > 0 (a fraction of the shared amplitude) or None, "
+                              f"got {tol}")
+
+
 # ----------------------------------------------------------------------------- grid search
 
 
@@ -222,44 +262,60 @@ class GridSearchResult:
 
 def grid_search(
     runs_per_part: Sequence[Sequence[np.ndarray]],
-    n_s: int,
-    arch: LSTMArchitecture,
-    config: TrainConfig,
     batch_sizes: Sequence[int],
     hidden_sizes: Sequence[int],
     learning_rates: Sequence[float],
-    key: jax.Array,
-    n_applications: int = 60,
-    train_fraction: float = 0.5,
-    val_fraction: float = 0.25,
-    split_seed: int = 0,
+    *,
+    architecture: ArchitectureChoice = ArchitectureChoice(),
+    sampling: Sampling = Sampling(),
+    optimizer: TrainConfig = TrainConfig(),
+    n_applications: int = TrainingChecks.emse_applications,
     load_parameters: Sequence[float] | None = None,
     eval_run: int = 0,
     start: int | None = None,
     progress: bool = False,
 ) -> GridSearchResult:
-    """Train every (n_B, n_H, eta0) combination for all parts and tabulate sqrt(E_mse).
+    """Train every (n_B, n_H, eta0) combination for all parts and tabulate sqrt(E_mse)
+    (paper Fig. 6).
+
+    Every combination trains one LSTM per part (no candidates) from the same key,
+    ``jax.random.key(sampling.seed)``, on the same windows.
 
     Args:
-        runs_per_part: per part, its list of (n_steps, n_dof_p) histories (one per run).
-        n_s: sampling stride.
-        arch: base architecture (its n_hidden is replaced by the grid; n_dof is set to
-            the largest part).
-        config: base training configuration (batch_size and eta0 replaced by the grid).
-        batch_sizes, hidden_sizes, learning_rates: the grid axes.
-        key: PRNG key, the same for every combination.
-        n_applications: N of E_mse.
+        runs_per_part: per part, its list of (n_steps, n_dof_p) histories at every step
+            (one per run) [solver units, cm in the paper].
+        batch_sizes, hidden_sizes, learning_rates: the grid axes n_B, n_H, eta0.
+        architecture: the LSTM's other settings (its ``n_hidden`` is replaced by the grid;
+            n_dof is the largest part's); ``model`` must be ``"lstm"``.
+        sampling: the windows (n_s, n_p, n_f, train/validation fractions, offsets, split)
+            and the seed of the split, the mini-batch order and the initial weights;
+            ``load_jump_windows`` does not apply (the histories record no load jumps).
+        optimizer: the schedule (its ``batch_size`` and ``eta0`` are replaced by the grid;
+            ``n_candidates`` does not apply).
+        n_applications: refill cycles N of E_mse (default 60, as
+            :class:`TrainingChecks`); at most what the evaluated run holds.
+        load_parameters: one per run, for a conditional architecture
+            (``n_cond_repeat`` > 0).
         eval_run: which run's full history E_mse is measured on.
-        start: E_mse start step.
+        start: E_mse start step (default n_s n_p - 1).
         progress: show a progress bar per combination.
 
     Returns:
         A :class:`GridSearchResult`; use ``.write(path)`` for the table.
+
+    Raises:
+        ConfigError: a linear architecture, a conditional one without load parameters,
+            too short runs.
     """
-    if arch.conditional and load_parameters is None:
+    if architecture.model != "lstm":
+        raise ConfigError(f"grid_search trains LSTMs (n_B, n_H, eta0); got architecture model "
+                          f"{architecture.model!r}: use ArchitectureChoice(model='lstm')")
+    if architecture.n_cond_repeat > 0 and load_parameters is None:
         raise ConfigError("a conditional architecture (n_cond_repeat > 0) needs load_parameters, one per run")
+    s = sampling
     datasets = [
-        build_dataset(runs, n_s, arch.n_past, arch.n_future, train_fraction, val_fraction, split_seed, load_parameters)
+        build_dataset(runs, s.n_s, s.n_past, s.n_future, s.train_fraction, s.val_fraction, s.seed, load_parameters,
+                      n_offsets=s.n_offsets, split=s.split)
         for runs in runs_per_part
     ]
     data = stack_replicas(datasets)
@@ -269,13 +325,14 @@ def grid_search(
         for runs in runs_per_part
     ])
     load_parameter = None if load_parameters is None else float(load_parameters[eval_run])
+    key = jax.random.key(s.seed)
     points = []
     for n_b, n_h, eta0 in itertools.product(batch_sizes, hidden_sizes, learning_rates):
-        combo_arch = dataclasses.replace(arch, n_dof=width, n_hidden=int(n_h))
-        combo_config = dataclasses.replace(config, batch_size=int(n_b), eta0=float(eta0))
+        combo_arch = dataclasses.replace(architecture, n_hidden=int(n_h)).lstm(width, s.n_past, s.n_future)
+        combo_config = dataclasses.replace(optimizer, batch_size=int(n_b), eta0=float(eta0))
         result = train_replicas(data, combo_arch, combo_config, key, progress=progress,
                                 description=f"n_B={n_b} n_H={n_h} eta0={eta0:g}")
-        err = np.sqrt(e_mse(Surrogate.from_result(result, n_s, load_parameter), histories, n_applications, start))
+        err = np.sqrt(e_mse(Surrogate.from_result(result, s.n_s, load_parameter), histories, n_applications, start))
         points.append(GridPoint(
             batch_size=int(n_b), n_hidden=int(n_h), eta0=float(eta0),
             sqrt_e_mse=tuple(float(v) for v in err), spread=float(err.max() - err.min()),

@@ -4,21 +4,40 @@ and ``jaxsync demo``.
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
 distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
 builds the sample-refill windows of every part, trains all replicas together
-(:func:`~jaxsync.surrogate.train.train_replicas`; with ``model="linear"``, fits the linear
-autoregressive baseline by least squares on the same windows instead,
-:func:`~jaxsync.surrogate.linear.fit_linear`), measures sqrt(E_mse) on the first run
-and returns a :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the
-solver, its checkpoint (with the partition's shared node ids), the loss history and
-timings.  Given an output folder ``out`` it also writes there, each file atomically:
+(:func:`~jaxsync.surrogate.train.train_replicas`; with
+``ArchitectureChoice(model="linear")``, fits the linear autoregressive baseline by least
+squares on the same windows instead, :func:`~jaxsync.surrogate.linear.fit_linear`),
+measures sqrt(E_mse) and the offline rollout on the first run and returns a
+:class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the solver, its
+surrogate file's content (with the partition's shared node ids), the loss history and
+timings.  It writes nothing, except the resumable training state when asked
+(``state=TrainingState(folder, every)``: ``<folder>/training_state.h5``, rewritten every
+``every`` epochs; the same call again continues from it and ends with the same parameters
+as an uninterrupted run; a state of other data or settings is refused; LSTM only, a
+least-squares fit has no state to resume).
 
-* the checkpoint (``surrogate.h5`` by default),
+Its settings come in frozen dataclasses, each with the defaults of ``jaxsync train``:
+
+==========================  ============================================================
+``architecture``            :class:`~jaxsync.surrogate.architecture.ArchitectureChoice`:
+                            model (LSTM or linear), n_H, k, q, dtype, ridge r
+``sampling``                :class:`~jaxsync.surrogate.data.Sampling`: n_s, n_p, n_f,
+                            fractions, offsets, split, load-jump windows, seed
+``optimizer``               :class:`~jaxsync.surrogate.train.TrainConfig`: the schedule,
+                            early stopping, candidates per part
+``checks``                  :class:`~jaxsync.surrogate.evaluate.TrainingChecks`: E_mse
+                            cycles, offline rollout tolerance
+``state``                   :class:`~jaxsync.surrogate.training_state.TrainingState`, or
+                            None: where and how often the resumable state is written
+==========================  ============================================================
+
+:meth:`TrainedSurrogates.write` writes the results into a folder, each file atomically:
+
+* the surrogate file (``surrogate.h5`` by default, :data:`SURROGATE_NAME`),
 * ``loss_curves.png``, the per-part training and validation losses,
 * ``train_summary.json`` (:meth:`TrainedSurrogates.summary`),
-* while it trains, ``training_state.h5``, a resumable state rewritten every
-  ``checkpoint_every`` epochs: the same call again continues from it and ends with the
-  same parameters as an uninterrupted run; a state of other data or settings is refused.
-  It is deleted once the results are written (LSTM only: a least-squares fit has no
-  state to resume).
+
+and then deletes the training state, which has nothing left to resume.
 """
 
 from __future__ import annotations
@@ -35,25 +54,34 @@ import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.options import LoadJumpWindows, SurrogateModel, ValidationSplit, check_option
-from jaxsync.surrogate.architecture import architecture_to_dict
-from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, save_checkpoint
-from jaxsync.surrogate.data import SharedHistories, build_dataset, read_shared_histories, stack_replicas
-from jaxsync.surrogate.evaluate import RolloutErrors, RolloutWarning, e_mse, max_applications, rollout_errors
-from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearFitConfig, fit_linear
-from jaxsync.surrogate.lstm import LSTMArchitecture, count_parameters
+from jaxsync.options import SurrogateModel
+from jaxsync.surrogate.architecture import ArchitectureChoice, architecture_to_dict
+from jaxsync.surrogate.data import Sampling, SharedHistories, build_dataset, read_shared_histories, stack_replicas
+from jaxsync.surrogate.evaluate import (
+    RolloutErrors,
+    RolloutWarning,
+    TrainingChecks,
+    e_mse,
+    max_applications,
+    rollout_errors,
+)
+from jaxsync.surrogate.linear import fit_linear
+from jaxsync.surrogate.lstm import count_parameters
 from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult, train_replicas
+from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
 from jaxsync.trajectory import Trajectory
 
-__all__ = ["train_surrogates", "TrainedSurrogates", "plot_loss_curves", "STATE_NAME", "SUMMARY_NAME",
-           "LOSS_CURVES_NAME"]
+__all__ = ["train_surrogates", "TrainedSurrogates", "plot_loss_curves", "choose_candidates", "SURROGATE_NAME",
+           "STATE_NAME", "SUMMARY_NAME", "LOSS_CURVES_NAME"]
 
-STATE_NAME = "training_state.h5"
+#: Default name of the surrogate file that :meth:`TrainedSurrogates.write` writes.
+SURROGATE_NAME = "surrogate.h5"
 SUMMARY_NAME = "train_summary.json"
 LOSS_CURVES_NAME = "loss_curves.png"
 
-# what the checkpoint's metadata keeps of the summary
+# what the surrogate file's metadata keeps of the summary
 _METADATA_KEYS = ("model", "training", "sampling", "candidates", "load_parameters", "final_val_loss", "sqrt_e_mse",
                   "rollout_check")
 
@@ -72,26 +100,27 @@ class TrainedSurrogates:
         trajectories: absolute path of each trajectory (None for one given in memory).
         load_parameters: the load parameter of each run fed to a conditional network, or
             None (unconditional).
-        train_fraction, val_fraction, seed, n_offsets, split: the sampling settings.
-        candidates: with several candidates per part, which one each part kept and every
-            candidate's validation loss (:func:`choose_candidates`); None for one, and
-            for the linear surrogate (least squares has one solution).
+        sampling: the sampling settings used, ``load_jump_windows`` decided for the model
+            (:meth:`~jaxsync.surrogate.data.Sampling.for_model`).
+        checks: the checks asked for (:class:`~jaxsync.surrogate.evaluate.TrainingChecks`).
         n_train_windows, n_val_windows: windows per part.
         n_excluded_windows: windows per part left out because they straddle a load jump.
-        load_jump_windows: whether such windows were left out (``"exclude"``) or kept.
-        checkpoint_every: epochs between writes of the resumable training state.
-        train_seconds: wall time of the training call (compilation included).
+        state: where the resumable training state was written
+            (:class:`~jaxsync.surrogate.training_state.TrainingState`); None when none was
+            (not asked for, or the linear model).
+        train_seconds: wall time of the training call (compilation included) [s].
         e_mse_applications: refill cycles N of ``sqrt_e_mse`` (None: not measured).
-        sqrt_e_mse: per part, sqrt(E_mse) on the first trajectory [solver units].
+        sqrt_e_mse: per part, sqrt(E_mse) on the first trajectory [solver units, cm].
         rollout: the offline accuracy check: every replica rolled out autonomously from
             step n_s n_p - 1 (where an online run starts predicting) to the end of the
             first trajectory, including the steps after ``train_fraction`` that no
             window was taken from (:func:`~jaxsync.surrogate.evaluate.rollout_errors`);
             None when not measured (shared histories thinned, or too short a run).
-        rollout_tolerance: the largest ``rollout.relative`` accepted without a
-            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` (None: no check).
-        files: the files written, by kind (``checkpoint``, ``loss_curves``, ``summary``);
-            empty without ``out``.
+        candidates: with several candidates per part, which one each part kept and every
+            candidate's validation loss (:func:`choose_candidates`); None for one, and
+            for the linear surrogate (least squares has one solution).
+        files: the files written by :meth:`write`, by kind (``surrogate``: the surrogate
+            file, ``loss_curves``, ``summary``); empty before.
     """
 
     surrogate: Surrogate
@@ -99,28 +128,29 @@ class TrainedSurrogates:
     shared_nodes: tuple[np.ndarray, ...]
     trajectories: tuple[str | None, ...]
     load_parameters: tuple[float, ...] | None
-    train_fraction: float
-    val_fraction: float
-    seed: int
+    sampling: Sampling
+    checks: TrainingChecks
     n_train_windows: int
     n_val_windows: int
-    checkpoint_every: int
     train_seconds: float
     e_mse_applications: int | None
     sqrt_e_mse: tuple[float, ...] | None
     rollout: RolloutErrors | None = None
-    rollout_tolerance: float | None = None
-    n_offsets: int = 1
-    split: ValidationSplit = "interleaved"
+    n_excluded_windows: int = 0
+    state: TrainingState | None = None
     candidates: dict | None = None
     files: dict[str, str] = dataclasses.field(default_factory=dict)
-    n_excluded_windows: int = 0
-    load_jump_windows: LoadJumpWindows = "keep"
 
     @property
     def model(self) -> SurrogateModel:
         """``"lstm"`` or ``"linear"``: the kind of the trained replicas."""
         return self.result.arch.kind
+
+    @property
+    def rollout_tolerance(self) -> float | None:
+        """The largest ``rollout.relative`` accepted without a
+        :class:`~jaxsync.surrogate.evaluate.RolloutWarning` (None: no check)."""
+        return self.checks.rollout_tolerance
 
     @property
     def rollout_passed(self) -> bool | None:
@@ -131,12 +161,17 @@ class TrainedSurrogates:
         return bool(self.rollout.relative.max() <= self.rollout_tolerance)
 
     @property
-    def checkpoint(self) -> SurrogateCheckpoint:
-        """What is saved: the replicas with the partition's shared node ids and the
-        training metadata (a part of :meth:`summary`)."""
+    def state_every(self) -> int:
+        """Epochs between writes of the resumable training state (0: none was written)."""
+        return 0 if self.state is None else int(self.state.every)
+
+    @property
+    def saved(self) -> SavedSurrogate:
+        """What the surrogate file holds: the replicas with the partition's shared node
+        ids and the training metadata (a part of :meth:`summary`)."""
         summary = self.summary()
-        return SurrogateCheckpoint.from_result(self.result, self.surrogate.n_s, self.shared_nodes,
-                                               metadata={k: summary[k] for k in _METADATA_KEYS})
+        return SavedSurrogate.from_result(self.result, self.surrogate.n_s, self.shared_nodes,
+                                          metadata={k: summary[k] for k in _METADATA_KEYS})
 
     @property
     def final_val_loss(self) -> np.ndarray:
@@ -158,10 +193,11 @@ class TrainedSurrogates:
                         "stopped_early": result.stopped_epoch is not None,
                         "stopped_at_epoch": result.stopped_epoch,
                         "best_epoch": [int(e) for e in result.best_epoch],
-                        "resumed_from_epoch": result.resumed_from, "checkpoint_every": self.checkpoint_every}
+                        "resumed_from_epoch": result.resumed_from, "state_every": self.state_every}
         else:
             training = {**result.config.to_dict(), "fit_seconds": result.seconds_per_epoch, "n_epochs_run": None,
                         "candidates": "not applicable: least squares has one solution (n_candidates ignored)"}
+        s = self.sampling
         out = {
             "model": self.model,
             "trajectories": list(self.trajectories),
@@ -171,11 +207,11 @@ class TrainedSurrogates:
             "architecture": architecture_to_dict(arch),
             "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
             "training": training,
-            "sampling": {"n_s": self.surrogate.n_s, "n_offsets": self.n_offsets, "train_fraction": self.train_fraction,
-                         "val_fraction": self.val_fraction, "split": self.split, "seed": self.seed,
+            "sampling": {"n_s": self.surrogate.n_s, "n_offsets": s.n_offsets, "train_fraction": s.train_fraction,
+                         "val_fraction": s.val_fraction, "split": s.split, "seed": s.seed,
                          "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows,
                          "n_excluded_windows": self.n_excluded_windows,
-                         "load_jump_windows": self.load_jump_windows},
+                         "load_jump_windows": s.load_jump_windows},
             "candidates": self.candidates,
             "initial_val_loss": result.initial_val_loss.tolist(),
             "final_train_loss": result.train_loss[-1].tolist(),
@@ -194,9 +230,31 @@ class TrainedSurrogates:
                 **self.rollout.to_dict(), "tolerance": self.rollout_tolerance, "passed": self.rollout_passed},
         }
         if self.files:
-            out.update(checkpoint=self.files["checkpoint"], loss_curves=self.files["loss_curves"])
+            out.update(surrogate=self.files["surrogate"], loss_curves=self.files["loss_curves"])
         out["loss_history"] = {"train": result.train_loss.tolist(), "val": result.val_loss.tolist()}
         return out
+
+    def write(self, out: str | os.PathLike, surrogate_name: str = SURROGATE_NAME) -> TrainedSurrogates:
+        """Write the results into the folder ``out`` (created if missing), each file
+        atomically (a failure leaves the earlier files of those names intact): the
+        surrogate file ``surrogate_name``, ``loss_curves.png`` and ``train_summary.json``
+        (:meth:`summary`, with the paths written). Then the training state
+        (:attr:`state`), which has nothing left to resume, is deleted.
+
+        Returns:
+            These results with :attr:`files` set (what the summary file holds).
+        """
+        os.makedirs(out, exist_ok=True)
+        files = {"surrogate": os.path.abspath(os.path.join(out, surrogate_name)),
+                 "loss_curves": os.path.abspath(os.path.join(out, LOSS_CURVES_NAME)),
+                 "summary": os.path.abspath(os.path.join(out, SUMMARY_NAME))}
+        save_surrogate(files["surrogate"], self.saved)
+        plot_loss_curves(self.result, files["loss_curves"])
+        written = dataclasses.replace(self, files=files)
+        atomic_json(files["summary"], written.summary())
+        if self.state is not None and os.path.exists(self.state.path):
+            os.remove(self.state.path)  # everything it could resume is written
+        return written
 
 
 def _read_runs(trajectories, allow_predicted: bool) -> tuple[list[SharedHistories], list[str | None]]:
@@ -244,140 +302,83 @@ def _load_parameters(runs, given, n_cond_repeat: int) -> list[float] | None:
 def train_surrogates(
     trajectories,
     *,
-    model: SurrogateModel = "lstm",
-    n_s: int = 150,
-    n_past: int = LSTMArchitecture.n_past,
-    n_future: int = LSTMArchitecture.n_future,
-    n_hidden: int = LSTMArchitecture.n_hidden,
-    n_layers: int = LSTMArchitecture.n_layers,
-    n_cond_repeat: int = LSTMArchitecture.n_cond_repeat,
-    dtype: str = LSTMArchitecture.dtype,
-    config: TrainConfig | None = None,
-    regularization: float = DEFAULT_REGULARIZATION,
-    train_fraction: float = 0.5,
-    val_fraction: float = 0.25,
-    n_offsets: int = 1,
-    split: ValidationSplit = "interleaved",
-    load_jump_windows: LoadJumpWindows | None = None,
-    n_candidates: int = 2,
+    architecture: ArchitectureChoice = ArchitectureChoice(),
+    sampling: Sampling = Sampling(),
+    optimizer: TrainConfig = TrainConfig(),
+    checks: TrainingChecks = TrainingChecks(),
     load_parameters: Sequence[float] | None = None,
     allow_predicted: bool = False,
-    seed: int = 0,
-    emse_applications: int = 60,
-    rollout_tolerance: float | None = 0.02,
+    state: TrainingState | None = None,
     devices: int | None = None,
-    out: str | os.PathLike | None = None,
-    checkpoint_name: str = "surrogate.h5",
-    checkpoint_every: int = 50,
     progress: bool = True,
     callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainedSurrogates:
     """Train one LSTM surrogate per part on distributed trajectories of one partition
-    (or fit the linear baseline: ``model="linear"``).
+    (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``).
+
+    Computes only: write the results with :meth:`TrainedSurrogates.write`.
 
     Args:
         trajectories: a :class:`jaxsync.Trajectory` or trajectory file, or a sequence of
             them (runs of one partition, e.g. different loads), with the shared nodes
             kept every step (``simulate(..., shared_every=1)``) or at any stride dividing
-            ``n_s`` (e.g. ``save_every=n_s``: what training reads, and all a long run
-            needs to keep).
-        model: ``"lstm"`` (default), the encoder-decoder trained with optax, or
-            ``"linear"``, the affine autoregressive baseline fitted by least squares on
-            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional: needs
-            ``n_cond_repeat`` = 0). The LSTM-only settings (``n_hidden``, ``n_layers``,
-            ``config``, ``n_candidates``, ``checkpoint_every``, ``devices``, ``progress``,
-            ``callback``) are ignored by the linear fit.
-        n_s, n_past, n_future: sampling stride and window lengths n_p, n_f. The default
-            n_s = 150 (the paper's published code; the paper's text uses 80) makes an
-            input window span n_p n_s = 3 000 steps, 0.74 s on the paper's coarse
-            cantilever, a third of its slowest period: on the skewed load that halved
-            the free-end error of n_s = 80 (``benchmarks/paper_experiments.py``).
-        n_hidden, n_layers, n_cond_repeat, dtype: the architecture
-            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`, whose defaults these are;
-            ``n_cond_repeat`` > 0 trains the conditional network).
-        config: optimization settings (default :class:`~jaxsync.surrogate.train.TrainConfig`,
-            the laptop schedule).
-        regularization: relative ridge parameter of the linear fit
-            (:class:`~jaxsync.surrogate.linear.LinearFitConfig`, whose default this is);
-            ignored by the LSTM.
-        train_fraction, val_fraction: leading fraction n_ts of each run used, fraction of
-            windows held out for validation.
-        n_offsets: sampled sequences per run, at evenly spaced starting steps within n_s
-            (:func:`~jaxsync.surrogate.data.build_dataset`; at most the rows per n_s
-            of thinned histories).
-        split: which windows are held out for validation: ``"interleaved"`` (every
-            4th at the default 25 %, phase from ``seed``) or the paper's ``"random"``
-            (:func:`~jaxsync.surrogate.data.split_indices`). A random split can hold out
-            most of the transient where an online run starts predicting; on the demo's
-            cantilever that, not the initial weights, made one seed 3x worse.
-        load_jump_windows: ``"exclude"``: leave out the windows that straddle a load jump
-            the trajectories record (:func:`~jaxsync.surrogate.data.build_dataset`); an
-            online run stays synchronized through a jump by default, so those windows teach
-            a response it never predicts. ``"keep"``: train on them (needed to predict
-            through a jump, ``load_jumps="predict"``). Default (None): ``"exclude"`` for the
-            linear model, whose least-squares fit they bend (cantilever with the load
-            switched off: free end 27.6 % kept, 2.45 % excluded), ``"keep"`` for the LSTM,
-            which fits them without losing the rest (1.42 % kept, 2.54 % excluded, seed 0;
-            through the jump 3.58 % against 139 %).
-        n_candidates: networks trained per part from different initial weights (all in
-            one compiled program, on the same windows); each part keeps the one with the
-            lowest validation loss. Training an LSTM lands in basins of different quality:
-            on the demo's cantilever one seed's pair reached a 5x higher validation loss
-            and a 4.5 % free-end error where another's reached 1.3 %; choosing between two
-            candidates costs less than twice the time, since the per-part work is small.
+            ``sampling.n_s`` (e.g. ``save_every=n_s``: what training reads, and all a long
+            run needs to keep). Displacements in solver units (cm in the paper).
+        architecture: the model and its size
+            (:class:`~jaxsync.surrogate.architecture.ArchitectureChoice`; default: the
+            LSTM with n_H = 50, k = 2, unconditional, float32). ``n_cond_repeat`` > 0
+            trains the conditional network. The linear model is fitted by least squares
+            with ``architecture.regularization``; the LSTM-only settings (``n_hidden``,
+            ``n_layers``, ``optimizer``, ``state``, ``devices``, ``progress``,
+            ``callback``) do not apply to it.
+        sampling: the windows and the seed (:class:`~jaxsync.surrogate.data.Sampling`;
+            default n_s = 150, n_p = n_f = 20, the first half of each run, 25 %
+            interleaved validation windows, seed 0). Its ``load_jump_windows`` None takes
+            the model's rule: windows across a recorded load jump are left out for the
+            linear model and kept for the LSTM.
+        optimizer: the schedule and the candidates per part
+            (:class:`~jaxsync.surrogate.train.TrainConfig`; default the laptop schedule:
+            n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200, the
+            better of 2 candidates per part). LSTM only.
+        checks: the measures after training, on the first trajectory
+            (:class:`~jaxsync.surrogate.evaluate.TrainingChecks`; default sqrt(E_mse) over
+            60 refill cycles and the offline rollout check at 2 % of each part's shared
+            amplitude, warning with
+            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` above it).
         load_parameters: the load parameter of each trajectory (default: their problem
-            parameter ``load_parameter``); used with ``n_cond_repeat`` > 0.
+            parameter ``load_parameter``); used with ``architecture.n_cond_repeat`` > 0.
         allow_predicted: accept synchronization-avoiding trajectories (refused by default).
-        seed: seed of initialization, shuffling and the train/validation split.
-        emse_applications: refill cycles N of sqrt(E_mse) on the first trajectory,
-            clipped to what it holds; 0 skips it, and so do shared histories not kept at
-            every step (the refill reads every step).
-        rollout_tolerance: the offline check before any online run: every replica is
-            rolled out without the truth from step n_s n_p - 1 (or, where a load of the run
-            jumps, n_s n_p - 1 steps after the last jump: an online run stays synchronized
-            through it) to the end of the first trajectory (its held-out steps after
-            ``train_fraction`` included), and a
-            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` is issued when its
-            largest error exceeds this fraction of the part's largest shared
-            displacement (default 2 %, the accuracy the paper asks of the free end);
-            None skips the check. Needs shared histories at every step.
+        state: where and how often to write the resumable training state
+            (:class:`~jaxsync.surrogate.training_state.TrainingState`; None, the default:
+            none). The same call again resumes from it; :meth:`TrainedSurrogates.write`
+            deletes it. LSTM only.
         devices: local devices to spread the parts over (default: as many as divide the
             part count).
-        out: output folder for the files listed in the module docstring (None: nothing
-            is written).
-        checkpoint_name: checkpoint file name inside ``out``.
-        checkpoint_every: epochs between writes of the resumable training state in
-            ``out`` (0: none).
         progress: show a progress bar.
         callback: given a :class:`~jaxsync.surrogate.train.TrainProgress` after every
             compiled chunk of epochs.
 
     Returns:
-        :class:`TrainedSurrogates`.
+        :class:`TrainedSurrogates` (nothing written but the training state).
 
     Raises:
         CheckpointError: unusable trajectories (not distributed, shared nodes kept at a
-            stride that does not divide n_s, predicted, of different partitions) or a training state in
-            ``out`` of other data or settings.
+            stride that does not divide n_s, predicted, of different partitions) or a
+            training state in ``state.folder`` of other data or settings.
         ConfigError: unusable settings.
     """
-    config = TrainConfig() if config is None else config
-    check_option("model", model, SurrogateModel)
-    if model == "linear":
-        if n_cond_repeat > 0:
-            raise ConfigError("the linear surrogate is unconditional: n_cond_repeat (--cond-repeat) must be 0; "
-                              "train model='lstm' (--model lstm) for a conditional surrogate")
-        fit_config = LinearFitConfig(regularization)  # checked before any data is read
-    if isinstance(n_candidates, bool) or not isinstance(n_candidates, (int, np.integer)) or n_candidates < 1:
-        raise ConfigError(f"n_candidates must be an integer >= 1 (networks trained per part), got {n_candidates!r}")
-    if rollout_tolerance is not None and not rollout_tolerance > 0:
-        raise ConfigError(f"rollout_tolerance must be > 0 (a fraction of the shared amplitude) or None, "
-                          f"got {rollout_tolerance}")
-    if load_jump_windows is None:
-        load_jump_windows = "exclude" if model == "linear" else "keep"
-    exclude_jumps = check_option("load_jump_windows", load_jump_windows, LoadJumpWindows) == "exclude"
+    for name, value, cls in (("architecture", architecture, ArchitectureChoice), ("sampling", sampling, Sampling),
+                             ("optimizer", optimizer, TrainConfig), ("checks", checks, TrainingChecks)):
+        if not isinstance(value, cls):
+            raise ConfigError(f"{name} must be a jaxsync.surrogate.{cls.__name__}, got {value!r}")
+    if state is not None and not isinstance(state, TrainingState):
+        raise ConfigError(f"state must be a jaxsync.surrogate.TrainingState(folder, every) or None, got {state!r}")
+    model = architecture.model
+    sampling = sampling.for_model(model)
+    n_s, n_past, n_future = sampling.n_s, sampling.n_past, sampling.n_future
+    exclude_jumps = sampling.load_jump_windows == "exclude"
     runs, names = _read_runs(trajectories, allow_predicted)
-    loads = _load_parameters(runs, load_parameters, n_cond_repeat)
+    loads = _load_parameters(runs, load_parameters, architecture.n_cond_repeat)
     n_parts = len(runs[0].histories)
     row_strides = {run.for_sampling(n_s) for run in runs}
     if len(row_strides) > 1:
@@ -385,38 +386,35 @@ def train_surrogates(
                               f"({sorted({run.stride for run in runs})} steps); train on runs saved alike")
     row_stride = row_strides.pop()
     datasets = [
-        build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, train_fraction,
-                      val_fraction, seed, loads, n_offsets=n_offsets, split=split,
+        build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, sampling.train_fraction,
+                      sampling.val_fraction, sampling.seed, loads, n_offsets=sampling.n_offsets, split=sampling.split,
                       load_jumps=[[j / run.stride for j in run.load_jumps] if exclude_jumps else []
                                   for run in runs])
         for p in range(n_parts)
     ]
-    state_path = None
-    if out is not None:
-        os.makedirs(out, exist_ok=True)
-        state_path = os.path.join(out, STATE_NAME) if checkpoint_every and model == "lstm" else None
     if model == "linear":
+        state = None  # a least-squares fit has no state to resume
         data = stack_replicas(datasets)
         started = time.perf_counter()
-        result = fit_linear(data, fit_config, dtype)
+        result = fit_linear(data, architecture.fit_config, architecture.dtype)
         train_seconds = time.perf_counter() - started
         candidates = None
     else:
         # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
-        data = stack_replicas(datasets * int(n_candidates))
-        arch = LSTMArchitecture(n_dof=data.n_dof_max, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
-                                n_future=n_future, n_cond_repeat=n_cond_repeat, dtype=dtype)
+        n_candidates = int(optimizer.n_candidates)
+        data = stack_replicas(datasets * n_candidates)
+        arch = architecture.lstm(data.n_dof_max, n_past, n_future)
         started = time.perf_counter()
-        result = train_replicas(data, arch, config, jax.random.key(seed), progress=progress, devices=devices,
-                                checkpoint=state_path, checkpoint_every=checkpoint_every, callback=callback)
+        result = train_replicas(data, arch, optimizer, jax.random.key(sampling.seed), progress=progress,
+                                devices=devices, state=state, callback=callback)
         train_seconds = time.perf_counter() - started
-        result, candidates = choose_candidates(result, n_parts, int(n_candidates))
+        result, candidates = choose_candidates(result, n_parts, n_candidates)
     arch = result.arch
 
     load = None if loads is None else loads[0]
     surrogate = Surrogate.from_result(result, n_s, load)
     first = runs[0]
-    n_app = min(emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
+    n_app = min(checks.emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
     if first.stride != 1:  # the refill reads every step of its input history
         n_app = 0
     sqrt_e_mse = rollout = None
@@ -426,42 +424,30 @@ def train_surrogates(
     # from where an online run starts predicting: n_s n_p - 1, or after the last load jump
     # (simulate_sync_avoiding stays synchronized through it by default)
     start = n_s * n_past - 1 + (first.last_load_jump or 0)
-    if (rollout_tolerance is not None and first.stride == 1
+    tolerance = checks.rollout_tolerance
+    if (tolerance is not None and first.stride == 1
             and max_applications(histories.shape[1], n_s, n_past, n_future, start) > 0):
         rollout = rollout_errors(surrogate, histories, start=start)
     if rollout is not None:
         worst = int(np.argmax(rollout.relative))
-        if rollout.relative[worst] > rollout_tolerance:
+        if rollout.relative[worst] > tolerance:
             warnings.warn(RolloutWarning(
                 f"the trained surrogates miss the offline check: rolled out without the truth over "
                 f"{rollout.n_steps} steps of the first trajectory, part {worst}'s shared displacements are "
                 f"off by up to {100 * rollout.relative[worst]:.2g} % of their amplitude (tolerance "
-                f"{100 * rollout_tolerance:.2g} %); an online run would likely be as far off. "
+                f"{100 * tolerance:.2g} %); an online run would likely be as far off. "
                 + ("Train longer (more epochs or patience), on more data" if model == "lstm" else
                    "Fit with another regularization, on more data")
                 + " (train_fraction, more runs), or run online with error control (resync_tolerance)"),
                 stacklevel=2)
-    trained = TrainedSurrogates(
+    return TrainedSurrogates(
         surrogate=surrogate, result=result, shared_nodes=first.shared_nodes, trajectories=tuple(names),
-        load_parameters=None if loads is None else tuple(loads), train_fraction=train_fraction,
-        val_fraction=val_fraction, seed=seed, n_train_windows=int(data.x_train.shape[1]),
-        n_val_windows=int(data.x_val.shape[1]), checkpoint_every=checkpoint_every, train_seconds=train_seconds,
-        e_mse_applications=n_app if sqrt_e_mse is not None else None, sqrt_e_mse=sqrt_e_mse,
-        rollout=rollout, rollout_tolerance=rollout_tolerance, n_offsets=n_offsets, split=split,
-        candidates=candidates, n_excluded_windows=datasets[0].n_excluded, load_jump_windows=load_jump_windows,
+        load_parameters=None if loads is None else tuple(loads), sampling=sampling, checks=checks,
+        n_train_windows=int(data.x_train.shape[1]), n_val_windows=int(data.x_val.shape[1]),
+        train_seconds=train_seconds, e_mse_applications=n_app if sqrt_e_mse is not None else None,
+        sqrt_e_mse=sqrt_e_mse, rollout=rollout, n_excluded_windows=datasets[0].n_excluded, state=state,
+        candidates=candidates,
     )
-    if out is None:
-        return trained
-    files = {"checkpoint": os.path.abspath(os.path.join(out, checkpoint_name)),
-             "loss_curves": os.path.abspath(os.path.join(out, LOSS_CURVES_NAME)),
-             "summary": os.path.abspath(os.path.join(out, SUMMARY_NAME))}
-    save_checkpoint(files["checkpoint"], trained.checkpoint)
-    plot_loss_curves(result, files["loss_curves"])
-    trained = dataclasses.replace(trained, files=files)
-    atomic_json(files["summary"], trained.summary())
-    if state_path is not None and os.path.exists(state_path):
-        os.remove(state_path)  # everything it could resume is written
-    return trained
 
 
 def choose_candidates(result: TrainResult, n_parts: int, n_candidates: int) -> tuple[TrainResult, dict | None]:

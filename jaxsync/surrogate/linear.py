@@ -3,7 +3,7 @@
 The same interface as :mod:`jaxsync.surrogate.lstm` -- an architecture, ``init_params``
 and ``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
 of ``n_past`` snapshots (n_p, n_dof) to the next ``n_future`` (n_f, n_dof) -- so that
-:class:`~jaxsync.surrogate.Surrogate`, the refill, the checkpoint and the online solver run
+:class:`~jaxsync.surrogate.Surrogate`, the refill, the surrogate file and the online solver run
 it unchanged.  The prediction is an affine map of the window::
 
     vec(y) = vec(x) W + b,     W (n_p n_dof, n_f n_dof),   b (n_f n_dof,)

@@ -79,7 +79,7 @@ class LSTMArchitecture:
         n_cond_repeat: q, copies of the load parameter appended to every decoder input;
             0 gives the unconditional network.
         dtype: "float32" (default) or "float64" for the parameters and computation.
-        kind: "lstm" (class attribute, not a field): the model a checkpoint holds
+        kind: "lstm" (class attribute, not a field): the model a surrogate file holds
             (:mod:`jaxsync.surrogate.architecture`).
     """
 
@@ -122,7 +122,7 @@ class LSTMArchitecture:
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
         """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"lstm"``
-        (checkpoints written before the linear surrogate have none)."""
+        (surrogate files written before the linear surrogate have none)."""
         values = dict(values)
         kind = values.pop("kind", cls.kind)
         if kind != cls.kind:

@@ -14,7 +14,7 @@ pytree (each part's replica on the device of its part) and calls, for one part,
   (:func:`jaxsync.surrogate.evaluate.e_mse`) and by full-system modeling.
 
 Files: :meth:`Surrogate.save` / :meth:`Surrogate.load` go through
-:mod:`jaxsync.surrogate.checkpoint` (a :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint`
+:mod:`jaxsync.surrogate.saved` (a :class:`~jaxsync.surrogate.saved.SavedSurrogate`
 also keeps the shared node ids and training metadata).
 """
 
@@ -31,11 +31,11 @@ import numpy as np
 from jaxsync.errors import CheckpointError
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
-from jaxsync.surrogate.checkpoint import SurrogateCheckpoint, load_checkpoint, save_checkpoint
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
 from jaxsync.surrogate.lstm import LSTMArchitecture, check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.replicas import init_replicas
+from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
 
 __all__ = ["Surrogate"]
 
@@ -65,7 +65,7 @@ class Surrogate:
             with float32 accumulation (:mod:`jaxsync.surrogate.lstm`; static). Set it with
             :meth:`with_inference_dtype`, and check what it costs in accuracy with
             :func:`jaxsync.surrogate.inference.check_inference_precision`. A runtime option:
-            checkpoints keep the parameters as trained and do not record it.
+            surrogate files keep the parameters as trained and do not record it.
 
     ``surrogate.part(p)`` (or ``jax.tree_util.tree_map(lambda x: x[p], surrogate)``, as
     vmap and shard_map do) is part p alone: the same type without the leading axis,
@@ -222,18 +222,17 @@ class Surrogate:
         arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
                                 n_future=n_future, dtype=dtype)
         params = init_replicas(jax.random.PRNGKey(seed), arch, tuple(int(c) for c in counts))
-        # normalization and mask in float64, as a checkpoint stores them
+        # normalization and mask in float64, as a surrogate file stores them
         return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)), padding_mask(counts, n_dof),
                           n_s, None)
 
     @classmethod
-    def from_checkpoint(cls, checkpoint, load_parameter: float | None = None) -> "Surrogate":
-        """The surrogate of a :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint`
+    def from_saved(cls, saved, load_parameter: float | None = None) -> "Surrogate":
+        """The surrogate of a :class:`~jaxsync.surrogate.saved.SavedSurrogate`
         or of its file; ``load_parameter`` is required by conditional networks."""
-        if not isinstance(checkpoint, SurrogateCheckpoint):
-            checkpoint = load_checkpoint(checkpoint)
-        return cls._build(checkpoint.arch, checkpoint.params, checkpoint.mean, checkpoint.std,
-                          checkpoint.dof_mask, checkpoint.n_s, load_parameter)
+        if not isinstance(saved, SavedSurrogate):
+            saved = load_surrogate(saved)
+        return cls._build(saved.arch, saved.params, saved.mean, saved.std, saved.dof_mask, saved.n_s, load_parameter)
 
     @classmethod
     def from_result(cls, result, n_s: int, load_parameter: float | None = None) -> "Surrogate":
@@ -244,11 +243,11 @@ class Surrogate:
 
     # ------------------------------------------------------------------ files
 
-    def to_checkpoint(self, shared_nodes=None, metadata: dict | None = None) -> SurrogateCheckpoint:
-        """A :class:`~jaxsync.surrogate.checkpoint.SurrogateCheckpoint` of these replicas,
+    def to_saved(self, shared_nodes=None, metadata: dict | None = None) -> SavedSurrogate:
+        """A :class:`~jaxsync.surrogate.saved.SavedSurrogate` of these replicas,
         with the partition's shared node ids (per part; needed to check a partition
         against it) and JSON-serializable ``metadata``."""
-        return SurrogateCheckpoint(
+        return SavedSurrogate(
             arch=self.arch, params=jax.tree_util.tree_map(np.asarray, self.params),
             mean=np.asarray(self.mean, np.float64), std=np.asarray(self.std, np.float64),
             dof_counts=self.dof_counts, n_s=self.n_s,
@@ -257,10 +256,10 @@ class Surrogate:
         )
 
     def save(self, path: str | os.PathLike, *, shared_nodes=None, metadata: dict | None = None) -> None:
-        """Write a checkpoint file atomically (:func:`~jaxsync.surrogate.checkpoint.save_checkpoint`)."""
-        save_checkpoint(path, self.to_checkpoint(shared_nodes, metadata))
+        """Write a surrogate file atomically (:func:`~jaxsync.surrogate.saved.save_surrogate`)."""
+        save_surrogate(path, self.to_saved(shared_nodes, metadata))
 
     @classmethod
     def load(cls, path: str | os.PathLike, load_parameter: float | None = None) -> "Surrogate":
-        """Read a checkpoint file (:func:`~jaxsync.surrogate.checkpoint.load_checkpoint`)."""
-        return cls.from_checkpoint(load_checkpoint(path), load_parameter)
+        """Read a surrogate file (:func:`~jaxsync.surrogate.saved.load_surrogate`)."""
+        return cls.from_saved(load_surrogate(path), load_parameter)

@@ -14,30 +14,30 @@ from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Syn
 
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
-           "add_surrogate_options", "accept_negative_numbers", "refuse_to_overwrite", "process_count",
-           "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run", "check_outputs",
-           "writing", "written_and_kept", "is_package_warning", "package_warnings", "report_warnings"]
+           "add_surrogate_options", "join_negative_values", "accept_negative_numbers", "refuse_to_overwrite",
+           "process_count", "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run",
+           "check_outputs", "writing", "written_and_kept", "is_package_warning", "package_warnings", "report_warnings"]
 
 
 def add_trained_run_arguments(parser) -> None:
-    """TRAJECTORY and CHECKPOINT, ``--config`` and ``--mesh``: a synchronized run and the
+    """TRAJECTORY and SURROGATE, ``--config`` and ``--mesh``: a synchronized run and the
     surrogates trained on it (``predict``, ``finetune``)."""
     parser.add_argument("trajectory", help="synchronized distributed trajectory (HDF5) the surrogates were "
                                            "trained on: it defines the partition")
-    parser.add_argument("checkpoint", help="surrogate checkpoint written by jaxsync train")
+    parser.add_argument("surrogate", help="surrogate file written by jaxsync train (surrogate.h5)")
     parser.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
     parser.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
 
 
 def load_trained_run(args):
-    """(reference trajectory, its partition, the problem, the checkpoint checked against the
+    """(reference trajectory, its partition, the problem, the surrogate file checked against the
     partition) of :func:`add_trained_run_arguments`' arguments; the problem's mesh must be the
     trajectory's (:class:`jaxsync.PartitionError` otherwise)."""
     import numpy as np
 
     from ...errors import PartitionError
     from ...parallel.partitioning import partition_of
-    from ...surrogate.checkpoint import load_checkpoint
+    from ...surrogate.saved import load_surrogate
     from ...trajectory import Trajectory
     from ..config import load_config, problem_from_config
 
@@ -48,7 +48,7 @@ def load_trained_run(args):
             or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
         raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
                              "pass the same --config/--mesh as the synchronized run")
-    return reference, part, problem, load_checkpoint(args.checkpoint, [p.shared_nodes for p in part.parts])
+    return reference, part, problem, load_surrogate(args.surrogate, [p.shared_nodes for p in part.parts])
 
 
 def add_compression_option(parser) -> None:
@@ -88,12 +88,17 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
 
 
 def sync_of(args) -> dict:
-    """``{"sync": ...}`` when ``--sync`` was given (and ``"halo_depth"`` when
-    ``--halo-depth`` was), else ``{}`` (the library's default)."""
-    out = {} if args.sync is None else {"sync": args.sync}
-    if getattr(args, "halo_depth", None) is not None:
-        out["halo_depth"] = args.halo_depth
-    return out
+    """``{"sync": strategy}`` when ``--sync`` was given (``--sync halo`` with its
+    ``--halo-depth``: :class:`jaxsync.Halo`), else ``{}`` (the library's default)."""
+    from ...errors import ConfigError
+    from ...solve.strategies import Halo
+
+    depth = getattr(args, "halo_depth", None)
+    if depth is not None and args.sync != "halo":
+        raise ConfigError(f"--halo-depth {depth} needs --sync halo (got --sync {args.sync})")
+    if args.sync is None:
+        return {}
+    return {"sync": Halo(1 if depth is None else depth) if args.sync == "halo" else args.sync}
 
 
 def compression_of(args) -> str | None:
@@ -118,18 +123,15 @@ def add_progress_option(parser, what: str = "the progress bar") -> None:
 
 
 def surrogate_defaults() -> dict:
-    """Defaults of the surrogate options, read from the library's own defaults (as
-    ``jaxsync train`` reads them): the keyword defaults of
-    :func:`jaxsync.surrogate.train_surrogates` (n_s, n_p, n_f, n_H, k) and
+    """Defaults of the surrogate options, read from the library's settings (as
+    ``jaxsync train`` reads them): :class:`jaxsync.surrogate.Sampling` (n_s, n_p, n_f),
+    :class:`jaxsync.surrogate.ArchitectureChoice` (n_H, k) and
     :class:`jaxsync.surrogate.TrainConfig` (eta0, gamma, epochs)."""
-    import inspect
+    from ...surrogate import ArchitectureChoice, Sampling, TrainConfig
 
-    from ...surrogate import TrainConfig, train_surrogates
-
-    library = {name: p.default for name, p in inspect.signature(train_surrogates).parameters.items()}
-    config = TrainConfig()
-    return {"n_s": library["n_s"], "n_past": library["n_past"], "n_future": library["n_future"],
-            "n_hidden": library["n_hidden"], "n_layers": library["n_layers"], "eta0": config.eta0,
+    sampling, architecture, config = Sampling(), ArchitectureChoice(), TrainConfig()
+    return {"n_s": sampling.n_s, "n_past": sampling.n_past, "n_future": sampling.n_future,
+            "n_hidden": architecture.n_hidden, "n_layers": architecture.n_layers, "eta0": config.eta0,
             "gamma": config.gamma, "epochs": config.n_epochs}
 
 
@@ -163,15 +165,41 @@ def add_surrogate_options(parser, case_defaults: bool = False) -> None:
 NEGATIVE_NUMBER = r"^-(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?$"
 
 
+def join_negative_values(args: list[str]) -> list[str]:
+    """``args`` with every negative number that follows an option joined to it:
+    ``["--dt", "-1e-4"]`` becomes ``["--dt=-1e-4"]``, the spelling argparse always reads
+    as a value (before Python 3.14 it takes ``-1e-4`` alone for an option name and stops
+    with "expected one argument"). Tokens after ``--``, and options already given as
+    ``--opt=value``, are left as they are; an option that takes no value is still refused
+    by argparse ("ignored explicit argument")."""
+    import re
+
+    number = re.compile(NEGATIVE_NUMBER)
+    out: list[str] = []
+    for k, arg in enumerate(args):
+        previous = out[-1] if out else None
+        if (previous is not None and number.match(arg) and previous.startswith("-") and "=" not in previous
+                and not number.match(previous) and "--" not in args[:k]):
+            out[-1] = f"{previous}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def accept_negative_numbers(parser: argparse.ArgumentParser) -> None:
     """Let option values such as ``--dt -1e-4`` parse as numbers (and be refused by the
     package's own checks with a clear message) instead of argparse's "expected one
-    argument": before Python 3.14 argparse takes a negative number in exponent notation
-    for an option name. The parser has no options that look like negative numbers."""
-    import re
+    argument": the parser's public :meth:`~argparse.ArgumentParser.parse_known_args`
+    (which ``parse_args`` and a parent's subcommand dispatch call) first joins them to
+    their option (:func:`join_negative_values`). For parsers whose options take no
+    negative-number-like names."""
+    parse_known_args = parser.parse_known_args
 
-    if hasattr(parser, "_negative_number_matcher"):  # argparse has no public setting for it
-        parser._negative_number_matcher = re.compile(NEGATIVE_NUMBER)
+    def parse_with_negative_values(args=None, namespace=None):
+        args = sys.argv[1:] if args is None else list(args)
+        return parse_known_args(join_negative_values(args), namespace)
+
+    parser.parse_known_args = parse_with_negative_values
 
 
 def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None = None) -> None:

@@ -18,7 +18,7 @@ def add_parser(subparsers) -> None:
                     "the check of paper figure 19) and error control at 1 %; --size small (default, "
                     "about 5 000 tets, within 15 minutes on a 2-core laptop) or paper (about 250 000 "
                     "dofs and 1e6 steps: hours to days). Prints a summary table and writes trajectories, "
-                    "the checkpoint, figures and summary.json into --out; a folder that holds an earlier demo is "
+                    "the surrogate file, figures and summary.json into --out; a folder that holds an earlier demo is "
                     "replaced only with --force, and only once the new run is complete.")
     p.add_argument("--case", choices=("cantilever", "vessel"), default="cantilever",
                    help="the problem (default: %(default)s)")
@@ -60,17 +60,18 @@ def demo_parts(args) -> int:
 
 def run(args) -> int:
     from ...errors import ConfigError
-    from ..demo import format_summary, run_demo
+    from ..demo import DemoSettings, format_summary, run_demo
 
     if common.process_count() > 1:
         raise ConfigError("jaxsync demo runs in one process (it uses emulated devices); "
                           "start it without mpiexec")
     tolerance = None if str(args.resync_tolerance).lower() == "none" else args.resync_tolerance
-    summary = run_demo(args.out, case=args.case, size=args.size, n_steps=args.steps, n_parts=args.parts,
-                       n_s=args.n_s, n_past=args.n_past, n_future=args.n_future, n_hidden=args.n_hidden,
-                       n_layers=args.n_layers, epochs=args.epochs, eta0=args.eta0, gamma=args.gamma,
-                       n_candidates=args.n_candidates, seed=args.seed, save_every=args.save_every,
-                       resync_tolerance=tolerance, progress=not args.no_progress, force=args.force)
+    settings = DemoSettings(n_steps=args.steps, n_parts=args.parts, n_s=args.n_s, n_past=args.n_past,
+                            n_future=args.n_future, n_hidden=args.n_hidden, n_layers=args.n_layers,
+                            epochs=args.epochs, eta0=args.eta0, gamma=args.gamma, n_candidates=args.n_candidates,
+                            save_every=args.save_every, resync_tolerance=tolerance)
+    summary = run_demo(args.out, settings, case=args.case, size=args.size, seed=args.seed,
+                       progress=not args.no_progress, force=args.force)
     what = "cantilever" if args.case == "cantilever" else f"coronary tree ({summary['n_elements']} tets)"
     print(f"jaxsync demo: synchronization-avoiding {what}")
     print(format_summary(summary))

@@ -1,6 +1,6 @@
 """``jaxsync finetune``: solver-in-the-loop fine-tuning of trained surrogates
 (:func:`jaxsync.solve.finetune.fine_tune_in_the_loop`) on the partition of a synchronized
-trajectory; writes a new checkpoint that ``jaxsync predict`` reads."""
+trajectory; writes a new surrogate file that ``jaxsync predict`` reads."""
 
 from __future__ import annotations
 
@@ -21,7 +21,7 @@ def add_parser(subparsers) -> None:
     common.add_trained_run_arguments(p)
     p.add_argument("--span", type=int, default=None,
                    help="windows lie within the first SPAN steps (default: the part of the trajectory "
-                        "the checkpoint was trained on, its train_fraction; else the whole trajectory)")
+                        "the surrogates were trained on, its train_fraction; else the whole trajectory)")
     p.add_argument("--iterations", type=int, default=None,
                    help="Adam steps, one window each (default: FineTuneConfig's, 60)")
     p.add_argument("--window-cycles", type=int, default=None,
@@ -31,7 +31,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--seed", type=int, default=None, help="draws of the windows (default: 0)")
     common.add_mode_option(p)
     p.add_argument("--output", "-o", default="surrogate_finetuned.h5",
-                   help="the fine-tuned checkpoint (default: %(default)s)")
+                   help="the fine-tuned surrogate file (default: %(default)s)")
     p.add_argument("--force", action="store_true",
                    help="overwrite an existing output file (without it the run is refused before it starts)")
     common.add_progress_option(p)
@@ -46,13 +46,13 @@ def run(args) -> int:
     from ...surrogate import Surrogate
 
     common.refuse_to_overwrite([args.output], force=args.force)
-    common.check_outputs((args.output, "fine-tuned checkpoint", "-o"))
-    reference, part, problem, ckpt = common.load_trained_run(args)
-    if ckpt.arch.conditional:
+    common.check_outputs((args.output, "fine-tuned surrogate file", "-o"))
+    reference, part, problem, saved = common.load_trained_run(args)
+    if saved.arch.conditional:
         raise ConfigError("fine-tuning conditional surrogates (trained on several runs with load "
                           "parameters) is not supported: fine-tune unconditional ones")
     n_steps = int(round(float(reference.times[-1]) / reference.dt))
-    fraction = ckpt.metadata.get("sampling", {}).get("train_fraction")
+    fraction = saved.metadata.get("sampling", {}).get("train_fraction")
     span = args.span or (int(fraction * n_steps) if fraction else n_steps)
     if not 0 < span <= n_steps:
         raise ConfigError(f"--span {span} must be between 1 and the trajectory's {n_steps} steps")
@@ -60,13 +60,13 @@ def run(args) -> int:
              "learning_rate": args.learning_rate, "seed": args.seed}
     config = FineTuneConfig(**{k: v for k, v in given.items() if v is not None})
     config = dataclasses.replace(config, validate_every=min(config.validate_every, config.n_iterations))
-    result = fine_tune_in_the_loop(problem, Surrogate.from_checkpoint(ckpt), part, n_steps=span, config=config,
+    result = fine_tune_in_the_loop(problem, Surrogate.from_saved(saved), part, n_steps=span, config=config,
                                    dt=reference.dt, mode=args.mode, progress=not args.no_progress)
-    metadata = {**ckpt.metadata, "fine_tuned": {**result.summary(), "span_steps": span,
+    metadata = {**saved.metadata, "fine_tuned": {**result.summary(), "span_steps": span,
                                                 "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
-                                                "from_checkpoint": str(args.checkpoint)}}
+                                                "from_surrogate": str(args.surrogate)}}
     with common.writing(args.output):
-        result.surrogate.save(args.output, shared_nodes=ckpt.shared_nodes, metadata=metadata)
+        result.surrogate.save(args.output, shared_nodes=saved.shared_nodes, metadata=metadata)
     kept = ("the trained weights (no step lowered the validation loss)" if result.best_iteration == 0
             else f"the weights of step {result.best_iteration}")
     print(f"fine-tuned on {config.n_iterations} windows of {config.window_cycles} refill cycles within the first "

@@ -10,7 +10,7 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "predict", help="synchronization-avoiding run with trained surrogates",
         description="Run paper Algorithm 3: synchronized steps up to --n-cri, then the "
-                    "surrogates of CHECKPOINT replace the synchronization. The partition is the "
+                    "surrogates of SURROGATE replace the synchronization. The partition is the "
                     "one of TRAJECTORY (the synchronized run the surrogates were trained on); "
                     "the problem comes from a TOML file (default: the packaged cantilever).")
     common.add_trained_run_arguments(p)
@@ -53,25 +53,23 @@ def run(args) -> int:
 
     common.refuse_to_overwrite([args.output], force=args.force)
     common.check_outputs((args.output, "output trajectory", "-o"))
-    reference, part, problem, ckpt = common.load_trained_run(args)
-    n_cri = args.n_cri or ckpt.n_s * ckpt.arch.n_past
+    reference, part, problem, saved = common.load_trained_run(args)
+    n_cri = args.n_cri or saved.n_s * saved.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
-    surrogates = ckpt
-    if args.raw_refill or args.inference_dtype is not None:
-        import dataclasses
+    import dataclasses
 
-        from ...surrogate import Surrogate
+    from ...solve.strategies import HostExecutor
+    from ...surrogate import Surrogate
 
-        surrogates = dataclasses.replace(Surrogate.from_checkpoint(ckpt, args.load_parameter),
-                                         smooth=not args.raw_refill)
+    # the surrogate file's shared nodes were checked against the partition when it was loaded
+    surrogates = dataclasses.replace(Surrogate.from_saved(saved, args.load_parameter),
+                                     smooth=not args.raw_refill)
     if args.inference_dtype == "bfloat16":
         surrogates = _reduced_precision(surrogates, reference, args.trajectory)
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
-                                    dt=reference.dt, mode=args.mode,
-                                    save_every=args.save_every or reference.save_every,
-                                    load_parameter=args.load_parameter, progress=not args.no_progress,
+                                    dt=reference.dt, mode=args.mode, save=args.save_every or reference.save_every,
                                     resync_tolerance=args.resync_tolerance, load_jumps=args.load_jumps,
-                                    **common.sync_of(args))
+                                    executor=HostExecutor(progress=not args.no_progress), **common.sync_of(args))
     with common.writing(args.output):
         online.save(args.output, compression=common.compression_of(args))
     print(describe_run(online) + f"; wrote {args.output}")

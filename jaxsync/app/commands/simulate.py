@@ -182,8 +182,8 @@ def run(args) -> int:
     if args.timings is not None:
         from ...perf.timing import timing_breakdown
 
-        report = timing_breakdown(problem, args.parts or 1, mode=args.mode, dt=dt, seed=args.seed,
-                                  **sync)
+        report = timing_breakdown(problem, _partitions(problem, args.parts or 1, args.seed), mode=args.mode,
+                                  dt=dt, **sync)
         if main_rank:
             print(report.table())
             with common.writing(timings_path):
@@ -194,11 +194,20 @@ def run(args) -> int:
                      checkpoint=checkpoint, main_rank=main_rank)
 
 
+def _partitions(problem, n_parts: int, seed: int):
+    """``n_parts`` (METIS with seed 0, rank 0's parts on every rank), or the partition of
+    another ``--seed``."""
+    from ...parallel.partitioning import partition
+
+    return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
+
+
 def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, main_rank) -> int:
     import dataclasses
 
     from ...errors import StabilityError
     from ...solve import solver
+    from ...solve.strategies import HostExecutor, SaveAt, SolverCheckpoint
 
     n_steps = args.steps if args.steps is not None else run_config.n_steps
     save_every = args.save_every if args.save_every is not None else run_config.save_every
@@ -216,11 +225,12 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
     first_step = checkpoint_step(checkpoint)  # where a resumed run starts
     start = time.perf_counter()
     try:
-        trajectory = solver.simulate(problem, n_steps, dt=dt, save_every=save_every,
-                                     progress=main_rank and not args.no_progress, partitions=parts,
-                                     mode=args.mode, seed=args.seed, checkpoint=checkpoint,
-                                     checkpoint_every=args.checkpoint_every or run_config.checkpoint_every,
-                                     shared_every=args.shared_every, **sync)
+        every = args.checkpoint_every or run_config.checkpoint_every
+        trajectory = solver.simulate(
+            problem, n_steps, dt=dt, save=SaveAt(save_every, args.shared_every),
+            partitions=None if parts is None else _partitions(problem, parts, args.seed), mode=args.mode,
+            checkpoint=None if checkpoint is None else SolverCheckpoint(checkpoint, every),
+            executor=HostExecutor(progress=main_rank and not args.no_progress), **sync)
     except StabilityError as exc:
         partial = getattr(exc, "trajectory", None)
         if not main_rank:

@@ -1,4 +1,8 @@
-"""Checkpoint files of a set of trained replicas (one file per set, HDF5).
+"""Surrogate files: a set of trained replicas as one HDF5 file (``surrogate.h5``), and
+:class:`SavedSurrogate`, what such a file holds.
+
+(Not to be confused with the solver's resumable checkpoints, :mod:`jaxsync.solve.checkpoint`,
+or the training state of :mod:`jaxsync.surrogate.training_state`.)
 
 Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`; the name is
 kept from before the linear surrogate, which the same format holds)::
@@ -17,7 +21,7 @@ kept from before the linear surrogate, which the same format holds)::
 The checksum is SHA-256 over every dataset (name, dtype, shape, bytes; sorted by name)
 and every other attribute (canonical JSON), so any change to stored values is detected.
 Files are written under a temporary name and moved into place with ``os.replace``: a
-failed write never clobbers an existing good checkpoint.
+failed write never clobbers an existing good surrogate file.
 """
 
 from __future__ import annotations
@@ -45,8 +49,8 @@ _CHECKSUM_ATTR = "checksum_sha256"
 
 
 @dataclasses.dataclass(frozen=True)
-class SurrogateCheckpoint:
-    """Everything needed to run a set of trained replicas.
+class SavedSurrogate:
+    """Everything needed to run a set of trained replicas: what a surrogate file holds.
 
     Attributes:
         arch: architecture (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture` or
@@ -86,8 +90,8 @@ class SurrogateCheckpoint:
         n_s: int,
         shared_nodes: Sequence[np.ndarray] | None = None,
         metadata: dict[str, Any] | None = None,
-    ) -> "SurrogateCheckpoint":
-        """Checkpoint of the replicas returned by :func:`~jaxsync.surrogate.train.train_replicas`."""
+    ) -> "SavedSurrogate":
+        """The saved form of the replicas returned by :func:`~jaxsync.surrogate.train.train_replicas`."""
         return cls(
             arch=result.arch, params=result.params, mean=result.mean, std=result.std,
             dof_counts=result.dof_counts, n_s=int(n_s),
@@ -111,9 +115,9 @@ def _checksum(datasets: dict[str, np.ndarray], attrs: dict[str, Any]) -> str:
     return array_checksum(datasets, {k: v for k, v in attrs.items() if k != _CHECKSUM_ATTR})
 
 
-def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
-    paths, _ = _param_paths(ckpt.arch)
-    leaves = jax.tree_util.tree_leaves(ckpt.params)
+def _to_datasets(saved: SavedSurrogate) -> dict[str, np.ndarray]:
+    paths, _ = _param_paths(saved.arch)
+    leaves = jax.tree_util.tree_leaves(saved.params)
     if len(leaves) != len(paths):
         raise CheckpointError(
             f"parameters have {len(leaves)} arrays but the architecture expects {len(paths)}; "
@@ -122,40 +126,41 @@ def _to_datasets(ckpt: SurrogateCheckpoint) -> dict[str, np.ndarray]:
     datasets = {}
     for (path, shape, dtype), leaf in zip(paths, leaves):
         leaf = np.asarray(leaf)
-        if leaf.shape != (ckpt.n_parts,) + tuple(shape) or leaf.dtype != dtype:
+        if leaf.shape != (saved.n_parts,) + tuple(shape) or leaf.dtype != dtype:
             raise CheckpointError(
                 f"parameter {path} has shape {leaf.shape} {leaf.dtype}; expected "
-                f"{(ckpt.n_parts,) + tuple(shape)} {dtype} for {ckpt.n_parts} parts"
+                f"{(saved.n_parts,) + tuple(shape)} {dtype} for {saved.n_parts} parts"
             )
         datasets[f"params/{path}"] = leaf
-    datasets["normalization/mean"] = np.asarray(ckpt.mean, np.float64)
-    datasets["normalization/std"] = np.asarray(ckpt.std, np.float64)
-    datasets["dof_counts"] = np.asarray(ckpt.dof_counts, np.int64)
-    if ckpt.shared_nodes is not None:
-        if len(ckpt.shared_nodes) != ckpt.n_parts:
-            raise CheckpointError(f"{len(ckpt.shared_nodes)} shared-node lists for {ckpt.n_parts} parts")
-        for p, nodes in enumerate(ckpt.shared_nodes):
+    datasets["normalization/mean"] = np.asarray(saved.mean, np.float64)
+    datasets["normalization/std"] = np.asarray(saved.std, np.float64)
+    datasets["dof_counts"] = np.asarray(saved.dof_counts, np.int64)
+    if saved.shared_nodes is not None:
+        if len(saved.shared_nodes) != saved.n_parts:
+            raise CheckpointError(f"{len(saved.shared_nodes)} shared-node lists for {saved.n_parts} parts")
+        for p, nodes in enumerate(saved.shared_nodes):
             datasets[f"shared_nodes/{p}"] = np.asarray(nodes, np.int64)
     return datasets
 
 
-def save_checkpoint(path: str | os.PathLike, ckpt: SurrogateCheckpoint) -> None:
-    """Write ``ckpt`` to ``path`` atomically (:func:`jaxsync.io.atomic_h5`)."""
+def save_surrogate(path: str | os.PathLike, saved: SavedSurrogate) -> None:
+    """Write ``saved`` to ``path`` atomically (:func:`jaxsync.io.atomic_h5`)."""
     path = os.fspath(path)
-    datasets = _to_datasets(ckpt)
-    if ckpt.mean.shape != (ckpt.n_parts, ckpt.arch.n_dof) or ckpt.std.shape != ckpt.mean.shape:
+    datasets = _to_datasets(saved)
+    if saved.mean.shape != (saved.n_parts, saved.arch.n_dof) or saved.std.shape != saved.mean.shape:
         raise CheckpointError(
-            f"normalization has shapes {ckpt.mean.shape}, {ckpt.std.shape}; expected {(ckpt.n_parts, ckpt.arch.n_dof)}"
+            f"normalization has shapes {saved.mean.shape}, {saved.std.shape}; "
+            f"expected {(saved.n_parts, saved.arch.n_dof)}"
         )
     try:
-        metadata = json.dumps(ckpt.metadata, sort_keys=True)
+        metadata = json.dumps(saved.metadata, sort_keys=True)
     except TypeError as err:
-        raise CheckpointError(f"checkpoint metadata must be JSON-serializable: {err}") from err
+        raise CheckpointError(f"surrogate metadata must be JSON-serializable: {err}") from err
     attrs = {
         "format": FORMAT_NAME,
         "format_version": FORMAT_VERSION,
-        "architecture": json.dumps(architecture_to_dict(ckpt.arch), sort_keys=True),
-        "n_s": int(ckpt.n_s),
+        "architecture": json.dumps(architecture_to_dict(saved.arch), sort_keys=True),
+        "n_s": int(saved.n_s),
         "metadata": metadata,
     }
     attrs[_CHECKSUM_ATTR] = _checksum(datasets, attrs)
@@ -179,37 +184,37 @@ def _read(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             attrs = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in attrs.items()}
             fh.visititems(visit)
     except FileNotFoundError as err:
-        raise CheckpointError(f"checkpoint {path} does not exist; train one with `jaxsync train`") from err
+        raise CheckpointError(f"surrogate file {path} does not exist; train one with `jaxsync train`") from err
     except (OSError, KeyError, ValueError) as err:
         raise CheckpointError(
-            f"checkpoint {path} cannot be read ({err}); the file is truncated or not HDF5: "
+            f"surrogate file {path} cannot be read ({err}); the file is truncated or not HDF5: "
             "restore it or retrain with `jaxsync train`"
         ) from err
     return datasets, attrs
 
 
-def load_checkpoint(
+def load_surrogate(
     path: str | os.PathLike, shared_nodes_per_part: Sequence[np.ndarray] | None = None
-) -> SurrogateCheckpoint:
-    """Read and verify a checkpoint.
+) -> SavedSurrogate:
+    """Read and verify a surrogate file.
 
     Args:
-        path: file written by :func:`save_checkpoint`.
+        path: file written by :func:`save_surrogate`.
         shared_nodes_per_part: if given, also run :func:`check_compatible` against it.
 
     Raises:
         CheckpointError: unreadable or truncated file, another format or a newer version,
             checksum mismatch, inconsistent contents, or (with ``shared_nodes_per_part``)
-            a checkpoint made for another partition.
+            a surrogate made for another partition.
     """
     path = os.fspath(path)
     datasets, attrs = _read(path)
     if attrs.get("format") != FORMAT_NAME:
-        raise CheckpointError(f"{path} is not a jaxsync surrogate checkpoint (format={attrs.get('format')!r})")
+        raise CheckpointError(f"{path} is not a jaxsync surrogate file (format={attrs.get('format')!r})")
     version = attrs.get("format_version")
     if version != FORMAT_VERSION:
         raise CheckpointError(
-            f"{path} has checkpoint format version {version}; this jaxsync reads version {FORMAT_VERSION}: "
+            f"{path} has surrogate file format version {version}; this jaxsync reads version {FORMAT_VERSION}: "
             "retrain with this version or use the jaxsync that wrote it"
         )
     stored = attrs.get(_CHECKSUM_ATTR)
@@ -226,17 +231,17 @@ def load_checkpoint(
         dof_counts = tuple(int(c) for c in datasets["dof_counts"])
         mean, std = datasets["normalization/mean"], datasets["normalization/std"]
     except ConfigError as err:
-        raise CheckpointError(f"checkpoint {path} holds an architecture this jaxsync does not know ({err}); "
+        raise CheckpointError(f"surrogate file {path} holds an architecture this jaxsync does not know ({err}); "
                               "use the jaxsync that wrote it or retrain with `jaxsync train`") from err
     except (KeyError, ValueError, TypeError) as err:
-        raise CheckpointError(f"checkpoint {path} is incomplete ({err!r}); retrain with `jaxsync train`") from err
+        raise CheckpointError(f"surrogate file {path} is incomplete ({err!r}); retrain with `jaxsync train`") from err
     paths, treedef = _param_paths(arch)
     leaves = []
     for name, shape, dtype in paths:
         leaf = datasets.get(f"params/{name}")
         if leaf is None or leaf.shape != (len(dof_counts),) + tuple(shape) or leaf.dtype != dtype:
             raise CheckpointError(
-                f"checkpoint {path}: parameter {name} is missing or has the wrong shape/dtype for its architecture"
+                f"surrogate file {path}: parameter {name} is missing or has the wrong shape/dtype for its architecture"
             )
         leaves.append(leaf)
     shared = None
@@ -244,52 +249,52 @@ def load_checkpoint(
         try:
             shared = tuple(datasets[f"shared_nodes/{p}"] for p in range(len(dof_counts)))
         except KeyError as err:
-            raise CheckpointError(f"checkpoint {path} lacks shared node ids of a part ({err})") from err
-    ckpt = SurrogateCheckpoint(
+            raise CheckpointError(f"surrogate file {path} lacks shared node ids of a part ({err})") from err
+    saved = SavedSurrogate(
         arch=arch, params=jax.tree_util.tree_unflatten(treedef, leaves), mean=mean, std=std,
         dof_counts=dof_counts, n_s=n_s, shared_nodes=shared, metadata=metadata,
     )
     if shared_nodes_per_part is not None:
-        check_compatible(ckpt, shared_nodes_per_part)
-    return ckpt
+        check_compatible(saved, shared_nodes_per_part)
+    return saved
 
 
 def check_compatible(
-    checkpoint: SurrogateCheckpoint, shared_nodes_per_part: Sequence[np.ndarray], dofs_per_node: int = 3
+    saved: SavedSurrogate, shared_nodes_per_part: Sequence[np.ndarray], dofs_per_node: int = 3
 ) -> None:
-    """Check that ``checkpoint`` was trained for this partition.
+    """Check that ``saved`` was trained for this partition.
 
     Args:
-        checkpoint: loaded checkpoint.
+        saved: a loaded surrogate file.
         shared_nodes_per_part: per part, the global ids of its shared nodes, in the order
             its shared dofs are laid out (node-interleaved).
         dofs_per_node: dofs per shared node (3 for the displacement field).
 
     Raises:
         CheckpointError: different number of parts, a part with a different shared-dof
-            count, different node ids, or a checkpoint without node ids.
+            count, different node ids, or a surrogate file without node ids.
     """
     n_parts = len(shared_nodes_per_part)
-    if checkpoint.n_parts != n_parts:
+    if saved.n_parts != n_parts:
         raise CheckpointError(
-            f"checkpoint holds {checkpoint.n_parts} replicas but the partition has {n_parts} parts; "
+            f"the surrogate file holds {saved.n_parts} replicas but the partition has {n_parts} parts; "
             "retrain the surrogates on a trajectory of this partition"
         )
     for p, nodes in enumerate(shared_nodes_per_part):
         nodes = np.asarray(nodes, np.int64)
-        if checkpoint.dof_counts[p] != dofs_per_node * nodes.size:
+        if saved.dof_counts[p] != dofs_per_node * nodes.size:
             raise CheckpointError(
-                f"part {p}: checkpoint replica predicts {checkpoint.dof_counts[p]} shared dofs but the partition "
+                f"part {p}: the saved replica predicts {saved.dof_counts[p]} shared dofs but the partition "
                 f"has {dofs_per_node * nodes.size} ({nodes.size} shared nodes); retrain on this partition"
             )
-    if checkpoint.shared_nodes is None:
+    if saved.shared_nodes is None:
         raise CheckpointError(
-            "checkpoint stores no shared node ids, so it cannot be matched to a partition; "
+            "the surrogate file stores no shared node ids, so it cannot be matched to a partition; "
             "train it from a trajectory file with `jaxsync train`"
         )
     for p, nodes in enumerate(shared_nodes_per_part):
-        if not np.array_equal(np.asarray(nodes, np.int64), checkpoint.shared_nodes[p]):
+        if not np.array_equal(np.asarray(nodes, np.int64), saved.shared_nodes[p]):
             raise CheckpointError(
-                f"part {p}: checkpoint was trained for other shared nodes than this partition has "
+                f"part {p}: the surrogate was trained for other shared nodes than this partition has "
                 "(different partition or numbering); retrain on this partition"
             )

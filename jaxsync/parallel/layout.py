@@ -1,0 +1,208 @@
+"""The parts as one SPMD program holds them: padded local numbering, the per-part systems,
+and the way between per-part fields and the global field.
+
+Parts have different sizes, so every part's local nodes are padded to the largest part
+(``n_local``): padding nodes have unit mass, zero stiffness and are fixed at zero, and
+they are never read back. A :class:`PartLayout` holds the index maps of a
+:class:`~jaxsync.parallel.partitioning.Partition` (or of the grown parts of a
+:class:`~jaxsync.parallel.halo.HaloPartition`) in that padded form, and moves fields:
+
+* :meth:`PartLayout.split`: a global field (..., n_nodes, c) -> (P, ..., n_local, c),
+  each part's local nodes gathered, padding filled;
+* :meth:`PartLayout.merge`: back to the global field, either from one part per node (the
+  node's *owner*: in a synchronized run every part that holds a node has the same value
+  there, bit for bit, so reading one is exact) or as the mean over the parts that hold it
+  (after a predicted phase the parts differ at shared nodes).
+
+Both are JAX functions: the traced executor calls them inside its program, the host
+executor on the fields it gathered from the devices. :func:`part_systems` splits a global
+:class:`~jaxsync.fem.stepper.ExplicitSystem` into the parts' systems (:class:`PartSystems`):
+the internal force through the physics seam (:mod:`jaxsync.fem.internal_force`), the rest
+by gathers, so that traced material, damping, loads and dt flow through (differentiable).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import PartitionError
+from ..fem.stepper import ExplicitSystem, SolverState
+from ..pytree import pytree_dataclass
+
+__all__ = ["PartLayout", "PartSystems", "part_systems"]
+
+
+@pytree_dataclass
+class PartSystems:
+    """Per-part explicit systems stacked on a leading part axis (all arrays (n_parts, ...)).
+
+    Attributes:
+        system: :class:`ExplicitSystem` in local numbering, padded to n_local nodes.
+        shared_local: (n_parts, n_shared_max) local index of each shared node (padding:
+            n_local, out of range, so that scatters drop it).
+        shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
+        owned: (n_parts, n_local) bool, the nodes each part owns, for deep halos
+            (:mod:`jaxsync.parallel.halo`); None for an element partition.
+    """
+
+    system: ExplicitSystem
+    shared_local: Any
+    shared_interface: Any
+    owned: Any = None
+
+    def shared_displacement(self, state):
+        """One part's (n_shared_max, 3) displacements at its shared nodes in ``state``
+        (padding slots read 0): what the distributed solver records after every step, the
+        surrogates' training data and input history."""
+        return state.displacement.at[self.shared_local].get(mode="fill", fill_value=0.0)
+
+
+def _padded(rows, length: int, fill, dtype) -> np.ndarray:
+    """(len(rows), length) array of the 1-d ``rows``, each padded with ``fill``."""
+    out = np.full((len(rows), length), fill, dtype=dtype)
+    for k, row in enumerate(rows):
+        out[k, :len(row)] = row
+    return out
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class PartLayout:
+    """Index maps of the parts of ``partition`` in padded local numbering (host, numpy).
+
+    Attributes:
+        partition: the :class:`~jaxsync.parallel.partitioning.Partition` or
+            :class:`~jaxsync.parallel.halo.HaloPartition` laid out (``mesh``, ``parts``,
+            ``n_interface``; a halo's ``owned_local``).
+        n_local: local nodes per part after padding (the largest part's).
+        nodes: (P, n_local) int32 global node of each local slot (0 on padding).
+        valid: (P, n_local) bool, False on padding.
+        shared_local, shared_interface: (P, n_shared_max) int32 shared-node tables
+            (:class:`PartSystems`).
+        owned: (P, n_local) bool of a halo's owned nodes, or None.
+        owner_slot: (n_nodes,) flat slot ``p * n_local + k`` of each node's owner (the
+            lowest-numbered part that holds it, or with deep halos the part that owns it;
+            -1 where no part of the layout holds the node).
+        holder_slot, holder_node: (n_held,) every flat slot that holds a node kept by
+            :meth:`merge` with ``mean=True`` (all real local slots; with deep halos the
+            owned ones) and its global node.
+        holders: (n_nodes,) float, how many slots hold each node.
+    """
+
+    partition: Any
+    n_local: int
+    nodes: np.ndarray
+    valid: np.ndarray
+    shared_local: np.ndarray
+    shared_interface: np.ndarray
+    owned: np.ndarray | None
+    owner_slot: np.ndarray
+    holder_slot: np.ndarray
+    holder_node: np.ndarray
+    holders: np.ndarray
+
+    @classmethod
+    def of(cls, partition) -> "PartLayout":
+        """The layout of a :class:`Partition` or :class:`HaloPartition`."""
+        parts = partition.parts
+        n_nodes = partition.mesh.n_nodes
+        n_local = max(p.n_local for p in parts)
+        n_shared = max(max(p.n_shared for p in parts), 1)
+        owned_local = getattr(partition, "owned_local", None)
+        nodes = _padded([p.nodes for p in parts], n_local, 0, np.int32)
+        valid = _padded([np.ones(p.n_local, bool) for p in parts], n_local, False, bool)
+        owned = None
+        if owned_local is not None:
+            owned = np.zeros((len(parts), n_local), dtype=bool)
+            for p, local in enumerate(owned_local):
+                owned[p, local] = True
+        kept = owned if owned is not None else valid  # the slots whose values are right
+        slot = np.flatnonzero(kept.ravel())
+        node = nodes.ravel()[slot]
+        owner_slot = np.full(n_nodes, np.iinfo(np.int64).max, dtype=np.int64)
+        np.minimum.at(owner_slot, node, slot)  # slots grow with the part: the lowest part holding it
+        owner_slot[owner_slot == np.iinfo(np.int64).max] = -1  # held by no part (a layout of some parts)
+        return cls(partition=partition, n_local=n_local, nodes=nodes, valid=valid,
+                   shared_local=_padded([p.shared_local for p in parts], n_shared, n_local, np.int32),
+                   shared_interface=_padded([p.shared_interface for p in parts], n_shared,
+                                            partition.n_interface, np.int32),
+                   owned=owned, owner_slot=owner_slot, holder_slot=slot, holder_node=node,
+                   holders=np.bincount(node, minlength=n_nodes).astype(float))
+
+    @property
+    def parts(self) -> tuple:
+        """The parts laid out (those of ``partition``)."""
+        return self.partition.parts
+
+    @property
+    def n_parts(self) -> int:
+        return len(self.partition.parts)
+
+    @property
+    def n_nodes(self) -> int:
+        return self.partition.mesh.n_nodes
+
+    def split(self, field, fill=0.0):
+        """(..., n_nodes, c) -> (P, ..., n_local, c): every part's local nodes, padding
+        slots set to ``fill`` (JAX; traced values flow through)."""
+        gathered = jnp.moveaxis(jnp.asarray(field)[..., self.nodes, :], -3, 0)
+        mask = self.valid.reshape((self.n_parts,) + (1,) * (gathered.ndim - 3) + (self.n_local, 1))
+        return jnp.where(mask, gathered, jnp.asarray(fill, gathered.dtype))
+
+    def split_state(self, state: SolverState) -> SolverState:
+        """A global :class:`SolverState` as the parts' states (the step counter per part)."""
+        step = jnp.broadcast_to(jnp.asarray(state.step, dtype=jnp.int32), (self.n_parts,))
+        return SolverState(self.split(state.displacement), self.split(state.previous), step)
+
+    def merge(self, local, *, mean: bool = False):
+        """(P, ..., n_local, c) per-part fields -> (..., n_nodes, c) global field (JAX).
+
+        ``mean=False``: each node from its owner (exact where the parts agree: synchronized
+        steps, deep halos' owned nodes). ``mean=True``: the mean over the parts that hold
+        the node (they differ at shared nodes after predicted steps)."""
+        if np.any(self.owner_slot < 0):
+            raise PartitionError("these parts do not hold every node of the mesh: a global field cannot be "
+                                 "merged from them")
+        local = jnp.asarray(local)
+        flat = jnp.moveaxis(local, 0, -3)  # (..., P, n_local, c)
+        flat = flat.reshape(*flat.shape[:-3], -1, flat.shape[-1])  # (..., P n_local, c)
+        if not mean:
+            return flat[..., self.owner_slot, :]
+        total = jnp.zeros((*flat.shape[:-2], self.n_nodes, flat.shape[-1]), flat.dtype)
+        total = total.at[..., self.holder_node, :].add(flat[..., self.holder_slot, :])
+        count = jnp.asarray(self.holders, flat.dtype).reshape((1,) * (total.ndim - 2) + (self.n_nodes, 1))
+        return total / count
+
+
+def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="preassembled") -> PartSystems:
+    """The parts' systems of the global ``system`` of ``problem`` (JAX arrays, not placed).
+
+    The internal force comes from the force model (``mode``,
+    :func:`jaxsync.fem.internal_force.force_model`) on each part's own elements; the
+    mass, loads and Dirichlet values are gathered from ``system`` (padding: unit mass, no
+    load, fixed at zero), damping and dt broadcast to every part. Traced values of
+    ``problem`` and ``system`` stay traced."""
+    from ..fem.internal_force import force_model
+
+    partition = layout.partition
+    if partition.mesh is not problem.mesh and not (
+            partition.mesh.n_nodes == problem.mesh.n_nodes
+            and np.array_equal(partition.mesh.tets, problem.mesh.tets)):
+        raise PartitionError("the partition was made for another mesh: partition problem.mesh")
+    n_parts = layout.n_parts
+
+    def broadcast(x):
+        return jnp.broadcast_to(x, (n_parts,) + jnp.shape(x))
+
+    local_loads = layout.split(system.load_vectors, 0.0)  # (P, n_loads, n_local, 3)
+    stacked = ExplicitSystem(
+        stiffness=force_model(mode).part_operators(problem, partition.parts, layout.n_local),
+        mass=layout.split(system.mass, 1.0), damping=broadcast(system.damping), dt=broadcast(system.dt),
+        load_vectors=local_loads, load_times=jax.tree_util.tree_map(broadcast, system.load_times),
+        fixed=layout.split(system.fixed, True), fixed_values=layout.split(system.fixed_values, 0.0))
+    return PartSystems(stacked, jnp.asarray(layout.shared_local), jnp.asarray(layout.shared_interface),
+                       None if layout.owned is None else jnp.asarray(layout.owned))

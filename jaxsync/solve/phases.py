@@ -1,0 +1,164 @@
+"""The phases of a run and what one part computes in each: the pure functions that both
+executors run.
+
+A run is a schedule of phases: :class:`Synchronized` steps (paper Algorithm 1: every step
+completes the parts' shared-node forces, or with deep halos their displacements every k
+steps) and :class:`Predicted` steps (paper Algorithm 3: refill cycles of the surrogates,
+no exchange). The host executor (:mod:`jaxsync.solve.host`) compiles these functions into
+chunks it drives from Python; the traced executor (:mod:`jaxsync.solve.traced`) composes
+them into one JAX program. Both call the functions below, so the numerics of a phase are
+written once:
+
+* :func:`synchronized_steps` -- one part (or the whole mesh on one device) through
+  synchronized steps, saving every ``save_every`` steps and optionally recording the
+  shared-node displacements after every step;
+* :func:`predict_cycle` -- one refill: the part's shared-node displacements for the next
+  n_s n_f steps from the last n_s n_p (:func:`jaxsync.surrogate.refill.refill_cycle`);
+* :func:`overwritten_steps` -- steps without exchange, each followed by writing the
+  predictions into the part's shared nodes;
+* :func:`refill_steps` -- one refill cycle, the two above in sequence, and
+  :func:`predicted_cycles` -- a loop of them.
+
+``adjoint`` (None: the plain loops of the host's compiled chunks; a
+:class:`~jaxsync.solve.strategies.Recompute` or ``StoreAll``: the traced executor's
+reverse-pass policy) only chooses how the same loop is written (:mod:`jaxsync.solve.remat`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+
+from ..errors import ConfigError, ProblemError
+from ..fem.stepper import ExplicitSystem, SolverState, advance
+from ..parallel.exchange import Exchange
+from ..parallel.halo import advance_halo
+from ..parallel.layout import PartSystems
+from ..surrogate.refill import refill_cycle
+from .remat import advance_traced, recomputing_scan, segment_steps, state_bytes
+
+__all__ = ["Synchronized", "Predicted", "synchronized_steps", "part_synchronized_steps", "check_recordable",
+           "predict_cycle",
+           "overwritten_steps", "refill_steps", "predicted_cycles"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Synchronized:
+    """``n_steps`` synchronized steps (paper Algorithm 1)."""
+
+    n_steps: int
+
+    def __post_init__(self):
+        if isinstance(self.n_steps, bool) or not int(self.n_steps) == self.n_steps or self.n_steps < 0:
+            raise ProblemError(f"a phase needs a whole number of steps >= 0, got {self.n_steps!r}")
+        object.__setattr__(self, "n_steps", int(self.n_steps))
+
+
+@dataclasses.dataclass(frozen=True)
+class Predicted(Synchronized):
+    """``n_steps`` predicted steps (paper Algorithm 3): refill cycles of n_s n_f steps, the
+    last one partial when n_steps is not a whole number of cycles."""
+
+
+# --------------------------------------------------------------------------- synchronized
+
+
+def synchronized_steps(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int, *,
+                       synchronize=None, record=None, adjoint=None):
+    """``n_saves * save_every`` steps of ``system`` (the whole mesh, or one part whose
+    forces ``synchronize`` completes): :func:`jaxsync.fem.stepper.advance`'s outputs,
+    written as a plain loop (``adjoint`` None) or with ``adjoint``'s reverse pass
+    (:func:`jaxsync.solve.remat.advance_traced`)."""
+    if adjoint is None:
+        return advance(system, state, n_saves, save_every, synchronize=synchronize, record=record)
+    return advance_traced(system, state, n_saves, save_every, adjoint, synchronize=synchronize, record=record)
+
+
+def check_recordable(exchange: Exchange) -> None:
+    """Refuse to record every step's shared-node displacements where they are not known:
+    with deep halos, inside an exchange cycle only the nodes a part owns are right, and
+    another part's shared nodes are not (a :class:`~jaxsync.errors.ConfigError` naming the
+    fix)."""
+    if exchange.halo_depth is not None:
+        raise ConfigError(
+            "sync='halo' cannot record the shared-node displacements after every step (the surrogates' "
+            "training data, the synchronization-avoiding solver's synchronized phases): inside an exchange "
+            "cycle only the nodes a part owns are right, not the nodes it shares; use sync='psum' or "
+            "'ppermute' there")
+
+
+def part_synchronized_steps(part: PartSystems, state: SolverState, n_saves: int, save_every: int,
+                            exchange: Exchange, *, record: bool = False, adjoint=None):
+    """One part's synchronized steps: its forces completed every step by ``exchange``, or
+    with deep halos (``exchange.halo_depth``) its halo refreshed every k steps. Returns
+    (state, saved (n_saves, n_local, 3)), with ``record`` the pair (saved, the shared-node
+    displacements after every step (n_saves * save_every, n_shared_max, 3))."""
+    if exchange.halo_depth is None:
+        return synchronized_steps(part.system, state, n_saves, save_every, synchronize=exchange.force_sum(part),
+                                  record=part.shared_displacement if record else None, adjoint=adjoint)
+    if record:
+        check_recordable(exchange)
+    loop = None
+    if adjoint is not None:
+        unit = max(save_every, exchange.halo_depth)  # the steps of one iteration of the outer loop
+        segment = segment_steps(adjoint, n_saves * save_every // unit, unit * state_bytes(state.displacement.shape[-2]))
+        if segment is not None:
+            def loop(body, carry, n):
+                return recomputing_scan(body, carry, n, segment)
+    return advance_halo(part, state, n_saves, save_every, exchange, loop=loop)
+
+
+# --------------------------------------------------------------------------- predicted
+
+
+def predict_cycle(predictor, buffer, last, steps: int, save_every: int):
+    """One part's refill, predicted ahead of the solver: (predictions (n_s n_f, n_dof) of
+    steps last + 1 ..., the buffer moved on by them, the predictions at the saved steps
+    among the first ``steps`` (steps // save_every, n_dof))."""
+    pred, buffer = refill_cycle(predictor, buffer, last)
+    return pred, buffer, pred[save_every - 1:steps:save_every]
+
+
+def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+    """One part: ``steps`` solver steps without synchronization, each followed by writing
+    the predicted shared-node displacements ``pred[j]`` into the part's state (the
+    stepper's loop, :func:`jaxsync.fem.stepper.advance`, with an overwrite).
+
+    Returns (state, saved displacement (steps // save_every, n_local, 3))."""
+    nodes = pred.reshape(pred.shape[0], -1, 3)
+
+    def overwrite(j, new):
+        return new.at[part.shared_local].set(nodes[j], mode="drop")
+
+    return advance(part.system, state, steps // save_every, save_every, overwrite=overwrite)
+
+
+def refill_steps(part: PartSystems, predictor, carry, steps: int, save_every: int):
+    """One refill cycle of one part: :func:`predict_cycle`, then :func:`overwritten_steps`
+    through ``steps`` (n_s n_f, or fewer for a run's last partial cycle) of them.
+
+    ``carry``: (state, buffer (n_s n_p, n_dof) of the steps up to ``last``, ``last``).
+    Returns (carry moved on by ``steps``, (saved displacement (steps // save_every,
+    n_local, 3), the predictions at the saved steps (steps // save_every, n_dof)))."""
+    state, buffer, last = carry
+    pred, buffer, kept = predict_cycle(predictor, buffer, last, steps, save_every)
+    state, saved = overwritten_steps(part, state, pred, steps, save_every)
+    return (state, buffer, last + steps), (saved, kept)
+
+
+def predicted_cycles(part: PartSystems, predictor, carry, n_cycles: int, steps: int, save_every: int, *,
+                     adjoint=None):
+    """``n_cycles`` refill cycles of ``steps`` steps each (:func:`refill_steps`), as one
+    loop: plain (``adjoint`` None or all cycles stored) or in recomputed segments of about
+    sqrt(n_cycles) cycles. Returns (carry, (saved (n_cycles, steps // save_every, n_local,
+    3), predictions at the saved steps (n_cycles, steps // save_every, n_dof)))."""
+    def body(c, _):
+        return refill_steps(part, predictor, c, steps, save_every)
+
+    state = carry[0]
+    segment = None if adjoint is None else segment_steps(adjoint, n_cycles, steps * state_bytes(
+        state.displacement.shape[-2]))
+    if segment is None:
+        return jax.lax.scan(body, carry, None, length=n_cycles)
+    return recomputing_scan(body, carry, n_cycles, segment)

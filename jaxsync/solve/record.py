@@ -1,0 +1,116 @@
+"""The :class:`jaxsync.Trajectory` of a run, built once from what its phases produced.
+
+Both executors and the ensemble hand their snapshots here: :func:`synchronized_trajectory`
+(a synchronized run, single-device or distributed, with the parts' shared-node
+histories), :func:`online_trajectory` (a synchronization-avoiding run: synchronized and
+predicted stretches, per-snapshot flags, each part's own predictions), and
+:func:`run_parameters` (the problem parameters stored with a trajectory).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..fem.loads import load_jumps
+from ..pytree import is_traced
+
+__all__ = ["synchronized_trajectory", "online_trajectory", "run_parameters", "part_histories", "known_load_jumps"]
+
+
+def run_parameters(problem, jumps=None) -> dict:
+    """Problem parameters stored with a trajectory (concrete values only); given the run's
+    load jumps (:func:`jaxsync.fem.loads.load_jumps`), also ``last_load_jump``, the last of
+    them (absent when there is none), which the offline check of
+    :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does, and
+    ``load_jumps``, all of them, across which training takes no window."""
+    m = problem.material
+    out = {}
+    for name, value in (("E", m.E), ("nu", m.nu), ("rho", m.rho), ("damping", problem.damping)):
+        if not is_traced(value):
+            out[name] = float(value)
+    if jumps is not None and len(jumps):
+        out["last_load_jump"] = int(jumps[-1])
+        out["load_jumps"] = [int(j) for j in jumps]  # training leaves out windows across them
+    return out
+
+
+def known_load_jumps(loads, n_steps: int, dt):
+    """The run's load jumps (:func:`jaxsync.fem.loads.load_jumps`), found on concrete
+    values even inside ``jit``; None when the time functions or dt are traced."""
+    import jax
+
+    try:
+        with jax.ensure_compile_time_eval():
+            return load_jumps(loads, n_steps, dt)
+    except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
+        return None
+
+
+def part_histories(partition, shared, predicted=None) -> tuple:
+    """One :class:`jaxsync.PartHistory` per part of ``partition``: its shared nodes and
+    elements, ``shared[p]`` (n, 3 n_shared_p) and, when given, ``predicted[p]``."""
+    from ..trajectory import PartHistory
+
+    return tuple(PartHistory(part.shared_nodes, part.elements, shared[p],
+                             None if predicted is None else predicted[p])
+                 for p, part in enumerate(partition.parts))
+
+
+def synchronized_trajectory(problem, displacement, dt, save, partition=None, recorded=None, *, stats=None,
+                            result=None):
+    """The trajectory of a synchronized run.
+
+    Args:
+        problem: the run's problem.
+        displacement: (n_saved, n_nodes, 3) snapshots from step 0, every ``save.every``
+            steps [cm] (numpy, or JAX arrays of a traced run).
+        dt: the time step [s].
+        save: the run's :class:`~jaxsync.solve.strategies.SaveAt`.
+        partition: the run's :class:`jaxsync.Partition` (distributed runs), or None.
+        recorded: per part, (n_steps + 1, 3 n_shared_p) shared-node rows after every step
+            from step 0 (thinned here to ``save.shared_every``), or None: the shared
+            histories are read from the snapshots.
+        stats: :class:`jaxsync.RunStats` of the run; result: its result code.
+    """
+    from ..trajectory import Trajectory
+
+    n_saved = len(displacement)
+    times = np.arange(n_saved) * save.every * dt
+    n_steps = (n_saved - 1) * save.every  # snapshots from step 0
+    parts, shared_every = (), None
+    if partition is not None:
+        if recorded is None:
+            shared = [displacement[:, part.shared_nodes].reshape(n_saved, -1) for part in partition.parts]
+            shared_every = save.every
+        else:
+            shared = [rows[::save.shared_every] for rows in recorded]
+            shared_every = save.shared_every
+        parts = part_histories(partition, shared)
+    jumps = known_load_jumps(problem.loads, n_steps, dt)
+    return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt, save_every=save.every,
+                      parameters=run_parameters(problem, jumps), parts=parts, shared_every=shared_every,
+                      stats=stats, result=result)
+
+
+def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parameters, stats=None, result=None):
+    """The trajectory of a synchronization-avoiding run.
+
+    ``pieces``: in order, (kind, displacement (n, n_nodes, 3), predictions (n_parts, n,
+    n_dof) or None) of every stretch from step 0: ``"synchronized"`` ones (the first holds
+    the snapshot at t = 0) and ``"predicted"`` ones (their global field the mean over the
+    parts that hold each node, and each part's own predictions at the saved steps)."""
+    from ..surrogate.data import shared_dof_layout
+    from ..trajectory import Trajectory
+
+    n_dof, counts = shared_dof_layout(partition)
+    displacement = np.concatenate([d for _, d, _ in pieces])
+    flags = np.concatenate([np.full(len(d), kind == "synchronized") for kind, d, _ in pieces])
+    preds = [p for kind, _, p in pieces if kind == "predicted"]
+    pred = np.concatenate(preds, axis=1) if preds else np.zeros((partition.n_parts, 0, n_dof))
+    n_saved = len(displacement)
+    parts = part_histories(partition, [displacement[:, part.shared_nodes].reshape(n_saved, -1)
+                                       for part in partition.parts],
+                           [pred[p, :, :counts[p]] for p in range(partition.n_parts)])
+    return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
+                      mesh=problem.mesh, dt=dt, save_every=save_every, parameters=parameters, parts=parts,
+                      synchronized=flags, stats=stats, result=result)

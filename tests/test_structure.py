@@ -1,0 +1,86 @@
+"""The shape of the code, checked on its syntax tree: options grouped into settings
+objects (no public function with more than 12 parameters), no defaults read back from
+signatures, no JAX internals, and no module reaching into another's private names."""
+
+import ast
+import pathlib
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+MAX_PARAMETERS = 12
+SOURCES = ("jaxsync", "benchmarks")
+
+
+def _modules(*folders):
+    for folder in folders:
+        yield from sorted((ROOT / folder).rglob("*.py"))
+
+
+def _parameters(node, method: bool) -> list[str]:
+    a = node.args
+    names = [p.arg for p in a.posonlyargs + a.args + a.kwonlyargs]
+    names += [p.arg for p in (a.vararg, a.kwarg) if p is not None]
+    static = any(isinstance(d, ast.Name) and d.id == "staticmethod" for d in node.decorator_list)
+    return names[1:] if method and not static and names else names
+
+
+def _public_functions(tree):
+    """(qualified name, parameter names) of every public function and every public method
+    of a public class of a module."""
+    for node in tree.body:
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and not node.name.startswith("_"):
+            yield node.name, _parameters(node, method=False)
+        elif isinstance(node, ast.ClassDef) and not node.name.startswith("_"):
+            for item in node.body:
+                if isinstance(item, (ast.FunctionDef, ast.AsyncFunctionDef)) and (
+                        not item.name.startswith("_") or item.name == "__init__"):
+                    yield f"{node.name}.{item.name}", _parameters(item, method=True)
+
+
+def _tree(path):
+    return ast.parse(path.read_text(), filename=str(path))
+
+
+def test_no_public_function_takes_more_than_12_parameters():
+    too_many = [f"{path.relative_to(ROOT)}: {name} takes {len(params)}"
+                for path in _modules(*SOURCES) for name, params in _public_functions(_tree(path))
+                if len(params) > MAX_PARAMETERS]
+    assert not too_many, "group options into settings objects: " + "; ".join(too_many)
+
+
+def test_no_module_reads_defaults_from_a_signature():
+    found = []
+    for path in _modules(*SOURCES, "tests"):
+        for node in ast.walk(_tree(path)):
+            if (isinstance(node, ast.Attribute) and node.attr == "signature" and isinstance(node.value, ast.Name)
+                    and node.value.id == "inspect") or (
+                    isinstance(node, ast.ImportFrom) and node.module == "inspect"
+                    and any(alias.name == "signature" for alias in node.names)):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not found, "read defaults from the settings dataclasses, not inspect.signature: " + ", ".join(found)
+
+
+def test_no_jax_internals():
+    found = [f"{path.relative_to(ROOT)}:{node.lineno}"
+             for path in _modules(*SOURCES, "tests") for node in ast.walk(_tree(path))
+             if isinstance(node, (ast.Import, ast.ImportFrom)) and any(
+                 (name or "").startswith("jax._src") for name in
+                 ([node.module] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]))]
+    assert not found, "jax._src is JAX's private code (it changes without notice): " + ", ".join(found)
+
+
+def test_no_private_name_is_imported_across_modules():
+    """No ``from module import _name`` anywhere, and in the package and the benchmarks no
+    ``module_or_object._name`` of something else (tests may look inside for white-box
+    checks, through the objects they test)."""
+    found = []
+    for path in _modules(*SOURCES, "tests"):
+        production = path.parts[len(ROOT.parts)] in SOURCES
+        for node in ast.walk(_tree(path)):
+            if isinstance(node, ast.ImportFrom):
+                found += [f"{path.relative_to(ROOT)}:{node.lineno} {node.module}.{a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+            elif (production and isinstance(node, ast.Attribute) and node.attr.startswith("_")
+                  and not node.attr.startswith("__") and isinstance(node.value, ast.Name)
+                  and node.value.id not in ("self", "cls", "other", "os")):
+                found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}")
+    assert not found, "make the name public (documented) or keep its use in its module: " + ", ".join(found)
