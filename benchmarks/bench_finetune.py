@@ -1,4 +1,4 @@
-"""Solver-in-the-loop fine-tuning (issue 15, item 3): does it lower the long-horizon error?
+"""Solver-in-the-loop fine-tuning does it lower the long-horizon error?
 
 For the demo case (coarse cantilever, 2 parts, n_s 150, n_p = n_f 20, 1e5 steps, trained on
 the first half) and the skewed load (body force (0, -0.5, -0.5)), the paper-experiment

@@ -17,7 +17,7 @@ Per case:
 - ``vs_all_states``: temp_bytes relative to storing every state, n_steps * 2 * n_dofs * 8
   bytes (the two displacement levels of every step).
 
-**Finite differences at 1e4 steps** (``fd_checks``; issue 15's target: gradients equal
+**Finite differences at 1e4 steps** (``fd_checks``; the target: gradients equal
 central finite differences to 1e-6 relative on the coarse cantilever through 1e4 steps,
 single device and partitioned): the objective is the mean squared free-end (tip)
 displacement over the saves (every 10th step, in units of 1e-4 cm squared); its gradient
@@ -31,7 +31,7 @@ about 5e-11 / (h * relative sensitivity), and the objective's relative sensitivi
 alpha is only 0.07, so plain differences in alpha reach at best 7e-7 (h = 1e-3), the
 extrapolated one about 1e-8.
 
-**A 109k-dof mesh** (``--large``; issue 15 item 5): the refined cantilever
+**A 109k-dof mesh** (``--large``): the refined cantilever
 ``box_beam(25, 1, 1, (160, 14, 14))`` (36 225 nodes, 108 675 dofs), forward and
 checkpointed gradient through 1e4 steps, each compiled first and then timed once (the
 gradient takes minutes on 2 cores). Plain reverse mode is not run there: its residuals
@@ -65,7 +65,7 @@ import numpy as np  # noqa: E402
 import jaxsync  # noqa: E402
 from jaxsync.perf.measure import best_time  # noqa: E402
 
-FD_TARGET = 1e-6  # issue 15: relative agreement with central finite differences
+FD_TARGET = 1e-6  # relative agreement with central finite differences
 LARGE_DIVISIONS = (160, 14, 14)  # 36 225 nodes, 108 675 dofs
 
 

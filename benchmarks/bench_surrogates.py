@@ -1,4 +1,4 @@
-"""Cheaper surrogates measured against the LSTM (issue 14): online accuracy against t_d.
+"""Cheaper surrogates measured against the LSTM: online accuracy against t_d.
 
 For the default and the skewed cantilever case of the experiment matrix (``experiments.py``)
 (coarse beam, 2 parts, 1e5 steps, n_s 150, n_p = n_f = 20, trained on the first half):

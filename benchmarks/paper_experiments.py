@@ -30,7 +30,7 @@ every online run: what the errors are computed from) and, except in reduced mode
 ``<out>/table.md`` from the JSON files found. Targets are recorded (met or not), never
 asserted.
 
-``--model linear`` (issue 14): every case with the linear autoregressive surrogate
+``--model linear``: every case with the linear autoregressive surrogate
 (``train_surrogates(architecture=ArchitectureChoice(model="linear"))``, least squares on
 the same windows; the full-system case fits it over every dof with ``fit_linear``) instead
 of the LSTM; it is unconditional, so the ensemble cases train one unconditional variant
@@ -249,8 +249,8 @@ class FixedLoad:
             reference computed first in this process, and the training and online run of
             variants of the same settings.
         compare_raw_refill: the same networks also run with the paper's raw refill
-            (``Surrogate.smooth=False``), reported as ``raw_refill`` (the noise measurement
-            of issue 13's item 4).
+            (``Surrogate.smooth=False``), reported as ``raw_refill`` (the noise
+            measurement).
         compare_load_jumps: the same networks also predict through the load jumps (the
             paper's way, ``load_jumps="predict"``), reported as
             ``predicted_through_load_jumps``.

@@ -7,8 +7,8 @@ Two modes:
 * ``--mode run`` (default at ``--size small``): the whole pipeline, ``jaxsync demo --case
   vessel`` (:func:`jaxsync.app.demo.run_demo`): figures in ``<out>/report/`` (the
   displacement of a non-shared node of every part, e_l2, es and es_hat, the mass-scaling
-  comparison of paper figure 19) and ``paper_vessel_<size>.json`` with the targets of
-  issue 12 evaluated.
+  comparison of paper figure 19) and ``paper_vessel_<size>.json`` with the paper's
+  targets evaluated.
 * ``--mode measure`` (default at ``--size paper``, where the whole run takes days on a
   laptop): everything that sets the paper-size cost, measured on the paper-size mesh,
   and the whole run projected from it: mesh generation, mass scaling, partition, memory,
@@ -64,7 +64,7 @@ def machine() -> dict:
 
 
 def targets(summary: dict) -> dict:
-    """Issue 12's targets, evaluated on a run's summary."""
+    """The paper vessel's targets, evaluated on a run's summary."""
     m = summary["mass_scaling"]
     q = summary.get("es_hat_tracking") or {}
     interior = summary.get("interior_max_relative_error")

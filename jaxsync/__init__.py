@@ -21,10 +21,11 @@ from .errors import (
 from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
 from .fem.coronary_tree import coronary_mesh
 from .fem.geometry import vessel_centerline, vessel_mesh
-from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
+from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
 from .fem.material import LinearElastic
 from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
-from .fem.problem import Dirichlet, Problem, cantilever
+from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
+from .fem.support import ElasticSupport
 from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
 from .parallel import devices
 from .parallel.partitioning import Partition, partition
@@ -54,8 +55,9 @@ __all__ = [
     "CheckpointError", "ConfigError", "OutputError", "PartitionError", "PrecisionError", "Partition", "partition",
     "Mesh", "MeshWarning", "read_mesh", "merge_coincident_nodes",
     "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
-    "LinearElastic", "BodyForce", "Pressure", "Constant", "Ramp", "StepOff", "Periodic",
-    "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
+    "LinearElastic", "BodyForce", "Pressure", "Traction", "ElasticSupport", "Constant", "Ramp", "StepOff",
+    "Periodic",
+    "Dirichlet", "Problem", "LockingWarning", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
     "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",

@@ -6,6 +6,10 @@ the command line takes its ``choices=`` from it (:func:`choices`), and
 The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
 ``jaxsync.parallel.multiprocess.SYNC_METHODS``) are ``choices`` of these types.
 
+- :data:`Element`: the finite element of a problem (:class:`jaxsync.Problem`'s ``element``,
+  ``[problem] element``, ``jaxsync simulate --element``): ``"P1"`` (linear tetrahedra) or
+  ``"P2"`` (quadratic tetrahedra, the choice for bending and for nearly incompressible
+  tissue: ``benchmarks/bench_locking.py``).
 - :data:`Mode`: the internal force of the explicit step (paper Remark 2): ``"preassembled"``
   (sparse K stored once) or ``"recompute"`` (element quantities formed every step).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
@@ -48,11 +52,12 @@ from typing import Literal, get_args
 
 from .errors import ConfigError, JaxsyncError
 
-__all__ = ["Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
+__all__ = ["Element", "Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
            "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "choices", "check_option",
            "DEFAULT_MODE",
            "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
+Element = Literal["P1", "P2"]
 Mode = Literal["preassembled", "recompute"]
 Sync = Literal["psum", "ppermute", "mpi", "halo"]
 Compression = Literal["gzip", "lzf", "none"]

@@ -1,5 +1,6 @@
 """Trajectories: saved displacement histories with their run statistics and per-part
-shared-node histories; HDF5 files (the one reader and writer) and ParaView (XDMF) output.
+shared-node histories; HDF5 files (the one reader and writer) and ParaView output (XDMF, or
+a VTU series with its .pvd collection).
 
 Files are written atomically (:mod:`jaxsync.io`): a failed or interrupted write never
 replaces a good file.
@@ -18,11 +19,12 @@ from typing import Any
 import jax
 import numpy as np
 
-from .errors import CheckpointError
+from .errors import CheckpointError, OutputError
 from .fem.mesh import Mesh
 from .io import atomic_h5
 
-__all__ = ["Trajectory", "RunStats", "PartHistory", "Result"]
+__all__ = ["Trajectory", "RunStats", "PartHistory", "Result", "vtu_series_paths", "check_vtu_location",
+           "write_vtu"]
 
 FORMAT_VERSION = 1
 
@@ -167,6 +169,8 @@ class Trajectory:
             (None: ``save_every``, one per snapshot). Surrogate training needs 1.
         result: how the run ended (:class:`Result`; a JAX int32 array in a traced run,
             None: not recorded, files of an older jaxsync).
+        element: ``"P1"`` or ``"P2"``: the nodes the displacement is on (:attr:`space`;
+            P2: the mesh's vertices, then one node per edge).
 
     A pytree (the arrays, ``dt``, the parts and ``result`` are its leaves), so a traced run
     can return it from ``jit``.
@@ -183,12 +187,33 @@ class Trajectory:
     stats: RunStats = RunStats()
     shared_every: int | None = None
     result: Any = None
+    element: str = "P1"
 
     def __post_init__(self):
         if isinstance(self.stats, dict):
             object.__setattr__(self, "stats", RunStats.from_dict(self.stats))
         if any(not isinstance(part, PartHistory) for part in self.parts):
             raise TypeError("Trajectory.parts must hold PartHistory objects")
+
+    @property
+    def space(self):
+        """The :class:`~jaxsync.fem.space.FunctionSpace` of the displacement's nodes."""
+        from .fem.space import function_space
+
+        return function_space(self.mesh, self.element)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(n_nodes, 3) coordinates of the displacement's nodes [cm]."""
+        return self.space.points
+
+    def output_cells(self) -> tuple[np.ndarray, str, np.ndarray]:
+        """(points, meshio cell type, cells) of the nodes for ParaView: ``"tetra"``, or
+        ``"tetra10"`` in VTK's node order for P2."""
+        from .fem.space import vtk_cells
+
+        kind, cells = vtk_cells(self.space)
+        return self.points, kind, cells
 
     @property
     def shared_stride(self) -> int:
@@ -247,6 +272,10 @@ class Trajectory:
             g["points"] = self.mesh.points
             g["tets"] = self.mesh.tets
             g["source_node_ids"] = self.mesh.source_node_ids
+            if self.mesh.mid_nodes is not None:
+                g["mid_nodes"] = self.mesh.mid_nodes
+            if self.element != "P1":
+                f.attrs["element"] = self.element
             facets = g.create_group("facets")
             for name, tri in self.mesh.facet_sets.items():
                 facets[name] = tri
@@ -281,7 +310,8 @@ class Trajectory:
                 g = f["mesh"]
                 mesh = Mesh(points=g["points"][...], tets=g["tets"][...],
                             facet_sets={k: v[...] for k, v in g["facets"].items()},
-                            source_node_ids=g["source_node_ids"][...])
+                            source_node_ids=g["source_node_ids"][...],
+                            mid_nodes=g["mid_nodes"][...] if "mid_nodes" in g else None)
                 params = {k[len("param_"):]: _attribute_value(v)
                           for k, v in f.attrs.items() if k.startswith("param_")}
                 stats = {k[len("stat_"):]: _attribute_value(v)
@@ -297,7 +327,8 @@ class Trajectory:
                            parameters=params, parts=parts, synchronized=synchronized,
                            stats=RunStats.from_dict(stats),
                            shared_every=None if shared_every is None else int(shared_every),
-                           result=None if result is None else Result(int(result)))
+                           result=None if result is None else Result(int(result)),
+                           element=str(f.attrs.get("element", "P1")))
         except CheckpointError:
             raise
         except Exception as exc:
@@ -326,7 +357,8 @@ class Trajectory:
             os.chdir(tmpdir)
             try:
                 with meshio.xdmf.TimeSeriesWriter(f"{stem}.xdmf") as writer:
-                    writer.write_points_cells(self.mesh.points, [("tetra", self.mesh.tets)])
+                    points, kind, cells = self.output_cells()
+                    writer.write_points_cells(points, [(kind, cells)])
                     disp = np.asarray(self.displacement)
                     for i in range(0, self.n_saved, every):
                         writer.write_data(float(self.times[i]), point_data={"displacement": disp[i]})
@@ -341,6 +373,144 @@ class Trajectory:
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
         return os.path.join(folder, data_name)
+
+
+    def to_vtu(self, path: str | os.PathLike, *, every: int = 1) -> str:
+        """Write a VTU time series for ParaView: one ``.vtu`` file per saved snapshot (the
+        mesh, ``tetra`` cells, and the point data ``displacement`` [cm] and
+        ``GlobalNodeID``, each node's 1-based number in the file the mesh was read from:
+        for a SimVascular mesh, the user's own ``GlobalNodeID``), and a ParaView collection
+        ``.pvd`` that lists them with their times [s]; ``every`` thins the snapshots.
+
+        ``path`` is the series' prefix: ``out/run`` (or ``out/run.pvd``, or the folder
+        ``out/run/``) writes the collection ``out/run.pvd`` and the step files
+        ``out/run/run_000000.vtu``, ... in the folder beside it (:func:`vtu_series_paths`).
+        Everything is written in a temporary folder and moved into place at the end, so a
+        failed write leaves an earlier series as it was; an existing folder of that name
+        is replaced only when it holds nothing but ``.vtu`` files (an earlier series).
+
+        Returns the path of the ``.pvd`` file.
+
+        Raises:
+            OutputError: a bad ``every``, a location taken by something else than an
+                earlier series, or a failed write (an :class:`OSError`).
+        """
+        if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
+            raise OutputError(f"to_vtu: every must be a positive integer, got {every!r}")
+        pvd, folder = check_vtu_location(path)
+        stem = os.path.basename(folder)
+        parent = os.path.dirname(os.path.abspath(folder))
+        os.makedirs(parent, exist_ok=True)
+        tmpdir = tempfile.mkdtemp(prefix=f".{stem}.vtu.", dir=parent)
+        try:
+            steps = os.path.join(tmpdir, stem)
+            os.mkdir(steps)
+            displacement, times = np.asarray(self.displacement), np.asarray(self.times)
+            points, kind, cells = self.output_cells()
+            numbers = self.mesh.source_node_ids + 1
+            if self.element != "P1":  # edge nodes have no number in the file: 0
+                numbers = np.concatenate([numbers, np.zeros(len(points) - len(numbers), dtype=numbers.dtype)])
+            if numbers.size and np.abs(numbers).max() < 2**31:
+                numbers = numbers.astype(np.int32)  # SimVascular's type
+            width = max(6, len(str(max(self.n_saved - 1, 0))))
+            entries = []
+            for i in range(0, self.n_saved, int(every)):
+                name = f"{stem}_{i:0{width}d}.vtu"
+                write_vtu(os.path.join(steps, name), points, cells, kind,
+                          point_data={"displacement": displacement[i], "GlobalNodeID": numbers})
+                entries.append((float(times[i]), f"{stem}/{name}"))
+            staged_pvd = os.path.join(tmpdir, f"{stem}.pvd")
+            _write_pvd(staged_pvd, entries)
+            _install_series(staged_pvd, steps, pvd, folder, os.path.join(tmpdir, "previous"))
+        finally:
+            shutil.rmtree(tmpdir, ignore_errors=True)
+        return pvd
+
+
+def vtu_series_paths(path: str | os.PathLike) -> tuple[str, str]:
+    """(collection file, folder of the step files) that :meth:`Trajectory.to_vtu` writes
+    for ``path``: ``out/run``, ``out/run.pvd`` and ``out/run/`` all give
+    (``out/run.pvd``, ``out/run``)."""
+    text = os.fspath(path)
+    prefix = text.rstrip("/" + os.sep)
+    if prefix.endswith(".pvd"):
+        prefix = prefix[:-len(".pvd")]
+    if os.path.basename(prefix) in ("", ".", ".."):
+        raise OutputError(f"cannot write a VTU series at {text!r}: give a prefix that ends in a "
+                          "name, such as out/run (out/run.pvd and the folder out/run/)")
+    return prefix + ".pvd", prefix
+
+
+def check_vtu_location(path: str | os.PathLike) -> tuple[str, str]:
+    """:func:`vtu_series_paths` of ``path``, with an :class:`OutputError` where
+    :meth:`Trajectory.to_vtu` would refuse to write: the collection's name is a folder, or
+    the folder of the step files exists and holds something else than ``.vtu`` files."""
+    pvd, folder = vtu_series_paths(path)
+    if os.path.isdir(pvd):
+        raise OutputError(f"cannot write the VTU collection {pvd}: it is a folder; choose "
+                          "another prefix")
+    if os.path.lexists(folder) and not _is_vtu_series(folder):
+        raise OutputError(
+            f"cannot write the VTU step files into {folder}: it exists and is not a VTU series "
+            "(a folder of .vtu files only); choose another prefix, or remove it")
+    return pvd, folder
+
+
+def write_vtu(path: str | os.PathLike, points, cells, cell_type: str, *,
+              point_data: dict | None = None) -> None:
+    """Write one ``.vtu`` file: ``points`` (n, 3), ``cells`` (n_cells, nodes per cell) of
+    the meshio ``cell_type`` (``"tetra"``; ``"tetra10"`` in VTK's node order) and the
+    point data (zlib-compressed binary)."""
+    import meshio
+
+    mesh = meshio.Mesh(np.asarray(points), [(cell_type, np.asarray(cells))],
+                       point_data=dict(point_data or {}))
+    meshio.write(os.fspath(path), mesh, file_format="vtu")
+
+
+def _is_vtu_series(folder: str) -> bool:
+    """A folder that holds nothing but ``.vtu`` files (what :meth:`Trajectory.to_vtu` writes)."""
+    if not os.path.isdir(folder) or os.path.islink(folder):
+        return False
+    with os.scandir(folder) as entries:
+        return all(e.is_file(follow_symlinks=False) and e.name.endswith(".vtu") for e in entries)
+
+
+def _write_pvd(path: str, entries: list[tuple[float, str]]) -> None:
+    """A ParaView collection listing (time, file) ``entries``; times in full precision."""
+    from xml.sax.saxutils import quoteattr
+
+    lines = ['<?xml version="1.0"?>',
+             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
+             "  <Collection>"]
+    lines += [f'    <DataSet timestep="{time!r}" group="" part="0" file={quoteattr(name)}/>'
+              for time, name in entries]
+    lines += ["  </Collection>", "</VTKFile>", ""]
+    with open(path, "w") as f:
+        f.write("\n".join(lines))
+
+
+def _install_series(staged_pvd: str, staged_steps: str, pvd: str, folder: str, aside: str) -> None:
+    """Move a complete staged series into place: an earlier step folder goes aside (into
+    the staging folder, deleted with it), the new one in, then the collection file; a
+    failure puts the earlier folder back."""
+    previous = None
+    if os.path.isdir(folder):
+        os.rename(folder, aside)
+        previous = aside
+    try:
+        os.rename(staged_steps, folder)
+    except BaseException:
+        if previous:
+            os.rename(previous, folder)
+        raise
+    try:
+        os.replace(staged_pvd, pvd)
+    except BaseException:
+        os.rename(folder, staged_steps)
+        if previous:
+            os.rename(previous, folder)
+        raise
 
 
 def _part_history(group) -> PartHistory:
@@ -375,17 +545,17 @@ class _Frozen:
 
 def _flatten_trajectory(t: Trajectory):
     children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result)
-    return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every)
+    return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every, t.element)
 
 
 def _unflatten_trajectory(aux, children) -> Trajectory:
-    mesh, save_every, parameters, stats, shared_every = aux
+    mesh, save_every, parameters, stats, shared_every, element = aux
     times, displacement, dt, parts, synchronized, result = children
     t = object.__new__(Trajectory)  # without __post_init__: leaves may be placeholders
     for name, value in (("times", times), ("displacement", displacement), ("mesh", mesh), ("dt", dt),
                         ("save_every", save_every), ("parameters", dict(parameters.mapping)),
                         ("parts", tuple(parts)), ("synchronized", synchronized), ("stats", stats),
-                        ("shared_every", shared_every), ("result", result)):
+                        ("shared_every", shared_every), ("result", result), ("element", element)):
         object.__setattr__(t, name, value)
     return t
 

@@ -294,3 +294,25 @@ def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err.startswith("interrupted") and err.count("\n") == 1 and "Traceback" not in err
     assert "checkpoint" in err and not out.exists()
+
+
+def test_simulate_element_and_float32_blocks_options(tmp_path, capsys):
+    """--element P2 runs quadratic tetrahedra (the library's P2 run, bit for bit);
+    --float32-blocks stays within 1e-6 of float64 and is refused with --mode recompute."""
+    p2 = tmp_path / "p2.h5"
+    assert main(["simulate", "--element", "P2", "--steps", "200", "--save-every", "100", "-o", str(p2),
+                 "--no-progress"]) == 0
+    traj = jaxsync.Trajectory.load(p2)
+    expected = jaxsync.simulate(jaxsync.cantilever(element="P2"), 200, save=100)
+    assert traj.element == "P2"
+    np.testing.assert_array_equal(traj.displacement, expected.displacement)
+    f32 = tmp_path / "f32.h5"
+    assert main(["simulate", "--float32-blocks", "--steps", "2000", "--save-every", "1000", "-o", str(f32),
+                 "--no-progress"]) == 0
+    single = jaxsync.Trajectory.load(f32).displacement
+    double = jaxsync.simulate(jaxsync.cantilever(), 2000, save=1000).displacement
+    difference = np.abs(single - double).max() / np.abs(double).max()
+    assert 0 < difference < 1e-6
+    assert main(["simulate", "--mode", "recompute", "--float32-blocks", "--steps", "10", "-o",
+                 str(tmp_path / "x.h5"), "--no-progress"]) == 2
+    assert "--mode preassembled" in capsys.readouterr().err

@@ -65,6 +65,20 @@ output = "from_toml.h5"
     assert (tmp_path / "cli.h5").exists() and not (tmp_path / "case" / "cli.h5").exists()
 
 
+def test_a_mesh_folder_and_the_vtu_series_are_paths_from_the_toml_folder(tmp_path):
+    case = tmp_path / "case"
+    cfg = write(case / "run.toml", '[mesh]\nfile = "beam-mesh"\n[run]\nvtu = "out/series"\n')
+    config = load_config(cfg)
+    assert config["mesh"]["file"] == str(case / "beam-mesh")
+    assert config["run"]["vtu"] == str(case / "out" / "series")
+    del config["mesh"]  # the default beam: no folder to read here
+    assert problem_from_config(config)[1].vtu == str(case / "out" / "series")
+    assert RunConfig().vtu is None
+    write(case / "bad.toml", "[run]\nvtu = 3\n")
+    with pytest.raises(ConfigError, match=r"\[run\] vtu = 3 is an integer; expected a path"):
+        load_config(case / "bad.toml")
+
+
 def test_packaged_config_writes_into_the_cwd(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     for path in (None, default_config_path()):

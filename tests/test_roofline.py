@@ -75,7 +75,11 @@ def problem():
 
 
 def test_matvec_bytes_are_the_arrays_of_a_real_block_ell(problem):
-    K = build_system(problem, problem.dt).stiffness
+    # the model counts one block ELL as wide as the largest degree (Preassembled's "ell"
+    # layout); the default degree-grouped layout streams fewer slots on unstructured meshes
+    from jaxsync.fem.internal_force import Preassembled
+
+    K = build_system(problem, problem.dt, Preassembled(layout="ell")).stiffness
     n, width = K.columns.shape
     u = np.zeros((n, 3))
     cost = step_costs_for(problem)["t_m"]
@@ -85,6 +89,23 @@ def test_matvec_bytes_are_the_arrays_of_a_real_block_ell(problem):
     # the written operations: 9 n w products, 9 n w - 3 n additions (first term not added)
     assert written_flops(K.matvec, jnp.asarray(u)) == 2 * K.blocks.size - 3 * n
     assert step_costs_for(problem)["t_e"] == StageCost("t_e", 0, 0)
+
+
+def test_matvec_slots_are_those_of_the_grouped_operator_on_an_unstructured_mesh():
+    """On a vessel the default layout groups rows by degree: the model counts the slots the
+    real operator stores (rounded up per row), fewer than one ELL as wide as the largest
+    degree."""
+    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.sparse import node_adjacency
+
+    mesh = jaxsync.vessel_mesh(None, length=2.0, radius=0.5, wall=0.3, size=0.15)
+    problem = jaxsync.Problem(mesh, dirichlet=[jaxsync.Dirichlet("inlet")])
+    K = Preassembled().operator(problem)
+    slots = sum(int(np.prod(np.shape(c))) for c in K.columns)
+    n = problem.n_nodes
+    cost = step_costs_for(problem)["t_m"]
+    assert cost.flops == 18 * n * -(-slots // n)
+    assert -(-slots // n) < node_adjacency(mesh.tets, n).shape[1]
 
 
 def test_update_counts_against_the_real_arrays(problem):
@@ -98,7 +119,7 @@ def test_update_counts_against_the_real_arrays(problem):
     # read d(n), d(n-1), mass, loads, Dirichlet mask and values; write d(n+1)
     assert cost.bytes == (2 * d.nbytes + system.mass.nbytes + system.load_vectors.nbytes
                           + system.fixed.nbytes + system.fixed_values.nbytes + d.nbytes)
-    update = lambda s: apply_dirichlet(system, central_difference(system, s, jnp.zeros((n, 3))))  # noqa: E731
+    update = lambda s: apply_dirichlet(system, central_difference(system, s, jnp.zeros((n, 3))), 0.0)  # noqa: E731
     assert cost.flops == written_flops(update, state) == 3 * n * (8 + 2 * n_loads)
 
 
@@ -119,6 +140,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
+    from jaxsync.fem.internal_force import Preassembled
     from jaxsync.parallel.layout import PartLayout, part_systems
 
     part_info = jaxsync.partition(problem.mesh, 2, seed=0)
@@ -128,7 +150,7 @@ def test_per_part_costs_match_the_part_systems(problem):
     for part, costs in zip(part_info.parts, per_part):
         # the part's own system at its own size, as jaxsync.perf.timing times it
         alone = part_systems(problem, system, PartLayout.of(dataclasses.replace(part_info, parts=(part,))),
-                             "preassembled").system.stiffness
+                             Preassembled(layout="ell")).system.stiffness
         assert costs["t_m"].bytes == alone.columns.nbytes + alone.blocks.nbytes + 2 * 24 * part.n_local
         n_sh, n_a = part.n_shared, part_info.n_interface
         assert n_sh > 0

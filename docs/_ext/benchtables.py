@@ -126,27 +126,33 @@ def recorded(machine: dict | None = None, **extra) -> str:
 
 def r_stepper() -> Rendered:
     d = load("stepper.json")
-    rows_by_dofs: dict[int, dict] = {}
+    rows_by_case: dict[tuple, dict] = {}
     for r in d["rows"]:
-        rows_by_dofs.setdefault(r["dofs"], {})[r["impl"]] = r
+        rows_by_case.setdefault((r["dofs"], r.get("case", "")), {})[r["impl"]] = r
     bw = d.get("copy_bandwidth_GB_per_s")
+
+    def timed(impls, name, bandwidth=False):
+        r = impls.get(name)
+        if not r:
+            return "-"
+        cell = f"{num(r['us_per_step'])} ({num(r.get('speedup_vs_scipy'))}x"
+        if bandwidth and bw and r.get("GB_per_s"):
+            cell += f", {num(100 * r['GB_per_s'] / bw, 2)} % of copy"
+        return cell + ")"
+
     rows = []
-    for dofs, impls in sorted(rows_by_dofs.items()):
-        one = impls.get("jax-1dev", {})
-        cell = "-"
-        if one:
-            cell = f"{num(one['us_per_step'])} ({num(one.get('speedup_vs_scipy'))}x"
-            if bw and one.get("GB_per_s"):
-                cell += f", {num(100 * one['GB_per_s'] / bw, 2)} % of copy"
-            cell += ")"
-        two = impls.get("jax-2dev")
-        rows.append([num(dofs), num(impls.get("scipy-csr", {}).get("us_per_step")), cell,
-                     "-" if not two else f"{num(two['us_per_step'])} ({num(two.get('speedup_vs_scipy'))}x)",
-                     num(impls.get("jax-einsum", {}).get("us_per_step")),
+    for (dofs, case), impls in sorted(rows_by_case.items()):
+        widths = next((r.get("group_widths") for r in impls.values() if r.get("group_widths")), None)
+        rows.append([case or "-", num(dofs), "/".join(str(w) for w in widths) if widths else "-",
+                     num(impls.get("scipy-csr", {}).get("us_per_step")), timed(impls, "jax-1dev", True),
+                     timed(impls, "jax-1dev-f32"), timed(impls, "jax-1dev-ell"), timed(impls, "jax-2dev"),
+                     timed(impls, "jax-2dev-f32"), num(impls.get("jax-einsum", {}).get("us_per_step")),
                      num(impls.get("jax-bcoo", {}).get("us_per_step"))])
     notes = [f"Copy bandwidth (numpy, read + write) measured in the same run: {num(bw)} GB/s."] if bw else []
-    return Rendered([Table(["dofs", "SciPy CSR", "jaxsync, 1 device (x SciPy)", "jaxsync, 2 devices (x SciPy)",
-                            "einsum blocks", "BCOO"], rows, "Microseconds per explicit step", notes)],
+    return Rendered([Table(["case", "dofs", "group widths", "SciPy CSR", "jaxsync, 1 device (x SciPy)",
+                            "1 device, float32 blocks", "1 device, one ELL", "2 devices (x SciPy)",
+                            "2 devices, float32 blocks", "einsum blocks", "BCOO"], rows,
+                           "Microseconds per explicit step", notes)],
                     ["stepper.json"], recorded(d.get("machine")))
 
 
@@ -652,7 +658,39 @@ def r_paper_vessel_paper() -> Rendered:
                     ["paper_vessel/paper_vessel_paper_measure.json"], recorded(d.get("machine")))
 
 
+def r_locking() -> Rendered:
+    d = load("locking.json")
+    elements = ("P1", "P1-ANP", "P2")
+    by_case: dict[tuple, dict] = {}
+    for r in d["rows"]:
+        by_case.setdefault((r["case"], r["size"] or 0.0, r["nu"]), {})[r["element"]] = r
+    rows = []
+    for (case, size, nu), cells in sorted(by_case.items(), key=lambda kv: (kv[0][0] != "lame", -kv[0][1], kv[0][2])):
+        if not all(e in cells for e in elements):
+            continue
+        dofs = f"{num(cells['P1']['dofs'])} / {num(cells['P2']['dofs'])}"
+        rows.append([case, num(size) if size else "-", num(nu, 4), dofs,
+                     *(pct(cells[e]["error"], 3) for e in elements),
+                     " / ".join(num(1e6 * cells[e]["stable_dt"], 3) for e in elements)])
+    t = Table(["case", "mesh size [cm]", "nu", "dofs P1 / P2", "P1 error %", "P1-ANP error %", "P2 error %",
+               "stable step P1 / P1-ANP / P2 [us]"], rows,
+              "Error against the analytic solution (Lame: rms nodal error over the largest exact displacement; "
+              "cantilever: tip against Euler-Bernoulli, signed)")
+    return Rendered([t], ["locking.json"], recorded(d.get("machine")))
+
+
+def r_float32() -> Rendered:
+    d = load("float32.json")
+    rows = [[r["case"], num(r["dofs"]), num(r["steps"]), num(r["error"], 2),
+             ", ".join(num(q, 2) for q in r["at_quarters"])] for r in d["rows"]]
+    t = Table(["case", "dofs", "steps", "largest error / largest displacement", "at 1/4, 1/2, 3/4 and the end"],
+              rows, "Float32 stiffness blocks against float64, the same run")
+    return Rendered([t], ["float32.json"], recorded(d.get("machine")))
+
+
 RENDERERS = {
+    "float32": r_float32,
+    "locking": r_locking,
     "stepper": r_stepper,
     "distributed": r_distributed,
     "speedup": r_speedup,

@@ -3,7 +3,9 @@
 Layout (every table optional; defaults give the paper's cantilever)::
 
     [mesh]                      # either a file ...
-    file = "vessel.msh"         # any meshio-readable tetrahedral mesh
+    file = "vessel.msh"         # any meshio-readable tetrahedral mesh, or a SimVascular
+                                # mesh folder (mesh-complete.mesh.vtu, mesh-surfaces/*.vtp:
+                                # one facet set per face, named after the file)
     # ... or a generated left coronary tree (jaxsync.coronary_mesh; facet sets inlet,
     # outlet_1 .. outlet_6, outlet, lumen, outer) ...
     generate = "coronary_tree"
@@ -21,6 +23,8 @@ Layout (every table optional; defaults give the paper's cantilever)::
 
     [problem]
     kind = "cantilever"         # or "general" (then give [[dirichlet]] and loads)
+    element = "P1"              # or "P2": quadratic tetrahedra (bending, nu -> 0.5); the
+                                # default is P2 on a quadratic (tetra10) mesh, else P1
     damping = 0.5               # alpha, 1/s
     body_force = [0.0, 0.0, -0.5]
     t_ramp = 1.0
@@ -44,6 +48,20 @@ Layout (every table optional; defaults give the paper's cantilever)::
     times = [0.0, 0.4, 0.833]   # ... given by samples
     values = [1.067e5, 1.6e5, 1.067e5]
 
+    [[traction]]                # kind = "general" only: force per area in a fixed direction
+    surface = "x1"
+    vector = [0.0, 0.0, -10.0]  # dyn/cm^2 (times the time function, as for pressure)
+    t_ramp = 1.0
+
+    [[support]]                 # kind = "general" only: tissue around the wall (Robin)
+    surface = "outer"
+    stiffness = 1.0e6           # k_s, dyn/cm^3
+    damping = 1.0e3             # c_s, dyn s/cm^3 (lumped dashpot)
+    normal_only = false         # true: along the surface normal only
+
+A ``[[dirichlet]]`` entry with ``t_ramp``, ``t_off`` or ``period``/``times``/``values``
+prescribes a history: ``value`` times that time function.
+
     [run]
     n_steps = 20000
     save_every = 100
@@ -52,6 +70,7 @@ Layout (every table optional; defaults give the paper's cantilever)::
     # mass_scaling_beta = 2.5   # ... to beta times the CFL step (give at most one)
     output = "trajectory.h5"
     # xdmf = "trajectory.xdmf"
+    # vtu = "trajectory"        # VTU series: trajectory.pvd and trajectory/trajectory_*.vtu
     # checkpoint = "run.ckpt.h5"
     # checkpoint_every = 10000
 
@@ -59,7 +78,7 @@ Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), 
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
 paths are strings; anything else is a :class:`ConfigError` naming the table and key.
 
-Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``checkpoint``) are
+Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``) are
 taken relative to the folder of the TOML file, so a case folder can be run from anywhere;
 the outputs of the packaged default configuration go to the current directory.
 """
@@ -77,11 +96,12 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError, JaxsyncError
-from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff
+from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
 from ..fem.material import LinearElastic
 from ..fem.mesh import box_beam, read_mesh
 from ..fem.problem import Dirichlet, Problem, cantilever
-from ..options import MeshGenerator, ProblemKind, check_option
+from ..fem.support import ElasticSupport
+from ..options import Element, MeshGenerator, ProblemKind, check_option
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -93,20 +113,25 @@ _SCHEMA: dict[str, dict[str, Any]] = {
     "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
              "width": "number", "height": "number", "divisions": ("int", 3)},
     "material": {"E": "number", "nu": "number", "rho": "number"},
-    "problem": {"kind": "string", "damping": "number", "body_force": ("number", 3),
+    "problem": {"kind": "string", "element": "string", "damping": "number", "body_force": ("number", 3),
                 "t_ramp": "number", "t_off": "number"},
     "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
-            "xdmf": "path", "checkpoint": "path", "checkpoint_every": "int",
+            "xdmf": "path", "vtu": "path", "checkpoint": "path", "checkpoint_every": "int",
             "mass_scaling_dt": "number", "mass_scaling_beta": "number"},
     "dirichlet": {"facet": "string", "plane": _PLANE, "value": ("number", 3),
-                  "components": ("int", None)},
+                  "components": ("int", None), "t_ramp": "number", "t_off": "number", "period": "number",
+                  "times": ("number", None), "values": ("number", None)},
     "body_force": {"vector": ("number", 3), "t_ramp": "number", "t_off": "number"},
     "pressure": {"surface": "string", "magnitude": "number", "t_ramp": "number",
                  "t_off": "number", "period": "number", "times": ("number", None),
                  "values": ("number", None)},
+    "traction": {"surface": "string", "vector": ("number", 3), "t_ramp": "number",
+                 "t_off": "number", "period": "number", "times": ("number", None),
+                 "values": ("number", None)},
+    "support": {"surface": "string", "stiffness": "number", "damping": "number", "normal_only": "bool"},
 }
-_ARRAY_TABLES = ("dirichlet", "body_force", "pressure")
-_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "checkpoint"))
+_ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
+_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,6 +143,8 @@ class RunConfig:
     dt: float | None = None
     output: str = "trajectory.h5"
     xdmf: str | None = None
+    vtu: str | None = None
+    """Prefix of a VTU series (``<vtu>.pvd`` and ``<vtu>/``; :meth:`jaxsync.Trajectory.to_vtu`)."""
     checkpoint: str | None = None
     checkpoint_every: int | None = None
     mass_scaling_dt: float | None = None
@@ -135,7 +162,7 @@ def load_config(path: str | os.PathLike | None = None) -> dict:
     """Read and check a TOML configuration (the packaged cantilever when None).
 
     Unknown tables or keys and entries of the wrong type raise :class:`ConfigError`.
-    Relative paths in the file (``[mesh] file``, ``[run] output``, ``xdmf``,
+    Relative paths in the file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``,
     ``checkpoint``) are returned joined to the file's folder, except for the packaged
     configuration, whose outputs stay relative to the current directory."""
     packaged = path is None or _is_packaged(os.fspath(path))
@@ -206,7 +233,7 @@ def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
 
 
 _EXPECTED = {"number": "a number (int or float)", "int": "an integer",
-             "string": "a string", "path": "a path (a string)"}
+             "string": "a string", "path": "a path (a string)", "bool": "true or false"}
 
 
 def _expected(spec) -> str:
@@ -251,6 +278,8 @@ def _kind_of(value) -> str:
 
 
 def _scalar_ok(value, kind: str) -> bool:
+    if kind == "bool":
+        return isinstance(value, bool)
     if kind == "number":
         return (isinstance(value, (int, float)) and not isinstance(value, bool)
                 and math.isfinite(value))
@@ -322,14 +351,16 @@ def _time_function(entry: dict, where: str):
 
 def problem_from_config(config: dict, *, mesh_file: str | None = None,
                         mass_scaling_dt: float | None = None,
-                        mass_scaling_beta: float | None = None) -> tuple[Problem, RunConfig]:
+                        mass_scaling_beta: float | None = None,
+                        element: Element | None = None) -> tuple[Problem, RunConfig]:
     """Build the problem and run options of a configuration dictionary.
 
-    ``mesh_file`` overrides ``[mesh] file``; ``mass_scaling_dt`` or ``mass_scaling_beta``
-    (at most one) override the ``[run]`` mass scaling. With mass scaling, the returned
-    problem is the scaled one (its ``dt``, the default step, is the target step) and
-    ``RunConfig.added_mass_percent`` the added mass; :func:`jaxsync.mass_scaling` warns
-    (:class:`jaxsync.MassScalingWarning`) above 10 %. Errors of the package's own types."""
+    ``mesh_file`` overrides ``[mesh] file`` and ``element`` ``[problem] element``;
+    ``mass_scaling_dt`` or ``mass_scaling_beta`` (at most one) override the ``[run]`` mass
+    scaling. With mass scaling, the returned problem is the scaled one (its ``dt``, the
+    default step, is the target step) and ``RunConfig.added_mass_percent`` the added mass;
+    :func:`jaxsync.mass_scaling` warns (:class:`jaxsync.MassScalingWarning`) above 10 %.
+    Errors of the package's own types."""
     check_config(config)
     if mass_scaling_dt is not None and mass_scaling_beta is not None:
         raise ConfigError("give only one of mass_scaling_dt (the target step in s) and "
@@ -338,15 +369,17 @@ def problem_from_config(config: dict, *, mesh_file: str | None = None,
         if value is not None and not (isinstance(value, (int, float)) and not isinstance(value, bool)
                                       and math.isfinite(value) and value > 0):
             raise ConfigError(f"{name} must be a positive number, got {value!r}")
+    if element is not None:
+        check_option("element", element, Element)
     try:
-        return _problem_from_config(config, mesh_file, mass_scaling_dt, mass_scaling_beta)
+        return _problem_from_config(config, mesh_file, mass_scaling_dt, mass_scaling_beta, element)
     except JaxsyncError:
         raise
     except (TypeError, ValueError, KeyError) as exc:
         raise ConfigError(f"bad configuration value: {exc}") from exc
 
 
-def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scaling_beta):
+def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scaling_beta, element):
     mesh_cfg = config.get("mesh", {})
     file = mesh_file or mesh_cfg.get("file")
     generator = check_option("[mesh] generate", mesh_cfg.get("generate", "box_beam"), MeshGenerator)
@@ -365,20 +398,23 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
                              float(mat.get("rho", 1.0)))
     prob = config.get("problem", {})
     kind = check_option("[problem] kind", prob.get("kind", "cantilever"), ProblemKind)
+    element = element or prob.get("element")
+    if element is not None:
+        check_option("[problem] element", element, Element)
     damping = float(prob.get("damping", 0.5))
     if kind == "cantilever":
-        for table in ("dirichlet", "body_force", "pressure"):
+        for table in ("dirichlet", "body_force", "pressure", "traction", "support"):
             if table in config:
                 raise ConfigError(f"[[{table}]] is only used with kind = \"general\"; the "
                                   "cantilever sets its own clamp and load")
         t_off = prob.get("t_off")
         problem = cantilever(mesh, body_force=tuple(float(x) for x in prob.get("body_force", (0.0, 0.0, -0.5))),
                              damping=damping, t_ramp=float(prob.get("t_ramp", 1.0)),
-                             t_off=None if t_off is None else float(t_off), material=material)
+                             t_off=None if t_off is None else float(t_off), material=material, element=element)
     else:  # "general"
-        problem = Problem(mesh=mesh, material=material, damping=damping,
+        problem = Problem(mesh=mesh, material=material, damping=damping, element=element,
                           dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
-                          loads=tuple(_loads(config)))
+                          loads=tuple(_loads(config)), supports=tuple(_supports(config)))
     run = config.get("run", {})
     if scaling_dt is None and scaling_beta is None:  # no override: the file's
         scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")
@@ -393,7 +429,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     run_config = RunConfig(
         n_steps=int(run.get("n_steps", 20000)), save_every=int(run.get("save_every", 100)),
         dt=None if run.get("dt") is None else float(run["dt"]),
-        output=str(run.get("output", "trajectory.h5")), xdmf=run.get("xdmf"),
+        output=str(run.get("output", "trajectory.h5")), xdmf=run.get("xdmf"), vtu=run.get("vtu"),
         checkpoint=run.get("checkpoint"),
         checkpoint_every=None if checkpoint_every is None else int(checkpoint_every),
         mass_scaling_dt=None if scaling_dt is None else float(scaling_dt),
@@ -405,8 +441,11 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
 def _dirichlet(entry: dict, i: int) -> Dirichlet:
     value = tuple(float(x) for x in entry.get("value", (0.0, 0.0, 0.0)))
     components = tuple(int(c) for c in entry.get("components", (0, 1, 2)))
+    # a history: value times the time function of t_ramp / period / t_off (none: constant)
+    time = (_time_function(entry, f"[[dirichlet]] #{i}")
+            if any(k in entry for k in ("t_ramp", "t_off", "period")) else None)
     if "facet" in entry:
-        return Dirichlet(str(entry["facet"]), value, components)
+        return Dirichlet(str(entry["facet"]), value, components, time)
     if "plane" in entry:
         axis, coord = int(entry["plane"]["axis"]), float(entry["plane"]["value"])
         if axis not in (0, 1, 2):
@@ -416,7 +455,7 @@ def _dirichlet(entry: dict, i: int) -> Dirichlet:
             tol = 1e-8 * max(float(np.ptp(points[:, axis])), 1.0)
             return np.abs(points[:, axis] - coord) <= tol
 
-        return Dirichlet(on_plane, value, components)
+        return Dirichlet(on_plane, value, components, time)
     raise ConfigError(f"[[dirichlet]] #{i}: give 'facet' (a facet-set name) or 'plane'")
 
 
@@ -432,4 +471,22 @@ def _loads(config: dict) -> list[Any]:
             raise ConfigError(f"[[pressure]] #{i}: 'surface' (a facet-set name) is required")
         loads.append(Pressure(float(entry.get("magnitude", 1.0)),
                               _time_function(entry, f"[[pressure]] #{i}"), surface=str(entry["surface"])))
+    for i, entry in enumerate(config.get("traction", [])):
+        if "surface" not in entry or "vector" not in entry:
+            raise ConfigError(f"[[traction]] #{i}: 'surface' (a facet-set name) and 'vector' (dyn/cm^2) are "
+                              "required")
+        loads.append(Traction(tuple(float(x) for x in entry["vector"]), _time_function(entry, f"[[traction]] #{i}"),
+                              surface=str(entry["surface"])))
     return loads
+
+
+def _supports(config: dict) -> list[ElasticSupport]:
+    supports = []
+    for i, entry in enumerate(config.get("support", [])):
+        if "surface" not in entry or "stiffness" not in entry:
+            raise ConfigError(f"[[support]] #{i}: 'surface' (a facet-set name) and 'stiffness' (dyn/cm^3) are "
+                              "required")
+        supports.append(ElasticSupport(float(entry["stiffness"]), float(entry.get("damping", 0.0)),
+                                       surface=str(entry["surface"]), normal_only=bool(entry.get("normal_only",
+                                                                                                 False))))
+    return supports

@@ -208,28 +208,35 @@ def report_nodes(mesh, partition, fixed_nodes=(), *, reference=None, component: 
     return _default_nodes(displacement, partition, fixed_nodes, component)[0]
 
 
-def constrained_nodes(config_path, mesh, displacement) -> np.ndarray:
+def constrained_nodes(config_path, space, displacement) -> np.ndarray:
     """Constrained nodes of a run known by its trajectories only (``jaxsync report``).
 
     Every node that never moves in the (T, n, 3) reference ``displacement`` (this covers
     each fully clamped node, such as the cantilever's clamp, since Dirichlet values are
     constant in time), united, when ``config_path`` names the run's TOML configuration,
     with its Dirichlet set (which also catches nodes constrained in some components
-    only). The configuration's conditions are applied to ``mesh``, so a run made with
-    another mesh file (``simulate --mesh``) is handled too. Without a configuration
+    only). The configuration's conditions are applied to ``space`` (the trajectories'
+    :attr:`~jaxsync.Trajectory.space`: their mesh and element; a mesh stands for its
+    vertices), so a run made with
+    another mesh file (``simulate --mesh``) or element (``--element``) is handled too. Without a configuration
     nothing is assumed about the problem: a default (the packaged cantilever) would
     exclude wrong nodes of any other problem on the same mesh.
 
     Raises:
         ConfigError: the configuration cannot be read, or one of its Dirichlet conditions
-            selects no node of ``mesh``.
+            selects no node of the trajectories' mesh.
     """
     still = np.flatnonzero(~moving_nodes(displacement))
     if config_path is None:
         return still
     from .config import load_config, problem_from_config
 
-    problem, _ = problem_from_config(load_config(config_path))
+    if not hasattr(space, "element"):  # a mesh: its vertices
+        from ..fem.space import function_space
+
+        space = function_space(space, "P1")
+    mesh = space.mesh
+    problem, _ = problem_from_config(load_config(config_path), element=space.element)
     if (problem.mesh.n_nodes == mesh.n_nodes and np.array_equal(problem.mesh.tets, mesh.tets)
             and np.allclose(problem.mesh.points, mesh.points)):
         dirichlet = problem.dirichlet_dofs()[0] // 3
@@ -237,7 +244,7 @@ def constrained_nodes(config_path, mesh, displacement) -> np.ndarray:
         selected = []
         for i, bc in enumerate(problem.dirichlet):
             try:
-                ids = np.asarray(bc.nodes(mesh), dtype=np.int64)
+                ids = np.asarray(bc.nodes(space), dtype=np.int64)
             except ProblemError as exc:
                 raise ConfigError(f"{config_path}: Dirichlet condition #{i} does not fit the "
                                   f"trajectories' mesh ({exc}); pass the configuration of the run") from exc
@@ -259,7 +266,8 @@ class Comparison:
     Attributes:
         times: (T,) times of the snapshots [s].
         reference, predicted: (T, n_nodes, 3) synchronized and online displacement.
-        mesh: the mesh.
+        space: the displacement's nodes (:attr:`jaxsync.Trajectory.space`: ``points``,
+            ``n_nodes``; its ``mesh``).
         partition: the partition of the online run.
         component: displacement component shown and compared at the nodes (0, 1, 2), or
             None: each node's dominant component (:attr:`node_components`).
@@ -278,7 +286,7 @@ class Comparison:
     times: np.ndarray
     reference: np.ndarray
     predicted: np.ndarray
-    mesh: object
+    space: object
     partition: object
     component: int | None
     nodes: dict
@@ -321,7 +329,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
                            "compare runs of the same mesh saved at the same steps")
     if component is not None:
         component = int(check_option("component", component, Component))
-    mesh = online.mesh
+    space = online.space
     n_nodes = ref.shape[1]
     fixed = np.zeros(n_nodes, bool)
     fixed_ids = np.asarray(fixed_nodes, dtype=np.int64).ravel()
@@ -332,7 +340,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
     if nodes is None:
         shown, notes = _default_nodes(ref, partition, fixed_ids, component)
     else:
-        shown = resolve_nodes(mesh, nodes)
+        shown = resolve_nodes(space, nodes)
     times = np.asarray(online.times)
     t_switch, spans = figures.phases(times, online.synchronized)
     predictions, holds, steps = predictions_by_node(online, partition)
@@ -343,7 +351,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
     shared = np.zeros(n_nodes, bool)
     shared[partition.shared_nodes] = True
     n_steps, n_synchronized = step_counts(online)
-    return Comparison(times=times, reference=ref, predicted=pred, mesh=mesh, partition=partition,
+    return Comparison(times=times, reference=ref, predicted=pred, space=space, partition=partition,
                       component=component, nodes=shown, notes=notes, fixed=fixed, shared=shared,
                       t_switch=t_switch, spans=spans, l2=l2_error(ref, pred), steps=np.asarray(steps),
                       shared_errors=errs, quality=quality, n_steps=n_steps,
@@ -354,7 +362,7 @@ def report_figures(c: Comparison) -> dict:
     """File name -> :class:`matplotlib.figure.Figure` of every figure of the report (the
     shared-node figures only when the online run has predictions at shared nodes)."""
     out = {"displacement_nodes.png": figures.nodes_figure(c.times, c.reference, c.predicted, c.nodes,
-                                                          c.node_components, c.t_switch, c.spans, c.mesh),
+                                                          c.node_components, c.t_switch, c.spans, c.space),
            "l2_error.png": figures.l2_error_figure(c.times, c.l2, c.t_switch, c.spans)}
     if c.shared_errors is not None:
         out["shared_errors.png"] = figures.shared_errors_figure(c.times, c.steps, c.shared_errors,
@@ -371,7 +379,7 @@ def _node_table(c: Comparison) -> list[dict]:
         k = components[label]
         e = node_error(c.reference, c.predicted, node, k)
         rows.append({
-            "label": label, "node": int(node), "coordinates": [float(v) for v in c.mesh.points[node]],
+            "label": label, "node": int(node), "coordinates": [float(v) for v in c.space.points[node]],
             "shared": bool(c.shared[node]), "constrained": bool(c.fixed[node]),
             "component": figures.AXES[k], "max_abs_displacement": e.amplitude,
             "max_abs_error": e.max_error, "relative_max_error": e.relative,

@@ -90,8 +90,8 @@ def estimated_elements(*, length: float = 3.0, radius: float = 0.175, wall: floa
 def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
                 radius: float = 0.175, wall: float = 0.05, branch: bool = False,
                 angle: float = 30.0, size: float = 0.05,
-                max_elements: int = MAX_ELEMENTS, verbose: bool = False) -> Mesh:
-    """Mesh a thick-walled vessel (a coronary-like artery) with linear tetrahedra.
+                max_elements: int = MAX_ELEMENTS, verbose: bool = False, order: int = 1) -> Mesh:
+    """Mesh a thick-walled vessel (a coronary-like artery) with tetrahedra.
 
     A tube of lumen radius ``radius`` and wall thickness ``wall`` along the centerline of
     :func:`vessel_centerline`; with ``branch=True`` the main vessel splits into two
@@ -122,6 +122,8 @@ def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
             the straight tube, 15 000 with branches; a second or two of gmsh).
         max_elements: refuse sizes whose estimated element count exceeds this.
         verbose: let gmsh print its progress to the terminal.
+        order: 1 (linear tetrahedra) or 2 (quadratic ``tetra10``, gmsh's mid nodes on the
+            curved walls: problems on it use isoparametric P2 elements by default).
 
     Returns:
         The :class:`jaxsync.Mesh`, read back from the written file.
@@ -131,6 +133,8 @@ def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
             failure (geometry or meshing), with gmsh's message.
     """
     length, radius, wall, angle, size = _checked(length, radius, wall, angle, size, branch)
+    if order not in (1, 2) or isinstance(order, bool):
+        raise MeshError(f"vessel_mesh: order must be 1 (linear tetrahedra) or 2 (quadratic), got {order!r}")
     n_est = estimated_elements(length=length, radius=radius, wall=wall, branch=branch, size=size)
     if n_est > max_elements:
         raise MeshError(
@@ -140,7 +144,7 @@ def vessel_mesh(path: str | os.PathLike | None = None, *, length: float = 3.0,
     return generated_mesh(
         path, "vessel_mesh",
         lambda gmsh: _build_and_tag(gmsh, length=length, radius=radius, wall=wall,
-                                    branch=branch, angle=angle),
+                                    branch=branch, angle=angle, order=order),
         size=size, verbose=verbose,
         what=f"the vessel (length={length:g}, radius={radius:g}, wall={wall:g}, "
              f"branch={branch}, size={size:g})",
@@ -380,11 +384,13 @@ def check_facet_sets(mesh: Mesh, required: list[str], outlets: list[str], who: s
 # the vessel
 # ---------------------------------------------------------------------------------------
 
-def _build_and_tag(gmsh, *, length, radius, wall, branch, angle):
-    """Make, mesh and tag the vessel in the current gmsh model."""
+def _build_and_tag(gmsh, *, length, radius, wall, branch, angle, order=1):
+    """Make, mesh and tag the vessel in the current gmsh model (of ``order`` 1 or 2)."""
     _build(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
     gmsh.model.mesh.generate(3)
     _tag(gmsh, length=length, radius=radius, wall=wall, branch=branch, angle=angle)
+    if order == 2:  # mid nodes on the geometry: the curved walls stay curved
+        gmsh.model.mesh.setOrder(2)
 
 
 def _build(gmsh, *, length, radius, wall, branch, angle):

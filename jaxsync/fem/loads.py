@@ -1,8 +1,9 @@
 """External loads and their time functions.
 
-A load is a spatial part (a body force per unit volume, or a pressure on a tagged
-surface) times a scalar time function ``g(t)``. Time functions are pytrees evaluated
-with ``jax.numpy`` inside the compiled time loop; they compose with ``*``.
+A load is a spatial part (a body force per unit volume, a pressure or a traction on a
+tagged surface) times a scalar time function ``g(t)``. Time functions are pytrees
+evaluated with ``jax.numpy`` inside the compiled time loop; they compose with ``*``, and
+they also drive prescribed displacements (:class:`jaxsync.Dirichlet` ``time=``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from ..errors import ProblemError
 from ..pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
 
 __all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "load_jumps", "LOAD_JUMP_FRACTION",
-           "BodyForce", "Pressure"]
+           "BodyForce", "Pressure", "Traction", "LOADS"]
 
 
 class TimeFunction:
@@ -147,6 +148,28 @@ class Pressure:
     magnitude: Any
     time: Any = Constant()
     surface: str = static_field(default="pressure")
+
+
+@pytree_dataclass
+class Traction:
+    """Traction t(x, t) = vector * time(t) per unit area [dyn/cm^2] on the facet set
+    ``surface``, in a fixed direction (a dead load: it does not turn with the surface).
+
+    Its nodal forces are the surface integrals of N_i t over the facets, N_i the shape
+    functions of the problem's element (P1: a third of each triangle's area at each of
+    its vertices; P2: a third at each edge node and none at the vertices)."""
+
+    vector: Any
+    time: Any = Constant()
+    surface: str = static_field(default="traction")
+
+    def __post_init__(self):
+        if isinstance(self.vector, (tuple, list)) and len(self.vector) != 3:
+            raise ProblemError(f"Traction.vector must have 3 components (dyn/cm^2), got {self.vector!r}")
+
+
+LOADS = (BodyForce, Pressure, Traction)
+"""The load types a :class:`jaxsync.Problem` takes."""
 
 
 #: A load "jumps" at a step when its time function changes by more than this fraction

@@ -17,6 +17,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import MeshError
+from . import simvascular
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "tet_volumes", "to_skfem",
            "coincident_nodes", "connected_components", "merge_coincident_nodes"]
@@ -39,13 +40,20 @@ class Mesh:
         tets: (n_elements, 4) int64 node indices, positively oriented.
         facet_sets: name -> (n_facets, 3) int64 node triples of boundary triangles.
         source_node_ids: (n_nodes,) int64 index of each node in the file it was read
-            from (differs from ``arange`` when unused nodes were dropped).
+            from (differs from ``arange`` when unused nodes were dropped; for a SimVascular
+            volume with point data ``GlobalNodeID``, that number - 1).
+        mid_nodes: a quadratic mesh's own edge nodes (read from ``tetra10`` cells):
+            (n_elements, 6, 3) coordinates, per element in VTK's edge order (vertex pairs
+            (0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)); None for a linear mesh. A
+            problem on such a mesh uses quadratic elements by default
+            (:mod:`jaxsync.fem.space`).
     """
 
     points: np.ndarray
     tets: np.ndarray
     facet_sets: Mapping[str, np.ndarray] = dataclasses.field(default_factory=dict)
     source_node_ids: np.ndarray | None = None
+    mid_nodes: np.ndarray | None = None
 
     def __post_init__(self):
         points = np.ascontiguousarray(self.points, dtype=np.float64)
@@ -54,8 +62,15 @@ class Mesh:
                   for k, v in dict(self.facet_sets).items()}
         src = (np.arange(len(points), dtype=np.int64) if self.source_node_ids is None
                else np.asarray(self.source_node_ids, dtype=np.int64))
+        mids = None
+        if self.mid_nodes is not None:
+            mids = np.ascontiguousarray(self.mid_nodes, dtype=np.float64)
+            if mids.shape != (len(tets), 6, 3):
+                raise MeshError(f"mid_nodes must have shape (n_elements, 6, 3) = ({len(tets)}, 6, 3), got {mids.shape}")
+            mids.setflags(write=False)
         for arr in (points, tets, src, *facets.values()):
             arr.setflags(write=False)
+        object.__setattr__(self, "mid_nodes", mids)
         object.__setattr__(self, "points", points)
         object.__setattr__(self, "tets", tets)
         object.__setattr__(self, "facet_sets", facets)
@@ -127,7 +142,8 @@ def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
-def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origin="mesh") -> Mesh:
+def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origin="mesh",
+                   mid_nodes=None, mid_node_ids=None) -> Mesh:
     """Check and repair raw arrays into a :class:`Mesh`.
 
     Errors (:class:`MeshError`) for: no tetrahedra, wrong shapes, non-finite coordinates,
@@ -135,6 +151,10 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
     Repairs (with a :class:`MeshWarning`): inverted elements are re-oriented; nodes used
     by no element are dropped and the remaining nodes renumbered (``source_node_ids``
     keeps the original numbering; facet sets are renumbered too).
+
+    ``mid_nodes``: a quadratic mesh's edge nodes (:attr:`Mesh.mid_nodes`), kept aligned
+    with re-oriented elements; ``mid_node_ids``: the nodes that are edge nodes (dropped
+    from the vertex mesh without a warning).
     """
     points = np.asarray(points, dtype=np.float64)
     tets = np.asarray(tets)
@@ -187,9 +207,13 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
             f"({vol[e]:.3e}); {int(tiny.sum())} degenerate elements in all: remesh or remove them"
         )
     inverted = vol < 0
+    if mid_nodes is not None:
+        mid_nodes = np.array(mid_nodes, dtype=np.float64)
     if inverted.any():
         tets = tets.copy()
         tets[inverted] = tets[inverted][:, [0, 2, 1, 3]]
+        if mid_nodes is not None:  # swapping vertices 1 and 2 permutes the edges
+            mid_nodes[inverted] = mid_nodes[inverted][:, [2, 1, 0, 3, 5, 4]]
         warnings.warn(
             f"{origin}: {int(inverted.sum())} inverted elements (negative volume) were "
             f"re-oriented, first: element {int(np.flatnonzero(inverted)[0])}",
@@ -199,14 +223,19 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
     src = np.arange(len(points)) if source_node_ids is None else np.asarray(source_node_ids)
     used = np.zeros(len(points), dtype=bool)
     used[tets.ravel()] = True
+    expected = np.zeros(len(points), dtype=bool)
+    if mid_node_ids is not None:
+        expected[np.asarray(mid_node_ids, dtype=np.int64)] = True
     if not used.all():
         new_index = np.full(len(points), -1, dtype=np.int64)
         new_index[used] = np.arange(used.sum())
-        warnings.warn(
-            f"{origin}: {int((~used).sum())} nodes are used by no element and were dropped "
-            "(Mesh.source_node_ids maps the new numbering to the file's)",
-            MeshWarning, stacklevel=3,
-        )
+        unused = int((~used & ~expected).sum())
+        if unused:
+            warnings.warn(
+                f"{origin}: {unused} nodes are used by no element and were dropped "
+                "(Mesh.source_node_ids maps the new numbering to the file's)",
+                MeshWarning, stacklevel=3,
+            )
         tets = new_index[tets]
         kept = {}
         for name, tri in facet_sets.items():
@@ -214,7 +243,7 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
             kept[name] = new_index[tri[ok]]
         facet_sets = kept
         points, src = points[used], src[used]
-    mesh = Mesh(points=points, tets=tets, facet_sets=facet_sets, source_node_ids=src)
+    mesh = Mesh(points=points, tets=tets, facet_sets=facet_sets, source_node_ids=src, mid_nodes=mid_nodes)
     warn_about_topology(mesh, origin=origin, stacklevel=4)
     return mesh
 
@@ -311,7 +340,7 @@ def merge_coincident_nodes(mesh: Mesh, tol: float | None = None) -> Mesh:
             tri = tri[counts[inverse.ravel()] == 1]
         facet_sets[name] = tri
     return Mesh(points=mesh.points[kept], tets=tets, facet_sets=facet_sets,
-                source_node_ids=mesh.source_node_ids[kept])
+                source_node_ids=mesh.source_node_ids[kept], mid_nodes=mesh.mid_nodes)
 
 
 def warn_about_topology(mesh: Mesh, *, origin: str = "mesh", stacklevel: int = 2) -> None:
@@ -342,41 +371,113 @@ def warn_about_topology(mesh: Mesh, *, origin: str = "mesh", stacklevel: int = 2
             MeshWarning, stacklevel=stacklevel)
 
 
-_TETRA_TYPES = ("tetra",)
-_UNSUPPORTED_3D = ("tetra10", "hexahedron", "hexahedron20", "hexahedron27", "wedge", "pyramid")
+_TETRA_TYPES = ("tetra", "tetra10")
+_UNSUPPORTED_3D = ("hexahedron", "hexahedron20", "hexahedron27", "wedge", "pyramid")
 
 
-def read_mesh(path: str | os.PathLike) -> Mesh:
-    """Read a tetrahedral mesh from any meshio-readable file (gmsh .msh, VTK, VTU, XDMF...).
+def read_mesh(path: str | os.PathLike, *, faces=None) -> Mesh:
+    """Read a tetrahedral mesh from any meshio-readable file (gmsh .msh, VTK, VTU, XDMF...),
+    or from a SimVascular mesh folder.
 
-    Tetrahedra of all ``tetra`` blocks are kept; other cell blocks (vertices, lines) are
-    ignored, except triangles, which become boundary facet sets: one per physical tag
+    Tetrahedra of all ``tetra`` blocks are kept, or of all ``tetra10`` blocks (quadratic
+    tetrahedra: the mesh keeps their edge nodes as :attr:`Mesh.mid_nodes`, and problems on
+    it use P2 elements by default); other cell blocks (vertices, lines) are ignored, except
+    triangles (``triangle`` or ``triangle6``: their vertices), which become boundary facet
+    sets: one per physical tag
     (``gmsh:physical`` cell data, named through ``field_data`` when the file has names),
     plus named ``cell_sets`` of triangles. Untagged triangles are kept as ``"boundary"``.
 
+    A folder is read in SimVascular's layout (``jaxsync.fem.simvascular``): the volume
+    ``mesh-complete.mesh.vtu`` and one facet set per ``mesh-surfaces/<name>.vtp``, named
+    after the file's stem, its triangles mapped onto the volume's nodes through the point
+    data ``GlobalNodeID`` (1-based; through the volume's own ``GlobalNodeID`` when it has
+    one, whose values - 1 then become :attr:`Mesh.source_node_ids`).
+
+    Args:
+        path: a mesh file, or a SimVascular mesh folder.
+        faces: face files for a volume file, in the same form as SimVascular's
+            (``.vtp`` PolyData of triangles with point data ``GlobalNodeID``): a list of
+            paths (each a facet set named after its stem) or a mapping name -> path.
+
+    Every face must lie on the volume's boundary (each triangle a face of exactly one
+    tetrahedron). The result goes through the same checks and repairs as any mesh.
+
     Raises:
         MeshError: missing, empty, unreadable or unsupported file, no tetrahedra, bad
-            coordinates or connectivity.
+            coordinates or connectivity; a folder without ``mesh-complete.mesh.vtu`` or
+            without face files; a face file without ``GlobalNodeID``, with ids that are not
+            nodes of the volume, with cells other than triangles, or off the boundary.
     """
     path = os.fspath(path)
+    if os.path.isdir(path):
+        if faces is not None:
+            raise MeshError(f"{path!r} is a folder, read in SimVascular's layout with the faces of "
+                            "its mesh-surfaces/; pass faces=... only with a volume file")
+        path, faces = simvascular.folder_layout(path)
+    elif faces is not None:
+        faces = simvascular.named_faces(faces)
     raw = _read_raw(path)
-    tet_blocks, tri_blocks = [], []
+    tet_blocks, tri_blocks = {"tetra": [], "tetra10": []}, []
     for i, block in enumerate(raw.cells):
         if block.type in _TETRA_TYPES:
-            tet_blocks.append(block.data)
-        elif block.type == "triangle":
-            tri_blocks.append((i, block.data))
-    if not tet_blocks:
+            tet_blocks[block.type].append(block.data)
+        elif block.type in ("triangle", "triangle6"):
+            tri_blocks.append((i, block.data[:, :3]))
+    if not tet_blocks["tetra"] and not tet_blocks["tetra10"]:
         kinds = ", ".join(sorted({b.type for b in raw.cells})) or "none"
-        hint = (" (quadratic or non-tetrahedral volume cells are not supported: export "
-                "linear tetrahedra)" if any(b.type in _UNSUPPORTED_3D for b in raw.cells) else "")
+        hint = (" (non-tetrahedral volume cells are not supported: export tetrahedra)"
+                if any(b.type in _UNSUPPORTED_3D for b in raw.cells) else "")
         raise MeshError(f"{path}: the file has no tetrahedra (cell blocks: {kinds}){hint}")
-    tets = np.concatenate(tet_blocks, axis=0)
+    if tet_blocks["tetra"] and tet_blocks["tetra10"]:
+        raise MeshError(f"{path}: the file mixes linear (tetra) and quadratic (tetra10) tetrahedra; export "
+                        "one order")
+    mid_nodes = mid_node_ids = None
+    if tet_blocks["tetra10"]:
+        cells = np.concatenate(tet_blocks["tetra10"], axis=0)
+        tets, mid_node_ids = cells[:, :4], np.unique(cells[:, 4:])
+        if np.any((cells < 0) | (cells >= len(raw.points))):
+            raise MeshError(f"{path}: a tetra10 cell refers to nodes outside 0..{len(raw.points) - 1}")
+        mid_nodes = np.asarray(raw.points, dtype=float)[cells[:, 4:10]]
+    else:
+        tets = np.concatenate(tet_blocks["tetra"], axis=0)
     facet_sets = _triangle_sets(raw, tri_blocks)
     points = raw.points
     if points.shape[1] == 2:
         raise MeshError(f"{path}: points are 2-D; jaxsync needs a 3-D tetrahedral mesh")
-    return validated_mesh(points, tets, facet_sets, origin=path)
+    source_node_ids = None
+    if faces:
+        facet_sets, source_node_ids = _with_face_files(raw, path, tets, facet_sets, faces)
+    return validated_mesh(points, tets, facet_sets, source_node_ids, origin=path, mid_nodes=mid_nodes,
+                          mid_node_ids=mid_node_ids)
+
+
+def _with_face_files(raw, path: str, tets: np.ndarray, facet_sets: dict,
+                     faces: dict[str, str]) -> tuple[dict, np.ndarray | None]:
+    """The facet sets of the volume file plus one per face file (name -> path), and the
+    volume's own node numbers (its ``GlobalNodeID`` - 1; None without)."""
+    nodes = simvascular.VolumeNodes(raw.point_data.get(simvascular.NODE_IDS), len(raw.points), path)
+    sets = dict(facet_sets)
+    for name, face_path in faces.items():
+        if name in sets:
+            raise MeshError(f"{face_path}: the facet set {name!r} is also a set of triangles of "
+                            f"{path}; give the face another name (faces={{name: path}})")
+        sets[name] = simvascular.face_triangles(_read_face(face_path), face_path, nodes)
+    tets = np.asarray(tets)
+    if (tets.ndim == 2 and tets.shape[1] == 4 and np.issubdtype(tets.dtype, np.integer)
+            and tets.size and tets.min() >= 0 and tets.max() < len(raw.points)):
+        # otherwise validated_mesh says what is wrong with the elements
+        simvascular.check_on_boundary(tets, {n: sets[n] for n in faces}, faces, nodes)
+    return sets, nodes.source_node_ids
+
+
+def _read_face(path: str):
+    """A face file: ``.vtp`` (VTK XML PolyData) through :func:`simvascular.read_vtp`,
+    any other surface format through meshio."""
+    if pathlib.Path(path).suffix.lower() == ".vtp":
+        _check_exists(path, "face file")
+        _check_not_blank(path, "face file")
+        return simvascular.read_vtp(path)
+    return _read_raw(path, "face file")
 
 
 def _known_mesh_extensions(path: str) -> list[str]:
@@ -398,38 +499,52 @@ def _is_blank(path: str, limit: int = 1 << 16) -> bool:
         return not f.read().strip()
 
 
-def _read_raw(path: str):
+def _check_exists(path: str, what: str = "mesh file") -> None:
+    """:class:`MeshError` for a file that does not exist or is a folder."""
+    if not os.path.exists(path):
+        raise MeshError(f"{what} {path!r} does not exist; check the path (relative paths "
+                        f"are taken from {os.getcwd()!r})")
+    if os.path.isdir(path):
+        raise MeshError(f"{what} {path!r} is a folder; give the path of a mesh file")
+
+
+def _check_not_blank(path: str, what: str = "mesh file") -> None:
+    if _is_blank(path):
+        raise MeshError(f"{what} {path!r} is empty; re-export the mesh "
+                        "(in gmsh: File > Export, or gmsh -3 file.geo -o file.msh)")
+
+
+def _read_raw(path: str, what: str = "mesh file"):
     """``meshio.read(path)`` with every failure turned into a :class:`MeshError` that names
     the file. meshio ends the interpreter (``SystemExit``) when no reader accepts a file
     and prints its readers' complaints; those are caught and put into the message."""
     import meshio
 
-    if not os.path.exists(path):
-        raise MeshError(f"mesh file {path!r} does not exist; check the path (relative paths "
-                        f"are taken from {os.getcwd()!r})")
-    if os.path.isdir(path):
-        raise MeshError(f"mesh file {path!r} is a folder; give the path of a mesh file")
+    _check_exists(path, what)
+    if pathlib.Path(path).suffix.lower() == ".vtp":
+        raise MeshError(
+            f"{what} {path!r} is a .vtp surface (VTK PolyData), not a volume mesh; give the "
+            "volume (.vtu) with the surfaces as faces: read_mesh(volume, faces=[...]), or the "
+            "SimVascular mesh folder that holds both")
     if not _known_mesh_extensions(path):
         common = ".msh (gmsh), .vtk, .vtu, .xdmf, .med, .inp (Abaqus)"
         raise MeshError(
-            f"mesh file {path!r}: unknown extension {os.path.splitext(path)[1] or '(none)'!r}; "
+            f"{what} {path!r}: unknown extension {os.path.splitext(path)[1] or '(none)'!r}; "
             f"jaxsync reads meshes through meshio, which picks the format from the "
             f"extension: rename the file or convert it to one of {common}")
-    if _is_blank(path):
-        raise MeshError(f"mesh file {path!r} is empty; re-export the mesh "
-                        "(in gmsh: File > Export, or gmsh -3 file.geo -o file.msh)")
+    _check_not_blank(path, what)
     chatter = io.StringIO()
     try:
         with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
             return meshio.read(path)
     except SystemExit as exc:  # meshio's "no reader accepted the file"; not KeyboardInterrupt
         said = " ".join(chatter.getvalue().split())
-        raise MeshError(f"could not read mesh file {path!r}: it is not a valid "
+        raise MeshError(f"could not read {what} {path!r}: it is not a valid "
                         f"{'/'.join(_known_mesh_extensions(path))} file"
                         + (f" (meshio: {said})" if said else "")
                         + "; check that it is a complete mesh file, or re-export it") from exc
     except Exception as exc:  # meshio raises many types; re-raise as ours with the cause
-        raise MeshError(f"could not read mesh file {path!r} "
+        raise MeshError(f"could not read {what} {path!r} "
                         f"({type(exc).__name__}: {exc}); the file is damaged, truncated or "
                         "not a mesh of that format: re-export it") from exc
 

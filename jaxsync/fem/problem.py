@@ -9,18 +9,21 @@ loads or damping (for instance with JAX tracers, to differentiate) costs no reas
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..errors import ProblemError
+from ..options import Element
 from ..pytree import is_traced
-from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector
-from .loads import BodyForce, Pressure, Ramp, StepOff
+from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector, traction_vectors
+from .loads import LOADS, BodyForce, Pressure, Ramp, StepOff, TimeFunction, Traction
 from .material import LinearElastic
 from .mesh import Mesh, box_beam
+from .support import ElasticSupport
 
-__all__ = ["Dirichlet", "Problem", "cantilever"]
+__all__ = ["Dirichlet", "Problem", "cantilever", "LockingWarning", "LOCKING_NU"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -29,34 +32,52 @@ class Dirichlet:
 
     Attributes:
         where: a facet-set name of the mesh, or a predicate ``f(points (n, 3)) -> (n,) bool``.
-        value: (3,) prescribed displacement [cm] (default zero; constant in time).
+        value: (3,) prescribed displacement [cm] (default zero).
         components: which components (0=x, 1=y, 2=z) are prescribed.
+        time: None (the value holds at every step), or a time function g(t)
+            (:mod:`jaxsync.fem.loads`): the displacement ``value * g(t)``, a prescribed
+            history (an inflow boundary driven by a measured motion, say). The run starts
+            consistent with it: before the first step the prescribed dofs sit at
+            ``value * g(-dt)``, so that the discrete velocity and acceleration at t = 0 are
+            those of the history. With a time function, ``value`` may be a JAX tracer
+            (differentiable).
     """
 
     where: str | Callable[[np.ndarray], np.ndarray]
     value: Sequence[float] = (0.0, 0.0, 0.0)
     components: Sequence[int] = (0, 1, 2)
+    time: TimeFunction | None = None
 
-    def nodes(self, mesh: Mesh) -> np.ndarray:
-        """Indices of the constrained nodes of ``mesh``."""
+    def nodes(self, space) -> np.ndarray:
+        """Indices of the constrained nodes of a :class:`~jaxsync.fem.space.FunctionSpace`
+        (or of a mesh's vertices): a facet set's nodes (with P2, its edge nodes too), or
+        those whose coordinates satisfy the predicate."""
         if isinstance(self.where, str):
-            return mesh.facet_nodes(self.where)
+            return space.facet_nodes(self.where)
         if callable(self.where):
-            return mesh.nodes_where(self.where)
+            return space.nodes_where(self.where)
         raise ProblemError(f"Dirichlet.where must be a facet-set name or a predicate, got {self.where!r}")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Problem:
-    """Linear elastodynamics M d'' + alpha M d' + K d = f(t) on a tetrahedral mesh.
+    """Linear elastodynamics M d'' + C d' + K d = f(t) on a tetrahedral mesh.
 
     Attributes:
         mesh: the mesh.
         material: :class:`LinearElastic` (fields may be JAX tracers).
-        dirichlet: prescribed displacements; later entries override earlier ones.
-        loads: :class:`BodyForce` and :class:`Pressure` terms, summed.
-        damping: mass-proportional damping coefficient alpha [1/s] (C = alpha M).
-        initial_displacement: (n_nodes, 3) [cm] or None (zero).
+        element: ``"P1"`` (linear tetrahedra) or ``"P2"`` (quadratic: a node at every
+            edge too, :mod:`jaxsync.fem.space`); default ``"P2"`` on a quadratic
+            (``tetra10``) mesh, ``"P1"`` otherwise. Fields are (n_nodes, 3) on the
+            element's nodes (:attr:`points`).
+        dirichlet: prescribed displacements (:class:`Dirichlet`, constant or following a
+            time function); later entries override earlier ones.
+        loads: :class:`BodyForce`, :class:`Pressure` and :class:`Traction` terms, summed.
+        damping: mass-proportional damping coefficient alpha [1/s] (C = alpha M + the
+            supports' dashpots).
+        supports: :class:`jaxsync.ElasticSupport` terms (spring-dashpot supports on facet
+            sets: :mod:`jaxsync.fem.support`).
+        initial_displacement: (n_nodes, 3) [cm] or None (zero), on :attr:`points`.
         initial_velocity: (n_nodes, 3) [cm/s] or None (zero).
         density_scale: (n_elements,) element density relative to ``material.rho`` (set
             by artificial mass scaling), or None (uniform).
@@ -71,6 +92,8 @@ class Problem:
     initial_displacement: Any = None
     initial_velocity: Any = None
     density_scale: Any = None
+    supports: tuple = ()
+    element: Element | None = None
     operators: UnitOperators | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
@@ -80,14 +103,26 @@ class Problem:
             raise ProblemError("Problem.material must be a jaxsync.LinearElastic")
         object.__setattr__(self, "dirichlet", tuple(self.dirichlet))
         object.__setattr__(self, "loads", tuple(self.loads))
+        object.__setattr__(self, "supports", tuple(self.supports))
         for load in self.loads:
-            if not isinstance(load, (BodyForce, Pressure)):
-                raise ProblemError(f"unknown load {load!r}: use jaxsync.BodyForce or jaxsync.Pressure")
-            if isinstance(load, Pressure):
+            if not isinstance(load, LOADS):
+                raise ProblemError(f"unknown load {load!r}: use jaxsync.BodyForce, jaxsync.Pressure or "
+                                   "jaxsync.Traction")
+            if isinstance(load, (Pressure, Traction)):
                 self.mesh.facet_set(load.surface)  # clear error for an unknown tag
+        for support in self.supports:
+            if not isinstance(support, ElasticSupport):
+                raise ProblemError(f"unknown support {support!r}: use jaxsync.ElasticSupport")
+            self.mesh.facet_set(support.surface)
         if not is_traced(self.damping) and not float(self.damping) >= 0:
             raise ProblemError(f"damping alpha must be >= 0, got {self.damping}")
-        n = self.mesh.n_nodes
+        from .space import function_space
+
+        if self.element is None:
+            object.__setattr__(self, "element", "P1" if self.mesh.mid_nodes is None else "P2")
+        function_space(self.mesh, self.element)  # checks the element
+        _warn_about_locking(self)
+        n = self.n_nodes
         for name in ("initial_displacement", "initial_velocity"):
             value = getattr(self, name)
             if value is not None and np.shape(value) != (n, 3):
@@ -97,9 +132,32 @@ class Problem:
             if scale.shape != (self.mesh.n_elements,) or not np.all(scale > 0):
                 raise ProblemError("density_scale must hold one positive factor per element, "
                                    f"shape ({self.mesh.n_elements},)")
-        if self.operators is None or self.operators.mesh is not self.mesh:
-            object.__setattr__(self, "operators", assemble_unit_operators(self.mesh))
+        if (self.operators is None or self.operators.mesh is not self.mesh
+                or self.operators.space is not self.space):
+            object.__setattr__(self, "operators", assemble_unit_operators(self.space))
         self.dirichlet_dofs()  # validate eagerly
+
+    @property
+    def space(self):
+        """The :class:`~jaxsync.fem.space.FunctionSpace` of the solution nodes."""
+        from .space import function_space
+
+        return function_space(self.mesh, self.element)
+
+    @property
+    def points(self) -> np.ndarray:
+        """(n_nodes, 3) coordinates of the solution nodes [cm]: the mesh's vertices, then
+        (P2) the edge nodes."""
+        return self.space.points
+
+    @property
+    def n_nodes(self) -> int:
+        """Solution nodes (the mesh's vertices for P1; vertices and edges for P2)."""
+        return self.space.n_nodes
+
+    @property
+    def n_dofs(self) -> int:
+        return 3 * self.n_nodes
 
     def replace(self, **changes) -> "Problem":
         """A copy with some fields changed (operators are reused for the same mesh)."""
@@ -121,23 +179,63 @@ class Problem:
         return stable_step(self)
 
     def dirichlet_dofs(self) -> tuple[np.ndarray, np.ndarray]:
-        """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs."""
-        values = np.full(self.mesh.n_dofs, np.nan)
-        for bc in self.dirichlet:
+        """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs (a
+        condition with a time function at its full ``value``, time factor 1)."""
+        owner = self._dirichlet_owner()
+        dofs = np.flatnonzero(owner >= 0)
+        values = np.zeros(len(dofs))
+        for k, bc in enumerate(self.dirichlet):
+            mine = owner[dofs] == k
+            if mine.any():
+                value = bc.value if bc.time is None or not is_traced(bc.value) else np.zeros(3)
+                values[mine] = np.broadcast_to(np.asarray(value, dtype=float), (3,))[dofs[mine] % 3]
+        return dofs, values
+
+    def prescribed(self) -> tuple[np.ndarray, np.ndarray, list]:
+        """The prescribed displacements as the stepper applies them: (mask (n_nodes, 3)
+        bool, constant values (n_nodes, 3) [cm], and per condition with a time function a
+        pair (its values (n_nodes, 3) on the dofs it prescribes [cm], a JAX array when
+        traced; its time function))."""
+        import jax.numpy as jnp
+
+        owner = self._dirichlet_owner().reshape(-1, 3)
+        mask = owner >= 0
+        constant = np.zeros(owner.shape)
+        moving = []
+        for k, bc in enumerate(self.dirichlet):
+            mine = owner == k
+            if not mine.any():
+                continue
+            if bc.time is None:
+                constant[mine] = np.broadcast_to(np.asarray(bc.value, dtype=float), (3,))[np.nonzero(mine)[1]]
+            else:
+                value = jnp.broadcast_to(jnp.asarray(bc.value, dtype=float), (3,))
+                moving.append((jnp.where(jnp.asarray(mine), value[None, :], 0.0), bc.time))
+        return mask, constant, moving
+
+    def _dirichlet_owner(self) -> np.ndarray:
+        """(n_dofs,) index of the condition that prescribes each dof (the last one that
+        names it), -1 for free dofs."""
+        owner = np.full(self.n_dofs, -1, dtype=np.int64)
+        for k, bc in enumerate(self.dirichlet):
             if not isinstance(bc, Dirichlet):
                 raise ProblemError(f"Problem.dirichlet entries must be jaxsync.Dirichlet, got {bc!r}")
-            nodes = bc.nodes(self.mesh)
+            nodes = bc.nodes(self.space)
             if len(nodes) == 0:
                 raise ProblemError(f"Dirichlet condition {bc.where!r} selects no node; "
                                    "check the predicate or facet-set name")
             comps = [int(c) for c in bc.components]
             if any(c not in (0, 1, 2) for c in comps):
                 raise ProblemError(f"Dirichlet components must be among 0, 1, 2, got {comps}")
-            value = np.broadcast_to(np.asarray(bc.value, dtype=float), (3,))
+            if bc.time is not None and not isinstance(bc.time, TimeFunction):
+                raise ProblemError(f"Dirichlet time must be a time function (jaxsync.Ramp, Periodic...), "
+                                   f"got {bc.time!r}")
+            if bc.time is None and is_traced(bc.value):
+                raise ProblemError("a traced Dirichlet value needs a time function (time=jaxsync.Constant() "
+                                   "for a constant one): constant conditions are applied as numbers")
             for c in comps:
-                values[3 * nodes + c] = value[c]
-        dofs = np.flatnonzero(~np.isnan(values))
-        return dofs, values[dofs]
+                owner[3 * nodes + c] = k
+        return owner
 
     def load_vectors(self) -> tuple[list, list]:
         """Spatial parts and time functions of the loads.
@@ -153,19 +251,30 @@ class Problem:
         for load in self.loads:
             if isinstance(load, BodyForce):
                 if unit_body is None:
-                    unit_body = body_force_vectors(self.mesh)
+                    unit_body = self._memo("body force", lambda: body_force_vectors(self.space))
                 vec = jnp.einsum("dnc,d->nc", unit_body, jnp.asarray(load.vector, dtype=float))
+            elif isinstance(load, Traction):
+                unit = self._memo(("traction", load.surface), lambda s=load.surface: traction_vectors(self.space, s))
+                vec = jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
             else:
-                vec = load.magnitude * jnp.asarray(pressure_vector(self.mesh, load.surface))
+                unit = self._memo(("pressure", load.surface), lambda s=load.surface: pressure_vector(self.space, s))
+                vec = load.magnitude * jnp.asarray(unit)
             vectors.append(vec)
             times.append(load.time)
         return vectors, times
+
+    def _memo(self, key, compute):
+        """A material-independent array of this mesh, computed once (the operators' memo)."""
+        memo = self.operators.stable_step_memo
+        if key not in memo:
+            memo[key] = compute()
+        return memo[key]
 
     def lumped_mass(self):
         """(n_nodes,) lumped nodal mass [g] (rho times the unit lumped mass)."""
         from .assembly import lumped_mass
 
-        return self.material.rho * lumped_mass(self.mesh, self.density_scale)
+        return self.material.rho * lumped_mass(self.space, self.density_scale)
 
     def summary(self) -> str:
         """A few lines describing the problem."""
@@ -175,22 +284,53 @@ class Problem:
             step = self.time_step.describe()
         except ProblemError:  # traced nu
             step = "time step: traced"
-        return (f"{self.mesh!r}\n"
+        moving = sum(bc.time is not None for bc in self.dirichlet)
+        kinds = ", ".join(f"{n} {name}" for name, n in (
+            ("body force", sum(isinstance(x, BodyForce) for x in self.loads)),
+            ("pressure", sum(isinstance(x, Pressure) for x in self.loads)),
+            ("traction", sum(isinstance(x, Traction) for x in self.loads))) if n)
+        supports = "".join(f"; elastic support on {s.surface!r} (k_s {s.stiffness} dyn/cm^3, c_s {s.damping} "
+                           f"dyn s/cm^3{', normal only' if s.normal_only else ''})" for s in self.supports)
+        element = (f"; quadratic (P2) elements, {self.n_nodes} nodes"
+                   f"{' (isoparametric)' if self.space.curved else ''}" if self.element == "P2" else "")
+        return (f"{self.mesh!r}{element}\n"
                 f"material: E={m.E} dyn/cm^2, nu={m.nu}, rho={m.rho} g/cm^3; damping alpha={self.damping} 1/s\n"
-                f"Dirichlet dofs: {len(dofs)}; loads: {len(self.loads)}; {step}")
+                f"Dirichlet dofs: {len(dofs)}" + (f" ({moving} condition{'s' if moving > 1 else ''} following a "
+                                                  "time function)" if moving else "")
+                + f"; loads: {len(self.loads)}" + (f" ({kinds})" if kinds else "") + supports + f"; {step}")
+
+
+LOCKING_NU = 0.45
+"""From this Poisson ratio on, a P1 problem warns (:class:`LockingWarning`)."""
+
+
+class LockingWarning(UserWarning):
+    """Linear tetrahedra on a nearly incompressible material: the displacements come out
+    too small (volumetric locking); quadratic tetrahedra (``element="P2"``) are the remedy
+    (measured in ``benchmarks/bench_locking.py``)."""
+
+
+def _warn_about_locking(problem: "Problem") -> None:
+    nu = problem.material.nu
+    if problem.element == "P1" and not is_traced(nu) and float(nu) >= LOCKING_NU:
+        warnings.warn(f"linear (P1) tetrahedra lock as nu -> 0.5 (nu = {float(nu):g}): displacements come out too "
+                      "small, by tens of percent from nu = 0.49 on; quadratic tetrahedra lock far less: use "
+                      "element='P2' (jaxsync simulate --element P2, [problem] element = \"P2\")",
+                      LockingWarning, stacklevel=4)
 
 
 def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping=0.5,
                t_ramp: float = 1.0, t_off: float | None = None,
                material: LinearElastic | None = None, initial_displacement=None,
-               initial_velocity=None) -> Problem:
+               initial_velocity=None, element: Element | None = None) -> Problem:
     """The paper's cantilever (Table 1): 25 x 1 x 1 cm beam clamped at x = 0.
 
     E = 1e6 dyn/cm^2, nu = 0.3, rho = 1 g/cm^3, body force (0, 0, -0.5) dyn/cm^3 ramped
     over ``t_ramp`` s, damping alpha = 0.5 1/s, zero initial conditions. The default mesh
     is the coarse :func:`box_beam` (104 nodes, 150 tetrahedra). Variants: skewed load
     ``body_force=(0, -0.5, -0.5)``; load switched off at ``t_off``; initial conditions.
-    The clamp is every node with x equal to the mesh's smallest x.
+    The clamp is every node with x equal to the mesh's smallest x; ``element`` as for
+    :class:`Problem` (``"P2"``: quadratic tetrahedra).
     """
     mesh = box_beam() if mesh is None else mesh
     material = LinearElastic(1.0e6, 0.3, 1.0) if material is None else material
@@ -200,4 +340,5 @@ def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping
     time = Ramp(t_ramp) if t_off is None else StepOff(t_off, Ramp(t_ramp))
     return Problem(mesh=mesh, material=material, dirichlet=(clamp,),
                    loads=(BodyForce(body_force, time),), damping=damping,
-                   initial_displacement=initial_displacement, initial_velocity=initial_velocity)
+                   initial_displacement=initial_displacement, initial_velocity=initial_velocity,
+                   element=element)

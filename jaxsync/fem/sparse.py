@@ -1,4 +1,4 @@
-"""Node-blocked ELL sparse layout for the stiffness mat-vec in JAX.
+"""Node-blocked ELL sparse layouts for the stiffness mat-vec in JAX.
 
 Row i of the block matrix holds the 3x3 blocks K[i, j] for the (padded) list of nodes j
 adjacent to node i. The mat-vec reads the three components of ``u[j]`` (24 contiguous
@@ -12,9 +12,36 @@ gather that makes this fusion happen). Chosen by measurement (benchmarks/bench_s
 a reduction over a gathered (n, width, 3) array materializes the gather (1.4x slower at
 250k dofs), the (n, width, 3, 3) order with an einsum is lowered to a batched dot (3x
 slower), BCOO is 3-4x slower.
+
+Three details of that loop were measured to matter (:func:`_matvec`, on this machine's
+XLA:CPU, jax 0.10.2; benchmarks/bench_stepper.py): the sum runs in 8 independent partial
+sums (one serial chain of 3 width fused multiply-adds per output was latency-bound:
+1.3-1.4x slower); the arrays pass through an ``optimization_barrier`` so that XLA does
+not hoist the index broadcasts (or a float32 -> float64 conversion of the blocks) out of
+the time loop into width separate materialized arrays (5-15 %); and the column indices
+are unsigned, which drops the negative-index clamp from every gather (7-18 %).
+
+:class:`BlockEll` pads every row to the largest node degree. That is nearly free on a
+structured mesh (the beams: mean degree 13.3-14.2, largest 15) but not on an
+unstructured one: the generated coronary tree (:func:`jaxsync.coronary_mesh`) has mean
+degree 11.8-12.7 and largest 25-26 (surface nodes of a thin wall have about 10
+neighbours, interior ones 15-20), so 2.1x the real blocks are streamed.
+:class:`GroupedEll` therefore splits the rows by degree into a few groups, each its own
+block ELL of its own width, whose results are scattered into the output rows
+(:func:`degree_widths` picks the widths: 3-4 groups on the vessel, 1.10-1.16x the real
+blocks; 1 group on the beams). Alternatives measured on the 91k-dof vessel (CPU time of
+the full step, the same round): concatenating the groups and gathering the output rows
+back (XLA then fuses the groups' products into that gather and computes them in output
+order: 1.1-1.4x slower than the scatter); a base ELL over all rows
+plus overflow ELLs for the high-degree rows added through gather maps (as fast on the
+vessel, 1.7x slower on the beams, where most rows overflow); sliced ELL slices
+bucketed by width (that is this layout with many groups; more than 4 groups gained
+nothing). The product per group is :func:`_matvec`, so every group keeps the fused form.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +50,9 @@ import scipy.sparse as sp
 
 from ..pytree import pytree_dataclass, static_field
 
-__all__ = ["BlockEll", "node_adjacency", "block_ell_values", "pad_block_ell"]
+__all__ = ["BlockEll", "GroupedEll", "node_adjacency", "block_ell_values", "pad_block_ell",
+           "degree_widths", "grouped_layout", "row_degrees", "split_diagonal", "bandwidth_order",
+           "permuted_block_ell", "PARTIAL_SUMS"]
 
 
 @pytree_dataclass
@@ -63,18 +92,44 @@ class BlockEll:
         return self.columns.shape
 
 
-def _matvec(columns, blocks, u):
-    """y = K u (:meth:`BlockEll.matvec`): u (n_cols, 3) -> y (n_rows, 3)."""
+PARTIAL_SUMS = 8
+"""Independent partial sums per output entry in :func:`_matvec` (the terms are dealt to
+them in turn and added pairwise at the end). One serial chain of 3 width fused
+multiply-adds per output was latency-bound; 4 and 8 partial sums were measured alike
+(1.3-1.4x faster than 1 on the 51k-dof beam, 1.2-1.4x on the vessel)."""
+
+
+def _matvec(columns, blocks, u, diagonal=None):
+    """y = K u (:meth:`BlockEll.matvec`): u (n_cols, 3) -> y (n_rows, 3), in ``u``'s dtype
+    (float32 blocks are widened term by term: the sums are float64 for float64 u).
+
+    ``diagonal``: (n_rows, 3, 3) blocks of slot 0 kept apart (in u's dtype), ``blocks``
+    then holding slots 1.. only (the split storage of :class:`GroupedEll`)."""
+    # Kept together behind a barrier: inside a time loop XLA would otherwise hoist the
+    # loop-invariant index broadcasts (and a blocks dtype conversion) out of the loop as
+    # width separate (n_rows, 3) arrays, which the loop then streams instead of columns.
+    columns, blocks, diagonal, u = jax.lax.optimization_barrier((columns, blocks, diagonal, u))
+    # Unsigned indices: a gather clamps its index into range, and an unsigned one needs no
+    # lower clamp. Padding slots point at the row's own node, so every index is in bounds.
+    columns = columns.astype(jnp.uint32)
     n_rows = columns.shape[0]
-    y = None
+    first = 0 if diagonal is None else 1
+    partial = [None] * PARTIAL_SUMS
+    k = 0
     for s in range(columns.shape[1]):
         index = jnp.broadcast_to(columns[:, s, None], (n_rows, 3))
         for j in range(3):
-            # Padding slots point at the row's own node, so every index is in bounds.
             gathered = u[:, j].at[index].get(mode="promise_in_bounds")
-            term = blocks[:, :, s, j] * gathered
-            y = term if y is None else y + term
-    return y
+            block = diagonal[:, :, j] if s < first else blocks[:, :, s - first, j]
+            term = block.astype(u.dtype) * gathered
+            a = k % PARTIAL_SUMS
+            partial[a] = term if partial[a] is None else partial[a] + term
+            k += 1
+    partial = [p for p in partial if p is not None]
+    while len(partial) > 1:
+        partial = [partial[i] + partial[i + 1] if i + 1 < len(partial) else partial[i]
+                   for i in range(0, len(partial), 2)]
+    return partial[0]
 
 
 @jax.custom_vjp
@@ -85,7 +140,7 @@ def _symmetric_matvec(columns, blocks, u):
     :func:`_matvec` would instead scatter-add 3 width times per product and keep every
     gathered neighbour value (3 width (n, 3) fields) for the reverse pass; here only u is
     kept. Measured on a 1e4-step gradient of the coarse cantilever: 5x faster, 5x less
-    memory (issue 15)."""
+    memory."""
     return _matvec(columns, blocks, u)
 
 
@@ -97,18 +152,295 @@ def _symmetric_matvec_bwd(residuals, y_bar):
     columns, blocks, u = residuals
     u_bar = _matvec(columns, blocks, y_bar)  # K^T y_bar = K y_bar
     blocks_bar = y_bar[:, :, None, None] * u[columns][:, None, :, :]  # (n_rows, 3, width, 3)
-    return None, blocks_bar, u_bar
+    return None, blocks_bar.astype(blocks.dtype), u_bar
 
 
 _symmetric_matvec.defvjp(_symmetric_matvec_fwd, _symmetric_matvec_bwd)
 
 
+@pytree_dataclass
+class GroupedEll(BlockEll):
+    """Square block-sparse matrix with its rows grouped by degree, each group a node-blocked
+    ELL of its own width (why and the alternatives measured: the module docstring). A
+    :class:`BlockEll` generalized (one group of all rows is a BlockEll), with the same
+    symmetric reverse pass; build it from a BlockEll's host arrays with
+    :func:`grouped_layout` (fields by keyword).
+
+    Group g holds the rows ``rows[g]`` with (at most) ``widths[g]`` slots each; its
+    product is the :class:`BlockEll` product of ``columns[g]``, ``blocks[g]``, scattered
+    into those rows of the output. Rows of no group (padding nodes of a part) get 0.
+
+    Attributes:
+        columns: per group, (n_g, w_g) int32 column node of each slot (padding slots and
+            rows point at an existing node with a zero block).
+        blocks: per group, (n_g, 3, w_g, 3) values as in :class:`BlockEll`.
+        symmetric: K = K^T: reverse mode uses K itself for the transpose product (the same
+            gathers and scatters as the forward one) and keeps only u per product, as
+            :class:`BlockEll` does.
+        rows: per group, (n_g,) int32 output row of each group row; past ``n_rows`` (all
+            different) on padding rows, whose products are dropped; or None for a single
+            group of all rows in order (then no scatter is written).
+        n_rows: rows of the matrix (a static int).
+        diagonal: per group, (n_g, 3, 3) the diagonal blocks (slot 0) kept apart in the
+            state's dtype, ``blocks[g]`` then holding slots 1..w_g - 1 only, and equal to
+            minus the sum of them (the symmetric reverse pass differentiates it as that
+            sum, folding its cotangent into theirs); or None. The
+            float32 option stores the off-diagonal blocks in float32 (widened term by
+            term, the sums carried in u's dtype) and the diagonal as minus the float64 sum
+            of the row's rounded blocks (:func:`split_diagonal`): a stiffness's block rows
+            sum to zero (it annihilates rigid translations), and so do the rounded ones,
+            so that the rounding errs relative to the neighbour differences (the
+            strains), not to the displacements: 27x smaller on the vessel (measured:
+            docs/guides/performance.md).
+        perm: (n_cols,) int32 or None: the columns number the nodes in this order (node
+            ``perm[k]`` is column k; u is gathered into it first), while ``rows`` stay in
+            the caller's numbering: a bandwidth-reducing order applied inside the
+            operator (:func:`bandwidth_order`), results in the caller's numbering.
+
+    All arrays may carry one leading part axis (the parts of a partition, stacked and
+    padded alike: the same groups and shapes in every part) for ``vmap``/``shard_map``.
+    """
+
+    rows: tuple = ()
+    n_rows: int = static_field(default=0)
+    diagonal: tuple | None = None
+    perm: jnp.ndarray | None = None
+
+    def matvec(self, u):
+        """y = K u for u of shape (n_cols, 3); returns (n_rows, 3)."""
+        u = jnp.asarray(u)
+        diagonal = (None,) * len(self.columns) if self.diagonal is None else self.diagonal
+        args = (self.rows, self.columns, self.blocks, diagonal, self.perm, u, self.n_rows)
+        return _grouped_symmetric(*args) if self.symmetric else _grouped_matvec(*args)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(n_rows, n_rows)."""
+        return (self.n_rows, self.n_rows)
+
+    @property
+    def widths(self) -> tuple[int, ...]:
+        """Slots per row of each group."""
+        return tuple(int(np.shape(c)[-1]) for c in self.columns)
+
+    @property
+    def slots(self) -> int:
+        """Stored slots (padding included) of all groups (and parts)."""
+        return int(sum(np.prod(np.shape(c)) for c in self.columns))
+
+
+def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows):
+    """y = K u (:meth:`GroupedEll.matvec`). A scatter, not a gather, puts each group's
+    rows in place: XLA fuses each group's product into its scatter and walks the group's
+    own rows in order (measured: see the module docstring)."""
+    if perm is not None:  # the layout's own node order (the columns number it)
+        u = u.at[perm].get(mode="promise_in_bounds")
+    y = None
+    for r, c, b, d in zip(rows, columns, blocks, diagonal):
+        part = _matvec(c, b, u, d)
+        if r is None:
+            y = part if y is None else y + part
+            continue
+        if y is None:
+            y = jnp.zeros((n_rows, 3), part.dtype)
+        y = y.at[r].set(part, mode="drop", unique_indices=True)
+    return y
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(6,))
+def _grouped_symmetric(rows, columns, blocks, diagonal, perm, u, n_rows):
+    """:func:`_grouped_matvec` for a symmetric K with its own reverse pass (as
+    :func:`_symmetric_matvec`): u's cotangent is K y_bar, each group's blocks' (and
+    diagonal blocks') the outer product of y_bar at its rows and the gathered u. Only u
+    (in the caller's numbering: the state itself) is kept per product."""
+    return _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows)
+
+
+def _grouped_symmetric_fwd(rows, columns, blocks, diagonal, perm, u, n_rows):
+    out = _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows)
+    return out, (rows, columns, blocks, diagonal, perm, u)
+
+
+def _grouped_symmetric_bwd(n_rows, residuals, y_bar):
+    rows, columns, blocks, diagonal, perm, u = residuals
+    u_bar = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, n_rows)  # K^T y_bar = K y_bar
+    if perm is not None:
+        u = u[perm]
+    blocks_bar, diagonal_bar = [], []
+    for r, c, b, d in zip(rows, columns, blocks, diagonal):
+        y_rows = y_bar if r is None else y_bar.at[r].get(mode="fill", fill_value=0.0)
+        outer = y_rows[:, :, None, None] * u[c][:, None, :, :]  # (n_g, 3, w_g, 3)
+        if d is None:
+            blocks_bar.append(outer.astype(b.dtype))
+            diagonal_bar.append(None)
+        else:
+            # the diagonal is minus the sum of the row's blocks: its cotangent folds into
+            # theirs, y_bar_r (u_s - u_r), before the (float32) rounding, which then errs
+            # relative to these differences; rounding y_bar_r u_s and y_bar_r u_r apart
+            # and subtracting was measured 13 % off on the cantilever's gradient
+            blocks_bar.append((outer[:, :, 1:] - outer[:, :, :1]).astype(b.dtype))
+            diagonal_bar.append(jnp.zeros_like(d))
+    return None, None, tuple(blocks_bar), tuple(diagonal_bar), None, u_bar
+
+
+_grouped_symmetric.defvjp(_grouped_symmetric_fwd, _grouped_symmetric_bwd)
+
+
+def split_diagonal(blocks, dtype):
+    """(off-diagonal blocks (..., n, 3, w - 1, 3) in ``dtype``, diagonal blocks (..., n, 3,
+    3) in ``blocks``' dtype) of a stiffness's block-ELL ``blocks`` (..., n, 3, w, 3), slot
+    0 the diagonal: the diagonal is minus the sum of the row's rounded off-diagonal blocks,
+    so that the rounded rows sum to zero as K's do (JAX; traced values flow through:
+    :class:`GroupedEll`'s symmetric reverse pass differentiates the diagonal as that sum,
+    folded into the off-diagonal blocks' cotangents, and gives it none of its own)."""
+    off = blocks[..., 1:, :].astype(dtype)
+    return off, -off.astype(blocks.dtype).sum(axis=-2)
+
+
+def bandwidth_order(columns: np.ndarray, *, gain: float = 16.0) -> np.ndarray | None:
+    """Reverse Cuthill-McKee order (``scipy.sparse.csgraph.reverse_cuthill_mckee``) of
+    the node graph of host block-ELL ``columns`` (n, width), or None when it would not
+    bring a row's neighbours ``gain`` times closer on average (mean |i - j| over the
+    stored blocks): the mesh's own order is then kept, with no permutation to pay.
+
+    Measured (CPU time of the full step, benchmarks/bench_stepper.py's harness): on the
+    generated coronary tree (gmsh order; RCM brings the neighbours 38-43x closer) the
+    single-device step is 6 % faster at 91k and 270k dofs with the operator gathering u
+    into RCM order (:attr:`GroupedEll.perm`) than in gmsh order, and 2 % faster with only
+    the rows in RCM order; on the structured beams (6-10x closer: their order is regular
+    already) the permutation gained nothing (-3 to +5 %), hence the threshold."""
+    from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+    columns = np.asarray(columns)
+    n, width = columns.shape
+    rows = np.repeat(np.arange(n), width)
+    graph = sp.csr_matrix((np.ones(n * width, dtype=np.int8), (rows, columns.ravel())), shape=(n, n))
+    order = reverse_cuthill_mckee(graph, symmetric_mode=True).astype(np.int64)
+    position = np.empty(n, dtype=np.int64)
+    position[order] = np.arange(n)
+    before = np.abs(rows - columns.ravel()).mean()
+    after = np.abs(position[rows] - position[columns.ravel()]).mean()
+    return order if after * gain < before else None
+
+
+def permuted_block_ell(order, columns: np.ndarray, *blocks: np.ndarray):
+    """Host block-ELL arrays (the :func:`node_adjacency` layout) renumbered by ``order``
+    (node ``order[k]`` becomes node k): (columns, *blocks) with rows and columns permuted."""
+    position = np.empty(len(order), dtype=np.int64)
+    position[order] = np.arange(len(order))
+    return (position[np.asarray(columns)[order]].astype(np.int32), *(np.asarray(b)[order] for b in blocks))
+
+
+def row_degrees(columns: np.ndarray) -> np.ndarray:
+    """Stored blocks per row of host block-ELL ``columns`` (..., n_rows, width) in the
+    layout of :func:`node_adjacency`: the diagonal slot plus every slot that does not
+    repeat the row's own node (padding)."""
+    columns = np.asarray(columns)
+    own = np.arange(columns.shape[-2])[:, None]
+    return 1 + (columns[..., 1:] != own).sum(axis=-1)
+
+
+def degree_widths(degrees, *, max_groups: int = 4, row_cost: float = 3.0,
+                  group_cost: float = 500.0) -> tuple[int, ...]:
+    """Group widths (increasing; the last is the largest degree) for rows of the given
+    degrees: the grouping that minimizes the stored slots, plus, once there are two groups
+    or more, ``row_cost`` slots per row (every row is then scattered into place) and
+    ``group_cost`` slots per group after the first (its own loop).
+
+    The costs are measured (benchmarks/bench_stepper.py, full step): a second group
+    cost 2 us a step on the 312-dof cantilever; on the beams, whose two degree groups
+    (11 and 15) would save 7-11 % of the slots, grouping was 25 % slower at 15k and 51k
+    dofs on an idle machine (two threads ran the ELL loop, apparently one the scatter) and 7 %
+    faster at 93k, so they keep one group; the vessel's 3-4 groups save 45 % of the slots
+    and were 1.8-1.9x faster than one ELL (3, 4 and 6 groups measured alike: at most
+    ``max_groups``)."""
+    values, counts = np.unique(np.asarray(degrees).ravel(), return_counts=True)
+    n, k = int(counts.sum()), len(values)
+    before = np.concatenate([[0], np.cumsum(counts)])
+    best = np.full((max_groups + 1, k + 1), np.inf)
+    best[0, 0] = 0.0
+    cut = np.zeros((max_groups + 1, k + 1), dtype=int)
+    for g in range(1, max_groups + 1):
+        for j in range(1, k + 1):
+            costs = best[g - 1, :j] + (before[j] - before[:j]) * values[j - 1]
+            i = int(np.argmin(costs))
+            best[g, j], cut[g, j] = costs[i], i
+    totals = [best[g, k] + (row_cost * n if g > 1 else 0.0) + group_cost * (g - 1)
+              for g in range(1, max_groups + 1)]
+    g = 1 + int(np.argmin(totals))
+    widths, j = [], k
+    while j > 0:
+        widths.append(int(values[j - 1]))
+        j = cut[g, j]
+        g -= 1
+    return tuple(sorted(widths))
+
+
+def grouped_layout(columns: np.ndarray, *blocks: np.ndarray, widths=None):
+    """Host arrays of a :class:`GroupedEll` from those of a block ELL in the layout of
+    :func:`node_adjacency` / :func:`block_ell_values` (slots of a row: the diagonal, its
+    neighbours, then padding).
+
+    Args:
+        columns: (n_rows, width) or, stacked parts, (P, n_rows, width) int.
+        blocks: any number of (..., n_rows, 3, width, 3) block arrays on ``columns`` (the
+            unit stiffnesses K_lambda and K_mu, say): each is regrouped alike.
+        widths: the groups' widths (default :func:`degree_widths` of all rows).
+
+    Returns:
+        ``(rows, columns, blocks)``: tuples over the groups (``blocks`` a tuple, per input
+        array, of tuples over the groups), numpy; ``rows`` is ``(None,)`` for one group.
+        Stacked parts share the groups: group g holds the rows of degree in
+        (widths[g-1], widths[g]] of every part, padded to the largest count.
+    """
+    stacked = np.ndim(columns) == 3
+    cols = np.asarray(columns) if stacked else np.asarray(columns)[None]
+    blks = [np.asarray(b) if stacked else np.asarray(b)[None] for b in blocks]
+    n_parts, n_rows, _ = cols.shape
+    degree = row_degrees(cols)
+    widths = degree_widths(degree) if widths is None else tuple(int(w) for w in widths)
+    if widths[-1] < degree.max():
+        raise ValueError(f"group widths {widths} below the largest row degree {int(degree.max())}")
+
+    def unstack(x):
+        return x if stacked else x[0]
+
+    if len(widths) == 1:
+        w = widths[0]
+        return ((None,), (unstack(np.ascontiguousarray(cols[..., :w]).astype(np.int32)),),
+                tuple((unstack(np.ascontiguousarray(b[..., :w, :])),) for b in blks))
+    out_rows, out_cols, out_blocks = [], [], [[] for _ in blks]
+    low = 0
+    for w in widths:
+        member = (degree > low) & (degree <= w)  # (P, n_rows)
+        n_g = max(int(member.sum(axis=1).max()), 1)
+        # padding rows: distinct indices past the end (dropped, and the scatter's indices stay unique)
+        rows = np.broadcast_to(n_rows + np.arange(n_g, dtype=np.int32), (n_parts, n_g)).copy()
+        group_cols = np.zeros((n_parts, n_g, w), dtype=np.int32)
+        group_blocks = [np.zeros((n_parts, n_g, 3, w, 3), dtype=b.dtype) for b in blks]
+        for p in range(n_parts):
+            r = np.flatnonzero(member[p])
+            rows[p, :len(r)] = r
+            group_cols[p, :len(r)] = cols[p, r, :w]
+            for src, dst in zip(blks, group_blocks):
+                dst[p, :len(r)] = src[p, r, :, :w]
+        out_rows.append(unstack(rows))
+        out_cols.append(unstack(group_cols))
+        for k, b in enumerate(group_blocks):
+            out_blocks[k].append(unstack(b))
+        low = w
+    return tuple(out_rows), tuple(out_cols), tuple(tuple(b) for b in out_blocks)
+
+
 def node_adjacency(tets: np.ndarray, n_nodes: int) -> np.ndarray:
     """(n_nodes, width) int32 padded adjacency (node itself first, then neighbours in
-    increasing order, padded with the node itself) of the mesh graph of ``tets``."""
+    increasing order, padded with the node itself) of the mesh graph of ``tets``
+    (n_elements, k): two nodes are neighbours when an element holds both (k = 4 for P1
+    tetrahedra, 10 for P2)."""
     tets = np.asarray(tets)
-    rows = np.repeat(tets, 4, axis=1).ravel()
-    cols = np.tile(tets, (1, 4)).ravel()
+    k = tets.shape[1]
+    rows = np.repeat(tets, k, axis=1).ravel()
+    cols = np.tile(tets, (1, k)).ravel()
     graph = sp.coo_matrix((np.ones_like(rows, dtype=np.int8), (rows, cols)),
                           shape=(n_nodes, n_nodes)).tocsr()
     graph.sum_duplicates()

@@ -5,8 +5,15 @@ With lumped mass M and C = alpha M the update is, per dof,
     d(n+1) = [dt^2 (f(t_n) - K d(n)) / m + 2 d(n) - (1 - alpha dt / 2) d(n-1)]
              / (1 + alpha dt / 2),
 
-with Dirichlet values imposed after every update. ``f`` is evaluated at the time of the
-current displacement d(n), as in the paper's published code. The start follows the
+with Dirichlet values imposed after every update (their values at t_(n+1): a
+prescribed displacement may follow a time function). Elastic supports
+(:mod:`jaxsync.fem.support`) add their springs to K d and their lumped dashpots B to the
+damping, C = alpha M + B; the update is then, node by node, the 3 x 3 solve
+
+    (m (1 + alpha dt / 2) I + dt / 2 B) d(n+1)
+        = dt^2 (f - K d(n)) + m (2 d(n) - (1 - alpha dt / 2) d(n-1)) + dt / 2 B d(n-1).
+
+``f`` is evaluated at the time of the current displacement d(n), as in the paper's published code. The start follows the
 paper: a0 from the consistent-mass system, d(-1) = d0 - dt v0 + dt^2/2 a0.
 
 State is explicit (:class:`SolverState`); :func:`step` is a pure function and
@@ -22,13 +29,14 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from ..pytree import pytree_dataclass
 from .sparse import BlockEll
+from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
-__all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step",
-           "central_difference", "apply_dirichlet", "external_force", "advance", "STEP_UNROLL"]
+__all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step", "internal_forces",
+           "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance",
+           "STEP_UNROLL"]
 
 
 @pytree_dataclass
@@ -45,7 +53,15 @@ class ExplicitSystem:
         load_vectors: (n_loads, n_nodes, 3) full-magnitude nodal loads [dyn].
         load_times: tuple of time functions g_l(t), one per load.
         fixed: (n_nodes, 3) bool, True on prescribed dofs.
-        fixed_values: (n_nodes, 3) prescribed values there [cm] (zero elsewhere).
+        fixed_values: (n_nodes, 3) constant prescribed values there [cm] (zero elsewhere).
+        moving: (n_moving, n_nodes, 3) prescribed values of the conditions that follow a
+            time function [cm] (zero elsewhere), or None: the prescribed displacement at t
+            is ``fixed_values + sum_k moving_times[k](t) moving[k]``.
+        moving_times: tuple of their time functions.
+        spring: the elastic supports' springs (:class:`jaxsync.fem.support.SurfaceSpring`),
+            or None.
+        dashpot: the update with the supports' dashpots
+            (:class:`jaxsync.fem.support.Dashpot`), or None.
     """
 
     stiffness: BlockEll
@@ -56,6 +72,10 @@ class ExplicitSystem:
     load_times: tuple
     fixed: Any
     fixed_values: Any
+    moving: Any = None
+    moving_times: tuple = ()
+    spring: Any = None
+    dashpot: Any = None
 
 
 @pytree_dataclass
@@ -85,23 +105,18 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     stiffness = force_model(mode).operator(problem)
     mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
     vectors, times = problem.load_vectors()
-    n = problem.mesh.n_nodes
+    n = problem.n_nodes
     load_vectors = jnp.stack(vectors) if vectors else jnp.zeros((0, n, 3))
-    fixed, fixed_values = dirichlet_arrays(problem)
+    fixed, fixed_values, moving = problem.prescribed()
+    damping, dt = jnp.asarray(problem.damping, dtype=float), jnp.asarray(dt, dtype=float)
+    blocks = dashpot_blocks(problem)
     return ExplicitSystem(
-        stiffness=stiffness, mass=mass,
-        damping=jnp.asarray(problem.damping, dtype=float), dt=jnp.asarray(dt, dtype=float),
+        stiffness=stiffness, mass=mass, damping=damping, dt=dt,
         load_vectors=load_vectors, load_times=tuple(times),
-        fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values))
-
-
-def dirichlet_arrays(problem) -> tuple[np.ndarray, np.ndarray]:
-    """(mask (n_nodes, 3) bool, values (n_nodes, 3)) of the prescribed dofs."""
-    dofs, values = problem.dirichlet_dofs()
-    mask = np.zeros(problem.mesh.n_dofs, dtype=bool)
-    full = np.zeros(problem.mesh.n_dofs)
-    mask[dofs], full[dofs] = True, values
-    return mask.reshape(-1, 3), full.reshape(-1, 3)
+        fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values),
+        moving=jnp.stack([v for v, _ in moving]) if moving else None, moving_times=tuple(g for _, g in moving),
+        spring=surface_spring(problem),
+        dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, jnp.asarray(fixed)))
 
 
 def external_force(system: ExplicitSystem, t):
@@ -117,13 +132,35 @@ def central_difference(system: ExplicitSystem, state: SolverState, internal_forc
     dt = system.dt
     f = external_force(system, jnp.asarray(state.step, dtype=dt.dtype) * dt)
     half_damp = 0.5 * system.damping * dt
+    if system.dashpot is not None:
+        rhs = dt * dt * (f - internal_force) + system.mass * (2.0 * state.displacement
+                                                              - (1.0 - half_damp) * state.previous)
+        t_new = jnp.asarray(state.step + 1, dtype=dt.dtype) * dt
+        return apply_dashpot(system.dashpot, rhs, state.previous, prescribed_values(system, t_new))
     return (dt * dt * (f - internal_force) / system.mass + 2.0 * state.displacement
             - (1.0 - half_damp) * state.previous) / (1.0 + half_damp)
 
 
-def apply_dirichlet(system: ExplicitSystem, displacement):
-    """``displacement`` (n_nodes, 3) with the prescribed values written in."""
-    return jnp.where(system.fixed, system.fixed_values, displacement)
+def prescribed_values(system: ExplicitSystem, t):
+    """(n_nodes, 3) prescribed displacement at time ``t`` [cm] (meaningful on the fixed
+    dofs only): the constant values plus the moving conditions' values times their time
+    functions."""
+    values = system.fixed_values
+    for k, g in enumerate(system.moving_times):
+        values = values + g(t) * system.moving[k]
+    return values
+
+
+def apply_dirichlet(system: ExplicitSystem, displacement, t):
+    """``displacement`` (n_nodes, 3) with the prescribed values at time ``t`` [s] written in."""
+    return jnp.where(system.fixed, prescribed_values(system, t), displacement)
+
+
+def internal_forces(system: ExplicitSystem, displacement):
+    """(n_nodes, 3) K d [dyn]: the internal force of the (part's) elements plus the
+    supports' springs, before any exchange."""
+    force = system.stiffness.matvec(displacement)
+    return force if system.spring is None else force + system.spring.matvec(displacement)
 
 
 def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None) -> SolverState:
@@ -134,34 +171,50 @@ def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite
     ``overwrite``, when given, maps the updated displacement to the one kept before the
     Dirichlet values are imposed (the synchronization-avoiding solver writes its
     predicted shared-node displacements there)."""
-    internal = system.stiffness.matvec(state.displacement)
+    internal = internal_forces(system, state.displacement)
     if synchronize is not None:
         internal = synchronize(internal)
     new = central_difference(system, state, internal)
     if overwrite is not None:
         new = overwrite(new)
-    return SolverState(apply_dirichlet(system, new), state.displacement, state.step + 1)
+    t_new = jnp.asarray(state.step + 1, dtype=system.dt.dtype) * system.dt
+    return SolverState(apply_dirichlet(system, new, t_new), state.displacement, state.step + 1)
 
 
 def initial_state(problem, system: ExplicitSystem) -> SolverState:
     """The paper's start: a0 solves M a0 = f(0) - C v0 - K d0 with the CONSISTENT mass
     (Dirichlet rows and columns replaced by the identity, so a0 = 0 there), then
-    d(-1) = d0 - dt v0 + dt^2 / 2 a0. Solved by conjugate gradients (differentiable)."""
+    d(-1) = d0 - dt v0 + dt^2 / 2 a0. Solved by conjugate gradients (differentiable).
+
+    Prescribed displacements that follow a time function g start consistent with it:
+    d0 = g(0) and d(-1) = g(-dt) on their dofs, and their velocity and acceleration at t = 0
+    (central differences of g over one step) enter the free dofs' a0 through the damping
+    and the consistent mass."""
     from .assembly import consistent_mass
     from .sparse import block_ell_values
 
-    n = problem.mesh.n_nodes
+    n = problem.n_nodes
+    dt = system.dt
     d0 = jnp.zeros((n, 3)) if problem.initial_displacement is None else jnp.asarray(
         problem.initial_displacement, dtype=float)
     v0 = jnp.zeros((n, 3)) if problem.initial_velocity is None else jnp.asarray(
         problem.initial_velocity, dtype=float)
-    d0 = apply_dirichlet(system, d0)
+    d0 = apply_dirichlet(system, d0, 0.0)
     free = 1.0 - system.fixed.astype(float)
     adjacency, _, _, M_1 = problem.operators.block_ell
     if problem.density_scale is not None:
         M_1 = block_ell_values(consistent_mass(problem.mesh, problem.density_scale), adjacency)
     mass = BlockEll(jnp.asarray(adjacency), problem.material.rho * jnp.asarray(M_1), symmetric=True)
-    rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - system.stiffness.matvec(d0)
+    accel_fixed = None
+    if system.moving_times:  # the prescribed history's velocity and acceleration at t = 0
+        before, now, after = (prescribed_values(system, t) for t in (-dt, 0.0, dt))
+        v0 = jnp.where(system.fixed, (after - before) / (2.0 * dt), v0)
+        accel_fixed = (1.0 - free) * (after - 2.0 * now + before) / (dt * dt)
+    rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - internal_forces(system, d0)
+    if system.dashpot is not None:  # the supports' dashpots, B v0 (B = coupling / (dt / 2))
+        rhs = rhs - jnp.einsum("nij,nj->ni", system.dashpot.coupling, v0) / (0.5 * dt)
+    if accel_fixed is not None:
+        rhs = rhs - mass.matvec(accel_fixed)
     rhs = free * rhs
 
     def operator(x):
@@ -169,8 +222,7 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
 
     # The consistent P1 mass is well conditioned: CG converges in a few dozen iterations.
     a0, _ = jax.scipy.sparse.linalg.cg(operator, rhs, tol=1e-14, maxiter=1000)
-    dt = system.dt
-    previous = apply_dirichlet(system, d0 - dt * v0 + 0.5 * dt * dt * a0)
+    previous = apply_dirichlet(system, d0 - dt * v0 + 0.5 * dt * dt * a0, -dt)
     return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32))
 
 

@@ -59,6 +59,7 @@ class StableStep:
     cfl: float
     exact: float
     alpha_s: float = ALPHA_S
+    element: str = "P1"
 
     def describe(self) -> str:
         """One line: the step, the rule that set it and the exact bound."""
@@ -69,6 +70,9 @@ class StableStep:
         if self.rule == "cfl":
             return (f"dt {dt:.4e} s (paper's CFL rule; exact stability bound 2/omega_max "
                     f"{exact:.4e} s)")
+        if self.element != "P1":
+            return (f"dt {dt:.4e} s ({self.alpha_s:g} x the exact stability bound 2/omega_max {exact:.4e} s: "
+                    f"{self.element} elements take their step from the exact bound)")
         return (f"dt {dt:.4e} s ({self.alpha_s:g} x the exact stability bound 2/omega_max "
                 f"{exact:.4e} s; the paper's CFL rule, {cfl:.4e} s, is above it: it ignores "
                 "the dilatational wave speed, which grows as nu -> 0.5)")
@@ -116,9 +120,12 @@ def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
             "eigenvalue computed on the host, so it cannot follow a traced nu: pass dt= "
             "explicitly (for instance the problem.dt of the problem at a concrete nu)")
     nu = float(nu)
+    from .support import spring_matrix, spring_ratios
+
+    ratios = spring_ratios(problem)  # k_s / E: the springs at E = 1
     fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
-    key = (nu, None if scale is None else np.asarray(scale, dtype=float).tobytes(), fixed.tobytes())
+    key = (nu, None if scale is None else np.asarray(scale, dtype=float).tobytes(), fixed.tobytes(), ratios)
     memo = problem.operators.stable_step_memo
     if key in memo:
         return memo[key]
@@ -126,7 +133,9 @@ def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
 
     lam, mu = nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), 1.0 / (2.0 * (1.0 + nu))
     K = problem.operators.stiffness(lam, mu)
-    mass = np.repeat(np.asarray(lumped_mass(problem.mesh, scale), dtype=float), 3)
+    if ratios:
+        K = (K + spring_matrix(problem, 1.0 / float(problem.material.E))).tocsr()
+    mass = np.repeat(np.asarray(lumped_mass(problem.space, scale), dtype=float), 3)
     free = np.setdiff1d(np.arange(K.shape[0]), fixed)
     if len(free) == 0:
         raise StabilityError("every dof is prescribed: there is no free motion to bound")
@@ -177,13 +186,17 @@ def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: i
 
 
 def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
-    """The default time step ``min(paper CFL step, alpha_s * 2 / omega_max)`` and its rule.
+    """The default time step ``min(paper CFL step, alpha_s * 2 / omega_max)`` and its rule
+    (quadratic elements: ``alpha_s * 2 / omega_max``, the paper's rule being for P1).
 
     Both steps scale as sqrt(rho / E), so which of them is smaller depends only on nu, the
     mesh, the density scaling and the Dirichlet set: the rule is decided without the
     values of E and rho, and ``dt`` is traced when they are."""
     cfl = cfl_dt(problem, alpha_s)
     exact = max_stable_dt(problem)
+    if problem.element != "P1":  # the paper's rule is for linear tetrahedra
+        return StableStep(dt=alpha_s * exact, rule="exact", cfl=cfl, exact=exact, alpha_s=alpha_s,
+                          element=problem.element)
     m = problem.material
     # the same comparison at E = rho = 1: valid for traced E and rho alike
     h = element_size(problem.mesh.points, problem.mesh.tets)
@@ -247,6 +260,10 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
         (scaled_problem, mass_increase_percent): the problem with ``density_scale`` set,
         and R_m = 100 (M_scaled - M) / M for the total mass.
     """
+    if problem.element != "P1":
+        raise ProblemError("artificial mass scaling (paper Algorithm 2) scales elements by the P1 CFL rule; this "
+                           f"problem uses {problem.element} elements: run it at its own step (problem.dt), or "
+                           "scale a P1 problem")
     if (beta is None) == (dt_target is None):
         raise StabilityError("give exactly one of beta (dt_hat = beta * dt) or dt_target")
     dt_hat = float(dt_target) if dt_target is not None else float(beta) * problem.dt

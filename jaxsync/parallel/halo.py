@@ -84,6 +84,14 @@ class HaloPartition:
         return self.partition.mesh
 
     @property
+    def space(self):
+        return self.partition.space
+
+    @property
+    def n_nodes(self) -> int:
+        return self.partition.n_nodes
+
+    @property
     def n_parts(self) -> int:
         return len(self.parts)
 
@@ -129,15 +137,16 @@ def halo_partition(partition: Partition, depth: int) -> HaloPartition:
     """
     depth = check_halo_depth(depth)
     mesh = partition.mesh
-    n_nodes, tets = mesh.n_nodes, mesh.tets
+    n_nodes, tets = partition.n_nodes, partition.space.cells  # the element's nodes (P2: edges too)
     n_elements = mesh.n_elements
+    k = tets.shape[1]
     # incidence (elements x nodes) and the node graph (neighbours through an element)
     incidence = sp.csr_matrix((np.ones(tets.size, dtype=np.int32),
-                               (np.repeat(np.arange(n_elements), 4), tets.ravel())),
+                               (np.repeat(np.arange(n_elements), k), tets.ravel())),
                               shape=(n_elements, n_nodes))
     graph = (incidence.T @ incidence).tocsr()
     owner = np.full(n_nodes, np.iinfo(np.int64).max, dtype=np.int64)
-    np.minimum.at(owner, tets.ravel(), np.repeat(partition.element_part, 4))
+    np.minimum.at(owner, tets.ravel(), np.repeat(partition.element_part, k))
     parts, owned_local, reach = [], [], []
     for p in range(partition.n_parts):
         ring = owner == p  # N_0

@@ -10,6 +10,7 @@ maps, each part knows where its shared nodes sit both locally and in the interfa
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -60,10 +61,13 @@ class Partition:
     Attributes:
         mesh: the mesh.
         element_part: (n_elements,) part of each element.
-        parts: one :class:`Part` per part.
+        parts: one :class:`Part` per part (its nodes those of ``space``: with P2 elements
+            also the edge nodes of its elements; ``local_tets`` each element's nodes).
         shared_nodes: (n_interface,) global ids of all shared nodes (the interface).
         sharing_parts: tuple, for each interface node, of the parts that touch it.
         seed: the METIS seed used.
+        space: the :class:`~jaxsync.fem.space.FunctionSpace` whose nodes the parts hold
+            (default: the mesh's P1 space).
     """
 
     mesh: Mesh
@@ -72,6 +76,18 @@ class Partition:
     shared_nodes: np.ndarray
     sharing_parts: tuple
     seed: int = 0
+    space: Any = None
+
+    def __post_init__(self):
+        if self.space is None:
+            from ..fem.space import function_space
+
+            object.__setattr__(self, "space", function_space(self.mesh, "P1"))
+
+    @property
+    def n_nodes(self) -> int:
+        """Nodes of the space (the mesh's vertices for P1)."""
+        return self.space.n_nodes
 
     @property
     def n_parts(self) -> int:
@@ -88,7 +104,7 @@ class Partition:
         dofs = np.asarray(dofs, dtype=np.int64)
         out = []
         for part in self.parts:
-            local_of = np.full(self.mesh.n_nodes, -1, dtype=np.int64)
+            local_of = np.full(self.n_nodes, -1, dtype=np.int64)
             local_of[part.nodes] = np.arange(part.n_local)
             local_node = local_of[dofs // 3]
             keep = local_node >= 0
@@ -97,7 +113,7 @@ class Partition:
 
     def summary(self) -> str:
         """A printable table: elements, nodes and shared nodes per part, interface size."""
-        lines = [f"Partition of {self.mesh.n_elements} elements / {self.mesh.n_nodes} nodes "
+        lines = [f"Partition of {self.mesh.n_elements} elements / {self.n_nodes} nodes "
                  f"into {self.n_parts} parts (METIS seed {self.seed})",
                  f"{'part':>6} {'elements':>10} {'nodes':>8} {'shared':>8}"]
         for part in self.parts:
@@ -110,16 +126,34 @@ class Partition:
                 f"elements per part={[len(p.elements) for p in self.parts]})")
 
 
-def partition(mesh: Mesh, n_parts: int, seed: int = 0) -> Partition:
-    """Partition ``mesh``'s elements into ``n_parts`` face-connected parts with METIS.
+def _space_of(target):
+    """The function space of a mesh (P1), a problem or a space."""
+    from ..fem.space import FunctionSpace, function_space
 
-    Uses ``pymetis.part_mesh`` on the dual graph (elements sharing a face,
-    ``ncommon=3``). Deterministic for a given ``seed``.
+    if isinstance(target, Mesh):
+        return function_space(target, "P1")
+    if isinstance(target, FunctionSpace):
+        return target
+    if hasattr(target, "space"):  # a Problem
+        return target.space
+    raise PartitionError(f"partition a jaxsync.Mesh, a Problem or a FunctionSpace, got {type(target).__name__}")
+
+
+def partition(mesh, n_parts: int, seed: int = 0) -> Partition:
+    """Partition the elements of ``mesh`` into ``n_parts`` face-connected parts with METIS.
+
+    ``mesh``: a :class:`jaxsync.Mesh` (its vertices are the parts' nodes), or a
+    :class:`jaxsync.Problem` or :class:`~jaxsync.fem.space.FunctionSpace` (the nodes of
+    its elements: with P2, the edge nodes too). Uses ``pymetis.part_mesh`` on the dual
+    graph (elements sharing a face, ``ncommon=3``). Deterministic for a given ``seed``.
 
     Raises:
         PartitionError: n_parts < 1, more parts than elements, or METIS left a part empty.
     """
     import pymetis
+
+    space = _space_of(mesh)
+    mesh = space.mesh
 
     if isinstance(n_parts, bool) or not isinstance(n_parts, (int, np.integer)) or n_parts < 1:
         raise PartitionError(f"n_parts must be a positive integer, got {n_parts!r}")
@@ -138,35 +172,38 @@ def partition(mesh: Mesh, n_parts: int, seed: int = 0) -> Partition:
         raise PartitionError(
             f"METIS left part(s) {np.flatnonzero(counts == 0).tolist()} empty when splitting "
             f"{mesh.n_elements} elements into {n_parts} parts: use fewer parts or a finer mesh")
-    return partition_from_elements(mesh, element_part, seed=seed)
+    return partition_from_elements(space, element_part, seed=seed)
 
 
-def partition_from_elements(mesh: Mesh, element_part: np.ndarray, seed: int = 0) -> Partition:
-    """Build the index maps of a given element-to-part assignment (n_elements,)."""
+def partition_from_elements(mesh, element_part: np.ndarray, seed: int = 0) -> Partition:
+    """Build the index maps of a given element-to-part assignment (n_elements,) of a mesh
+    (a problem or a space: see :func:`partition`)."""
+    space = _space_of(mesh)
+    mesh, cells = space.mesh, space.cells
     element_part = np.asarray(element_part, dtype=np.int64)
     if element_part.shape != (mesh.n_elements,) or element_part.min() < 0:
         raise PartitionError("element_part must give a part >= 0 for every element")
     n_parts = int(element_part.max()) + 1
     # touches[p, node]: does part p touch node?
-    touches = np.zeros((n_parts, mesh.n_nodes), dtype=bool)
-    touches[np.repeat(element_part, 4), mesh.tets.ravel()] = True
+    touches = np.zeros((n_parts, space.n_nodes), dtype=bool)
+    touches[np.repeat(element_part, cells.shape[1]), cells.ravel()] = True
     n_touching = touches.sum(axis=0)
     shared_nodes = np.flatnonzero(n_touching >= 2)
-    interface_of = np.full(mesh.n_nodes, -1, dtype=np.int64)
+    interface_of = np.full(space.n_nodes, -1, dtype=np.int64)
     interface_of[shared_nodes] = np.arange(len(shared_nodes))
     sharing_parts = tuple(np.flatnonzero(touches[:, node]) for node in shared_nodes)
     parts = []
     for p in range(n_parts):
         elements = np.flatnonzero(element_part == p)
         nodes = np.flatnonzero(touches[p])
-        local_of = np.full(mesh.n_nodes, -1, dtype=np.int64)
+        local_of = np.full(space.n_nodes, -1, dtype=np.int64)
         local_of[nodes] = np.arange(len(nodes))
         shared_local = np.flatnonzero(n_touching[nodes] >= 2)
         parts.append(Part(index=p, elements=elements, nodes=nodes,
-                          local_tets=local_of[mesh.tets[elements]], shared_local=shared_local,
+                          local_tets=local_of[cells[elements]], shared_local=shared_local,
                           shared_interface=interface_of[nodes[shared_local]]))
     return Partition(mesh=mesh, element_part=element_part, parts=tuple(parts),
-                     shared_nodes=shared_nodes, sharing_parts=sharing_parts, seed=int(seed))
+                     shared_nodes=shared_nodes, sharing_parts=sharing_parts, seed=int(seed), space=space)
 
 
 def partition_of(trajectory) -> Partition:
@@ -180,4 +217,4 @@ def partition_of(trajectory) -> Partition:
         element_part[np.asarray(part.elements)] = p
     if np.any(element_part < 0):
         raise PartitionError("the trajectory's parts do not cover every element")
-    return partition_from_elements(trajectory.mesh, element_part)
+    return partition_from_elements(trajectory.space, element_part)

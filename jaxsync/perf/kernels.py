@@ -66,7 +66,8 @@ def local_step(system, state: SolverState, scale, n_steps: int) -> SolverState:
 
 def _update(system, s: SolverState, internal_force) -> SolverState:
     new = central_difference(system, s, internal_force)
-    return SolverState(apply_dirichlet(system, new), s.displacement, s.step + 1)
+    t_new = jnp.asarray(s.step + 1, dtype=system.dt.dtype) * system.dt
+    return SolverState(apply_dirichlet(system, new, t_new), s.displacement, s.step + 1)
 
 
 def step_without_force(system, state: SolverState, scale, n_steps: int) -> SolverState:

@@ -224,8 +224,12 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
 def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     """:func:`step_costs` of a :class:`jaxsync.Problem`, whole or per part.
 
+    The preassembled product's slots per row are those of the default layout
+    (:class:`jaxsync.fem.sparse.GroupedEll`: rows grouped by degree, each group padded to
+    its own width), averaged over the rows and rounded up.
+
     Args:
-        problem: the problem (mesh size, ELL width, load vectors).
+        problem: the problem (nodes of its element, ELL slots, load vectors).
         partition: None for the whole mesh on one device (no synchronization), or a
             :class:`jaxsync.Partition` of ``problem.mesh``: then each part at its own
             (unpadded) size, as :func:`jaxsync.perf.timing.timing_breakdown` measures it (the
@@ -235,21 +239,31 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
-    from ..fem.sparse import node_adjacency
-
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh
     if partition is None:
-        width = node_adjacency(mesh.tets, mesh.n_nodes).shape[1] if mode == "preassembled" else None
-        return step_costs(mesh.n_nodes, width, mesh.n_elements, n_loads, mode)
+        width = _slots_per_row(problem.space.cells, problem.n_nodes) if mode == "preassembled" else None
+        return step_costs(problem.n_nodes, width, mesh.n_elements, n_loads, mode)
     if partition.mesh.n_nodes != mesh.n_nodes or partition.mesh.n_elements != mesh.n_elements:
         raise ProblemError("the partition was made for another mesh: partition problem.mesh")
     out = []
     for part in partition.parts:
-        width = node_adjacency(part.local_tets, part.n_local).shape[1] if mode == "preassembled" else None
+        width = _slots_per_row(part.local_tets, part.n_local) if mode == "preassembled" else None
         out.append(step_costs(part.n_local, width, len(part.elements), n_loads, mode,
                               part.n_shared, partition.n_interface))
     return tuple(out)
+
+
+def _slots_per_row(cells, n_nodes: int) -> int:
+    """Stored block slots per row of the default grouped layout, rounded up."""
+    from ..fem.sparse import degree_widths, node_adjacency, row_degrees
+
+    degree = row_degrees(node_adjacency(cells, n_nodes))
+    low, slots = 0, 0
+    for width in degree_widths(degree):
+        slots += width * int(((degree > low) & (degree <= width)).sum())
+        low = width
+    return -(-slots // n_nodes)
 
 
 # ----------------------------------------------------------------------------- surrogate

@@ -187,7 +187,7 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
                                n_shared=part.n_shared, t_e=t_force - t_m, t_m=t_m,
                                t_s=t_s, t_o=t["other"], t_local=t["full"], t_t=t["full"] + t_s))
     return TimingReport(mode=mode, n_parts=part_info.n_parts, n_shared_nodes=part_info.n_interface,
-                        n_nodes=problem.mesh.n_nodes, n_elements=problem.mesh.n_elements,
+                        n_nodes=problem.n_nodes, n_elements=problem.mesh.n_elements,
                         n_steps=n_steps, repeats=repeats, dt=dt,
                         device=describe_devices(runner.devices), n_devices=len(runner.devices),
                         rows=tuple(rows), t_step=t_step, t_step_nosync=t_step_nosync,

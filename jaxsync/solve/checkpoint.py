@@ -65,6 +65,15 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     for ic in (problem.initial_displacement, problem.initial_velocity, problem.density_scale):
         if ic is not None:
             h.update(np.asarray(ic, dtype=float).tobytes())
+    # supports and prescribed histories (absent from the fingerprints of problems without them)
+    if problem.element != "P1":
+        h.update(problem.element.encode())
+    for support in problem.supports:
+        h.update(repr((support.surface, float(support.stiffness), float(support.damping),
+                       support.normal_only)).encode())
+    for bc in problem.dirichlet:
+        if bc.time is not None:
+            h.update(repr((bc.where if isinstance(bc.where, str) else "predicate", bc.time)).encode())
     return h.hexdigest()
 
 

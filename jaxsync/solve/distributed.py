@@ -66,17 +66,24 @@ def _default_devices(n_parts: int, devices=None, transport: str = "xla"):
 
 
 def _partition(problem, partitions) -> Partition:
-    """The :class:`Partition` of ``partitions`` (a Partition, or an int: METIS with seed 0;
-    in a multi-process run every rank takes rank 0's parts)."""
+    """The :class:`Partition` of ``partitions`` on the problem's nodes (a Partition, or an
+    int: METIS with seed 0; in a multi-process run every rank takes rank 0's parts). A
+    partition of the problem's mesh made for other nodes (a P1 partition of a P2 problem)
+    is rebuilt on the problem's nodes with the same elements in each part."""
     if isinstance(partitions, Partition):
-        return partitions
-    partition = make_partition(problem.mesh, partitions)
+        if partitions.space is problem.space:
+            return partitions
+        if partitions.mesh is problem.mesh or (partitions.mesh.n_elements == problem.mesh.n_elements and
+                                                np.array_equal(partitions.mesh.tets, problem.mesh.tets)):
+            return partition_from_elements(problem.space, partitions.element_part, seed=partitions.seed)
+        return partitions  # another mesh: refused with the fix when the parts are laid out
+    partition = make_partition(problem, partitions)
     if jax.process_count() > 1:  # every rank must use rank 0's parts
         from jax.experimental import multihost_utils
 
         reference = np.asarray(multihost_utils.broadcast_one_to_all(partition.element_part))
         if not np.array_equal(reference, partition.element_part):
-            partition = partition_from_elements(problem.mesh, reference)
+            partition = partition_from_elements(problem.space, reference)
     return partition
 
 
@@ -210,7 +217,7 @@ class DistributedRunner:
         self._unit = d.check_save_every(save_every)
         if record_shared:
             check_recordable(d.exchange)
-        self.n_nodes = self.partition.mesh.n_nodes
+        self.n_nodes = self.partition.n_nodes
         self.n_local = self.layout.n_local
         self.parts = d.put(d.systems(problem, system))
         self._advance = {}

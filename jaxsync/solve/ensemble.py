@@ -33,7 +33,8 @@ __all__ = ["ensemble"]
 # Only the per-run data are batched: the stiffness, mass, damping, dt, constrained dofs and
 # load time functions are one copy for all runs.
 _RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, load_vectors=0,
-                           load_times=None, fixed=None, fixed_values=0)
+                           load_times=None, fixed=None, fixed_values=0, moving=0, moving_times=None,
+                           spring=None, dashpot=None)
 
 
 def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface, adjoint=None):
@@ -175,27 +176,29 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     if not traced:
         dt = float(dt)
     mesh = first.mesh
-    partition = _partition(mesh, partitions)
+    partition = _partition(first, partitions)
 
     # One system for all runs: check every problem's against the first, keep its per-run data.
     reference = build_system(first, dt)
-    load_vectors, fixed_values, states = [], [], []
+    load_vectors, fixed_values, moving, states = [], [], [], []
     for index, problem in enumerate(problems):
         system = reference if index == 0 else build_system(problem, dt)
         what = None if traced else _difference(problem, system, first, reference)
         if what is not None:
             raise ProblemError(
                 f"problem {index} of the ensemble differs from problem 0 in its {what}: the runs of an "
-                "ensemble share one system (mesh, material, damping, density scale, constrained dofs and "
-                "load time functions) and may differ only in load magnitudes, Dirichlet values and "
+                "ensemble share one system (mesh, material, damping, supports, density scale, constrained dofs "
+                "and time functions) and may differ only in load magnitudes, Dirichlet values and "
                 f"initial conditions; run problem {index} separately with jaxsync.simulate")
         load_vectors.append(system.load_vectors)
         fixed_values.append(system.fixed_values)
-    for problem, loads, values in zip(problems, load_vectors, fixed_values):  # the paper's start, per run
+        moving.append(system.moving)
+    for problem, loads, values, history in zip(problems, load_vectors, fixed_values, moving):  # the start, per run
         states.append(initial_state(problem, dataclasses.replace(reference, load_vectors=loads,
-                                                                 fixed_values=values)))
+                                                                 fixed_values=values, moving=history)))
     batched = dataclasses.replace(reference, load_vectors=jnp.stack(load_vectors),
-                                  fixed_values=jnp.stack(fixed_values))
+                                  fixed_values=jnp.stack(fixed_values),
+                                  moving=None if reference.moving is None else jnp.stack(moving))
     stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
     record = partition is not None and save.records_every_step
     interface = partition.shared_nodes if record else None
@@ -225,7 +228,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     if isinstance(executor, TracedExecutor):
         n_saves = n_steps // save.every
         if n_saves == 0:
-            return tuple(trajectories(jnp.zeros((0, n_runs, mesh.n_nodes, 3)), None))
+            return tuple(trajectories(jnp.zeros((0, n_runs, first.n_nodes, 3)), None))
         _, out = _advance_runs(batched, stacked, n_saves, save.every,
                                None if interface is None else jnp.asarray(interface), executor.adjoint)
         saved, every_step = out if record else (out, None)
@@ -234,10 +237,10 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
         return tuple(trajectories(saved, every_step, result=result))
 
     start_fields = [np.asarray(f) for f in start_fields]
-    runner = _EnsembleRunner(batched, n_runs, mesh.n_nodes, save.every, interface)
+    runner = _EnsembleRunner(batched, n_runs, first.n_nodes, save.every, interface)
 
     def from_segment(segment, result):
-        saved = segment.displacement.reshape(len(segment.displacement), n_runs, mesh.n_nodes, 3)
+        saved = segment.displacement.reshape(len(segment.displacement), n_runs, first.n_nodes, 3)
         every_step = None
         if record:
             every_step = (np.zeros((0, n_runs, partition.n_interface, 3)) if segment.shared is None
@@ -262,17 +265,21 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
     return tuple(dataclasses.replace(traj, stats=stats) for traj in from_segment(segment, Result.SUCCESSFUL))
 
 
-def _partition(mesh, partitions):
-    """None, or the :class:`jaxsync.Partition` of ``partitions`` (an int or a Partition)."""
-    from ..parallel.partitioning import Partition, partition
+def _partition(problem, partitions):
+    """None, or the :class:`jaxsync.Partition` of ``partitions`` (an int or a Partition) on
+    the problem's nodes."""
+    from ..parallel.partitioning import Partition, partition, partition_from_elements
 
     if partitions is None:
         return None
     if not isinstance(partitions, Partition):
-        return partition(mesh, partitions)
+        return partition(problem, partitions)
+    mesh = problem.mesh
     if partitions.mesh is not mesh and not (partitions.mesh.n_nodes == mesh.n_nodes
                                             and np.array_equal(partitions.mesh.tets, mesh.tets)):
         raise PartitionError("the partition was made for another mesh: partition the problems' mesh")
+    if partitions.space is not problem.space:
+        return partition_from_elements(problem.space, partitions.element_part, seed=partitions.seed)
     return partitions
 
 
@@ -282,6 +289,8 @@ def _difference(problem, system: ExplicitSystem, reference_problem, reference: E
     if mesh is not ref_mesh and not (np.array_equal(mesh.points, ref_mesh.points)
                                      and np.array_equal(mesh.tets, ref_mesh.tets)):
         return "mesh (points or tetrahedra)"
+    if problem.element != reference_problem.element:
+        return "element (P1 or P2)"
     checks = (
         ("number of loads", lambda: len(system.load_times) == len(reference.load_times)),
         ("stiffness (material E, nu)", lambda: _same(system.stiffness, reference.stiffness)),
@@ -289,6 +298,10 @@ def _difference(problem, system: ExplicitSystem, reference_problem, reference: E
         ("damping", lambda: _same(system.damping, reference.damping)),
         ("time step", lambda: _same(system.dt, reference.dt)),
         ("constrained dofs (which dofs are fixed)", lambda: _same(system.fixed, reference.fixed)),
+        ("prescribed-displacement time functions", lambda: _same(system.moving_times, reference.moving_times)
+         and (system.moving is None) == (reference.moving is None)),
+        ("elastic supports", lambda: _same(system.spring, reference.spring) and _same(system.dashpot,
+                                                                                     reference.dashpot)),
         ("load time functions (ramp, switch-off time, waveform)",
          lambda: _same(system.load_times, reference.load_times)),
     )

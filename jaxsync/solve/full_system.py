@@ -54,7 +54,7 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
         raise ProblemError(f"surrogates={surrogates!r} is a path: load the surrogate file first, "
                            "jaxsync.surrogate.load_surrogate(path)")
-    n_dof = problem.mesh.n_dofs
+    n_dof = problem.n_dofs
     if isinstance(surrogates, SavedSurrogate):
         if surrogates.n_parts != 1 or surrogates.dof_counts[0] != n_dof:
             raise CheckpointError(f"full-system modeling needs one surrogate over all {n_dof} dofs; "
@@ -89,7 +89,7 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     fixed, values = problem.dirichlet_dofs()
     dirichlet_error = float(np.abs(predicted[:, fixed] - values).max()) if len(predicted) else 0.0
     return Trajectory(times=np.arange(n_steps + 1) * reference.dt, displacement=displacement,
-                      mesh=problem.mesh, dt=reference.dt, save_every=1,
+                      mesh=problem.mesh, element=problem.element, dt=reference.dt, save_every=1,
                       parameters=dict(reference.parameters),
                       stats=RunStats(**{"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
                                   "n_predicted_steps": n_steps - n_cri,

@@ -87,7 +87,8 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
             shared_every = save.shared_every
         parts = part_histories(partition, shared)
     jumps = known_load_jumps(problem.loads, n_steps, dt)
-    return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, dt=dt, save_every=save.every,
+    return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, element=problem.element, dt=dt,
+                      save_every=save.every,
                       parameters=run_parameters(problem, jumps), parts=parts, shared_every=shared_every,
                       stats=stats, result=result)
 
@@ -112,5 +113,5 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
                                        for part in partition.parts],
                            [pred[p, :, :counts[p]] for p in range(partition.n_parts)])
     return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
-                      mesh=problem.mesh, dt=dt, save_every=save_every, parameters=parameters, parts=parts,
-                      synchronized=flags, stats=stats, result=result)
+                      mesh=problem.mesh, element=problem.element, dt=dt, save_every=save_every,
+                      parameters=parameters, parts=parts, synchronized=flags, stats=stats, result=result)

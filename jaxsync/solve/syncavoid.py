@@ -191,8 +191,9 @@ def _traced_run(problem, dt, mode, schedule, save, executor, distributed, predic
     predicted = [run.predictions[p, :, :3 * part.n_shared] for p, part in enumerate(partition.parts)]
     synchronized = np.arange(n_saved) * save.every <= schedule[0].n_steps
     return Trajectory(times=jnp.arange(n_saved, dtype=system.dt.dtype) * save.every * system.dt,
-                      displacement=displacement, mesh=problem.mesh, dt=dt, save_every=save.every,
-                      parameters=run_parameters(problem, jumps), parts=part_histories(partition, shared, predicted),
+                      displacement=displacement, mesh=problem.mesh, element=problem.element, dt=dt,
+                      save_every=save.every, parameters=run_parameters(problem, jumps),
+                      parts=part_histories(partition, shared, predicted),
                       synchronized=synchronized, result=run.result)
 
 

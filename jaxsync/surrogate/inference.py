@@ -1,4 +1,4 @@
-"""Reduced-precision inference of the surrogates, and the check that it keeps accuracy (issue 14).
+"""Reduced-precision inference of the surrogates, and the check that it keeps accuracy.
 
 :meth:`Surrogate.with_inference_dtype("bfloat16") <jaxsync.surrogate.Surrogate.with_inference_dtype>`
 runs the networks with bfloat16 weights and activations and float32 accumulation

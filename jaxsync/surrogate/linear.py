@@ -1,4 +1,4 @@
-"""Linear autoregressive surrogate: the baseline beside the LSTM (issue 14).
+"""Linear autoregressive surrogate: the baseline beside the LSTM.
 
 The same interface as :mod:`jaxsync.surrogate.lstm` -- an architecture, ``init_params``
 and ``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window

@@ -29,7 +29,7 @@ the encoder, 2 n_H in the decoder); the dense layer's weight and bias
 
 Conditional variant: the decoder input is ``[y_prev, alpha_f repeated q times]``.
 
-Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`, issue 14):
+Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
 every matrix product takes bfloat16 operands -- the weights, the layer inputs, the hidden
 states and the fed-back predictions, rounded to bfloat16 -- and accumulates in float32
 (``preferred_element_type``); biases are rounded to bfloat16 and added in float32, and the

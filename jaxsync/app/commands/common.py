@@ -12,7 +12,7 @@ import sys
 
 from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Sync, choices
 
-__all__ = ["add_compression_option", "compression_of", "add_mode_option", "add_sync_option", "sync_of",
+__all__ = ["add_compression_option", "compression_of", "add_mode_option", "mode_of", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
            "add_surrogate_options", "join_negative_values", "accept_negative_numbers", "refuse_to_overwrite",
            "process_count", "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run",
@@ -43,7 +43,8 @@ def load_trained_run(args):
 
     reference = Trajectory.load(args.trajectory)
     part = partition_of(reference)
-    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh)
+    # the run's element is the trajectory's (a P2 run's surrogates predict at P2 nodes)
+    problem, _ = problem_from_config(load_config(args.config), mesh_file=args.mesh, element=reference.element)
     if (problem.mesh.n_nodes != reference.mesh.n_nodes
             or not np.array_equal(problem.mesh.tets, reference.mesh.tets)):
         raise PartitionError(f"the problem's mesh differs from the mesh of {args.trajectory}; "
@@ -59,10 +60,30 @@ def add_compression_option(parser) -> None:
 
 
 def add_mode_option(parser) -> None:
-    """``--mode``: the internal force formulation (paper Remark 2)."""
+    """``--mode``: the internal force formulation (paper Remark 2), and
+    ``--float32-blocks``: the stored K's blocks in single precision."""
     parser.add_argument("--mode", choices=choices(Mode), default=DEFAULT_MODE,
                         help="internal force: stored sparse K, or element quantities formed every "
                              "step (default: %(default)s)")
+    parser.add_argument("--float32-blocks", action="store_true",
+                        help="store K's off-diagonal blocks in float32 (state and sums stay float64): a "
+                             "faster step on large meshes, displacements within about 1e-6 relative of "
+                             "float64 for runs loaded from rest (docs: performance guide); "
+                             "--mode preassembled only")
+
+
+def mode_of(args):
+    """The force model of ``--mode`` and ``--float32-blocks``: the mode's name, or
+    :class:`jaxsync.fem.internal_force.Preassembled` with float32 blocks."""
+    from ...errors import ConfigError
+
+    if not getattr(args, "float32_blocks", False):
+        return args.mode
+    if args.mode != "preassembled":
+        raise ConfigError("--float32-blocks stores the preassembled K: use it with --mode preassembled")
+    from ...fem.internal_force import Preassembled
+
+    return Preassembled(blocks_dtype="float32")
 
 
 def add_sync_option(parser, deep_halos: bool = False) -> None:
@@ -212,14 +233,14 @@ def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None
         key = os.path.normcase(os.path.realpath(path))
         if key in seen:
             raise ConfigError(f"{path} is used for two outputs (also as {seen[key]}); give the "
-                              "trajectory, XDMF and checkpoint files different names")
+                              "trajectory, XDMF, VTU and checkpoint files different names")
         seen[key] = path
     existing = [path for path in paths if os.path.exists(path)]
     if existing and not force:
         names = ", ".join(existing)
         raise ConfigError(f"{names} already exist{'s' if len(existing) == 1 else ''} (the output "
                           "of an earlier run?); pass --force to overwrite, or choose other "
-                          "names with -o/--xdmf")
+                          "names with -o/--xdmf/--vtu")
 
 
 def process_count() -> int:
@@ -338,10 +359,16 @@ def package_warnings():
 
 def report_warnings(caught) -> None:
     """Show warnings recorded with ``warnings.catch_warnings(record=True)``: the
-    package's own as one ``warning: ...`` line on stderr, any other as Python shows it."""
+    package's own as one ``warning: ...`` line on stderr, any other as Python shows it;
+    a repeated warning (the same class and text) once."""
     import warnings
 
+    seen = set()
     for w in caught:
+        key = (w.category, str(w.message))
+        if key in seen:
+            continue
+        seen.add(key)
         if is_package_warning(w.category):
             _show_package_warning(w.message)
         else:

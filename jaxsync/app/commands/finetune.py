@@ -61,7 +61,7 @@ def run(args) -> int:
     config = FineTuneConfig(**{k: v for k, v in given.items() if v is not None})
     config = dataclasses.replace(config, validate_every=min(config.validate_every, config.n_iterations))
     result = fine_tune_in_the_loop(problem, Surrogate.from_saved(saved), part, n_steps=span, config=config,
-                                   dt=reference.dt, mode=args.mode, progress=not args.no_progress)
+                                   dt=reference.dt, mode=common.mode_of(args), progress=not args.no_progress)
     metadata = {**saved.metadata, "fine_tuned": {**result.summary(), "span_steps": span,
                                                 "config": {k: getattr(config, k) for k in config.__dataclass_fields__},
                                                 "from_surrogate": str(args.surrogate)}}

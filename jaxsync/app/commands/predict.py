@@ -67,7 +67,8 @@ def run(args) -> int:
     if args.inference_dtype == "bfloat16":
         surrogates = _reduced_precision(surrogates, reference, args.trajectory)
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
-                                    dt=reference.dt, mode=args.mode, save=args.save_every or reference.save_every,
+                                    dt=reference.dt, mode=common.mode_of(args),
+                                    save=args.save_every or reference.save_every,
                                     resync_tolerance=args.resync_tolerance, load_jumps=args.load_jumps,
                                     executor=HostExecutor(progress=not args.no_progress), **common.sync_of(args))
     with common.writing(args.output):

@@ -69,7 +69,7 @@ def run(args) -> int:
     reference = Trajectory.load(args.reference)
     online = Trajectory.load(args.online)
     reference = same_steps(reference, online, args.reference, args.online)
-    fixed = constrained_nodes(args.config, online.mesh, reference.displacement)
+    fixed = constrained_nodes(args.config, online.space, reference.displacement)
     summary = write_report(reference, online, partition_of(online), args.out,
                            component=args.component, fixed_nodes=fixed, nodes=args.node,
                            extra={"online_statistics": online.stats.to_dict()})

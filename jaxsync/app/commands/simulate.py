@@ -9,6 +9,7 @@ import os
 import sys
 import time
 
+from ...options import Element, choices
 from . import common
 
 
@@ -24,7 +25,13 @@ def add_parser(subparsers) -> None:
     common.accept_negative_numbers(p)
     p.add_argument("config", nargs="?", default=None,
                    help="TOML problem file (default: the packaged cantilever)")
-    p.add_argument("--mesh", default=None, help="mesh file to use instead of [mesh]")
+    p.add_argument("--mesh", default=None,
+                   help="mesh file, or SimVascular mesh folder (mesh-complete.mesh.vtu and "
+                        "mesh-surfaces/*.vtp, one facet set per face), to use instead of [mesh]")
+    p.add_argument("--element", choices=choices(Element), default=None,
+                   help="finite element ([problem] element): P1 linear or P2 quadratic tetrahedra (P2 for "
+                        "bending and nearly incompressible tissue, nu >= 0.45; default: P2 on a quadratic "
+                        "tetra10 mesh, else P1)")
     p.add_argument("--steps", type=int, default=None, help="number of time steps ([run] n_steps)")
     p.add_argument("--save-every", type=int, default=None,
                    help="keep one snapshot every this many steps ([run] save_every)")
@@ -48,9 +55,13 @@ def add_parser(subparsers) -> None:
                    help="HDF5 trajectory file ([run] output); with -o, an XDMF output the file "
                         "asks for ([run] xdmf) is named after it: <stem>.xdmf")
     p.add_argument("--xdmf", default=None, help="also write an XDMF time series for ParaView")
+    p.add_argument("--vtu", default=None, metavar="PREFIX",
+                   help="also write a VTU series for ParaView ([run] vtu): PREFIX.pvd and one "
+                        "PREFIX/<name>_NNNNNN.vtu per snapshot (displacement and GlobalNodeID); "
+                        "with -o, a VTU output the file asks for is named after it")
     p.add_argument("--force", action="store_true",
                    help="overwrite existing output files (trajectory, XDMF and its .xdmf.h5, "
-                        "timings JSON); without it the run is refused before it starts, except "
+                        "VTU series, timings JSON); without it the run is refused before it starts, except "
                         "when it resumes from an existing --checkpoint: it then continues the "
                         "run that wrote those outputs and replaces them")
     p.add_argument("--checkpoint", default=None,
@@ -96,6 +107,26 @@ def outputs(args, config: dict) -> tuple[str, str | None, str | None, bool]:
     return output, xdmf, checkpoint, bool(checkpoint) and os.path.exists(checkpoint)
 
 
+def vtu_output(args, config: dict) -> str | None:
+    """Prefix of the VTU series of a ``jaxsync simulate`` run (None: none), from the command
+    line over the (path-resolved) config; like the XDMF output, a ``[run] vtu`` of the
+    file is named after ``-o`` when that is given."""
+    run_table = config.get("run", {})
+    if args.vtu:
+        return args.vtu
+    if run_table.get("vtu") and args.output:  # two runs with different -o keep their own series
+        return os.path.splitext(args.output)[0]
+    return run_table.get("vtu")
+
+
+def vtu_files(vtu: str) -> list[str]:
+    """What Trajectory.to_vtu writes: the collection ``<prefix>.pvd`` and the folder
+    ``<prefix>/`` of the step files."""
+    from ...trajectory import vtu_series_paths
+
+    return list(vtu_series_paths(vtu))
+
+
 def xdmf_files(xdmf: str) -> list[str]:
     """The files Trajectory.to_xdmf writes: ``<stem>.xdmf`` and ``<stem>.xdmf.h5``."""
     return [xdmf, os.path.splitext(xdmf)[0] + ".xdmf.h5"]
@@ -108,13 +139,20 @@ def report_warnings(caught) -> None:
     common.report_warnings(caught)
 
 
-def check_locations(output, xdmf, checkpoint, timings_path=None) -> None:
+def check_locations(output, xdmf, checkpoint, timings_path=None, vtu=None) -> None:
     """Refuse, before anything runs, output locations that cannot be written."""
     if timings_path is not None:
         common.check_outputs((timings_path, "timings JSON", "--timings"))
         return
+    series = vtu_files(vtu) if vtu else []
+    if series:
+        from ...trajectory import check_vtu_location
+
+        check_vtu_location(vtu)
     common.check_outputs((output, "trajectory", "-o"),
                          *((path, "XDMF output", "--xdmf") for path in (xdmf_files(xdmf) if xdmf else [])),
+                         *([(series[0], "VTU collection", "--vtu"), (series[1], "VTU step files", "--vtu", True)]
+                           if series else []),
                          (checkpoint, "checkpoint", "--checkpoint"))
 
 
@@ -161,26 +199,33 @@ def run(args) -> int:
     main_rank = common.is_main_process()
     config = load_config(args.config)
     output, xdmf, checkpoint, resuming = outputs(args, config)
+    vtu = vtu_output(args, config)
     if args.timings is not None:
         timings_path = args.timings or os.path.splitext(output)[0] + ".timings.json"
         if main_rank:
             common.refuse_to_overwrite([timings_path], force=args.force)
             check_locations(output, xdmf, checkpoint, timings_path)
     elif main_rank:  # the writer; checked before the mesh is read and anything runs
-        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []),
+        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []) + (vtu_files(vtu) if vtu else []),
                                    force=args.force or resuming, checkpoint=checkpoint)
-        check_locations(output, xdmf, checkpoint)
+        check_locations(output, xdmf, checkpoint, vtu=vtu)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         problem, run_config = problem_from_config(config, mesh_file=args.mesh,
                                                   mass_scaling_dt=args.mass_scaling_dt,
-                                                  mass_scaling_beta=args.mass_scaling_beta)
+                                                  mass_scaling_beta=args.mass_scaling_beta,
+                                                  element=args.element)
     if main_rank:
         report_warnings(caught)
     dt = args.dt if args.dt is not None else run_config.dt  # None: the (mass-scaled) CFL step
     sync = common.sync_of(args)  # only when asked for: the library keeps its one default
     if args.timings is not None:
         from ...perf.timing import timing_breakdown
+
+        if args.float32_blocks:
+            from ...errors import ConfigError
+
+            raise ConfigError("--timings measures the float64 stages; leave out --float32-blocks")
 
         report = timing_breakdown(problem, _partitions(problem, args.parts or 1, args.seed), mode=args.mode,
                                   dt=dt, **sync)
@@ -191,7 +236,7 @@ def run(args) -> int:
             print(f"wrote {timings_path}")
         return 0
     return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, xdmf=xdmf,
-                     checkpoint=checkpoint, main_rank=main_rank)
+                     checkpoint=checkpoint, main_rank=main_rank, vtu=vtu)
 
 
 def _partitions(problem, n_parts: int, seed: int):
@@ -202,7 +247,7 @@ def _partitions(problem, n_parts: int, seed: int):
     return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
 
 
-def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, main_rank) -> int:
+def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, main_rank, vtu=None) -> int:
     import dataclasses
 
     from ...errors import StabilityError
@@ -228,7 +273,7 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
         every = args.checkpoint_every or run_config.checkpoint_every
         trajectory = solver.simulate(
             problem, n_steps, dt=dt, save=SaveAt(save_every, args.shared_every),
-            partitions=None if parts is None else _partitions(problem, parts, args.seed), mode=args.mode,
+            partitions=None if parts is None else _partitions(problem, parts, args.seed), mode=common.mode_of(args),
             checkpoint=None if checkpoint is None else SolverCheckpoint(checkpoint, every),
             executor=HostExecutor(progress=main_rank and not args.no_progress), **sync)
     except StabilityError as exc:
@@ -264,4 +309,8 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
         with common.writing(*xdmf_files(xdmf)):
             trajectory.to_xdmf(xdmf)
         print(f"wrote {xdmf}")
+    if vtu:
+        with common.writing(*vtu_files(vtu)):
+            pvd = trajectory.to_vtu(vtu)
+        print(f"wrote {pvd} and its step files in {vtu_files(vtu)[1]}")
     return 0
