@@ -69,7 +69,15 @@ def targets(summary: dict) -> dict:
     q = summary.get("es_hat_tracking") or {}
     interior = summary.get("interior_max_relative_error")
     rows = [r for r in summary["node_errors"] if not r["shared"]]
+    oos = summary.get("out_of_sample") or {}
+    oos_interior = oos.get("interior_max_relative_error")
     return {
+        "train_until_step": summary.get("train_until_step"),
+        "out_of_sample_interior_max_relative_error": oos_interior,
+        "out_of_sample_monitored_relative_max_error": oos.get("monitored_relative_max_error"),
+        "out_of_sample_within_5_percent": (oos_interior is not None and oos_interior <= 0.05
+                                           and (oos.get("monitored_relative_max_error") or 0.0) <= 0.05
+                                           and len(rows) == summary["n_parts"]),
         "dt_ratio": m["dt_scaled"] / m["dt_cfl"], "added_mass_percent": m["added_mass_percent"],
         "mass_scaling_relative_difference": m["relative_difference"],
         "parts_with_an_interior_node": len(rows), "n_parts": summary["n_parts"],

@@ -106,6 +106,8 @@ def test_demo_counts_agree_with_the_run(summary):
     # n_cri = n_s n_p; the counts agree with the run's statistics and flags
     assert summary["n_synchronized"] == 25 and summary["n_predicted"] == 1475
     assert summary["n_synchronized_steps"] == 25 and summary["n_predicted_steps"] == 1475
+    # trained on the first half of the 1501 rows of shared history (steps 0 .. 749)
+    assert summary["train_until_step"] == 749 and summary["out_of_sample"]["from_step"] > 749
 
 
 def test_demo_devices_and_speed(summary, reference, online):
@@ -238,10 +240,16 @@ def test_predict_refuses_an_existing_output(demo, predicted):
 def test_report_of_the_predicted_run_matches_the_demo(demo, predicted, summary):
     path, _ = predicted
     report = demo[0] / "report"
-    run = run_cli(["report", demo[1] / "synchronized.h5", path, "-o", report])
+    run = run_cli(["report", demo[1] / "synchronized.h5", path, "-o", report,
+                   "--train-until-step", summary["train_until_step"]])
     assert run.code == 0, run.err
     again_summary = json.loads((report / "summary.json").read_text())
     assert again_summary["tip_max_abs_error"] == pytest.approx(summary["tip_max_abs_error"], rel=1e-9)
+    assert again_summary["train_until_step"] == summary["train_until_step"]
+    assert again_summary["out_of_sample"]["interior_max_relative_error"] == pytest.approx(
+        summary["out_of_sample"]["interior_max_relative_error"], rel=1e-9)
+    late = run_cli(["report", demo[1] / "synchronized.h5", path, "-o", report, "--train-until-step", 10 ** 6])
+    assert late.code == 2 and "no saved snapshot comes after train_until_step=1000000" in late.err
 
 
 # ----------------------------------------------------------------------------- error control

@@ -111,6 +111,33 @@ def test_vessel_interior_nodes_in_their_dominant_component(vessel):
     assert summary["interior_max_relative_error"] == pytest.approx(worst, rel=1e-9)
 
 
+def test_vessel_trains_on_the_first_half_and_measures_after_it(vessel):
+    """Training ends at the last shared-history row of the first half (rows every
+    save_every = 20 steps: 201 rows, the first 100 up to step 1980); every out-of-sample
+    error is recomputed from the trajectories over the snapshots after that step only."""
+    _, run, summary, reference, online = vessel
+    assert demo_defaults("vessel").train_fraction == 0.5
+    assert summary["train_until_step"] == 99 * 20
+    ref, pred = np.asarray(reference.displacement), np.asarray(online.displacement)
+    steps = np.rint(np.asarray(online.times) / online.dt).astype(int)
+    after = steps > 1980
+    oos = summary["out_of_sample"]
+    assert oos["from_step"] == 2000 and oos["n_snapshots"] == after.sum() == (N_STEPS - 2000) // 20 + 1
+    worst = 0.0
+    for row in oos["node_errors"]:
+        node, k = row["node"], "xyz".index(row["component"])
+        error = np.abs(pred[after, node, k] - ref[after, node, k])
+        amplitude = np.abs(ref[after, node, k]).max()
+        assert row["max_abs_error"] == pytest.approx(error.max(), rel=1e-12)
+        assert row["max_abs_displacement"] == pytest.approx(amplitude, rel=1e-12)
+        if not row["shared"]:
+            worst = max(worst, error.max() / amplitude)
+    assert oos["interior_max_relative_error"] == pytest.approx(worst, rel=1e-9)
+    l2 = np.sqrt(((pred[after] - ref[after]) ** 2).sum(axis=(1, 2)))  # e(t), paper eq. 24
+    assert oos["l2_error_max"] == pytest.approx(l2.max(), rel=1e-9)
+    assert "out of sample (after step 1980)" in run.out
+
+
 def test_vessel_mass_scaling_check(vessel):
     """The step is 2.5 times the CFL step; the added mass is what jaxsync.mass_scaling
     adds on the same mesh; the node's motion changes only marginally (paper fig. 19)."""
@@ -153,3 +180,5 @@ def test_vessel_bad_sizes_are_refused(tmp_path):
         demo_defaults("aorta")
     run = run_cli(["demo", "--case", "vessel", "--size", "10", "--out", tmp_path / "x", "--no-progress"])
     assert run.code == 2 and "from 1000 to 2000000" in run.err
+    run = run_cli(["demo", "--train-fraction", "1.5", "--out", tmp_path / "y", "--no-progress"])
+    assert run.code == 2 and "train fraction must be in (0, 1], got 1.5" in run.err and not (tmp_path / "y").exists()

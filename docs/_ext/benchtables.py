@@ -613,8 +613,17 @@ def r_paper_vessel_small() -> Rendered:
             ["non-shared node of every part: largest error, % of its amplitude (target 5 %)",
              ", ".join(pct(e["relative_max_error"], 2) for e in per_part)
              + f" ({'met' if t.get('interior_within_5_percent') else 'missed'})"],
-            ["e_l2 largest / final [cm]", f"{num(s.get('l2_error_max'))} / {num(s.get('l2_error_final'))}"],
-            ["error control", f"tolerance {t.get('resync_tolerance')} "
+            ["e_l2 largest / final [cm]", f"{num(s.get('l2_error_max'))} / {num(s.get('l2_error_final'))}"]]
+    oos = s.get("out_of_sample")
+    if oos:
+        rows += [["trained on steps 0 to", f"{num(s.get('train_until_step'))} (of {num(s.get('n_steps'))})"],
+                 ["after it: non-shared node of every part, % of its amplitude there (target 5 %)",
+                  ", ".join(pct(e["relative_max_error"], 2) for e in oos["node_errors"]
+                            if e.get("label", "").startswith("part "))
+                  + f" ({'met' if t.get('out_of_sample_within_5_percent') else 'missed'})"],
+                 ["after it: monitored node, % of its amplitude; e_l2 largest [cm]",
+                  f"{pct(oos.get('monitored_relative_max_error'), 2)} %; {num(oos.get('l2_error_max'))}"]]
+    rows += [["error control", f"tolerance {t.get('resync_tolerance')} "
                               f"({num(s.get('resync_tolerance_cm'))} cm), "
                               f"{num(t.get('n_resynchronizations'))} re-synchronizations"],
             ["es / es_hat largest [cm]", f"{num(t.get('es_max_cm'))} / {num(t.get('es_hat_max_cm'))}"],

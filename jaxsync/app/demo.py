@@ -11,7 +11,7 @@ pressure (:func:`jaxsync.coronary`), mass-scaled to 2.5 times its CFL step as in
 paper (2.02e-6 s -> 5e-6 s), split into the paper's 11 parts, one emulated device each,
 with error control at 1 % of the synchronized run's largest shared-node displacement.
 Sizes (:data:`VESSEL_SIZES`):
-``"small"`` (about 5 000 tets, 2 s of physical time: within 15 minutes on a 2-core
+``"small"`` (about 5 000 tets, 3.9 s of physical time: about 20 minutes on a 2-core
 laptop) and ``"paper"`` (about 250 000 dofs as the paper's mesh, 5 s = 1e6 steps at
 5e-6 s, n_s = 1000: hours to days on a laptop; see ``benchmarks/paper_vessel.py``), or
 a target tetrahedron count.
@@ -19,7 +19,7 @@ a target tetrahedron count.
 The pipeline: (0, vessel only) the mass-scaling check of paper figure 19: one node's
 displacement at the CFL step and at the scaled step, single-device runs over the same
 physical time; (1) a synchronized distributed run; (2) training of one LSTM surrogate
-per part on it (the first half for the cantilever, all of it for the vessel;
+per part on it (its first half;
 :func:`jaxsync.surrogate.train_surrogates`, as ``jaxsync train``); (3) the
 synchronization-avoiding run from n_cri = n_s n_p on; (4) timing of the compiled
 programs (:func:`jaxsync.perf.timing.speedup_breakdown`), the cost-model projection to
@@ -53,8 +53,9 @@ tets (its wall is meshed more evenly)."""
 SUMMARY_KEYS = ("n_steps", "n_synchronized", "n_predicted", "tip_max_abs_error",
                 "tip_max_abs_displacement", "l2_error_final", "us_per_step_synchronized",
                 "us_per_step_predicted", "speedup", "zeta", "t_s_us", "t_d_us", "n_devices",
-                "device_kind")
-"""Keys of every case's ``summary.json``."""
+                "device_kind", "train_until_step")
+"""Keys of every case's ``summary.json`` (and ``out_of_sample``: the errors after
+``train_until_step``, :func:`jaxsync.app.plots.out_of_sample`)."""
 
 VESSEL_KEYS = ("es_max", "es_hat_max", "es_hat_tracking", "interior_max_relative_error", "mass_scaling",
                "projection", "n_elements", "n_dofs", "n_shared_nodes")
@@ -78,11 +79,12 @@ class DemoDefaults:
         n_s, n_past, n_future, n_hidden, n_layers: sampling and network.
         epochs, batch_size, eta0, gamma: the training schedule.
         n_candidates: networks trained per part, the lowest validation loss kept.
-        train_fraction: the leading fraction n_ts of the synchronized run trained on (the
-            cantilever: the first half, the rest is extrapolated; the vessel: all of it,
-            since its pressure ramps up over the first second and a first half of a short
-            run holds no full pulse after the ramp -- the online run then replays the
-            load the networks were trained on, 25 % of the windows held out).
+        train_fraction: the leading fraction n_ts of the synchronized run trained on; the
+            steps after it (after ``train_until_step`` in ``summary.json``) are out of
+            sample, and the summary's ``out_of_sample`` errors are measured over them
+            (the cantilever and the vessel: the first half; the vessel's run is long
+            enough for its first half to hold the pressure ramp of the first second and
+            more than a pulse, its second half the following pulses).
         resync_tolerance: error control of the predicted run (None: none).
         shared_every_step: the synchronized run keeps the parts' shared histories at
             every step (the cantilever: small, and any n_s can be trained later); False:
@@ -114,9 +116,9 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     the library's (:class:`~jaxsync.surrogate.Sampling`,
     :class:`~jaxsync.surrogate.ArchitectureChoice`,
     :class:`~jaxsync.surrogate.train.TrainConfig`, the paper's 1e5 steps);
-    the vessel's follow the paper's section 5.2 (11 parts, n_s = 1000; 1e6 steps at the
-    paper's size, 2.5e5 steps, about 2 s, at the small one), with error control at 1 %,
-    trained on the whole synchronized run with n_B = 10.
+    the vessel's follow the paper's section 5.2 (11 parts, n_s = 1000; 1e6 steps, 5 s, at
+    the paper's size, 5e5 steps, about 3.9 s, at the small one), with error control at
+    1 %, trained on the first half of the synchronized run with n_B = 10.
 
     Raises:
         ConfigError: an unknown case or size.
@@ -140,7 +142,7 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     # n_H 32, 300 epochs of n_B = 10, one candidate per part: the 11 replicas train in about
     # 3.5 minutes on 2 cores (the library's n_H 50, 800 epochs and 2 candidates would take
     # the demo past 15 minutes); its error control re-synchronizes where a network falls short
-    return DemoDefaults(n_steps=1_000_000 if paper else 250_000, n_parts=11, n_s=1000, train_fraction=1.0,
+    return DemoDefaults(n_steps=1_000_000 if paper else 500_000, n_parts=11, n_s=1000, train_fraction=0.5,
                         resync_tolerance="1%", shared_every_step=False, component=None, n_candidates=1,
                         **dict(base, n_hidden=32, epochs=300, batch_size=10))
 
@@ -265,6 +267,10 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
     """
     settings = DemoSettings() if settings is None else settings
     d = settings.applied_to(demo_defaults(case, size))
+    if not 0.0 < d.train_fraction <= 1.0:
+        from ..errors import ConfigError
+
+        raise ConfigError(f"train fraction must be in (0, 1], got {d.train_fraction!r} (--train-fraction)")
     save_every, mass_scaling_seconds = settings.save_every, settings.mass_scaling_seconds
     final = os.path.abspath(os.fspath(out))
     check_demo_output(final, force=force)  # before anything runs
@@ -296,6 +302,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     from ..parallel.devices import device_summary
     from ..solve.syncavoid import describe_run, simulate_sync_avoiding
     from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
+    from ..surrogate.data import last_trained_step
     from ..surrogate.fit import train_surrogates
     from ..surrogate.train import TrainConfig
     from .plots import write_report
@@ -399,8 +406,10 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         save_figure(figure, os.path.join(out, "report", "mass_scaling.png"))
     fixed_nodes = np.unique(problem.dirichlet_dofs()[0] // 3)
     extra["wall_seconds"] = time.perf_counter() - started
+    train_until = last_trained_step(d.n_steps, shared_every, d.train_fraction)
     summary = write_report(reference, online, parts, os.path.join(out, "report"), component=d.component,
-                           fixed_nodes=fixed_nodes, extra=extra)
+                           fixed_nodes=fixed_nodes, extra=extra,
+                           train_until_step=train_until if train_until < d.n_steps else None)
     summary["report"] = os.path.join(final, "report")
     atomic_json(os.path.join(out, "summary.json"), summary)
     return summary
@@ -634,6 +643,13 @@ def format_summary(summary: dict) -> str:
     if summary.get("interior_max_relative_error") is not None:
         rows.append(("worst part, interior node", f"{100 * summary['interior_max_relative_error']:.2f} % of its "
                                                   "largest amplitude (max over the parts' monitored nodes)"))
+    oos = summary.get("out_of_sample")
+    if oos:
+        interior = oos["interior_max_relative_error"]
+        rows.append((f"out of sample (after step {summary['train_until_step']})",
+                     f"node {oos['monitored_node']} {100 * (oos['monitored_relative_max_error'] or 0.0):.2f} %"
+                     + ("" if interior is None else f", worst part's interior node {100 * interior:.2f} %")
+                     + f" of their largest amplitude there; e_l2 largest {oos['l2_error_max']:.3e} cm"))
     rows.append(("e_l2 at the end", f"{summary['l2_error_final']:.3e} cm (largest {summary['l2_error_max']:.3e} cm)"
                  if "l2_error_max" in summary else f"{summary['l2_error_final']:.3e} cm"))
     if "es_max" in summary:

@@ -281,6 +281,9 @@ class Comparison:
             :class:`jaxsync.metrics.EstimateQuality` (None without shared predictions).
         n_steps, n_synchronized: time steps of the online run, and how many were
             synchronized.
+        snapshot_steps: (T,) the time step of every snapshot.
+        train_until_step: the last step whose displacements fed training (None: not
+            known); the summary's ``out_of_sample`` errors are measured after it.
     """
 
     times: np.ndarray
@@ -301,6 +304,8 @@ class Comparison:
     quality: object | None
     n_steps: int
     n_synchronized: int
+    snapshot_steps: np.ndarray | None = None
+    train_until_step: int | None = None
 
     @property
     def node_components(self) -> dict[str, int]:
@@ -313,12 +318,13 @@ class Comparison:
 
 
 def compare(reference, online, partition, *, component: Component | None = DEFAULT_COMPONENT,
-            fixed_nodes=(), nodes=None) -> Comparison:
+            fixed_nodes=(), nodes=None, train_until_step: int | None = None) -> Comparison:
     """Compare ``online`` with ``reference`` (arguments as :func:`write_report`); writes nothing.
 
     Raises:
         ProblemError: trajectories of different shapes, or no node to show;
-        ConfigError: a bad node in ``nodes``, or a component other than 0, 1, 2.
+        ConfigError: a bad node in ``nodes``, or a component other than 0, 1, 2, or a
+            ``train_until_step`` that leaves no snapshot after it.
     """
     from ..solve.syncavoid import step_counts
 
@@ -351,11 +357,20 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
     shared = np.zeros(n_nodes, bool)
     shared[partition.shared_nodes] = True
     n_steps, n_synchronized = step_counts(online)
+    snapshot_steps = np.rint(times / float(online.dt)).astype(np.int64)
+    if train_until_step is not None:
+        if isinstance(train_until_step, bool) or not isinstance(train_until_step, (int, np.integer)):
+            raise ConfigError(f"train_until_step must be a step number, got {train_until_step!r}")
+        if not np.any(snapshot_steps > train_until_step):
+            raise ConfigError(f"no saved snapshot comes after train_until_step={train_until_step} (the last is "
+                              f"step {snapshot_steps[-1]}): run past the training window to measure out of sample")
+        train_until_step = int(train_until_step)
     return Comparison(times=times, reference=ref, predicted=pred, space=space, partition=partition,
                       component=component, nodes=shown, notes=notes, fixed=fixed, shared=shared,
                       t_switch=t_switch, spans=spans, l2=l2_error(ref, pred), steps=np.asarray(steps),
                       shared_errors=errs, quality=quality, n_steps=n_steps,
-                      n_synchronized=n_synchronized)
+                      n_synchronized=n_synchronized, snapshot_steps=snapshot_steps,
+                      train_until_step=train_until_step)
 
 
 def report_figures(c: Comparison) -> dict:
@@ -372,29 +387,61 @@ def report_figures(c: Comparison) -> dict:
     return out
 
 
-def _node_table(c: Comparison) -> list[dict]:
+def _node_table(c: Comparison, snapshots=slice(None)) -> list[dict]:
+    """One row per monitored node, its errors over ``snapshots`` (an index of the
+    snapshots; amplitudes are those of the same snapshots)."""
     rows = []
     components = c.node_components
+    reference, predicted = c.reference[snapshots], c.predicted[snapshots]
     for label, node in c.nodes.items():
         k = components[label]
-        e = node_error(c.reference, c.predicted, node, k)
+        e = node_error(reference, predicted, node, k)
         rows.append({
             "label": label, "node": int(node), "coordinates": [float(v) for v in c.space.points[node]],
             "shared": bool(c.shared[node]), "constrained": bool(c.fixed[node]),
             "component": figures.AXES[k], "max_abs_displacement": e.amplitude,
             "max_abs_error": e.max_error, "relative_max_error": e.relative,
             "final_abs_error": e.final_error, "rms_error": e.rms_error,
-            "max_error_norm": node_error(c.reference, c.predicted, node).max_error,
+            "max_error_norm": node_error(reference, predicted, node).max_error,
         })
     return rows
+
+
+def _interior_max(table: list[dict]) -> float | None:
+    interior = [row["relative_max_error"] for row in table
+                if not row["shared"] and row["relative_max_error"] is not None]
+    return max(interior) if interior else None
+
+
+def out_of_sample(c: Comparison) -> dict | None:
+    """The errors over the snapshots after ``c.train_until_step`` (None when it is not
+    known): ``from_step`` and ``from_time`` (the first such snapshot), ``n_snapshots``,
+    ``node_errors`` (as the whole run's, amplitudes over the same snapshots),
+    ``interior_max_relative_error``, ``monitored_relative_max_error`` (the node with the
+    largest amplitude there), ``l2_error_max`` and, with shared predictions among them,
+    ``es_max`` and ``es_hat_max``."""
+    if c.train_until_step is None:
+        return None
+    after = np.flatnonzero(c.snapshot_steps > c.train_until_step)
+    table = _node_table(c, after)
+    top = max(table, key=lambda row: row["max_abs_displacement"])
+    out = {"from_step": int(c.snapshot_steps[after[0]]), "from_time": float(c.times[after[0]]),
+           "n_snapshots": int(after.size), "node_errors": table,
+           "interior_max_relative_error": _interior_max(table),
+           "monitored_node": top["node"], "monitored_relative_max_error": top["relative_max_error"],
+           "l2_error_max": float(c.l2[after].max())}
+    if c.shared_errors is not None:
+        shared_after = c.snapshot_steps[c.steps] > c.train_until_step
+        if shared_after.any():
+            out.update(es_max=float(c.shared_errors.es[shared_after].max()),
+                       es_hat_max=float(c.shared_errors.es_hat[shared_after].max()))
+    return out
 
 
 def report_summary(c: Comparison, extra: dict | None = None) -> dict:
     """The entries of ``summary.json`` (see :func:`write_report`), plus ``extra``."""
     table = _node_table(c)
     top = max(table, key=lambda row: row["max_abs_displacement"])
-    interior = [row["relative_max_error"] for row in table
-                if not row["shared"] and row["relative_max_error"] is not None]
     errs = c.shared_errors
     summary_shared = {} if errs is None else {
         "es_final": float(errs.es[-1]), "es_hat_final": float(errs.es_hat[-1]),
@@ -411,19 +458,21 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
         "monitored_label": top["label"],
         "tip_max_abs_error": top["max_abs_error"],
         "tip_max_abs_displacement": top["max_abs_displacement"],
-        "interior_max_relative_error": max(interior) if interior else None,
+        "interior_max_relative_error": _interior_max(table),
         "l2_error_final": float(c.l2[-1]),
         "l2_error_max": float(c.l2.max()),
         "nodes": {label: int(node) for label, node in c.nodes.items()},
         "node_errors": table,
         "node_notes": c.notes,
         "resynchronized_intervals": [[a, b] for a, b in c.spans],
+        "train_until_step": c.train_until_step,
+        "out_of_sample": out_of_sample(c),
         **summary_shared, **(extra or {}),
     }
 
 
 def write_report(reference, online, partition, out_dir, *, component: Component | None = DEFAULT_COMPONENT,
-                 fixed_nodes=(), nodes=None, extra: dict | None = None) -> dict:
+                 fixed_nodes=(), nodes=None, extra: dict | None = None, train_until_step: int | None = None) -> dict:
     """Write the figures and ``summary.json`` into ``out_dir``; return the summary.
 
     Args:
@@ -438,6 +487,10 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
         nodes: nodes to show instead of the default choice: node ids, coordinates
             (x, y, z) (nearest node) or a dict label -> either (see :func:`resolve_nodes`).
         extra: more entries for ``summary.json`` (timings...).
+        train_until_step: the last step whose displacements fed the surrogates' training
+            (:func:`jaxsync.surrogate.data.last_trained_step`); the summary then holds
+            the errors over the snapshots after it (``out_of_sample``, see
+            :func:`out_of_sample`).
 
     Summary entries about nodes (errors in the plotted component, in cm):
         ``nodes`` (label -> id), ``node_errors`` (one row per monitored node: node,
@@ -458,7 +511,7 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
     from ..io import atomic_json
 
     comparison = compare(reference, online, partition, component=component, fixed_nodes=fixed_nodes,
-                         nodes=nodes)
+                         nodes=nodes, train_until_step=train_until_step)
     os.makedirs(out_dir, exist_ok=True)
     for name, fig in report_figures(comparison).items():
         figures.save_figure(fig, os.path.join(out_dir, name))

@@ -293,6 +293,19 @@ class WindowDataset:
         return self.x_train.shape[-1]
 
 
+def trained_rows(n_rows: int, train_fraction: float) -> int:
+    """How many leading rows of a run's history (``n_rows`` rows) feed training: the
+    first ``floor(train_fraction n_rows)``; the rest is never seen by the networks."""
+    return int(np.floor(train_fraction * n_rows))
+
+
+def last_trained_step(n_steps: int, stride: int, train_fraction: float) -> int:
+    """The last time step whose displacements may feed training, for a run of ``n_steps``
+    steps whose shared histories hold a row every ``stride`` steps from step 0 (rows
+    ``0 .. n_steps // stride``): steps after it are out of sample for the networks."""
+    return (trained_rows(n_steps // stride + 1, train_fraction) - 1) * stride
+
+
 def build_dataset(
     runs: Sequence[np.ndarray],
     n_s: int,
@@ -353,7 +366,7 @@ def build_dataset(
             raise ConfigError(f"run {r} has shape {run.shape}; expected (n_steps, {n_dof})")
         if not np.all(np.isfinite(run)):
             raise ConfigError(f"run {r} holds NaN or Inf displacements; it cannot be used for training")
-        n_used = int(np.floor(train_fraction * run.shape[0]))
+        n_used = trained_rows(run.shape[0], train_fraction)
         jumps = np.asarray([] if load_jumps is None else load_jumps[r], dtype=float)
         for k in range(n_offsets):
             offset = (k * n_s) // n_offsets

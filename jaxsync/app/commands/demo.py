@@ -16,7 +16,7 @@ def add_parser(subparsers) -> None:
                     "coarse cantilever with two parts, a few minutes on a 2-core laptop. --case vessel: the "
                     "paper's coronary case on a generated coronary tree with 11 parts, mass scaling (with "
                     "the check of paper figure 19) and error control at 1 %; --size small (default, "
-                    "about 5 000 tets, within 15 minutes on a 2-core laptop) or paper (about 250 000 "
+                    "about 5 000 tets, about 20 minutes on a 2-core laptop) or paper (about 250 000 "
                     "dofs and 1e6 steps: hours to days). Prints a summary table and writes trajectories, "
                     "the surrogate file, figures and summary.json into --out; a folder that holds an earlier demo is "
                     "replaced only with --force, and only once the new run is complete.")
@@ -30,10 +30,13 @@ def add_parser(subparsers) -> None:
                         "before it starts); the new files take their place only when the run is complete")
     p.add_argument("--steps", type=int, default=None,
                    help="time steps of both runs (default: the case's; cantilever 100000, 35 s as in the "
-                        "paper; vessel small 250000, about 2 s; vessel paper 1000000, 5 s as in the paper)")
+                        "paper; vessel small 500000, about 3.9 s; vessel paper 1000000, 5 s as in the paper)")
     p.add_argument("--parts", type=int, default=None,
                    help="number of parts (default: the case's; cantilever 2, vessel 11 as in the paper)")
     common.add_surrogate_options(p, case_defaults=True)
+    p.add_argument("--train-fraction", type=float, default=None,
+                   help="the leading fraction of the synchronized run the surrogates train on; the summary "
+                        "measures the errors after it (out_of_sample) as well (default: 0.5)")
     p.add_argument("--epochs", type=int, default=None,
                    help="training epochs (default: the case's; cantilever 800, vessel 300)")
     p.add_argument("--candidates", dest="n_candidates", type=int, default=None,
@@ -68,7 +71,8 @@ def run(args) -> int:
     tolerance = None if str(args.resync_tolerance).lower() == "none" else args.resync_tolerance
     settings = DemoSettings(n_steps=args.steps, n_parts=args.parts, n_s=args.n_s, n_past=args.n_past,
                             n_future=args.n_future, n_hidden=args.n_hidden, n_layers=args.n_layers,
-                            epochs=args.epochs, eta0=args.eta0, gamma=args.gamma, n_candidates=args.n_candidates,
+                            train_fraction=args.train_fraction, epochs=args.epochs, eta0=args.eta0,
+                            gamma=args.gamma, n_candidates=args.n_candidates,
                             save_every=args.save_every, resync_tolerance=tolerance)
     summary = run_demo(args.out, settings, case=args.case, size=args.size, seed=args.seed,
                        progress=not args.no_progress, force=args.force)

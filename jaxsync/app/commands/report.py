@@ -31,6 +31,10 @@ def add_parser(subparsers) -> None:
                    help="TOML problem file of the run: its Dirichlet nodes are never chosen "
                         "(default: none; then the constrained nodes are those that never move in "
                         "the reference, which covers every fully clamped node)")
+    p.add_argument("--train-until-step", type=int, default=None, metavar="STEP",
+                   help="the last step the surrogates were trained on (the demo's summary.json "
+                        "train_until_step): summary.json then measures every error after it as well "
+                        "(out_of_sample)")
     p.set_defaults(func=run)
 
 
@@ -72,7 +76,8 @@ def run(args) -> int:
     fixed = constrained_nodes(args.config, online.space, reference.displacement)
     summary = write_report(reference, online, partition_of(online), args.out,
                            component=args.component, fixed_nodes=fixed, nodes=args.node,
-                           extra={"online_statistics": online.stats.to_dict()})
+                           extra={"online_statistics": online.stats.to_dict()},
+                           train_until_step=args.train_until_step)
     for line in summary["node_notes"]:
         print(f"note: {line}")
     if online.stats.to_dict():
