@@ -11,7 +11,7 @@ pressure (:func:`jaxsync.coronary`), mass-scaled to 2.5 times its CFL step as in
 paper (2.02e-6 s -> 5e-6 s), split into the paper's 11 parts, one emulated device each,
 with error control at 1 % of the synchronized run's largest shared-node displacement.
 Sizes (:data:`VESSEL_SIZES`):
-``"small"`` (about 5 000 tets, 3.9 s of physical time: about 20 minutes on a 2-core
+``"small"`` (about 5 000 tets, 3.9 s of physical time: about 15 minutes on a 2-core
 laptop) and ``"paper"`` (about 250 000 dofs as the paper's mesh, 5 s = 1e6 steps at
 5e-6 s, n_s = 1000: hours to days on a laptop; see ``benchmarks/paper_vessel.py``), or
 a target tetrahedron count.
