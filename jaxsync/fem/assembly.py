@@ -171,10 +171,13 @@ def _curved_volumes(space) -> np.ndarray:
 def body_force_vectors(space) -> np.ndarray:
     """(3, n_nodes, 3) nodal loads of a unit body force along x, y, z [cm^3]:
     entry [d] is the load vector of the body force e_d (integral of N_i e_d)."""
+    return _unit_component_loads(_space(space).basis())
+
+
+def _unit_component_loads(basis) -> np.ndarray:
+    """(3, n_nodes, 3): entry [d] integrates N_i e_d over ``basis``'s cells or facets."""
     from skfem import LinearForm, asm
 
-    space = _space(space)
-    basis = space.basis()
     out = []
     for d in range(3):
         @LinearForm
@@ -206,19 +209,10 @@ def traction_vectors(space, surface: str) -> np.ndarray:
     """(3, n_nodes, 3) nodal loads of a unit traction along x, y, z on the facet set
     ``surface``: entry [d] is the integral of N_i e_d over its triangles [cm^2] (for P1, a
     third of each triangle's area at each of its nodes)."""
-    from skfem import LinearForm, asm
-
     space = _space(space)
     skmesh = to_skfem(space.mesh)
-    basis = space.facet_basis(boundary_facet_indices(space.mesh, skmesh, surface, what="a traction"))
-    out = []
-    for d in range(3):
-        @LinearForm
-        def unit(v, w, d=d):
-            return v[d]
-
-        out.append(asm(unit, basis).reshape(-1, 3))
-    return np.stack(out)
+    return _unit_component_loads(space.facet_basis(boundary_facet_indices(space.mesh, skmesh, surface,
+                                                                          what="a traction")))
 
 
 def boundary_facet_indices(mesh: Mesh, skmesh, surface: str, *, what: str) -> np.ndarray:
