@@ -1,21 +1,24 @@
 """Error control (paper section 6 and beyond): does a re-synchronization tolerance ever make
 a run worse, what does it cost, and how well does es_hat track es?
 
-On the demo's case (coarse cantilever, 2 parts, n_s = 80, n_p = n_f = 20, 1e5 steps, the
-surrogate ``jaxsync demo`` trains), the synchronization-avoiding run is repeated without a
-tolerance and with tolerances in cm and relative to the observed amplitude. For each: the
+On the demo's case (coarse cantilever, 2 parts, 1e5 steps, the surrogate ``jaxsync demo``
+trains), the synchronization-avoiding run is repeated without a tolerance and with
+tolerances in cm and relative to the observed amplitude, each held by the default
+indicator (es_hat and the estimated error) and by es_hat alone. For each: the
 largest error over all nodes and saved steps against the synchronized run, e_l2 at the end,
 the steps synchronized / predicted / recomputed, the re-synchronizations, the time per
 predicted step, and how well es_hat tracks es (:func:`jaxsync.metrics.estimate_quality`).
 
 Usage: python benchmarks/bench_error_control.py [--demo jaxsync-demo] [--steps 100000]
-       [--tolerances none 1e-2 1e-3 ...] [--out benchmarks/results/error_control.json]
+       [--tolerances none 1e-2 1e-3 ...] [--indicators estimate es_hat]
+       [--out benchmarks/results/error_control.json]
 (runs ``jaxsync demo`` into --demo first when its files are missing).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -33,7 +36,7 @@ import numpy as np  # noqa: E402
 
 from jaxsync.metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors  # noqa: E402
 from jaxsync.parallel.partitioning import partition_of  # noqa: E402
-from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
 from jaxsync.surrogate import load_surrogate  # noqa: E402
 
 DEFAULT_TOLERANCES = ["none", "1e-2", "1e-3", "3e-4", "1e-4", "3e-5", "1e-5", "10%", "1%", "0.1%"]
@@ -44,6 +47,8 @@ def main(argv=None):
     parser.add_argument("--demo", default="jaxsync-demo", help="folder of a jaxsync demo run")
     parser.add_argument("--steps", type=int, default=None, help="steps (default: the demo's)")
     parser.add_argument("--tolerances", nargs="+", default=DEFAULT_TOLERANCES)
+    parser.add_argument("--indicators", nargs="+", default=["estimate", "es_hat"], choices=["estimate", "es_hat"],
+                        help="what each tolerance holds (ResyncTolerance.indicator)")
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
                                                        "error_control.json"))
     args = parser.parse_args(argv)
@@ -62,17 +67,20 @@ def main(argv=None):
     every = reference.save_every
     truth = np.asarray(reference.displacement[:n_steps // every + 1])
     rows = []
-    for tol in args.tolerances:
+    runs = [(tol, None) if tol == "none" else (tol, indicator) for tol in args.tolerances
+            for indicator in (["-"] if tol == "none" else args.indicators)]
+    for tol, indicator in runs:
         start = time.perf_counter()
+        tolerance = None if tol == "none" else dataclasses.replace(ResyncTolerance.parse(tol), indicator=indicator)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always", RuntimeWarning)
             online = simulate_sync_avoiding(problem, n_steps, partitions=parts, surrogates=ckpt, n_cri=n_cri,
                                             save=every, executor=jaxsync.HostExecutor(progress=False),
-                                            resync_tolerance=None if tol == "none" else tol)
+                                            resync_tolerance=tolerance)
         wall = time.perf_counter() - start
         err = np.abs(online.displacement - truth)
         st = online.stats
-        row = {"tolerance": tol, "max_abs_error_cm": float(err.max()),
+        row = {"tolerance": tol, "indicator": indicator, "max_abs_error_cm": float(err.max()),
                "l2_error_final_cm": float(l2_error(truth, online.displacement)[-1]),
                "n_synchronized_steps": st.n_synchronized_steps,
                "n_predicted_steps": st.n_predicted_steps,
@@ -86,18 +94,19 @@ def main(argv=None):
             errs = shared_node_errors(truth[steps][:, parts.shared_nodes], predictions, holds)
             row["es_hat_tracking"] = estimate_quality(errs.es, errs.es_hat).to_dict()
         rows.append(row)
-        print(f"{tol:>6}: max |error| {row['max_abs_error_cm']:.3e} cm, synchronized "
+        print(f"{tol:>6} {indicator or '':>8}: max |error| {row['max_abs_error_cm']:.3e} cm, synchronized "
               f"{row['n_synchronized_steps']}, predicted {row['n_predicted_steps']}, recomputed "
               f"{row['n_discarded_steps']}, re-synchronizations {row['n_resynchronizations']}, "
               f"{wall:.1f} s", flush=True)
     free = rows[0]["max_abs_error_cm"] if args.tolerances[0] == "none" else None
     print()
-    print(f"{'tolerance':>9} {'max|err| cm':>12} {'vs none':>8} {'synced':>7} {'predicted':>9} "
+    print(f"{'tolerance':>9} {'indicator':>9} {'max|err| cm':>12} {'vs none':>8} {'synced':>7} {'predicted':>9} "
           f"{'recomputed':>10} {'resyncs':>7} {'us/pred':>8} {'es/es_hat med':>13} {'p95':>8}")
     for r in rows:
         tr = r.get("es_hat_tracking", {})
         ratio = f"{r['max_abs_error_cm'] / free:.3f}" if free else "-"
-        print(f"{r['tolerance']:>9} {r['max_abs_error_cm']:>12.3e} {ratio:>8} {r['n_synchronized_steps']:>7} "
+        print(f"{r['tolerance']:>9} {r['indicator'] or '':>9} {r['max_abs_error_cm']:>12.3e} {ratio:>8} "
+              f"{r['n_synchronized_steps']:>7} "
               f"{r['n_predicted_steps']:>9} {r['n_discarded_steps']:>10} {r['n_resynchronizations']:>7} "
               f"{(r['us_per_step_predicted'] or 0):>8.1f} {tr.get('ratio_median', float('nan')):>13.3g} "
               f"{tr.get('ratio_p95', float('nan')):>8.3g}")

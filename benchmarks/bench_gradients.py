@@ -37,11 +37,28 @@ checkpointed gradient through 1e4 steps, each compiled first and then timed once
 gradient takes minutes on 2 cores). Plain reverse mode is not run there: its residuals
 (measured 3.0 MB per step at 500 steps) would take about 30 GB at 1e4 steps, more than the
 machine's 24 GiB. Beside it, a breakdown at 500 steps: forward, checkpointed
-and plain gradients in (E, alpha), and the checkpointed gradient in alpha alone (E
-constant: the stiffness blocks get no cotangent), to show where the reverse pass's time
-goes (one warm-up call, then one timed call each).
+and plain gradients in (E, alpha), the checkpointed gradient in alpha alone (E
+constant: the stiffness gets no cotangent), and the checkpointed gradient in (E, nu,
+alpha), to show where the reverse pass's time goes (one warm-up call, then the best of
+two timed calls each).
 
-Usage: python benchmarks/bench_gradients.py [--quick] [--large] [--no-fd]
+**E's cotangent.** With nu fixed (every row but the last), the preassembled stiffness
+of a mesh of 1 500 nodes or more is E K(E=1, nu), its blocks constants and E a traced
+scale (:class:`jaxsync.fem.internal_force.Preassembled`): the reverse pass sums one
+scalar per step, <K_1 y_bar, u>. With nu traced too (the (E, nu, alpha) row), the blocks
+are lambda K_lambda + mu K_mu, traced, and the reverse pass carries their cotangent, an
+array as large as K, across the time loop, as every row did before (issue 29). The
+coarse cantilever (104 nodes) keeps the Lame blocks: there the per-step dot product
+measured slower than the blocks' cotangent (``Preassembled.scale_min_nodes``).
+
+**E's cotangent against the Lame blocks** (``--cotangent``, added to the existing result
+file as ``cotangent``): on the beams ``box_beam(25, 1, 1, d)`` of 8 967, 36 663 and
+108 675 dofs, the checkpointed gradient in (E, alpha) (E the stiffness's scale) and in
+(E, nu, alpha) (the Lame blocks, as before), both compiled first, then their forward and
+gradient calls alternated three times in one process and the best of each kept (the
+machine is shared: alternating puts both under the same load).
+
+Usage: python benchmarks/bench_gradients.py [--quick] [--large] [--no-fd] [--cotangent]
                                             [--out benchmarks/results/gradients.json]
 """
 
@@ -67,6 +84,7 @@ from jaxsync.perf.measure import best_time  # noqa: E402
 
 FD_TARGET = 1e-6  # relative agreement with central finite differences
 LARGE_DIVISIONS = (160, 14, 14)  # 36 225 nodes, 108 675 dofs
+COTANGENT_CASES = (((60, 6, 6), 2000), ((100, 10, 10), 1000), (LARGE_DIVISIONS, 500))  # (divisions, steps)
 
 
 def tip_node(mesh):
@@ -74,12 +92,15 @@ def tip_node(mesh):
     return int(np.argmax(x[:, 0] - 1e-3 * np.abs(x[:, 1]) - 1e-3 * np.abs(x[:, 2])))
 
 
-def make_loss(problem, n_steps, checkpoints):
+def make_loss(problem, n_steps, checkpoints, names=("E", "alpha")):
+    """The tip's vertical displacement at the end as a function of ``names`` (of E, alpha,
+    nu; the others fixed at 1e6, 0.5, 0.3)."""
     tip = tip_node(problem.mesh)
     dt = problem.dt
 
-    def loss(E, alpha):
-        p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
+    def loss(*values):
+        v = dict({"E": 1.0e6, "alpha": 0.5, "nu": 0.3}, **dict(zip(names, values)))
+        p = problem.replace(material=jaxsync.LinearElastic(v["E"], v["nu"], 1.0), damping=v["alpha"])
         adjoint = jaxsync.Recompute() if checkpoints else jaxsync.StoreAll()
         traj = jaxsync.simulate(p, n_steps, dt=dt, save=n_steps, executor=jaxsync.TracedExecutor(adjoint))
         return traj.displacement[-1, tip, 2]
@@ -109,12 +130,15 @@ def once(f, args):
     return time.perf_counter() - start
 
 
-def measure(problem, n_steps, checkpoints, repeats, *, wrt=(0, 1), single_call=False):
-    args = (jnp.asarray(1.0e6), jnp.asarray(0.5))
-    loss = make_loss(problem, n_steps, checkpoints)
+START = {"E": 1.0e6, "alpha": 0.5, "nu": 0.3}
+
+
+def measure(problem, n_steps, checkpoints, repeats, *, wrt=("E", "alpha"), single_call=False):
+    args = tuple(jnp.asarray(START[n]) for n in wrt)
+    loss = make_loss(problem, n_steps, checkpoints, wrt)
     start = time.perf_counter()
     forward = jax.jit(loss).lower(*args).compile()
-    grad = jax.jit(jax.value_and_grad(loss, wrt)).lower(*args).compile()
+    grad = jax.jit(jax.value_and_grad(loss, tuple(range(len(wrt))))).lower(*args).compile()
     compile_s = time.perf_counter() - start
     temp = int(grad.memory_analysis().temp_size_in_bytes)
     forward_temp = int(forward.memory_analysis().temp_size_in_bytes)
@@ -123,7 +147,7 @@ def measure(problem, n_steps, checkpoints, repeats, *, wrt=(0, 1), single_call=F
     grad_s = timer(grad, args)
     all_states = n_steps * 2 * problem.mesh.n_dofs * 8
     return {"n_steps": n_steps, "n_dofs": problem.mesh.n_dofs, "checkpoints": checkpoints,
-            "wrt": ["E", "alpha"] if tuple(wrt) == (0, 1) else ["alpha"],
+            "wrt": list(wrt),
             "forward_s": forward_s, "grad_s": grad_s, "ratio": grad_s / forward_s,
             "timing": "one call after compiling" if single_call else f"best of {repeats} after a warm-up",
             "compile_s": compile_s, "temp_bytes": temp, "forward_temp_bytes": forward_temp,
@@ -164,6 +188,30 @@ def fd_check(problem, n_steps, save_every, partitions=None, steps=(1e-2, 1e-3, 1
     return result
 
 
+def compare_cotangents(divisions, n_steps, rounds=3):
+    """Checkpointed gradients in (E, alpha) and (E, nu, alpha) on ``box_beam(25, 1, 1,
+    divisions)``: forward and gradient calls alternated ``rounds`` times, best of each."""
+    problem = jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, divisions))
+    programs = {}
+    for names in (("E", "alpha"), ("E", "nu", "alpha")):
+        args = tuple(jnp.asarray(START[n]) for n in names)
+        loss = make_loss(problem, n_steps, True, names)
+        grad = jax.jit(jax.value_and_grad(loss, tuple(range(len(names))))).lower(*args).compile()
+        forward = jax.jit(loss).lower(*args).compile()
+        once(forward, args), once(grad, args)  # warm-up
+        programs[names] = (forward, grad, args)
+    best = {names: [np.inf, np.inf] for names in programs}
+    for _ in range(rounds):
+        for names, (forward, grad, args) in programs.items():
+            best[names] = [min(best[names][0], once(forward, args)), min(best[names][1], once(grad, args))]
+    rows = [{"mesh": f"box_beam(25, 1, 1, {tuple(divisions)})", "n_dofs": problem.mesh.n_dofs,
+             "n_steps": n_steps, "checkpoints": True, "wrt": list(names), "forward_s": f, "grad_s": g,
+             "ratio": g / f, "timing": f"best of {rounds} alternated calls after a warm-up"}
+            for names, (f, g) in best.items()]
+    rows[0]["speedup_vs_lame"] = rows[1]["grad_s"] / rows[0]["grad_s"]
+    return rows
+
+
 def write(path, result):
     from jaxsync.io import atomic_json
 
@@ -185,8 +233,31 @@ def main(argv=None):
     parser.add_argument("--large", action="store_true",
                         help="also the 109k-dof mesh through 1e4 steps (about 10 minutes on 2 cores)")
     parser.add_argument("--no-fd", action="store_true", help="leave out the finite-difference checks")
+    parser.add_argument("--cotangent", action="store_true",
+                        help="only compare E's cotangent with the Lame blocks' on three beams, added to --out")
     parser.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results", "gradients.json"))
     args = parser.parse_args(argv)
+    if args.cotangent:
+        import json
+
+        with open(args.out) as f:
+            result = json.load(f)
+        result["cotangent"] = []
+        for divisions, n_steps in COTANGENT_CASES:
+            for row in compare_cotangents(divisions, n_steps):
+                result["cotangent"].append(row)
+                print(f"{row['n_dofs']:>7} {row['n_steps']:>6} {','.join(row['wrt']):>12} forward "
+                      f"{row['forward_s']:.3f} s  gradient {row['grad_s']:.3f} s  ratio {row['ratio']:.2f}"
+                      + (f"  ({row['speedup_vs_lame']:.2f}x faster)" if "speedup_vs_lame" in row else ""),
+                      flush=True)
+        from jaxsync.io import atomic_json
+
+        # the other sections' machine record stays theirs
+        result["cotangent_machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(),
+                                       "load_average": os.getloadavg()[0], "jax": jax.__version__}
+        atomic_json(args.out, result)
+        print(f"wrote {args.out}")
+        return
     problem = jaxsync.cantilever()
     cases = [(1000, True), (1000, False), (10000, True), (10000, False)]
     if not args.quick:
@@ -224,8 +295,9 @@ def main(argv=None):
                            "plain_1e4_note": "not run: more than the machine's 24 GiB"}
         print(f"\nlarge mesh: {mesh.n_dofs} dofs; plain reverse mode through 1e4 steps would store about "
               f"{10000 * per_step / 2**30:.1f} GiB (not run)")
-        for n_steps, checkpoints, wrt in ((500, True, (0, 1)), (500, False, (0, 1)), (500, True, (1,))):
-            row = measure(large, n_steps, checkpoints, 1, wrt=wrt)
+        for n_steps, checkpoints, wrt in ((500, True, ("E", "alpha")), (500, False, ("E", "alpha")),
+                                          (500, True, ("alpha",)), (500, True, ("E", "nu", "alpha"))):
+            row = measure(large, n_steps, checkpoints, 2, wrt=wrt)
             result["large"]["breakdown"].append(row)
             print_row(row)
             write(args.out, result)

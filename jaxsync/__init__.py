@@ -9,6 +9,7 @@ creating arrays (the command line does this for you); the solver's entry points 
 from .errors import (
                      CheckpointError,
                      ConfigError,
+                     ConvergenceError,
                      JaxsyncError,
                      MaterialError,
                      MeshError,
@@ -21,12 +22,14 @@ from .errors import (
 from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
 from .fem.coronary_tree import coronary_mesh
 from .fem.geometry import vessel_centerline, vessel_mesh
+from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
 from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
 from .fem.material import LinearElastic
 from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
 from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
 from .fem.support import ElasticSupport
 from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+from .fem.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
 from .parallel import devices
 from .parallel.partitioning import Partition, partition
 from .solve.ensemble import ensemble
@@ -52,10 +55,13 @@ __version__ = "0.2.0"
 
 __all__ = [
     "JaxsyncError", "MeshError", "MaterialError", "ProblemError", "StabilityError",
-    "CheckpointError", "ConfigError", "OutputError", "PartitionError", "PrecisionError", "Partition", "partition",
+    "ConvergenceError", "CheckpointError", "ConfigError", "OutputError", "PartitionError", "PrecisionError",
+    "Partition", "partition",
     "Mesh", "MeshWarning", "read_mesh", "merge_coincident_nodes",
     "box_beam", "vessel_mesh", "vessel_centerline", "coronary_mesh", "devices",
-    "LinearElastic", "BodyForce", "Pressure", "Traction", "ElasticSupport", "Constant", "Ramp", "StepOff",
+    "LinearElastic", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "helical_fibres",
+    "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
+    "BodyForce", "Pressure", "Traction", "ElasticSupport", "Constant", "Ramp", "StepOff",
     "Periodic",
     "Dirichlet", "Problem", "LockingWarning", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",

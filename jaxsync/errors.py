@@ -31,12 +31,32 @@ class StabilityError(JaxsyncError, RuntimeError):
             :class:`jaxsync.Trajectory` whose ``result`` is ``Result.DIVERGED``), or None.
         trajectories: an ensemble's partial trajectories, one per run, or None.
         run: the ensemble run that diverged first (None otherwise); runs: all that did.
+        elements: a hyperelastic run stopped by inverted elements: their indices (sorted
+            int64 array), else None.
     """
 
-    def __init__(self, message: str, *, trajectory=None, trajectories=None, run=None, runs=None):
+    def __init__(self, message: str, *, trajectory=None, trajectories=None, run=None, runs=None, elements=None):
         super().__init__(message)
         self.trajectory, self.trajectories = trajectory, trajectories
         self.run, self.runs = run, runs
+        self.elements = elements
+
+
+class ConvergenceError(JaxsyncError, RuntimeError):
+    """An iterative solve that did not converge: Newton's method for the static equilibrium
+    of a hyperelastic problem (:func:`jaxsync.steady_state`).
+
+    Attributes:
+        increment: the load increment that failed (1-based), or None.
+        residual: the relative residual reached (the free dofs' largest out-of-balance force
+            over the load and reaction scale), or None.
+        displacement: (n_nodes, 3) [cm] the last converged state (the end of the increment
+            before), or None.
+    """
+
+    def __init__(self, message: str, *, increment=None, residual=None, displacement=None):
+        super().__init__(message)
+        self.increment, self.residual, self.displacement = increment, residual, displacement
 
 
 class CheckpointError(JaxsyncError, RuntimeError):

@@ -11,7 +11,9 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   ``"P2"`` (quadratic tetrahedra, the choice for bending and for nearly incompressible
   tissue: ``benchmarks/bench_locking.py``).
 - :data:`Mode`: the internal force of the explicit step (paper Remark 2): ``"preassembled"``
-  (sparse K stored once) or ``"recompute"`` (element quantities formed every step).
+  (sparse K stored once) or ``"recompute"`` (element quantities formed every step), both
+  for the linear law; or ``"total-lagrangian"`` (finite strain, a hyperelastic material:
+  :mod:`jaxsync.fem.total_lagrangian`, which a hyperelastic problem gets in any mode).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
   whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
   Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.halo`): parts grown by k
@@ -58,7 +60,7 @@ __all__ = ["Element", "Mode", "Sync", "Compression", "Component", "EpochRule", "
            "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
 
 Element = Literal["P1", "P2"]
-Mode = Literal["preassembled", "recompute"]
+Mode = Literal["preassembled", "recompute", "total-lagrangian"]
 Sync = Literal["psum", "ppermute", "mpi", "halo"]
 Compression = Literal["gzip", "lzf", "none"]
 Component = Literal[0, 1, 2]
@@ -77,7 +79,7 @@ DEFAULT_COMPONENT: Component = 2
 
 def choices(option) -> tuple:
     """The allowed values of an option type, in order: ``choices(Mode)`` is
-    ``("preassembled", "recompute")``."""
+    ``("preassembled", "recompute", "total-lagrangian")``."""
     values = get_args(option)
     if not values:
         raise TypeError(f"{option!r} is not a Literal type")

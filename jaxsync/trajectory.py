@@ -63,8 +63,9 @@ class RunStats:
       cycle).
     - Error control: ``resync_tolerance`` (as given, e.g. ``"1 %"``),
       ``n_resynchronizations``, ``resynchronized_at`` (the first step of each rejected
-      cycle), ``es_hat_trigger`` (its es_hat [cm]) and ``tolerance_cm`` (the tolerance then
-      [cm]).
+      cycle), ``es_hat_trigger`` (its es_hat [cm]), ``error_estimate_trigger`` (its
+      estimated error [cm]; NaN where es_hat rejected it before it ran) and
+      ``tolerance_cm`` (the tolerance then [cm]).
     - Load jumps: ``load_jumps``, the steps where a load's time function jumps that the run
       stayed synchronized through (None: not looked for).
     - Full-system modeling: ``dirichlet_max_abs_predicted``, the largest |predicted value|
@@ -91,11 +92,12 @@ class RunStats:
     resynchronized_at: tuple | None = None
     es_hat_trigger: tuple | None = None
     tolerance_cm: tuple | None = None
+    error_estimate_trigger: tuple | None = None
     load_jumps: tuple | None = None
     dirichlet_max_abs_predicted: float | None = None
 
     def __post_init__(self):
-        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "load_jumps"):
+        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "error_estimate_trigger", "load_jumps"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, tuple):
                 object.__setattr__(self, name, tuple(np.asarray(value).tolist()))
@@ -171,6 +173,10 @@ class Trajectory:
             None: not recorded, files of an older jaxsync).
         element: ``"P1"`` or ``"P2"``: the nodes the displacement is on (:attr:`space`;
             P2: the mesh's vertices, then one node per edge).
+        error_estimate: synchronization-avoiding runs with error control
+            (``ResyncTolerance(indicator="estimate")``): (n_saved,) the estimated largest
+            nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.error_estimate`),
+            NaN at synchronized ones; None otherwise.
 
     A pytree (the arrays, ``dt``, the parts and ``result`` are its leaves), so a traced run
     can return it from ``jit``.
@@ -188,6 +194,7 @@ class Trajectory:
     shared_every: int | None = None
     result: Any = None
     element: str = "P1"
+    error_estimate: Any = None
 
     def __post_init__(self):
         if isinstance(self.stats, dict):
@@ -268,6 +275,8 @@ class Trajectory:
             if self.synchronized is not None:
                 f.create_dataset("synchronized", data=np.asarray(self.synchronized, dtype=bool))
             f.create_dataset("displacement", data=np.asarray(self.displacement), **filters)
+            if self.error_estimate is not None:
+                f.create_dataset("error_estimate", data=np.asarray(self.error_estimate, dtype=float))
             g = f.create_group("mesh")
             g["points"] = self.mesh.points
             g["tets"] = self.mesh.tets
@@ -328,7 +337,8 @@ class Trajectory:
                            stats=RunStats.from_dict(stats),
                            shared_every=None if shared_every is None else int(shared_every),
                            result=None if result is None else Result(int(result)),
-                           element=str(f.attrs.get("element", "P1")))
+                           element=str(f.attrs.get("element", "P1")),
+                           error_estimate=f["error_estimate"][...] if "error_estimate" in f else None)
         except CheckpointError:
             raise
         except Exception as exc:
@@ -544,18 +554,19 @@ class _Frozen:
 
 
 def _flatten_trajectory(t: Trajectory):
-    children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result)
+    children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result, t.error_estimate)
     return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every, t.element)
 
 
 def _unflatten_trajectory(aux, children) -> Trajectory:
     mesh, save_every, parameters, stats, shared_every, element = aux
-    times, displacement, dt, parts, synchronized, result = children
+    times, displacement, dt, parts, synchronized, result, error_estimate = children
     t = object.__new__(Trajectory)  # without __post_init__: leaves may be placeholders
     for name, value in (("times", times), ("displacement", displacement), ("mesh", mesh), ("dt", dt),
                         ("save_every", save_every), ("parameters", dict(parameters.mapping)),
                         ("parts", tuple(parts)), ("synchronized", synchronized), ("stats", stats),
-                        ("shared_every", shared_every), ("result", result), ("element", element)):
+                        ("shared_every", shared_every), ("result", result), ("element", element),
+                        ("error_estimate", error_estimate)):
         object.__setattr__(t, name, value)
     return t
 

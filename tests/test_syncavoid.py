@@ -412,9 +412,11 @@ def test_resync_tolerance_is_checked(problem, partition, reference):
         with pytest.raises(ProblemError, match="resync_tolerance"):
             simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
                                    n_cri=N_CRI, resync_tolerance=bad)
-    with pytest.raises(ProblemError, match="OraclePredictor"):
-        simulate_sync_avoiding(problem, N_STEPS, partitions=partition,
-                               surrogates=oracle(reference, partition), n_cri=N_CRI, resync_tolerance=1e-3)
+    from jaxsync.solve.syncavoid import ResyncTolerance
+
+    with pytest.raises(ProblemError, match="OraclePredictor"):  # es_hat of an oracle is zero
+        simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=oracle(reference, partition),
+                               n_cri=N_CRI, resync_tolerance=ResyncTolerance(absolute=1e-3, indicator="es_hat"))
 
 
 def test_float32_mode_is_refused(problem, partition, reference):

@@ -479,6 +479,36 @@ def r_load_jumps() -> Rendered:
     return Rendered([t], sources)
 
 
+def r_guarantee() -> Rendered:
+    d = load("guarantee.json")
+    rows, tracking = [], []
+    for case in d["rows"]:
+        q = case["estimate_over_error"]
+        tracking.append([case["case"], num(case["free_max_error_cm"]),
+                         num(100 * case["free_max_error_cm"] / case["shared_amplitude_cm"], 3),
+                         num(q["p10"], 2), num(q["median"], 2), num(q["p90"], 2)])
+        for r in case["runs"]:
+            rows.append([case["case"], num(100 * r["tolerance_fraction"], 2) + " %", num(r["tolerance_cm"]),
+                         r["indicator"], num(r["max_error_over_tolerance"], 2),
+                         f"{num(r['n_predicted_steps'])} of {num(r['n_steps_after_n_cri'])}",
+                         num(r["n_resynchronizations"])])
+    tables = [Table(["case", "largest error without control [cm]", "% of the shared amplitude",
+                     "estimate / error p10", "median", "p90"], tracking,
+                    "How the error estimate tracks the true largest nodal error (predicted snapshots, error "
+                    "above 5 % of its largest)"),
+              Table(["case", "tolerance (of the shared amplitude)", "[cm]", "indicator", "largest error / tolerance",
+                     "steps predicted", "re-synchronizations"], rows, "The error held to the tolerance")]
+    costs = [[c["case"], num(c["n_dofs"]), num(c["save_every"]), num(c["us_per_step_plain"]),
+              num(c["us_per_step_probed"]), num(c["us_per_step_host_estimate"])] for c in d.get("probe_cost", [])]
+    if costs:
+        tables.append(Table(["mesh", "dofs", "probe every (steps)", "predicted step [us]", "with the probe [us]",
+                             "host estimate per step [us]"], costs, "The probe's cost"))
+    return Rendered(tables, ["guarantee.json"],
+                    recorded({"n_devices": d.get("n_devices"),
+                              "device_kind": ("emulated " if d.get("emulated") else "") + str(d.get("device_kind")),
+                              "date": d.get("date")}))
+
+
 def r_error_control() -> Rendered:
     d = load("error_control.json")
     none = next((r for r in d["rows"] if r["tolerance"] == "none"), None)
@@ -488,10 +518,11 @@ def r_error_control() -> Rendered:
         base = none["max_abs_error_cm"] if none else None
         vs = "-" if not base else num(r["max_abs_error_cm"] / base, 2)
         rows.append([r["tolerance"] + ("" if r["tolerance"] == "none" or r["tolerance"].endswith("%") else " cm"),
+                     r.get("indicator") or "-",
                      num(r["max_abs_error_cm"]), vs, num(r["n_synchronized_steps"]), num(r["n_predicted_steps"]),
                      num(r["n_discarded_steps"]), num(r["n_resynchronizations"]),
                      num(tr.get("ratio_median"), 2), num(tr.get("ratio_p95"), 2)])
-    t = Table(["tolerance", "largest error [cm]", "vs none", "synchronized", "predicted", "recomputed",
+    t = Table(["tolerance", "indicator", "largest error [cm]", "vs none", "synchronized", "predicted", "recomputed",
                "re-synchronizations", "es/es_hat median", "es/es_hat p95"], rows,
               f"{d.get('case', '')}: {num(d.get('n_steps'))} steps, n_cri {num(d.get('n_cri'))}")
     return Rendered([t], ["error_control.json"],
@@ -710,6 +741,7 @@ RENDERERS = {
     "experiments-linear": r_experiments_linear,
     "seeds": r_seeds,
     "error-control": r_error_control,
+    "guarantee": r_guarantee,
     "refill": r_refill,
     "load-jumps": r_load_jumps,
     "gradients": r_gradients,

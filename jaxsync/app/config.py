@@ -17,9 +17,15 @@ Layout (every table optional; defaults give the paper's cantilever)::
     divisions = [25, 1, 1]
 
     [material]
-    E = 1.0e6                   # dyn/cm^2
+    model = "linear-elastic"    # (the default) or "neo-hookean",
+                                # "nearly-incompressible-neo-hookean", "holzapfel-gasser-ogden"
+    E = 1.0e6                   # dyn/cm^2 (the first three models)
     nu = 0.3
     rho = 1.0                   # g/cm^3
+    # holzapfel-gasser-ogden: mu, k1 (dyn/cm^2), k2, kappa_bulk (dyn/cm^2), fibre_angle
+    # (degrees from the circumferential direction), fibre_axis = [x, y, z] are required;
+    # rho (1.0), dispersion (0.0) and fibre_origin = [x, y, z] (a point on the axis,
+    # [0, 0, 0]) optional. The fibres are jaxsync.helical_fibres of the element centroids.
 
     [problem]
     kind = "cantilever"         # or "general" (then give [[dirichlet]] and loads)
@@ -112,7 +118,9 @@ _PLANE = {"axis": "int", "value": "number"}
 _SCHEMA: dict[str, dict[str, Any]] = {
     "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
              "width": "number", "height": "number", "divisions": ("int", 3)},
-    "material": {"E": "number", "nu": "number", "rho": "number"},
+    "material": {"model": "string", "E": "number", "nu": "number", "rho": "number", "mu": "number",
+                 "k1": "number", "k2": "number", "kappa_bulk": "number", "dispersion": "number",
+                 "fibre_angle": "number", "fibre_axis": ("number", 3), "fibre_origin": ("number", 3)},
     "problem": {"kind": "string", "element": "string", "damping": "number", "body_force": ("number", 3),
                 "t_ramp": "number", "t_off": "number"},
     "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
@@ -130,6 +138,15 @@ _SCHEMA: dict[str, dict[str, Any]] = {
                  "values": ("number", None)},
     "support": {"surface": "string", "stiffness": "number", "damping": "number", "normal_only": "bool"},
 }
+_MATERIAL_KEYS = {
+    "linear-elastic": ("E", "nu", "rho"),
+    "neo-hookean": ("E", "nu", "rho"),
+    "nearly-incompressible-neo-hookean": ("E", "nu", "rho"),
+    "holzapfel-gasser-ogden": ("mu", "k1", "k2", "kappa_bulk", "rho", "dispersion", "fibre_angle", "fibre_axis",
+                               "fibre_origin"),
+}
+"""The [material] models and the keys each takes (besides ``model``)."""
+_MATERIAL_REQUIRED = {"holzapfel-gasser-ogden": ("mu", "k1", "k2", "kappa_bulk", "fibre_angle", "fibre_axis")}
 _ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
 _PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"))
 
@@ -214,6 +231,7 @@ def check_config(config: dict, origin: str = "configuration") -> None:
             entries = [(f"[{table}]", value)]
         for where, entry in entries:
             _check_table(entry, _SCHEMA[table], where, origin)
+    _check_material(config.get("material", {}), origin)
     run = config.get("run", {})
     if "mass_scaling_dt" in run and "mass_scaling_beta" in run:
         raise ConfigError(f"{origin}: [run] gives both mass_scaling_dt and mass_scaling_beta; "
@@ -221,6 +239,44 @@ def check_config(config: dict, origin: str = "configuration") -> None:
     for key in ("mass_scaling_dt", "mass_scaling_beta"):
         if key in run and not run[key] > 0:
             raise ConfigError(f"{origin}: [run] {key} = {run[key]!r} must be positive")
+
+
+def _check_material(material: dict, origin: str) -> None:
+    """The [material] model and the keys it takes (types are checked by the schema)."""
+    model = material.get("model", "linear-elastic")
+    models = ", ".join(f'"{m}"' for m in _MATERIAL_KEYS)
+    if model not in _MATERIAL_KEYS:
+        raise ConfigError(f"{origin}: [material] model = {_shown(model)} is not a material model; allowed: {models}")
+    allowed = _MATERIAL_KEYS[model]
+    foreign = sorted(set(material) - set(allowed) - {"model"})
+    if foreign:
+        raise ConfigError(f"{origin}: [material] key(s) {', '.join(foreign)} are not parameters of model = "
+                          f"\"{model}\"; its keys: model, {', '.join(allowed)}")
+    missing = [k for k in _MATERIAL_REQUIRED.get(model, ()) if k not in material]
+    if missing:
+        raise ConfigError(f"{origin}: [material] model = \"{model}\" needs {', '.join(missing)}; its keys: model, "
+                          f"{', '.join(allowed)} ({', '.join(_MATERIAL_REQUIRED[model])} required)")
+
+
+def _material(material: dict, mesh):
+    """The material law of a checked [material] table (the fibres of the Holzapfel-Gasser-
+    Ogden law: :func:`jaxsync.helical_fibres` of the mesh's element centroids)."""
+    from ..fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
+
+    model = material.get("model", "linear-elastic")
+    if model == "linear-elastic":
+        return LinearElastic(float(material.get("E", 1.0e6)), float(material.get("nu", 0.3)),
+                             float(material.get("rho", 1.0)))
+    if model in ("neo-hookean", "nearly-incompressible-neo-hookean"):
+        law = NeoHookean if model == "neo-hookean" else NearlyIncompressibleNeoHookean
+        return law(**{k: float(material[k]) for k in ("E", "nu", "rho") if k in material})
+    centres = mesh.points[mesh.tets].mean(axis=1)
+    fibres = helical_fibres(centres, axis=tuple(float(x) for x in material["fibre_axis"]),
+                            angle=float(material["fibre_angle"]),
+                            origin=tuple(float(x) for x in material.get("fibre_origin", (0.0, 0.0, 0.0))))
+    return HolzapfelGasserOgden(mu=float(material["mu"]), k1=float(material["k1"]), k2=float(material["k2"]),
+                                kappa_bulk=float(material["kappa_bulk"]), rho=float(material.get("rho", 1.0)),
+                                dispersion=float(material.get("dispersion", 0.0)), fibres=fibres)
 
 
 def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
@@ -393,9 +449,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
         mesh = box_beam(float(mesh_cfg.get("length", 25.0)), float(mesh_cfg.get("width", 1.0)),
                         float(mesh_cfg.get("height", 1.0)),
                         tuple(int(n) for n in mesh_cfg.get("divisions", (25, 1, 1))))
-    mat = config.get("material", {})
-    material = LinearElastic(float(mat.get("E", 1.0e6)), float(mat.get("nu", 0.3)),
-                             float(mat.get("rho", 1.0)))
+    material = _material(config.get("material", {}), mesh)
     prob = config.get("problem", {})
     kind = check_option("[problem] kind", prob.get("kind", "cantilever"), ProblemKind)
     element = element or prob.get("element")

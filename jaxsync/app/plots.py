@@ -14,7 +14,9 @@ synchronized reference (:func:`compare`), draws the figures of
 - ``et_histogram.png``: histograms of the time-averaged errors et_j and et_hat_j;
 - ``es_tracking.png``: es_hat against es per predicted snapshot (how well the estimate,
   which needs no reference, stands in for the error; summarized in ``es_hat_tracking``
-  of ``summary.json``, see :func:`jaxsync.metrics.estimate_quality`).
+  of ``summary.json``, see :func:`jaxsync.metrics.estimate_quality`); with error control
+  the run's own error estimate against the true largest nodal error is summarized in
+  ``error_estimate_tracking``.
 
 Every time plot marks the end of the initial synchronized phase (t(n_cri)) and shades the
 re-synchronized intervals (synchronized snapshots after the first predicted one, as the
@@ -284,6 +286,10 @@ class Comparison:
         snapshot_steps: (T,) the time step of every snapshot.
         train_until_step: the last step whose displacements fed training (None: not
             known); the summary's ``out_of_sample`` errors are measured after it.
+        estimate_quality: how the online run's error estimate
+            (:attr:`jaxsync.Trajectory.error_estimate`) tracks the true largest nodal
+            error at its predicted snapshots (:class:`jaxsync.metrics.EstimateQuality`,
+            true / estimate), or None when the run has none.
     """
 
     times: np.ndarray
@@ -306,6 +312,7 @@ class Comparison:
     n_synchronized: int
     snapshot_steps: np.ndarray | None = None
     train_until_step: int | None = None
+    estimate_quality: object | None = None
 
     @property
     def node_components(self) -> dict[str, int]:
@@ -354,6 +361,12 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
     if partition.n_interface and len(steps):
         errs = shared_node_errors(ref[steps][:, partition.shared_nodes], predictions, holds)
         quality = estimate_quality(errs.es, errs.es_hat)
+    tracked = None
+    if getattr(online, "error_estimate", None) is not None:  # the error control's estimate
+        estimate = np.asarray(online.error_estimate, dtype=float)
+        at = np.isfinite(estimate)
+        true = np.linalg.norm(pred[at] - ref[at], axis=2).max(axis=1)
+        tracked = estimate_quality(true, estimate[at])
     shared = np.zeros(n_nodes, bool)
     shared[partition.shared_nodes] = True
     n_steps, n_synchronized = step_counts(online)
@@ -370,7 +383,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
                       t_switch=t_switch, spans=spans, l2=l2_error(ref, pred), steps=np.asarray(steps),
                       shared_errors=errs, quality=quality, n_steps=n_steps,
                       n_synchronized=n_synchronized, snapshot_steps=snapshot_steps,
-                      train_until_step=train_until_step)
+                      train_until_step=train_until_step, estimate_quality=tracked)
 
 
 def report_figures(c: Comparison) -> dict:
@@ -448,6 +461,8 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
         "es_max": float(errs.es.max()), "es_hat_max": float(errs.es_hat.max()),
         "et_mean": float(errs.et.mean()), "et_hat_mean": float(errs.et_hat.mean()),
         "es_hat_tracking": c.quality.to_dict()}
+    if c.estimate_quality is not None:
+        summary_shared["error_estimate_tracking"] = c.estimate_quality.to_dict()
     return {
         "n_steps": c.n_steps,
         "n_synchronized": c.n_synchronized,

@@ -8,6 +8,8 @@ forces, pressure, time functions), :mod:`~jaxsync.fem.problem` (a problem and th
 cantilever), :mod:`~jaxsync.fem.coronary` (the paper's coronary case: material, pulsatile
 lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
 :mod:`~jaxsync.fem.element_force` (element forces formed every step),
+:mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.total_lagrangian`
+(their internal force, total-Lagrangian explicit dynamics),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """
@@ -15,12 +17,14 @@ stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit s
 from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
 from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
 from .geometry import vessel_mesh
+from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
 from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
 from .material import LinearElastic
 from .mesh import Mesh, MeshWarning, box_beam, read_mesh
 from .problem import Dirichlet, Problem, cantilever
 from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
 from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh",
            "coronary_tree", "CoronaryTree", "VesselSegment", "LinearElastic",
@@ -28,4 +32,5 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
            "ExplicitSystem", "SolverState", "build_system",
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
-           "MassScalingWarning"]
+           "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
+           "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements"]

@@ -13,11 +13,17 @@ model* turns a problem (mesh and material) into
 * its stable-step bound (:meth:`ForceModel.max_stable_dt`).
 
 The runners, deep halos, the executors, gradients and surrogates work through these
-three only. Two models implement the linear elastic law today (paper Remark 2):
+three only. Two models implement the linear elastic law (paper Remark 2):
 :class:`Preassembled` (K stored once, the fast path) and :class:`ElementRecompute`
-(element quantities formed every step, standing in for laws whose element quantities
-change, such as hyperelastic ones). :func:`force_model` maps the command line's names
-(``"preassembled"``, ``"recompute"``) onto them.
+(element quantities formed every step); a third, :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`,
+the finite-strain hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`). :func:`force_model`
+maps the command line's names (``"preassembled"``, ``"recompute"``, ``"total-lagrangian"``)
+onto them.
+
+A problem whose material is hyperelastic has no stiffness K to store: the linear models
+hand it to :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian` (so that the default
+``mode="preassembled"`` of every solver runs the law the problem states, never its
+linearisation).
 """
 
 from __future__ import annotations
@@ -70,6 +76,17 @@ def _max_stable_dt(problem):
     return max_stable_dt(problem)
 
 
+def _finite_strain(problem):
+    """The total-Lagrangian model when the problem's material is hyperelastic, else None."""
+    from .hyperelastic import is_hyperelastic
+
+    if not is_hyperelastic(problem.material):
+        return None
+    from .total_lagrangian import TotalLagrangian
+
+    return TotalLagrangian()
+
+
 LAYOUTS = ("grouped", "ell")
 BLOCK_DTYPES = ("float64", "float32")
 
@@ -80,6 +97,16 @@ class Preassembled:
     blocks and stored in node-blocked ELL form, symmetric (its product has its own
     reverse pass). The unit operators K_lambda and K_mu do not depend on the material, so
     a traced lambda or mu costs no reassembly.
+
+    When Young's modulus E is traced (``jax.grad`` in E) and the Poisson ratio is a
+    concrete number, K = E K_1 with K_1 = K(E=1, nu) a constant: on meshes (parts) of
+    ``scale_min_nodes`` nodes or more the operator then holds K_1's blocks (numpy, built
+    here) and E as its :attr:`~jaxsync.fem.sparse.BlockEll.scale`, so that reverse mode
+    through the time loop sums one scalar per step, <K_1 y_bar, u>, instead of carrying a
+    cotangent as large as K (the blocks') across every step and contracting it with
+    K_lambda and K_mu. With nu traced too, the blocks are lambda K_lambda + mu K_mu,
+    traced (as on smaller meshes); with a concrete material the blocks are K's and no
+    scale exists (forward runs unchanged).
 
     Attributes:
         layout: ``"grouped"`` (default): rows grouped by node degree, each group a block
@@ -98,7 +125,19 @@ class Preassembled:
             but to float32 accuracy only: the blocks' cotangents are float32 and the time
             loop sums them in float32 (measured against float64: 2e-6 relative on the
             vessel, 7e-4 on the cantilever over 2 000 steps); differentiate with float64
-            blocks (the default) where that matters. Only with the grouped layout.
+            blocks (the default) where that matters. Only with the grouped layout. (Under
+            a traced E with nu fixed, E's cotangent is a float64 sum, <K_1 y_bar, u> with
+            the rounded K_1: no float32 accumulation.)
+        scale_min_nodes: the fewest nodes (rows of the mesh, or of each part) at which a
+            traced E with a concrete nu is carried as the operator's scale (above). On
+            smaller meshes XLA:CPU fuses the per-step dot product <K_1 y_bar, u> badly (it
+            materializes the gathered neighbour values of K_1 y_bar and computes the sum
+            twice; from about 1 500 nodes it hands the reduction to a library kernel and
+            does not). Measured (checkpointed gradient in E and the damping, the beams of
+            benchmarks/bench_gradients.py, against the Lame blocks, best of 3-5
+            alternated calls): 1.4x slower at 117 nodes (1e4 steps), 1.2x slower at 496
+            (5 000 steps); 1.4x faster at 2 989 nodes (2 000 steps), 1.4x at 12 221
+            (1 000 steps), 1.8x at 36 225 (500 steps). 0: always.
 
     ``mode=Preassembled(blocks_dtype="float32")`` selects it in every solver, as the
     force models are selected.
@@ -106,6 +145,7 @@ class Preassembled:
 
     layout: str = "grouped"
     blocks_dtype: str = "float64"
+    scale_min_nodes: int = 1500
     name: str = dataclasses.field(default="preassembled", init=False)
 
     def __post_init__(self):
@@ -118,6 +158,10 @@ class Preassembled:
             raise ProblemError("Preassembled(blocks_dtype='float32') needs layout='grouped' (its diagonal "
                                "blocks kept in float64 keep the rounding error relative to the strains): "
                                "drop layout='ell'")
+        if isinstance(self.scale_min_nodes, bool) or not isinstance(self.scale_min_nodes, int) \
+                or self.scale_min_nodes < 0:
+            raise ProblemError(f"Preassembled(scale_min_nodes={self.scale_min_nodes!r}): give a non-negative "
+                               "integer (0: always carry a traced E as the stiffness's scale)")
 
     def operator(self, problem):
         """The stiffness of the whole mesh: a :class:`~jaxsync.fem.sparse.GroupedEll` (or
@@ -127,6 +171,8 @@ class Preassembled:
         the neighbours much closer (:func:`jaxsync.fem.sparse.bandwidth_order`)."""
         from .sparse import bandwidth_order, permuted_block_ell
 
+        if (tl := _finite_strain(problem)) is not None:  # no K of a nonlinear law: module docstring
+            return tl.operator(problem)
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
         if self.layout == "ell":
             return self._stiffness(problem.material, adjacency, K_lambda, K_mu)
@@ -141,19 +187,28 @@ class Preassembled:
         groups and group sizes in every part. Each part's rows are in its local order
         (:class:`jaxsync.parallel.layout.PartLayout` orders the local nodes by reverse
         Cuthill-McKee)."""
+        if (tl := _finite_strain(problem)) is not None:
+            return tl.part_operators(problem, parts, n_local)
         columns, K_lambda, K_mu = _part_unit_blocks(problem.space, parts, n_local)
         return self._stiffness(problem.material, columns, K_lambda, K_mu)
 
     def _stiffness(self, material, columns, K_lambda, K_mu, order=None):
         """The operator of host unit blocks on ``columns`` (numbered in ``order``, if given:
-        its rows go back to the caller's numbering, u is gathered into it)."""
+        its rows go back to the caller's numbering, u is gathered into it). Stacked parts'
+        ``columns`` (P, n, width) give a scale of shape (P,), if any."""
         from .sparse import BlockEll, GroupedEll, grouped_layout, split_diagonal
 
+        scale, lam, mu = self._moduli(material, int(np.shape(columns)[-2]))
+        if scale is not None and np.ndim(columns) == 3:  # one per part (vmap / shard_map over the part axis)
+            scale = jnp.broadcast_to(scale, np.shape(columns)[:1])
+
+        def combine(a, b):  # constant (numpy) blocks K_1 under a scale, else lambda K_lambda + mu K_mu
+            return lam * a + mu * b if scale is not None else lam * jnp.asarray(a) + mu * jnp.asarray(b)
+
         if self.layout == "ell":
-            blocks = material.lam * jnp.asarray(K_lambda) + material.mu * jnp.asarray(K_mu)
-            return BlockEll(jnp.asarray(columns), blocks, symmetric=True)
+            return BlockEll(jnp.asarray(columns), jnp.asarray(combine(K_lambda, K_mu)), symmetric=True, scale=scale)
         rows, group_columns, (lambdas, mus) = grouped_layout(columns, K_lambda, K_mu)
-        blocks = [material.lam * jnp.asarray(a) + material.mu * jnp.asarray(b) for a, b in zip(lambdas, mus)]
+        blocks = [combine(a, b) for a, b in zip(lambdas, mus)]
         diagonal = None
         if self.blocks_dtype == "float32":  # off-diagonal blocks rounded, rows still summing to zero
             blocks, diagonal = zip(*(split_diagonal(b, jnp.float32) for b in blocks))
@@ -161,13 +216,30 @@ class Preassembled:
         if order is not None:  # rows back to the caller's numbering (padding rows stay past the end)
             rows = [np.arange(n_rows) if r is None else r for r in rows]
             rows = [np.where(r < n_rows, order[np.minimum(r, n_rows - 1)], r).astype(np.int32) for r in rows]
-        return GroupedEll(columns=tuple(jnp.asarray(c) for c in group_columns), blocks=tuple(blocks),
-                          symmetric=True, rows=tuple(None if r is None else jnp.asarray(r) for r in rows),
-                          n_rows=n_rows, diagonal=None if diagonal is None else tuple(diagonal),
-                          perm=None if order is None else jnp.asarray(order, dtype=jnp.int32))
+        return GroupedEll(columns=tuple(jnp.asarray(c) for c in group_columns),
+                          blocks=tuple(jnp.asarray(b) for b in blocks), symmetric=True,
+                          rows=tuple(None if r is None else jnp.asarray(r) for r in rows),
+                          n_rows=n_rows, diagonal=None if diagonal is None else tuple(jnp.asarray(d) for d in diagonal),
+                          perm=None if order is None else jnp.asarray(order, dtype=jnp.int32), scale=scale)
+
+    def _moduli(self, material, n_rows: int):
+        """(scale, lambda, mu) of the stiffness blocks of ``n_rows`` rows: (E, lambda / E,
+        mu / E), the last two Python floats, when E is a traced scalar, nu a concrete
+        number and ``n_rows >= scale_min_nodes`` (K = E K(E=1, nu): constant blocks under
+        a traced scale); else (None, lambda, mu)."""
+        from ..pytree import concrete_scalar, is_traced
+
+        E = getattr(material, "E", None)
+        if (n_rows < self.scale_min_nodes or E is None or not is_traced(E) or jnp.ndim(E) != 0
+                or not dataclasses.is_dataclass(material) or concrete_scalar(getattr(material, "nu", None)) is None):
+            return None, material.lam, material.mu
+        unit = dataclasses.replace(material, E=1.0)
+        return E, float(unit.lam), float(unit.mu)
 
     def max_stable_dt(self, problem):
         """The exact bound 2 / omega_max of M^-1 K [s] (:func:`jaxsync.fem.timestep.max_stable_dt`)."""
+        if (tl := _finite_strain(problem)) is not None:
+            return tl.max_stable_dt(problem)
         return _max_stable_dt(problem)
 
 
@@ -183,6 +255,8 @@ class ElementRecompute:
         """:class:`~jaxsync.fem.element_force.ElementStiffness` of the whole mesh."""
         from .element_force import ElementStiffness
 
+        if (tl := _finite_strain(problem)) is not None:
+            return tl.operator(problem)
         _check_p1(problem)
         mesh, m = problem.mesh, problem.material
         return ElementStiffness(jnp.asarray(mesh.points), jnp.asarray(mesh.tets, dtype=jnp.int32),
@@ -193,6 +267,8 @@ class ElementRecompute:
         leading part axis; padding elements repeat the part's element 0 with weight 0."""
         from .element_force import ElementStiffness
 
+        if (tl := _finite_strain(problem)) is not None:
+            return tl.part_operators(problem, parts, n_local)
         _check_p1(problem)
         n_parts = len(parts)
         n_elements = max(len(p.elements) for p in parts)
@@ -210,6 +286,8 @@ class ElementRecompute:
 
     def max_stable_dt(self, problem):
         """The same bound as :class:`Preassembled` (the same K)."""
+        if (tl := _finite_strain(problem)) is not None:
+            return tl.max_stable_dt(problem)
         return _max_stable_dt(problem)
 
 
@@ -220,12 +298,19 @@ def _check_p1(problem) -> None:
                            f"problem uses {problem.element} elements: use mode='preassembled'")
 
 
-_MODELS = {"preassembled": Preassembled, "recompute": ElementRecompute}
+def _total_lagrangian():
+    from .total_lagrangian import TotalLagrangian
+
+    return TotalLagrangian()
+
+
+_MODELS = {"preassembled": Preassembled, "recompute": ElementRecompute, "total-lagrangian": _total_lagrangian}
 
 
 def force_model(mode: Mode | ForceModel = "preassembled") -> ForceModel:
     """The force model of ``mode``: ``"preassembled"`` (:class:`Preassembled`),
-    ``"recompute"`` (:class:`ElementRecompute`), or a force model, returned as it is.
+    ``"recompute"`` (:class:`ElementRecompute`), ``"total-lagrangian"``
+    (:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`), or a force model, returned as it is.
 
     Raises:
         ProblemError: any other value, naming the allowed ones.

@@ -18,6 +18,7 @@ from ..errors import ProblemError
 from ..options import Element
 from ..pytree import is_traced
 from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector, traction_vectors
+from .hyperelastic import is_hyperelastic
 from .loads import LOADS, BodyForce, Pressure, Ramp, StepOff, TimeFunction, Traction
 from .material import LinearElastic
 from .mesh import Mesh, box_beam
@@ -65,7 +66,15 @@ class Problem:
 
     Attributes:
         mesh: the mesh.
-        material: :class:`LinearElastic` (fields may be JAX tracers).
+        material: :class:`LinearElastic` (fields may be JAX tracers), or a hyperelastic law
+            (:class:`jaxsync.NeoHookean`, :class:`jaxsync.NearlyIncompressibleNeoHookean`,
+            :class:`jaxsync.HolzapfelGasserOgden`): the problem is then one of finite
+            strain, M d'' + C d' + f_int(d) = f(t), and every solver computes f_int by the
+            total-Lagrangian model (:mod:`jaxsync.fem.total_lagrangian`) whatever its
+            ``mode``: the linear modes have no stiffness of a nonlinear law to store. The
+            default step (:attr:`dt`) is that of the law's tangent at rest (the initial
+            displacement); a run checks its deformed states between chunks
+            (:class:`jaxsync.fem.total_lagrangian.RunCheck`).
         element: ``"P1"`` (linear tetrahedra) or ``"P2"`` (quadratic: a node at every
             edge too, :mod:`jaxsync.fem.space`); default ``"P2"`` on a quadratic
             (``tetra10``) mesh, ``"P1"`` otherwise. Fields are (n_nodes, 3) on the
@@ -99,8 +108,10 @@ class Problem:
     def __post_init__(self):
         if not isinstance(self.mesh, Mesh):
             raise ProblemError(f"Problem.mesh must be a jaxsync.Mesh, got {type(self.mesh).__name__}")
-        if not isinstance(self.material, LinearElastic):
-            raise ProblemError("Problem.material must be a jaxsync.LinearElastic")
+        if not isinstance(self.material, LinearElastic) and not is_hyperelastic(self.material):
+            raise ProblemError(f"Problem.material must be a jaxsync.LinearElastic or a hyperelastic law "
+                               f"(jaxsync.NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden), got "
+                               f"{type(self.material).__name__}")
         object.__setattr__(self, "dirichlet", tuple(self.dirichlet))
         object.__setattr__(self, "loads", tuple(self.loads))
         object.__setattr__(self, "supports", tuple(self.supports))
@@ -167,13 +178,20 @@ class Problem:
     def dt(self):
         """The default time step [s]: the paper's CFL step, or alpha_s times the exact
         stability bound where that is smaller (nearly incompressible materials); see
-        :attr:`time_step` for which rule set it and :func:`jaxsync.fem.timestep.stable_step`."""
+        :attr:`time_step` for which rule set it and :func:`jaxsync.fem.timestep.stable_step`.
+        A hyperelastic law: its force model's step at rest, alpha_s times the smaller of
+        the element eigenvalue rule and the exact bound of its tangent stiffness
+        (:func:`jaxsync.fem.total_lagrangian.default_step`: the HGO fibres included)."""
         return self.time_step.dt
 
     @property
     def time_step(self):
         """The default step with its rule and both bounds
         (:class:`jaxsync.fem.timestep.StableStep`)."""
+        if is_hyperelastic(self.material):
+            from .total_lagrangian import default_step
+
+            return default_step(self)
         from .timestep import stable_step
 
         return stable_step(self)

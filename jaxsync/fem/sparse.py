@@ -67,11 +67,20 @@ class BlockEll:
             matrices). Then reverse mode uses K itself for the transpose product (a
             gather, like the forward product) instead of the scatter-adds autodiff would
             write, and keeps only u per product: see :func:`_symmetric_matvec`.
+        scale: None (the matrix is ``blocks``), or a scalar s (one per part when stacked)
+            multiplying them: the matrix is s K_1 with ``blocks`` holding K_1, applied as
+            s (K_1 u). The stiffness of a material whose Young's modulus E is traced and
+            whose Poisson ratio is fixed is E K(E=1): its blocks are then constants and E
+            the one traced value, so that reverse mode through a time loop sums a scalar
+            cotangent per product, s_bar += <y_bar, K_1 u> (= <K_1 y_bar, u> for a
+            symmetric K, the transpose product it forms anyway), instead of carrying the
+            blocks' cotangent, an array as large as K, across every step.
     """
 
     columns: jnp.ndarray
     blocks: jnp.ndarray
     symmetric: bool = static_field(default=False)
+    scale: jnp.ndarray | None = None
 
     def matvec(self, u):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3).
@@ -84,8 +93,8 @@ class BlockEll:
         gathers (its fusion heuristics refuse to duplicate a broadcast gather): 1.6x
         slower at 250k dofs (benchmarks/bench_stepper.py)."""
         if self.symmetric:
-            return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u))
-        return _matvec(self.columns, self.blocks, jnp.asarray(u))
+            return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u), self.scale)
+        return _matvec(self.columns, self.blocks, jnp.asarray(u), scale=self.scale)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -99,12 +108,13 @@ multiply-adds per output was latency-bound; 4 and 8 partial sums were measured a
 (1.3-1.4x faster than 1 on the 51k-dof beam, 1.2-1.4x on the vessel)."""
 
 
-def _matvec(columns, blocks, u, diagonal=None):
+def _matvec(columns, blocks, u, diagonal=None, scale=None):
     """y = K u (:meth:`BlockEll.matvec`): u (n_cols, 3) -> y (n_rows, 3), in ``u``'s dtype
     (float32 blocks are widened term by term: the sums are float64 for float64 u).
 
     ``diagonal``: (n_rows, 3, 3) blocks of slot 0 kept apart (in u's dtype), ``blocks``
-    then holding slots 1.. only (the split storage of :class:`GroupedEll`)."""
+    then holding slots 1.. only (the split storage of :class:`GroupedEll`). ``scale``: a
+    scalar multiplying the sum (:attr:`BlockEll.scale`), or None."""
     # Kept together behind a barrier: inside a time loop XLA would otherwise hoist the
     # loop-invariant index broadcasts (and a blocks dtype conversion) out of the loop as
     # width separate (n_rows, 3) arrays, which the loop then streams instead of columns.
@@ -129,30 +139,48 @@ def _matvec(columns, blocks, u, diagonal=None):
     while len(partial) > 1:
         partial = [partial[i] + partial[i + 1] if i + 1 < len(partial) else partial[i]
                    for i in range(0, len(partial), 2)]
-    return partial[0]
+    return partial[0] if scale is None else _scaled(partial[0], scale)
+
+
+def _scaled(y, scale):
+    """``scale * y`` in y's dtype (a scalar scale)."""
+    return y * jnp.asarray(scale).astype(y.dtype)
 
 
 @jax.custom_vjp
-def _symmetric_matvec(columns, blocks, u):
+def _symmetric_matvec(columns, blocks, u, scale):
     """y = K u for a symmetric K, with a reverse pass written for it: the cotangent of u is
     K^T y_bar = K y_bar (the forward gather form again, no scatter-add), and that of the
     blocks the outer product y_bar[r, i] u[columns[r, s], j] (a gather). Autodiff of
     :func:`_matvec` would instead scatter-add 3 width times per product and keep every
     gathered neighbour value (3 width (n, 3) fields) for the reverse pass; here only u is
     kept. Measured on a 1e4-step gradient of the coarse cantilever: 5x faster, 5x less
-    memory."""
-    return _matvec(columns, blocks, u)
+    memory.
+
+    With a ``scale`` s (K = s K_1, ``blocks`` holding K_1: :attr:`BlockEll.scale`), the
+    reverse pass forms w = K_1 y_bar once: u's cotangent is s w and s's the dot product
+    <w, u> (= <y_bar, K_1 u>, K_1 being symmetric), and the blocks' s y_bar u^T."""
+    return _matvec(columns, blocks, u, scale=scale)
 
 
-def _symmetric_matvec_fwd(columns, blocks, u):
-    return _matvec(columns, blocks, u), (columns, blocks, u)
+def _symmetric_matvec_fwd(columns, blocks, u, scale):
+    return _matvec(columns, blocks, u, scale=scale), (columns, blocks, u, scale)
 
 
 def _symmetric_matvec_bwd(residuals, y_bar):
-    columns, blocks, u = residuals
-    u_bar = _matvec(columns, blocks, y_bar)  # K^T y_bar = K y_bar
+    columns, blocks, u, scale = residuals
+    w = _matvec(columns, blocks, y_bar)  # K_1^T y_bar = K_1 y_bar
+    u_bar, scale_bar, y_bar = _unscaled_cotangents(w, u, y_bar, scale)
     blocks_bar = y_bar[:, :, None, None] * u[columns][:, None, :, :]  # (n_rows, 3, width, 3)
-    return None, blocks_bar.astype(blocks.dtype), u_bar
+    return None, blocks_bar.astype(blocks.dtype), u_bar, scale_bar
+
+
+def _unscaled_cotangents(w, u, y_bar, scale):
+    """(u_bar, scale_bar, the blocks' y_bar) of y = scale K_1 u given w = K_1 y_bar."""
+    if scale is None:
+        return w, None, y_bar
+    scale = jnp.asarray(scale)
+    return _scaled(w, scale), jnp.sum(w * u).astype(scale.dtype), _scaled(y_bar, scale)
 
 
 _symmetric_matvec.defvjp(_symmetric_matvec_fwd, _symmetric_matvec_bwd)
@@ -196,6 +224,8 @@ class GroupedEll(BlockEll):
             ``perm[k]`` is column k; u is gathered into it first), while ``rows`` stay in
             the caller's numbering: a bandwidth-reducing order applied inside the
             operator (:func:`bandwidth_order`), results in the caller's numbering.
+        scale: None, or a scalar multiplying the whole matrix (:attr:`BlockEll.scale`;
+            one per part when stacked).
 
     All arrays may carry one leading part axis (the parts of a partition, stacked and
     padded alike: the same groups and shapes in every part) for ``vmap``/``shard_map``.
@@ -210,7 +240,7 @@ class GroupedEll(BlockEll):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3)."""
         u = jnp.asarray(u)
         diagonal = (None,) * len(self.columns) if self.diagonal is None else self.diagonal
-        args = (self.rows, self.columns, self.blocks, diagonal, self.perm, u, self.n_rows)
+        args = (self.rows, self.columns, self.blocks, diagonal, self.perm, u, self.scale, self.n_rows)
         return _grouped_symmetric(*args) if self.symmetric else _grouped_matvec(*args)
 
     @property
@@ -229,15 +259,16 @@ class GroupedEll(BlockEll):
         return int(sum(np.prod(np.shape(c)) for c in self.columns))
 
 
-def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows):
+def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
     """y = K u (:meth:`GroupedEll.matvec`). A scatter, not a gather, puts each group's
     rows in place: XLA fuses each group's product into its scatter and walks the group's
-    own rows in order (measured: see the module docstring)."""
+    own rows in order (measured: see the module docstring). ``scale``: None or a scalar
+    multiplying each group's product (:attr:`BlockEll.scale`)."""
     if perm is not None:  # the layout's own node order (the columns number it)
         u = u.at[perm].get(mode="promise_in_bounds")
     y = None
     for r, c, b, d in zip(rows, columns, blocks, diagonal):
-        part = _matvec(c, b, u, d)
+        part = _matvec(c, b, u, d, scale)
         if r is None:
             y = part if y is None else y + part
             continue
@@ -247,23 +278,27 @@ def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows):
     return y
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(6,))
-def _grouped_symmetric(rows, columns, blocks, diagonal, perm, u, n_rows):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(7,))
+def _grouped_symmetric(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
     """:func:`_grouped_matvec` for a symmetric K with its own reverse pass (as
     :func:`_symmetric_matvec`): u's cotangent is K y_bar, each group's blocks' (and
-    diagonal blocks') the outer product of y_bar at its rows and the gathered u. Only u
-    (in the caller's numbering: the state itself) is kept per product."""
-    return _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows)
+    diagonal blocks') the outer product of y_bar at its rows and the gathered u; with a
+    ``scale`` s (K = s K_1), w = K_1 y_bar is formed once, u's cotangent is s w and s's
+    <w, u>. Only u (in the caller's numbering: the state itself) is kept per product."""
+    return _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows)
 
 
-def _grouped_symmetric_fwd(rows, columns, blocks, diagonal, perm, u, n_rows):
-    out = _grouped_matvec(rows, columns, blocks, diagonal, perm, u, n_rows)
-    return out, (rows, columns, blocks, diagonal, perm, u)
+def _grouped_symmetric_fwd(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
+    out = _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows)
+    return out, (rows, columns, blocks, diagonal, perm, u, scale)
 
 
 def _grouped_symmetric_bwd(n_rows, residuals, y_bar):
-    rows, columns, blocks, diagonal, perm, u = residuals
-    u_bar = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, n_rows)  # K^T y_bar = K y_bar
+    rows, columns, blocks, diagonal, perm, u, scale = residuals
+    w = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, None, n_rows)  # K_1^T y_bar = K_1 y_bar
+    u_bar, scale_bar, y_bar = _unscaled_cotangents(w, u, y_bar, scale)
+    # under a scale the blocks are constants: their cotangents below are unused, and the
+    # compiled program drops them (no loop carries them: tests/test_gradient_cotangent.py)
     if perm is not None:
         u = u[perm]
     blocks_bar, diagonal_bar = [], []
@@ -280,7 +315,7 @@ def _grouped_symmetric_bwd(n_rows, residuals, y_bar):
             # and subtracting was measured 13 % off on the cantilever's gradient
             blocks_bar.append((outer[:, :, 1:] - outer[:, :, :1]).astype(b.dtype))
             diagonal_bar.append(jnp.zeros_like(d))
-    return None, None, tuple(blocks_bar), tuple(diagonal_bar), None, u_bar
+    return None, None, tuple(blocks_bar), tuple(diagonal_bar), None, u_bar, scale_bar
 
 
 _grouped_symmetric.defvjp(_grouped_symmetric_fwd, _grouped_symmetric_bwd)

@@ -25,7 +25,7 @@ device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
 from __future__ import annotations
 
 import functools
-from typing import Any
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -35,7 +35,7 @@ from .sparse import BlockEll
 from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step", "internal_forces",
-           "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance",
+           "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance", "Probe",
            "STEP_UNROLL"]
 
 
@@ -163,22 +163,26 @@ def internal_forces(system: ExplicitSystem, displacement):
     return force if system.spring is None else force + system.spring.matvec(displacement)
 
 
-def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None) -> SolverState:
+def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None, probe=None):
     """One central-difference step: (d(n), d(n-1), n) -> (d(n+1), d(n), n + 1).
 
     ``synchronize``, when given, maps the (partial) internal force K d of a part to the
     full one (the distributed solver's psum); the single-device solver needs none.
     ``overwrite``, when given, maps the updated displacement to the one kept before the
     Dirichlet values are imposed (the synchronization-avoiding solver writes its
-    predicted shared-node displacements there)."""
+    predicted shared-node displacements there).
+    ``probe``, when given, is called as ``probe(state, internal, updated, new_state)``
+    with the internal force the step used and the update before the overwrite; the step
+    then returns ``(new_state, probe's value)`` (the synchronization-avoiding solver's
+    force-balance defect, :func:`jaxsync.solve.phases.overwritten_steps`)."""
     internal = internal_forces(system, state.displacement)
     if synchronize is not None:
         internal = synchronize(internal)
-    new = central_difference(system, state, internal)
-    if overwrite is not None:
-        new = overwrite(new)
+    updated = central_difference(system, state, internal)
+    new = updated if overwrite is None else overwrite(updated)
     t_new = jnp.asarray(state.step + 1, dtype=system.dt.dtype) * system.dt
-    return SolverState(apply_dirichlet(system, new, t_new), state.displacement, state.step + 1)
+    new_state = SolverState(apply_dirichlet(system, new, t_new), state.displacement, state.step + 1)
+    return new_state if probe is None else (new_state, probe(state, internal, updated, new_state))
 
 
 def initial_state(problem, system: ExplicitSystem) -> SolverState:
@@ -226,6 +230,17 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32))
 
 
+class Probe(NamedTuple):
+    """What :func:`advance` measures besides the saved displacements: ``per_step(state,
+    internal, updated, new_state)`` after every step (a pytree), summed from
+    ``initial(state)`` over each ``save_every`` steps, and ``finish(sum)`` of each sum,
+    kept once per saved step (it may hold a collective: one per saved step)."""
+
+    per_step: Callable
+    initial: Callable
+    finish: Callable
+
+
 STEP_UNROLL = 2
 """Steps per iteration of the compiled time loop. With one step per iteration the carry
 (d(n), d(n-1)) -> (d(n+1), d(n)) hands d(n) to another slot of the loop state, and XLA
@@ -235,7 +250,7 @@ computed and the copies disappear. Results are bit-identical."""
 
 
 def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int,
-            synchronize=None, record=None, overwrite=None):
+            synchronize=None, record=None, overwrite=None, probe=None):
     """Run ``n_saves * save_every`` steps; returns (final state, (n_saves, n_nodes, 3)
     displacements after every ``save_every`` steps). Pure; jit it at the call site. The
     one time loop of every solver: synchronized, distributed and predicted.
@@ -246,21 +261,38 @@ def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every
     ``record``, when given, maps a state to a small array kept after EVERY step (the
     distributed solver records its shared-node displacements, the surrogates' training
     data, while the full field is kept only every ``save_every`` steps); the second
-    output is then the pair (saved, recorded (n_saves * save_every, ...))."""
+    output is then the pair (saved, recorded (n_saves * save_every, ...)).
+    ``probe``, when given (not with ``record``), is a :class:`Probe`: its ``per_step``
+    values summed over each ``save_every`` steps and ``finish`` applied to each sum; the
+    second output is then the pair (saved, probed (n_saves, ...)).
+    """
     # the step index is a loop input only when an overwrite reads it
     indices = None if overwrite is None else (lambda first, n: first + jnp.arange(n))
+    if probe is not None and record is not None:
+        raise ValueError("advance: give record or probe, not both")
 
     def inner(s, j):
-        s = step(system, s, synchronize, None if overwrite is None else functools.partial(overwrite, j))
-        return s, None if record is None else record(s)
+        change = None if overwrite is None else functools.partial(overwrite, j)
+        if probe is None:
+            s = step(system, s, synchronize, change)
+            return s, None if record is None else record(s)
+        s, total = s
+        s, value = step(system, s, synchronize, change, probe.per_step)
+        return (s, jax.tree_util.tree_map(jnp.add, total, value)), None
+
+    def block(s, js, length):
+        """``length`` steps, then the saved displacement and what is kept of them."""
+        if probe is None:
+            s, kept = jax.lax.scan(inner, s, js, length=length, unroll=STEP_UNROLL)
+            return s, (s.displacement, kept)
+        (s, total), _ = jax.lax.scan(inner, (s, probe.initial(s)), js, length=length, unroll=STEP_UNROLL)
+        return s, (s.displacement, probe.finish(total))
 
     def outer(s, k):
-        js = None if indices is None else indices(k * save_every, save_every)
-        s, kept = jax.lax.scan(inner, s, js, length=save_every, unroll=STEP_UNROLL)
-        return s, (s.displacement, kept)
+        return block(s, None if indices is None else indices(k * save_every, save_every), save_every)
 
     ks = None if indices is None else indices(0, n_saves)
-    if save_every == 1:  # without a loop of length 1 in each step
+    if save_every == 1 and probe is None:  # without a loop of length 1 in each step
         def saved_step(s, j):
             s, kept = inner(s, j)
             return s, (s.displacement, kept)
@@ -270,4 +302,4 @@ def advance(system: ExplicitSystem, state: SolverState, n_saves: int, save_every
         state, (saved, kept) = jax.lax.scan(outer, state, ks, length=n_saves)
         if record is not None:
             kept = kept.reshape(n_saves * save_every, *kept.shape[2:])
-    return state, (saved if record is None else (saved, kept))
+    return state, (saved if record is None and probe is None else (saved, kept))

@@ -27,7 +27,7 @@ from ..errors import ProblemError
 from ..pytree import concrete_scalar, pytree_dataclass, static_field
 
 __all__ = ["ElasticSupport", "SurfaceSpring", "Dashpot", "surface_spring", "part_surface_springs", "dashpot_blocks",
-           "dashpot", "apply_dashpot", "spring_matrix", "spring_ratios"]
+           "dashpot", "apply_dashpot", "spring_matrix", "spring_ratios", "stiffness_matrix"]
 
 
 @pytree_dataclass
@@ -300,3 +300,11 @@ def apply_dashpot(d: Dashpot, rhs, previous, prescribed):
     rhs = rhs + jnp.einsum("nij,nj->ni", d.coupling, previous) - jnp.einsum("nij,nj->ni", d.prescribed, prescribed)
     return jnp.einsum("nij,nj->ni", d.inverse, rhs)
 
+
+def stiffness_matrix(problem):
+    """The global stiffness K (scipy CSR, (n_dofs, n_dofs) [dyn/cm]) of a linear elastic
+    problem (its small-strain moduli), the elastic supports' springs included."""
+    m = problem.material
+    K = problem.operators.stiffness(m.lam, m.mu)
+    springs = spring_matrix(problem)
+    return K if springs is None else (K + springs).tocsr()

@@ -14,6 +14,18 @@ exact bound and the run diverges. The default step (:func:`stable_step`,
 ``Problem.dt``) is therefore ``min(paper CFL step, alpha_s * 2 / omega_max)``: the paper's
 step wherever it is at most alpha_s times the bound (every case of the paper), never
 above the bound.
+
+Hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`) ask their force model,
+:class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`, for the bound at rest (the initial
+displacement, zero if none): the exact bound 2 / omega_max of the TANGENT stiffness there
+(:func:`~jaxsync.fem.total_lagrangian.exact_stable_dt`; for the Holzapfel-Gasser-Ogden law
+the fibres' stiffness included; the supports' springs too), which :func:`check_dt` refuses
+to exceed. The default step is ``alpha_s * min(element rule, 2 / omega_max)``, the element
+rule being 2 / max_e omega_e of the element tangent stiffnesses over their lumped masses
+(:func:`~jaxsync.fem.total_lagrangian.stable_dt`, ``rule="element"``: never above the exact
+bound, Irons' element eigenvalue bound; 0.7-0.9 of it on P1 and P2 beams), the rule the
+run-time check screens deformed states with: a deformed state has another bound, which
+the host executor checks between chunks (:class:`~jaxsync.fem.total_lagrangian.RunCheck`).
 """
 
 from __future__ import annotations
@@ -24,9 +36,10 @@ import warnings
 import numpy as np
 
 from ..errors import ProblemError, StabilityError
+from .hyperelastic import is_hyperelastic
 
 __all__ = ["ALPHA_S", "MassScalingWarning", "StableStep", "element_size", "element_dt", "cfl_dt",
-           "max_stable_dt", "stable_step", "check_dt", "divergence_advice", "mass_scaling"]
+           "max_stable_dt", "stable_step", "hyperelastic_step", "check_dt", "divergence_advice", "mass_scaling"]
 
 ALPHA_S = 0.9
 
@@ -52,6 +65,11 @@ class StableStep:
         cfl: the paper's CFL step [s].
         exact: the exact stability bound 2 / omega_max [s].
         alpha_s: the safety factor applied to the exact bound.
+        element: ``"P1"`` or ``"P2"``.
+        law: the class name of a hyperelastic law, or None for the linear law. With a law,
+            ``exact`` is the bound of its tangent at the initial displacement and ``cfl``
+            holds the element eigenvalue rule's step there (alpha_s min_e 2 / omega_e, never
+            above ``alpha_s * exact`` without springs; rule ``"element"`` when it set ``dt``).
     """
 
     dt: float
@@ -60,6 +78,7 @@ class StableStep:
     exact: float
     alpha_s: float = ALPHA_S
     element: str = "P1"
+    law: str | None = None
 
     def describe(self) -> str:
         """One line: the step, the rule that set it and the exact bound."""
@@ -67,6 +86,11 @@ class StableStep:
             dt, cfl, exact = float(self.dt), float(self.cfl), float(self.exact)
         except TypeError:  # traced material
             return f"time step set by the {'CFL rule' if self.rule == 'cfl' else 'exact bound'} (traced)"
+        if self.law is not None:
+            how = (f"{self.alpha_s:g} x the element eigenvalue bound of the {self.law} tangent at rest"
+                   if self.rule == "element" else f"{self.alpha_s:g} x the exact bound")
+            return (f"dt {dt:.4e} s ({how}; exact stability bound 2/omega_max of the tangent at rest {exact:.4e} "
+                    "s; checked on the deformed state between chunks of a run)")
         if self.rule == "cfl":
             return (f"dt {dt:.4e} s (paper's CFL rule; exact stability bound 2/omega_max "
                     f"{exact:.4e} s)")
@@ -173,16 +197,34 @@ def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: i
     The eigenvalue is computed once per mesh, nu, density scaling and Dirichlet set (for
     E = rho = 1) and scaled by sqrt(rho / E), so the bound is traced when E or rho are
     (a Python float otherwise); a traced nu raises :class:`jaxsync.ProblemError`.
+
+    A hyperelastic law: the force model's bound at rest (module docstring,
+    :meth:`jaxsync.fem.total_lagrangian.TotalLagrangian.max_stable_dt`), memoised per law,
+    fibres, initial displacement, density scaling, Dirichlet set and supports.
     """
     import jax.numpy as jnp
 
     from ..pytree import is_traced
 
     m = problem.material
+    if is_hyperelastic(m):
+        return problem.time_step.exact
     unit = _unit_bound(problem, tol, max_iter, seed)
     if is_traced(m.E, m.rho):
         return unit * jnp.sqrt(m.rho / m.E)
     return unit * float(np.sqrt(float(m.rho) / float(m.E)))
+
+
+def hyperelastic_step(rule: float, exact: float, alpha_s: float = ALPHA_S, *, element: str,
+                      law: str) -> StableStep:
+    """The default step of a hyperelastic law from its bounds at rest [s]: ``rule`` the
+    element eigenvalue rule's (alpha_s = 1), ``exact`` 2 / omega_max: ``alpha_s * min(rule,
+    exact)`` (module docstring; :func:`jaxsync.fem.total_lagrangian.default_step`)."""
+    if rule <= exact:
+        return StableStep(dt=alpha_s * rule, rule="element", cfl=alpha_s * rule, exact=exact, alpha_s=alpha_s,
+                          element=element, law=law)
+    return StableStep(dt=alpha_s * exact, rule="exact", cfl=alpha_s * rule, exact=exact, alpha_s=alpha_s,
+                      element=element, law=law)
 
 
 def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
@@ -191,7 +233,14 @@ def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
 
     Both steps scale as sqrt(rho / E), so which of them is smaller depends only on nu, the
     mesh, the density scaling and the Dirichlet set: the rule is decided without the
-    values of E and rho, and ``dt`` is traced when they are."""
+    values of E and rho, and ``dt`` is traced when they are.
+
+    A hyperelastic law (module docstring): ``alpha_s * min(element rule, exact bound)`` of
+    its tangent at the initial displacement, P1 and P2 (a concrete law only)."""
+    if is_hyperelastic(problem.material):  # the force model's step (Problem.time_step), at this alpha_s
+        step = problem.time_step
+        return step if alpha_s == step.alpha_s else hyperelastic_step(
+            step.cfl / step.alpha_s, step.exact, alpha_s, element=step.element, law=step.law)
     cfl = cfl_dt(problem, alpha_s)
     exact = max_stable_dt(problem)
     if problem.element != "P1":  # the paper's rule is for linear tetrahedra
@@ -208,7 +257,8 @@ def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
 
 
 def check_dt(problem, dt: float) -> None:
-    """Raise :class:`StabilityError` when ``dt`` exceeds the exact bound 2/omega_max."""
+    """Raise :class:`StabilityError` when ``dt`` exceeds the exact bound 2/omega_max (a
+    hyperelastic law: that of its tangent at rest, :func:`stable_step`)."""
     dt = float(dt)
     if not dt > 0 or not np.isfinite(dt):
         raise StabilityError(f"time step must be positive and finite, got dt={dt}")
@@ -216,9 +266,10 @@ def check_dt(problem, dt: float) -> None:
     if dt <= step.dt:
         return
     if dt > step.exact:
+        of = "" if step.law is None else f" (the {step.law} tangent stiffness at rest)"
         raise StabilityError(
             f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s of the "
-            f"central difference scheme: use dt <= {step.alpha_s * step.exact:.4e} s (the "
+            f"central difference scheme{of}: use dt <= {step.alpha_s * step.exact:.4e} s (the "
             f"default step is {step.dt:.4e} s), or jaxsync.mass_scaling to raise the stable step")
 
 
@@ -234,6 +285,11 @@ def divergence_advice(problem, dt: float) -> str:
         return (f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s: "
                 f"rerun with dt <= {step.alpha_s * step.exact:.4e} s (or leave dt unset: the "
                 f"default step is {step.dt:.4e} s)")
+    if step.law is not None:
+        return (f"dt={dt:.4e} s is within the stability bound 2/omega_max={step.exact:.4e} s of the {step.law} "
+                "tangent at rest, but a deformed state has its own, often smaller, bound and an element "
+                "can invert: rerun with a smaller dt or smaller loads, and check that every part of the "
+                "mesh is supported")
     return (f"dt={dt:.4e} s is within the stability bound 2/omega_max={step.exact:.4e} s, so "
             "the step is not the cause: check the loads' magnitudes, that every part of the "
             "mesh is supported (an unsupported piece moves as a rigid body), and blowup_factor")

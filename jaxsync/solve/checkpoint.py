@@ -49,7 +49,10 @@ loses at most about this much work, and a fast one does not spend its time writi
 
 
 def fingerprint(problem, dt: float, save_every: int) -> str:
-    """Hash of everything that determines a trajectory, to refuse foreign checkpoints."""
+    """Hash of everything that determines a trajectory, to refuse foreign checkpoints: the
+    mesh, the material (a hyperelastic law: its type, every parameter and a hash of its
+    fibre directions), dt, save_every, the Dirichlet set and values, the loads, the initial
+    conditions, density scaling, element, supports and prescribed histories."""
     h = hashlib.sha256()
     mesh = problem.mesh
     for arr in (mesh.points, mesh.tets):
@@ -74,6 +77,13 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     for bc in problem.dirichlet:
         if bc.time is not None:
             h.update(repr((bc.where if isinstance(bc.where, str) else "predicate", bc.time)).encode())
+    # a hyperelastic law: its type, every parameter and its fibre directions (a linear law
+    # adds nothing, so its fingerprints are those of before)
+    from ..fem.hyperelastic import is_hyperelastic, material_parameters
+
+    if is_hyperelastic(m):
+        name, values, fibres = material_parameters(m)
+        h.update(repr(("material", name, sorted(values.items()), fibres)).encode())
     return h.hexdigest()
 
 

@@ -132,10 +132,16 @@ def _run_stats(segment: Segment, runner) -> RunStats:
 
 
 def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save, bar: Progress, *,
-                        dt: float, checkpoint, executor, limit: float) -> _Synchronized:
+                        dt: float, checkpoint, executor, limit: float, check=None) -> _Synchronized:
     """The first synchronized phase, from step 0 (or a checkpoint's step) to ``n_steps``,
     with resumable checkpoints; a divergence raises :class:`StabilityError` with the
-    snapshots saved before."""
+    snapshots saved before.
+
+    ``check``: a hyperelastic run's :class:`~jaxsync.fem.total_lagrangian.RunCheck`, applied
+    to the global state after every chunk (before its checkpoint): an inverted element or
+    dt above the deformed state's stable step stops the run with :class:`StabilityError`
+    (the snapshots saved so far in ``error.trajectory``); a divergence inside a chunk is
+    replayed from the chunk's start to name the elements that inverted."""
     save_every = save.every
     partition = getattr(runner, "partition", None)
     snapshots = [np.asarray(state.displacement)[None]]
@@ -172,20 +178,53 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
                 pending.clear()
                 due.written()
 
+    def kept(segment: Segment):
+        """The trajectory of the snapshots saved through ``segment`` (a stopped run's)."""
+        partial = _Synchronized(snapshots + [segment.displacement], _joined(recorded, segment.shared), segment)
+        return synchronized_trajectory(problem, np.concatenate(partial.snapshots), dt, save, partition,
+                                       partial.shared, result=Result.DIVERGED)
+
+    if check is not None:  # a hyperelastic run: its state checked after every chunk
+        stepped = watch_chunks(runner) if stepped is runner else stepped
+        checkpoint_hook = after_chunk
+
+        def after_chunk(step: int, so_far) -> None:
+            new_state, _ = stepped.last
+            try:
+                check.check(runner.to_global(new_state))  # collective in multi-process runs
+            except StabilityError as stop:
+                traj = kept(so_far())
+                raise StabilityError(f"{str(stop).rstrip('.')}. The {traj.n_saved} snapshots saved before are kept "
+                                     "(error.trajectory)", trajectory=traj, elements=stop.elements) from None
+            if checkpoint_hook is not None:
+                checkpoint_hook(step, so_far)
+
     step_now = int(state.step)
     try:
         segment = run_chunks(stepped, runner.from_global(state), step_now, n_steps, kind="synchronized",
                              limit=limit, progress=bar, chunk_steps=executor.chunk_steps, after_chunk=after_chunk)
     except Diverged as bad:
-        partial = _Synchronized(snapshots + [bad.segment.displacement], _joined(recorded, bad.segment.shared),
-                                bad.segment)
-        traj = synchronized_trajectory(problem, np.concatenate(partial.snapshots), dt, save, partition,
-                                       partial.shared, result=Result.DIVERGED)
+        traj = kept(bad.segment)
+        found = None if check is None else check.diagnose(_advance_jit, runner.to_global(bad.segment.state),
+                                                        bad.step)
+        advice = divergence_advice(problem, dt) if found is None else str(found)
         raise StabilityError(
             f"the run diverged by step {bad.step} (t = {bad.step * dt:.6g} s): displacement "
-            f"is NaN/Inf or above {limit:.3g} cm. {divergence_advice(problem, dt)}. "
-            f"The {traj.n_saved} snapshots saved before are kept (error.trajectory)", trajectory=traj) from None
+            f"is NaN/Inf or above {limit:.3g} cm. {advice.rstrip('.')}. "
+            f"The {traj.n_saved} snapshots saved before are kept (error.trajectory)", trajectory=traj,
+            elements=None if found is None else found.elements) from None
     return _Synchronized(snapshots + [segment.displacement], _joined(recorded, segment.shared), segment)
+
+
+def _run_check(problem, system: ExplicitSystem, dt: float, executor):
+    """The between-chunks check of a hyperelastic run (None: a linear law, or
+    ``HostExecutor(check_stability=False)``)."""
+    from ..fem.hyperelastic import is_hyperelastic
+    from ..fem.total_lagrangian import RunCheck
+
+    if not executor.check_stability or not is_hyperelastic(problem.material):
+        return None
+    return RunCheck(problem, system, dt)
 
 
 def _joined(recorded, new):
@@ -228,7 +267,8 @@ def run_on_host(problem, system: ExplicitSystem, state: SolverState, schedule, *
           else Progress(n_steps, show=executor.progress, label=label)) as bar:
         dt = float(system.dt)
         first = _synchronized_phase(problem, runner, state, schedule[0].n_steps, save, bar, dt=dt,
-                                    checkpoint=checkpoint, executor=executor, limit=limit)
+                                    checkpoint=checkpoint, executor=executor, limit=limit,
+                                    check=_run_check(problem, system, dt, executor))
         if not predicted:
             stats = _run_stats(first.segment, runner)
             return synchronized_trajectory(problem, np.concatenate(first.snapshots), dt, save,
@@ -274,14 +314,22 @@ class _OnlineRun:
         self.history, self.cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
         self.n_dof, _ = shared_dof_layout(self.partition)
         self.phase = PredictedPhase(runner, predictor, save_every)
-        self.monitor = None if online.tolerance is None else DisagreementMonitor(self.partition)
+        tolerance = online.tolerance
+        self.monitor = None if tolerance is None else DisagreementMonitor(self.partition)
+        self.propagator = None
+        if tolerance is not None and tolerance.indicator == "estimate":
+            from .error_estimate import ErrorPropagator
+
+            self.propagator = ErrorPropagator.build(problem, self.partition, dt, tolerance.modes)
         self.dt = dt
 
     def _predicted_runner(self, amplitude: float):
         if self.online.tolerance is None:
             per_chunk = self.executor.cycles_per_chunk or max(1, 20000 // self.cycle_steps)
             return PredictedRunner(self.phase, self.cycle_steps, per_chunk)
-        return MonitoredRunner(self.phase, self.cycle_steps, self.online.tolerance.cm(amplitude), self.monitor)
+        # a new runner starts from a synchronized state: its error estimate from zero
+        return MonitoredRunner(self.phase, self.cycle_steps, self.online.tolerance.cm(amplitude), self.monitor,
+                               self.propagator)
 
     def run(self, n_predicted: int, bar: Progress):
         first, runner = self.first, self.runner
@@ -289,7 +337,8 @@ class _OnlineRun:
         n_steps = n_cri + n_predicted
         tolerance = self.online.tolerance
         timeline: list[Segment] = []
-        resyncs = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": []}
+        resyncs = {"resynchronized_at": [], "es_hat_trigger": [], "tolerance_cm": [], "error_estimate_trigger": []}
+        estimates = []  # per stretch of the timeline: the error estimate at its snapshots (NaN: none)
         seconds = {"predicted": 0.0, "synchronized": first.segment.seconds, "discarded": 0.0}
         compile_seconds = first.segment.compile_seconds
         n_discarded, failures = 0, 0
@@ -302,8 +351,9 @@ class _OnlineRun:
             while step_now < n_steps:
                 bar.label("predicted")
                 state = (anchor.state, runner.put(anchor.history), step_now)
+                predicted_runner = self._predicted_runner(amplitude)
                 try:
-                    segment = run_chunks(self._predicted_runner(amplitude), state, step_now, n_steps,
+                    segment = run_chunks(predicted_runner, state, step_now, n_steps,
                                          kind="predicted", limit=self.limit, progress=bar)
                 except CycleRejected as rejected:
                     # back to the anchor, synchronized through the end of the rejected cycle
@@ -313,6 +363,7 @@ class _OnlineRun:
                     resyncs["resynchronized_at"].append(rejected.step)
                     resyncs["es_hat_trigger"].append(rejected.es_hat)
                     resyncs["tolerance_cm"].append(rejected.tolerance)
+                    resyncs["error_estimate_trigger"].append(rejected.estimate)
                     failures = failures + 1 if rejected.step == anchor.step else 0
                     n_discarded += rejected.step - anchor.step
                     target = min(rejected.step + self.cycle_steps * 2 ** failures, n_steps)
@@ -327,6 +378,7 @@ class _OnlineRun:
                     compile_seconds += segment.compile_seconds
                     amplitude = max(amplitude, segment.shared_abs_max)
                     timeline.append(segment)
+                    estimates.append(np.full(len(segment.displacement), np.nan))
                     anchor = _Anchor(segment.state, _histories(self.partition.n_parts, segment.shared, self.history,
                                                                self.n_dof, anchor.history), target)
                     step_now = target
@@ -334,9 +386,12 @@ class _OnlineRun:
                 seconds["predicted"] += segment.seconds
                 compile_seconds += segment.compile_seconds
                 timeline.append(segment)
+                found = getattr(predicted_runner, "estimates", None)
+                estimates.append(np.concatenate(found) if found else np.full(len(segment.displacement), np.nan))
                 step_now = segment.last
         except Diverged as bad:  # predicted, or re-synchronized
-            partial = self._trajectory(timeline + [bad.segment], _run_stats(first.segment, runner), Result.DIVERGED)
+            partial = self._trajectory(timeline + [bad.segment], _run_stats(first.segment, runner), Result.DIVERGED,
+                                       estimates)
             if bad.part is not None:
                 where = (f"the surrogate of part {bad.part} predicted NaN/Inf for step {bad.step}: the network "
                          "diverged; retrain it, raise n_cri or give a resync_tolerance")
@@ -367,13 +422,21 @@ class _OnlineRun:
                     f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
                     "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
                     stacklevel=4)
-        return self._trajectory(timeline, stats, Result.SUCCESSFUL)
+        return self._trajectory(timeline, stats, Result.SUCCESSFUL, estimates)
 
-    def _trajectory(self, timeline, stats, result):
+    def _trajectory(self, timeline, stats, result, estimates):
         pieces = [("synchronized", np.concatenate(self.first.snapshots), None)]
         pieces += [(seg.kind, seg.displacement, seg.predictions) for seg in timeline]
         # the whole run's load jumps, not only its first synchronized stretch's
         parameters = run_parameters(self.problem, self.online.all_load_jumps)
+        error_estimate = None
+        if self.propagator is not None:  # NaN at the synchronized snapshots (and a diverged stretch's)
+            n_saved = sum(len(d) for _, d, _ in pieces)
+            error_estimate = np.full(n_saved, np.nan)
+            at = len(pieces[0][1])
+            for seg, values in zip(timeline, estimates):
+                error_estimate[at:at + len(values)] = values[:len(seg.displacement)]
+                at += len(seg.displacement)
         return online_trajectory(self.problem, self.partition, pieces, self.dt, self.save_every,
-                                 parameters=parameters, stats=stats, result=result)
+                                 parameters=parameters, stats=stats, result=result, error_estimate=error_estimate)
 

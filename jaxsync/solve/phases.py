@@ -29,9 +29,10 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 from ..errors import ConfigError, ProblemError
-from ..fem.stepper import ExplicitSystem, SolverState, advance
+from ..fem.stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
 from ..parallel.exchange import Exchange
 from ..parallel.halo import advance_halo
 from ..parallel.layout import PartSystems
@@ -40,7 +41,7 @@ from .remat import advance_traced, recomputing_scan, segment_steps, state_bytes
 
 __all__ = ["Synchronized", "Predicted", "synchronized_steps", "part_synchronized_steps", "check_recordable",
            "predict_cycle",
-           "overwritten_steps", "refill_steps", "predicted_cycles"]
+           "overwritten_steps", "defect_probe", "refill_steps", "predicted_cycles"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,18 +121,66 @@ def predict_cycle(predictor, buffer, last, steps: int, save_every: int):
     return pred, buffer, pred[save_every - 1:steps:save_every]
 
 
-def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int):
+def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int,
+                      probe: Exchange | None = None):
     """One part: ``steps`` solver steps without synchronization, each followed by writing
     the predicted shared-node displacements ``pred[j]`` into the part's state (the
     stepper's loop, :func:`jaxsync.fem.stepper.advance`, with an overwrite).
 
-    Returns (state, saved displacement (steps // save_every, n_local, 3))."""
+    ``probe``: None, or the run's exchange: then each part also measures its
+    force-balance defect at its shared nodes, summed over each ``save_every`` steps, with
+    one exchange of partial forces at every saved step (:func:`defect_probe`;
+    :mod:`jaxsync.solve.error_estimate`).
+
+    Returns (state, saved displacement (steps // save_every, n_local, 3)), with ``probe``
+    (state, (saved, defect sums (steps // save_every, n_shared_max, 3) [cm]))."""
     nodes = pred.reshape(pred.shape[0], -1, 3)
 
     def overwrite(j, new):
         return new.at[part.shared_local].set(nodes[j], mode="drop")
 
-    return advance(part.system, state, steps // save_every, save_every, overwrite=overwrite)
+    return advance(part.system, state, steps // save_every, save_every, overwrite=overwrite,
+                   probe=None if probe is None else defect_probe(part, probe))
+
+
+def defect_probe(part: PartSystems, exchange: Exchange):
+    """The force-balance defect of one part, summed over each ``save_every`` steps, as a
+    :class:`~jaxsync.fem.stepper.Probe`.
+
+    A step's defect at the part's shared dofs is delta = kept - balanced: what the part
+    kept there (its prediction, the Dirichlet values) minus the synchronized update of
+    the same state. The synchronized update differs from the part's own update ``u``
+    (from its partial force f_p) by L(f - f_p), L the linear map from a force change to
+    the update's change (dt^2 / (m (1 + alpha dt / 2)) per dof, or the dashpot's 3 x 3
+    solve), f the summed force. L is the same every step, so over a block of steps
+    sum(delta) = sum(kept - u) + L(sum(f) - sum(f_p)): each part sums kept - u and f_p at
+    its shared nodes locally, and one exchange of the summed partial forces at the end of
+    the block completes it (exact; every step's defect counted, none sampled). Zero on
+    prescribed dofs and in padding slots. Returns the (n_shared_max, 3) block sums [cm]."""
+    system, total = part.system, exchange.force_sum(part)
+    zero = jnp.zeros_like(system.mass)
+    still = SolverState(zero, zero, jnp.asarray(0, dtype=jnp.int32))
+    free = ~system.fixed.at[part.shared_local].get(mode="fill", fill_value=True)
+
+    def at_shared(field):
+        return field.at[part.shared_local].get(mode="fill", fill_value=0.0)
+
+    def per_step(state, internal, updated, new_state):
+        return at_shared(new_state.displacement - updated), at_shared(internal)
+
+    def initial(state):
+        shape = part.shared_local.shape + (3,)
+        return jnp.zeros(shape, zero.dtype), jnp.zeros(shape, zero.dtype)
+
+    def finish(sums):
+        kept, own = sums
+        own_field = zero.at[part.shared_local].set(own, mode="drop")
+        # L(g) = central_difference(g) - central_difference(0) of any state (it is affine in g)
+        change = (central_difference(system, still, total(own_field) - own_field)
+                  - central_difference(system, still, zero))
+        return jnp.where(free, kept - at_shared(change), 0.0)
+
+    return Probe(per_step, initial, finish)
 
 
 def refill_steps(part: PartSystems, predictor, carry, steps: int, save_every: int):

@@ -96,36 +96,48 @@ class PredictedPhase:
                                                      save_every=self.save_every), 3, 3)
         return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self.step_counter(0)))
 
-    def _apply_program(self, state, pred, steps: int):
+    def _apply_program(self, state, pred, steps: int, probe: bool = False):
+        exchange = self.runner.distributed.exchange if probe else None
         build = lambda: self._spmd(functools.partial(overwritten_steps, steps=steps,  # noqa: E731
-                                                     save_every=self.save_every), 3, 2)
-        return self._ahead(("apply", steps), build, lambda: (self.runner.parts, state, pred()))
+                                                     save_every=self.save_every, probe=exchange), 3, 2)
+        return self._ahead(("apply", steps, probe), build, lambda: (self.runner.parts, state, pred()))
 
-    def prepare_monitored(self, state, buffer, steps: int) -> None:
-        """Compile both halves of a monitored cycle of ``steps`` ahead (nothing runs)."""
+    def prepare_monitored(self, state, buffer, steps: int, probe: bool = False) -> None:
+        """Compile both halves of a monitored cycle of ``steps`` ahead (nothing runs);
+        ``probe``: the second half probes the force-balance defect at the saved steps."""
         def pred():  # the shape of a cycle's predictions, for compiling
             length = self.predictor.n_s * self.predictor.n_future
             return jax.ShapeDtypeStruct(buffer.shape[:1] + (length,) + buffer.shape[2:], buffer.dtype,
                                         sharding=buffer.sharding)
 
         self._rollout_program(buffer, steps)
-        self._apply_program(state, pred, steps)
+        self._apply_program(state, pred, steps, probe)
 
     def rollout(self, buffer, step0: int, steps: int):
         """One cycle predicted ahead: (predictions, buffer, predictions at saved steps)."""
         return self._rollout_program(buffer, steps)(self.predictor, buffer, self.step_counter(step0))
 
-    def apply(self, state, pred, steps: int):
-        """The steps of one cycle with the predictions of :meth:`rollout`."""
-        return self._apply_program(state, lambda: pred, steps)(self.runner.parts, state, pred)
+    def apply(self, state, pred, steps: int, probe: bool = False):
+        """The steps of one cycle with the predictions of :meth:`rollout`: (state, saved),
+        with ``probe`` (state, (saved, defects (P, steps // save_every, n_shared_max, 3)))."""
+        return self._apply_program(state, lambda: pred, steps, probe)(self.runner.parts, state, pred)
+
+    def lowered_apply_text(self, state, buffer, steps: int, probe: bool = True) -> str:
+        """The compiled HLO text of a monitored cycle's second half (to count its
+        collectives)."""
+        self.prepare_monitored(state, buffer, steps, probe)
+        return self._compiled[("apply", steps, probe)].as_text()
 
 
 class CycleRejected(Stopped):
-    """A monitored cycle whose es_hat [cm] exceeded the tolerance [cm] (it was not applied)."""
+    """A monitored cycle whose es_hat [cm] or estimated error [cm] (``estimate``; NaN when
+    es_hat rejected it first) exceeded the tolerance [cm]; the run goes back to its last
+    synchronized state."""
 
-    def __init__(self, step: int, es_hat: float, tolerance: float):
-        super().__init__(f"cycle after step {step} rejected: es_hat {es_hat:.3g} cm > {tolerance:.3g} cm")
-        self.step, self.es_hat, self.tolerance = step, es_hat, tolerance
+    def __init__(self, step: int, es_hat: float, tolerance: float, estimate: float = float("nan")):
+        what = f"es_hat {es_hat:.3g} cm" if np.isnan(estimate) else f"estimated error {estimate:.3g} cm"
+        super().__init__(f"cycle after step {step} rejected: {what} > {tolerance:.3g} cm")
+        self.step, self.es_hat, self.tolerance, self.estimate = step, es_hat, tolerance, estimate
 
 
 class _PredictedRunnerBase:
@@ -182,18 +194,26 @@ class PredictedRunner(_PredictedRunnerBase):
 class MonitoredRunner(_PredictedRunnerBase):
     """The monitored predicted phase: one refill cycle per call, predicted ahead, its
     es_hat (paper eq. 26) checked at the saved steps against ``tolerance`` [cm] before the
-    solver uses it; :class:`CycleRejected` when above (or not finite)."""
+    solver uses it; then, with a ``propagator``
+    (:class:`~jaxsync.solve.error_estimate.ErrorPropagator`), run with the force-balance
+    defect probed at the saved steps and the estimated error accumulated since the last
+    synchronized state checked against the same tolerance. :class:`CycleRejected` when
+    either is above it (or not finite). ``estimates`` holds the accepted cycles'
+    estimates, one per saved step [cm]."""
 
-    def __init__(self, phase: PredictedPhase, cycle_steps: int, tolerance: float, monitor):
+    def __init__(self, phase: PredictedPhase, cycle_steps: int, tolerance: float, monitor, propagator=None):
         super().__init__(phase, cycle_steps)
-        self.tolerance, self.monitor = float(tolerance), monitor
+        self.tolerance, self.monitor, self.propagator = float(tolerance), monitor, propagator
+        self.error_state = None if propagator is None else propagator.zero_state()
+        self.estimates: list[np.ndarray] = []
 
     def chunk_steps(self, steps_left: int, preferred: int) -> int:
         return min(self.cycle_steps, steps_left)
 
     def compile(self, state, steps: int) -> float:
         solver_state, buffer, _ = state
-        return self._compiled_delta(lambda: self.phase.prepare_monitored(solver_state, buffer, steps))
+        return self._compiled_delta(lambda: self.phase.prepare_monitored(solver_state, buffer, steps,
+                                                                         self.propagator is not None))
 
     def advance(self, state, steps: int):
         solver_state, buffer, step0 = state
@@ -202,7 +222,17 @@ class MonitoredRunner(_PredictedRunnerBase):
         es_hat = self.monitor.es_hat(kept) if np.isfinite(kept).all() else np.array([np.inf])
         if not es_hat.max() <= self.tolerance:
             raise CycleRejected(step0, float(es_hat.max()), self.tolerance)
-        solver_state, disp = self.phase.apply(solver_state, pred, steps)
+        if self.propagator is None:
+            solver_state, disp = self.phase.apply(solver_state, pred, steps)
+        else:
+            solver_state, (disp, defects) = self.phase.apply(solver_state, pred, steps, probe=True)
+            error_state, estimates = self.propagator.propagate(
+                self.error_state, self.monitor.interface_values(to_host(defects)), self.save_every)
+            if not estimates.max(initial=0.0) <= self.tolerance:
+                raise CycleRejected(step0, float(es_hat.max()), self.tolerance,
+                                    float(np.nan_to_num(estimates.max(), nan=np.inf)))
+            self.error_state = error_state
+            self.estimates.append(estimates)
         return (solver_state, next_buffer, step0 + steps), self._chunk(disp, kept)
 
 
@@ -220,6 +250,15 @@ class DisagreementMonitor:
         self.holds = np.zeros((partition.n_parts, len(partition.shared_nodes)), bool)
         for p, cols in enumerate(self.columns):
             self.holds[p, cols] = True
+
+    def interface_values(self, values) -> np.ndarray:
+        """(T, n_interface, 3): the mean over the parts that hold each shared node of the
+        parts' values ``values`` (P, T, n_shared_max, 3) (their shared-node slots)."""
+        n_parts, T = values.shape[:2]
+        total = np.zeros((T, self.holds.shape[1], 3))
+        for p, cols in enumerate(self.columns):
+            total[:, cols] += values[p, :, :len(cols)]
+        return total / np.maximum(self.holds.sum(axis=0), 1)[None, :, None]
 
     def es_hat(self, pred) -> np.ndarray:
         """(T,) es_hat of predictions (P, T, n_dof) [cm]."""

@@ -93,7 +93,8 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
                       stats=stats, result=result)
 
 
-def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parameters, stats=None, result=None):
+def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parameters, stats=None, result=None,
+                      error_estimate=None):
     """The trajectory of a synchronization-avoiding run.
 
     ``pieces``: in order, (kind, displacement (n, n_nodes, 3), predictions (n_parts, n,
@@ -114,4 +115,5 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
                            [pred[p, :, :counts[p]] for p in range(partition.n_parts)])
     return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, element=problem.element, dt=dt, save_every=save_every,
-                      parameters=parameters, parts=parts, synchronized=flags, stats=stats, result=result)
+                      parameters=parameters, parts=parts, synchronized=flags, stats=stats, result=result,
+                      error_estimate=error_estimate)

@@ -23,19 +23,168 @@ from .strategies import Halo, SaveAt, SolverCheckpoint, TracedExecutor, choose_e
 __all__ = ["simulate", "steady_state"]
 
 
-def steady_state(problem) -> np.ndarray:
-    """Static solution K u = f with every load at full magnitude (time factor 1) and the
-    Dirichlet values imposed (those following a time function at their full value); K
-    includes the elastic supports' springs; (n_nodes, 3) [cm]. Direct sparse solve (scipy)."""
+NEWTON_LOAD_STEPS = 10
+"""Default number of load increments of :func:`steady_state` for a hyperelastic law."""
+
+
+def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, max_iter: int = 25,
+                 history: bool = False):
+    """Static solution with every load at full magnitude (time factor 1) and the Dirichlet
+    values imposed (those following a time function at their full value), (n_nodes, 3) [cm].
+
+    A linear elastic law: K u = f, K including the elastic supports' springs, one direct
+    sparse solve (scipy; ``load_steps``, ``tol``, ``max_iter`` are not used).
+
+    A hyperelastic law: f_int(u) + S u = f (S the supports' springs) by Newton's method
+    with the exact tangent (:func:`jaxsync.fem.total_lagrangian.tangent_matrix`: the
+    element Hessians of the stored energy by ``jax.jacfwd``, summed into a scipy sparse
+    matrix) and scipy's sparse direct solver, in ``load_steps`` equal increments of the
+    loads and of the Dirichlet values (default :data:`NEWTON_LOAD_STEPS`, 10). The first
+    iteration of an increment moves the prescribed dofs to their new values and predicts
+    the free ones with the tangent; an iteration whose update would invert an element, or
+    make the residual NaN, is halved (up to 10 times). An increment has converged when the
+    largest out-of-balance force at the free dofs is at most ``tol`` times the force scale
+    (the largest load or reaction of the increment, |f| and |f_int - f| at the prescribed
+    dofs).
+
+    Args:
+        problem: a :class:`jaxsync.Problem`.
+        load_steps: hyperelastic laws: the number of load increments (>= 1).
+        tol: hyperelastic laws: the relative residual of convergence.
+        max_iter: hyperelastic laws: Newton iterations per increment at most.
+        history: also return, per increment, the relative residuals of its iterations
+            (a list of lists; empty for a linear law).
+
+    Raises:
+        ConvergenceError: an increment did not converge in ``max_iter`` iterations (or
+            every halved update inverted an element); the message names the increment,
+            the residual and the fix, ``error.displacement`` holds the last converged
+            increment's solution.
+        ProblemError: the Dirichlet conditions leave a rigid-body motion free (singular).
+    """
+    from ..fem.hyperelastic import is_hyperelastic
+
+    if is_hyperelastic(problem.material):
+        u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
+                                            tol, max_iter)
+        return (u, residuals) if history else u
+    u = _linear_steady_state(problem)
+    return (u, []) if history else u
+
+
+def _singular() -> ProblemError:
+    return ProblemError("the static problem is singular: the Dirichlet conditions do not "
+                        "prevent rigid-body motion; clamp more nodes")
+
+
+def _well_posed(K, factor) -> bool:
+    """False when the factorised K has a rigid-body mode: a pivot at round-off shows as a
+    random load's response ||K^-1 b|| / ||b|| reaching 1 / (eps ||K||)."""
+    probe = np.random.default_rng(0).standard_normal(K.shape[0])
+    row_norm = float(np.max(np.asarray(abs(K).sum(axis=1)), initial=0.0))  # ||K||_inf
+    response = np.abs(factor.solve(probe)).max(initial=0.0) / np.abs(probe).max(initial=1.0)
+    return bool(row_norm * response < 1e13)
+
+
+def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
+    """Newton's method with load increments (:func:`steady_state`); (u (n_nodes, 3), residuals)."""
+    import jax
     import scipy.sparse.linalg as spla
 
+    from ..errors import ConvergenceError
     from ..fem.support import spring_matrix
+    from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
 
-    m = problem.material
-    K = problem.operators.stiffness(m.lam, m.mu)
+    for name, value in (("load_steps", load_steps), ("max_iter", max_iter)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ProblemError(f"{name} must be an integer >= 1, got {value!r}")
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+        raise ProblemError(f"tol must be a positive number, got {tol!r}")
+    load_steps, max_iter = int(load_steps), int(max_iter)
+    op = TotalLagrangian().operator(problem)
+    force = jax.jit(lambda x: op.matvec(x.reshape(-1, 3)).reshape(-1))
+    jacobians = jax.jit(lambda x: op.jacobians(x.reshape(-1, 3)))
     springs = spring_matrix(problem)
-    if springs is not None:
-        K = (K + springs).tocsr()
+    n = problem.n_dofs
+    f_full = np.zeros(n)
+    for v in problem.load_vectors()[0]:
+        f_full += np.asarray(v, dtype=float).reshape(-1)
+    fixed, values = problem.dirichlet_dofs()
+    free = np.setdiff1d(np.arange(n), fixed)
+    u = np.zeros(n)
+
+    def out_of_balance(x, f_ext):
+        """f_int(x) + S x - f_ext, or None where an element is inverted or it is not finite."""
+        J = np.asarray(jacobians(x))
+        if not np.all(np.isfinite(J) & (J > 0)):
+            return None
+        r = np.asarray(force(x)) - f_ext
+        r = r if springs is None else r + springs @ x
+        return r if np.all(np.isfinite(r)) else None
+
+    residuals = []
+    for k in range(1, load_steps + 1):
+        f_ext = (k / load_steps) * f_full
+        target = (k / load_steps) * values  # the prescribed values of this increment
+        converged = u.copy()  # the last converged state
+        r = out_of_balance(u, f_ext)
+        history = []
+        for iteration in range(max_iter + 1):
+            move = target - u[fixed]  # what the prescribed dofs still have to move
+            pending = bool(np.any(move != 0))
+            scale = max(float(np.abs(f_ext).max(initial=0.0)), float(np.abs(r[fixed]).max(initial=0.0)))
+            relative = float(np.abs(r[free]).max(initial=0.0)) / scale if scale > 0 else 0.0
+            if not pending:
+                history.append(relative)
+                if relative <= tol:
+                    break
+            if iteration == max_iter:
+                raise ConvergenceError(
+                    f"Newton's method did not converge in load increment {k} of {load_steps}: relative residual "
+                    f"{relative:.3e} after {max_iter} iterations (tolerance {tol:g}); raise load_steps (for "
+                    f"instance to {2 * load_steps}) or max_iter, or check that the load does not exceed what the "
+                    "structure can carry (a limit point, buckling) and that the Dirichlet set prevents every "
+                    "rigid-body motion", increment=k, residual=relative, displacement=converged.reshape(-1, 3))
+            K = tangent_matrix(op, u.reshape(-1, 3))
+            if springs is not None:
+                K = (K + springs).tocsr()
+            K_free = K[free][:, free].tocsc()
+            rhs = -r[free]
+            if pending:  # the prescribed move, and the free dofs' response to it
+                rhs = rhs - K[free][:, fixed] @ move
+            try:
+                factor = spla.splu(K_free)
+            except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
+                raise _singular() from exc
+            du = factor.solve(rhs)
+            if not np.all(np.isfinite(du)) or (k == 1 and iteration == 0 and not _well_posed(K_free, factor)):
+                raise _singular()
+            for _ in range(11):  # halve an update that inverts an element (a part of the move now)
+                trial = u.copy()
+                trial[free] += du
+                trial[fixed] += move
+                found = out_of_balance(trial, f_ext)
+                if found is not None:
+                    break
+                du, move = 0.5 * du, 0.5 * move
+            else:
+                raise ConvergenceError(
+                    f"Newton's method failed in load increment {k} of {load_steps}: every update, halved 10 "
+                    "times, inverts an element (J <= 0) or gives a NaN residual (relative residual "
+                    f"{relative:.3e}); raise load_steps (for instance to {4 * load_steps}), or check the loads' "
+                    "magnitudes", increment=k, residual=relative, displacement=converged.reshape(-1, 3))
+            u, r = trial, found
+        residuals.append(history)
+    return u.reshape(-1, 3), residuals
+
+
+def _linear_steady_state(problem) -> np.ndarray:
+    """K u = f by one direct sparse solve (:func:`steady_state`)."""
+    import scipy.sparse.linalg as spla
+
+    from ..fem.support import stiffness_matrix
+
+    K = stiffness_matrix(problem)
     vectors, _ = problem.load_vectors()
     f = np.zeros(problem.n_dofs)
     for v in vectors:
@@ -45,8 +194,7 @@ def steady_state(problem) -> np.ndarray:
     u = np.zeros(K.shape[0])
     u[fixed] = values
     rhs = f[free] - K[free][:, fixed] @ values
-    singular = ProblemError("the static problem is singular: the Dirichlet conditions do not "
-                            "prevent rigid-body motion; clamp more nodes")
+    singular = _singular()
     K_free = K[free][:, free].tocsc()
     try:
         factor = spla.splu(K_free)

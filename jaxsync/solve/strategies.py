@@ -339,7 +339,7 @@ def choose_executor(executor, traced: bool):
 
 @dataclasses.dataclass(frozen=True)
 class ResyncTolerance:
-    """The es_hat level above which a synchronization-avoiding run re-synchronizes.
+    """The error above which a synchronization-avoiding run re-synchronizes.
 
     Give it in cm (``ResyncTolerance(absolute=1e-4)``, or just ``1e-4``) or relative to
     the observed amplitude (``ResyncTolerance(relative=0.01)``, or ``"1%"``): a fraction
@@ -348,13 +348,32 @@ class ResyncTolerance:
     load that ramps up, that amplitude is small when the prediction starts; ``amplitude``
     [cm] fixes the one a relative tolerance refers to instead (e.g. the largest shared
     displacement of the run the surrogates were trained on).
+
+    ``indicator``: what is held to the tolerance. ``"estimate"`` (default): es_hat of
+    every cycle's predictions before it runs (paper eq. 26, the parts' disagreement), and
+    the estimated largest nodal error since the last synchronized state after it runs
+    (:mod:`jaxsync.solve.error_estimate`: the force-balance defect probed at the saved
+    steps, one exchange of partial forces each, propagated through the ``modes`` lowest
+    vibration modes), which also sees the errors that all parts make alike. ``"es_hat"``:
+    es_hat alone (no exchange in the predicted phase; blind to shared errors).
     """
 
     absolute: float | None = None
     relative: float | None = None
     amplitude: float | None = None
+    indicator: str = "estimate"
+    modes: int | None = None
 
     def __post_init__(self):
+        if self.indicator not in ("estimate", "es_hat"):
+            raise ProblemError(f"resync_tolerance: indicator={self.indicator!r}; use 'estimate' (es_hat and the "
+                               "estimated error, the default) or 'es_hat' (the parts' disagreement only)")
+        if self.modes is not None and (isinstance(self.modes, bool) or not isinstance(self.modes, int)
+                                       or self.modes < 1):
+            raise ProblemError(f"resync_tolerance: modes={self.modes!r} must be a whole number >= 1")
+        if self.modes is not None and self.indicator != "estimate":
+            raise ProblemError("resync_tolerance: modes= sets the error estimate's modes; it goes with "
+                               "indicator='estimate'")
         if (self.absolute is None) == (self.relative is None):
             raise ProblemError("resync_tolerance: give exactly one of absolute (cm) or relative")
         value = self.absolute if self.absolute is not None else self.relative
@@ -391,9 +410,9 @@ class ResyncTolerance:
         return float(self.relative) * (amplitude if self.amplitude is None else float(self.amplitude))
 
     def __str__(self) -> str:
-        if self.absolute is not None:
-            return f"{self.absolute:g} cm"
-        return f"{100 * self.relative:g} %" + ("" if self.amplitude is None else f" of {self.amplitude:.4g} cm")
+        text = (f"{self.absolute:g} cm" if self.absolute is not None else
+                f"{100 * self.relative:g} %" + ("" if self.amplitude is None else f" of {self.amplitude:.4g} cm"))
+        return text + (" (es_hat only)" if self.indicator == "es_hat" else "")
 
 
 def _positive(value) -> bool:

@@ -151,9 +151,10 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
                            f"and the steps per refill cycle n_s * n_f = {cycle_steps}")
     all_jumps = _find_load_jumps(problem.loads, n_steps, dt, load_jumps)
     jumps, n_cri = _synchronize_through_load_jumps(all_jumps, load_jumps, n_cri, n_steps, dt, history, save_every)
-    if tolerance is not None and isinstance(predictor, OraclePredictor):
-        raise ProblemError("resync_tolerance needs a predictor that works from its input history; "
-                           "an OraclePredictor replays fixed values")
+    if tolerance is not None and tolerance.indicator == "es_hat" and isinstance(predictor, OraclePredictor):
+        raise ProblemError("resync_tolerance with indicator='es_hat' needs a predictor that works from its input "
+                           "history (an OraclePredictor replays fixed values, alike in every part, so its es_hat "
+                           "is zero); use the default indicator='estimate'")
     schedule = (Synchronized(n_cri), Predicted(n_steps - n_cri))
     if isinstance(executor, TracedExecutor):
         if tolerance is not None:  # the reason, not a missing feature

@@ -7,13 +7,15 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import os
 import sys
 
 from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Sync, choices
 
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "mode_of", "add_sync_option", "sync_of",
-           "add_resync_tolerance_option", "add_progress_option", "surrogate_defaults", "SURROGATE_OPTIONS",
+           "add_resync_tolerance_option", "resync_tolerance_of", "add_progress_option", "surrogate_defaults",
+           "SURROGATE_OPTIONS",
            "add_surrogate_options", "join_negative_values", "accept_negative_numbers", "refuse_to_overwrite",
            "process_count", "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run",
            "check_outputs", "writing", "written_and_kept", "is_package_warning", "package_warnings", "report_warnings"]
@@ -128,15 +130,34 @@ def compression_of(args) -> str | None:
 
 
 def add_resync_tolerance_option(parser, help: str | None = None) -> None:
-    """``--resync-tolerance CM|PCT%``: error control of the synchronization-avoiding run."""
+    """``--resync-tolerance CM|PCT%`` and ``--error-indicator``: error control of the
+    synchronization-avoiding run (:func:`resync_tolerance_of` reads them)."""
     parser.add_argument(
         "--resync-tolerance", default=None, metavar="CM|PCT%",
-        help=help or "error control: check each refill cycle's predictions before using them; "
-                     "when es_hat, the parts' disagreement at the shared nodes (paper eq. 26), "
-                     "exceeds this tolerance -- in cm (1e-4) or as a percentage of the largest "
-                     "shared-node displacement seen in synchronized steps (2%%) -- go back to "
-                     "the last synchronized state and recompute with the synchronized solver "
-                     "(default: never)")
+        help=help or "error control: hold the run to this tolerance -- in cm (1e-4) or as a percentage "
+                     "of the largest shared-node displacement seen in synchronized steps (2%%): each "
+                     "refill cycle's es_hat (the parts' disagreement, paper eq. 26) is checked before it "
+                     "runs and the estimated error since the last synchronized state (the force-balance "
+                     "defect probed at the saved steps, see --error-indicator) after; above it the run "
+                     "goes back to the last synchronized state and recomputes with the synchronized "
+                     "solver (default: never)")
+    parser.add_argument(
+        "--error-indicator", choices=("estimate", "es_hat"), default="estimate",
+        help="what --resync-tolerance holds: 'estimate' (default: es_hat and the estimated error, which "
+             "also sees errors that every part makes alike; one exchange of partial forces per saved "
+             "step) or 'es_hat' (the parts' disagreement only, no exchange while predicting)")
+
+
+def resync_tolerance_of(args, value=None):
+    """The :class:`jaxsync.ResyncTolerance` of ``--resync-tolerance`` (or ``value``) and
+    ``--error-indicator``; None without a tolerance."""
+    from ...solve.strategies import ResyncTolerance
+
+    value = args.resync_tolerance if value is None else value
+    if value is None or str(value).lower() == "none":
+        return None
+    tolerance = ResyncTolerance.parse(value)
+    return dataclasses.replace(tolerance, indicator=getattr(args, "error_indicator", "estimate"))
 
 
 def add_progress_option(parser, what: str = "the progress bar") -> None:

@@ -69,7 +69,7 @@ def run(args) -> int:
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=common.mode_of(args),
                                     save=args.save_every or reference.save_every,
-                                    resync_tolerance=args.resync_tolerance, load_jumps=args.load_jumps,
+                                    resync_tolerance=common.resync_tolerance_of(args), load_jumps=args.load_jumps,
                                     executor=HostExecutor(progress=not args.no_progress), **common.sync_of(args))
     with common.writing(args.output):
         online.save(args.output, compression=common.compression_of(args))
