@@ -39,6 +39,7 @@ import numpy as np
 
 from ..errors import MaterialError
 from ..pytree import concrete_scalar, pytree_dataclass
+from .material import first_lame, shear_modulus
 
 __all__ = ["NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "HYPERELASTIC",
            "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters"]
@@ -112,12 +113,12 @@ class _SmallStrain:
     @property
     def mu(self):
         """Shear modulus E / (2 (1 + nu)) [dyn/cm^2]."""
-        return self.E / (2.0 * (1.0 + self.nu))
+        return shear_modulus(self.E, self.nu)
 
     @property
     def lam(self):
         """First Lame parameter E nu / ((1 + nu)(1 - 2 nu)) [dyn/cm^2]."""
-        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return first_lame(self.E, self.nu)
 
     @property
     def bulk(self):

@@ -7,7 +7,18 @@ import jax.numpy as jnp
 from ..errors import MaterialError
 from ..pytree import concrete_scalar, pytree_dataclass
 
-__all__ = ["LinearElastic"]
+__all__ = ["LinearElastic", "shear_modulus", "first_lame"]
+
+
+def shear_modulus(E, nu):
+    """mu = E / (2 (1 + nu)) [dyn/cm^2] of Young's modulus E [dyn/cm^2] and Poisson ratio nu."""
+    return E / (2.0 * (1.0 + nu))
+
+
+def first_lame(E, nu):
+    """lambda = E nu / ((1 + nu)(1 - 2 nu)) [dyn/cm^2] of Young's modulus E [dyn/cm^2] and
+    Poisson ratio nu."""
+    return E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
 
 @pytree_dataclass
@@ -44,12 +55,12 @@ class LinearElastic:
     @property
     def mu(self):
         """Shear modulus E / (2 (1 + nu)) [dyn/cm^2]."""
-        return self.E / (2.0 * (1.0 + self.nu))
+        return shear_modulus(self.E, self.nu)
 
     @property
     def lam(self):
         """First Lame parameter E nu / ((1 + nu)(1 - 2 nu)) [dyn/cm^2]."""
-        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+        return first_lame(self.E, self.nu)
 
     @property
     def wave_speed(self):

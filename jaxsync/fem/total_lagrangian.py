@@ -389,17 +389,7 @@ def tangent_matrix(problem_or_operator, u):
 def _element_frequencies(op, u):
     """(n_elements,) omega_e^2: the largest eigenvalue of each element's tangent stiffness
     over its lumped mass [1/s^2]."""
-    cells = op.cells
-
-    def element_force(ue, gradients, weights, fibres):
-        F = jnp.einsum("ka,qkj->qaj", ue, gradients) + jnp.eye(3)[None]
-        P = op.material.first_piola(F, None if fibres is None else fibres[None])
-        return jnp.einsum("q,qij,qkj->ki", weights, P, gradients).reshape(-1)
-
-    def stiffness(ue, gradients, weights, fibres):
-        return jax.jacfwd(lambda x: element_force(x.reshape(ue.shape), gradients, weights, fibres))(ue.reshape(-1))
-
-    K = jax.vmap(stiffness)(u[cells], op.gradients, op.weights, op.fibres)  # (m, 3k, 3k)
+    K = element_stiffness(op, u)  # (m, 3k, 3k)
     s = 1.0 / jnp.sqrt(jnp.repeat(op.material.rho * op.unit_mass, 3, axis=1))
     K = 0.5 * (K + jnp.swapaxes(K, 1, 2)) * s[:, :, None] * s[:, None, :]
     return jnp.linalg.eigvalsh(K)[:, -1]

@@ -90,6 +90,7 @@ class ErrorPropagator:
     mass: np.ndarray
     stiffness_solve: object
     flexibility: np.ndarray | None = None
+    _maps: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)  # stride -> _over(stride)
 
     @classmethod
     def build(cls, problem, partition, dt: float, n_modes: int | None = None) -> "ErrorPropagator":
@@ -172,11 +173,9 @@ class ErrorPropagator:
         Returns:
             (state after the last probe, (n_probes,) estimated largest nodal error at each
             probe [cm])."""
-        key = ("over", stride)
-        cache = self.__dict__.setdefault("_cache", {})
-        if key not in cache:
-            cache[key] = self._over(stride)
-        power, total = cache[key]
+        if stride not in self._maps:
+            self._maps[stride] = self._over(stride)
+        power, total = self._maps[stride]
         defects = np.asarray(defects, dtype=float)
         # each block's sum spread evenly over its steps
         driven = np.einsum("pnc,nck->pk", defects, self.injection) / stride
@@ -219,12 +218,12 @@ def _interface_flexibility(solve, free, shared, modes, omega, mass, dt):
     at = position[dofs]  # -1 on prescribed ones: their defect is zero, their column too
     columns = np.flatnonzero(at >= 0)
     inverse = np.zeros((len(dofs), len(dofs)))
+    rows = at >= 0
     for first in range(0, len(columns), 512):
         chunk = columns[first:first + 512]
         unit = np.zeros((len(free), len(chunk)))
         unit[at[chunk], np.arange(len(chunk))] = 1.0
         solved = solve(unit)
-        rows = at >= 0
         inverse[np.ix_(rows, chunk)] = solved[at[rows]]
     kept = modes[shared].reshape(len(dofs), -1)
     remainder = inverse - (kept / np.maximum(omega, 1e-300) ** 2) @ kept.T
