@@ -16,6 +16,9 @@ number of nodes, N_a the number of shared nodes, n_c the number of parts.
   a run (eq. 26); et_j: the time average of each node's error.
 - :func:`estimate_quality`: how well es_hat tracks es over a run (section 6's promise
   that the estimate can stand in for the error).
+- :func:`peak_strain`: the largest principal Green-Lagrange strain (and its logarithmic
+  stretch) over the elements and saved snapshots of a displacement history: how far a
+  run is from small strain.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ import numpy as np
 from .errors import ProblemError
 
 __all__ = ["l2_error", "NodeError", "node_error", "SharedNodeErrors", "shared_node_errors", "predictions_by_node",
-           "EstimateQuality", "estimate_quality"]
+           "EstimateQuality", "estimate_quality", "PeakStrain", "peak_strain",
+           "principal_strain_peaks", "peak_of"]
 
 
 def l2_error(reference: np.ndarray, predicted: np.ndarray) -> np.ndarray:
@@ -231,3 +235,102 @@ def estimate_quality(es: np.ndarray, es_hat: np.ndarray) -> EstimateQuality:
         log_correlation=correlation,
         within_factor_2=float(np.mean((ratio >= 0.5) & (ratio <= 2.0))),
         underestimated=float(np.mean(ratio > 2.0)))
+
+
+@dataclasses.dataclass(frozen=True)
+class PeakStrain:
+    """The largest strains of a displacement history (:func:`peak_strain`).
+
+    Attributes:
+        green_lagrange: the largest principal Green-Lagrange strain E = (F^T F - I) / 2 over
+            every quadrature point of every element and every snapshot [-] (tension
+            positive).
+        logarithmic: the same principal direction's logarithmic strain ln(lambda), with the
+            stretch lambda = sqrt(1 + 2 E) [-].
+        compression: the smallest principal Green-Lagrange strain [-] (negative in
+            compression; >= -1/2).
+        snapshot: the snapshot (index into the history) and element of the largest
+            tension.
+        element: see ``snapshot``.
+    """
+
+    green_lagrange: float
+    logarithmic: float
+    compression: float
+    snapshot: int
+    element: int
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def summary(self) -> str:
+        return (f"peak strain: largest principal Green-Lagrange strain {100 * self.green_lagrange:.2f} % "
+                f"(logarithmic {100 * self.logarithmic:.2f} %) at snapshot {self.snapshot}, element "
+                f"{self.element}; largest compression {100 * self.compression:.2f} %")
+
+
+def principal_strain_peaks(space, displacement, *, chunk_bytes: int = 2 ** 27):
+    """Per snapshot, the largest and the smallest principal Green-Lagrange strain over the
+    elements' quadrature points, and the element of the largest (see :func:`peak_strain`).
+
+    Returns:
+        (tension (T,), element (T,) int, compression (T,)) [-].
+    """
+    from .fem.space import function_space
+    from .fem.total_lagrangian import reference_geometry
+
+    if not hasattr(space, "cells"):
+        space = function_space(space, "P1")
+    d = np.asarray(displacement, dtype=float)
+    if d.ndim == 2:
+        d = d[None]
+    if d.ndim != 3 or d.shape[1:] != (space.n_nodes, 3):
+        raise ProblemError(f"peak_strain: displacement of shape {np.shape(displacement)} does not fit the "
+                           f"space's {space.n_nodes} nodes: give (T, {space.n_nodes}, 3) or ({space.n_nodes}, 3)")
+    gradients, _ = reference_geometry(space)  # (m, q, k, 3)
+    cells = np.asarray(space.cells)
+    m, q = gradients.shape[:2]
+    block = max(1, int(chunk_bytes // max(1, m * q * 9 * 8 * 4)))
+    tension, element, compression = (np.empty(len(d)), np.empty(len(d), np.int64), np.empty(len(d)))
+    for start in range(0, len(d), block):
+        u = d[start:start + block][:, cells]  # (t, m, k, 3)
+        H = np.einsum("tmka,mqkj->tmqaj", u, gradients)  # grad_X u
+        E = 0.5 * (H + np.swapaxes(H, -1, -2) + np.einsum("...ka,...kb->...ab", H, H))
+        principal = np.linalg.eigvalsh(E)  # ascending
+        top = principal[..., -1].max(axis=2)  # (t, m) over quadrature points
+        rows = slice(start, start + len(u))
+        element[rows] = np.argmax(top, axis=1)
+        tension[rows] = top.max(axis=1)
+        compression[rows] = principal[..., 0].min(axis=(1, 2))
+    return tension, element, compression
+
+
+def peak_strain(space, displacement, *, chunk_bytes: int = 2 ** 27) -> PeakStrain:
+    """The largest principal strains of ``displacement`` over elements and snapshots.
+
+    At every quadrature point of the element rule of the total-Lagrangian force
+    (:func:`jaxsync.fem.total_lagrangian.reference_geometry`: one point on P1, four on
+    P2), F = I + grad_X u and the Green-Lagrange strain E = (F^T F - I) / 2, whose
+    eigenvalues are the principal strains. Kinematics only: the same for every law
+    (for a small-strain law it measures how far its runs are from small strain).
+
+    Args:
+        space: a :class:`jaxsync.fem.space.FunctionSpace` (``Trajectory.space``) or a
+            :class:`jaxsync.Mesh` (its P1 space).
+        displacement: (T, n_nodes, 3) or (n_nodes, 3) displacements [cm] of its nodes.
+        chunk_bytes: working memory per block of snapshots (the strains are formed a block
+            at a time).
+
+    Raises:
+        ProblemError: a displacement of another shape than the space's nodes.
+    """
+    return peak_of(*principal_strain_peaks(space, displacement, chunk_bytes=chunk_bytes))
+
+
+def peak_of(tension, element, compression) -> PeakStrain:
+    """The :class:`PeakStrain` of per-snapshot peaks (:func:`principal_strain_peaks`), over
+    the snapshots given."""
+    at = int(np.argmax(tension))
+    value = float(tension[at])
+    return PeakStrain(green_lagrange=value, logarithmic=float(0.5 * np.log1p(2.0 * value)),
+                      compression=float(compression.min()), snapshot=at, element=int(element[at]))

@@ -417,3 +417,92 @@ def test_newton_that_does_not_converge_says_where_and_what_to_do(beam):
     free = jaxsync.Problem(mesh=mesh, material=NeoHookean(E, NU, RHO), loads=problem.loads)
     with pytest.raises(jaxsync.ProblemError, match="singular"):
         jaxsync.steady_state(free)
+
+
+# --- 6. dynamics against felupe -------------------------------------------------------------------
+
+def test_explicit_run_matches_a_central_difference_loop_on_felupes_force():
+    """A neo-Hookean cantilever bent by a ramped body force (finite strain: the 4 cm beam's
+    tip swings down by 2-3 cm), undamped and damped: jaxsync's run equals a
+    central-difference loop written here in numpy whose internal force is felupe's
+    (NeoHookeCompressible, same mu, lambda), with the lumped mass (a quarter of each
+    element's mass at each vertex) and the body force (a quarter of b V_e) assembled here."""
+    fem = pytest.importorskip("felupe")
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (8, 2, 2))
+    X, tets = mesh.points, mesh.tets
+    body = np.array([0.0, 0.0, -1.5e4])
+    t_ramp, n_steps = 0.05, 1200  # about two periods of the first bending mode
+    field = fem.FieldContainer([fem.Field(fem.RegionTetra(fem.Mesh(X, tets, "tetra")), dim=3)])
+    solid = fem.SolidBody(fem.NeoHookeCompressible(mu=MU, lmbda=LAM), field)
+
+    def felupe_force(u):
+        field[0].values[:] = u
+        return np.asarray(solid.assemble.vector(field).toarray()).reshape(-1, 3)
+
+    _, volumes = _gradients(X, tets)
+    mass, force = np.zeros(len(X)), np.zeros((len(X), 3))
+    np.add.at(mass, tets.ravel(), np.repeat(RHO * volumes / 4.0, 4))
+    np.add.at(force, tets.ravel(), np.repeat(volumes / 4.0, 4)[:, None] * body)
+    clamped = np.isclose(X[:, 0], 0.0)
+    for damping in (0.0, 300.0):
+        problem = jaxsync.cantilever(mesh, material=NeoHookean(E, NU, RHO), body_force=tuple(body), t_ramp=t_ramp,
+                                     damping=damping)
+        dt = problem.dt
+        run = np.asarray(jaxsync.simulate(problem, n_steps, save=100).displacement)
+        d, previous, saved = np.zeros((len(X), 3)), np.zeros((len(X), 3)), [np.zeros((len(X), 3))]
+        half = 0.5 * damping * dt
+        for n in range(n_steps):  # g(0) = 0: the run starts at rest with zero acceleration
+            g = min(n * dt / t_ramp, 1.0)
+            new = (dt * dt * (g * force - felupe_force(d)) / mass[:, None] + 2 * d - (1 - half) * previous) / (1 + half)
+            new[clamped] = 0.0
+            d, previous = new, d
+            if (n + 1) % 100 == 0:
+                saved.append(d)
+        reference = np.asarray(saved)
+        assert np.abs(reference[:, :, 2]).max() > 1.0  # finite strain
+        np.testing.assert_allclose(run, reference, rtol=0, atol=1e-9 * np.abs(reference).max())
+
+
+# --- 7. mass scaling of a hyperelastic law ----------------------------------------------------------
+
+def test_mass_scaling_raises_every_element_step_of_the_tangent_to_the_target():
+    """Each element's own step, 2 / omega_e of its small-strain stiffness (the tangent at
+    rest, assembled here in numpy) over its scaled lumped mass, is the target where it was
+    below it (and unchanged elsewhere); the scaled problem's default step is the target
+    (alpha_s = 0.9 times the element rule), its added mass that of the densities."""
+    from jaxsync.fem.mesh import validated_mesh
+
+    beam = jaxsync.box_beam(4.0, 1.0, 1.0, (6, 2, 2))
+    graded = beam.points * [1.0, 1.0, 1.0]
+    graded[:, 0] = 4.0 * (beam.points[:, 0] / 4.0) ** 1.5  # smaller elements towards the clamp
+    mesh = validated_mesh(graded, beam.tets, beam.facet_sets)
+    problem = jaxsync.cantilever(mesh, material=NeoHookean(E, NU, RHO))
+    g, vol = _gradients(mesh.points, mesh.tets)
+
+    def own_steps(scale):
+        steps = []
+        for e in range(mesh.n_elements):
+            K = np.zeros((12, 12))
+            for a in range(4):
+                for b in range(4):
+                    ga, gb = g[e, a], g[e, b]
+                    K[3 * a:3 * a + 3, 3 * b:3 * b + 3] = vol[e] * (LAM * np.outer(ga, gb) + MU * np.outer(gb, ga)
+                                                                    + MU * np.dot(ga, gb) * np.eye(3))
+            m = RHO * scale[e] * vol[e] / 4.0
+            steps.append(2.0 / np.sqrt(np.linalg.eigvalsh(K / m)[-1]))
+        return np.asarray(steps)
+
+    before = own_steps(np.ones(mesh.n_elements))
+    target = 1.5 * problem.dt
+    scaled, percent = jaxsync.mass_scaling(problem, dt_target=target, warn_above_percent=None)
+    after = own_steps(np.asarray(scaled.density_scale))
+    small = 0.9 * before < target
+    assert 0 < small.sum() < mesh.n_elements
+    np.testing.assert_allclose(0.9 * after[small], target, rtol=1e-9)
+    np.testing.assert_allclose(after[~small], before[~small], rtol=1e-12)
+    assert scaled.dt == pytest.approx(target, rel=1e-9) and scaled.time_step.rule == "element"
+    assert percent == pytest.approx(100 * (np.sum(vol * scaled.density_scale) / vol.sum() - 1), rel=1e-12)
+    np.testing.assert_allclose(scaled.element_steps(), after, rtol=1e-9)
+    # P2 elements scale too (the element rule needs no P1 size)
+    p2, _ = jaxsync.mass_scaling(problem.replace(element="P2"), beta=1.3, warn_above_percent=None)
+    assert p2.dt == pytest.approx(1.3 * problem.replace(element="P2").dt, rel=1e-9)

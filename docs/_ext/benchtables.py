@@ -479,6 +479,36 @@ def r_load_jumps() -> Rendered:
     return Rendered([t], sources)
 
 
+def r_hyperelastic_vessel() -> Rendered:
+    d = load("hyperelastic_vessel.json")
+    rows = []
+    for m in d["materials"]:
+        for sur in m["surrogates"]:
+            timing = sur.get("timing", {})
+            for label in ("free", "controlled"):
+                r = sur[label]
+                q = r["estimate_over_error"]
+                rows.append([m["material"], pct(m["peak_strain"]["green_lagrange"], 3), sur["surrogate"],
+                             "none" if label == "free" else "1 %", pct(r["interior_max_relative_error"], 3),
+                             ", ".join(pct(n["relative_max_error"], 2) for n in r["interior_nodes"]),
+                             num(r["l2_error_max"]), num(r["max_nodal_error_cm"]),
+                             f"{num(r['n_predicted_steps'])} of {num(m['n_steps'] - 20 * d['settings']['n_s'])}",
+                             num(r["n_resynchronizations"]),
+                             "-" if q.get("median") is None or math.isnan(q["median"]) else
+                             f"{num(q['p10'], 2)} / {num(q['median'], 2)} / {num(q['p90'], 2)}",
+                             num(timing.get("t_d_us")), num(timing.get("zeta"), 3),
+                             num(sur.get("train_seconds"))])
+    table = Table(["material", "peak strain [%]", "surrogate", "error control", "interior max rel. error [%]",
+                   "per part [%]", "e_l2 max [cm]", "largest nodal error [cm]", "steps predicted",
+                   "re-synchronizations", "estimate / error p10 / median / p90", "t_d per step [us]", "zeta",
+                   "training [s]"], rows,
+                  "The hyperelastic coronary vessel, out of sample (after the training window)")
+    return Rendered([table], ["hyperelastic_vessel.json"],
+                    recorded({"n_devices": d.get("n_devices"),
+                              "device_kind": ("emulated " if d.get("emulated") else "") + str(d.get("device_kind")),
+                              "date": d.get("date")}))
+
+
 def r_guarantee() -> Rendered:
     d = load("guarantee.json")
     rows, tracking = [], []
@@ -728,8 +758,37 @@ def r_float32() -> Rendered:
     return Rendered([t], ["float32.json"], recorded(d.get("machine")))
 
 
+def r_hyperelastic() -> Rendered:
+    d = load("hyperelastic.json")
+    names = {"NeoHookean": "neo-Hookean", "NearlyIncompressibleNeoHookean": "nearly incompressible",
+             "HolzapfelGasserOgden": "Holzapfel-Gasser-Ogden", "LinearElastic": "linear, pre-assembled"}
+    rows = []
+    for r in d["rows"]:
+        law = names.get(r["law"], r["law"])
+        if r["law"] == "LinearElastic":
+            rows.append([r["case"], r["element"], law, num(r["elements"]), num(r["matvec_us"]), "-", "-", "-", "-",
+                         "-", "-", num(r["step_us"]), "1"])
+            continue
+        rows.append([r["case"], r["element"], law, num(r["elements"]), num(r["matvec_us"]),
+                     num(r["elements_per_s_per_core"] / 1e6), num(r["xla_flops_per_element"]),
+                     num(r["analytic_flops_per_element"]), num(r["bytes_per_element"]),
+                     num(r["intensity_flop_per_byte"]), r["bound"], num(r["times_roofline"]),
+                     num(r["step_us"]), num(r["step_vs_linear"])])
+    t = Table(["case", "element", "law", "elements", "f_int [us]", "M elements/s/core", "flop/element (XLA)",
+               "flop/element (formula)", "bytes/element", "flop/byte", "bound", "x roofline", "step [us]",
+               "x linear step"], rows,
+              "Total-Lagrangian internal force on one core against the roofline, and the explicit step against "
+              "the pre-assembled linear one")
+    t.notes.append(f"One core: float64 matrix product {num(d['peak_flops_per_core'] / 1e9)} GFlop/s, copy "
+                   f"bandwidth {num(d['bandwidth_Bps'] / 1e9)} GB/s (balance "
+                   f"{num(d['machine_balance_flop_per_byte'])} flop/byte). Target: within "
+                   f"{num(d['target_times_roofline'])}x of the roofline: {met(d['target_met'])}.")
+    return Rendered([t], ["hyperelastic.json"], recorded(d.get("machine")))
+
+
 RENDERERS = {
     "float32": r_float32,
+    "hyperelastic": r_hyperelastic,
     "locking": r_locking,
     "stepper": r_stepper,
     "distributed": r_distributed,
@@ -742,6 +801,7 @@ RENDERERS = {
     "seeds": r_seeds,
     "error-control": r_error_control,
     "guarantee": r_guarantee,
+    "hyperelastic-vessel": r_hyperelastic_vessel,
     "refill": r_refill,
     "load-jumps": r_load_jumps,
     "gradients": r_gradients,

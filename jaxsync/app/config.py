@@ -53,6 +53,7 @@ Layout (every table optional; defaults give the paper's cantilever)::
     period = 0.833              # optional periodic waveform ...
     times = [0.0, 0.4, 0.833]   # ... given by samples
     values = [1.067e5, 1.6e5, 1.067e5]
+    # follower = true           # act on the deformed surface (hyperelastic [material] only)
 
     [[traction]]                # kind = "general" only: force per area in a fixed direction
     surface = "x1"
@@ -132,7 +133,7 @@ _SCHEMA: dict[str, dict[str, Any]] = {
     "body_force": {"vector": ("number", 3), "t_ramp": "number", "t_off": "number"},
     "pressure": {"surface": "string", "magnitude": "number", "t_ramp": "number",
                  "t_off": "number", "period": "number", "times": ("number", None),
-                 "values": ("number", None)},
+                 "values": ("number", None), "follower": "bool"},
     "traction": {"surface": "string", "vector": ("number", 3), "t_ramp": "number",
                  "t_off": "number", "period": "number", "times": ("number", None),
                  "values": ("number", None)},
@@ -523,8 +524,8 @@ def _loads(config: dict) -> list[Any]:
     for i, entry in enumerate(config.get("pressure", [])):
         if "surface" not in entry:
             raise ConfigError(f"[[pressure]] #{i}: 'surface' (a facet-set name) is required")
-        loads.append(Pressure(float(entry.get("magnitude", 1.0)),
-                              _time_function(entry, f"[[pressure]] #{i}"), surface=str(entry["surface"])))
+        loads.append(Pressure(float(entry.get("magnitude", 1.0)), _time_function(entry, f"[[pressure]] #{i}"),
+                              surface=str(entry["surface"]), follower=bool(entry.get("follower", False))))
     for i, entry in enumerate(config.get("traction", [])):
         if "surface" not in entry or "vector" not in entry:
             raise ConfigError(f"[[traction]] #{i}: 'surface' (a facet-set name) and 'vector' (dyn/cm^2) are "

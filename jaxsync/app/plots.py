@@ -290,6 +290,10 @@ class Comparison:
             (:attr:`jaxsync.Trajectory.error_estimate`) tracks the true largest nodal
             error at its predicted snapshots (:class:`jaxsync.metrics.EstimateQuality`,
             true / estimate), or None when the run has none.
+        strain: the reference's principal Green-Lagrange strains per snapshot
+            (:func:`jaxsync.metrics.principal_strain_peaks`: tension (T,), its element
+            (T,), compression (T,)), or None where not measured (a small-strain run,
+            unless asked for).
     """
 
     times: np.ndarray
@@ -313,6 +317,17 @@ class Comparison:
     snapshot_steps: np.ndarray | None = None
     train_until_step: int | None = None
     estimate_quality: object | None = None
+    strain: tuple | None = None
+
+    def peak_strain(self, snapshots=slice(None)):
+        """The reference's :class:`jaxsync.metrics.PeakStrain` over ``snapshots`` (an index
+        of the snapshots; its ``snapshot`` counts from the first of them), or None where the
+        strains were not measured."""
+        from ..metrics import peak_of
+
+        if self.strain is None:
+            return None
+        return peak_of(*(np.asarray(a)[snapshots] for a in self.strain))
 
     @property
     def node_components(self) -> dict[str, int]:
@@ -325,8 +340,12 @@ class Comparison:
 
 
 def compare(reference, online, partition, *, component: Component | None = DEFAULT_COMPONENT,
-            fixed_nodes=(), nodes=None, train_until_step: int | None = None) -> Comparison:
+            fixed_nodes=(), nodes=None, train_until_step: int | None = None,
+            strain: bool | None = None) -> Comparison:
     """Compare ``online`` with ``reference`` (arguments as :func:`write_report`); writes nothing.
+
+    ``strain``: measure the reference's principal strains (:attr:`Comparison.strain`);
+    None: where the reference is a run of a hyperelastic law (its ``parameters["material"]``).
 
     Raises:
         ProblemError: trajectories of different shapes, or no node to show;
@@ -383,7 +402,23 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
                       t_switch=t_switch, spans=spans, l2=l2_error(ref, pred), steps=np.asarray(steps),
                       shared_errors=errs, quality=quality, n_steps=n_steps,
                       n_synchronized=n_synchronized, snapshot_steps=snapshot_steps,
-                      train_until_step=train_until_step, estimate_quality=tracked)
+                      train_until_step=train_until_step, estimate_quality=tracked,
+                      strain=_strains(reference, ref) if _wants_strain(reference, strain) else None)
+
+
+def _wants_strain(reference, strain: bool | None) -> bool:
+    from ..fem.hyperelastic import HYPERELASTIC
+
+    if strain is not None:
+        return bool(strain)
+    material = getattr(reference, "parameters", {}).get("material")
+    return material in {law.__name__ for law in HYPERELASTIC}
+
+
+def _strains(reference, displacement) -> tuple:
+    from ..metrics import principal_strain_peaks
+
+    return principal_strain_peaks(reference.space, displacement)
 
 
 def report_figures(c: Comparison) -> dict:
@@ -448,6 +483,10 @@ def out_of_sample(c: Comparison) -> dict | None:
         if shared_after.any():
             out.update(es_max=float(c.shared_errors.es[shared_after].max()),
                        es_hat_max=float(c.shared_errors.es_hat[shared_after].max()))
+    if c.strain is not None:
+        peak = c.peak_strain(after).to_dict()
+        peak["snapshot"] = int(after[peak["snapshot"]])
+        out["peak_strain"] = peak
     return out
 
 
@@ -482,6 +521,7 @@ def report_summary(c: Comparison, extra: dict | None = None) -> dict:
         "resynchronized_intervals": [[a, b] for a, b in c.spans],
         "train_until_step": c.train_until_step,
         "out_of_sample": out_of_sample(c),
+        **({} if c.strain is None else {"peak_strain": c.peak_strain().to_dict()}),
         **summary_shared, **(extra or {}),
     }
 

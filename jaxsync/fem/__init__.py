@@ -9,7 +9,8 @@ cantilever), :mod:`~jaxsync.fem.coronary` (the paper's coronary case: material, 
 lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
 :mod:`~jaxsync.fem.element_force` (element forces formed every step),
 :mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.total_lagrangian`
-(their internal force, total-Lagrangian explicit dynamics),
+(their internal force, total-Lagrangian explicit dynamics), :mod:`~jaxsync.fem.follower`
+(pressure on the deformed surface),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """

@@ -143,11 +143,22 @@ class Pressure:
 
     The traction is -p n with n the outward normal, so a positive pressure pushes into
     the solid (a lumen pressure inflates a vessel).
+
+    ``follower=False`` (default): a dead load, -p n dA on the reference surface (its nodal
+    forces fixed). ``follower=True``: the pressure acts on the deformed surface, -p n da
+    with the current normal and area (:mod:`jaxsync.fem.follower`), as a fluid's pressure
+    does at finite strain; it needs a hyperelastic material (a small-strain law has no
+    deformed surface to follow).
     """
 
     magnitude: Any
     time: Any = Constant()
     surface: str = static_field(default="pressure")
+    follower: bool = static_field(default=False)
+
+    def __post_init__(self):
+        if not isinstance(self.follower, (bool, np.bool_)):
+            raise ProblemError(f"Pressure.follower must be True or False, got {self.follower!r}")
 
 
 @pytree_dataclass

@@ -121,6 +121,12 @@ class Problem:
                                    "jaxsync.Traction")
             if isinstance(load, (Pressure, Traction)):
                 self.mesh.facet_set(load.surface)  # clear error for an unknown tag
+            if isinstance(load, Pressure) and load.follower and not is_hyperelastic(self.material):
+                raise ProblemError(
+                    f"the follower pressure on {load.surface!r} acts on the deformed surface, a finite-strain "
+                    f"effect, but the material is the small-strain {type(self.material).__name__}: use a "
+                    "hyperelastic law (jaxsync.NeoHookean(E, nu, rho) linearises to LinearElastic(E, nu, rho)), "
+                    "or Pressure(..., follower=False) for the dead load on the reference surface")
         for support in self.supports:
             if not isinstance(support, ElasticSupport):
                 raise ProblemError(f"unknown support {support!r}: use jaxsync.ElasticSupport")
@@ -196,6 +202,32 @@ class Problem:
 
         return stable_step(self)
 
+    def element_steps(self) -> np.ndarray:
+        """(n_elements,) each element's own stable step [s] (alpha_s = 1) of a hyperelastic
+        law at the initial displacement: 2 / omega_e, omega_e^2 the largest eigenvalue of
+        the element's tangent stiffness over its lumped mass (density scaling included;
+        :func:`jaxsync.fem.total_lagrangian.element_frequencies`), as
+        :func:`jaxsync.mass_scaling` scales them.
+
+        Raises:
+            ProblemError: a linear law (its element steps are the paper's CFL rule,
+                :func:`jaxsync.fem.timestep.element_dt`), or traced parameters.
+        """
+        if not is_hyperelastic(self.material):
+            raise ProblemError("element_steps is the element rule of a hyperelastic law; a linear law's element "
+                               "steps are the paper's CFL rule (jaxsync.fem.timestep.element_dt)")
+        if is_traced(self.material, self.initial_displacement):
+            raise ProblemError("the element steps are eigenvalues computed on the host: give concrete material "
+                               "parameters and initial displacement")
+        import jax.numpy as jnp
+
+        from .total_lagrangian import TotalLagrangian, element_frequencies
+
+        op = TotalLagrangian().operator(self)
+        u0 = self.initial_displacement
+        u = jnp.zeros((self.n_nodes, 3)) if u0 is None else jnp.asarray(u0, dtype=float)
+        return 2.0 / np.sqrt(np.asarray(element_frequencies(op, u), dtype=float))
+
     def dirichlet_dofs(self) -> tuple[np.ndarray, np.ndarray]:
         """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs (a
         condition with a time function at its full ``value``, time factor 1)."""
@@ -260,13 +292,16 @@ class Problem:
 
         Returns ``(vectors, times)``: ``vectors[l]`` is the (n_nodes, 3) nodal load of
         load l at full magnitude (a JAX or NumPy array, traced if the magnitude is) and
-        ``times[l]`` its time function.
+        ``times[l]`` its time function. Follower pressures, whose forces depend on the
+        displacement, are not among them (:mod:`jaxsync.fem.follower`).
         """
         import jax.numpy as jnp
 
         vectors, times = [], []
         unit_body = None
         for load in self.loads:
+            if isinstance(load, Pressure) and load.follower:
+                continue
             if isinstance(load, BodyForce):
                 if unit_body is None:
                     unit_body = self._memo("body force", lambda: body_force_vectors(self.space))
@@ -305,7 +340,8 @@ class Problem:
         moving = sum(bc.time is not None for bc in self.dirichlet)
         kinds = ", ".join(f"{n} {name}" for name, n in (
             ("body force", sum(isinstance(x, BodyForce) for x in self.loads)),
-            ("pressure", sum(isinstance(x, Pressure) for x in self.loads)),
+            ("pressure", sum(isinstance(x, Pressure) and not x.follower for x in self.loads)),
+            ("follower pressure", sum(isinstance(x, Pressure) and x.follower for x in self.loads)),
             ("traction", sum(isinstance(x, Traction) for x in self.loads))) if n)
         supports = "".join(f"; elastic support on {s.surface!r} (k_s {s.stiffness} dyn/cm^3, c_s {s.damping} "
                            f"dyn s/cm^3{', normal only' if s.normal_only else ''})" for s in self.supports)

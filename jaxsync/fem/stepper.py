@@ -62,6 +62,8 @@ class ExplicitSystem:
             or None.
         dashpot: the update with the supports' dashpots
             (:class:`jaxsync.fem.support.Dashpot`), or None.
+        follower: the follower pressures, loads that depend on the displacement
+            (:class:`jaxsync.fem.follower.FollowerPressure`), or None.
     """
 
     stiffness: BlockEll
@@ -76,6 +78,7 @@ class ExplicitSystem:
     moving_times: tuple = ()
     spring: Any = None
     dashpot: Any = None
+    follower: Any = None
 
 
 @pytree_dataclass
@@ -100,6 +103,7 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     ``"preassembled"``, K stored in node-blocked ELL form, or ``"recompute"``, element
     quantities formed every step, paper Remark 2; or a force model itself).
     Traceable in the material, damping, load magnitudes and dt (differentiable)."""
+    from .follower import follower_pressure
     from .internal_force import force_model
 
     stiffness = force_model(mode).operator(problem)
@@ -116,7 +120,8 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
         fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values),
         moving=jnp.stack([v for v, _ in moving]) if moving else None, moving_times=tuple(g for _, g in moving),
         spring=surface_spring(problem),
-        dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, jnp.asarray(fixed)))
+        dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, jnp.asarray(fixed)),
+        follower=follower_pressure(problem))
 
 
 def external_force(system: ExplicitSystem, t):
@@ -156,11 +161,16 @@ def apply_dirichlet(system: ExplicitSystem, displacement, t):
     return jnp.where(system.fixed, prescribed_values(system, t), displacement)
 
 
-def internal_forces(system: ExplicitSystem, displacement):
+def internal_forces(system: ExplicitSystem, displacement, t=0.0):
     """(n_nodes, 3) K d [dyn]: the internal force of the (part's) elements plus the
-    supports' springs, before any exchange."""
+    supports' springs, minus the follower pressures at time ``t`` [s] (the loads that
+    depend on the displacement, on the part's own facets), before any exchange."""
     force = system.stiffness.matvec(displacement)
-    return force if system.spring is None else force + system.spring.matvec(displacement)
+    if system.spring is not None:
+        force = force + system.spring.matvec(displacement)
+    if system.follower is not None:
+        force = force - system.follower.force(displacement, t)
+    return force
 
 
 def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite=None, probe=None):
@@ -175,7 +185,8 @@ def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite
     with the internal force the step used and the update before the overwrite; the step
     then returns ``(new_state, probe's value)`` (the synchronization-avoiding solver's
     force-balance defect, :func:`jaxsync.solve.phases.overwritten_steps`)."""
-    internal = internal_forces(system, state.displacement)
+    t = jnp.asarray(state.step, dtype=system.dt.dtype) * system.dt
+    internal = internal_forces(system, state.displacement, t)
     if synchronize is not None:
         internal = synchronize(internal)
     updated = central_difference(system, state, internal)

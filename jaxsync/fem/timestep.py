@@ -307,6 +307,13 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     when that is larger, unless alpha_s times the scaled problem's exact bound is smaller
     (nearly incompressible materials): then that.
 
+    A hyperelastic law (P1 or P2): an element's own step is alpha_s 2 / omega_e, omega_e^2
+    the largest eigenvalue of its tangent stiffness at the initial displacement over its
+    lumped mass (the element rule of :func:`jaxsync.fem.total_lagrangian.stable_dt`, fibres
+    included), and an element below dt_hat gets its density times (dt_hat / its step)^2,
+    which raises its step to exactly dt_hat; the scaled problem's ``dt`` is then dt_hat
+    unless alpha_s times its exact bound is smaller.
+
     Added mass slows the dynamics of the scaled elements, so a large increase changes the
     result: a :class:`MassScalingWarning` (with the percentage and dt_hat) is issued when
     the total mass grows by more than ``warn_above_percent`` percent (default 10; None
@@ -316,7 +323,8 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
         (scaled_problem, mass_increase_percent): the problem with ``density_scale`` set,
         and R_m = 100 (M_scaled - M) / M for the total mass.
     """
-    if problem.element != "P1":
+    hyperelastic = is_hyperelastic(problem.material)
+    if problem.element != "P1" and not hyperelastic:
         raise ProblemError("artificial mass scaling (paper Algorithm 2) scales elements by the P1 CFL rule; this "
                            f"problem uses {problem.element} elements: run it at its own step (problem.dt), or "
                            "scale a P1 problem")
@@ -329,14 +337,20 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     if warn_above_percent is not None and not float(warn_above_percent) >= 0:
         raise StabilityError(f"warn_above_percent must be >= 0 (or None), got {warn_above_percent}")
     m = problem.material
-    E, nu, rho = float(m.E), float(m.nu), float(m.rho)
-    h = element_size(problem.mesh.points, problem.mesh.tets)
+    rho = float(m.rho)
     scale = (np.ones(problem.mesh.n_elements) if problem.density_scale is None
              else np.asarray(problem.density_scale, dtype=float).copy())
-    dt_e = alpha_s * h / np.sqrt(E / (rho * scale * (1.0 - nu**2)))
-    small = dt_e < dt_hat
-    new_density = E * dt_hat**2 / (alpha_s**2 * h**2 * (1.0 - nu**2))
-    scale[small] = new_density[small] / rho
+    if hyperelastic:
+        dt_e = alpha_s * problem.element_steps()
+        small = dt_e < dt_hat
+        scale[small] *= (dt_hat / dt_e[small]) ** 2
+    else:
+        E, nu = float(m.E), float(m.nu)
+        h = element_size(problem.mesh.points, problem.mesh.tets)
+        dt_e = alpha_s * h / np.sqrt(E / (rho * scale * (1.0 - nu**2)))
+        small = dt_e < dt_hat
+        new_density = E * dt_hat**2 / (alpha_s**2 * h**2 * (1.0 - nu**2))
+        scale[small] = new_density[small] / rho
     volumes = problem.operators.volumes
     old_mass = rho * np.sum(volumes * (1.0 if problem.density_scale is None
                                        else np.asarray(problem.density_scale, dtype=float)))
@@ -351,3 +365,4 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
             "refine or repair the smallest elements, or raise warn_above_percent",
             MassScalingWarning, stacklevel=2)
     return problem.replace(density_scale=scale), percent
+

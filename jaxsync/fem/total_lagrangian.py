@@ -51,7 +51,8 @@ from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
            "exact_stable_dt", "element_wave_speeds", "inverted_elements", "strain_energy",
-           "STABLE_STEP_RULES", "element_stiffness", "tangent_matrix", "RunCheck", "default_step"]
+           "STABLE_STEP_RULES", "element_stiffness", "element_frequencies", "tangent_matrix", "RunCheck",
+           "default_step"]
 
 STABLE_STEP_RULES = ("cfl", "element")
 """The rules of :func:`stable_dt` (module docstring)."""
@@ -386,7 +387,7 @@ def tangent_matrix(problem_or_operator, u):
 
 
 @jax.jit
-def _element_frequencies(op, u):
+def element_frequencies(op, u):
     """(n_elements,) omega_e^2: the largest eigenvalue of each element's tangent stiffness
     over its lumped mass [1/s^2]."""
     K = element_stiffness(op, u)  # (m, 3k, 3k)
@@ -418,7 +419,7 @@ def stable_dt(problem_or_operator, u=None, *, alpha_s: float = ALPHA_S, rule: st
         raise StabilityError(f"{len(bad)} inverted element(s) (J <= 0), e.g. element {int(bad[0])}: no time step is "
                              "stable; reduce dt or the load, or refine the mesh where the elements fold")
     if rule == "element":
-        return float(alpha_s * 2.0 / np.sqrt(float(jnp.max(_element_frequencies(op, u)))))
+        return float(alpha_s * 2.0 / np.sqrt(float(jnp.max(element_frequencies(op, u)))))
     if k != 4:
         raise ProblemError("rule='cfl' uses the size of linear (P1) tetrahedra; P2 elements take rule='element' "
                            "(the element eigenvalue bound)")

@@ -243,7 +243,8 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
     :func:`jaxsync.fem.internal_force.force_model`) and the supports' springs on each
     part's own elements and facets; the mass, the dashpots, loads and Dirichlet values
     (their histories too) are gathered from ``system`` (padding: unit mass, no load, fixed
-    at zero), damping and dt broadcast to every part. Traced values of ``problem`` and
+    at zero), damping and dt broadcast to every part; the follower pressures act on each
+    part's own facets (those of its elements). Traced values of ``problem`` and
     ``system`` stay traced."""
     from ..fem.internal_force import force_model
 
@@ -257,6 +258,7 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
     def broadcast(x):
         return jnp.broadcast_to(x, (n_parts,) + jnp.shape(x))
 
+    from ..fem.follower import part_follower_pressures
     from ..fem.support import Dashpot, part_surface_springs
 
     def split_blocks(blocks):  # (n_nodes, 3, 3) -> (P, n_local, 3, 3)
@@ -274,6 +276,7 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
         moving_times=jax.tree_util.tree_map(broadcast, system.moving_times),
         spring=part_surface_springs(problem, layout.parts, layout.n_local),
         dashpot=None if d is None else Dashpot(split_blocks(d.inverse), split_blocks(d.coupling),
-                                               split_blocks(d.prescribed)))
+                                               split_blocks(d.prescribed)),
+        follower=part_follower_pressures(problem, layout.parts, layout.n_local))
     return PartSystems(stacked, jnp.asarray(layout.shared_local), jnp.asarray(layout.shared_interface),
                        None if layout.owned is None else jnp.asarray(layout.owned))

@@ -41,10 +41,12 @@ from .measure import (
 from .reports import STAGES, PartTiming, SpeedupReport, TimingReport, max_average
 from .roofline import (
     ELEMENT_FLOPS,
+    HYPERELASTIC_POINT_FLOPS,
     RooflinePoint,
     StageCost,
     achieved,
     achieved_stages,
+    hyperelastic_element_cost,
     roofline_table,
     step_costs,
     step_costs_for,
@@ -62,7 +64,8 @@ __all__ = [
     "sample_times", "best_times", "best_time", "per_step_times", "copy_bandwidth",
     "matmul_flop_rate", "describe_devices",
     # roofline counting
-    "StageCost", "ELEMENT_FLOPS", "step_costs", "step_costs_for", "surrogate_flop_breakdown",
+    "StageCost", "ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "hyperelastic_element_cost", "step_costs",
+    "step_costs_for", "surrogate_flop_breakdown",
     "surrogate_costs", "surrogate_step_cost", "RooflinePoint", "achieved", "achieved_stages",
     "roofline_table",
     # communication cost model

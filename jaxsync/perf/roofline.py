@@ -38,6 +38,26 @@ The per-element gathers and scatters are counted every time an element touches a
 (each node has about 20 elements): an upper bound on the memory traffic when they hit
 cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
 
+``"t_e"``, total-Lagrangian mode (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.element_forces`,
+a hyperelastic law), per element of k nodes and n_q quadrature points (P1: k = 4, n_q = 1;
+P2: k = 10, n_q = 4)::
+
+    bytes = 4 k (node ids) + 8 n_q (3 k + 1) (reference gradients and weights)
+            + 48 (the two fibre directions, Holzapfel-Gasser-Ogden only)
+            + 8 * 3 k (displacements gathered)
+    flops = n_q (9 (2 k - 1) + 3        F = I + sum_a u_a (x) grad N_a
+                 + P(law)               the first Piola stress (:data:`HYPERELASTIC_POINT_FLOPS`)
+                 + 9 + 15 k)            w P, then f_a = (w P) grad N_a (3 products, 2 sums each)
+            + 3 k (n_q - 1)             the quadrature points' forces summed
+
+``"t_m"``, total-Lagrangian mode (the scatter-add of the element forces into the nodes)::
+
+    bytes = 8 * 3 k,  flops = 3 k
+
+As for the recompute mode, the gathers and scatters are counted per element; the
+compulsory traffic of the whole force (:func:`hyperelastic_element_cost`) reads u and
+writes f once per node instead.
+
 ``"t_o"``, the update (:func:`jaxsync.fem.stepper.external_force`, ``central_difference``,
 ``apply_dirichlet``), per dof (3 per node)::
 
@@ -100,7 +120,8 @@ import numpy as np
 from ..errors import ProblemError
 from ..options import Mode, check_option
 
-__all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "step_costs", "step_costs_for",
+__all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "hyperelastic_element_cost",
+           "step_costs", "step_costs_for",
            "surrogate_flop_breakdown", "surrogate_costs", "surrogate_step_cost",
            "RooflinePoint", "achieved", "achieved_stages", "roofline_table"]
 
@@ -125,6 +146,77 @@ ELEMENT_FLOPS = {
     "times volume": 12,
 }
 SCATTER_FLOPS = 24  # recompute t_m per element: 12 times the weight, 12 scatter-adds
+
+# Flops per quadrature point of the first Piola-Kirchhoff stress P(F) of each hyperelastic
+# law (jaxsync.fem.hyperelastic), operation by operation of its formula (a transcendental
+# function, a division, a comparison or a select counts as one flop, as in XLA's cost
+# analysis); cof F = det F F^-T, J = det F.
+_COFACTOR_J = {"cof F: 9 entries, 2 products and a difference each": 27,
+               "J = F_0 . cof_0": 5}
+_ISOCHORIC_VOLUMETRIC = {
+    **_COFACTOR_J,
+    "J^-2/3 = exp(-2/3 ln J)": 3,
+    "I1 = F : F": 17,  # 9 squares + 8 additions
+    "a = mu J^-2/3": 1,
+    "b = (K/2 (J^2 - 1) - a I1 / 3) / J": 7,
+    "P = a F + b cof F": 27,
+}
+HYPERELASTIC_POINT_FLOPS = {
+    "NeoHookean": {
+        **_COFACTOR_J,
+        "ln J": 1,
+        "s = (lam ln J - mu) / J": 3,
+        "P = mu F + s cof F": 27,
+    },
+    "NearlyIncompressibleNeoHookean": dict(_ISOCHORIC_VOLUMETRIC),
+    "HolzapfelGasserOgden": {
+        **_ISOCHORIC_VOLUMETRIC,
+        "F a_i, two families": 30,  # 9 products + 6 additions each
+        "I4_i = |F a_i|^2": 10,
+        "E_i = kappa (I1 - 3) + (1 - 3 kappa)(I4_i - 1)": 8,  # 2 shared + 3 per family
+        "slope_i = k1 E_i exp(k2 E_i^2)": 10,
+        "in tension: I4_i >= 1, else slope_i = 0": 4,  # a comparison and a select each
+        "2 kappa (slope_1 + slope_2) F, added to P": 20,
+        "slope_i F a_i (x) a_i, summed over the families": 33,  # 2 (3 + 9) + 9
+        "2 (1 - 3 kappa) times that, added to P": 18,
+    },
+}
+"""{law class name: {operation: flops}} per quadrature point (the t_e of the
+total-Lagrangian mode with the deformation gradient and the nodal forces)."""
+
+
+def hyperelastic_element_cost(law: str, nodes_per_element: int = 4, n_points: int = 1) -> dict:
+    """Flops and compulsory bytes per element of the total-Lagrangian internal force
+    (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.matvec`) of a law.
+
+    Args:
+        law: the law's class name (a key of :data:`HYPERELASTIC_POINT_FLOPS`).
+        nodes_per_element: k (4: P1, 10: P2).
+        n_points: n_q quadrature points per element (1: P1, 4: P2).
+
+    Returns:
+        ``{"flops": per element, "flops_by_part": {"deformation gradient", "stress",
+        "nodal forces", "scatter-add"}, "element_bytes": the arrays read once per element
+        (node ids, gradients, weights, fibres), "node_bytes": per node (u read, f written
+        once), "gather_bytes": the displacements gathered and the forces scattered when
+        each element's touch is counted}``. The compulsory traffic of a mesh of m elements
+        and n nodes is ``m element_bytes + n node_bytes``.
+
+    Raises:
+        ProblemError: an unknown law or counts below 1.
+    """
+    if law not in HYPERELASTIC_POINT_FLOPS:
+        raise ProblemError(f"law must be one of {', '.join(HYPERELASTIC_POINT_FLOPS)}, got {law!r}")
+    k = _count(nodes_per_element, "nodes_per_element", 1)
+    q = _count(n_points, "n_points", 1)
+    parts = {"deformation gradient": q * (9 * (2 * k - 1) + 3),
+             "stress": q * sum(HYPERELASTIC_POINT_FLOPS[law].values()),
+             "nodal forces": q * (9 + 15 * k) + 3 * k * (q - 1),
+             "scatter-add": 3 * k}
+    fibres = 2 * 3 * F64 if law == "HolzapfelGasserOgden" else 0
+    return {"flops": sum(parts.values()), "flops_by_part": parts,
+            "element_bytes": I32 * k + F64 * q * (3 * k + 1) + fibres,
+            "node_bytes": 2 * 3 * F64, "gather_bytes": 2 * 3 * k * F64}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -174,18 +266,22 @@ def _count(value, name: str, minimum: int = 0) -> int:
 
 def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = None,
                n_load_vectors: int = 1, mode: Mode = "preassembled", n_shared: int = 0,
-               n_interface: int = 0) -> dict:
+               n_interface: int = 0, *, law: str = "NeoHookean", nodes_per_element: int = 4,
+               n_points: int = 1) -> dict:
     """Bytes and flops of each stage of one explicit step (formulas: module docstring).
 
     Args:
         n_nodes: n, nodes of the part (or mesh).
         width: w, ELL slots per node row (``"preassembled"``; the second dimension of
             :func:`jaxsync.fem.sparse.node_adjacency`).
-        n_elements: m, elements of the part (``"recompute"``).
+        n_elements: m, elements of the part (``"recompute"``, ``"total-lagrangian"``).
         n_load_vectors: L, load vectors of the problem.
-        mode: ``"preassembled"`` or ``"recompute"``.
+        mode: ``"preassembled"``, ``"recompute"`` or ``"total-lagrangian"``.
         n_shared: n_sh, shared nodes of the part (0: no synchronization).
         n_interface: N_a, shared nodes of the whole partition.
+        law, nodes_per_element, n_points: the hyperelastic law's class name, nodes and
+            quadrature points per element (``"total-lagrangian"`` only;
+            :func:`hyperelastic_element_cost`).
 
     Returns:
         ``{"t_e": StageCost, "t_m": ..., "t_s": ..., "t_o": ...}``.
@@ -207,6 +303,14 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
         w = _count(width, "width", 1)
         t_e = StageCost("t_e", 0, 0)
         t_m = StageCost("t_m", n * w * (9 * F64 + I32) + 2 * 3 * F64 * n, 18 * n * w)
+    elif mode == "total-lagrangian":
+        if n_elements is None:
+            raise ProblemError("the total-Lagrangian mode needs the number of elements: pass n_elements=")
+        m = _count(n_elements, "n_elements", 1)
+        cost = hyperelastic_element_cost(law, nodes_per_element, n_points)
+        scatter = cost["flops_by_part"]["scatter-add"]
+        t_e = StageCost("t_e", m * (cost["element_bytes"] + cost["gather_bytes"] // 2), m * (cost["flops"] - scatter))
+        t_m = StageCost("t_m", m * cost["gather_bytes"] // 2, m * scatter)
     else:
         if n_elements is None:
             raise ProblemError("the recompute mode needs the number of elements: pass n_elements=")
@@ -234,23 +338,37 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
             :class:`jaxsync.Partition` of ``problem.mesh``: then each part at its own
             (unpadded) size, as :func:`jaxsync.perf.timing.timing_breakdown` measures it (the
             SPMD program pads every part to the largest).
-        mode: ``"preassembled"`` or ``"recompute"``.
+        mode: ``"preassembled"``, ``"recompute"`` or ``"total-lagrangian"`` (the law, nodes
+            and quadrature points per element from the problem's material and element;
+            a hyperelastic problem is costed so in any mode, as it runs so).
 
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
+    from ..fem.hyperelastic import is_hyperelastic
+
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh
+    law = {}
+    if is_hyperelastic(problem.material) or mode == "total-lagrangian":
+        mode = "total-lagrangian"
+        from skfem.quadrature import get_quadrature
+        from skfem.refdom import RefTet
+
+        space = problem.space  # the rule of jaxsync.fem.total_lagrangian.reference_geometry
+        intorder = 1 if space.element == "P1" else (4 if space.curved else 2)
+        law = {"law": type(problem.material).__name__, "nodes_per_element": space.nodes_per_cell,
+               "n_points": len(get_quadrature(RefTet, intorder)[1])}
     if partition is None:
         width = _slots_per_row(problem.space.cells, problem.n_nodes) if mode == "preassembled" else None
-        return step_costs(problem.n_nodes, width, mesh.n_elements, n_loads, mode)
+        return step_costs(problem.n_nodes, width, mesh.n_elements, n_loads, mode, **law)
     if partition.mesh.n_nodes != mesh.n_nodes or partition.mesh.n_elements != mesh.n_elements:
         raise ProblemError("the partition was made for another mesh: partition problem.mesh")
     out = []
     for part in partition.parts:
         width = _slots_per_row(part.local_tets, part.n_local) if mode == "preassembled" else None
         out.append(step_costs(part.n_local, width, len(part.elements), n_loads, mode,
-                              part.n_shared, partition.n_interface))
+                              part.n_shared, partition.n_interface, **law))
     return tuple(out)
 
 

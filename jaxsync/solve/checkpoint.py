@@ -65,6 +65,10 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     h.update(values.tobytes())
     for v in problem.load_vectors()[0]:
         h.update(np.asarray(v, dtype=float).tobytes())
+    from ..fem.follower import follower_loads
+
+    for load in follower_loads(problem):  # not among the load vectors (they follow the displacement)
+        h.update(repr(("follower pressure", load.surface, float(load.magnitude), load.time)).encode())
     for ic in (problem.initial_displacement, problem.initial_velocity, problem.density_scale):
         if ic is not None:
             h.update(np.asarray(ic, dtype=float).tobytes())

@@ -34,7 +34,7 @@ __all__ = ["ensemble"]
 # load time functions are one copy for all runs.
 _RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, load_vectors=0,
                            load_times=None, fixed=None, fixed_values=0, moving=0, moving_times=None,
-                           spring=None, dashpot=None)
+                           spring=None, dashpot=None, follower=None)
 
 
 def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface, adjoint=None):
@@ -304,6 +304,8 @@ def _difference(problem, system: ExplicitSystem, reference_problem, reference: E
                                                                                      reference.dashpot)),
         ("load time functions (ramp, switch-off time, waveform)",
          lambda: _same(system.load_times, reference.load_times)),
+        ("follower pressures (surfaces, magnitudes, time functions: one copy for all runs)",
+         lambda: _same(system.follower, reference.follower)),
     )
     for what, same in checks:
         if not same():

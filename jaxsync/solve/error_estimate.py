@@ -33,8 +33,21 @@ vibration such errors leave behind (a defect at one moment excites the modes, wh
 on after the defect has gone: no instantaneous residual could see that). What it does
 not: error in modes above the ``n_modes`` kept (high-frequency motion trapped between
 clamped shared nodes), the timing of the defects within a block of ``stride`` steps
-(their sum is exact; it matters for modes whose period nears the block), elastic supports' dashpots (not
-in the modal damping) and nonlinear laws (A is the linear propagator).
+(their sum is exact; it matters for modes whose period nears the block) and elastic supports' dashpots (not
+in the modal damping).
+
+Hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`): the error of a finite-strain run obeys
+the same recursion to first order in the error, with A the propagator of the tangent
+stiffness K_T(u) = d f_int / d u of the state the run passes through. The propagator is
+linear, so it is built from the tangent at one state (``displacement`` of
+:meth:`ErrorPropagator.build`; :func:`jaxsync.fem.total_lagrangian.tangent_matrix`, plus
+the elastic supports' springs): by default the reference configuration (at rest, where
+every law's tangent is its small-strain stiffness of the same E and nu, for HGO with the
+fibres' stiffness as its tangent gives it), or, with ``ResyncTolerance(linearization=
+"synchronized")``, the last synchronized state before each predicted stretch (rebuilt
+there). It misses the change of the tangent along the run (stiffening with strain, the
+change of the frequencies) and the error's own second-order terms; how far that matters
+is measured on the hyperelastic vessel (``benchmarks/paper_hyperelastic_vessel.py``).
 """
 
 from __future__ import annotations
@@ -45,7 +58,7 @@ import numpy as np
 
 from ..errors import ProblemError
 
-__all__ = ["ErrorPropagator", "DEFAULT_MODES", "FLEXIBILITY_LIMIT"]
+__all__ = ["ErrorPropagator", "DEFAULT_MODES", "FLEXIBILITY_LIMIT", "linearised_stiffness"]
 
 DEFAULT_MODES = 40
 """Modes kept by default (fewer where the mesh has fewer free dofs)."""
@@ -93,15 +106,18 @@ class ErrorPropagator:
     _maps: dict = dataclasses.field(default_factory=dict, repr=False, compare=False)  # stride -> _over(stride)
 
     @classmethod
-    def build(cls, problem, partition, dt: float, n_modes: int | None = None) -> "ErrorPropagator":
+    def build(cls, problem, partition, dt: float, n_modes: int | None = None,
+              displacement=None) -> "ErrorPropagator":
         """The propagator of ``problem`` run at step ``dt`` [s] over ``partition``'s shared
         nodes, with the ``n_modes`` lowest modes (default :data:`DEFAULT_MODES`).
+
+        ``displacement``: (n_nodes, 3) [cm], the state whose tangent stiffness a
+        hyperelastic law is linearised at (default: the reference configuration, at
+        rest); a linear law's stiffness does not depend on it.
 
         Raises:
             ProblemError: ``n_modes`` not a positive whole number, or no free dof."""
         from scipy.sparse.linalg import LinearOperator, eigsh, splu
-
-        from ..fem.support import stiffness_matrix
 
         n_modes = DEFAULT_MODES if n_modes is None else n_modes
         if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) or n_modes < 1:
@@ -110,7 +126,7 @@ class ErrorPropagator:
         free = np.flatnonzero(~fixed)
         if not len(free):
             raise ProblemError("every dof is prescribed: there is no error to estimate")
-        K = stiffness_matrix(problem).tocsr()[free][:, free].tocsc()
+        K = linearised_stiffness(problem, displacement).tocsr()[free][:, free].tocsc()
         solve = splu(K).solve  # once: the static remainder, and the eigensolver's shift-invert
         mass = np.repeat(np.asarray(problem.lumped_mass(), dtype=float), 3)[free]
         n_modes = int(min(n_modes, len(free) - 1 if len(free) > _DENSE_LIMIT else len(free)))
@@ -203,6 +219,29 @@ class ErrorPropagator:
         low = np.einsum("ncm,pm->pnc", self.modes, np.einsum("ncm,pnc->pm", self.modes, force) / np.maximum(
             self.omega, 1e-300) ** 2)
         return static.reshape(force.shape) - low
+
+
+def linearised_stiffness(problem, displacement=None):
+    """The stiffness (scipy sparse, (n_dofs, n_dofs) [dyn/cm]) whose propagator A the
+    estimate runs: a linear law's K (:func:`jaxsync.fem.support.stiffness_matrix`), a
+    hyperelastic law's tangent K_T(u) at ``displacement`` u (default zero: at rest;
+    :func:`jaxsync.fem.total_lagrangian.tangent_matrix`), the elastic supports' springs
+    added to either."""
+    from ..fem.hyperelastic import is_hyperelastic
+    from ..fem.support import spring_matrix, stiffness_matrix
+
+    if not is_hyperelastic(problem.material):
+        return stiffness_matrix(problem)
+    from ..fem.total_lagrangian import tangent_matrix
+
+    u = np.zeros((problem.n_nodes, 3)) if displacement is None else np.asarray(displacement, dtype=float)
+    if u.shape != (problem.n_nodes, 3):
+        raise ProblemError(f"the error estimate's linearisation point has shape {u.shape}; give the "
+                           f"displacement of the problem's {problem.n_nodes} nodes, ({problem.n_nodes}, 3)")
+    K = tangent_matrix(problem, u)
+    K = 0.5 * (K + K.T)  # symmetric up to round-off: exactly, for the symmetric eigensolver
+    springs = spring_matrix(problem)
+    return K.tocsr() if springs is None else (K + springs).tocsr()
 
 
 def _interface_flexibility(solve, free, shared, modes, omega, mass, dt):

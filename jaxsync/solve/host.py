@@ -41,6 +41,7 @@ import jax
 import numpy as np
 
 from ..errors import StabilityError
+from ..fem.hyperelastic import is_hyperelastic
 from ..fem.stepper import ExplicitSystem, SolverState, advance
 from ..fem.timestep import divergence_advice
 from ..trajectory import Result, RunStats
@@ -321,13 +322,23 @@ class _OnlineRun:
             from .error_estimate import ErrorPropagator
 
             self.propagator = ErrorPropagator.build(problem, self.partition, dt, tolerance.modes)
+        self._linearised_at = 0  # the step of the state the propagator is linearised at (0: at rest)
         self.dt = dt
 
-    def _predicted_runner(self, amplitude: float):
+    def _predicted_runner(self, amplitude: float, anchor: "_Anchor"):
         if self.online.tolerance is None:
             per_chunk = self.executor.cycles_per_chunk or max(1, 20000 // self.cycle_steps)
             return PredictedRunner(self.phase, self.cycle_steps, per_chunk)
         # a new runner starts from a synchronized state: its error estimate from zero
+        tolerance = self.online.tolerance
+        if (self.propagator is not None and tolerance.linearization == "synchronized"
+                and is_hyperelastic(self.problem.material) and anchor.step != self._linearised_at):
+            from .error_estimate import ErrorPropagator
+
+            at = self.runner.to_global(anchor.state).displacement
+            self.propagator = ErrorPropagator.build(self.problem, self.partition, self.dt, tolerance.modes,
+                                                    displacement=at)
+            self._linearised_at = anchor.step
         return MonitoredRunner(self.phase, self.cycle_steps, self.online.tolerance.cm(amplitude), self.monitor,
                                self.propagator)
 
@@ -351,7 +362,7 @@ class _OnlineRun:
             while step_now < n_steps:
                 bar.label("predicted")
                 state = (anchor.state, runner.put(anchor.history), step_now)
-                predicted_runner = self._predicted_runner(amplitude)
+                predicted_runner = self._predicted_runner(amplitude, anchor)
                 try:
                     segment = run_chunks(predicted_runner, state, step_now, n_steps,
                                          kind="predicted", limit=self.limit, progress=bar)

@@ -11,6 +11,8 @@ divergence checks, checkpoints) for concrete inputs, the traced executor
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax.numpy as jnp
 import numpy as np
 
@@ -60,10 +62,19 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             every halved update inverted an element); the message names the increment,
             the residual and the fix, ``error.displacement`` holds the last converged
             increment's solution.
-        ProblemError: the Dirichlet conditions leave a rigid-body motion free (singular).
+        ProblemError: the Dirichlet conditions leave a rigid-body motion free (singular);
+            traced inputs (inside ``jax.grad``, ``jit`` or ``vmap``).
     """
     from ..fem.hyperelastic import is_hyperelastic
 
+    if is_traced(problem.material, problem.loads, [bc.value for bc in problem.dirichlet], problem.supports,
+                 problem.density_scale):
+        raise ProblemError(
+            "steady_state solves on the host (scipy's sparse direct solver), so it cannot take traced inputs "
+            "(jax.grad, jit or vmap): call it with concrete values; for the derivative of the static solution "
+            "in a parameter theta use the implicit function theorem, du/dtheta = -K_T^-1 dr/dtheta, with "
+            "K_T from jaxsync.fem.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
+            "jax.jacfwd of the residual (docs: Gradients)")
     if is_hyperelastic(problem.material):
         u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
                                             tol, max_iter)
@@ -92,6 +103,8 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
     import scipy.sparse.linalg as spla
 
     from ..errors import ConvergenceError
+    from ..fem.follower import follower_pressure, load_stiffness
+    from ..fem.loads import Constant
     from ..fem.support import spring_matrix
     from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
 
@@ -105,6 +118,10 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
     force = jax.jit(lambda x: op.matvec(x.reshape(-1, 3)).reshape(-1))
     jacobians = jax.jit(lambda x: op.jacobians(x.reshape(-1, 3)))
     springs = spring_matrix(problem)
+    follower = follower_pressure(problem)
+    if follower is not None:  # at full magnitude (time factor 1), scaled by the increment
+        follower = dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
+        follower_force = jax.jit(lambda x: follower.force(x.reshape(-1, 3), 0.0).reshape(-1))
     n = problem.n_dofs
     f_full = np.zeros(n)
     for v in problem.load_vectors()[0]:
@@ -113,26 +130,31 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
     free = np.setdiff1d(np.arange(n), fixed)
     u = np.zeros(n)
 
-    def out_of_balance(x, f_ext):
-        """f_int(x) + S x - f_ext, or None where an element is inverted or it is not finite."""
+    def out_of_balance(x, f_ext, fraction):
+        """f_int(x) + S x - f_ext - fraction f_follower(x), or None where an element is
+        inverted or it is not finite."""
         J = np.asarray(jacobians(x))
         if not np.all(np.isfinite(J) & (J > 0)):
             return None
         r = np.asarray(force(x)) - f_ext
         r = r if springs is None else r + springs @ x
+        r = r if follower is None else r - fraction * np.asarray(follower_force(x))
         return r if np.all(np.isfinite(r)) else None
 
     residuals = []
     for k in range(1, load_steps + 1):
-        f_ext = (k / load_steps) * f_full
-        target = (k / load_steps) * values  # the prescribed values of this increment
+        fraction = k / load_steps
+        f_ext = fraction * f_full
+        target = fraction * values  # the prescribed values of this increment
         converged = u.copy()  # the last converged state
-        r = out_of_balance(u, f_ext)
+        r = out_of_balance(u, f_ext, fraction)
         history = []
         for iteration in range(max_iter + 1):
             move = target - u[fixed]  # what the prescribed dofs still have to move
             pending = bool(np.any(move != 0))
             scale = max(float(np.abs(f_ext).max(initial=0.0)), float(np.abs(r[fixed]).max(initial=0.0)))
+            if follower is not None:  # the follower pressures' forces count in the scale too
+                scale = max(scale, fraction * float(np.abs(np.asarray(follower_force(u))).max(initial=0.0)))
             relative = float(np.abs(r[free]).max(initial=0.0)) / scale if scale > 0 else 0.0
             if not pending:
                 history.append(relative)
@@ -148,6 +170,8 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
             K = tangent_matrix(op, u.reshape(-1, 3))
             if springs is not None:
                 K = (K + springs).tocsr()
+            if follower is not None:  # the load stiffness (non-symmetric)
+                K = (K + fraction * load_stiffness(follower, u.reshape(-1, 3))).tocsr()
             K_free = K[free][:, free].tocsc()
             rhs = -r[free]
             if pending:  # the prescribed move, and the free dofs' response to it
@@ -163,7 +187,7 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
                 trial = u.copy()
                 trial[free] += du
                 trial[fixed] += move
-                found = out_of_balance(trial, f_ext)
+                found = out_of_balance(trial, f_ext, fraction)
                 if found is not None:
                     break
                 du, move = 0.5 * du, 0.5 * move

@@ -356,6 +356,13 @@ class ResyncTolerance:
     steps, one exchange of partial forces each, propagated through the ``modes`` lowest
     vibration modes), which also sees the errors that all parts make alike. ``"es_hat"``:
     es_hat alone (no exchange in the predicted phase; blind to shared errors).
+
+    ``linearization`` (a hyperelastic law, with ``indicator="estimate"``): the state whose
+    tangent stiffness the estimate's linear propagator is built from: ``"rest"``
+    (default: the reference configuration, built once) or ``"synchronized"`` (the last
+    synchronized state before each predicted stretch, rebuilt there: one sparse
+    factorization and eigensolve per stretch). A linear law's propagator is the same
+    either way.
     """
 
     absolute: float | None = None
@@ -363,6 +370,7 @@ class ResyncTolerance:
     amplitude: float | None = None
     indicator: str = "estimate"
     modes: int | None = None
+    linearization: str = "rest"
 
     def __post_init__(self):
         if self.indicator not in ("estimate", "es_hat"):
@@ -371,6 +379,13 @@ class ResyncTolerance:
         if self.modes is not None and (isinstance(self.modes, bool) or not isinstance(self.modes, int)
                                        or self.modes < 1):
             raise ProblemError(f"resync_tolerance: modes={self.modes!r} must be a whole number >= 1")
+        if self.linearization not in ("rest", "synchronized"):
+            raise ProblemError(f"resync_tolerance: linearization={self.linearization!r}; use 'rest' (the tangent "
+                               "stiffness at the reference configuration, the default) or 'synchronized' (at the "
+                               "last synchronized state)")
+        if self.linearization != "rest" and self.indicator != "estimate":
+            raise ProblemError("resync_tolerance: linearization= sets the error estimate's tangent; it goes with "
+                               "indicator='estimate'")
         if self.modes is not None and self.indicator != "estimate":
             raise ProblemError("resync_tolerance: modes= sets the error estimate's modes; it goes with "
                                "indicator='estimate'")

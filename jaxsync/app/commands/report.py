@@ -84,6 +84,10 @@ def run(args) -> int:
         from ...solve.syncavoid import describe_run
 
         print(describe_run(online))
+    if "peak_strain" in summary:  # a hyperelastic run's
+        from ...metrics import PeakStrain
+
+        print("reference " + PeakStrain(**summary["peak_strain"]).summary())
     if "es_hat_tracking" in summary:
         from ...metrics import EstimateQuality
 
