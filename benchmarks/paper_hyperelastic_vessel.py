@@ -3,10 +3,11 @@ accurate out of sample, and which one earns its cost?
 
 The generated coronary tree (:func:`jaxsync.fem.coronary_tree.coronary_mesh`, about
 ``--elements`` tetrahedra) with a compressible neo-Hookean wall (:class:`jaxsync.NeoHookean`,
-``--E``, nu = 0.4, rho = 1) under the paper's pulsatile lumen pressure on the deformed surface (a follower pressure;
-``--dead-load``: on the reference surface) (80-120 mmHg, period
-0.833 s, ramped over 1 s: :func:`jaxsync.coronary`), mass-scaled (:func:`jaxsync.mass_scaling`)
-so that the law's default step (the tangent at rest) is about ``--dt``, split into
+``--E``, nu = 0.4, rho = 1) under the paper's pulsatile lumen pressure (80-120 mmHg,
+period 0.833 s, ramped over 1 s: :func:`jaxsync.coronary`) on the deformed surface (a
+follower pressure; ``--dead-load``: on the reference surface), mass-scaled
+(:func:`jaxsync.mass_scaling`) so that the law's default step (the tangent at rest) is
+``--dt``, run at that step (the linear law too), split into
 ``--parts`` parts on 2 emulated devices. For each material (``--materials``: the
 neo-Hookean wall, and the linear law of the same E, nu, mass and step for comparison):
 
@@ -78,7 +79,7 @@ def build_problems(elements: int, E: float, nu: float, dt_target: float, followe
 
 
 def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_every, train_until, amplitude,
-                  timing_kw):
+                  timing_kw, dt):
     from jaxsync.app.plots import compare, out_of_sample
     from jaxsync.perf.timing import speedup_breakdown
     from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
@@ -92,7 +93,7 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)
             online = simulate_sync_avoiding(problem, n_steps, partitions=parts, surrogates=saved, n_cri=n_cri,
-                                            dt=problem.dt, save=save_every, resync_tolerance=tolerance,
+                                            dt=dt, save=save_every, resync_tolerance=tolerance,
                                             executor=jaxsync.HostExecutor(progress=False))
         wall = time.perf_counter() - start
         c = compare(reference, online, parts, component=None, fixed_nodes=fixed, train_until_step=train_until)
@@ -124,7 +125,7 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
               f"{wall:.0f} s", flush=True)
     if timing_kw is not None:
         start = time.perf_counter()
-        timing = speedup_breakdown(problem, parts, Surrogate.from_saved(saved), dt=problem.dt, **timing_kw)
+        timing = speedup_breakdown(problem, parts, Surrogate.from_saved(saved), dt=dt, **timing_kw)
         row["timing"] = {"zeta": float(timing.zeta), "t_d_us": 1e6 * float(timing.t_d),
                          "t_step_sync_us": {k: 1e6 * float(v) for k, v in timing.t_step_sync.items()},
                          "t_step_avoiding_us": 1e6 * float(timing.t_step_avoiding),
@@ -181,7 +182,7 @@ def run_material(material, problem, parts, args, dt, work):
         train_wall = time.perf_counter() - start
         print(f"  {model:>6} trained in {train_wall:.0f} s ({trained.result.n_epochs_run} epochs)", flush=True)
         row = run_surrogate(model, problem, parts, trained.saved, reference, n_steps, n_cri, save_every, train_until,
-                            amplitude, timing_kw)
+                            amplitude, timing_kw, dt)
         row.update(train_seconds=float(trained.train_seconds), train_wall_seconds=train_wall,
                    epochs=int(trained.result.n_epochs_run),
                    final_val_loss=[float(v) for v in np.ravel(trained.final_val_loss)])

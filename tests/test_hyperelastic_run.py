@@ -460,7 +460,7 @@ def test_explicit_run_matches_a_central_difference_loop_on_felupes_force():
                 saved.append(d)
         reference = np.asarray(saved)
         assert np.abs(reference[:, :, 2]).max() > 1.0  # finite strain
-        np.testing.assert_allclose(run, reference, rtol=0, atol=1e-9 * np.abs(reference).max())
+        np.testing.assert_allclose(run, reference, rtol=0, atol=1e-11 * np.abs(reference).max())  # measured 1e-13
 
 
 # --- 7. mass scaling of a hyperelastic law ----------------------------------------------------------
