@@ -71,17 +71,23 @@ class FollowerPressure:
 
     def facet_forces(self, u, t):
         """(n_facets, k_f, 3) each facet's nodal forces [dyn] at displacements u (n_nodes, 3) [cm]."""
-        x = (self.points + u)[self.facets]  # (f, k, 3)
-        a = jnp.einsum("qdk,fki->fqdi", self.tangents, x)  # (f, q, 2, 3) current tangents
-        normal = jnp.cross(a[:, :, 0], a[:, :, 1])  # (f, q, 3): n da / (dxi deta)
-        p = self.pressures(t)[self.load]  # (f,)
-        return -jnp.einsum("f,fq,qk,fqi->fki", p, self.weights, self.shape, normal)
+        one = jax.vmap(_facet_force, in_axes=(0, None, None, 0, 0))
+        return one((self.points + u)[self.facets], self.tangents, self.shape, self.weights,
+                   self.pressures(t)[self.load])
 
     def force(self, u, t):
         """(n_nodes, 3) the nodal forces of the follower pressures [dyn] at displacements u
         (n_nodes, 3) [cm] and time t [s]."""
         forces = self.facet_forces(u, t)
         return jax.ops.segment_sum(forces.reshape(-1, 3), self.facets.reshape(-1), num_segments=u.shape[0])
+
+
+def _facet_force(x, tangents, shape, weights, pressure):
+    """(k_f, 3) one facet's nodal forces [dyn] at its nodes' current positions x (k_f, 3)
+    [cm]: -p sum_q w_q N_a (x_,xi x x_,eta) at the rule's points."""
+    a = jnp.einsum("qdk,ki->qdi", tangents, x)  # (q, 2, 3) current tangents
+    normal = jnp.cross(a[:, 0], a[:, 1])  # (q, 3): n da / (dxi deta)
+    return -pressure * jnp.einsum("q,qk,qi->ki", weights, shape, normal)
 
 
 def follower_loads(problem) -> list:
@@ -226,16 +232,8 @@ def load_stiffness(operator: FollowerPressure, u, t=0.0):
 @jax.jit
 def _facet_jacobians(op: FollowerPressure, u, t):
     """(n_facets, 3 k_f, 3 k_f) d f_facet / d u_facet (node-interleaved)."""
-    x = u[op.facets]  # (f, k, 3)
-    p = op.pressures(t)[op.load]
+    def one(x, weights, pressure):
+        force = lambda v: _facet_force(v.reshape(x.shape), op.tangents, op.shape, weights, pressure).reshape(-1)  # noqa: E731
+        return jax.jacfwd(force)(x.reshape(-1))
 
-    def one(xf, facet, weights, pf):
-        def force(v):
-            y = op.points[facet] + v.reshape(xf.shape)
-            a = jnp.einsum("qdk,ki->qdi", op.tangents, y)
-            normal = jnp.cross(a[:, 0], a[:, 1])
-            return (-pf * jnp.einsum("q,qk,qi->ki", weights, op.shape, normal)).reshape(-1)
-
-        return jax.jacfwd(force)(xf.reshape(-1))
-
-    return jax.vmap(one)(x, op.facets, op.weights, p)
+    return jax.vmap(one)((op.points + u)[op.facets], op.weights, op.pressures(t)[op.load])
