@@ -3,53 +3,14 @@ elastodynamics on tetrahedra, with LSTM surrogates that replace synchronization.
 
 The solver runs in float64: call ``jax.config.update("jax_enable_x64", True)`` before
 creating arrays (the command line does this for you); the solver's entry points raise
-:class:`PrecisionError` otherwise. Importing jaxsync changes no global configuration.
+:class:`PrecisionError` otherwise. Importing jaxsync changes no global configuration, and
+imports no numerical library: each name below is imported from its module on first use
+(:mod:`jaxsync.lazy`).
 """
 
-from .errors import (
-                     CheckpointError,
-                     ConfigError,
-                     ConvergenceError,
-                     JaxsyncError,
-                     MaterialError,
-                     MeshError,
-                     OutputError,
-                     PartitionError,
-                     PrecisionError,
-                     ProblemError,
-                     StabilityError,
-)
-from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
-from .fem.coronary_tree import coronary_mesh
-from .fem.geometry import vessel_centerline, vessel_mesh
-from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
-from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-from .fem.material import LinearElastic
-from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
-from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
-from .fem.support import ElasticSupport
-from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
-from .fem.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
-from .parallel import devices
-from .parallel.partitioning import Partition, partition
-from .solve.ensemble import ensemble
-from .solve.full_system import simulate_full_system
-from .solve.solver import simulate, steady_state
-from .solve.strategies import (
-                               Halo,
-                               HostExecutor,
-                               Mpi,
-                               Ppermute,
-                               Psum,
-                               Recompute,
-                               ResyncTolerance,
-                               SaveAt,
-                               SolverCheckpoint,
-                               StoreAll,
-                               TracedExecutor,
-)
-from .solve.syncavoid import simulate_sync_avoiding
-from .trajectory import PartHistory, Result, RunStats, Trajectory
+from typing import TYPE_CHECKING
+
+from .lazy import export_lazily
 
 __version__ = "0.2.0"
 
@@ -63,7 +24,8 @@ __all__ = [
     "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
     "BodyForce", "Pressure", "Traction", "ElasticSupport", "Constant", "Ramp", "StepOff",
     "Periodic",
-    "Dirichlet", "Problem", "LockingWarning", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
+    "Dirichlet", "Problem", "LockingWarning", "RigidBodyWarning", "SynchronizedRunWarning",
+    "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
     "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
     "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
@@ -71,3 +33,79 @@ __all__ = [
     "SaveAt", "Psum", "Ppermute", "Mpi", "Halo", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
     "Recompute", "StoreAll",
 ]
+
+# where each name of __all__ is imported from on first use: the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    ".errors": ("CheckpointError", "ConfigError", "ConvergenceError", "JaxsyncError", "MaterialError", "MeshError",
+                "OutputError", "PartitionError", "PrecisionError", "ProblemError", "StabilityError",
+                "SynchronizedRunWarning"),
+    ".fem.coronary": ("DEFAULT_WAVEFORM", "coronary", "coronary_waveform"),
+    ".fem.coronary_tree": ("coronary_mesh",),
+    ".fem.geometry": ("vessel_centerline", "vessel_mesh"),
+    ".fem.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
+    ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
+    ".fem.material": ("LinearElastic",),
+    ".fem.mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
+    ".fem.problem": ("Dirichlet", "LockingWarning", "Problem", "cantilever"),
+    ".fem.rigid_body": ("RigidBodyWarning",),
+    ".fem.support": ("ElasticSupport",),
+    ".fem.timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
+    ".fem.total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
+    ".parallel": ("devices",),
+    ".parallel.partitioning": ("Partition", "partition"),
+    ".solve.ensemble": ("ensemble",),
+    ".solve.full_system": ("simulate_full_system",),
+    ".solve.solver": ("simulate", "steady_state"),
+    ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
+                          "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
+    ".solve.syncavoid": ("simulate_sync_avoiding",),
+    ".trajectory": ("PartHistory", "Result", "RunStats", "Trajectory"),
+})
+
+if TYPE_CHECKING:
+    from .errors import (
+        CheckpointError,
+        ConfigError,
+        ConvergenceError,
+        JaxsyncError,
+        MaterialError,
+        MeshError,
+        OutputError,
+        PartitionError,
+        PrecisionError,
+        ProblemError,
+        StabilityError,
+        SynchronizedRunWarning,
+    )
+    from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
+    from .fem.coronary_tree import coronary_mesh
+    from .fem.geometry import vessel_centerline, vessel_mesh
+    from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
+    from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
+    from .fem.material import LinearElastic
+    from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
+    from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
+    from .fem.rigid_body import RigidBodyWarning
+    from .fem.support import ElasticSupport
+    from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .fem.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
+    from .parallel import devices
+    from .parallel.partitioning import Partition, partition
+    from .solve.ensemble import ensemble
+    from .solve.full_system import simulate_full_system
+    from .solve.solver import simulate, steady_state
+    from .solve.strategies import (
+        Halo,
+        HostExecutor,
+        Mpi,
+        Ppermute,
+        Psum,
+        Recompute,
+        ResyncTolerance,
+        SaveAt,
+        SolverCheckpoint,
+        StoreAll,
+        TracedExecutor,
+    )
+    from .solve.syncavoid import simulate_sync_avoiding
+    from .trajectory import PartHistory, Result, RunStats, Trajectory

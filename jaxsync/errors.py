@@ -86,3 +86,10 @@ class OutputError(JaxsyncError, OSError):
     writable folder (found before anything runs, :func:`jaxsync.io.check_writable`), or
     a write that failed (a full disk...). Also an :class:`OSError`, as the failure it
     reports."""
+
+
+class SynchronizedRunWarning(RuntimeWarning):
+    """A synchronization-avoiding run that predicts few or none of its steps: error control
+    kept re-synchronizing, or a load jump near the end keeps the run synchronized. The
+    result is right (synchronized steps are exact), but the run saves no time. A
+    :class:`RuntimeWarning`, as it was before it had a class of its own."""

@@ -16,6 +16,7 @@ later one fails.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hashlib
 import json
 import os
@@ -28,10 +29,174 @@ from .errors import OutputError
 
 __all__ = ["host_tag", "process_alive", "atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
            "STALE_TEMP_AGE_S", "OutputError", "check_writable", "recording_writes", "note_written",
-           "os_reason"]
+           "os_reason", "write_failure", "claimed_outputs", "claim_output", "claiming"]
 
 
 _RECORDERS: list[list[str]] = []
+
+
+@dataclasses.dataclass
+class _Claim:
+    """An output a command declared: its lock file, whether an existing file may be
+    replaced (``--force``), and whether this command has written it already."""
+
+    path: str
+    lock: str
+    replace: bool
+    written: bool = False
+    created_folders: tuple[str, ...] = ()
+
+
+_CLAIMS: list[dict[str, _Claim]] = []
+
+
+@contextlib.contextmanager
+def claimed_outputs():
+    """The scope of :func:`claim_output` (a command line run wraps each command in one):
+    the claims made inside are released, and their lock files removed, at the end."""
+    claims: dict[str, _Claim] = {}
+    _CLAIMS.append(claims)
+    try:
+        yield claims
+    finally:
+        _CLAIMS.remove(claims)
+        for claim in claims.values():
+            with contextlib.suppress(OSError):
+                os.remove(claim.lock)
+        for claim in claims.values():
+            # the folders made for the locks (deepest first), where a failed run left them empty;
+            # never one that existed before
+            for folder in claim.created_folders:
+                with contextlib.suppress(OSError):
+                    os.rmdir(folder)
+
+
+def _lock_owner(lock: str) -> str:
+    try:
+        with open(lock) as f:
+            return f.read().strip()
+    except OSError:
+        return ""
+
+
+def claiming() -> bool:
+    """True inside :func:`claimed_outputs` (a command line run), where outputs are claimed."""
+    return bool(_CLAIMS)
+
+
+def claim_output(path: str | os.PathLike, *, replace: bool, folder: bool = False) -> None:
+    """Declare ``path`` an output of the running command (inside :func:`claimed_outputs`).
+
+    Takes the write lock ``.<name>.lock`` beside it, so that a second jaxsync process
+    that claims the same output stops at once (:class:`OutputError` naming the process)
+    instead of replacing the first one's result; a lock left by a process that is gone
+    (on this host) is taken over. Then, unless ``replace``, the atomic writes of this
+    command never replace a file at ``path`` that they did not write themselves: one
+    that appears while the command runs (another program) is kept, and the new result
+    is written beside it (:func:`atomic_path`). ``folder``: ``path`` is a folder that the
+    command fills or replaces as a whole (its lock is beside it too)."""
+    if not _CLAIMS:
+        raise RuntimeError("claim_output needs an enclosing claimed_outputs() block")
+    full = os.path.abspath(os.fspath(path))
+    claims = _CLAIMS[-1]
+    if full in claims:
+        claims[full].replace = claims[full].replace or replace
+        return
+    check_writable(full, folder=folder)  # an unusable location is said as such, before any folder is made
+    folder = os.path.dirname(full)
+    created = []  # the folders this claim makes, deepest first
+    missing = folder
+    while not os.path.isdir(missing) and os.path.dirname(missing) != missing:
+        created.append(missing)
+        missing = os.path.dirname(missing)
+    if created:
+        try:
+            os.makedirs(folder, exist_ok=True)
+        except OSError as exc:
+            raise write_failure(full, exc) from exc
+    lock = os.path.join(folder, f".{os.path.basename(full)}.lock")
+    me = f"{os.getpid()}@{host_tag()}"
+    for _ in range(3):
+        try:
+            fd = os.open(lock, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            owner = _lock_owner(lock)
+            pid, _, host = owner.partition("@")
+            gone = (host == host_tag() and pid.isdigit() and not process_alive(int(pid))) or (
+                not owner and _age(lock) > 5.0)
+            if gone or (host != host_tag() and _age(lock) > STALE_TEMP_AGE_S):
+                with contextlib.suppress(OSError):
+                    os.remove(lock)
+                continue
+            raise OutputError(f"{path} is being written by another jaxsync process (pid {pid or '?'} on "
+                              f"{host or 'an unknown host'}, lock {lock}); wait for it to finish, or choose "
+                              "another output name") from None
+        except OSError as exc:
+            raise write_failure(full, exc) from exc
+        with os.fdopen(fd, "w") as f:
+            f.write(me)
+        break
+    else:
+        raise OutputError(f"could not take the write lock {lock} of {path}; remove it if no jaxsync process "
+                          "writes there, and run again")
+    claims[full] = _Claim(full, lock, bool(replace), created_folders=tuple(created))
+
+
+def _age(path: str) -> float:
+    import time
+
+    try:
+        return time.time() - os.stat(path).st_mtime
+    except OSError:
+        return 0.0
+
+
+def _claim_of(path: str) -> _Claim | None:
+    full = os.path.abspath(path)
+    for claims in reversed(_CLAIMS):
+        if full in claims:
+            return claims[full]
+    return None
+
+
+def _conflict_name(path: str) -> str:
+    root, ext = os.path.splitext(path)
+    k = 1
+    while os.path.lexists(f"{root}.conflict-{k}{ext}"):
+        k += 1
+    return f"{root}.conflict-{k}{ext}"
+
+
+def _commit(tmp: str, path: str, replace: bool = True) -> None:
+    """Rename ``tmp`` onto ``path``. Without ``replace``, or for a claimed output that may
+    not be replaced (:func:`claim_output`), only if no file is there (a hard link, which
+    fails rather than replace): an existing file is kept, the new one is written beside it
+    under a ``.conflict-<k>`` name, and :class:`OutputError` says so."""
+    claim = _claim_of(path)
+    if replace and (claim is None or claim.replace or claim.written):
+        os.replace(tmp, path)
+    else:
+        try:
+            os.link(tmp, path)  # atomic, and refuses an existing target
+        except FileExistsError:
+            _keep_beside(tmp, path, claim is not None and replace)
+        except OSError:  # a file system without hard links
+            if os.path.lexists(path):
+                _keep_beside(tmp, path, claim is not None and replace)
+            os.replace(tmp, path)
+        else:
+            os.remove(tmp)
+    if claim is not None:
+        claim.written = True
+
+
+def _keep_beside(tmp: str, path: str, appeared: bool) -> None:
+    kept = _conflict_name(path)
+    os.replace(tmp, kept)
+    note_written(kept)
+    why = ("appeared while this command ran (another process wrote it)" if appeared
+           else "exists and overwrite=False")
+    raise OutputError(f"{path} {why}: it was left as it is, and the new result was written to {kept}")
 
 
 @contextlib.contextmanager
@@ -104,9 +269,14 @@ or written by an older jaxsync) counts as abandoned when unmodified for this lon
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike):
+def atomic_path(path: str | os.PathLike, *, replace: bool = True):
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success,
     delete it on failure.
+
+    ``replace=False``: never replace a file at ``path`` (one there from the start, or one
+    that another process writes meanwhile): it is kept, the new file is written beside it
+    as ``<stem>.conflict-<k><ext>`` and :class:`OutputError` names both. The outputs a
+    command claimed (:func:`claim_output`) are protected the same way.
 
     The temporary file is ``.<name>.<pid>@<host>.<random>.tmp``. A writer killed hard
     (SIGKILL, power loss) cannot delete it, so every write first removes the temporary
@@ -129,24 +299,34 @@ def atomic_path(path: str | os.PathLike):
     except OutputError:
         raise
     except OSError as exc:
-        raise _write_failure(path, exc) from exc
+        raise write_failure(path, exc) from exc
     try:
         yield tmp
-        os.replace(tmp, path)
+        _commit(tmp, path, replace)
     except BaseException as exc:
         with contextlib.suppress(OSError):
             os.remove(tmp)
         if isinstance(exc, OSError) and not isinstance(exc, OutputError):
-            raise _write_failure(path, exc) from exc
+            raise write_failure(path, exc) from exc
         raise
     note_written(path)
 
 
-def _write_failure(path: str, exc: OSError) -> OutputError:
+def write_failure(path: str, exc: OSError) -> OutputError:
     """The :class:`OutputError` of a failed write of ``path`` (the previous file, if
     any, is left as it was)."""
-    return OutputError(f"could not write {path}: {os_reason(exc)} (free space, or choose another "
-                       "location, and run again)")
+    import errno
+
+    fixes = {errno.ENOSPC: "free space, or choose another location, and run again",
+             errno.EDQUOT: "free space within your quota, or choose another location, and run again",
+             errno.EISDIR: "it is a folder: give a file name",
+             errno.EEXIST: "a file is in the way of a folder of the path: choose another location",
+             errno.ENOTDIR: "a part of the path is a file, not a folder: choose another location",
+             errno.ENOENT: "its folder cannot be made there: choose another location",
+             errno.EACCES: "the folder is not writable: choose another location, or make it writable",
+             errno.EROFS: "the file system is read-only: choose another location"}
+    fix = fixes.get(getattr(exc, "errno", None), "choose another location, and run again")
+    return OutputError(f"could not write {path}: {os_reason(exc)} ({fix})")
 
 
 def host_tag() -> str:
@@ -219,26 +399,31 @@ def array_checksum(arrays: Mapping[str, np.ndarray], meta: Mapping[str, Any]) ->
 
 
 @contextlib.contextmanager
-def atomic_h5(path: str | os.PathLike):
-    """Open a new HDF5 file for writing that appears at ``path`` only when complete."""
+def atomic_h5(path: str | os.PathLike, *, replace: bool = True):
+    """Open a new HDF5 file for writing that appears at ``path`` only when complete
+    (``replace``: as for :func:`atomic_path`)."""
     import h5py
 
-    with atomic_path(path) as tmp:
+    with atomic_path(path, replace=replace) as tmp:
         with h5py.File(tmp, "w") as f:
             yield f
 
 
 def json_value(value):
     """``value`` with numpy scalars and arrays turned into Python numbers and lists (for
-    ``json.dump``)."""
+    ``json.dump``), and every non-finite number (nan, inf) turned into None: JSON has no
+    NaN or Infinity (``json.dump`` would write bare tokens that strict readers refuse),
+    so a value that was not measured, or is unbounded, is written as null."""
     if isinstance(value, dict):
         return {str(k): json_value(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
         return [json_value(v) for v in value]
     if isinstance(value, np.ndarray):
-        return value.tolist()
+        return json_value(value.tolist())
     if isinstance(value, np.generic):
-        return value.item()
+        value = value.item()
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
     return value
 
 

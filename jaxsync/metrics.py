@@ -202,36 +202,78 @@ class EstimateQuality:
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 
+    @property
+    def es_hat_zero(self) -> bool:
+        """True when es_hat is 0 at every compared snapshot (the parts' predictions agree
+        exactly): the ratios and the correlation are not measurable (nan; null in
+        ``summary.json``)."""
+        return bool(self.n_snapshots) and all(_missing(v) for v in (
+            self.ratio_median, self.ratio_p95, self.ratio_max, self.log_correlation)) and self.underestimated == 1
+
     def summary(self) -> str:
         """One line for a report."""
-        return (f"es_hat tracks es: es/es_hat median {self.ratio_median:.3g}, 95th percentile "
-                f"{self.ratio_p95:.3g}, max {self.ratio_max:.3g}; log-correlation "
-                f"{self.log_correlation:.3f}; within a factor 2 at {100 * self.within_factor_2:.1f} % "
+        if not self.n_snapshots:
+            return "es_hat tracks es: no snapshot with es > 0 to compare"
+        if self.es_hat_zero:
+            return (f"es_hat is 0 at every one of the {self.n_snapshots} compared snapshots (the parts' predictions "
+                    "agree exactly): its tracking of es cannot be measured")
+
+        def num(value, spec):
+            return "n/a" if _missing(value) else format(value, spec)
+
+        return (f"es_hat tracks es: es/es_hat median {num(self.ratio_median, '.3g')}, 95th percentile "
+                f"{num(self.ratio_p95, '.3g')}, max {num(self.ratio_max, '.3g')}; log-correlation "
+                f"{num(self.log_correlation, '.3f')}; within a factor 2 at {100 * self.within_factor_2:.1f} % "
                 f"of {self.n_snapshots} snapshots, underestimated (es_hat < es/2) at "
                 f"{100 * self.underestimated:.1f} %")
 
 
+def _missing(value) -> bool:
+    """None (null read back from summary.json) or nan: a value that was not measured."""
+    return value is None or value != value
+
+
+def _percentile(values: np.ndarray, q: float) -> float:
+    """``np.percentile(values, q)`` (linear interpolation) where ``values`` may hold +inf
+    (es_hat = 0): inf at and above the first inf, never the nan of inf - inf."""
+    s = np.sort(values)
+    pos = q / 100.0 * (len(s) - 1)
+    lo = int(np.floor(pos))
+    hi, frac = min(lo + 1, len(s) - 1), pos - lo
+    if frac == 0.0 or s[lo] == s[hi]:
+        return float(s[lo])
+    if np.isinf(s[hi]):
+        return float("inf")
+    return float(np.percentile(s, q))
+
+
 def estimate_quality(es: np.ndarray, es_hat: np.ndarray) -> EstimateQuality:
     """Compare es_hat with es (both (T,) [cm], paper eqs. 25-26) over the snapshots where
-    es > 0; es_hat = 0 there counts as an infinite ratio."""
+    es > 0; es_hat = 0 there counts as an infinite ratio. Where es_hat is 0 at every one
+    of them (the parts' predictions agree exactly, e.g. identical fits of parts that hold
+    the same shared nodes), nothing of its tracking can be measured: the ratios and the
+    correlation are nan (null in ``summary.json``; :attr:`EstimateQuality.es_hat_zero`)."""
     es, es_hat = np.asarray(es, float), np.asarray(es_hat, float)
     if es.shape != es_hat.shape or es.ndim != 1:
         raise ProblemError(f"es and es_hat must be equal (T,) arrays, got {es.shape} and {es_hat.shape}")
     keep = es > 0
     es, es_hat = es[keep], es_hat[keep]
+    nan = float("nan")
     if not len(es):
-        nan = float("nan")
         return EstimateQuality(0, nan, nan, nan, nan, nan, nan)
-    with np.errstate(divide="ignore"):
-        ratio = np.where(es_hat > 0, es / np.where(es_hat > 0, es_hat, 1.0), np.inf)
     both = es_hat > 0
+    if not both.any():
+        return EstimateQuality(n_snapshots=int(len(es)), ratio_median=nan, ratio_p95=nan, ratio_max=nan,
+                               log_correlation=nan, within_factor_2=0.0, underestimated=1.0)
+    with np.errstate(divide="ignore"):
+        ratio = np.where(both, es / np.where(both, es_hat, 1.0), np.inf)
     if both.sum() > 2 and np.ptp(np.log10(es[both])) > 0 and np.ptp(np.log10(es_hat[both])) > 0:
         correlation = float(np.corrcoef(np.log10(es[both]), np.log10(es_hat[both]))[0, 1])
     else:
         correlation = float("nan")
     return EstimateQuality(
         n_snapshots=int(len(es)), ratio_median=float(np.median(ratio)),
-        ratio_p95=float(np.percentile(ratio, 95)), ratio_max=float(ratio.max()),
+        ratio_p95=_percentile(ratio, 95), ratio_max=float(ratio.max()),
         log_correlation=correlation,
         within_factor_2=float(np.mean((ratio >= 0.5) & (ratio <= 2.0))),
         underestimated=float(np.mean(ratio > 2.0)))

@@ -197,7 +197,9 @@ class Trajectory:
     error_estimate: Any = None
 
     def __post_init__(self):
-        if isinstance(self.stats, dict):
+        if self.stats is None:  # a run that recorded no statistics (a diverged run's kept snapshots)
+            object.__setattr__(self, "stats", RunStats())
+        elif isinstance(self.stats, dict):
             object.__setattr__(self, "stats", RunStats.from_dict(self.stats))
         if any(not isinstance(part, PartHistory) for part in self.parts):
             raise TypeError("Trajectory.parts must hold PartHistory objects")
@@ -241,7 +243,7 @@ class Trajectory:
         return self.displacement[:, node, :]
 
     def save(self, path: str | os.PathLike, *, compression: str | None = "gzip",
-             level: int = 1) -> None:
+             level: int = 1, overwrite: bool = True) -> None:
         """Write an HDF5 file (atomically): ``/times``, ``/displacement``, ``/mesh/points``,
         ``/mesh/tets``, ``/mesh/facets/<name>``, root attributes ``dt``, ``save_every``,
         ``shared_every``, ``format_version``, the problem parameters (``param_*``) and
@@ -251,15 +253,26 @@ class Trajectory:
         ``compression``: HDF5 filter of the large datasets, ``"gzip"`` (at ``level``
         1-9, with byte shuffling), ``"lzf"`` (faster, lighter) or None. Float64
         displacements compress by about 10-30 % (the last mantissa bits are noise);
-        saving fewer steps (``save_every``) is what makes files small."""
+        saving fewer steps (``save_every``) is what makes files small.
+
+        ``overwrite``: True (default, as :func:`numpy.save` and :class:`h5py.File` do)
+        replaces a file at ``path``, atomically (a failed write leaves the old one as it
+        was); False refuses an existing file (:class:`jaxsync.io.OutputError`, nothing
+        written), and one that another process writes meanwhile is kept: this trajectory
+        then goes beside it as ``<stem>.conflict-1.h5``, and the error names both."""
         if compression not in ("gzip", "lzf", None):
             raise CheckpointError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
+        if not overwrite and os.path.lexists(path):
+            from .io import OutputError
+
+            raise OutputError(f"{os.fspath(path)} exists and overwrite=False: choose another path, or pass "
+                              "overwrite=True to replace it")
         if compression == "gzip" and not (isinstance(level, int) and 1 <= level <= 9):
             raise CheckpointError(f"gzip level must be an integer 1-9, got {level!r}")
         filters = {} if compression is None else {
             "chunks": True, "compression": compression, "shuffle": True,
             **({"compression_opts": level} if compression == "gzip" else {})}
-        with atomic_h5(path) as f:
+        with atomic_h5(path, replace=overwrite) as f:
             f.attrs["format"] = "jaxsync-trajectory"
             f.attrs["format_version"] = FORMAT_VERSION
             f.attrs["dt"] = float(self.dt)
@@ -308,6 +321,8 @@ class Trajectory:
         path = os.fspath(path)
         if not os.path.exists(path):
             raise CheckpointError(f"trajectory file {path!r} does not exist")
+        if os.path.isdir(path):
+            raise CheckpointError(f"trajectory {path!r} is a folder; give a .h5 file")
         try:
             with h5py.File(path, "r") as f:
                 if f.attrs.get("format") != "jaxsync-trajectory":
@@ -341,8 +356,8 @@ class Trajectory:
                            error_estimate=f["error_estimate"][...] if "error_estimate" in f else None)
         except CheckpointError:
             raise
-        except Exception as exc:
-            raise CheckpointError(f"cannot read trajectory {path}: {exc}") from exc
+        except Exception as exc:  # h5py's reasons can span lines: one line
+            raise CheckpointError(f"cannot read trajectory {path}: {' '.join(str(exc).split())}") from exc
 
     def to_xdmf(self, path: str | os.PathLike, *, every: int = 1) -> str:
         """Write an XDMF time series for ParaView with the point field ``displacement``;
@@ -350,8 +365,16 @@ class Trajectory:
         (a name that cannot collide with a trajectory file ``<stem>.h5``).
 
         Both files are written in a temporary folder and moved into place at the end.
-        Returns the path of the data file."""
+        Returns the path of the data file.
+
+        Raises:
+            OutputError: a location that cannot be written (checked first: a folder in
+                the way, a folder that is not writable), or a failed write (an
+                :class:`OSError`); it names ``path``, and earlier files are left as they were.
+        """
         import meshio
+
+        from .io import check_writable, write_failure
 
         path = os.fspath(path)
         if not path.endswith(".xdmf"):
@@ -359,8 +382,13 @@ class Trajectory:
         folder = os.path.dirname(os.path.abspath(path))
         stem = os.path.splitext(os.path.basename(path))[0]
         data_name = f"{stem}.xdmf.h5"
-        os.makedirs(folder, exist_ok=True)
-        tmpdir = tempfile.mkdtemp(prefix=".xdmf.", dir=folder)
+        check_writable(path, what="XDMF file")
+        check_writable(os.path.join(folder, data_name), what="XDMF data file")
+        try:
+            os.makedirs(folder, exist_ok=True)
+            tmpdir = tempfile.mkdtemp(prefix=".xdmf.", dir=folder)
+        except OSError as exc:
+            raise write_failure(path, exc) from exc
         try:
             cwd = os.getcwd()
             # meshio writes the .h5 into the working directory, named after the stem.
@@ -380,6 +408,10 @@ class Trajectory:
                 f.write(text)
             os.replace(os.path.join(tmpdir, f"{stem}.h5"), os.path.join(folder, data_name))
             os.replace(os.path.join(tmpdir, f"{stem}.xdmf"), path)
+        except OSError as exc:
+            if isinstance(exc, OutputError):
+                raise
+            raise write_failure(path, exc) from exc
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
         return os.path.join(folder, data_name)
@@ -407,11 +439,16 @@ class Trajectory:
         """
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise OutputError(f"to_vtu: every must be a positive integer, got {every!r}")
+        from .io import write_failure
+
         pvd, folder = check_vtu_location(path)
         stem = os.path.basename(folder)
         parent = os.path.dirname(os.path.abspath(folder))
-        os.makedirs(parent, exist_ok=True)
-        tmpdir = tempfile.mkdtemp(prefix=f".{stem}.vtu.", dir=parent)
+        try:
+            os.makedirs(parent, exist_ok=True)
+            tmpdir = tempfile.mkdtemp(prefix=f".{stem}.vtu.", dir=parent)
+        except OSError as exc:  # an unwritable or missing location: nothing was written
+            raise write_failure(pvd, exc) from exc
         try:
             steps = os.path.join(tmpdir, stem)
             os.mkdir(steps)
@@ -432,6 +469,8 @@ class Trajectory:
             staged_pvd = os.path.join(tmpdir, f"{stem}.pvd")
             _write_pvd(staged_pvd, entries)
             _install_series(staged_pvd, steps, pvd, folder, os.path.join(tmpdir, "previous"))
+        except OSError as exc:  # the earlier series, if any, is left as it was
+            raise write_failure(pvd, exc) from exc
         finally:
             shutil.rmtree(tmpdir, ignore_errors=True)
         return pvd

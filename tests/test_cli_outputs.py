@@ -232,7 +232,8 @@ def test_demo_into_a_folder_of_other_files_keeps_them(tmp_path, capsys, monkeypa
     monkeypatch.setattr(jaxsync.app.demo, "_pipeline", interrupted)
     (tmp_path / "mine").mkdir()
     (tmp_path / "mine" / "notes.txt").write_text("mine")
-    assert main(["demo", "-o", str(tmp_path / "mine"), "--steps", "100", "--no-progress"]) == 130
+    assert main(["demo", "-o", str(tmp_path / "mine"), "--steps", "100", "--n-s", "5", "--n-past", "5",
+                 "--n-future", "5", "--no-progress"]) == 130
     assert files_under(tmp_path) == ["mine", "mine/notes.txt"]
 
 
@@ -277,7 +278,8 @@ def test_failed_demo_write_is_one_line_and_keeps_the_old_folder(tmp_path, capsys
     out = tmp_path / "demo"
     out.mkdir()
     (out / "summary.json").write_text("old")
-    assert main(["demo", "-o", str(out), "--force", "--steps", "100", "--no-progress"]) == 2
+    assert main(["demo", "-o", str(out), "--force", "--steps", "100", "--n-s", "5", "--n-past", "5", "--n-future", "5",
+                 "--no-progress"]) == 2
     assert_one_error_line(capsys.readouterr().err, f"could not write {out / 'online.h5'}",
                           "No space left on device", f"{out} is left as it was")
     assert files_under(tmp_path) == ["demo", "demo/summary.json"]
@@ -334,6 +336,26 @@ def test_stale_staging_folders_of_dead_runs_are_removed(tmp_path):
 # ----------------------------------------------------------------------------- printed lines
 
 
+@pytest.mark.parametrize("value", ["0", "0%", "-1e-4", "-1%"])
+def test_a_resync_tolerance_that_is_not_positive_is_one_line_naming_it(value, tmp_path, capsys):
+    """``--resync-tolerance 0`` (or 0%, =-1e-4, =-1%) said "'0' is neither a length in cm nor
+    a percentage": the value is a number; what is wrong is that it is not > 0."""
+    from jaxsync import ProblemError, ResyncTolerance
+    from jaxsync.app.commands.common import resync_tolerance_of
+
+    with pytest.raises(ProblemError, match="> 0") as caught:
+        ResyncTolerance.parse(value)
+    assert "neither" not in str(caught.value) and "\n" not in str(caught.value)
+    args = build_parser().parse_args(["predict", "run.h5", "sur.h5", f"--resync-tolerance={value}"])
+    with pytest.raises(ProblemError, match="> 0") as caught:
+        resync_tolerance_of(args)  # what jaxsync predict reads the option with
+    assert "neither" not in str(caught.value)
+    # jaxsync demo checks it with its other options, before anything runs
+    assert main(["demo", "-o", str(tmp_path / "demo"), f"--resync-tolerance={value}", "--no-progress"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "resync_tolerance must be a tolerance > 0")
+    assert not (tmp_path / "demo").exists()
+
+
 def test_no_help_text_shows_a_literal_double_percent():
     parser = build_parser()
     texts = [parser.format_help()]
@@ -382,10 +404,11 @@ def test_train_shows_the_rollout_warning_as_one_line(tmp_path, capsys):
     assert len(lines) == 1 and "RolloutWarning" not in err and "warnings.warn" not in err, err
 
 
-def test_package_warnings_are_one_line_and_others_pass_through(capsys):
+def test_every_warning_is_one_line(capsys):
     import warnings
 
     from jaxsync.app.commands.common import is_package_warning, package_warnings
+    from jaxsync.errors import SynchronizedRunWarning
     from jaxsync.fem.mesh import MeshWarning
     from jaxsync.fem.timestep import MassScalingWarning
     from jaxsync.surrogate.evaluate import RolloutWarning
@@ -394,11 +417,228 @@ def test_package_warnings_are_one_line_and_others_pass_through(capsys):
     for category in (MeshWarning, MassScalingWarning, RolloutWarning, ReducedPrecisionWarning):
         assert is_package_warning(category)
     assert not is_package_warning(RuntimeWarning) and not is_package_warning(UserWarning)
-    with warnings.catch_warnings(record=True) as outer:
+    assert is_package_warning(SynchronizedRunWarning) and issubclass(SynchronizedRunWarning, RuntimeWarning)
+    with warnings.catch_warnings():
         warnings.simplefilter("always")
         with package_warnings():
             warnings.warn("two\n  lines", MeshWarning)
-            warnings.warn("not ours", RuntimeWarning)
-    assert capsys.readouterr().err == "warning: two lines\n"
-    assert [str(w.message) for w in outer] == ["not ours"]  # still reaches a recorder around it
-    np.testing.assert_equal(len(outer), 1)
+            warnings.warn("mostly\n synchronized", SynchronizedRunWarning)
+            warnings.warn("not ours", RuntimeWarning)  # another library's: one line too, with its kind
+    assert capsys.readouterr().err == ("warning: two lines\nwarning: mostly synchronized\n"
+                                       "warning: not ours (RuntimeWarning)\n")
+
+
+# ----------------------------------------------------------------------------- a new user's faults
+
+
+def diverging_case(tmp_path, model="linear-elastic"):
+    """A 4-element bar under a body force that blows it up within its 40 steps."""
+    cfg = tmp_path / f"div-{model}.toml"
+    cfg.write_text(f'[mesh]\nlength = 4.0\ndivisions = [4, 1, 1]\n[material]\nmodel = "{model}"\n'
+                   "[problem]\nbody_force = [0.0, 0.0, -1.0e12]\nt_ramp = 1.0e-3\n"
+                   "[run]\nn_steps = 400\nsave_every = 10\n")
+    return cfg
+
+
+@pytest.mark.parametrize("model, parts", [("linear-elastic", None), ("neo-hookean", None), ("linear-elastic", "2")])
+def test_a_diverging_run_keeps_its_snapshots_in_a_partial_file(tmp_path, capsys, model, parts):
+    cfg = diverging_case(tmp_path, model)
+    out = tmp_path / "div.h5"
+    argv = ["simulate", str(cfg), "-o", str(out), "--no-progress"] + (["--parts", parts] if parts else [])
+    assert main(argv) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0].startswith("saved the ") and err[0].endswith(f"before divergence to {tmp_path / 'div.partial.h5'}")
+    assert err[-1].startswith("error: ") and "Traceback" not in "\n".join(err)
+    kept = jaxsync.Trajectory.load(tmp_path / "div.partial.h5")
+    assert kept.result == jaxsync.Result.DIVERGED and kept.n_saved >= 1 and not out.exists()
+    assert bool(np.isfinite(kept.displacement).all())
+    # a second failure keeps the first one's snapshots and writes beside them
+    first = (tmp_path / "div.partial.h5").read_bytes()
+    assert main(argv) == 2
+    assert (tmp_path / "div.partial.h5").read_bytes() == first and (tmp_path / "div.partial-2.h5").exists()
+
+
+def test_train_and_report_refuse_earlier_results_without_force(tmp_path, capsys):
+    from test_surrogate_fit import write_trajectory
+
+    traj = write_trajectory(tmp_path / "run.h5", n_steps=120)
+    train = ["train", str(traj), "-o", str(tmp_path / "out"), "--model", "linear", "--n-s", "2", "--n-past", "4",
+             "--n-future", "3", "--emse-applications", "0", "--rollout-tolerance", "0", "--no-progress"]
+    assert main(train) == 0
+    capsys.readouterr()
+    surrogate = (tmp_path / "out" / "surrogate.h5").read_bytes()
+    assert main(train) == 2
+    assert_one_error_line(capsys.readouterr().err, "surrogate.h5", "already exist", "--force")
+    assert (tmp_path / "out" / "surrogate.h5").read_bytes() == surrogate
+    assert main(train + ["--force"]) == 0
+    # report: summary.json marks an earlier report; refused before the trajectories are read
+    report = tmp_path / "report"
+    report.mkdir()
+    (report / "summary.json").write_text("{}")
+    argv = ["report", str(tmp_path / "missing-ref.h5"), str(tmp_path / "missing-online.h5"), "-o", str(report)]
+    assert main(argv) == 2
+    assert_one_error_line(capsys.readouterr().err, "summary.json", "already exist", "--force")
+    assert main(argv + ["--force"]) == 2  # now it gets as far as reading the (missing) trajectories
+    assert_one_error_line(capsys.readouterr().err, "missing-ref.h5")
+    assert (report / "summary.json").read_text() == "{}"
+
+
+def test_an_output_is_never_one_of_the_commands_inputs(tmp_path, capsys):
+    import meshio
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    path = tmp_path / "beam.msh"
+    meshio.write(path, meshio.Mesh(mesh.points, [("tetra", mesh.tets)]), file_format="gmsh")
+    before = path.read_bytes()
+    for target in (path, tmp_path / "." / "beam.msh"):
+        assert main(["simulate", "--mesh", str(path), "-o", str(target), "--force", "--steps", "10"]) == 2
+        assert_one_error_line(capsys.readouterr().err, "is also an input", "even with --force")
+    cfg = small_case(tmp_path)
+    assert main(["simulate", str(cfg), "-o", str(cfg), "--force"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "is also an input")
+    assert main(["predict", str(tmp_path / "t.h5"), str(tmp_path / "s.h5"), "-o", str(tmp_path / "s.h5"),
+                 "--force"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "is also an input")
+    assert path.read_bytes() == before and cfg.exists()
+
+
+def test_a_second_process_writing_the_same_output_stops_at_once(tmp_path, capsys, monkeypatch):
+    import subprocess
+    import sys
+
+    import jaxsync.solve.solver
+
+    cfg = small_case(tmp_path)
+    out = tmp_path / "same.h5"
+    owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:  # the lock of a live jaxsync process on this host
+        from jaxsync.io import host_tag
+
+        (tmp_path / ".same.h5.lock").write_text(f"{owner.pid}@{host_tag()}")
+        monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+        assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 2
+        assert_one_error_line(capsys.readouterr().err, "same.h5 is being written by another jaxsync process",
+                              f"pid {owner.pid}")
+        assert not out.exists() and (tmp_path / ".same.h5.lock").exists()  # the other's lock is left alone
+    finally:
+        owner.kill()
+        owner.wait()
+    monkeypatch.undo()
+    # the lock of a process that is gone is taken over, and removed at the end
+    assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 0
+    assert out.exists() and not (tmp_path / ".same.h5.lock").exists()
+
+
+def test_a_file_that_appears_while_the_command_runs_is_never_replaced(tmp_path, capsys, monkeypatch):
+    import jaxsync.solve.solver
+
+    cfg = small_case(tmp_path)
+    out = tmp_path / "r.h5"
+    simulate = jaxsync.solve.solver.simulate
+
+    def another_writer_meanwhile(*args, **kwargs):
+        out.write_text("another program's result")
+        return simulate(*args, **kwargs)
+
+    monkeypatch.setattr(jaxsync.solve.solver, "simulate", another_writer_meanwhile)
+    assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert_one_error_line(err, f"{out} appeared while this command ran", "r.conflict-1.h5")
+    assert out.read_text() == "another program's result"
+    assert jaxsync.Trajectory.load(tmp_path / "r.conflict-1.h5").n_saved == 3
+    # with --force the command replaces it, as asked
+    assert main(["simulate", str(cfg), "-o", str(out), "--no-progress", "--force"]) == 0
+    assert jaxsync.Trajectory.load(out).n_saved == 3
+
+
+def test_a_binary_file_given_as_configuration_is_one_error_line(tmp_path, capsys):
+    binary = tmp_path / "sync.h5"
+    binary.write_bytes(b"\x89HDF\r\n\x1a\n" + bytes(range(256)))
+    assert main(["simulate", str(binary)]) == 2
+    assert_one_error_line(capsys.readouterr().err, "not a TOML text file")
+    assert main(["predict", str(binary), str(binary), "--config", str(binary), "-o", str(tmp_path / "o.h5")]) == 2
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_the_header_shows_the_step_the_run_uses(tmp_path, capsys):
+    cfg = small_case(tmp_path)
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "a.h5"), "--no-progress", "--dt", "1e-4"]) == 0
+    out = capsys.readouterr().out
+    default = float(jaxsync.cantilever(jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))).dt)
+    assert f"dt 1.0000e-04 s (given; the default would be {default:.4e} s" in out, out
+    assert jaxsync.Trajectory.load(tmp_path / "a.h5").dt == 1e-4
+    cfg.write_text(cfg.read_text().replace("[run]\n", "[run]\ndt = 2.0e-4\n"))
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "b.h5"), "--no-progress"]) == 0
+    assert "dt 2.0000e-04 s (given;" in capsys.readouterr().out
+
+
+def test_options_that_would_be_ignored_are_refused(tmp_path, capsys, monkeypatch):
+    import jaxsync.solve.solver
+
+    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    cfg = small_case(tmp_path)
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "a.h5"), "--checkpoint-every", "100"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "--checkpoint-every 100 needs a checkpoint file")
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "a.h5"), "--checkpoint", str(tmp_path / "c.h5"),
+                 "--checkpoint-every", "0"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "SolverCheckpoint.every")
+    monkeypatch.undo()
+    hyper = tmp_path / "nh.toml"
+    hyper.write_text(cfg.read_text() + '[material]\nmodel = "neo-hookean"\n')
+    assert main(["simulate", str(hyper), "-o", str(tmp_path / "b.h5"), "--float32-blocks", "--no-progress"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "float32 stiffness blocks", "NeoHookean")
+
+
+def test_an_output_under_a_file_is_said_as_such(tmp_path, capsys, afile):
+    assert main(["simulate", str(small_case(tmp_path)), "-o", str(afile / "x.h5")]) == 2
+    assert_one_error_line(capsys.readouterr().err, f"{afile} is a file, not a folder")
+
+
+def test_a_trajectory_given_as_checkpoint_is_not_called_deletable(tmp_path, capsys):
+    cfg = small_case(tmp_path)
+    run = tmp_path / "run.h5"
+    assert main(["simulate", str(cfg), "-o", str(run), "--no-progress"]) == 0
+    capsys.readouterr()
+    before = run.read_bytes()
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "b.h5"), "--checkpoint", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert_one_error_line(err, "is a jaxsync trajectory (a run's output), not a solver checkpoint")
+    assert "delete" not in err and run.read_bytes() == before
+
+
+def test_a_failed_command_removes_only_the_folders_it_made(tmp_path, capsys, monkeypatch):
+    work = tmp_path / "empty" / "work"
+    work.mkdir(parents=True)  # empty folders of the user's: they stay
+    monkeypatch.chdir(work)
+    assert main(["report", "missing.h5", "missing.h5", "-o", "rep/sub"]) == 2
+    assert_one_error_line(capsys.readouterr().err, "missing.h5")
+    assert work.is_dir() and not any(work.iterdir())
+
+
+def test_ctrl_c_says_how_each_command_resumes_and_only_where_it_can():
+    from jaxsync.app.cli import resume_hint
+
+    parse = build_parser().parse_args
+    assert "resumes from the checkpoint c.h5" in resume_hint(parse(["simulate", "--checkpoint", "c.h5"]))
+    assert "--checkpoint PATH" in resume_hint(parse(["simulate"]))
+    assert resume_hint(parse(["predict", "t.h5", "s.h5"])) == ""
+    assert resume_hint(parse(["report", "a.h5", "b.h5"])) == ""
+    assert "training_state.h5" in resume_hint(parse(["train", "t.h5", "-o", "out", "--state-every", "5"]))
+    assert resume_hint(parse(["train", "t.h5", "-o", "out", "--state-every", "0"])) == ""
+
+
+def test_a_second_demo_into_the_same_folder_stops_at_once(tmp_path, capsys):
+    import subprocess
+    import sys
+
+    from jaxsync.io import host_tag
+
+    owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (tmp_path / ".demo.lock").write_text(f"{owner.pid}@{host_tag()}")
+        assert main(["demo", "-o", str(tmp_path / "demo"), "--no-progress"]) == 2
+        assert_one_error_line(capsys.readouterr().err, "demo is being written by another jaxsync process")
+        assert not (tmp_path / "demo").exists()
+    finally:
+        owner.kill()
+        owner.wait()

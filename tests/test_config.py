@@ -183,3 +183,25 @@ mass_scaling_dt = 5e-4
     # an override replaces the file's mass scaling
     _, run = problem_from_config(load_config(cfg), mass_scaling_beta=1.0)
     assert run.mass_scaling_dt is None and run.added_mass_percent == 0.0
+
+
+GENERAL = ('[mesh]\nlength = 4.0\ndivisions = [4, 1, 1]\n[problem]\nkind = "general"\n'
+           '[[dirichlet]]\nfacet = "x0"\n')
+
+
+@pytest.mark.parametrize("extra, message", [
+    # a waveform's samples without its period would be dropped: the load would be constant
+    ('[[pressure]]\nsurface = "x1"\ntimes = [0.0, 0.05]\nvalues = [1.0, 2.0]\n', "add its 'period'"),
+    ('[[dirichlet]]\nfacet = "x1"\nplane = { axis = 0, value = 4.0 }\n', "one of 'facet' and 'plane', not both"),
+    ('[[body_force]]\nvector = [0.0, 0.0, -1.0]\nt_off = -2.0\n', r"StepOff\.t_off must be positive"),
+])
+def test_configurations_that_would_do_something_else_than_written_are_refused(tmp_path, extra, message):
+    path = write(tmp_path / "p.toml", GENERAL + extra)
+    with pytest.raises((ConfigError, jaxsync.ProblemError), match=message):
+        problem_from_config(load_config(path))
+
+
+def test_cantilever_keys_in_a_general_problem_are_refused(tmp_path):
+    text = GENERAL.replace('kind = "general"\n', 'kind = "general"\nbody_force = [0.0, 0.0, -1.0]\nt_ramp = 1.0\n')
+    with pytest.raises(ConfigError, match=r"\[problem\] body_force, t_ramp: only used with kind = \"cantilever\""):
+        problem_from_config(load_config(write(tmp_path / "p.toml", text)))

@@ -97,6 +97,20 @@ def test_request_after_jax_started_changes_nothing():
     assert len(jax.devices()) == 2
 
 
+def test_a_request_after_jax_started_says_it_comes_too_late():
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES")}
+    code = ("import warnings, jax; jax.numpy.zeros(1)\n"
+            "from jaxsync.parallel.devices import DeviceWarning, request_cpu_devices\n"
+            "with warnings.catch_warnings(record=True) as w:\n"
+            "    warnings.simplefilter('always')\n"
+            "    assert request_cpu_devices(4) is False\n"
+            "assert len(jax.devices()) == 1\n"
+            "print([(c.category.__name__, str(c.message)) for c in w])")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "DeviceWarning" in out.stdout and "comes too late" in out.stdout and "4 parts will share 1" in out.stdout
+
+
 @pytest.mark.parametrize("command", [["demo", "--parts", "4"]])
 def test_parts_of_a_command_are_read_without_jax(command):
     from jaxsync.app.cli import build_parser, parts_of

@@ -55,3 +55,22 @@ def test_divergence_keeps_the_steps_before_the_bad_snapshot(keep):
         assert rows[-1, 0] == 36 * (part + 1) and np.isfinite(rows).all()
         if keep is None:
             assert len(rows) == 36
+
+
+def test_the_progress_bar_never_moves_backwards_and_counts_the_recomputed_steps():
+    from jaxsync.solve.driver import Progress
+
+    with Progress(100, show=True) as bar:
+        shown = []
+        bar.update(40)
+        shown.append(bar.bar.n)
+        bar.set(20)  # a rejected cycle: back to the synchronized state of step 20
+        shown.append(bar.bar.n)
+        bar.update(15)  # recomputing steps 21 .. 35
+        shown.append(bar.bar.n)
+        bar.update(15)  # 36 .. 50: 36 .. 40 recomputed, 41 .. 50 new
+        shown.append(bar.bar.n)
+        assert shown == [40, 40, 40, 50] and bar.recomputed == 20
+        assert "recomputed 20 steps" in str(bar.bar)
+        bar.set(70)  # a resumed checkpoint moves forward
+        assert bar.bar.n == 70

@@ -119,7 +119,7 @@ def test_load_jumps_against_a_loop():
         np.testing.assert_array_equal(load_jumps([load], n_steps, dt), loop)
     # several loads: the union; a zero time function has none
     union = load_jumps([cases["step_off"], cases["short_ramp_after_zero"],
-                        jaxsync.BodyForce(time=jaxsync.StepOff(0.0))], n_steps, dt)
+                        jaxsync.BodyForce(time=jaxsync.Periodic([0.0, 0.5], [0.0, 0.0], 1.0))], n_steps, dt)
     np.testing.assert_array_equal(union, [1, 251])
     # a time function written for one scalar t, as the stepper calls it (a constant too)
     class Switch(TimeFunction):
@@ -134,3 +134,125 @@ def test_load_jumps_against_a_loop():
     np.testing.assert_array_equal(load_jumps([jaxsync.BodyForce(time=Unit())], n_steps, dt), [])
     # a smaller threshold sees the smooth load's steepest steps (about 2 pi dt / T = 1.3 % of its range)
     assert len(load_jumps([cases["smooth"]], n_steps, dt, fraction=0.005)) > 0
+
+
+# ----------------------------------------------------------------------------- checked when built
+
+INF, NAN = float("inf"), float("nan")
+
+
+@pytest.mark.parametrize("build, error, match", [
+    (lambda: jaxsync.LinearElastic(INF, 0.3, 1.0), MaterialError, r"LinearElastic\.E .* finite"),
+    (lambda: jaxsync.LinearElastic(1e6, 0.3, NAN), MaterialError, r"LinearElastic\.rho .* finite"),
+    (lambda: jaxsync.LinearElastic("1e6", 0.3, 1.0), MaterialError, "must be a number"),
+    (lambda: jaxsync.NeoHookean(1e6, 0.3, INF), MaterialError, r"NeoHookean\.rho .* finite"),
+    (lambda: jaxsync.HolzapfelGasserOgden(mu=3e5, k1=INF, k2=0.8, kappa_bulk=1e6), MaterialError, "k1"),
+    (lambda: jaxsync.Pressure(NAN), ProblemError, r"Pressure\.magnitude must be a finite number"),
+    (lambda: jaxsync.Pressure(1.0, surface=3), ProblemError, "Pressure.surface"),
+    (lambda: jaxsync.BodyForce((0.0, 0.0, INF)), ProblemError, r"BodyForce\.vector .* must be finite"),
+    (lambda: jaxsync.BodyForce(np.array([0.0, NAN, 1.0])), ProblemError, r"BodyForce\.vector"),
+    (lambda: jaxsync.BodyForce((0.0, 0.0, -1.0), time=2.0), ProblemError, r"BodyForce\.time must be a time func"),
+    (lambda: jaxsync.Traction((0.0, "x", 1.0)), ProblemError, r"Traction\.vector .* numbers"),
+    (lambda: jaxsync.Ramp(INF), ProblemError, r"Ramp\.t_end must be a finite number"),
+    (lambda: jaxsync.StepOff(NAN), ProblemError, r"StepOff\.t_off"),
+    (lambda: jaxsync.Periodic([0.0, 0.5], [1.0, NAN], 1.0), ProblemError, r"Periodic\.values must be finite"),
+    (lambda: jaxsync.Periodic([0.0, 0.5], [1.0, 2.0], INF), ProblemError, r"Periodic\.period"),
+    (lambda: jaxsync.ElasticSupport(INF), ProblemError, r"ElasticSupport\.stiffness"),
+    (lambda: jaxsync.Dirichlet("x0", value=(0.0, NAN, 0.0)), ProblemError, r"Dirichlet\.value"),
+    (lambda: jaxsync.Dirichlet("x0", components=(0, 3)), ProblemError, r"Dirichlet\.components"),
+    (lambda: jaxsync.Dirichlet(42), ProblemError, r"Dirichlet\.where"),
+])
+def test_parameters_are_checked_when_built_and_named(build, error, match):
+    with pytest.raises(error, match=match):
+        build()
+
+
+def test_problem_level_numbers_are_checked_and_named():
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    with pytest.raises(ProblemError, match=r"Problem\.damping .* finite"):
+        jaxsync.cantilever(mesh, damping=INF)
+    u0 = np.zeros((mesh.n_nodes, 3))
+    u0[3, 1] = NAN
+    with pytest.raises(ProblemError, match=r"Problem\.initial_displacement must be finite, got nan at index \(3, 1\)"):
+        jaxsync.cantilever(mesh, initial_displacement=u0)
+
+
+def test_checks_let_jax_rebuild_the_objects():
+    import jax
+
+    load = jaxsync.BodyForce(np.array([0.0, 0.0, -1.0]), jaxsync.Ramp(0.5))
+    stacked = jax.tree_util.tree_map(lambda x: np.stack([x, x]), load)  # an ensemble's members
+    assert stacked.vector.shape == (2, 3)
+    grad = jax.grad(lambda m: jaxsync.Pressure(m, jaxsync.Ramp(1.0)).magnitude * 2.0)(3.0)
+    assert float(grad) == 2.0
+    assert jax.tree_util.tree_structure(jaxsync.LinearElastic()).num_leaves == 3
+
+
+# ----------------------------------------------------------------------------- free rigid-body motions
+
+
+def test_free_rigid_motions_are_counted_against_a_rank_computed_here():
+    from jaxsync.fem.rigid_body import free_rigid_motions
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    corner = lambda p: np.all(np.isclose(p, 0.0), axis=1)  # noqa: E731
+    edge = lambda p: np.isclose(p[:, 0], 0.0) & np.isclose(p[:, 1], 0.0)  # noqa: E731 - a line of nodes
+    cases = [([], [], 6), ([jaxsync.Dirichlet("x0")], [], 0), ([jaxsync.Dirichlet(corner)], [], 3),
+             ([jaxsync.Dirichlet(edge)], [], 1), ([jaxsync.Dirichlet("x0", components=(0,))], [], 3),
+             ([], [jaxsync.ElasticSupport(1e3, surface="x0")], 0),
+             ([], [jaxsync.ElasticSupport(1e3, surface="x0", normal_only=True)], 3)]
+    for dirichlet, supports, n_free in cases:
+        problem = jaxsync.Problem(mesh, dirichlet=dirichlet, supports=supports)
+        free = free_rigid_motions(problem)
+        assert free.shape == (mesh.n_nodes, 3, n_free), (dirichlet, supports)
+        # a reference: the rigid motions (numpy, written here) that vanish on the constrained dofs
+        x = mesh.points - mesh.points.mean(axis=0)
+        modes = np.concatenate([np.tile(np.eye(3), (mesh.n_nodes, 1)).reshape(mesh.n_nodes, 3, 3),
+                                np.stack([np.cross(np.eye(3)[k], x) for k in range(3)], axis=2)], axis=2)
+        rows = [modes.reshape(-1, 6)[problem.dirichlet_dofs()[0]]]
+        for s in supports:
+            nodes = mesh.facet_nodes(s.surface)
+            rows.append((modes[nodes][:, 0] * -1.0) if s.normal_only else modes[nodes].reshape(-1, 6))
+        constraints = np.concatenate(rows)
+        assert 6 - np.linalg.matrix_rank(constraints, tol=1e-9) == n_free
+
+
+def test_a_load_that_drives_a_free_motion_warns_and_a_balanced_one_does_not():
+    import warnings
+
+    from jaxsync.fem.rigid_body import RigidBodyWarning
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    free = r"the loads drive .*\(translation along z; 6 of the 6 .*Dirichlet conditions: none"
+    with pytest.warns(RigidBodyWarning, match=free):
+        jaxsync.Problem(mesh, loads=[jaxsync.BodyForce((0.0, 0.0, -1.0))])
+    corner = lambda p: np.all(np.isclose(p, 0.0), axis=1)  # noqa: E731
+    with pytest.warns(RigidBodyWarning, match="rotation about y.*a predicate selects 1 node"):
+        jaxsync.Problem(mesh, dirichlet=[jaxsync.Dirichlet(corner)], loads=[jaxsync.BodyForce((0.0, 0.0, -1.0))])
+    with pytest.warns(RigidBodyWarning, match="the initial velocity drives"):
+        jaxsync.Problem(mesh, initial_velocity=np.ones((mesh.n_nodes, 3)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RigidBodyWarning)
+        # equal and opposite pressures: no net force, no moment
+        jaxsync.Problem(mesh, loads=[jaxsync.Pressure(1.0, surface="x0"), jaxsync.Pressure(1.0, surface="x1")])
+        jaxsync.cantilever(mesh)  # clamped: nothing free
+        jaxsync.Problem(mesh, dirichlet=[jaxsync.Dirichlet(corner)])  # free, but nothing drives it
+
+
+def test_shapes_and_kinds_are_refused_when_built():
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
+    with pytest.raises(ProblemError, match=r"Dirichlet\.value \[cm\] must have 3 components"):
+        jaxsync.Dirichlet("x0", value=(0.0, 0.0))
+    with pytest.raises(ProblemError, match=r"Dirichlet\.value must have 3 components"):
+        jaxsync.Dirichlet("x0", value=np.zeros(2))
+    assert jaxsync.Dirichlet("x0", value=0.0).value == 0.0  # one number for all three
+    with pytest.raises(MaterialError, match=r"LinearElastic\.E .* must be a number"):
+        jaxsync.LinearElastic([1.0e6], 0.3, 1.0)
+    with pytest.raises(ProblemError, match=r"StepOff\.t_off must be positive"):
+        jaxsync.StepOff(-1.0)
+    # a single load, condition or support counts as a list of one
+    one = jaxsync.Problem(mesh, dirichlet=jaxsync.Dirichlet("x0"), loads=jaxsync.BodyForce((0.0, 0.0, -1.0)),
+                          supports=jaxsync.ElasticSupport(1.0, surface="x1"))
+    assert len(one.dirichlet) == len(one.loads) == len(one.supports) == 1
+    with pytest.raises(ProblemError, match="unknown load"):
+        jaxsync.Problem(mesh, dirichlet=[jaxsync.Dirichlet("x0")], loads=[3.0])

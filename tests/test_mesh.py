@@ -388,3 +388,67 @@ def test_merging_drops_the_faces_of_the_cut_and_refuses_to_collapse_elements():
         jaxsync.merge_coincident_nodes(merged, tol=2.0)
     with pytest.raises(MeshError, match="tolerance"):
         jaxsync.fem.mesh.coincident_nodes(merged, tol=-1.0)
+
+
+# ----------------------------------------------------------------------------- arrays, as files are checked
+
+
+TET = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("points, tets, match", [
+    (TET, [[0, 2, 1, 3]], r"element 0 .* is inverted .*jaxsync\.Mesh\.from_arrays"),
+    (TET[:, :2], [[0, 1, 2, 3]], "points are 2-D"),
+    (TET, [[0, 1, 2, 7]], r"element 0 refers to node indices \[0, 1, 2, 7\] outside 0..3"),
+    (np.where(np.eye(4, 3, -1) == 1, np.nan, TET), [[0, 1, 2, 3]], "node 1 has non-finite coordinates"),
+    (np.vstack([TET, [[5.0, 5.0, 5.0]]]), [[0, 1, 2, 3]], r"1 nodes are used by no element \(first: node 4\)"),
+    (TET, [[0, 1, 1, 3]], "repeats a node"),
+    (TET, np.zeros((0, 4), int), "no tetrahedra"),
+    (TET, [[0.0, 1.0, 2.0, 3.0]], "must be integers"),
+    ([["a", "b", "c"]] * 4, [[0, 1, 2, 3]], "points must be an"),
+])
+def test_a_mesh_built_from_arrays_is_checked_as_a_file_is(points, tets, match):
+    with pytest.raises(MeshError, match=match):
+        jaxsync.Mesh(points, tets)
+
+
+def test_a_mesh_from_arrays_with_facets_off_the_node_list_is_refused():
+    with pytest.raises(MeshError, match="facet 0 of the set 'top' refers to node indices"):
+        jaxsync.Mesh(TET, [[0, 1, 2, 3]], facet_sets={"top": [[1, 2, 9]]})
+    with pytest.raises(MeshError, match="shape \\(n_facets, 3\\)"):
+        jaxsync.Mesh(TET, [[0, 1, 2, 3]], facet_sets={"top": [[1, 2, 3, 0]]})
+
+
+def test_from_arrays_repairs_what_read_mesh_repairs(tmp_path):
+    points = np.vstack([TET, [[5.0, 5.0, 5.0]]])
+    with pytest.warns(MeshWarning) as caught:
+        mesh = jaxsync.Mesh.from_arrays(points, [[0, 2, 1, 3]], facet_sets={"base": [[0, 1, 2]]})
+    assert {"inverted" in str(w.message) or "used by no element" in str(w.message) for w in caught} == {True}
+    assert mesh.n_nodes == 4 and mesh.volumes()[0] == pytest.approx(1 / 6)
+    np.testing.assert_array_equal(mesh.source_node_ids, [0, 1, 2, 3])
+    # the same arrays through a file give the same mesh
+    path = tmp_path / "m.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", np.array([[0, 2, 1, 3]]))]))
+    with pytest.warns(MeshWarning):
+        read = jaxsync.read_mesh(path)
+    np.testing.assert_array_equal(read.tets, mesh.tets)
+    np.testing.assert_array_equal(read.points, mesh.points)
+
+
+def test_box_beam_refuses_what_it_cannot_make():
+    for divisions in ((4.5, 1, 1), (4, 1), (0, 1, 1), ("4", 1, 1.0000001)):
+        with pytest.raises(MeshError, match="three whole numbers >= 1"):
+            jaxsync.box_beam(4.0, 1.0, 1.0, divisions)
+    assert jaxsync.box_beam(4.0, 1.0, 1.0, (4.0, 1, np.int64(1))).n_elements == 24
+    with pytest.raises(MeshError, match="positive finite lengths"):
+        jaxsync.box_beam(float("inf"), 1.0, 1.0, (4, 1, 1))
+
+
+def test_a_file_with_other_volume_cells_beside_tetrahedra_is_refused(tmp_path):
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [1, 1, 0], [0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1],
+                       [0.5, 0.5, 2.0]], dtype=float)
+    path = tmp_path / "mixed.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", np.array([[4, 5, 6, 8]])),
+                                            ("hexahedron", np.array([[0, 1, 3, 2, 4, 5, 7, 6]]))]))
+    with pytest.raises(MeshError, match=r"1 volume cells that are not tetrahedra \(hexahedron\)"):
+        jaxsync.read_mesh(path)

@@ -74,6 +74,33 @@ def test_estimate_quality_against_numpy_by_hand():
         estimate_quality(np.ones(3), np.ones(4))
 
 
+def test_estimate_quality_when_es_hat_is_zero_is_said_and_written_as_null():
+    """es_hat = 0 everywhere (the parts' predictions agree exactly): no numpy warning, one
+    line that says the tracking cannot be measured, null (never NaN/Infinity) in JSON."""
+    import json
+    import warnings
+
+    from jaxsync.io import json_value
+    from jaxsync.metrics import EstimateQuality, estimate_quality
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q = estimate_quality(np.geomspace(1e-6, 1e-3, 39), np.zeros(39))
+        partial = estimate_quality(np.ones(10), np.r_[np.ones(5), np.zeros(5)])  # half the snapshots at 0
+    assert q.es_hat_zero and q.n_snapshots == 39 and q.underestimated == 1.0 and q.within_factor_2 == 0.0
+    assert q.summary() == ("es_hat is 0 at every one of the 39 compared snapshots (the parts' predictions agree "
+                           "exactly): its tracking of es cannot be measured")
+    text = json.dumps(json_value(q.to_dict()), allow_nan=False)
+    assert json.loads(text)["ratio_median"] is None and json.loads(text)["log_correlation"] is None
+    assert EstimateQuality(**json.loads(text)).summary() == q.summary()  # read back from summary.json
+    assert not partial.es_hat_zero and partial.ratio_p95 == np.inf and partial.ratio_median == np.inf
+    assert json_value(partial.to_dict())["ratio_p95"] is None
+    none = estimate_quality(np.zeros(3), np.zeros(3))
+    assert none.summary() == "es_hat tracks es: no snapshot with es > 0 to compare"
+    assert json_value({"a": np.array([1.0, np.nan, -np.inf]), "b": np.float64("inf"), "c": (float("nan"), 2)}) == {
+        "a": [1.0, None, None], "b": None, "c": [None, 2]}
+
+
 def test_node_error_against_numpy():
     rng = np.random.default_rng(3)
     ref = rng.normal(size=(7, 4, 3))

@@ -40,17 +40,18 @@ def _worker_sync(out_path: str) -> None:
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
         configs = {"psum": jaxsync.Psum(), "mpi-callback": jaxsync.Mpi(allreduce="callback"),
+                   "mpi-ctypes": jaxsync.Mpi(allreduce="ctypes"),
                    "halo-4": jaxsync.Halo(4)}  # deep halos, exchanged through MPI
         if multiprocess.mpi4jax_available():
             configs["mpi-mpi4jax"] = jaxsync.Mpi(allreduce="mpi4jax")
-        results = {"default": DistributedRunner(problem, system, 2, save_every=SAVE_EVERY).sync}
+        results = {"default": DistributedRunner(problem, system, 2, save_every=SAVE_EVERY).sync,
+                   "default_allreduce": multiprocess.default_allreduce()}
         for name, sync in configs.items():
             traj = jaxsync.simulate(problem, STEPS, save=SAVE_EVERY, partitions=2, sync=sync,
                                     executor=jaxsync.HostExecutor(progress=False))
             results[name] = traj.displacement
         if multiprocess.is_main_process():
-            default = results.pop("default")
-            np.savez(out_path, default=default, **results)
+            np.savez(out_path, **results)
 
 
 def _worker_fail(kind: str) -> None:
@@ -85,6 +86,7 @@ import pytest  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.parallel import multiprocess  # noqa: E402
+from jaxsync.solve import strategies  # noqa: E402
 
 MPIEXEC = shutil.which("mpiexec")
 needs_mpiexec = pytest.mark.skipif(MPIEXEC is None,
@@ -143,8 +145,10 @@ def test_cli_two_processes_equal_the_single_process_run(tmp_path, reference):
     traj = jaxsync.Trajectory.load(tmp_path / "run.h5")
     assert relative_error(traj.displacement, reference.displacement) <= 1e-12
     assert len(traj.parts) == 2  # one part per process
-    # only rank 0 printed and wrote
+    # only rank 0 printed and wrote; the header names the transport, the fast one by default
     assert out.stdout.count("wrote") == 1 and out.stdout.count("2 processes, 2 parts") == 1
+    assert out.stdout.count("exchange: MPI Allreduce inside the compiled step (") == 1, out.stdout
+    assert "between 2 processes" in out.stdout and "TransportWarning" not in out.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.h5"]
 
 
@@ -177,8 +181,10 @@ def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
     assert out.returncode == 0, out.stderr
     with np.load(path) as runs:
         assert str(runs["default"]) == "mpi"  # the faster one across processes
-        names = set(runs.files) - {"default"}
-        assert {"psum", "mpi-callback", "halo-4"} <= names
+        # MPI called from inside the compiled step: mpi4jax where built, else jaxsync's own handler
+        assert str(runs["default_allreduce"]) == ("mpi4jax" if multiprocess.mpi4jax_available() else "ctypes")
+        names = set(runs.files) - {"default", "default_allreduce"}
+        assert {"psum", "mpi-callback", "mpi-ctypes", "halo-4"} <= names
         assert ("mpi-mpi4jax" in names) == multiprocess.mpi4jax_available()
         for name in names:
             assert relative_error(runs[name], reference.displacement) <= 1e-12, name
@@ -197,7 +203,12 @@ def test_bench_sync_measures_zeta_and_checks_the_cost_model_with_real_processes(
     assert result["processes"] == 2 and result["devices_per_process"] == 1
     solver = {r["method"]: r for r in result["rows"] if r["kind"] == "solver"}
     speedup = {r["method"]: r for r in result["rows"] if r["kind"] == "speedup"}
-    assert {"psum-gloo", "mpi-callback"} <= set(solver)
+    assert {"psum-gloo", "mpi-ctypes", "mpi-callback"} <= set(solver)
+    assert result["default_allreduce"] in ("mpi4jax", "ctypes") and result["cpu_collectives"] == "gloo"
+    assert result["transport"].startswith("MPI Allreduce inside the compiled step")
+    for row in solver.values():  # the exchange's cost: the synchronized step less the unsynchronized one
+        assert row["us_per_exchange_best"] == pytest.approx(row["us_per_step_best"]
+                                                            - speedup["nosync"]["us_per_step_best"])
     assert set(speedup) == {"nosync", "halo-1", "halo-4", "avoid-lstm-paper", "avoid-lstm-default",
                             "avoid-linear"}
     best = min(r["us_per_step_best"] for r in solver.values())
@@ -209,7 +220,7 @@ def test_bench_sync_measures_zeta_and_checks_the_cost_model_with_real_processes(
     for check in result["model_check"]:  # prediction and measurement, as the model defines them
         assert check["predicted_us"] > 0 and check["measured_us"] > 0
         assert check["relative_error"] == pytest.approx(check["predicted_us"] / check["measured_us"] - 1)
-    assert "zeta" in out.stdout and "cost model" in out.stdout
+    assert "zeta" in out.stdout and "cost model" in out.stdout and "us/exchange" in out.stdout
 
 
 @pytest.mark.mpi
@@ -264,6 +275,93 @@ def test_mpi4jax_allreduce_runs_inside_a_compiled_step():
     assert "mpi_allreduce_ffi" in text and "callback" not in text
 
 
+def test_ctypes_allreduce_runs_inside_a_compiled_step():
+    """One rank: jaxsync's own FFI handler is the identity, inside jit, scan and vmap, for every
+    dtype MPI sums; it is an XLA custom call, not a host callback; an unsupported dtype is XLA's
+    error, not a silent wrong sum."""
+    pytest.importorskip("mpi4py")
+    import jax
+    import jax.numpy as jnp
+
+    assert multiprocess.ctypes_available()
+    allreduce = multiprocess.make_allreduce(None, "ctypes")
+    x = jnp.arange(12.0).reshape(4, 3)
+    step = jax.jit(lambda v: jax.lax.fori_loop(0, 5, lambda i, c: allreduce(c) * 1.0, v))
+    np.testing.assert_array_equal(np.asarray(step(x)), np.asarray(x))
+    batched = jnp.stack([x, 2 * x])
+    np.testing.assert_array_equal(np.asarray(jax.jit(jax.vmap(allreduce))(batched)), np.asarray(batched))
+    for dtype in (jnp.float32, jnp.int32, jnp.int64, jnp.complex128):
+        v = jnp.arange(5).astype(dtype)
+        np.testing.assert_array_equal(np.asarray(jax.jit(allreduce)(v)), np.asarray(v))
+    text = jax.jit(allreduce).lower(x).as_text()
+    assert "jaxsync_mpi_allreduce" in text and "callback" not in text
+    with pytest.raises(Exception, match="jaxsync MPI sum: cannot sum 5 values"):
+        jax.jit(allreduce)(jnp.arange(5, dtype=jnp.uint8)).block_until_ready()
+
+
+def test_transport_names_each_synchronization():
+    """The header line of a partitioned run, in this process (2 emulated CPU devices)."""
+    import jax
+
+    assert strategies.transport(None, 2) == "XLA psum over 2 emulated CPU devices in one process"
+    assert strategies.transport("psum", 2) == strategies.transport(None, 2)
+    assert strategies.transport("ppermute", 4) == ("XLA ppermute (neighbouring devices only) over 2 emulated "
+                                                     "CPU devices in one process")
+    assert strategies.transport(None, 3) == "one device (the parts' sums stay on it: no exchange between devices)"
+    assert strategies.transport(jaxsync.Halo(4), 2) == (
+        "deep halos of depth 4, both displacement levels exchanged every 4 steps by XLA psum over 2 emulated "
+        "CPU devices in one process")
+    assert strategies.transport(jaxsync.Psum(devices=jax.devices()[:1]), 2).startswith("one device")
+    pytest.importorskip("mpi4py")
+    assert strategies.transport(jaxsync.Mpi(allreduce="ctypes"), 2) == (
+        "MPI Allreduce inside the compiled step (jaxsync's ctypes FFI handler) in one process")
+    if multiprocess.mpi4jax_available():
+        assert strategies.transport("mpi", 2) == "MPI Allreduce inside the compiled step (mpi4jax) in one process"
+    callback = strategies.transport(jaxsync.Mpi(allreduce="callback"), 2)
+    assert callback.startswith("MPI Allreduce through an mpi4py host callback in one process (slow")
+
+
+def test_fallback_to_the_callback_warns_with_the_fix(monkeypatch):
+    """Where neither mpi4jax nor the ctypes handler runs, 'auto' takes the callback: between
+    processes that warns (rank 0) and the transport line says so, both with the fix."""
+    pytest.importorskip("mpi4py")
+
+    class TwoRanks:  # what make_allreduce asks of a communicator before any sum
+        def Get_size(self):
+            return 2
+
+        def Get_rank(self):
+            return 0
+
+    monkeypatch.setattr(multiprocess, "mpi4jax_available", lambda: False)
+    monkeypatch.setattr(multiprocess, "_CTYPES_PROBLEM", ["jax.ffi is broken here"])
+    assert multiprocess.default_allreduce() == "callback"
+    with pytest.warns(multiprocess.TransportWarning, match=r"host callback \(slow\).*jax.ffi is broken.*\[mpi\]"):
+        multiprocess.make_allreduce(TwoRanks(), "auto")
+    assert "slow" in strategies.transport("mpi", 2) and "pip install -e '.[mpi]'" in strategies.transport("mpi", 2)
+    with pytest.raises(jaxsync.ConfigError, match="ctypes MPI sum cannot run here"):
+        multiprocess.make_allreduce(TwoRanks(), "ctypes")
+
+
+def test_plain_install_defaults_to_an_allreduce_inside_the_step():
+    """Without mpi4jax (a plain ``pip install -e .``), a fresh process resolves the default
+    MPI sum to jaxsync's ctypes FFI handler, not the host callback."""
+    pytest.importorskip("mpi4py")
+    code = ("import sys; sys.modules['mpi4jax'] = None\n"  # as if mpi4jax were not installed
+            "import jaxsync\n"
+            "from jaxsync.parallel import multiprocess\n"
+            "from jaxsync.solve import strategies\n"
+            "print(multiprocess.default_allreduce())\n"
+            "print(strategies.transport('mpi', 2))\n")
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env["JAX_PLATFORMS"] = "cpu"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=TIMEOUT_S, env=env)
+    assert out.returncode == 0, out.stderr
+    backend, line = out.stdout.splitlines()[-2:]
+    assert backend == "ctypes"
+    assert line == "MPI Allreduce inside the compiled step (jaxsync's ctypes FFI handler) in one process"
+
+
 def test_single_process_defaults_to_psum():
     assert multiprocess.default_sync() == "psum"
 
@@ -279,7 +377,7 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
-    backends = ["callback"] + (["mpi4jax"] if multiprocess.mpi4jax_available() else [])
+    backends = ["callback", "ctypes"] + (["mpi4jax"] if multiprocess.mpi4jax_available() else [])
     for backend in backends:
         traj = jaxsync.simulate(problem, STEPS, save=SAVE_EVERY, partitions=2,
                                 sync=jaxsync.Mpi(allreduce=backend, devices=jax.devices()[:1]),

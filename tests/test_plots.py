@@ -137,6 +137,10 @@ def test_user_nodes_by_id_and_coordinates(cantilever_case, tmp_path):
         plots.write_report(reference, online, parts, tmp_path / "bad", nodes=[104])
     with pytest.raises(ConfigError, match="node id .*coordinates"):
         plots.write_report(reference, online, parts, tmp_path / "bad", nodes=[(1.0, 2.0)])
+    # off the body: farther from every node than the longest element edge (sqrt(3) cm on this beam)
+    with pytest.raises(ConfigError, match=r"node \(100, 100, 100\) is off the mesh.*bounding box is \(0, 0, 0\) to"):
+        plots.write_report(reference, online, parts, tmp_path / "bad", nodes=[(100.0, 100.0, 100.0)])
+    assert plots.resolve_nodes(problem.mesh, [(26.5, 1.0, 1.0)]) == {"nearest to (26.5, 1, 1)": corner}
     assert plots.parse_node("12") == 12 and plots.parse_node("25,1,1") == (25.0, 1.0, 1.0)
     with pytest.raises(ConfigError, match="--node 25,1,1"):
         plots.parse_node("tip")
@@ -250,14 +254,15 @@ def test_report_command_on_a_vessel(vessel_case, tmp_path, capsys):
     online.save(tmp_path / "online.h5")
     (tmp_path / "vessel.toml").write_text(VESSEL_TOML)
     for config in ([], ["--config", str(tmp_path / "vessel.toml")]):
+        out = tmp_path / f"r{len(config)}"
         assert main(["report", str(tmp_path / "sync.h5"), str(tmp_path / "online.h5"),
-                     "-o", str(tmp_path / "r"), *config]) == 0
+                     "-o", str(out), *config]) == 0
         assert "largest-amplitude monitored node" in capsys.readouterr().out
-        summary = json.loads((tmp_path / "r" / "summary.json").read_text())
+        summary = json.loads((out / "summary.json").read_text())
         assert not np.isin(list(summary["nodes"].values()), dirichlet_nodes(problem)).any()
         assert summary["tip_max_abs_error"] > 0 and len(summary["nodes"]) == 3
         for name in ("displacement_nodes.png", "l2_error.png", "shared_errors.png", "et_histogram.png"):
-            assert (tmp_path / "r" / name).stat().st_size > 1000
+            assert (out / name).stat().st_size > 1000
 
     assert main(["report", str(tmp_path / "sync.h5"), str(tmp_path / "online.h5"), "-o", str(tmp_path / "n"),
                  "--node", "12", "--node", "25,1,1", "--component", "1"]) == 0
@@ -269,3 +274,29 @@ def test_report_command_on_a_vessel(vessel_case, tmp_path, capsys):
     assert main(["report", str(tmp_path / "sync.h5"), str(tmp_path / "online.h5"), "-o", str(tmp_path / "e"),
                  "--node", "9999"]) == 2
     assert "node 9999 does not exist" in capsys.readouterr().err
+
+
+def test_report_when_the_parts_predictions_agree_exactly(cantilever_case, tmp_path, capsys):
+    """es_hat = 0 at every snapshot (two parts whose identical linear fits agree: the README
+    pipeline with --model linear): one line that says its tracking cannot be measured, no
+    numpy warning, and a summary.json without NaN/Infinity (null instead)."""
+    _, reference, parts, online = cantilever_case
+    same = tuple(dataclasses.replace(p, predicted_shared_displacement=np.asarray(
+        online.displacement)[~online.synchronized][:, p.shared_nodes].reshape(-1, 3 * len(p.shared_nodes)))
+        for p in online.parts)
+    reference.save(tmp_path / "sync.h5")
+    dataclasses.replace(online, parts=same).save(tmp_path / "online.h5")
+    capsys.readouterr()
+    assert main(["report", str(tmp_path / "sync.h5"), str(tmp_path / "online.h5"), "-o", str(tmp_path / "r")]) == 0
+    out, err = capsys.readouterr()
+    assert "warning" not in err.lower(), err
+    assert "es_hat is 0 at every one of the" in out and "its tracking of es cannot be measured" in out
+    assert "inf" not in out and "nan" not in out
+
+    def refuse(token):
+        raise AssertionError(f"summary.json holds {token}")
+
+    summary = json.loads((tmp_path / "r" / "summary.json").read_text(), parse_constant=refuse)
+    tracking = summary["es_hat_tracking"]
+    assert tracking["ratio_median"] is None and tracking["log_correlation"] is None and tracking["underestimated"] == 1
+    assert summary["es_hat_max"] == 0.0 and summary["es_max"] > 0

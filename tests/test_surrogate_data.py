@@ -342,3 +342,25 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
         coarse.for_sampling(80)
     with pytest.raises(jaxsync.ProblemError, match="divisor"):
         jaxsync.simulate(problem, 300, partitions=parts, save=jaxsync.SaveAt(50, 3))
+
+
+def test_a_one_part_run_is_refused_for_training_with_the_fix(tmp_path, capsys):
+    """``jaxsync simulate --parts 1 --shared-every 1`` then ``jaxsync train``: a clear error
+    (no shared nodes, nothing to predict: use 2 parts or more), not a numpy reshape error."""
+    from jaxsync.app.cli import main
+    from jaxsync.surrogate.fit import train_surrogates
+
+    problem = jaxsync.cantilever()
+    run = jaxsync.simulate(problem, 100, partitions=jaxsync.partition(problem.mesh, 1), save=jaxsync.SaveAt(50, 1))
+    run.save(tmp_path / "s1.h5")
+    with pytest.raises(CheckpointError, match="1 part and so no shared nodes.*--parts n, n >= 2"):
+        read_shared_histories(tmp_path / "s1.h5")
+    with pytest.raises(CheckpointError, match="nothing for a surrogate to predict"):
+        train_surrogates(run, architecture=jaxsync.surrogate.ArchitectureChoice(model="linear"),
+                         sampling=jaxsync.surrogate.Sampling(n_s=10, n_past=5, n_future=5))
+    capsys.readouterr()
+    code = main(["train", str(tmp_path / "s1.h5"), "-o", str(tmp_path / "sur"), "--model", "linear", "--n-s", "10",
+                 "--n-past", "5", "--n-future", "5", "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and err.startswith("error: ") and "--parts" in err, err
+    assert not (tmp_path / "sur").exists()

@@ -384,6 +384,10 @@ def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference)
     assert ResyncTolerance.parse("1e-4") == ResyncTolerance(absolute=1e-4)
     assert ResyncTolerance.parse(2e-4).cm(5.0) == 2e-4
     assert ResyncTolerance.parse("5%").cm(2.0) == pytest.approx(0.1)
+    assert ResyncTolerance.parse("100%").cm(2.0) == pytest.approx(2.0)
+    for bad, match in (("200%", "above 100%"), ("inf%", "above 100%"), ("nan%", "> 0"), ("-1%", "> 0")):
+        with pytest.raises(ProblemError, match=match):
+            ResyncTolerance.parse(bad)
 
 
 def test_tolerance_relative_to_a_given_amplitude(problem, partition, long_reference):

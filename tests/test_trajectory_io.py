@@ -121,6 +121,65 @@ def test_xdmf_time_series_is_readable_and_does_not_clobber(trajectory, tmp_path)
     np.testing.assert_array_equal(points, trajectory.mesh.points)
 
 
+def test_vtu_to_an_unwritable_location_is_an_output_error_naming_it(trajectory, tmp_path):
+    """``to_vtu("/proc/x")`` raised a raw FileNotFoundError from making its staging folder."""
+    from jaxsync.io import OutputError
+
+    if os.path.isdir("/proc"):
+        with pytest.raises(OutputError, match=r"could not write /proc/x.pvd: .*choose another location"):
+            trajectory.to_vtu("/proc/x")
+    (tmp_path / "afile").write_text("keep")
+    with pytest.raises(OutputError, match="afile"):
+        trajectory.to_vtu(tmp_path / "afile" / "run")
+    assert os.listdir(tmp_path) == ["afile"] and (tmp_path / "afile").read_text() == "keep"
+
+
+def test_xdmf_to_an_unwritable_location_is_an_output_error_naming_it(trajectory, tmp_path):
+    """``to_xdmf("/proc/x.xdmf")`` raised a raw FileNotFoundError naming a temporary file."""
+    from jaxsync.io import OutputError
+
+    if os.path.isdir("/proc"):
+        with pytest.raises(OutputError, match="/proc/x.xdmf") as caught:
+            trajectory.to_xdmf("/proc/x.xdmf")
+        assert ".xdmf." not in str(caught.value).replace("/proc/x.xdmf", "")  # no temporary name
+    (tmp_path / "afile").write_text("keep")
+    with pytest.raises(OutputError, match="afile is a file, not a folder"):
+        trajectory.to_xdmf(tmp_path / "afile" / "run.xdmf")
+    (tmp_path / "taken.xdmf").mkdir()
+    with pytest.raises(OutputError, match="it is a folder"):
+        trajectory.to_xdmf(tmp_path / "taken.xdmf")
+    assert sorted(os.listdir(tmp_path)) == ["afile", "taken.xdmf"] and (tmp_path / "afile").read_text() == "keep"
+
+
+def test_a_folder_given_as_a_file_to_read_is_one_clear_line(tmp_path, capsys):
+    """A folder as a trajectory (``Trajectory.load``, ``jaxsync report``, ``jaxsync train``),
+    a surrogate file, a training state or a solver checkpoint: one line that says so, not
+    h5py's two-line reason."""
+    from jaxsync.app.cli import main
+    from jaxsync.solve.checkpoint import load_checkpoint
+    from jaxsync.surrogate.saved import load_surrogate
+    from jaxsync.surrogate.training_state import load_training_state
+
+    folder = tmp_path / "adir"
+    folder.mkdir()
+    with pytest.raises(CheckpointError) as caught:
+        jaxsync.Trajectory.load(folder)
+    assert str(caught.value) == f"trajectory {str(folder)!r} is a folder; give a .h5 file"
+    for call, what in ((lambda: load_surrogate(folder), "surrogate file"),
+                       (lambda: load_training_state(folder, {}, None), "training state"),
+                       (lambda: load_checkpoint(folder, "key", 10), "checkpoint")):
+        with pytest.raises(CheckpointError, match=f"^{what} .* is a folder; give a .h5 file") as caught:
+            call()
+        assert "\n" not in str(caught.value)
+    capsys.readouterr()
+    for argv in (["report", str(folder), str(folder), "-o", str(tmp_path / "r")],
+                 ["train", str(folder), "-o", str(tmp_path / "sur"), "--no-progress"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err == f"error: trajectory {str(folder)!r} is a folder; give a .h5 file\n", err
+    assert sorted(os.listdir(tmp_path)) == ["adir"]
+
+
 def dead_pid():
     import subprocess
     import sys
@@ -213,3 +272,41 @@ def test_bad_compression_is_refused(tmp_path):
     with pytest.raises(jaxsync.CheckpointError, match="level"):
         traj.save(tmp_path / "x.h5", level=12)
     assert not (tmp_path / "x.h5").exists()
+
+
+def test_a_diverged_runs_snapshots_can_be_saved(tmp_path):
+    problem = jaxsync.cantilever(jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1)), body_force=(0.0, 0.0, -1.0e12),
+                                 t_ramp=1e-3)
+    for partitions in (None, 2):
+        with pytest.raises(jaxsync.StabilityError) as caught:
+            jaxsync.simulate(problem, 400, save=10, partitions=partitions)
+        kept = caught.value.trajectory
+        assert kept.result == jaxsync.Result.DIVERGED and kept.n_saved >= 1
+        path = tmp_path / f"kept-{partitions}.h5"
+        kept.save(path)  # the snapshots the message promises
+        back = jaxsync.Trajectory.load(path)
+        np.testing.assert_array_equal(back.displacement, kept.displacement)
+        assert back.result == jaxsync.Result.DIVERGED and np.isfinite(back.displacement).all()
+    assert jaxsync.Trajectory(times=np.zeros(1), displacement=np.zeros((1, 20, 3)), mesh=problem.mesh, dt=1e-4,
+                              stats=None).stats == jaxsync.RunStats()
+
+
+def test_save_replaces_by_default_and_refuses_with_overwrite_false(trajectory, tmp_path):
+    from jaxsync.io import OutputError
+
+    path = tmp_path / "t.h5"
+    trajectory.save(path)
+    first = path.read_bytes()
+    trajectory.save(path)  # documented: replaces, atomically
+    with pytest.raises(OutputError, match="exists and overwrite=False"):
+        trajectory.save(path, overwrite=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.h5"] and path.read_bytes() == first
+    # a file that another process writes while this one writes is kept; ours goes beside it
+    from jaxsync.io import atomic_path
+
+    other = tmp_path / "o.h5"
+    with pytest.raises(OutputError, match="o.conflict-1.h5"):
+        with atomic_path(other, replace=False) as tmp:
+            open(tmp, "w").write("ours")
+            other.write_text("theirs")
+    assert other.read_text() == "theirs" and (tmp_path / "o.conflict-1.h5").read_text() == "ours"

@@ -17,6 +17,11 @@ non-zero status (the error is printed with its rank) instead of leaving the othe
 Option names are the same in every command: ``--parts`` is a count of parts (``simulate``
 still accepts its former ``--partitions``), ``--mode``, ``--sync``, ``--compression`` and
 ``--component`` take their choices from :mod:`jaxsync.options`.
+
+Start-up: the parser is built without JAX or any other numerical library (``jaxsync``
+imports its names on first use, :mod:`jaxsync.lazy`), so that ``--help``, ``--version``
+and an argument error answer at once; a command imports what it uses when it runs, after
+the emulated CPU devices are requested and float64 is switched on.
 """
 
 from __future__ import annotations
@@ -24,10 +29,19 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from collections.abc import Callable
 
 from .commands import demo, finetune, predict, report, simulate
 
-__all__ = ["build_parser", "main", "parts_of"]
+__all__ = ["build_parser", "main", "parts_of", "SubcommandParser", "DEFERRED_HELP"]
+
+# The subcommands whose options take their defaults from the surrogate settings, in modules
+# that import JAX and optax: their line of ``jaxsync --help`` (the help their parser
+# function gives), the rest of their parser made on first use (:class:`SubcommandParser`).
+DEFERRED_HELP = {
+    "demo": "run the whole pipeline on the built-in cantilever (or --case vessel) and print a summary",
+    "train": "train the per-part LSTM surrogates on trajectory files",
+}
 
 
 def _enable_x64() -> None:
@@ -36,23 +50,75 @@ def _enable_x64() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """The ``jaxsync`` argument parser with all subcommands."""
-    from .. import __version__
+class SubcommandParser(argparse.ArgumentParser):
+    """The parser of one subcommand, whose arguments may be added on first use
+    (:meth:`define_on_first_use`): when it parses, formats its help or usage, or its
+    actions are read, all of which go through its list of actions."""
+
+    def __init__(self, *args, **kwargs):
+        self._define = None
+        super().__init__(*args, **kwargs)
+
+    def define_on_first_use(self, define: Callable[[argparse.ArgumentParser], None]) -> None:
+        """Call ``define(self)``, which adds the parser's arguments, the first time the
+        parser is used, instead of now."""
+        self._define = define
+
+    @property
+    def _actions(self) -> list:
+        define, self._define = self._define, None
+        if define is not None:
+            define(self)
+        return self._action_list
+
+    @_actions.setter
+    def _actions(self, actions: list) -> None:
+        self._action_list = actions
+
+
+class _MadeParser:
+    """argparse's subparsers, for a function that adds a subcommand (``add_parser``, then
+    its arguments), when the subcommand's parser exists already: its ``add_parser`` sets
+    the parser's description (and any other setting but the help line) and returns it."""
+
+    def __init__(self, parser: argparse.ArgumentParser):
+        self.parser = parser
+
+    def add_parser(self, name: str, *, help: str | None = None, **settings) -> argparse.ArgumentParser:
+        for key, value in settings.items():
+            setattr(self.parser, key, value)
+        return self.parser
+
+
+def _add_train_parser(subparsers) -> None:
     from .train import add_train_parser
+
+    add_train_parser(subparsers)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``jaxsync`` argument parser with all subcommands.
+
+    Building it imports no numerical library (JAX, SciPy, h5py...), so that ``--help``,
+    ``--version`` and a mistyped option answer at once; a subcommand imports what it uses
+    when it runs. The options of ``demo`` and ``train`` are added when the subcommand is
+    parsed or its help shown (:data:`DEFERRED_HELP`)."""
+    from .. import __version__
 
     parser = argparse.ArgumentParser(
         prog="jaxsync",
         description="Differentiable, distributed explicit FEM for linear elastodynamics on "
                     "tetrahedra, with LSTM surrogates that replace synchronization.")
     parser.add_argument("--version", action="version", version=f"jaxsync {__version__}")
-    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    demo.add_parser(subparsers)
-    simulate.add_parser(subparsers)
-    add_train_parser(subparsers)
-    predict.add_parser(subparsers)
-    finetune.add_parser(subparsers)
-    report.add_parser(subparsers)
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=SubcommandParser)
+    for name, add_parser in (("demo", demo.add_parser), ("simulate", simulate.add_parser),
+                             ("train", _add_train_parser), ("predict", predict.add_parser),
+                             ("finetune", finetune.add_parser), ("report", report.add_parser)):
+        if name in DEFERRED_HELP:
+            subparser = subparsers.add_parser(name, help=DEFERRED_HELP[name])
+            subparser.define_on_first_use(lambda made, add_parser=add_parser: add_parser(_MadeParser(made)))
+        else:
+            add_parser(subparsers)
     return parser
 
 
@@ -80,10 +146,10 @@ def parts_of(args) -> int:
 def _run(args) -> int:
     """Run the chosen command: the package's warnings as one line each, and a failed
     write (:class:`jaxsync.io.OutputError`) told with the files written before it."""
-    from ..io import OutputError, recording_writes
+    from ..io import OutputError, claimed_outputs, recording_writes
     from .commands.common import package_warnings, written_and_kept
 
-    with recording_writes() as written, package_warnings():
+    with recording_writes() as written, package_warnings(), claimed_outputs():
         try:
             return int(args.func(args) or 0)
         except OutputError as exc:
@@ -122,9 +188,21 @@ def main(argv: list[str] | None = None) -> int:
         kept = [p for p in getattr(exc, "written", ()) if os.path.exists(p)]
         done = (f"the files completed before were kept ({', '.join(kept)}), no other was written or replaced"
                 if kept else "no output file was written or replaced")
-        print(f"interrupted: {done} (files appear only when complete); a run with --checkpoint resumes "
-              "from it when started again", file=sys.stderr)
+        print(f"interrupted: {done} (files appear only when complete){resume_hint(args)}", file=sys.stderr)
         return 130
+
+
+def resume_hint(args) -> str:
+    """How an interrupted command goes on, for its Ctrl-C line ("" when it cannot)."""
+    command = getattr(args, "command", None)
+    if command == "simulate":
+        if getattr(args, "checkpoint", None):
+            return f"; the same command resumes from the checkpoint {args.checkpoint}"
+        return "; a run with --checkpoint PATH can be resumed when interrupted"
+    if command == "train" and getattr(args, "state_every", None):
+        state = os.path.join(args.output, "training_state.h5")
+        return f"; the same command resumes from the training state {state} if one was written"
+    return ""
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -194,6 +194,12 @@ def load_config(path: str | os.PathLike | None = None) -> dict:
         raise ConfigError(f"configuration file {path!r} is a folder; give a .toml file") from None
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: invalid TOML: {exc}") from exc
+    except UnicodeDecodeError:  # TOML is UTF-8 text: a binary file (an .h5 given in place of the .toml)
+        raise ConfigError(f"configuration file {path!r} is not a TOML text file (it holds binary data: an HDF5 "
+                          "trajectory or surrogate given in place of the configuration?); give the .toml "
+                          "problem file, e.g. jaxsync simulate problem.toml") from None
+    except PermissionError:
+        raise ConfigError(f"configuration file {path!r} cannot be read (permission denied)") from None
     check_config(config, origin=path)
     if not packaged:
         base = os.path.dirname(path)
@@ -395,6 +401,9 @@ def _check_entry(value, spec, where: str, key: str, origin: str) -> None:
 def _time_function(entry: dict, where: str):
     t_ramp, t_off = entry.get("t_ramp"), entry.get("t_off")
     g = Ramp(float(t_ramp)) if t_ramp else Constant()
+    if ("times" in entry or "values" in entry) and "period" not in entry:
+        raise ConfigError(f"{where}: 'times' and 'values' give one period of a waveform: add its 'period' (s); "
+                          "without it the waveform would be ignored")
     if "period" in entry:
         if "times" not in entry or "values" not in entry:
             raise ConfigError(f"{where}: a periodic waveform needs 'times' and 'values'")
@@ -467,6 +476,11 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
                              damping=damping, t_ramp=float(prob.get("t_ramp", 1.0)),
                              t_off=None if t_off is None else float(t_off), material=material, element=element)
     else:  # "general"
+        cantilever_keys = [key for key in ("body_force", "t_ramp", "t_off") if key in prob]
+        if cantilever_keys:
+            raise ConfigError(f"[problem] {', '.join(cantilever_keys)}: only used with kind = \"cantilever\"; a "
+                              "general problem takes its loads from [[body_force]], [[pressure]] and [[traction]] "
+                              "tables (each with its own t_ramp, t_off...)")
         problem = Problem(mesh=mesh, material=material, damping=damping, element=element,
                           dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
                           loads=tuple(_loads(config)), supports=tuple(_supports(config)))
@@ -499,6 +513,9 @@ def _dirichlet(entry: dict, i: int) -> Dirichlet:
     # a history: value times the time function of t_ramp / period / t_off (none: constant)
     time = (_time_function(entry, f"[[dirichlet]] #{i}")
             if any(k in entry for k in ("t_ramp", "t_off", "period")) else None)
+    if "facet" in entry and "plane" in entry:
+        raise ConfigError(f"[[dirichlet]] #{i}: give one of 'facet' and 'plane', not both (one [[dirichlet]] "
+                          "entry per node set)")
     if "facet" in entry:
         return Dirichlet(str(entry["facet"]), value, components, time)
     if "plane" in entry:

@@ -40,8 +40,8 @@ import time
 import numpy as np
 
 __all__ = ["run_demo", "format_summary", "demo_defaults", "DemoDefaults", "DemoSettings", "SUMMARY_KEYS", "VESSEL_KEYS",
-           "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "install_folder",
-           "staging_folder", "retarget_paths"]
+           "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "check_demo_settings",
+           "install_folder", "staging_folder", "retarget_paths"]
 
 CASES = ("cantilever", "vessel")
 
@@ -274,6 +274,7 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
     save_every, mass_scaling_seconds = settings.save_every, settings.mass_scaling_seconds
     final = os.path.abspath(os.fspath(out))
     check_demo_output(final, force=force)  # before anything runs
+    check_demo_settings(d, save_every, seed=seed)  # every option, before the long synchronized run
     staging = staging_folder(final)
     try:
         summary = _pipeline(staging, final, d, case=case, size=size, seed=seed, save_every=save_every,
@@ -291,6 +292,54 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
                               f"{kept}") from exc
         raise
     return summary
+
+
+def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed: int = 0) -> None:
+    """Check every option of a demo run before anything runs (the synchronized run takes
+    minutes, on the vessel a quarter of an hour): the parts (2 or more: one part has no
+    shared nodes, nothing to predict), the steps, the training options (by building the
+    :class:`~jaxsync.surrogate.Sampling`, :class:`~jaxsync.surrogate.ArchitectureChoice`
+    and :class:`~jaxsync.surrogate.train.TrainConfig` the run will use), the snapshot
+    strides, that the trained leading part of the run holds one window of n_p + n_f
+    snapshots, and the error control's tolerance.
+
+    Raises:
+        ConfigError, ProblemError: the first option that cannot be used, named with its fix.
+    """
+    from ..errors import ConfigError
+    from ..solve.strategies import SaveAt
+    from ..solve.syncavoid import ResyncTolerance
+    from ..surrogate.architecture import ArchitectureChoice
+    from ..surrogate.data import Sampling, trained_rows
+    from ..surrogate.train import TrainConfig
+
+    def integer(value) -> bool:
+        return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+    if not integer(d.n_parts) or d.n_parts < 2:
+        raise ConfigError(f"the demo needs 2 parts or more, got {d.n_parts!r} (--parts): a 1-part run has no shared "
+                          "nodes, so there is nothing for the surrogates to predict; use --parts 2 or more")
+    if not integer(d.n_steps) or d.n_steps < 1:
+        raise ConfigError(f"n_steps must be an integer >= 1, got {d.n_steps!r} (--steps)")
+    Sampling(n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, train_fraction=d.train_fraction, seed=seed)
+    ArchitectureChoice(n_hidden=d.n_hidden, n_layers=d.n_layers)
+    TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma, n_epochs=d.epochs, n_candidates=d.n_candidates)
+    every = math.gcd(d.n_s, d.n_steps) if save_every is None else save_every
+    save = SaveAt(every, 1 if d.shared_every_step else every)
+    save.check_steps(d.n_steps)
+    n_cri, cycle = d.n_s * d.n_past, d.n_s * d.n_future
+    if d.n_s % save.shared_every or n_cri % save.every or cycle % save.every:
+        raise ConfigError(f"--save-every {save.every} must divide n_s = {d.n_s}, n_s n_p = {n_cri} and n_s n_f = "
+                          f"{cycle} (the synchronized run keeps the training data, and the predicted run its "
+                          "snapshots, at that stride); choose a divisor of n_s")
+    length, stride = d.n_past + d.n_future, d.n_s // save.shared_every
+    rows = trained_rows(d.n_steps // save.shared_every + 1, d.train_fraction)
+    if -(-rows // stride) < length:
+        raise ConfigError(f"{d.n_steps} steps give {-(-rows // stride)} training snapshots (every n_s = {d.n_s} steps "
+                          f"over the first {100 * d.train_fraction:g} % of the run), fewer than one window of "
+                          f"n_p + n_f = {length}; use more --steps, a larger --train-fraction or a smaller --n-s")
+    if d.resync_tolerance is not None:
+        ResyncTolerance.parse(d.resync_tolerance)
 
 
 def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_every, mass_scaling_seconds,
@@ -432,6 +481,10 @@ def check_demo_output(out: str, *, force: bool = False) -> None:
                               "replace them, or choose another folder with -o/--out")
     check_writable(out, what="demo folder", folder=True, option="-o/--out")
     check_writable(os.path.dirname(out), what="folder of the demo folder", folder=True, option="-o/--out")
+    from ..io import claim_output, claiming
+
+    if claiming():  # the command line: a second demo writing the same folder stops at once
+        claim_output(out, replace=force, folder=True)
 
 
 _STAGING = ".partial-"
@@ -441,8 +494,23 @@ _ASIDE = ".old-"
 def staging_folder(final: str) -> str:
     """A new, empty folder beside ``final`` for the run's files
     (``<name>.partial-<pid>@<host>.<random>``), after removing the staging and set-aside
-    folders of ``final`` left by runs on this host that are gone (killed hard)."""
-    return _new_folder_beside(final, _STAGING, clean=True)
+    folders of ``final`` left by runs on this host that are gone (killed hard).
+
+    Its permissions are those of the folder it replaces, or for a new one the usual
+    ones (``0o777`` less the umask, as :func:`os.makedirs` gives), with the owner's
+    always full (the run writes into it): not the ``0o700`` of :func:`tempfile.mkdtemp`,
+    which the folder would keep once renamed into place."""
+    import stat
+
+    staging = _new_folder_beside(final, _STAGING, clean=True)
+    if os.path.isdir(final):
+        mode = stat.S_IMODE(os.stat(final).st_mode)
+    else:
+        umask = os.umask(0)
+        os.umask(umask)
+        mode = 0o777 & ~umask
+    os.chmod(staging, mode | stat.S_IRWXU)
+    return staging
 
 
 def _new_folder_beside(final: str, marker: str, *, clean: bool = False) -> str:

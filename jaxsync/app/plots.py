@@ -99,8 +99,26 @@ def _resolve_one(mesh, spec) -> tuple[int, str]:
         xyz = None
     if xyz is None or xyz.shape != (3,) or not np.all(np.isfinite(xyz)):
         raise ConfigError(f"node {spec!r} is neither a node id nor finite coordinates (x, y, z)")
-    node = int(np.argmin(np.linalg.norm(mesh.points - xyz, axis=1)))
+    distance = np.linalg.norm(mesh.points - xyz, axis=1)
+    node = int(np.argmin(distance))
+    reach = _longest_edge(mesh)  # a point in or on the body is at most this far from a node
+    if distance[node] > reach:
+        lower, upper = mesh.points.min(axis=0), mesh.points.max(axis=0)
+        raise ConfigError("node ({:g}, {:g}, {:g}) is off the mesh: its nearest node {} is {:.4g} cm away, more than "
+                          "the longest element edge ({:.4g} cm); give coordinates on the body (its bounding box is "
+                          "({:g}, {:g}, {:g}) to ({:g}, {:g}, {:g}) cm) or a node id".format(
+                              *xyz, node, distance[node], reach, *lower, *upper))
     return node, "nearest to ({:g}, {:g}, {:g})".format(*xyz)
+
+
+def _longest_edge(mesh) -> float:
+    """The longest element edge [cm] of a mesh (or of a function space's mesh)."""
+    tets = getattr(getattr(mesh, "mesh", mesh), "tets", None)
+    points = getattr(mesh, "mesh", mesh).points
+    if tets is None or not len(tets):
+        return float("inf")
+    p = points[tets]
+    return float(max(np.linalg.norm(p[:, i] - p[:, j], axis=1).max() for i in range(4) for j in range(i + 1, 4)))
 
 
 def resolve_nodes(mesh, nodes) -> dict[str, int]:

@@ -166,6 +166,9 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--devices", type=int, default=None,
                         help="local devices to spread the parts over (default: as many as divide the part count)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    parser.add_argument("--force", action="store_true",
+                        help="replace the surrogate file, loss curves and summary of an earlier training in the "
+                             "output folder (without it the run is refused before it starts)")
     parser.set_defaults(func=run_train)
     return parser
 
@@ -176,13 +179,15 @@ def run_train(args: argparse.Namespace) -> int:
     Raises:
         ConfigError, CheckpointError: unusable options or trajectory files.
     """
-    from jaxsync.app.commands.common import check_outputs
+    from jaxsync.app.commands.common import check_outputs, refuse_to_overwrite
 
     # before any data is read: the folder (created if missing) and every file written into it
+    results = [os.path.join(args.output, name) for name in (args.surrogate_name, LOSS_CURVES_NAME, SUMMARY_NAME)]
     check_outputs((args.output, "output folder", "-o", True),
                   *((os.path.join(args.output, name), "output", "-o" if name != args.surrogate_name
                      else "-o/--surrogate-name")
                     for name in (args.surrogate_name, LOSS_CURVES_NAME, SUMMARY_NAME, STATE_NAME)))
+    refuse_to_overwrite(results, force=args.force, inputs=args.trajectories, options="-o/--surrogate-name")
     state = TrainingState(args.output, every=args.state_every) if args.state_every else None
     if args.model == "lstm" and state is not None and os.path.exists(state.path):
         print(f"resuming from the training state {state.path}")

@@ -15,17 +15,9 @@ lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem o
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """
 
-from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
-from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
-from .geometry import vessel_mesh
-from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
-from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
-from .material import LinearElastic
-from .mesh import Mesh, MeshWarning, box_beam, read_mesh
-from .problem import Dirichlet, Problem, cantilever
-from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
-from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
-from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
+from typing import TYPE_CHECKING
+
+from ..lazy import export_lazily
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh",
            "coronary_tree", "CoronaryTree", "VesselSegment", "LinearElastic",
@@ -35,3 +27,31 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
            "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements"]
+
+# where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    ".coronary": ("DEFAULT_WAVEFORM", "coronary", "coronary_waveform"),
+    ".coronary_tree": ("CoronaryTree", "VesselSegment", "coronary_mesh", "coronary_tree"),
+    ".geometry": ("vessel_mesh",),
+    ".hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
+    ".loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Product", "Ramp", "StepOff", "TimeFunction"),
+    ".material": ("LinearElastic",),
+    ".mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
+    ".problem": ("Dirichlet", "Problem", "cantilever"),
+    ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
+    ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
+    ".total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
+})
+
+if TYPE_CHECKING:
+    from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
+    from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
+    from .geometry import vessel_mesh
+    from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
+    from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
+    from .material import LinearElastic
+    from .mesh import Mesh, MeshWarning, box_beam, read_mesh
+    from .problem import Dirichlet, Problem, cantilever
+    from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
+    from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt

@@ -83,6 +83,9 @@ def coronary_waveform(samples=None, *, period: float = CORONARY_PERIOD,
     times, values = _samples(DEFAULT_WAVEFORM if samples is None else samples)
     if not float(period) > 0:
         raise ProblemError(f"coronary waveform: the period must be positive, got {period} s")
+    if not float(t_ramp) > 0:  # named here: the user gave t_ramp, not a Ramp
+        raise ProblemError(f"coronary waveform: t_ramp (the initial ramp's duration) must be positive, got "
+                           f"{t_ramp} s")
     return Ramp(float(t_ramp)) * Periodic(times, values, float(period))
 
 

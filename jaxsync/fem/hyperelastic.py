@@ -40,6 +40,7 @@ import numpy as np
 from ..errors import MaterialError
 from ..pytree import concrete_scalar, pytree_dataclass
 from .material import first_lame, shear_modulus
+from .parameter_checks import check_number
 
 __all__ = ["NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "HYPERELASTIC",
            "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters"]
@@ -103,11 +104,9 @@ def _tangent(material, F, fibres):
     return A.reshape(F.shape + (3, 3))
 
 
-def _check_positive(**values) -> None:
+def _check_positive(law: str = "", **values) -> None:
     for name, value in values.items():
-        v = concrete_scalar(value)
-        if v is not None and not v > 0:
-            raise MaterialError(f"{name} must be positive, got {name}={v}")
+        check_number(value, f"{law}.{name}" if law else name, error=MaterialError, above=0.0)
 
 
 def _check_numbers(material) -> None:
@@ -117,12 +116,10 @@ def _check_numbers(material) -> None:
 
 
 def _check_young_poisson(E, nu, rho, *, law: str) -> None:
-    _check_positive(E=E, rho=rho)
-    v = concrete_scalar(nu)
-    if v is not None and not -1.0 < v < 0.5:
-        raise MaterialError(f"{law}: the Poisson ratio must satisfy -1 < nu < 0.5, got nu={v} (nu = 0.5 has no "
-                            "finite bulk modulus; for nearly incompressible tissue use nu = 0.49 to 0.499 with "
-                            "P2 elements)")
+    _check_positive(law, E=E, rho=rho)
+    check_number(nu, f"{law}.nu (Poisson ratio)", error=MaterialError, above=-1.0, below=0.5,
+                 hint="-1 < nu < 0.5; nu = 0.5 has no finite bulk modulus; for nearly incompressible tissue "
+                      "use nu = 0.49 to 0.499 with P2 elements")
 
 
 class _SmallStrain:
@@ -283,11 +280,10 @@ class HolzapfelGasserOgden:
 
     def __post_init__(self):
         _check_numbers(self)
-        _check_positive(mu=self.mu, k2=self.k2, kappa_bulk=self.kappa_bulk, rho=self.rho)
-        k1 = concrete_scalar(self.k1)
-        if k1 is not None and not k1 >= 0:
-            raise MaterialError(f"HolzapfelGasserOgden: the fibre stiffness must be >= 0, got k1={k1} "
-                                "(k1 = 0 leaves the neo-Hookean ground matrix alone)")
+        _check_positive("HolzapfelGasserOgden", mu=self.mu, k2=self.k2, kappa_bulk=self.kappa_bulk, rho=self.rho)
+        check_number(self.k1, "HolzapfelGasserOgden.k1 (fibre stiffness)", error=MaterialError, at_least=0.0,
+                     unit="dyn/cm^2", hint="k1 = 0 leaves the neo-Hookean ground matrix alone")
+        check_number(self.dispersion, "HolzapfelGasserOgden.dispersion", error=MaterialError)
         kappa = concrete_scalar(self.dispersion)
         if kappa is not None and not 0.0 <= kappa <= 1.0 / 3.0:
             raise MaterialError(f"HolzapfelGasserOgden: the fibre dispersion must satisfy 0 <= kappa <= 1/3, got "

@@ -76,12 +76,20 @@ def _max_stable_dt(problem):
     return max_stable_dt(problem)
 
 
-def _finite_strain(problem):
-    """The total-Lagrangian model when the problem's material is hyperelastic, else None."""
+def _finite_strain(problem, model=None):
+    """The total-Lagrangian model when the problem's material is hyperelastic, else None;
+    a setting of ``model`` that only a stored stiffness has (float32 blocks) is refused."""
     from .hyperelastic import is_hyperelastic
 
     if not is_hyperelastic(problem.material):
         return None
+    if getattr(model, "blocks_dtype", "float64") != "float64":
+        from ..errors import ProblemError
+
+        law = type(problem.material).__name__
+        raise ProblemError(f"float32 stiffness blocks store the K of a linear law; the {law} "
+                           "law has none (every mode runs the total-Lagrangian force): leave out blocks_dtype / "
+                           "--float32-blocks")
     from .total_lagrangian import TotalLagrangian
 
     return TotalLagrangian()
@@ -171,7 +179,7 @@ class Preassembled:
         the neighbours much closer (:func:`jaxsync.fem.sparse.bandwidth_order`)."""
         from .sparse import bandwidth_order, permuted_block_ell
 
-        if (tl := _finite_strain(problem)) is not None:  # no K of a nonlinear law: module docstring
+        if (tl := _finite_strain(problem, self)) is not None:  # no K of a nonlinear law: module docstring
             return tl.operator(problem)
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
         if self.layout == "ell":
@@ -187,7 +195,7 @@ class Preassembled:
         groups and group sizes in every part. Each part's rows are in its local order
         (:class:`jaxsync.parallel.layout.PartLayout` orders the local nodes by reverse
         Cuthill-McKee)."""
-        if (tl := _finite_strain(problem)) is not None:
+        if (tl := _finite_strain(problem, self)) is not None:
             return tl.part_operators(problem, parts, n_local)
         columns, K_lambda, K_mu = _part_unit_blocks(problem.space, parts, n_local)
         return self._stiffness(problem.material, columns, K_lambda, K_mu)
@@ -238,7 +246,7 @@ class Preassembled:
 
     def max_stable_dt(self, problem):
         """The exact bound 2 / omega_max of M^-1 K [s] (:func:`jaxsync.fem.timestep.max_stable_dt`)."""
-        if (tl := _finite_strain(problem)) is not None:
+        if (tl := _finite_strain(problem, self)) is not None:
             return tl.max_stable_dt(problem)
         return _max_stable_dt(problem)
 
@@ -255,7 +263,7 @@ class ElementRecompute:
         """:class:`~jaxsync.fem.element_force.ElementStiffness` of the whole mesh."""
         from .element_force import ElementStiffness
 
-        if (tl := _finite_strain(problem)) is not None:
+        if (tl := _finite_strain(problem, self)) is not None:
             return tl.operator(problem)
         _check_p1(problem)
         mesh, m = problem.mesh, problem.material
@@ -267,7 +275,7 @@ class ElementRecompute:
         leading part axis; padding elements repeat the part's element 0 with weight 0."""
         from .element_force import ElementStiffness
 
-        if (tl := _finite_strain(problem)) is not None:
+        if (tl := _finite_strain(problem, self)) is not None:
             return tl.part_operators(problem, parts, n_local)
         _check_p1(problem)
         n_parts = len(parts)
@@ -286,7 +294,7 @@ class ElementRecompute:
 
     def max_stable_dt(self, problem):
         """The same bound as :class:`Preassembled` (the same K)."""
-        if (tl := _finite_strain(problem)) is not None:
+        if (tl := _finite_strain(problem, self)) is not None:
             return tl.max_stable_dt(problem)
         return _max_stable_dt(problem)
 

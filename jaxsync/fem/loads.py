@@ -16,6 +16,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..pytree import concrete_scalar, is_traced, pytree_dataclass, static_field
+from .parameter_checks import check_finite_array, check_number
 
 __all__ = ["TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "load_jumps", "LOAD_JUMP_FRACTION",
            "BodyForce", "Pressure", "Traction", "LOADS"]
@@ -48,9 +49,7 @@ class Ramp(TimeFunction):
     t_end: float = 1.0
 
     def __post_init__(self):
-        t_end = concrete_scalar(self.t_end)
-        if t_end is not None and not t_end > 0:
-            raise ProblemError(f"Ramp needs t_end > 0, got {self.t_end}; use Constant() for no ramp")
+        check_number(self.t_end, "Ramp.t_end", above=0.0, unit="s", hint="use Constant() for no ramp")
 
     def __call__(self, t):
         return jnp.clip(jnp.asarray(t, dtype=float) / self.t_end, 0.0, 1.0)
@@ -62,6 +61,13 @@ class StepOff(TimeFunction):
 
     t_off: float
     inner: Any = Constant()
+
+    def __post_init__(self):
+        check_number(self.t_off, "StepOff.t_off", above=0.0, unit="s",
+                     hint="a load switched off at t <= 0 never acts: leave it out instead")
+        if not isinstance(self.inner, TimeFunction) and not _placeholder(self.inner):
+            raise ProblemError(f"StepOff.inner must be a time function (jaxsync.Ramp, Constant...), got "
+                               f"{self.inner!r}")
 
     def __call__(self, t):
         t = jnp.asarray(t, dtype=float)
@@ -84,8 +90,11 @@ class Periodic(TimeFunction):
     period: float
 
     def __post_init__(self):
+        check_number(self.period, "Periodic.period", above=0.0, unit="s")
         if concrete_scalar(self.period) is None or is_traced(self.times, self.values):
             return
+        check_finite_array(self.times, "Periodic.times")
+        check_finite_array(self.values, "Periodic.values")
         times, values = np.asarray(self.times, float), np.asarray(self.values, float)
         if times.ndim != 1 or times.shape != values.shape or len(times) < 2:
             raise ProblemError("Periodic needs 1-D times and values of the same length >= 2, "
@@ -113,6 +122,12 @@ class Product(TimeFunction):
 
     factors: tuple
 
+    def __post_init__(self):
+        object.__setattr__(self, "factors", tuple(self.factors))
+        bad = [f for f in self.factors if not isinstance(f, TimeFunction) and not _placeholder(f)]
+        if bad or not self.factors:
+            raise ProblemError(f"Product needs one or more time functions, got {self.factors!r}")
+
     def __call__(self, t):
         out = self.factors[0](t)
         for g in self.factors[1:]:
@@ -133,8 +148,8 @@ class BodyForce:
     time: Any = Ramp(1.0)
 
     def __post_init__(self):
-        if isinstance(self.vector, (tuple, list)) and len(self.vector) != 3:
-            raise ProblemError(f"BodyForce.vector must have 3 components, got {self.vector!r}")
+        check_finite_array(self.vector, "BodyForce.vector [dyn/cm^3]", length=3)
+        _check_time(self.time, "BodyForce")
 
 
 @pytree_dataclass
@@ -159,6 +174,10 @@ class Pressure:
     def __post_init__(self):
         if not isinstance(self.follower, (bool, np.bool_)):
             raise ProblemError(f"Pressure.follower must be True or False, got {self.follower!r}")
+        if not isinstance(self.surface, str):
+            raise ProblemError(f"Pressure.surface must be the name of a facet set, got {self.surface!r}")
+        check_number(self.magnitude, "Pressure.magnitude", unit="barye")
+        _check_time(self.time, "Pressure")
 
 
 @pytree_dataclass
@@ -175,8 +194,21 @@ class Traction:
     surface: str = static_field(default="traction")
 
     def __post_init__(self):
-        if isinstance(self.vector, (tuple, list)) and len(self.vector) != 3:
-            raise ProblemError(f"Traction.vector must have 3 components (dyn/cm^2), got {self.vector!r}")
+        check_finite_array(self.vector, "Traction.vector [dyn/cm^2]", length=3)
+        if not isinstance(self.surface, str):
+            raise ProblemError(f"Traction.surface must be the name of a facet set, got {self.surface!r}")
+        _check_time(self.time, "Traction")
+
+
+def _placeholder(value) -> bool:
+    """A leaf JAX puts in a rebuilt pytree (None, object(), a tracer or an array)."""
+    return value is None or type(value) is object or hasattr(value, "shape")
+
+
+def _check_time(time, load: str) -> None:
+    if not isinstance(time, TimeFunction) and not _placeholder(time):
+        raise ProblemError(f"{load}.time must be a time function (jaxsync.Ramp(t_end), Constant(), StepOff, "
+                           f"Periodic, or a product of them), got {time!r}")
 
 
 LOADS = (BodyForce, Pressure, Traction)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ..errors import MaterialError
-from ..pytree import concrete_scalar, pytree_dataclass
+from ..pytree import pytree_dataclass
+from .parameter_checks import check_number
 
 __all__ = ["LinearElastic", "shear_modulus", "first_lame"]
 
@@ -39,18 +40,10 @@ class LinearElastic:
     rho: float = 1.0
 
     def __post_init__(self):
-        E, nu, rho = (concrete_scalar(v) for v in (self.E, self.nu, self.rho))
-        if E is not None and not E > 0:
-            raise MaterialError(f"Young's modulus must be positive, got E={E}")
-        if rho is not None and not rho > 0:
-            raise MaterialError(f"density must be positive, got rho={rho}")
-        if nu is not None and not -1.0 < nu < 0.5:
-            raise MaterialError(
-                f"Poisson ratio must satisfy -1 < nu < 0.5, got nu={nu} "
-                "(nu = 0.5 is incompressible, which linear P1 elements cannot represent)")
-        for name, value in (("E", self.E), ("nu", self.nu), ("rho", self.rho)):
-            if isinstance(value, str):
-                raise MaterialError(f"material parameter {name} must be a number, got {value!r}")
+        check_number(self.E, "LinearElastic.E (Young's modulus)", error=MaterialError, above=0.0, unit="dyn/cm^2")
+        check_number(self.rho, "LinearElastic.rho (density)", error=MaterialError, above=0.0, unit="g/cm^3")
+        check_number(self.nu, "LinearElastic.nu (Poisson ratio)", error=MaterialError, above=-1.0, below=0.5,
+                     hint="-1 < nu < 0.5; nu = 0.5 is incompressible, which linear P1 elements cannot represent")
 
     @property
     def mu(self):

@@ -35,6 +35,12 @@ class MeshWarning(UserWarning):
 class Mesh:
     """A mesh of linear (4-node) tetrahedra.
 
+    Building one checks its arrays as a file's are checked (:class:`MeshError` naming the
+    element or node: wrong shapes, non-finite coordinates, out-of-range indices, repeated
+    nodes, zero-volume or inverted elements, nodes used by no element, facets off the node
+    list). It repairs nothing: :meth:`from_arrays` (and :func:`read_mesh` for files)
+    re-orients inverted elements and drops unused nodes, with a :class:`MeshWarning`.
+
     Attributes:
         points: (n_nodes, 3) float64 node coordinates [cm].
         tets: (n_elements, 4) int64 node indices, positively oriented.
@@ -56,12 +62,32 @@ class Mesh:
     mid_nodes: np.ndarray | None = None
 
     def __post_init__(self):
-        points = np.ascontiguousarray(self.points, dtype=np.float64)
-        tets = np.ascontiguousarray(self.tets, dtype=np.int64)
-        facets = {str(k): np.ascontiguousarray(v, dtype=np.int64).reshape(-1, 3)
-                  for k, v in dict(self.facet_sets).items()}
+        # the checks of every route to a mesh (files, folders, arrays); repairs are explicit:
+        # Mesh.from_arrays / read_mesh re-orient inverted elements and drop unused nodes
+        points, tets, vol = _checked_arrays(self.points, self.tets, origin="Mesh")
+        inverted = np.flatnonzero(vol < 0)
+        if inverted.size:
+            e = int(inverted[0])
+            raise MeshError(
+                f"Mesh: element {e} (nodes {tets[e].tolist()}) is inverted (negative volume {vol[e]:.3e}; "
+                f"{inverted.size} such elements): list each element's nodes in right-handed order, or build the "
+                "mesh with jaxsync.Mesh.from_arrays(points, tets, facet_sets), which re-orients them (as "
+                "jaxsync.read_mesh does for files)")
+        used = np.zeros(len(points), dtype=bool)
+        used[tets.ravel()] = True
+        if not used.all():
+            unused = np.flatnonzero(~used)
+            raise MeshError(
+                f"Mesh: {unused.size} nodes are used by no element (first: node {int(unused[0])}); they would "
+                "have no mass: remove them, or build the mesh with jaxsync.Mesh.from_arrays(points, tets, "
+                "facet_sets), which drops them and renumbers (as jaxsync.read_mesh does for files)")
+        points, tets = np.ascontiguousarray(points), np.ascontiguousarray(tets)
+        facets = {k: np.ascontiguousarray(v) for k, v in _checked_facets(self.facet_sets, len(points),
+                                                                           "Mesh").items()}
         src = (np.arange(len(points), dtype=np.int64) if self.source_node_ids is None
                else np.asarray(self.source_node_ids, dtype=np.int64))
+        if src.shape != (len(points),):
+            raise MeshError(f"Mesh: source_node_ids must have shape ({len(points)},), one per node, got {src.shape}")
         mids = None
         if self.mid_nodes is not None:
             mids = np.ascontiguousarray(self.mid_nodes, dtype=np.float64)
@@ -130,6 +156,22 @@ class Mesh:
             )
         return self.facet_sets[name]
 
+    @classmethod
+    def from_arrays(cls, points, tets, facet_sets=None) -> "Mesh":
+        """A mesh from raw arrays, checked and repaired as :func:`read_mesh` does a file's:
+        inverted elements re-oriented and unused nodes dropped (each with a
+        :class:`MeshWarning`; ``source_node_ids`` maps the new numbering to the arrays'),
+        and warnings for coincident nodes and disconnected pieces
+        (:func:`jaxsync.fem.mesh.validated_mesh`). The constructor ``Mesh(points, tets)``
+        runs the same checks but repairs nothing: it refuses such arrays.
+
+        Args:
+            points: (n_nodes, 3) coordinates [cm].
+            tets: (n_elements, 4) node indices.
+            facet_sets: name -> (n_facets, 3) node triples of boundary triangles.
+        """
+        return validated_mesh(points, tets, facet_sets, origin="Mesh.from_arrays")
+
     def __repr__(self) -> str:
         names = ", ".join(f"{k}: {len(v)}" for k, v in self.facet_sets.items())
         return f"Mesh(n_nodes={self.n_nodes}, n_elements={self.n_elements}, facet_sets={{{names}}})"
@@ -142,26 +184,22 @@ def tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     return np.einsum("ij,ij->i", a, np.cross(b, c)) / 6.0
 
 
-def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origin="mesh",
-                   mid_nodes=None, mid_node_ids=None) -> Mesh:
-    """Check and repair raw arrays into a :class:`Mesh`.
-
-    Errors (:class:`MeshError`) for: no tetrahedra, wrong shapes, non-finite coordinates,
-    out-of-range indices, repeated nodes within an element, zero-volume elements.
-    Repairs (with a :class:`MeshWarning`): inverted elements are re-oriented; nodes used
-    by no element are dropped and the remaining nodes renumbered (``source_node_ids``
-    keeps the original numbering; facet sets are renumbered too).
-
-    ``mid_nodes``: a quadratic mesh's edge nodes (:attr:`Mesh.mid_nodes`), kept aligned
-    with re-oriented elements; ``mid_node_ids``: the nodes that are edge nodes (dropped
-    from the vertex mesh without a warning).
-    """
-    points = np.asarray(points, dtype=np.float64)
+def _checked_arrays(points, tets, *, origin: str = "mesh") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points float64 (n_nodes, 3), tets int64 (n_elements, 4), signed volumes
+    (n_elements,)) of raw arrays, or :class:`MeshError` for what cannot be repaired: no
+    tetrahedra, wrong shapes or types, non-finite coordinates, out-of-range indices,
+    repeated nodes within an element, zero-volume elements. The one check of every route
+    to a :class:`Mesh` (files, folders, arrays, trajectories)."""
+    try:
+        points = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise MeshError(f"{origin}: points must be an (n_nodes, 3) array of numbers ({exc})") from None
     tets = np.asarray(tets)
     if points.ndim != 2 or points.shape[1] not in (2, 3):
         raise MeshError(f"{origin}: points must have shape (n_nodes, 3), got {points.shape}")
     if points.shape[1] == 2:
-        raise MeshError(f"{origin}: points are 2-D; jaxsync needs a 3-D tetrahedral mesh")
+        raise MeshError(f"{origin}: points are 2-D (shape {points.shape}); jaxsync needs a 3-D tetrahedral mesh: "
+                        "give three coordinates per node")
     if tets.size == 0:
         raise MeshError(
             f"{origin}: the mesh has no tetrahedra; export a 3-D volume mesh "
@@ -176,7 +214,7 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
     if bad_points.size:
         raise MeshError(
             f"{origin}: node {bad_points[0]} has non-finite coordinates {points[bad_points[0]]} "
-            f"({bad_points.size} such nodes); fix the mesh file"
+            f"({bad_points.size} such nodes); fix the mesh file or the coordinate array"
         )
     out_of_range = np.flatnonzero(((tets < 0) | (tets >= len(points))).any(axis=1))
     if out_of_range.size:
@@ -206,20 +244,61 @@ def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origi
             f"{origin}: element {e} (nodes {tets[e].tolist()}) has zero volume "
             f"({vol[e]:.3e}); {int(tiny.sum())} degenerate elements in all: remesh or remove them"
         )
+    return points, tets, vol
+
+
+def _checked_facets(facet_sets, n_nodes: int, origin: str) -> dict[str, np.ndarray]:
+    """name -> (n_facets, 3) int64 of ``facet_sets``, or :class:`MeshError` for a set that
+    is not triangles of the mesh's nodes."""
+    facets = {}
+    for name, tri in dict(facet_sets or {}).items():
+        tri = np.asarray(tri)
+        if tri.size and not np.issubdtype(tri.dtype, np.integer):
+            raise MeshError(f"{origin}: facet set {name!r} must hold integer node indices, got {tri.dtype}")
+        if tri.size % 3 or (tri.ndim == 2 and tri.shape[1] != 3) or tri.ndim > 2:
+            raise MeshError(f"{origin}: facet set {name!r} must have shape (n_facets, 3) (node triples), got "
+                            f"{tri.shape}")
+        tri = tri.astype(np.int64).reshape(-1, 3)
+        bad = np.flatnonzero(((tri < 0) | (tri >= n_nodes)).any(axis=1))
+        if bad.size:
+            raise MeshError(f"{origin}: facet {bad[0]} of the set {name!r} refers to node indices "
+                            f"{tri[bad[0]].tolist()} outside 0..{n_nodes - 1}; the facet set does not match "
+                            "the node list")
+        facets[str(name)] = tri
+    return facets
+
+
+def validated_mesh(points, tets, facet_sets=None, source_node_ids=None, *, origin="mesh",
+                   mid_nodes=None, mid_node_ids=None) -> Mesh:
+    """Check and repair raw arrays into a :class:`Mesh` (what :func:`read_mesh` does with
+    a file's arrays; also :meth:`Mesh.from_arrays`).
+
+    Errors (:class:`MeshError`) for: no tetrahedra, wrong shapes, non-finite coordinates,
+    out-of-range indices, repeated nodes within an element, zero-volume elements.
+    Repairs (with a :class:`MeshWarning`): inverted elements are re-oriented; nodes used
+    by no element are dropped and the remaining nodes renumbered (``source_node_ids``
+    keeps the original numbering; facet sets are renumbered too). Warnings for coincident
+    nodes that cut the mesh and for disconnected pieces.
+
+    ``mid_nodes``: a quadratic mesh's edge nodes (:attr:`Mesh.mid_nodes`), kept aligned
+    with re-oriented elements; ``mid_node_ids``: the nodes that are edge nodes (dropped
+    from the vertex mesh without a warning).
+    """
+    points, tets, vol = _checked_arrays(points, tets, origin=origin)
     inverted = vol < 0
     if mid_nodes is not None:
         mid_nodes = np.array(mid_nodes, dtype=np.float64)
     if inverted.any():
         tets = tets.copy()
         tets[inverted] = tets[inverted][:, [0, 2, 1, 3]]
-        if mid_nodes is not None:  # swapping vertices 1 and 2 permutes the edges
+        if mid_nodes is not None and mid_nodes.shape == (len(tets), 6, 3):  # swapping vertices 1, 2 permutes edges
             mid_nodes[inverted] = mid_nodes[inverted][:, [2, 1, 0, 3, 5, 4]]
         warnings.warn(
             f"{origin}: {int(inverted.sum())} inverted elements (negative volume) were "
             f"re-oriented, first: element {int(np.flatnonzero(inverted)[0])}",
             MeshWarning, stacklevel=3,
         )
-    facet_sets = {k: np.asarray(v, dtype=np.int64).reshape(-1, 3) for k, v in (facet_sets or {}).items()}
+    facet_sets = _checked_facets(facet_sets, len(points), origin)
     src = np.arange(len(points)) if source_node_ids is None else np.asarray(source_node_ids)
     used = np.zeros(len(points), dtype=bool)
     used[tets.ravel()] = True
@@ -431,6 +510,12 @@ def read_mesh(path: str | os.PathLike, *, faces=None) -> Mesh:
     if tet_blocks["tetra"] and tet_blocks["tetra10"]:
         raise MeshError(f"{path}: the file mixes linear (tetra) and quadratic (tetra10) tetrahedra; export "
                         "one order")
+    others = sorted({b.type for b in raw.cells if b.type in _UNSUPPORTED_3D})
+    if others:  # dropping them would silently cut the body
+        count = sum(len(b.data) for b in raw.cells if b.type in _UNSUPPORTED_3D)
+        raise MeshError(f"{path}: the file holds {count} volume cells that are not tetrahedra ({', '.join(others)}) "
+                        "beside its tetrahedra; jaxsync solves on tetrahedra only: split them into tetrahedra "
+                        "(in gmsh: Mesh.SubdivisionAlgorithm = 0 and tetrahedral meshing) and export again")
     mid_nodes = mid_node_ids = None
     if tet_blocks["tetra10"]:
         cells = np.concatenate(tet_blocks["tetra10"], axis=0)
@@ -599,11 +684,20 @@ def box_beam(length: float = 25.0, width: float = 1.0, height: float = 1.0,
     """
     from skfem import MeshTet
 
-    nx, ny, nz = (int(n) for n in divisions)
-    if min(nx, ny, nz) < 1:
-        raise MeshError(f"box_beam divisions must be >= 1 along each axis, got {divisions}")
-    if min(length, width, height) <= 0:
-        raise MeshError(f"box_beam dimensions must be positive, got {(length, width, height)}")
+    try:
+        counts = [float(n) for n in divisions]
+    except (TypeError, ValueError):
+        counts = []
+    if len(counts) != 3 or any(isinstance(n, (bool, np.bool_)) for n in divisions) or not all(
+            np.isfinite(n) and n == int(n) and n >= 1 for n in counts):
+        raise MeshError(f"box_beam divisions must be three whole numbers >= 1 (cells along x, y, z), got {divisions!r}")
+    nx, ny, nz = (int(n) for n in counts)
+    try:
+        sizes = [float(v) for v in (length, width, height)]
+    except (TypeError, ValueError):
+        sizes = [float("nan")]
+    if not all(np.isfinite(v) and v > 0 for v in sizes):
+        raise MeshError(f"box_beam dimensions must be positive finite lengths [cm], got {(length, width, height)}")
     m = MeshTet.init_tensor(np.linspace(0, length, nx + 1), np.linspace(0, width, ny + 1),
                             np.linspace(0, height, nz + 1))
     points, tets = m.p.T.copy(), m.t.T.copy()

@@ -22,6 +22,7 @@ from .hyperelastic import is_hyperelastic
 from .loads import LOADS, BodyForce, Pressure, Ramp, StepOff, TimeFunction, Traction
 from .material import LinearElastic
 from .mesh import Mesh, box_beam
+from .parameter_checks import check_finite_array, check_number
 from .support import ElasticSupport
 
 __all__ = ["Dirichlet", "Problem", "cantilever", "LockingWarning", "LOCKING_NU"]
@@ -48,6 +49,23 @@ class Dirichlet:
     value: Sequence[float] = (0.0, 0.0, 0.0)
     components: Sequence[int] = (0, 1, 2)
     time: TimeFunction | None = None
+
+    def __post_init__(self):
+        if not isinstance(self.where, str) and not callable(self.where):
+            raise ProblemError(f"Dirichlet.where must be a facet-set name or a predicate, got {self.where!r}")
+        check_finite_array(self.value, "Dirichlet.value [cm]", length=3)
+        if not is_traced(self.value) and np.shape(self.value) not in ((), (3,)):
+            raise ProblemError(f"Dirichlet.value must have 3 components (x, y, z) [cm] or be one number for all, got "
+                               f"shape {np.shape(self.value)}")
+        try:
+            comps = [int(c) for c in np.atleast_1d(np.asarray(self.components))]
+        except (TypeError, ValueError):
+            comps = None
+        if comps is None or not comps or any(c not in (0, 1, 2) for c in comps):
+            raise ProblemError(f"Dirichlet.components must be among 0, 1, 2 (x, y, z), got {self.components!r}")
+        if self.time is not None and not isinstance(self.time, TimeFunction):
+            raise ProblemError(f"Dirichlet.time must be a time function (jaxsync.Ramp, Periodic...), "
+                               f"got {self.time!r}")
 
     def nodes(self, space) -> np.ndarray:
         """Indices of the constrained nodes of a :class:`~jaxsync.fem.space.FunctionSpace`
@@ -112,9 +130,10 @@ class Problem:
             raise ProblemError(f"Problem.material must be a jaxsync.LinearElastic or a hyperelastic law "
                                f"(jaxsync.NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden), got "
                                f"{type(self.material).__name__}")
-        object.__setattr__(self, "dirichlet", tuple(self.dirichlet))
-        object.__setattr__(self, "loads", tuple(self.loads))
-        object.__setattr__(self, "supports", tuple(self.supports))
+        for name in ("dirichlet", "loads", "supports"):  # one entry given alone counts as a list of one
+            value = getattr(self, name)
+            object.__setattr__(self, name, (value,) if isinstance(value, (Dirichlet, ElasticSupport) + LOADS)
+                               else tuple(value))
         for load in self.loads:
             if not isinstance(load, LOADS):
                 raise ProblemError(f"unknown load {load!r}: use jaxsync.BodyForce, jaxsync.Pressure or "
@@ -131,8 +150,7 @@ class Problem:
             if not isinstance(support, ElasticSupport):
                 raise ProblemError(f"unknown support {support!r}: use jaxsync.ElasticSupport")
             self.mesh.facet_set(support.surface)
-        if not is_traced(self.damping) and not float(self.damping) >= 0:
-            raise ProblemError(f"damping alpha must be >= 0, got {self.damping}")
+        check_number(self.damping, "Problem.damping (mass-proportional alpha)", at_least=0.0, unit="1/s")
         from .space import function_space
 
         if self.element is None:
@@ -144,6 +162,8 @@ class Problem:
             value = getattr(self, name)
             if value is not None and np.shape(value) != (n, 3):
                 raise ProblemError(f"{name} must have shape ({n}, 3), got {np.shape(value)}")
+            if value is not None:
+                check_finite_array(value, f"Problem.{name}")
         if self.density_scale is not None:
             scale = np.asarray(self.density_scale, dtype=float)
             if scale.shape != (self.mesh.n_elements,) or not np.all(scale > 0):
@@ -153,6 +173,9 @@ class Problem:
                 or self.operators.space is not self.space):
             object.__setattr__(self, "operators", assemble_unit_operators(self.space))
         self.dirichlet_dofs()  # validate eagerly
+        from .rigid_body import warn_about_free_motion
+
+        warn_about_free_motion(self, stacklevel=4)
 
     @property
     def space(self):
@@ -295,26 +318,22 @@ class Problem:
         ``times[l]`` its time function. Follower pressures, whose forces depend on the
         displacement, are not among them (:mod:`jaxsync.fem.follower`).
         """
+        loads = [load for load in self.loads if not (isinstance(load, Pressure) and load.follower)]
+        return [self.load_vector(load) for load in loads], [load.time for load in loads]
+
+    def load_vector(self, load):
+        """(n_nodes, 3) nodal force of one load of this problem's kind at full magnitude,
+        on the reference configuration (for a follower pressure: its forces at rest)."""
         import jax.numpy as jnp
 
-        vectors, times = [], []
-        unit_body = None
-        for load in self.loads:
-            if isinstance(load, Pressure) and load.follower:
-                continue
-            if isinstance(load, BodyForce):
-                if unit_body is None:
-                    unit_body = self._memo("body force", lambda: body_force_vectors(self.space))
-                vec = jnp.einsum("dnc,d->nc", unit_body, jnp.asarray(load.vector, dtype=float))
-            elif isinstance(load, Traction):
-                unit = self._memo(("traction", load.surface), lambda s=load.surface: traction_vectors(self.space, s))
-                vec = jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
-            else:
-                unit = self._memo(("pressure", load.surface), lambda s=load.surface: pressure_vector(self.space, s))
-                vec = load.magnitude * jnp.asarray(unit)
-            vectors.append(vec)
-            times.append(load.time)
-        return vectors, times
+        if isinstance(load, BodyForce):
+            unit = self._memo("body force", lambda: body_force_vectors(self.space))
+            return jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
+        if isinstance(load, Traction):
+            unit = self._memo(("traction", load.surface), lambda s=load.surface: traction_vectors(self.space, s))
+            return jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
+        unit = self._memo(("pressure", load.surface), lambda s=load.surface: pressure_vector(self.space, s))
+        return load.magnitude * jnp.asarray(unit)
 
     def _memo(self, key, compute):
         """A material-independent array of this mesh, computed once (the operators' memo)."""
@@ -329,12 +348,13 @@ class Problem:
 
         return self.material.rho * lumped_mass(self.space, self.density_scale)
 
-    def summary(self) -> str:
-        """A few lines describing the problem."""
+    def summary(self, dt=None) -> str:
+        """A few lines describing the problem; ``dt``: the step a run uses instead of the
+        default [s], named in the last line."""
         dofs, _ = self.dirichlet_dofs()
         m = self.material
         try:
-            step = self.time_step.describe()
+            step = self.time_step.describe(dt)
         except ProblemError:  # traced nu
             step = "time step: traced"
         moving = sum(bc.time is not None for bc in self.dirichlet)
@@ -390,7 +410,11 @@ def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping
     material = LinearElastic(1.0e6, 0.3, 1.0) if material is None else material
     x0 = float(mesh.points[:, 0].min())
     tol = 1e-8 * float(np.ptp(mesh.points[:, 0]))
-    clamp = Dirichlet(where=lambda p: np.abs(p[:, 0] - x0) <= tol)
+
+    def nodes_at_min_x(p):
+        return np.abs(p[:, 0] - x0) <= tol
+
+    clamp = Dirichlet(where=nodes_at_min_x)
     time = Ramp(t_ramp) if t_off is None else StepOff(t_off, Ramp(t_ramp))
     return Problem(mesh=mesh, material=material, dirichlet=(clamp,),
                    loads=(BodyForce(body_force, time),), damping=damping,

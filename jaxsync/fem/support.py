@@ -25,6 +25,7 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..pytree import concrete_scalar, pytree_dataclass, static_field
+from .parameter_checks import check_number
 
 __all__ = ["ElasticSupport", "SurfaceSpring", "Dashpot", "surface_spring", "part_surface_springs", "dashpot_blocks",
            "dashpot", "apply_dashpot", "spring_matrix", "spring_ratios", "stiffness_matrix"]
@@ -48,10 +49,10 @@ class ElasticSupport:
     normal_only: bool = static_field(default=False)
 
     def __post_init__(self):
-        for name in ("stiffness", "damping"):
-            value = concrete_scalar(getattr(self, name))
-            if value is not None and not value >= 0:
-                raise ProblemError(f"ElasticSupport.{name} must be >= 0 (per unit area), got {value}")
+        check_number(self.stiffness, "ElasticSupport.stiffness", at_least=0.0, unit="dyn/cm^3 (per unit area)")
+        check_number(self.damping, "ElasticSupport.damping", at_least=0.0, unit="dyn s/cm^3 (per unit area)")
+        if not isinstance(self.surface, str):
+            raise ProblemError(f"ElasticSupport.surface must be the name of a facet set, got {self.surface!r}")
 
 
 @pytree_dataclass

@@ -80,8 +80,20 @@ class StableStep:
     element: str = "P1"
     law: str | None = None
 
-    def describe(self) -> str:
-        """One line: the step, the rule that set it and the exact bound."""
+    def describe(self, dt=None) -> str:
+        """One line: the step, the rule that set it and the exact bound.
+
+        ``dt``: the step a run uses instead of the default [s] (``simulate(..., dt=)``,
+        ``jaxsync simulate --dt``): the line then names it first, with the default and the
+        bound beside it."""
+        if dt is not None:
+            try:
+                given, default, exact = float(dt), float(self.dt), float(self.exact)
+            except TypeError:  # traced
+                return "time step: given (traced)"
+            if given != default:
+                return (f"dt {given:.4e} s (given; the default would be {default:.4e} s; exact stability bound "
+                        f"2/omega_max {exact:.4e} s{' of the tangent at rest' if self.law is not None else ''})")
         try:
             dt, cfl, exact = float(self.dt), float(self.cfl), float(self.exact)
         except TypeError:  # traced material

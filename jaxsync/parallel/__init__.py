@@ -9,20 +9,36 @@ shared-node values), :mod:`~jaxsync.parallel.halo` (deep halos), :mod:`~jaxsync.
 (emulated CPU devices), :mod:`~jaxsync.parallel.multiprocess` (``mpiexec`` runs).
 """
 
-from . import devices, multiprocess
-from .exchange import (
-                       Exchange,
-                       NeighbourExchange,
-                       neighbour_exchange,
-                       scatter_forward,
-                       scatter_reverse,
-                       synchronize_forces,
-)
-from .layout import PartLayout, PartSystems, part_systems
-from .partitioning import Part, Partition, partition, partition_from_elements, partition_of
-from .spmd import AXIS, LOCAL_AXIS, spmd_program
+
+from typing import TYPE_CHECKING
+
+from ..lazy import export_lazily
 
 __all__ = ["Partition", "Part", "partition", "partition_from_elements", "partition_of",
            "PartLayout", "PartSystems", "part_systems", "Exchange", "scatter_reverse", "scatter_forward",
            "synchronize_forces", "NeighbourExchange", "neighbour_exchange",
            "spmd_program", "AXIS", "LOCAL_AXIS", "devices", "multiprocess"]
+
+# where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    ".": ("devices", "multiprocess"),
+    ".exchange": ("Exchange", "NeighbourExchange", "neighbour_exchange", "scatter_forward", "scatter_reverse",
+                  "synchronize_forces"),
+    ".layout": ("PartLayout", "PartSystems", "part_systems"),
+    ".partitioning": ("Part", "Partition", "partition", "partition_from_elements", "partition_of"),
+    ".spmd": ("AXIS", "LOCAL_AXIS", "spmd_program"),
+})
+
+if TYPE_CHECKING:
+    from . import devices, multiprocess
+    from .exchange import (
+        Exchange,
+        NeighbourExchange,
+        neighbour_exchange,
+        scatter_forward,
+        scatter_reverse,
+        synchronize_forces,
+    )
+    from .layout import PartLayout, PartSystems, part_systems
+    from .partitioning import Part, Partition, partition, partition_from_elements, partition_of
+    from .spmd import AXIS, LOCAL_AXIS, spmd_program

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import os
 
-__all__ = ["request_cpu_devices", "device_summary", "user_chose_devices", "jax_started"]
+__all__ = ["request_cpu_devices", "device_summary", "user_chose_devices", "jax_started", "DeviceWarning"]
 
 
 def user_chose_devices(environ=None) -> bool:
@@ -38,10 +38,27 @@ def request_cpu_devices(n: int) -> bool:
     import jax
 
     n = int(n)
-    if n < 2 or user_chose_devices() or jax_started():
+    if n < 2 or user_chose_devices():
+        return False
+    if jax_started():
+        have = len(jax.devices("cpu")) if jax.default_backend() == "cpu" else n
+        if have < n:
+            import warnings
+
+            warnings.warn(
+                f"request_cpu_devices({n}) comes too late: JAX has already started with {have} CPU device"
+                f"{'s' if have > 1 else ''}, and the count cannot change any more, so {n} parts will share "
+                f"{have}; call it right after `import jax`, before any array is made or device queried, or set "
+                f"XLA_FLAGS=--xla_force_host_platform_device_count={n} before starting Python",
+                DeviceWarning, stacklevel=2)
         return False
     jax.config.update("jax_num_cpu_devices", n)
     return True
+
+
+class DeviceWarning(UserWarning):
+    """A request for devices that cannot be met (:func:`request_cpu_devices` after JAX
+    has started): the run goes on with the devices JAX has."""
 
 
 def jax_started() -> bool:

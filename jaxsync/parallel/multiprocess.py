@@ -10,35 +10,46 @@ A multi-process run is ``mpiexec -n N jaxsync simulate ...`` (or any script that
 2. builds the same problem and partition (rank 0's METIS result is broadcast), runs its
    share of the parts, and synchronizes shared-node forces every step, either with a
    ``psum`` across the processes (XLA collectives: gloo on CPU, NCCL on GPU) or with an
-   MPI ``Allreduce`` called from inside the compiled step (:func:`make_allreduce`,
-   mpi4jax when installed, else an mpi4py host callback);
+   MPI ``Allreduce`` called from inside the compiled step (:func:`make_allreduce`:
+   mpi4jax when installed, else jaxsync's own ``ctypes`` FFI handler, which every install
+   has; an mpi4py host callback only where neither runs);
 3. reads results as global numpy arrays; only rank 0 (:func:`is_main_process`) prints
    and writes files.
+
+:func:`transport` says in one line which of these a run uses (``jaxsync simulate`` prints
+it); a multi-process run that falls back to a slow path warns with a
+:class:`TransportWarning` that names the fix.
 
 An exception on any rank must end the whole job, never leave the others waiting in a
 collective: :func:`abort_on_error` prints the error with its rank and calls
 ``MPI_Abort``, which makes ``mpiexec`` kill every rank and exit non-zero.
 
 The only global state is what ``jax.distributed`` itself keeps (its client and the JAX
-config options it needs, set once in :func:`initialize`).
+config options it needs, set once in :func:`initialize`) and the FFI targets of the
+``ctypes`` MPI sum (one per communicator, registered with JAX on first use, kept for the
+life of the process since XLA holds their addresses).
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import os
 import sys
+import threading
 import time
 import traceback
+import warnings
 from collections.abc import Callable, Mapping
 
 from ..errors import ConfigError, JaxsyncError
 from ..options import Sync, choices
 
-__all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "launched_size", "launched_by_mpi",
+__all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "TransportWarning", "launched_size", "launched_by_mpi",
+           "launched_rank",
            "initialize", "process_index", "process_count", "is_main_process",
-           "abort_on_error", "world", "make_allreduce", "mpi4jax_available",
-           "default_sync"]
+           "abort_on_error", "world", "make_allreduce", "mpi4jax_available", "ctypes_available",
+           "default_allreduce", "default_sync", "allreduce_text", "collective_text"]
 
 SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi", "halo"), defined in jaxsync.options
 """Per-step synchronization across devices and processes: XLA ``psum`` of the whole
@@ -46,10 +57,12 @@ interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of o
 nodes two devices share, MPI Allreduce, or deep halos (an exchange of displacements every
 k steps, :mod:`jaxsync.parallel.halo`)."""
 
-ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "callback")
+ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "ctypes", "callback")
 """How the MPI Allreduce is called from the compiled step: ``mpi4jax`` (an XLA FFI custom
-call, no host round trip), ``callback`` (``jax.pure_callback`` into mpi4py), ``auto``
-(mpi4jax when importable)."""
+call in compiled C++, the ``mpi`` extra), ``ctypes`` (an XLA FFI custom call whose handler
+is jaxsync's own ``ctypes`` function calling ``MPI_Allreduce``: every install, no compiler;
+CPU devices), ``callback`` (``jax.pure_callback`` into mpi4py: a host round trip every
+step), ``auto`` (:func:`default_allreduce`: the first of these that works here)."""
 
 # (size variable, rank variable) set by common MPI launchers: MPICH/Intel MPI hydra and
 # srun --mpi=pmi2 (PMI), Open MPI, MVAPICH, PMIx launchers.
@@ -75,7 +88,9 @@ def launched_by_mpi(environ: Mapping[str, str] | None = None) -> bool:
     return launched_size(environ) > 1
 
 
-def _launched_rank(environ: Mapping[str, str] | None = None) -> int | None:
+def launched_rank(environ: Mapping[str, str] | None = None) -> int | None:
+    """This process's rank as the MPI launcher's environment gives it (MPICH/Hydra,
+    Open MPI, MVAPICH, PMIx), or None outside a launcher; reads no MPI state."""
     environ = os.environ if environ is None else environ
     for _, rank in _LAUNCHER_VARIABLES:
         value = environ.get(rank, "")
@@ -172,7 +187,7 @@ def _rank_for_messages() -> str:
 
     if jax.distributed.is_initialized():
         return f"rank {jax.process_index()}/{jax.process_count()}"
-    rank = _launched_rank()
+    rank = launched_rank()
     return f"rank {rank}/{launched_size()}" if rank is not None else "rank ?"
 
 
@@ -208,41 +223,84 @@ def _abort(message: str, code: int) -> None:
     os._exit(int(code) or 1)  # not reached: MPI_Abort does not return
 
 
+# --------------------------------------------------------------------------- the sum inside the step
+
+class TransportWarning(UserWarning):
+    """A multi-process run exchanges its shared-node values through a slow path (a host
+    callback, or gloo's psum between CPU processes) although a fast one exists; the message
+    names the fix."""
+
+
 def mpi4jax_available() -> bool:
     """True when mpi4jax (MPI called from XLA as an FFI custom call) can be imported."""
     try:
         import mpi4jax  # noqa: F401
-    except Exception:  # noqa: BLE001 - ImportError or a broken build: use the callback
+    except Exception:  # noqa: BLE001 - ImportError or a broken build: use another backend
         return False
     return True
+
+
+def ctypes_available() -> bool:
+    """True when jaxsync's own XLA FFI handler (``backend="ctypes"`` of
+    :func:`make_allreduce`) works in this process: JAX's FFI registers it, the MPI library
+    behind mpi4py exposes ``MPI_Allreduce``, and an Allreduce on ``MPI.COMM_SELF`` inside a
+    compiled function returns its input (checked once per process, on a CPU device; not a
+    collective, but it starts JAX: in a multi-process run, call it after :func:`initialize`).
+    Needs no compiler: the handler is a ``ctypes`` function."""
+    return _ctypes_problem() is None
+
+
+def default_allreduce() -> str:
+    """The backend ``"auto"`` resolves to in this process: ``"mpi4jax"`` when importable
+    (built from source: the ``mpi`` extra), else ``"ctypes"`` (jaxsync's own FFI handler,
+    in every install), else ``"callback"`` (slow; :class:`TransportWarning`). On GPUs
+    only mpi4jax calls MPI from the device program; there the fallback is the callback.
+    Starts JAX (after :func:`initialize` in a multi-process run)."""
+    import jax
+
+    if mpi4jax_available():
+        return "mpi4jax"
+    if jax.default_backend() == "cpu" and ctypes_available():
+        return "ctypes"
+    return "callback"
 
 
 def make_allreduce(comm=None, backend: str = "auto") -> Callable:
     """A traceable sum over the processes of ``comm``: ``f(x) -> sum_ranks x``.
 
     Usable inside ``jit``, ``lax.scan``, ``vmap`` and ``shard_map`` over ONE local device
-    (mpi4jax carries an ordered effect that XLA refuses on several devices, and a host
-    callback would call MPI from several threads). Every rank must call it the same
-    number of times in the same order, as for any MPI collective.
+    (mpi4jax carries an ordered effect that XLA refuses on several devices, and the other
+    backends would call MPI from several threads). Every rank must call it the same number
+    of times in the same order, as for any MPI collective; with ``"ctypes"`` and
+    ``"callback"`` two sums in one program must depend on one another (as the steps of a
+    scan do), since XLA may run independent calls in either order.
 
     Args:
         comm: an mpi4py communicator (default ``MPI.COMM_WORLD``).
-        backend: ``"mpi4jax"`` (XLA FFI custom call into MPI, no host round trip),
-            ``"callback"`` (``jax.pure_callback`` into mpi4py ``Allreduce``) or
-            ``"auto"`` (mpi4jax when importable).
+        backend: ``"mpi4jax"`` (XLA FFI custom call into MPI, compiled C++: the ``mpi``
+            extra), ``"ctypes"`` (an XLA FFI custom call whose handler is jaxsync's
+            ``ctypes`` function calling the MPI library's ``MPI_Allreduce`` on the device
+            buffers: no host copy, no compiler; CPU devices), ``"callback"``
+            (``jax.pure_callback`` into mpi4py ``Allreduce``: a host round trip) or ``"auto"``
+            (:func:`default_allreduce`). ``"auto"`` falling back to the callback between
+            several processes warns with a :class:`TransportWarning` (on rank 0).
 
     Raises:
-        ConfigError: unknown backend, or mpi4jax requested but not installed.
+        ConfigError: unknown backend, or a backend requested that cannot run here (the
+            message says why and what to install).
     """
     if backend not in ALLREDUCE_BACKENDS:
         raise ConfigError(f"allreduce backend must be one of {ALLREDUCE_BACKENDS}, got {backend!r}")
     comm = world() if comm is None else comm
     if backend == "auto":
-        backend = "mpi4jax" if mpi4jax_available() else "callback"
+        backend = default_allreduce()
+        if backend == "callback" and comm.Get_size() > 1 and comm.Get_rank() == 0:
+            warnings.warn(f"the MPI sum of every step goes through a host callback (slow): {_fast_path_fix()}",
+                          TransportWarning, stacklevel=2)
     if backend == "mpi4jax":
         if not mpi4jax_available():
-            raise ConfigError("mpi4jax is not installed; pip install mpi4jax (with mpicc on "
-                              "PATH, e.g. after pip install mpich) or use backend='callback'")
+            raise ConfigError("mpi4jax is not installed; pip install -e '.[mpi]' (built with the mpicc of the "
+                              "mpich dependency) or use backend='ctypes'")
         import mpi4jax
         from mpi4py import MPI
 
@@ -250,7 +308,24 @@ def make_allreduce(comm=None, backend: str = "auto") -> Callable:
             return mpi4jax.allreduce(x, op=MPI.SUM, comm=comm)
 
         return allreduce
+    if backend == "ctypes":
+        problem = _ctypes_problem()
+        if problem is not None:
+            raise ConfigError(f"the ctypes MPI sum cannot run here ({problem}); use backend='callback' or "
+                              "pip install -e '.[mpi]' (mpi4jax)")
+        return _ctypes_allreduce(comm)
     return _callback_allreduce(comm)
+
+
+def _fast_path_fix() -> str:
+    """What to do when only the callback is left (why the ctypes handler cannot run)."""
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return (f"on {jax.default_backend()} devices only mpi4jax calls MPI from the device program: "
+                "pip install -e '.[mpi]', or use --sync psum (NCCL)")
+    return (f"jaxsync's ctypes FFI handler cannot run ({_ctypes_problem()}); pip install -e '.[mpi]' "
+            "(mpi4jax, built with mpicc), or upgrade jax and mpi4py")
 
 
 def _callback_allreduce(comm) -> Callable:
@@ -272,19 +347,270 @@ def _callback_allreduce(comm) -> Callable:
     return allreduce
 
 
+# The XLA FFI's C structures that the handler reads (xla/ffi/api/c_api.h, API version 0.x:
+# fields are only ever appended, so these prefixes stay valid).
+
+class _ExtensionBase(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("type", ctypes.c_int), ("next", ctypes.c_void_p)]
+
+
+class _ApiVersion(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p),
+                ("major_version", ctypes.c_int), ("minor_version", ctypes.c_int)]
+
+
+class _Metadata(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("api_version", _ApiVersion), ("traits", ctypes.c_uint32)]
+
+
+class _MetadataExtension(ctypes.Structure):
+    _fields_ = [("extension_base", _ExtensionBase), ("metadata", ctypes.c_void_p)]
+
+
+class _Values(ctypes.Structure):  # XLA_FFI_Args and XLA_FFI_Rets
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p), ("size", ctypes.c_int64),
+                ("types", ctypes.c_void_p), ("values", ctypes.c_void_p)]
+
+
+class _Attrs(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p), ("size", ctypes.c_int64),
+                ("types", ctypes.c_void_p), ("names", ctypes.c_void_p), ("attrs", ctypes.c_void_p)]
+
+
+class _CallFrame(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p), ("api", ctypes.c_void_p),
+                ("ctx", ctypes.c_void_p), ("stage", ctypes.c_int), ("args", _Values), ("rets", _Values),
+                ("attrs", _Attrs), ("future", ctypes.c_void_p)]
+
+
+class _Buffer(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p), ("dtype", ctypes.c_int),
+                ("data", ctypes.c_void_p), ("rank", ctypes.c_int64), ("dims", ctypes.c_void_p)]
+
+
+class _Api(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p),
+                ("api_version", _ApiVersion), ("internal_api", ctypes.c_void_p), ("error_create", ctypes.c_void_p)]
+
+
+class _ErrorCreateArgs(ctypes.Structure):
+    _fields_ = [("struct_size", ctypes.c_size_t), ("extension_start", ctypes.c_void_p),
+                ("message", ctypes.c_char_p), ("errc", ctypes.c_int)]
+
+
+_HANDLER = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_void_p)  # XLA_FFI_Error* handler(XLA_FFI_CallFrame*)
+_ERROR_CREATE = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.POINTER(_ErrorCreateArgs))
+_EXTENSION_METADATA, _STAGE_EXECUTE, _ERROR_INTERNAL = 1, 3, 13
+# XLA_FFI_DataType -> mpi4py datatype name
+_FFI_DATATYPES = {11: "FLOAT", 12: "DOUBLE", 4: "INT32_T", 5: "INT64_T", 15: "C_FLOAT_COMPLEX",
+                  18: "C_DOUBLE_COMPLEX"}
+_REGISTERED: dict = {}  # MPI communicator handle -> (target name, handler, comm): kept alive, XLA holds the pointer
+_CTYPES_PROBLEM: list = []  # the cached result of the self-test (empty: not run yet)
+_PYTHON_THREADS: set = set()  # threads that keep a Python thread state between calls of the handler
+
+
+class _MpiSum:
+    """The XLA FFI handler of one communicator: ``MPI_Allreduce(MPI_SUM)`` from the call's
+    argument buffer into its result buffer, on the device (host) memory XLA gives it.
+
+    Runs as a ``ctypes`` callback (it takes the GIL for a few microseconds per call; each of
+    XLA's threads that calls it keeps a Python thread state from its first call on); the
+    count and datatype come from the buffer, so one handler serves every shape and dtype,
+    batched calls (``vmap``) included."""
+
+    _EXT = _CallFrame.extension_start.offset
+    _API = _CallFrame.api.offset
+    _STAGE = _CallFrame.stage.offset
+    _ARG = _CallFrame.args.offset + _Values.values.offset
+    _RET = _CallFrame.rets.offset + _Values.values.offset
+    _DTYPE, _DATA, _RANK, _DIMS = (_Buffer.dtype.offset, _Buffer.data.offset, _Buffer.rank.offset,
+                                   _Buffer.dims.offset)
+
+    def __init__(self, comm):
+        from mpi4py import MPI
+
+        handle_type = {4: ctypes.c_int, 8: ctypes.c_void_p}[MPI._sizeof(MPI.Comm)]
+        function = ctypes.CDLL(MPI.__file__).MPI_Allreduce  # the MPI library that mpi4py uses
+        function.argtypes = [ctypes.c_void_p, ctypes.c_void_p, ctypes.c_int, handle_type, handle_type, handle_type]
+        function.restype = ctypes.c_int
+        self.mpi_allreduce = function
+        self.comm = comm
+        self.handles = (MPI.SUM.handle, comm.handle)
+        self.datatypes = {code: getattr(MPI, name).handle for code, name in _FFI_DATATYPES.items()}
+        self.callback = _HANDLER(self)
+
+    def __call__(self, frame):
+        read, read64, read32 = ctypes.c_void_p.from_address, ctypes.c_int64.from_address, ctypes.c_int32.from_address
+        thread = threading.get_ident()
+        if thread not in _PYTHON_THREADS:
+            # XLA's worker threads are not Python's: ctypes would create and delete a Python
+            # thread state around every call (measured ~20 us a call). One extra
+            # PyGILState_Ensure, never released, keeps this thread's state for good.
+            _PYTHON_THREADS.add(thread)
+            ctypes.pythonapi.PyGILState_Ensure()
+        try:
+            if read(frame + self._EXT).value:
+                return self._metadata(frame)
+            if read32(frame + self._STAGE).value != _STAGE_EXECUTE:
+                return None
+            arg = read(read(frame + self._ARG).value).value  # XLA_FFI_Buffer* of the one argument
+            ret = read(read(frame + self._RET).value).value  # and of the one result
+            dims = read(arg + self._DIMS).value
+            count = 1
+            for i in range(read64(arg + self._RANK).value):
+                count *= read64(dims + 8 * i).value
+            dtype = self.datatypes.get(read32(arg + self._DTYPE).value)
+            if dtype is None or count > 2**31 - 1:
+                return self._error(frame, f"cannot sum {count} values of XLA dtype {read32(arg + self._DTYPE).value} "
+                                   "with MPI (float32/64, int32/64, complex; fewer than 2**31)")
+            op, comm = self.handles
+            code = self.mpi_allreduce(read(arg + self._DATA).value, read(ret + self._DATA).value, count, dtype,
+                                      op, comm)
+            return None if code == 0 else self._error(frame, f"MPI_Allreduce returned error code {code}")
+        except Exception as exc:  # noqa: BLE001 - an exception must become XLA's error, not a success
+            return self._error(frame, f"{type(exc).__name__}: {exc}")
+
+    @classmethod
+    def _metadata(cls, frame):
+        """Answer XLA's query for the handler's API version (at registration): the runtime's
+        own, of which the handler reads only fields that every 0.x version has."""
+        extension = _ExtensionBase.from_address(ctypes.c_void_p.from_address(frame + cls._EXT).value)
+        if extension.type != _EXTENSION_METADATA:
+            return None
+        metadata = _Metadata.from_address(_MetadataExtension.from_address(ctypes.addressof(extension)).metadata)
+        runtime = _Api.from_address(ctypes.c_void_p.from_address(frame + cls._API).value).api_version
+        if runtime.major_version != 0:
+            return cls._error(frame, f"XLA FFI API {runtime.major_version}.{runtime.minor_version} is newer "
+                                  "than jaxsync's MPI sum (0.x); use allreduce='callback'")
+        metadata.api_version.struct_size = ctypes.sizeof(_ApiVersion)
+        metadata.api_version.extension_start = None
+        metadata.api_version.major_version = runtime.major_version
+        metadata.api_version.minor_version = runtime.minor_version
+        metadata.traits = 0
+        return None
+
+    @classmethod
+    def _error(cls, frame, message: str):
+        api = _Api.from_address(ctypes.c_void_p.from_address(frame + cls._API).value)
+        args = _ErrorCreateArgs(ctypes.sizeof(_ErrorCreateArgs), None, f"jaxsync MPI sum: {message}".encode(),
+                                _ERROR_INTERNAL)
+        return _ERROR_CREATE(api.error_create)(ctypes.byref(args))
+
+
+def _register(comm) -> str:
+    """The FFI target name of ``comm``'s handler, registered on first use."""
+    import jax
+
+    key = comm.handle
+    if key not in _REGISTERED:
+        name = f"jaxsync_mpi_allreduce_{len(_REGISTERED)}"
+        handler = _MpiSum(comm)
+        jax.ffi.register_ffi_target(name, jax.ffi.pycapsule(handler.callback), platform="cpu")
+        _REGISTERED[key] = (name, handler)
+    return _REGISTERED[key][0]
+
+
+def _ctypes_allreduce(comm) -> Callable:
+    import jax
+
+    name = _register(comm)
+
+    def allreduce(x):
+        return jax.ffi.ffi_call(name, jax.ShapeDtypeStruct(x.shape, x.dtype), has_side_effect=True,
+                                vmap_method="expand_dims")(x)
+
+    return allreduce
+
+
+def _ctypes_problem() -> str | None:
+    """None when the ctypes handler works here (module-level cache of one self-test), else
+    why not."""
+    if not _CTYPES_PROBLEM:
+        _CTYPES_PROBLEM.append(_ctypes_self_test())
+    return _CTYPES_PROBLEM[0]
+
+
+def _ctypes_self_test() -> str | None:
+    try:
+        import jax
+        import numpy as np
+        from mpi4py import MPI
+    except ImportError as exc:
+        return f"{exc}"
+    if not (hasattr(jax, "ffi") and hasattr(jax.ffi, "pycapsule")):
+        return f"jax {jax.__version__} has no jax.ffi.pycapsule"
+    try:
+        allreduce = _ctypes_allreduce(MPI.COMM_SELF)
+        x = np.arange(6.0).reshape(2, 3)
+        with jax.default_device(jax.local_devices(backend="cpu")[0]):
+            y = np.asarray(jax.jit(lambda v: allreduce(v) + 0.0)(x))
+    except Exception as exc:  # noqa: BLE001 - any failure means: use another backend
+        return f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
+    return None if np.array_equal(x, y) else "the MPI sum on MPI.COMM_SELF returned wrong values"
+
+
+# --------------------------------------------------------------------------- choosing and naming the transport
+
 def default_sync() -> str:
     """The synchronization used when none is asked for.
 
     ``"psum"`` in one process, and across GPU processes (NCCL); ``"mpi"`` across CPU
-    processes when mpi4py is importable: there JAX's psum goes through gloo, measured at
-    0.4-1.1 ms per step against 5-30 us for mpi4jax's Allreduce and 0.13-0.45 ms for the
-    mpi4py callback (``benchmarks/bench_sync.py``, 2 processes, 12-1002 doubles)."""
+    processes when mpi4py is importable: there JAX's psum goes through gloo, some hundred
+    microseconds per exchange, against a few microseconds for an MPI Allreduce called from
+    the compiled step (``benchmarks/bench_sync.py``; the numbers: docs/guides/clusters.md).
+    Falling back to gloo's psum between CPU processes (no mpi4py) warns with a
+    :class:`TransportWarning`."""
     import jax
 
     if process_count() == 1 or jax.default_backend() != "cpu":
         return "psum"
     try:
         world()
-    except ConfigError:
+    except ConfigError as exc:
+        if is_main_process():
+            warnings.warn(f"the shared-node sums go through gloo's psum between processes (slow): {exc}",
+                          TransportWarning, stacklevel=2)
         return "psum"
     return "mpi"
+
+
+def _between() -> str:
+    n = process_count()
+    return f"between {n} processes" if n > 1 else "in one process"
+
+
+def allreduce_text(allreduce: str = "auto") -> str:
+    """How an MPI Allreduce of backend ``allreduce`` (one of :data:`ALLREDUCE_BACKENDS`)
+    sums the shared-node values in this process's setting: one line for ``jaxsync
+    simulate``'s header (:func:`jaxsync.solve.transport`)."""
+    backend = allreduce if allreduce != "auto" else default_allreduce()
+    if backend == "callback":
+        fix = (_fast_path_fix() if allreduce == "auto"
+               else "Mpi(allreduce='auto') calls MPI inside the step")
+        return f"MPI Allreduce through an mpi4py host callback {_between()} (slow, a host round trip every step: {fix})"
+    name = "mpi4jax" if backend == "mpi4jax" else "jaxsync's ctypes FFI handler"
+    return f"MPI Allreduce inside the compiled step ({name}) {_between()}"
+
+
+def collective_text(name: str, devices=None, n_parts: int | None = None) -> str:
+    """How XLA's collective ``name`` (``"psum"`` or ``"ppermute"``) exchanges values over
+    ``devices`` (default ``jax.devices()``) for a run of ``n_parts`` parts in this
+    process's setting: one line for ``jaxsync simulate``'s header
+    (:func:`jaxsync.solve.transport`)."""
+    import jax
+
+    devices = list(jax.devices() if devices is None else devices)
+    if process_count() == 1 and n_parts:  # the runner takes as many as divide the parts
+        devices = devices[:max(d for d in range(1, min(len(devices), n_parts) + 1) if n_parts % d == 0)]
+    n, platform = len(devices), devices[0].platform
+    what = "psum" if name == "psum" else "ppermute (neighbouring devices only)"
+    if process_count() > 1 and platform == "cpu":
+        return (f"gloo {what} {_between()} (slow, ~0.2-1 ms per exchange: --sync mpi calls MPI inside "
+                "the step)")
+    if n == 1:
+        return "one device (the parts' sums stay on it: no exchange between devices)"
+    if platform == "cpu":
+        kind = "emulated CPU devices" if process_count() == 1 else "CPU devices"
+    else:
+        kind = "GPUs (NCCL)" if platform in ("gpu", "cuda") else f"{platform} devices"
+    return f"XLA {what} over {n} {kind} {_between()}"

@@ -169,9 +169,13 @@ def partition(mesh, n_parts: int, seed: int = 0) -> Partition:
         element_part = np.asarray(result.element_part, dtype=np.int64)
     counts = np.bincount(element_part, minlength=n_parts)
     if np.any(counts == 0):
+        empty = np.flatnonzero(counts == 0)
+        shown = ", ".join(str(int(p)) for p in empty[:5]) + (", ..." if empty.size > 5 else "")
         raise PartitionError(
-            f"METIS left part(s) {np.flatnonzero(counts == 0).tolist()} empty when splitting "
-            f"{mesh.n_elements} elements into {n_parts} parts: use fewer parts or a finer mesh")
+            f"METIS left {empty.size} of the {n_parts} parts empty (part{'s' if empty.size > 1 else ''} {shown}) "
+            f"when splitting {mesh.n_elements} elements ({mesh.n_elements / n_parts:.3g} per part): use fewer parts "
+            f"(METIS needs several elements per part; {int(counts.astype(bool).sum())} parts were filled) or a "
+            "finer mesh")
     return partition_from_elements(space, element_part, seed=seed)
 
 

@@ -16,45 +16,10 @@ Modules:
   its projection to other interconnects.
 """
 
-from .costmodel import (
-    ALGORITHMS,
-    INTERCONNECTS,
-    CommunicationPattern,
-    Interconnect,
-    InterconnectProjection,
-    Projection,
-    communication_pattern,
-    fit_interconnect,
-    project,
-    relative_error,
-    sync_time,
-)
-from .measure import (
-    best_time,
-    best_times,
-    copy_bandwidth,
-    describe_devices,
-    matmul_flop_rate,
-    per_step_times,
-    sample_times,
-)
-from .reports import STAGES, PartTiming, SpeedupReport, TimingReport, max_average
-from .roofline import (
-    ELEMENT_FLOPS,
-    HYPERELASTIC_POINT_FLOPS,
-    RooflinePoint,
-    StageCost,
-    achieved,
-    achieved_stages,
-    hyperelastic_element_cost,
-    roofline_table,
-    step_costs,
-    step_costs_for,
-    surrogate_costs,
-    surrogate_flop_breakdown,
-    surrogate_step_cost,
-)
-from .timing import speedup_breakdown, timing_breakdown
+
+from typing import TYPE_CHECKING
+
+from ..lazy import export_lazily
 
 __all__ = [
     # breakdowns and their reports
@@ -73,3 +38,58 @@ __all__ = [
     "ALGORITHMS", "sync_time", "fit_interconnect", "InterconnectProjection", "Projection",
     "project", "relative_error",
 ]
+
+# where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    ".costmodel": ("ALGORITHMS", "INTERCONNECTS", "CommunicationPattern", "Interconnect", "InterconnectProjection",
+                   "Projection", "communication_pattern", "fit_interconnect", "project", "relative_error",
+                   "sync_time"),
+    ".measure": ("best_time", "best_times", "copy_bandwidth", "describe_devices", "matmul_flop_rate",
+                 "per_step_times", "sample_times"),
+    ".reports": ("STAGES", "PartTiming", "SpeedupReport", "TimingReport", "max_average"),
+    ".roofline": ("ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "RooflinePoint", "StageCost", "achieved",
+                  "achieved_stages", "hyperelastic_element_cost", "roofline_table", "step_costs", "step_costs_for",
+                  "surrogate_costs", "surrogate_flop_breakdown", "surrogate_step_cost"),
+    ".timing": ("speedup_breakdown", "timing_breakdown"),
+})
+
+if TYPE_CHECKING:
+    from .costmodel import (
+        ALGORITHMS,
+        INTERCONNECTS,
+        CommunicationPattern,
+        Interconnect,
+        InterconnectProjection,
+        Projection,
+        communication_pattern,
+        fit_interconnect,
+        project,
+        relative_error,
+        sync_time,
+    )
+    from .measure import (
+        best_time,
+        best_times,
+        copy_bandwidth,
+        describe_devices,
+        matmul_flop_rate,
+        per_step_times,
+        sample_times,
+    )
+    from .reports import STAGES, PartTiming, SpeedupReport, TimingReport, max_average
+    from .roofline import (
+        ELEMENT_FLOPS,
+        HYPERELASTIC_POINT_FLOPS,
+        RooflinePoint,
+        StageCost,
+        achieved,
+        achieved_stages,
+        hyperelastic_element_cost,
+        roofline_table,
+        step_costs,
+        step_costs_for,
+        surrogate_costs,
+        surrogate_flop_breakdown,
+        surrogate_step_cost,
+    )
+    from .timing import speedup_breakdown, timing_breakdown

@@ -62,7 +62,6 @@ from ..solve.distributed import DistributedRunner
 from ..solve.predicted import PredictedPhase
 from ..solve.strategies import Halo, Ppermute, Psum, sync_strategy
 from ..surrogate.data import shared_dof_layout
-from ..surrogate.model import Surrogate
 from . import kernels
 from .measure import best_times, describe_devices, per_step_times
 from .reports import PartTiming, SpeedupReport, TimingReport
@@ -260,6 +259,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     if part_info.n_parts < 2:
         raise ProblemError("the synchronization-avoiding solver needs at least 2 parts")
     if predictor is None:
+        from ..surrogate.model import Surrogate
+
         predictor = Surrogate.initialized(part_info, 80)
     n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future
     cycle_steps, history = n_s * n_f, n_s * n_p

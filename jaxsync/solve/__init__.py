@@ -17,32 +17,54 @@ checkpoints: :mod:`~jaxsync.solve.checkpoint`; the trajectory of a run:
 :mod:`~jaxsync.solve.record`.
 """
 
-from .distributed import DistributedParts, DistributedRunner
-from .driver import Chunk, Progress, Runner, Segment, run_chunks
-from .ensemble import ensemble
-from .full_system import simulate_full_system
-from .host import SingleDeviceRunner
-from .phases import Predicted, Synchronized
-from .predictors import OraclePredictor
-from .solver import simulate, steady_state
-from .strategies import (
-                         Halo,
-                         HostExecutor,
-                         Mpi,
-                         Ppermute,
-                         Psum,
-                         Recompute,
-                         ResyncTolerance,
-                         SaveAt,
-                         SolverCheckpoint,
-                         StoreAll,
-                         TracedExecutor,
-)
-from .syncavoid import describe_run, simulate_sync_avoiding, step_counts
+
+from typing import TYPE_CHECKING
+
+from ..lazy import export_lazily
 
 __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
            "ResyncTolerance", "OraclePredictor", "describe_run", "step_counts",
            "Psum", "Ppermute", "Mpi", "Halo", "SaveAt", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
            "Recompute", "StoreAll", "Synchronized", "Predicted",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
-           "DistributedParts", "DistributedRunner"]
+           "DistributedParts", "DistributedRunner", "transport"]
+
+# where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    ".distributed": ("DistributedParts", "DistributedRunner"),
+    ".driver": ("Chunk", "Progress", "Runner", "Segment", "run_chunks"),
+    ".ensemble": ("ensemble",),
+    ".full_system": ("simulate_full_system",),
+    ".host": ("SingleDeviceRunner",),
+    ".phases": ("Predicted", "Synchronized"),
+    ".predictors": ("OraclePredictor",),
+    ".solver": ("simulate", "steady_state"),
+    ".strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance", "SaveAt",
+                    "SolverCheckpoint", "StoreAll", "TracedExecutor", "transport"),
+    ".syncavoid": ("describe_run", "simulate_sync_avoiding", "step_counts"),
+})
+
+if TYPE_CHECKING:
+    from .distributed import DistributedParts, DistributedRunner
+    from .driver import Chunk, Progress, Runner, Segment, run_chunks
+    from .ensemble import ensemble
+    from .full_system import simulate_full_system
+    from .host import SingleDeviceRunner
+    from .phases import Predicted, Synchronized
+    from .predictors import OraclePredictor
+    from .solver import simulate, steady_state
+    from .strategies import (
+        Halo,
+        HostExecutor,
+        Mpi,
+        Ppermute,
+        Psum,
+        Recompute,
+        ResyncTolerance,
+        SaveAt,
+        SolverCheckpoint,
+        StoreAll,
+        TracedExecutor,
+        transport,
+    )
+    from .syncavoid import describe_run, simulate_sync_avoiding, step_counts

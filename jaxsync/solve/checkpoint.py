@@ -356,11 +356,22 @@ def load_checkpoint(path, fingerprint, n_steps, n_recorded: int = 0):
     """(state, snapshot chunks, per-part shared-history chunks or None) of the latest
     valid commit; ``n_recorded`` parts' every-step shared histories must be in the file
     when > 0. Raises :class:`CheckpointError` for a foreign, damaged or altered file."""
+    import os
+
     import h5py
 
+    if os.path.isdir(path):
+        raise CheckpointError(f"checkpoint {os.fspath(path)!r} is a folder; give a .h5 file (pass another "
+                              "checkpoint path)")
     try:
         with h5py.File(path, "r") as f:
             if f.attrs.get("kind") != _CHECKPOINT_KIND:
+                what = {"jaxsync-trajectory": "a jaxsync trajectory (a run's output)",
+                        "jaxsync-lstm-surrogate": "a jaxsync surrogate file"}.get(str(f.attrs.get("format", "")))
+                if what is not None:  # the user's result: never advise deleting it
+                    raise CheckpointError(f"{path} is {what}, not a solver checkpoint: pass another checkpoint path "
+                                          "(the checkpoint is the run's own resumable state, written beside its "
+                                          "output)")
                 raise CheckpointError(f"{path} is not a jaxsync solver checkpoint; delete it or "
                                       "pass another checkpoint path")
             if f.attrs["fingerprint"] != fingerprint:
@@ -375,7 +386,8 @@ def load_checkpoint(path, fingerprint, n_steps, n_recorded: int = 0):
     except CheckpointError:
         raise
     except Exception as exc:
-        raise CheckpointError(f"cannot read checkpoint {path}: {exc}; delete it to start over") from exc
+        raise CheckpointError(f"cannot read checkpoint {path}: {' '.join(str(exc).split())}; delete it to start "
+                              "over") from exc
     step_, arrays = found
     if step_ > n_steps:
         raise CheckpointError(f"checkpoint {path} is at step {step_}, beyond n_steps={n_steps}")

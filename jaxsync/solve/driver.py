@@ -110,7 +110,12 @@ class Stopped(Exception):
 class Progress:
     """One progress bar over a whole run (tqdm), shared by the loop's calls; ``show``
     None shows it for runs of 20 000 steps or more. Use as a context manager: an error
-    clears the bar instead of leaving a blank line before the traceback."""
+    clears the bar instead of leaving a blank line before the traceback.
+
+    The bar shows the furthest step the run has reached, so it never moves backwards:
+    when a synchronization-avoiding run goes back to a synchronized state (:meth:`set` to
+    an earlier step), the steps it recomputes are counted beside the bar ("recomputed")
+    until the run passes the furthest step again."""
 
     def __init__(self, total: int, *, show: bool | None = None, label: str = "", initial: int = 0):
         from tqdm import tqdm
@@ -118,16 +123,31 @@ class Progress:
         show = show if show is not None else total >= 20000
         self.bar = tqdm(total=total, initial=initial, disable=not show, unit="step", desc=label,
                         dynamic_ncols=True)
+        self.step = self.furthest = int(initial)  # where the run is, and the furthest it has been
+        self.recomputed = 0
 
     def label(self, text: str) -> None:
         self.bar.set_description_str(text, refresh=False)
 
     def update(self, steps: int) -> None:
-        self.bar.update(steps)
+        """The run advanced ``steps`` steps."""
+        redone = max(0, min(self.step + steps, self.furthest) - self.step)
+        self.step += steps
+        if redone:
+            self.recomputed += redone
+            self.bar.set_postfix_str(f"recomputed {self.recomputed} steps", refresh=False)
+        if self.step > self.furthest:
+            self.bar.update(self.step - self.furthest)
+            self.furthest = self.step
+        elif redone:
+            self.bar.refresh()
 
     def set(self, done: int) -> None:
-        self.bar.n = done
-        self.bar.refresh()
+        """The run is at step ``done`` (earlier than the furthest: it goes back to recompute)."""
+        self.step = int(done)
+        if self.step > self.furthest:
+            self.bar.update(self.step - self.furthest)
+            self.furthest = self.step
 
     def __enter__(self):
         return self

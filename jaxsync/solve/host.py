@@ -40,7 +40,7 @@ import warnings
 import jax
 import numpy as np
 
-from ..errors import StabilityError
+from ..errors import StabilityError, SynchronizedRunWarning
 from ..fem.hyperelastic import is_hyperelastic
 from ..fem.stepper import ExplicitSystem, SolverState, advance
 from ..fem.timestep import divergence_advice
@@ -427,11 +427,13 @@ class _OnlineRun:
                                         n_resynchronizations=len(resyncs["resynchronized_at"]),
                                         **{k: tuple(v) for k, v in resyncs.items()})
             if resyncs["resynchronized_at"] and n_pred < 0.5 * (n_steps - n_cri):
+                held = ("es_hat" if tolerance.indicator == "es_hat"
+                        else "es_hat and the estimated error")
                 warnings.warn(
-                    f"the surrogates kept es_hat below the tolerance {tolerance} for only {n_pred} of the "
+                    f"the surrogates kept {held} within the tolerance {tolerance} for only {n_pred} of the "
                     f"{n_steps - n_cri} steps after n_cri ({len(resyncs['resynchronized_at'])} "
                     f"re-synchronizations, {n_discarded} predicted steps recomputed): the run was mostly "
-                    "synchronized; retrain the surrogates or loosen the tolerance", RuntimeWarning,
+                    "synchronized; retrain the surrogates or loosen the tolerance", SynchronizedRunWarning,
                     stacklevel=4)
         return self._trajectory(timeline, stats, Result.SUCCESSFUL, estimates)
 

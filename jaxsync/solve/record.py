@@ -77,7 +77,7 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
     from ..trajectory import Trajectory
 
     n_saved = len(displacement)
-    times = np.arange(n_saved) * save.every * dt
+    times = np.arange(n_saved, dtype=np.float64) * save.every * dt
     n_steps = (n_saved - 1) * save.every  # snapshots from step 0
     parts, shared_every = (), None
     if partition is not None:
@@ -115,7 +115,7 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
     parts = part_histories(partition, [displacement[:, part.shared_nodes].reshape(n_saved, -1)
                                        for part in partition.parts],
                            [pred[p, :, :counts[p]] for p in range(partition.n_parts)])
-    return Trajectory(times=np.arange(n_saved) * save_every * dt, displacement=displacement,
+    return Trajectory(times=np.arange(n_saved, dtype=np.float64) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, element=problem.element, dt=dt, save_every=save_every,
                       parameters=parameters, parts=parts, synchronized=flags, stats=stats, result=result,
                       error_estimate=error_estimate)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -325,7 +326,11 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
         if checkpoint is not None:  # the reason, not a missing feature
             raise ProblemError("checkpoint= needs the host executor: a traced run is one JAX program, with no "
                                "point between its steps where a file could be written; leave it out of traced runs")
-        return _traced_simulation(problem, dt, mode, schedule, save, executor, distributed)
+        if distributed is None:
+            return _traced_simulation(problem, dt, mode, schedule, save, executor, distributed)
+        # one compiled program: eager transformations (jax.grad without jit) would otherwise
+        # add cotangents that live on the parts' devices to ones on the default device
+        return jax.jit(lambda: _traced_simulation(problem, dt, mode, schedule, save, executor, distributed))()
     if executor.check_stability:
         from ..fem.timestep import check_dt
 

@@ -28,7 +28,8 @@ import numpy as np
 from ..errors import ConfigError, ProblemError
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "SaveAt", "SolverCheckpoint",
-           "HostExecutor", "TracedExecutor", "Recompute", "StoreAll", "ResyncTolerance", "choose_executor"]
+           "HostExecutor", "TracedExecutor", "Recompute", "StoreAll", "ResyncTolerance", "choose_executor",
+           "transport"]
 
 
 def _positive_int(name: str, value, error=ProblemError) -> int:
@@ -61,6 +62,12 @@ class Psum:
 
     name = "psum"
 
+    def transport(self, n_parts: int | None = None) -> str:
+        """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
+        from ..parallel.multiprocess import collective_text
+
+        return collective_text(self.name, self.devices, n_parts)
+
 
 @dataclasses.dataclass(frozen=True)
 class Ppermute:
@@ -79,6 +86,12 @@ class Ppermute:
 
     name = "ppermute"
 
+    def transport(self, n_parts: int | None = None) -> str:
+        """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
+        from ..parallel.multiprocess import collective_text
+
+        return collective_text(self.name, self.devices, n_parts)
+
 
 @dataclasses.dataclass(frozen=True)
 class Mpi:
@@ -86,8 +99,10 @@ class Mpi:
     called from inside the compiled step (processes started by ``mpiexec``).
 
     Attributes:
-        allreduce: ``"mpi4jax"`` (XLA custom call into MPI), ``"callback"`` (a host
-            callback into mpi4py) or ``"auto"`` (mpi4jax when importable):
+        allreduce: ``"mpi4jax"`` (mpi4jax's XLA custom call into MPI), ``"ctypes"``
+            (jaxsync's own XLA FFI handler calling the MPI library that mpi4py loaded),
+            ``"callback"`` (a host callback into mpi4py, slow) or ``"auto"`` (mpi4jax when
+            importable, else ctypes, else the callback):
             :func:`jaxsync.parallel.multiprocess.make_allreduce`.
         comm: the mpi4py communicator (default a duplicate of ``COMM_WORLD``); rank r runs
             parts [r k, (r + 1) k), k = n_parts / size.
@@ -107,6 +122,12 @@ class Mpi:
             raise ConfigError(f"Mpi(allreduce=...) must be one of {ALLREDUCE_BACKENDS}, got {self.allreduce!r}")
 
     name = "mpi"
+
+    def transport(self, n_parts: int | None = None) -> str:
+        """One line: how the processes sum (:func:`transport`)."""
+        from ..parallel.multiprocess import allreduce_text
+
+        return allreduce_text(self.allreduce)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -134,6 +155,16 @@ class Halo:
 
     name = "halo"
 
+    def transport(self, n_parts: int | None = None) -> str:
+        """One line: how the halos are exchanged (:func:`transport`)."""
+        from ..parallel.multiprocess import allreduce_text, collective_text, default_sync
+
+        every = f"deep halos of depth {self.depth}, both displacement levels exchanged every {self.depth} steps"
+        if default_sync() == "mpi":  # across CPU processes the halos go through MPI
+            return f"{every} by {allreduce_text()}"
+        inner = collective_text("psum", self.devices, n_parts)
+        return f"{every} by {inner}" if not inner.startswith("one device") else f"deep halos on {inner}"
+
 
 _SYNC = {"psum": Psum, "ppermute": Ppermute, "mpi": Mpi, "halo": Halo}
 SyncStrategy = Psum | Ppermute | Mpi | Halo
@@ -151,6 +182,22 @@ def sync_strategy(value=None) -> SyncStrategy:
         return value
     name = default_sync() if value is None else check_option("sync", value, Sync)
     return _SYNC[name]()
+
+
+def transport(sync=None, n_parts: int | None = None) -> str:
+    """One line that says how the parts of a distributed run exchange their shared-node
+    values: the synchronization ``sync`` (a strategy, a name, or None: :func:`sync_strategy`)
+    of a run of ``n_parts`` parts in this process's setting (the devices and processes of
+    JAX, the MPI backend that ``"auto"`` resolves to). ``jaxsync simulate`` prints it in its
+    header. For example::
+
+        XLA psum over 2 emulated CPU devices in one process
+        MPI Allreduce inside the compiled step (mpi4jax) between 2 processes
+        MPI Allreduce inside the compiled step (jaxsync's ctypes FFI handler) between 2 processes
+        gloo psum between 2 processes (slow, ~0.2-1 ms per exchange: --sync mpi calls MPI inside the step)
+
+    Reads only what JAX and mpi4py report (no collective): any rank may call it."""
+    return sync_strategy(sync).transport(n_parts)
 
 
 # --------------------------------------------------------------------------- saving
@@ -395,6 +442,11 @@ class ResyncTolerance:
         if not _positive(value):
             raise ProblemError(f"resync_tolerance must be a tolerance > 0 (cm, or a fraction of the "
                                f"amplitude), got {value!r}")
+        if self.relative is not None and not self.relative <= 1.0:
+            raise ProblemError(f"resync_tolerance {100 * self.relative:g}% of the amplitude is above 100%: an error as "
+                               "large as the displacement itself would pass, so the control would accept any "
+                               "prediction; give a percentage up to 100% (typically 1% to 10%), or leave the "
+                               "tolerance out (none) to run without error control")
         if self.amplitude is not None and (self.relative is None or not _positive(self.amplitude)):
             raise ProblemError(f"resync_tolerance: amplitude={self.amplitude!r} must be a length > 0 [cm] "
                                "and goes with a relative tolerance")
@@ -408,13 +460,12 @@ class ResyncTolerance:
         if isinstance(value, str):
             text = value.strip()
             try:
-                if text.endswith("%"):
-                    return cls(relative=float(text[:-1]) / 100.0)
-                return cls(absolute=float(text))
+                number = float(text[:-1] if text.endswith("%") else text)
             except ValueError:
-                pass
-            raise ProblemError(f"resync_tolerance {value!r} is neither a length in cm (e.g. 1e-4) "
-                               "nor a percentage of the amplitude (e.g. 2%)")
+                raise ProblemError(f"resync_tolerance {value!r} is neither a length in cm (e.g. 1e-4) "
+                                   "nor a percentage of the amplitude (e.g. 2%)") from None
+            # checked by __post_init__, which names what is wrong with the number
+            return cls(relative=number / 100.0) if text.endswith("%") else cls(absolute=number)
         return cls(absolute=value)  # checked by __post_init__
 
     def cm(self, amplitude: float) -> float:
@@ -431,6 +482,7 @@ class ResyncTolerance:
 
 
 def _positive(value) -> bool:
-    """A real number > 0 (not a bool, not NaN)."""
+    """A real number > 0 (not a bool, not NaN; an infinite absolute tolerance monitors a run
+    without ever re-synchronizing it)."""
     return (not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
             and value > 0)

@@ -24,10 +24,11 @@ from __future__ import annotations
 
 import warnings
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
+from ..errors import ProblemError, SynchronizedRunWarning
 from ..fem.loads import load_jumps as find_load_jumps
 from ..fem.stepper import build_system, initial_state
 from ..options import LoadJumps, choices
@@ -62,8 +63,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
     every jump up to the step after which the networks' whole input history (n_p n_s steps)
     follows the last jump: the first synchronized stretch ends at max(n_cri, last jump +
     n_p n_s), rounded up to a saved step. A jump within the last n_p n_s steps keeps the run
-    synchronized to the end (a RuntimeWarning says so). ``load_jumps="predict"`` predicts
-    through them, as the paper did.
+    synchronized to the end (a :class:`jaxsync.errors.SynchronizedRunWarning` says so).
+    ``load_jumps="predict"`` predicts through them, as the paper did.
 
     Args:
         problem: the problem.
@@ -161,7 +162,9 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
             raise ProblemError("resync_tolerance decides on the host, between cycles, whether to go back to a "
                                "synchronized state; a traced run (inside jax.grad or jit) is one program with "
                                "no such point: leave resync_tolerance out of traced runs")
-        return _traced_run(problem, dt, mode, schedule, save, executor, distributed, predictor, all_jumps)
+        # one compiled program, also under eager transformations (see solver.simulate)
+        return jax.jit(lambda: _traced_run(problem, dt, mode, schedule, save, executor, distributed, predictor,
+                                           all_jumps))()
     from .host import OnlineSettings, run_on_host
 
     if executor.check_stability:
@@ -201,7 +204,6 @@ def _traced_run(problem, dt, mode, schedule, save, executor, distributed, predic
 def _find_load_jumps(loads, n_steps: int, dt, policy: str) -> np.ndarray:
     """:func:`jaxsync.fem.loads.load_jumps` of the run; in a traced run whose load time
     functions (or dt) are traced, a clear error unless jumps are predicted through."""
-    import jax
 
     try:
         with jax.ensure_compile_time_eval():
@@ -230,7 +232,7 @@ def _synchronize_through_load_jumps(jumps, policy: str, n_cri: int, n_steps: int
         warnings.warn(f"a load jumps at step {int(jumps[-1])} (t = {jumps[-1] * dt:.6g} s), less than n_p n_s = "
                       f"{history} steps before the end ({n_steps}): no surrogate can foresee the motion after "
                       "it, so the whole run stays synchronized (load_jumps='predict' predicts through it)",
-                      RuntimeWarning, stacklevel=3)
+                      SynchronizedRunWarning, stacklevel=3)
     return jumps, min(max(n_cri, needed), n_steps)
 
 

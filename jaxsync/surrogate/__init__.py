@@ -33,24 +33,10 @@ The names a user needs are here; everything else stays importable from its modul
 =========================  =================================================================
 """
 
-from jaxsync.surrogate.architecture import ArchitectureChoice
-from jaxsync.surrogate.data import Sampling, build_dataset, stack_replicas
-from jaxsync.surrogate.evaluate import (
-    GridSearchResult,
-    RolloutWarning,
-    TrainingChecks,
-    e_mse,
-    grid_search,
-    rollout_errors,
-)
-from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
-from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
-from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
-from jaxsync.surrogate.lstm import LSTMArchitecture
-from jaxsync.surrogate.model import Surrogate
-from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
-from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
-from jaxsync.surrogate.training_state import TrainingState
+
+from typing import TYPE_CHECKING
+
+from jaxsync.lazy import export_lazily
 
 __all__ = [
     "Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConfig", "fit_linear",
@@ -60,3 +46,39 @@ __all__ = [
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
     "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning",
 ]
+
+# where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
+__getattr__, __dir__ = export_lazily(__name__, {
+    "jaxsync.surrogate.architecture": ("ArchitectureChoice",),
+    "jaxsync.surrogate.data": ("Sampling", "build_dataset", "stack_replicas"),
+    "jaxsync.surrogate.evaluate": ("GridSearchResult", "RolloutWarning", "TrainingChecks", "e_mse", "grid_search",
+                                   "rollout_errors"),
+    "jaxsync.surrogate.fit": ("TrainedSurrogates", "train_surrogates"),
+    "jaxsync.surrogate.inference": ("ReducedPrecisionWarning", "check_inference_precision", "reduced_precision"),
+    "jaxsync.surrogate.linear": ("LinearArchitecture", "LinearFitConfig", "fit_linear"),
+    "jaxsync.surrogate.lstm": ("LSTMArchitecture",),
+    "jaxsync.surrogate.model": ("Surrogate",),
+    "jaxsync.surrogate.saved": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
+    "jaxsync.surrogate.train": ("TrainConfig", "TrainResult", "train_replicas"),
+    "jaxsync.surrogate.training_state": ("TrainingState",),
+})
+
+if TYPE_CHECKING:
+    from jaxsync.surrogate.architecture import ArchitectureChoice
+    from jaxsync.surrogate.data import Sampling, build_dataset, stack_replicas
+    from jaxsync.surrogate.evaluate import (
+        GridSearchResult,
+        RolloutWarning,
+        TrainingChecks,
+        e_mse,
+        grid_search,
+        rollout_errors,
+    )
+    from jaxsync.surrogate.fit import TrainedSurrogates, train_surrogates
+    from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
+    from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
+    from jaxsync.surrogate.lstm import LSTMArchitecture
+    from jaxsync.surrogate.model import Surrogate
+    from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
+    from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
+    from jaxsync.surrogate.training_state import TrainingState

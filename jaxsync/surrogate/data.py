@@ -584,6 +584,18 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
             )
         histories.append(disp)
         nodes.append(ids)
+    empty = [p for p, ids in enumerate(nodes) if ids.size == 0]
+    if len(nodes) == 1 and empty:
+        raise CheckpointError(
+            f"{name} has 1 part and so no shared nodes: there is nothing for a surrogate to predict; rerun the "
+            "solver with 2 parts or more (jaxsync simulate --parts n, n >= 2; partitions=n)"
+        )
+    if empty:
+        raise CheckpointError(
+            f"{name}: part{'s' if len(empty) > 1 else ''} {', '.join(map(str, empty))} of {len(nodes)} "
+            "share no nodes with any other part, so a surrogate has nothing to predict there; partition a "
+            "connected mesh (or use fewer parts) and rerun the solver"
+        )
     lengths = {h.shape[0] for h in histories}
     if len(lengths) > 1:
         raise CheckpointError(f"{name}: parts hold different numbers of steps {sorted(lengths)}")

@@ -34,7 +34,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
-from typing import Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -43,7 +43,9 @@ import numpy as np
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
 from jaxsync.surrogate.lstm import check_compute_dtype
-from jaxsync.surrogate.train import TrainResult
+
+if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
+    from jaxsync.surrogate.train import TrainResult
 
 __all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "solve_least_squares",
            "DEFAULT_REGULARIZATION"]
@@ -292,6 +294,8 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
         the solve's wall time, ``steps_per_epoch`` 0 (no gradient steps), ``config`` the
         :class:`LinearFitConfig`.
     """
+    from jaxsync.surrogate.train import TrainResult
+
     config = LinearFitConfig() if config is None else config
     if dtype not in _DTYPES:
         raise ConfigError(f"dtype must be one of {_DTYPES}, got {dtype!r}")

@@ -178,6 +178,10 @@ def _read(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
         if isinstance(obj, h5py.Dataset):
             datasets[name] = obj[()]
 
+    if os.path.isdir(path):
+        inside = os.path.join(path, "surrogate.h5")
+        hint = f" such as {inside}" if os.path.isfile(inside) else ""
+        raise CheckpointError(f"surrogate file {path!r} is a folder; give a .h5 file{hint}")
     try:
         with h5py.File(path, "r") as fh:
             attrs = {k: (v.item() if isinstance(v, np.generic) else v) for k, v in fh.attrs.items()}
@@ -185,9 +189,10 @@ def _read(path: str) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
             fh.visititems(visit)
     except FileNotFoundError as err:
         raise CheckpointError(f"surrogate file {path} does not exist; train one with `jaxsync train`") from err
-    except (OSError, KeyError, ValueError) as err:
+    except Exception as err:  # noqa: BLE001 - h5py raises OSError, KeyError, ValueError or RuntimeError
         raise CheckpointError(
-            f"surrogate file {path} cannot be read ({err}); the file is truncated or not HDF5: "
+            f"surrogate file {path} cannot be read ({' '.join(str(err).split())}); the file is damaged, "
+            "truncated or not HDF5: "
             "restore it or retrain with `jaxsync train`"
         ) from err
     return datasets, attrs

@@ -138,6 +138,8 @@ def load_training_state(path, fingerprint: dict, template):
     """Read a state written by :func:`save_training_state` for a run with ``fingerprint``;
     ``template`` is the chunk carry of this run (tree structure, shapes and dtypes)."""
     fix = "delete it to start over, or write to another output folder"
+    if os.path.isdir(path):
+        raise CheckpointError(f"training state {os.fspath(path)!r} is a folder; give a .h5 file, or {fix}")
     try:
         with h5py.File(path, "r") as f:
             attrs = {k: (v.item() if hasattr(v, "item") else v) for k, v in f.attrs.items() if k != "checksum"}
@@ -146,7 +148,7 @@ def load_training_state(path, fingerprint: dict, template):
             arrays = {}
             f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)
     except Exception as exc:
-        raise CheckpointError(f"cannot read the training state {path} ({exc}); {fix}") from exc
+        raise CheckpointError(f"cannot read the training state {path} ({' '.join(str(exc).split())}); {fix}") from exc
     if attrs.get("kind") != _STATE_KIND:
         raise CheckpointError(f"{path} is not a jaxsync training state; {fix}")
     if int(attrs.get("version", -1)) != _STATE_VERSION:

@@ -18,6 +18,7 @@ __all__ = ["add_compression_option", "compression_of", "add_mode_option", "mode_
            "SURROGATE_OPTIONS",
            "add_surrogate_options", "join_negative_values", "accept_negative_numbers", "refuse_to_overwrite",
            "process_count", "is_main_process", "barrier", "add_trained_run_arguments", "load_trained_run",
+           "trained_run_inputs",
            "check_outputs", "writing", "written_and_kept", "is_package_warning", "package_warnings", "report_warnings"]
 
 
@@ -29,6 +30,11 @@ def add_trained_run_arguments(parser) -> None:
     parser.add_argument("surrogate", help="surrogate file written by jaxsync train (surrogate.h5)")
     parser.add_argument("--config", default=None, help="TOML problem file (default: the cantilever)")
     parser.add_argument("--mesh", default=None, help="mesh file to use instead of the config's")
+
+
+def trained_run_inputs(args) -> list[str]:
+    """The files the commands of :func:`add_trained_run_arguments` read (no output may be one)."""
+    return [p for p in (args.trajectory, args.surrogate, args.config, args.mesh) if p]
 
 
 def load_trained_run(args):
@@ -244,24 +250,42 @@ def accept_negative_numbers(parser: argparse.ArgumentParser) -> None:
     parser.parse_known_args = parse_with_negative_values
 
 
-def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None = None) -> None:
-    """ConfigError, before anything runs, when two outputs (or an output and the
-    checkpoint) are the same file, or when an output exists and ``force`` is False."""
+def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None = None,
+                        inputs=(), options: str = "-o") -> None:
+    """Before anything runs: ConfigError when two outputs (or an output and the checkpoint)
+    are the same file, when an output is one of the command's ``inputs`` (even with
+    ``force``: a command never writes over what it reads), or when an output exists and
+    ``force`` is False (the message names ``options``, those that choose the locations).
+    Then each output is claimed (:func:`jaxsync.io.claim_output`, inside the command
+    line's :func:`jaxsync.io.claimed_outputs`): a second jaxsync
+    process writing the same file stops at once, and a file that appears while this one
+    runs is never replaced."""
     from ...errors import ConfigError
+    from ...io import claim_output, claiming
+
+    def key(path):
+        return os.path.normcase(os.path.realpath(path))
 
     seen: dict[str, str] = {}
     for path in paths + ([checkpoint] if checkpoint else []):
-        key = os.path.normcase(os.path.realpath(path))
-        if key in seen:
-            raise ConfigError(f"{path} is used for two outputs (also as {seen[key]}); give the "
+        if key(path) in seen:
+            raise ConfigError(f"{path} is used for two outputs (also as {seen[key(path)]}); give the "
                               "trajectory, XDMF, VTU and checkpoint files different names")
-        seen[key] = path
+        seen[key(path)] = path
+    read = {key(p): p for p in inputs if p}
+    for path in paths:
+        if key(path) in read:
+            raise ConfigError(f"the output {path} is also an input of this command ({read[key(path)]}): writing it "
+                              "would destroy what the command reads, even with --force; choose another output name")
     existing = [path for path in paths if os.path.exists(path)]
     if existing and not force:
         names = ", ".join(existing)
         raise ConfigError(f"{names} already exist{'s' if len(existing) == 1 else ''} (the output "
-                          "of an earlier run?); pass --force to overwrite, or choose other "
-                          "names with -o/--xdmf/--vtu")
+                          "of an earlier run?); pass --force to overwrite, or choose another "
+                          f"location with {options}")
+    if claiming():  # the command line's scope (a library caller has none)
+        for path in paths:  # a folder output (a VTU series' step files) is claimed as one
+            claim_output(path, replace=force, folder=os.path.isdir(path))
 
 
 def process_count() -> int:
@@ -350,47 +374,39 @@ def is_package_warning(category) -> bool:
             and getattr(category, "__module__", "").split(".")[0] == "jaxsync")
 
 
-def _show_package_warning(message) -> None:
+def _show_warning(message, category=None) -> None:
     if process_count() > 1 and not is_main_process():
         return  # rank 0 speaks for all
-    print(f"warning: {' '.join(str(message).split())}", file=sys.stderr)
+    text = " ".join(str(message).split())
+    if category is not None and not is_package_warning(category):
+        text += f" ({getattr(category, '__name__', category)})"  # another library's: say whose kind
+    print(f"warning: {text}", file=sys.stderr)
 
 
 @contextlib.contextmanager
 def package_warnings():
-    """Inside the block, the package's own warnings (:func:`is_package_warning`) are
-    shown as one line, ``warning: <message>``, on stderr (by rank 0 of an ``mpiexec``
-    run), instead of Python's two lines with the source line that raised them; any other
-    warning goes where it went before (Python's display, or a recorder around the
-    block). Which warnings are shown follows the filters as usual."""
+    """Inside the block, every warning is shown as one line, ``warning: <message>``, on
+    stderr (by rank 0 of an ``mpiexec`` run), instead of Python's two lines with the source
+    line that raised it; one from another library (JAX, NumPy...) names its category at
+    the end. Which warnings are shown follows the filters as usual."""
     import warnings
 
     with warnings.catch_warnings():
-        previous = warnings.showwarning
-
         def show(message, category, filename, lineno, file=None, line=None):
-            if is_package_warning(category):
-                _show_package_warning(message)
-            else:
-                previous(message, category, filename, lineno, file, line)
+            _show_warning(message, category)
 
         warnings.showwarning = show
         yield
 
 
 def report_warnings(caught) -> None:
-    """Show warnings recorded with ``warnings.catch_warnings(record=True)``: the
-    package's own as one ``warning: ...`` line on stderr, any other as Python shows it;
-    a repeated warning (the same class and text) once."""
-    import warnings
-
+    """Show warnings recorded with ``warnings.catch_warnings(record=True)`` as one
+    ``warning: ...`` line each on stderr (:func:`package_warnings`); a repeated warning
+    (the same class and text) once."""
     seen = set()
     for w in caught:
         key = (w.category, str(w.message))
         if key in seen:
             continue
         seen.add(key)
-        if is_package_warning(w.category):
-            _show_package_warning(w.message)
-        else:
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+        _show_warning(w.message, w.category)

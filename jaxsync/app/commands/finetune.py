@@ -45,8 +45,8 @@ def run(args) -> int:
     from ...solve.finetune import FineTuneConfig, fine_tune_in_the_loop
     from ...surrogate import Surrogate
 
-    common.refuse_to_overwrite([args.output], force=args.force)
     common.check_outputs((args.output, "fine-tuned surrogate file", "-o"))
+    common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))
     reference, part, problem, saved = common.load_trained_run(args)
     if saved.arch.conditional:
         raise ConfigError("fine-tuning conditional surrogates (trained on several runs with load "

@@ -51,8 +51,8 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from ...solve.syncavoid import describe_run, simulate_sync_avoiding
 
-    common.refuse_to_overwrite([args.output], force=args.force)
     common.check_outputs((args.output, "output trajectory", "-o"))
+    common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))
     reference, part, problem, saved = common.load_trained_run(args)
     n_cri = args.n_cri or saved.n_s * saved.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))

@@ -35,6 +35,9 @@ def add_parser(subparsers) -> None:
                    help="the last step the surrogates were trained on (the demo's summary.json "
                         "train_until_step): summary.json then measures every error after it as well "
                         "(out_of_sample)")
+    p.add_argument("--force", action="store_true",
+                   help="replace the report (figures and summary.json) already in the output folder (without it "
+                        "the run is refused before it starts)")
     p.set_defaults(func=run)
 
 
@@ -67,9 +70,12 @@ def run(args) -> int:
     from ...parallel.partitioning import partition_of
     from ...trajectory import Trajectory
     from ..plots import constrained_nodes, write_report
-    from .common import check_outputs
+    from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))
+    # summary.json marks a report: an earlier one is replaced only with --force
+    refuse_to_overwrite([os.path.join(args.out, "summary.json")], force=args.force,
+                        inputs=[args.reference, args.online, args.config])
     reference = Trajectory.load(args.reference)
     online = Trajectory.load(args.online)
     reference = same_steps(reference, online, args.reference, args.online)

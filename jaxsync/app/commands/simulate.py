@@ -156,20 +156,27 @@ def check_locations(output, xdmf, checkpoint, timings_path=None, vtu=None) -> No
                          (checkpoint, "checkpoint", "--checkpoint"))
 
 
+def partial_output(output: str, *, force: bool = False) -> str:
+    """Where a diverged run keeps its snapshots: ``<output stem>.partial.h5``; without
+    ``force`` an existing one (an earlier run's) is kept and the next free name
+    ``<stem>.partial-2.h5``, ``-3``... is used."""
+    root, ext = os.path.splitext(output)
+    ext = ext or ".h5"
+    path, k = f"{root}.partial{ext}", 1
+    while not force and os.path.lexists(path):
+        k += 1
+        path = f"{root}.partial-{k}{ext}"
+    return path
+
+
 def checkpoint_step(checkpoint: str | None) -> int:
     """The step a run resumes from: that of the solver checkpoint ``checkpoint`` (0 when
     there is none, or it is not one: the solver then refuses it with the reason)."""
     if not checkpoint or not os.path.exists(checkpoint):
         return 0
-    try:
-        import h5py
+    from ...solve.checkpoint import committed_step
 
-        with h5py.File(checkpoint, "r") as f:
-            if f.attrs.get("kind") != "jaxsync-solver-checkpoint":
-                return 0
-            return int(f.attrs["step"])
-    except Exception:  # noqa: BLE001 - unreadable: the solver says why
-        return 0
+    return committed_step(checkpoint) or 0
 
 
 def devices_text(st, parts) -> str:
@@ -199,16 +206,23 @@ def run(args) -> int:
     main_rank = common.is_main_process()
     config = load_config(args.config)
     output, xdmf, checkpoint, resuming = outputs(args, config)
+    if args.checkpoint_every is not None and not checkpoint:
+        from ...errors import ConfigError
+
+        raise ConfigError(f"--checkpoint-every {args.checkpoint_every} needs a checkpoint file: add --checkpoint "
+                          "PATH (or [run] checkpoint in the configuration)")
     vtu = vtu_output(args, config)
+    inputs = [args.config, args.mesh, config.get("mesh", {}).get("file")]  # never written over
     if args.timings is not None:
         timings_path = args.timings or os.path.splitext(output)[0] + ".timings.json"
         if main_rank:
-            common.refuse_to_overwrite([timings_path], force=args.force)
             check_locations(output, xdmf, checkpoint, timings_path)
+            common.refuse_to_overwrite([timings_path], force=args.force, inputs=inputs, options="--timings")
     elif main_rank:  # the writer; checked before the mesh is read and anything runs
-        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []) + (vtu_files(vtu) if vtu else []),
-                                   force=args.force or resuming, checkpoint=checkpoint)
         check_locations(output, xdmf, checkpoint, vtu=vtu)
+        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []) + (vtu_files(vtu) if vtu else []),
+                                   force=args.force or resuming, checkpoint=checkpoint, inputs=inputs,
+                                   options="-o/--xdmf/--vtu")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         problem, run_config = problem_from_config(config, mesh_file=args.mesh,
@@ -261,16 +275,20 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
     if parts is None and n_processes > 1:
         parts = n_processes  # one part per process
     if main_rank:
-        print(problem.summary())
+        print(problem.summary(dt))
         if run_config.added_mass_percent is not None:
             print(f"mass scaling to dt {float(problem.dt):.4e} s: added mass "
                   f"{run_config.added_mass_percent:.2f} % of the total")
         if n_processes > 1:
             print(f"{n_processes} processes, {parts} parts")
+        if parts is not None:  # how the parts exchange: the transport of this run
+            from ...solve.strategies import transport
+
+            print(f"exchange: {transport(sync.get('sync'), parts)}")
     first_step = checkpoint_step(checkpoint)  # where a resumed run starts
     start = time.perf_counter()
     try:
-        every = args.checkpoint_every or run_config.checkpoint_every
+        every = args.checkpoint_every if args.checkpoint_every is not None else run_config.checkpoint_every
         trajectory = solver.simulate(
             problem, n_steps, dt=dt, save=SaveAt(save_every, args.shared_every),
             partitions=None if parts is None else _partitions(problem, parts, args.seed), mode=common.mode_of(args),
@@ -282,12 +300,11 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
             common.barrier()  # let rank 0 write the partial trajectory before the job ends
             raise
         if partial is not None and partial.n_saved:
-            root, ext = os.path.splitext(output)
-            partial_path = f"{root}.partial{ext or '.h5'}"
+            partial_path = partial_output(output, force=args.force)
             with common.writing(partial_path):
                 partial.save(partial_path)
-            print(f"saved the {partial.n_saved} snapshots before divergence to {partial_path}",
-                  file=sys.stderr)
+            print(f"saved the {partial.n_saved} snapshot{'s' if partial.n_saved > 1 else ''} before divergence "
+                  f"to {partial_path}", file=sys.stderr)
         common.barrier()
         raise
     elapsed = time.perf_counter() - start
