@@ -177,6 +177,13 @@ class Trajectory:
             (``ResyncTolerance(indicator="estimate")``): (n_saved,) the estimated largest
             nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.error_estimate`),
             NaN at synchronized ones; None otherwise.
+        load_signal: (n_rows, n_u) the problem's known load signals (the time functions
+            of its loads and prescribed motions, :mod:`jaxsync.fem.load_signals`) at the
+            steps of the parts' shared rows (every :attr:`shared_stride` steps from step
+            0), dimensionless: what a load-aware surrogate is trained with. None: not
+            recorded (files of an older jaxsync, traced time functions).
+        load_inputs: the (n_u,) :class:`~jaxsync.fem.load_signals.LoadInput` descriptions
+            of the columns of ``load_signal`` (empty without it).
 
     A pytree (the arrays, ``dt``, the parts and ``result`` are its leaves), so a traced run
     can return it from ``jit``.
@@ -195,8 +202,11 @@ class Trajectory:
     result: Any = None
     element: str = "P1"
     error_estimate: Any = None
+    load_signal: Any = None
+    load_inputs: tuple = ()
 
     def __post_init__(self):
+        object.__setattr__(self, "load_inputs", tuple(self.load_inputs))
         if self.stats is None:  # a run that recorded no statistics (a diverged run's kept snapshots)
             object.__setattr__(self, "stats", RunStats())
         elif isinstance(self.stats, dict):
@@ -290,6 +300,9 @@ class Trajectory:
             f.create_dataset("displacement", data=np.asarray(self.displacement), **filters)
             if self.error_estimate is not None:
                 f.create_dataset("error_estimate", data=np.asarray(self.error_estimate, dtype=float))
+            if self.load_signal is not None:
+                f.create_dataset("load_signal", data=np.asarray(self.load_signal, dtype=np.float64))
+                f.attrs["load_inputs"] = json.dumps([i.to_dict() for i in self.load_inputs])
             g = f.create_group("mesh")
             g["points"] = self.mesh.points
             g["tets"] = self.mesh.tets
@@ -346,6 +359,12 @@ class Trajectory:
                 synchronized = f["synchronized"][...] if "synchronized" in f else None
                 shared_every = f.attrs.get("shared_every")
                 result = f.attrs.get("result")
+                load_signal, load_inputs = None, ()
+                if "load_signal" in f:
+                    from .fem.load_signals import LoadInput
+
+                    load_signal = f["load_signal"][...]
+                    load_inputs = tuple(LoadInput.from_dict(d) for d in json.loads(f.attrs["load_inputs"]))
                 return cls(times=f["times"][...], displacement=f["displacement"][...], mesh=mesh,
                            dt=float(f.attrs["dt"]), save_every=int(f.attrs["save_every"]),
                            parameters=params, parts=parts, synchronized=synchronized,
@@ -353,7 +372,8 @@ class Trajectory:
                            shared_every=None if shared_every is None else int(shared_every),
                            result=None if result is None else Result(int(result)),
                            element=str(f.attrs.get("element", "P1")),
-                           error_estimate=f["error_estimate"][...] if "error_estimate" in f else None)
+                           error_estimate=f["error_estimate"][...] if "error_estimate" in f else None,
+                           load_signal=load_signal, load_inputs=load_inputs)
         except CheckpointError:
             raise
         except Exception as exc:  # h5py's reasons can span lines: one line
@@ -593,19 +613,21 @@ class _Frozen:
 
 
 def _flatten_trajectory(t: Trajectory):
-    children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result, t.error_estimate)
-    return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every, t.element)
+    children = (t.times, t.displacement, t.dt, t.parts, t.synchronized, t.result, t.error_estimate, t.load_signal)
+    return children, (t.mesh, t.save_every, _Frozen(t.parameters), t.stats, t.shared_every, t.element,
+                      t.load_inputs)
 
 
 def _unflatten_trajectory(aux, children) -> Trajectory:
-    mesh, save_every, parameters, stats, shared_every, element = aux
-    times, displacement, dt, parts, synchronized, result, error_estimate = children
+    mesh, save_every, parameters, stats, shared_every, element, load_inputs = aux
+    times, displacement, dt, parts, synchronized, result, error_estimate, load_signal = children
     t = object.__new__(Trajectory)  # without __post_init__: leaves may be placeholders
     for name, value in (("times", times), ("displacement", displacement), ("mesh", mesh), ("dt", dt),
                         ("save_every", save_every), ("parameters", dict(parameters.mapping)),
                         ("parts", tuple(parts)), ("synchronized", synchronized), ("stats", stats),
                         ("shared_every", shared_every), ("result", result), ("element", element),
-                        ("error_estimate", error_estimate)):
+                        ("error_estimate", error_estimate), ("load_signal", load_signal),
+                        ("load_inputs", load_inputs)):
         object.__setattr__(t, name, value)
     return t
 

@@ -125,6 +125,13 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         help="encoder hidden size n_H (default: %(default)s; paper: 100)")
     parser.add_argument("--n-layers", "--layers", dest="n_layers", type=int, default=ARCHITECTURE.n_layers,
                         help="bidirectional encoder layers k (default: %(default)s)")
+    parser.add_argument("--load-input", dest="load_input", action=argparse.BooleanOptionalAction,
+                        default=ARCHITECTURE.load_input,
+                        help="feed the surrogates the known load signals (the time functions of the problem's "
+                        "loads and prescribed motions over the past and predicted windows; the linear model "
+                        "becomes ARX). Default: on when the trajectories record them (every run of jaxsync "
+                        "simulate does), off for files written before; --load-input requires them, "
+                        "--no-load-input trains the load-blind model")
     parser.add_argument("--cond-repeat", type=int, default=ARCHITECTURE.n_cond_repeat,
                         help="copies q of the load parameter fed to the decoder; 0 = unconditional "
                         "(default: %(default)s; paper: 12)")
@@ -194,7 +201,8 @@ def run_train(args: argparse.Namespace) -> int:
     trained = train_surrogates(
         args.trajectories,
         architecture=ArchitectureChoice(model=args.model, n_hidden=args.n_hidden, n_layers=args.n_layers,
-                                        n_cond_repeat=args.cond_repeat, regularization=args.regularization),
+                                        n_cond_repeat=args.cond_repeat, regularization=args.regularization,
+                                        load_input=args.load_input),
         sampling=Sampling(n_s=args.n_s, n_past=args.n_past, n_future=args.n_future,
                           train_fraction=args.train_fraction, val_fraction=args.val_fraction,
                           n_offsets=args.n_offsets, split=args.split, load_jump_windows=args.load_jump_windows,
@@ -218,6 +226,9 @@ def run_train(args: argparse.Namespace) -> int:
     print(f"wrote {os.path.join(args.output, args.surrogate_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
           f"and {SUMMARY_NAME} ({how}); validation MSE of the kept parameters per part: "
           f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
+    inputs = result.load_inputs
+    print(f"load input: {len(inputs)} known load signal(s): " + "; ".join(map(str, inputs)) if inputs else
+          "load input: none (load-blind surrogates)")
     if trained.candidates is not None:
         c = trained.candidates
         print(f"candidates: {c['n_candidates']} networks per part, kept candidate "

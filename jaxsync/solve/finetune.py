@@ -159,7 +159,7 @@ def fine_tune_in_the_loop(problem, surrogate, partitions, *, n_steps: int, confi
                           "use fewer window_cycles or a longer span")
     starts = np.unique(np.linspace(first, last, config.n_starts).round().astype(int) // save_every * save_every)
     distributed = DistributedParts(problem, partitions, sync, mode=mode)
-    predictor_for(surrogate, distributed.partition)  # made for this partition
+    surrogate = predictor_for(surrogate, distributed.partition, problem, dt)  # made for this partition and its loads
     schedule = (Synchronized(history), Predicted(window - history))
     system = build_system(problem, dt, mode)
     states, amplitude = _start_states(system, initial_state(problem, system), starts, int(n_steps), save_every)

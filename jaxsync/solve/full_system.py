@@ -61,7 +61,8 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
                                   f"the surrogate file has {surrogates.n_parts} replicas with "
                                   f"{list(surrogates.dof_counts)} dofs")
         surrogates = Surrogate.from_saved(surrogates)
-    predictor = surrogates
+    # a surrogate with load input reads the problem's load signals at the reference's step
+    predictor = surrogates.for_problem(problem, reference.dt) if hasattr(surrogates, "for_problem") else surrogates
     history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
     if n_cri < history:
         raise ProblemError(f"n_cri={n_cri} is too small: the first refill reads the n_p * n_s = "

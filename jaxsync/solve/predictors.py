@@ -47,8 +47,10 @@ class OraclePredictor:
         return jax.lax.dynamic_slice_in_dim(self.future, step + 1 - self.first_step, length, axis=0)
 
 
-def predictor_for(surrogates, partition):
-    """The predictor of ``surrogates`` for ``partition``, checked to fit it.
+def predictor_for(surrogates, partition, problem=None, dt=None):
+    """The predictor of ``surrogates`` for ``partition``, checked to fit it, and bound to
+    the load signals of ``problem`` at time step ``dt`` (default ``problem.dt``) when it
+    reads them (:meth:`jaxsync.surrogate.Surrogate.for_problem`: refused for other loads).
 
     ``surrogates``: a :class:`jaxsync.surrogate.Surrogate` or :class:`OraclePredictor`
     (anything with ``predict``, ``n_s``, ``n_past``, ``n_future``), or the record of a
@@ -75,4 +77,6 @@ def predictor_for(surrogates, partition):
         raise CheckpointError(f"the surrogates were made for {made_for[0]} parts of {made_for[1]} shared dofs "
                               f"but this partition has {partition.n_parts} parts of up to {n_dof}: pass the "
                               "partition they were trained on, or retrain on this one")
+    if problem is not None and hasattr(surrogates, "for_problem"):
+        surrogates = surrogates.for_problem(problem, dt)
     return surrogates

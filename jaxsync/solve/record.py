@@ -11,10 +11,12 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..fem.load_signals import record_load_signal
 from ..fem.loads import load_jumps
 from ..pytree import is_traced
 
-__all__ = ["synchronized_trajectory", "online_trajectory", "run_parameters", "part_histories", "known_load_jumps"]
+__all__ = ["synchronized_trajectory", "online_trajectory", "run_parameters", "part_histories", "known_load_jumps",
+           "load_signal_fields"]
 
 
 def run_parameters(problem, jumps=None) -> dict:
@@ -46,6 +48,17 @@ def known_load_jumps(loads, n_steps: int, dt):
             return load_jumps(loads, n_steps, dt)
     except (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError):
         return None
+
+
+def load_signal_fields(problem, dt, n_rows: int, stride: int) -> dict:
+    """``load_signal`` and ``load_inputs`` of a trajectory whose shared rows are every
+    ``stride`` steps from step 0 (``n_rows`` of them): the problem's load signals there
+    (:func:`jaxsync.fem.load_signals.record_load_signal`); empty when traced."""
+    recorded = record_load_signal(problem, dt, np.arange(int(n_rows)) * int(stride))
+    if recorded is None:
+        return {}
+    signal, inputs = recorded
+    return {"load_signal": signal, "load_inputs": inputs}
 
 
 def part_histories(partition, shared, predicted=None) -> tuple:
@@ -89,10 +102,12 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
             shared_every = save.shared_every
         parts = part_histories(partition, shared)
     jumps = known_load_jumps(problem.loads, n_steps, dt)
+    stride = save.every if shared_every is None else shared_every
+    n_rows = n_saved if not parts else len(parts[0].shared_displacement)
     return Trajectory(times=times, displacement=displacement, mesh=problem.mesh, element=problem.element, dt=dt,
                       save_every=save.every,
                       parameters=run_parameters(problem, jumps), parts=parts, shared_every=shared_every,
-                      stats=stats, result=result)
+                      stats=stats, result=result, **load_signal_fields(problem, dt, n_rows, stride))
 
 
 def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parameters, stats=None, result=None,
@@ -118,4 +133,4 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
     return Trajectory(times=np.arange(n_saved, dtype=np.float64) * save_every * dt, displacement=displacement,
                       mesh=problem.mesh, element=problem.element, dt=dt, save_every=save_every,
                       parameters=parameters, parts=parts, synchronized=flags, stats=stats, result=result,
-                      error_estimate=error_estimate)
+                      error_estimate=error_estimate, **load_signal_fields(problem, dt, n_saved, save_every))

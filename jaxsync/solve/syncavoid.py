@@ -140,7 +140,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
                        problem.initial_velocity, surrogates)
     executor = choose_executor(executor, traced)
     distributed = DistributedParts(problem, partitions, sync, mode=mode)
-    predictor = predictor_for(surrogates, distributed.partition)
+    predictor = predictor_for(surrogates, distributed.partition, problem, dt)
     history, cycle_steps = predictor.n_s * predictor.n_past, predictor.n_s * predictor.n_future
     if n_cri < history:
         raise ProblemError(f"n_cri={n_cri} is too small: the first refill reads the n_p * n_s = "

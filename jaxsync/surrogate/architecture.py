@@ -3,9 +3,11 @@
 A surrogate model is a module with an architecture class (a static frozen dataclass with
 ``kind``, ``n_dof``, ``n_past``, ``n_future``, ``dtype``, ``conditional``,
 ``to_dict``/``from_dict``), ``init_params(key, arch)`` and
-``forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=None)`` mapping a
-normalized window (n_p, n_dof) to (n_f, n_dof) (``compute_dtype="bfloat16"``: reduced-
-precision inference).  Two exist (:data:`jaxsync.options.SurrogateModel`):
+``forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=None, loads=None)``
+mapping a normalized window (n_p, n_dof) to (n_f, n_dof) (``compute_dtype="bfloat16"``:
+reduced-precision inference; ``loads`` (n_p + n_f, n_load): the known load signals of a
+model with load input, ``arch.n_load > 0``, :mod:`jaxsync.fem.load_signals`).  Two exist
+(:data:`jaxsync.options.SurrogateModel`):
 
 =========  =====================================================  ============================
 kind       architecture                                           module
@@ -76,6 +78,14 @@ class ArchitectureChoice:
             models.
         regularization: relative ridge parameter r >= 0 of the linear fit (default 1e-8,
             :class:`~jaxsync.surrogate.linear.LinearFitConfig`). Linear only.
+        load_input: feed the networks the known load signals (the time functions of the
+            problem's loads and prescribed motions, past and future window,
+            :mod:`jaxsync.fem.load_signals`): the LSTM reads them in its encoder and
+            decoder, the linear model becomes ARX. None (default): on when the trajectories
+            record load signals (every run of ``jaxsync simulate`` / ``jaxsync.simulate``
+            does), off for trajectory files written before they were recorded. True
+            requires them (a :class:`~jaxsync.errors.ConfigError` otherwise), False trains
+            the load-blind model of the paper. Both models.
     """
 
     model: SurrogateModel = "lstm"
@@ -84,8 +94,12 @@ class ArchitectureChoice:
     n_cond_repeat: int = LSTMArchitecture.n_cond_repeat
     dtype: str = LSTMArchitecture.dtype
     regularization: float = DEFAULT_REGULARIZATION
+    load_input: bool | None = None
 
     def __post_init__(self):
+        if self.load_input is not None and not isinstance(self.load_input, bool):
+            raise ConfigError(f"ArchitectureChoice.load_input must be True, False or None (on when the trajectories "
+                              f"record load signals), got {self.load_input!r}")
         check_option("model", self.model, SurrogateModel)
         for name, low, what in (("n_hidden", 1, "encoder hidden size n_H"), ("n_layers", 1, "encoder layers k"),
                                 ("n_cond_repeat", 0, "copies q of the load parameter; 0: unconditional")):
@@ -104,11 +118,11 @@ class ArchitectureChoice:
         """The least-squares settings of the linear model (its ``regularization``)."""
         return LinearFitConfig(self.regularization)
 
-    def lstm(self, n_dof: int, n_past: int, n_future: int) -> LSTMArchitecture:
+    def lstm(self, n_dof: int, n_past: int, n_future: int, n_load: int = 0) -> LSTMArchitecture:
         """The LSTM of this choice for windows of ``n_past`` -> ``n_future`` snapshots of
-        ``n_dof`` (padded) dofs."""
+        ``n_dof`` (padded) dofs, reading ``n_load`` load signals."""
         return LSTMArchitecture(n_dof=n_dof, n_hidden=self.n_hidden, n_layers=self.n_layers, n_past=n_past,
-                                n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype)
+                                n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load)
 
 
 def model_module(arch: Architecture) -> ModuleType:
@@ -143,8 +157,11 @@ def init_params(key: jax.Array, arch: Architecture):
 
 
 def forward(params, arch: Architecture, xs: jax.Array, load_parameter: jax.Array | None = None,
-            dof_mask: jax.Array | None = None, compute_dtype: str | None = None) -> jax.Array:
+            dof_mask: jax.Array | None = None, compute_dtype: str | None = None,
+            loads: jax.Array | None = None) -> jax.Array:
     """Normalized window (n_p, n_dof) -> predictions (n_f, n_dof) of one replica (the
     model's own ``forward``); ``compute_dtype="bfloat16"``: reduced-precision inference
-    (bfloat16 operands, float32 accumulation; None: the architecture's dtype)."""
-    return model_module(arch).forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=compute_dtype)
+    (bfloat16 operands, float32 accumulation; None: the architecture's dtype); ``loads``
+    (n_p + n_f, n_load): the normalized load signals of a model with load input."""
+    return model_module(arch).forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=compute_dtype,
+                                      loads=loads)

@@ -12,6 +12,14 @@ every time step (step k is row k; units of the solver, cm in the paper).  From i
 5. a per-dof normalization (mean, std) is fitted on the training windows and applied to
    everything; it is stored with the model.
 
+With the load input, each window also carries the known load signals at its n_p + n_f
+sample times (:mod:`jaxsync.fem.load_signals`, recorded by the trajectory at the rows of
+its shared histories), windowed, filtered and split exactly as the displacements, and
+normalized by one scale per signal, the largest |u| over every recorded row of every run
+(the loads are prescribed, so their range over the whole run is known beforehand; a
+scale, not a mean and std, so that a signal that is constant in the training windows --
+a load switched off later -- still normalizes to its true value).
+
 Several runs (different initial conditions or loads, each with its scalar load parameter
 for the conditional network) are combined by pooling their windows before the split.
 
@@ -277,6 +285,10 @@ class WindowDataset:
         normalization: fitted on the training windows.
         n_excluded: windows left out because they straddle a load jump (``load_jumps`` of
             :func:`build_dataset`).
+        signal_train, signal_val: (n_train|n_val, n_p + n_f, n_u) float32 normalized load
+            signals of each window (load input), or None.
+        signal_scale: (n_u,) float64 scale of each load signal (u / scale is what the
+            model reads), or None.
     """
 
     x_train: np.ndarray
@@ -287,6 +299,9 @@ class WindowDataset:
     load_parameter_val: np.ndarray
     normalization: Normalization
     n_excluded: int = 0
+    signal_train: np.ndarray | None = None
+    signal_val: np.ndarray | None = None
+    signal_scale: np.ndarray | None = None
 
     @property
     def n_dof(self) -> int:
@@ -318,6 +333,7 @@ def build_dataset(
     n_offsets: int = 1,
     split: ValidationSplit = "interleaved",
     load_jumps: Sequence[Sequence[float]] | None = None,
+    signals: Sequence[np.ndarray] | None = None,
 ) -> WindowDataset:
     """Windows of one part from one or several runs.
 
@@ -343,6 +359,8 @@ def build_dataset(
             it, which no autonomous model can foresee (the online run stays synchronized
             through a jump and predicts only from a history after it): such windows are
             left out (counted in ``n_excluded``). None: none are.
+        signals: per run, the (n_steps, n_u) known load signals at the rows of ``runs``
+            (the load input; :func:`signal_scale` normalizes them), or None.
 
     Returns:
         The normalized :class:`WindowDataset`.
@@ -357,8 +375,11 @@ def build_dataset(
         raise ConfigError(f"n_offsets must be an integer from 1 to n_s={n_s}, got {n_offsets!r}")
     if load_jumps is not None and len(load_jumps) != len(runs):
         raise ConfigError(f"got load jumps for {len(load_jumps)} runs and {len(runs)} runs; give one list per run")
+    if signals is not None and len(signals) != len(runs):
+        raise ConfigError(f"got load signals of {len(signals)} runs for {len(runs)} runs; give one per run")
+    scale = None if signals is None else signal_scale(signals)
     n_dof = np.shape(runs[0])[-1]
-    xs, ys, loads = [], [], []
+    xs, ys, loads, us = [], [], [], []
     n_excluded = 0
     for r, run in enumerate(runs):
         run = np.asarray(run, dtype=np.float64)
@@ -368,15 +389,27 @@ def build_dataset(
             raise ConfigError(f"run {r} holds NaN or Inf displacements; it cannot be used for training")
         n_used = trained_rows(run.shape[0], train_fraction)
         jumps = np.asarray([] if load_jumps is None else load_jumps[r], dtype=float)
+        signal = None
+        if signals is not None:
+            signal = np.asarray(signals[r], np.float64)
+            if signal.ndim != 2 or signal.shape != (run.shape[0], scale.size):
+                raise ConfigError(f"run {r}: load signals of shape {signal.shape} for {run.shape[0]} rows; expected "
+                                  f"({run.shape[0]}, {scale.size})")
         for k in range(n_offsets):
             offset = (k * n_s) // n_offsets
             x, y = make_windows(subsample(run[:n_used], n_s, offset), n_past, n_future)
+            u = None
+            if signal is not None:
+                u_past, u_future = make_windows(subsample(signal[:n_used], n_s, offset), n_past, n_future)
+                u = np.concatenate([u_past, u_future], axis=1) / scale
             if jumps.size:
                 first = offset + n_s * np.arange(x.shape[0])  # rows of each window's first and last snapshot
                 last = first + n_s * (n_past + n_future - 1)
                 keep = ~np.any((first[:, None] <= jumps[None, :]) & (last[:, None] > jumps[None, :]), axis=1)
                 n_excluded += int(np.count_nonzero(~keep))
                 x, y = x[keep], y[keep]
+                u = None if u is None else u[keep]
+            us.append(u)
             xs.append(x)
             ys.append(y)
             loads.append(np.full(x.shape[0], 0.0 if load_parameters is None else load_parameters[r]))
@@ -391,11 +424,20 @@ def build_dataset(
     def prep(a):
         return norm.apply(a).astype(np.float32)
 
+    u = None if signals is None else np.concatenate(us).astype(np.float32)
     return WindowDataset(
         x_train=prep(x[train]), y_train=prep(y[train]), load_parameter_train=load[train].astype(np.float32),
         x_val=prep(x[val]), y_val=prep(y[val]), load_parameter_val=load[val].astype(np.float32),
         normalization=norm, n_excluded=n_excluded,
+        signal_train=None if u is None else u[train], signal_val=None if u is None else u[val], signal_scale=scale,
     )
+
+
+def signal_scale(signals: Sequence[np.ndarray]) -> np.ndarray:
+    """(n_u,) float64 scale of each load signal: the largest |u| over every row of every
+    run (``signals``: per run, (n_rows, n_u)); 1 for a signal that is 0 throughout."""
+    peak = np.max(np.abs(np.concatenate([np.asarray(u, np.float64) for u in signals])), axis=0, initial=0.0)
+    return np.where(peak > 0, peak, 1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -409,6 +451,12 @@ class ReplicaData:
         dof_mask: (n_parts, n_dof_max) float32, 1 on real dofs.
         dof_counts: real dofs per part.
         mean, std: (n_parts, n_dof_max) float64 normalization (0 and 1 on padding).
+        signal_train, signal_val: (n_parts, n_train|n_val, n_p + n_f, n_u) float32
+            normalized load signals of the windows (the load input; the same for every
+            part), or None.
+        signal_scale: (n_parts, n_u) float64 scale of the load signals, or None.
+        load_inputs: (n_u,) :class:`~jaxsync.fem.load_signals.LoadInput` descriptions of
+            the signals (empty without load input).
     """
 
     x_train: np.ndarray
@@ -421,6 +469,15 @@ class ReplicaData:
     dof_counts: tuple[int, ...]
     mean: np.ndarray
     std: np.ndarray
+    signal_train: np.ndarray | None = None
+    signal_val: np.ndarray | None = None
+    signal_scale: np.ndarray | None = None
+    load_inputs: tuple = ()
+
+    @property
+    def n_load(self) -> int:
+        """Load signals each window carries (0: no load input)."""
+        return 0 if self.signal_train is None else int(self.signal_train.shape[-1])
 
     @property
     def n_parts(self) -> int:
@@ -436,11 +493,12 @@ def padding_mask(dof_counts: Sequence[int], n_dof: int) -> np.ndarray:
     return (np.arange(n_dof)[None, :] < np.asarray(dof_counts)[:, None]).astype(np.float32)
 
 
-def stack_replicas(datasets: Sequence[WindowDataset]) -> ReplicaData:
+def stack_replicas(datasets: Sequence[WindowDataset], load_inputs: Sequence = ()) -> ReplicaData:
     """Pad every part's windows to the largest dof count and stack them.
 
     All parts must have the same number of windows (true when they come from the same
-    runs with the same sampling and split seed).
+    runs with the same sampling and split seed). ``load_inputs``: the descriptions of the
+    windows' load signals (:class:`~jaxsync.fem.load_signals.LoadInput`), if they carry any.
     """
     if len(datasets) == 0:
         raise ConfigError("stack_replicas needs at least one dataset")
@@ -468,7 +526,24 @@ def stack_replicas(datasets: Sequence[WindowDataset]) -> ReplicaData:
         dof_counts=counts,
         mean=np.stack([pad(d.normalization.mean) for d in datasets]),
         std=np.stack([pad(d.normalization.std, 1.0) for d in datasets]),
+        **_stacked_signals(datasets, tuple(load_inputs)),
     )
+
+
+def _stacked_signals(datasets: Sequence[WindowDataset], load_inputs: tuple) -> dict:
+    """The load-signal fields of :class:`ReplicaData` from every part's windows."""
+    with_signals = {d.signal_train is not None for d in datasets}
+    if with_signals != {True}:
+        if True in with_signals:
+            raise ConfigError("some parts' windows carry load signals and others do not; build every part with "
+                              "the same signals")
+        return {}
+    if len(load_inputs) != datasets[0].signal_scale.size:
+        raise ConfigError(f"{len(load_inputs)} load input descriptions for {datasets[0].signal_scale.size} load "
+                          "signals; give one per signal")
+    return {"signal_train": np.stack([d.signal_train for d in datasets]),
+            "signal_val": np.stack([d.signal_val for d in datasets]),
+            "signal_scale": np.stack([d.signal_scale for d in datasets]), "load_inputs": load_inputs}
 
 
 
@@ -502,6 +577,9 @@ class SharedHistories:
             ``parameters["last_load_jump"]``), or None.
         load_jumps: every step at which a load of the run jumps (``parameters["load_jumps"]``;
             for a trajectory written before those were kept, its last one only).
+        load_signal: (n_rows, n_u) the run's known load signals at the rows of
+            ``histories`` (the trajectory's ``load_signal``), or None: not recorded.
+        load_inputs: their :class:`~jaxsync.fem.load_signals.LoadInput` descriptions.
     """
 
     histories: tuple[np.ndarray, ...]
@@ -512,6 +590,8 @@ class SharedHistories:
     stride: int = 1
     last_load_jump: int | None = None
     load_jumps: tuple = ()
+    load_signal: np.ndarray | None = None
+    load_inputs: tuple = ()
 
     def for_sampling(self, n_s: int) -> int:
         """The row stride that samples these histories every ``n_s`` steps.
@@ -607,5 +687,11 @@ def read_shared_histories(trajectory, *, allow_predicted: bool = False) -> Share
     load, jump = traj.parameters.get("load_parameter"), traj.parameters.get("last_load_jump")
     jumps = traj.parameters.get("load_jumps", [] if jump is None else [jump])
     jumps = tuple(int(j) for j in np.atleast_1d(jumps))
+    signal = None if traj.load_signal is None else np.asarray(traj.load_signal, np.float64)
+    if signal is not None and (signal.ndim != 2 or signal.shape[0] != histories[0].shape[0]
+                               or signal.shape[1] != len(traj.load_inputs)):
+        raise CheckpointError(f"{name}: load_signal has shape {signal.shape} for {histories[0].shape[0]} shared rows "
+                              f"and {len(traj.load_inputs)} described signals; the file is damaged")
     return SharedHistories(tuple(histories), tuple(nodes), float(traj.dt), None if load is None else float(load),
-                           synchronized, int(traj.shared_stride), None if jump is None else int(jump), jumps)
+                           synchronized, int(traj.shared_stride), None if jump is None else int(jump), jumps,
+                           signal, tuple(traj.load_inputs))

@@ -53,6 +53,7 @@ import jax
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.fem.load_signals import RecordedLoadSignals
 from jaxsync.io import atomic_json, atomic_path
 from jaxsync.options import SurrogateModel
 from jaxsync.surrogate.architecture import ArchitectureChoice, architecture_to_dict
@@ -202,6 +203,7 @@ class TrainedSurrogates:
             "model": self.model,
             "trajectories": list(self.trajectories),
             "load_parameters": None if self.load_parameters is None else list(self.load_parameters),
+            "load_inputs": [i.to_dict() for i in result.load_inputs],
             "n_parts": n_parts,
             "dof_counts": list(result.dof_counts),
             "architecture": architecture_to_dict(arch),
@@ -299,6 +301,31 @@ def _load_parameters(runs, given, n_cond_repeat: int) -> list[float] | None:
     return loads if n_cond_repeat > 0 else None
 
 
+def _load_signals(runs, load_input: bool | None) -> tuple[list[np.ndarray] | None, tuple]:
+    """The per-run load signals the windows carry and their descriptions, decided by
+    ``load_input`` (:class:`~jaxsync.surrogate.architecture.ArchitectureChoice`): None:
+    when every run records signals (and there is at least one); True: required; False:
+    none."""
+    recorded = [run.load_signal is not None and run.load_signal.shape[1] > 0 for run in runs]
+    if load_input is False or (load_input is None and not all(recorded)):
+        return None, ()
+    if not all(recorded):
+        missing = [k for k, ok in enumerate(recorded) if not ok]
+        raise ConfigError(
+            f"load_input=True (--load-input) but trajectory {', '.join(map(str, missing))} records no load signals "
+            "(a run without time-dependent loads, or a file written before jaxsync recorded them): rerun the solver "
+            "(jaxsync simulate) to record them, or train without the load input (load_input=False, --no-load-input)")
+    first = runs[0].load_inputs
+    for k, run in enumerate(runs[1:], start=1):
+        if [(i.source, i.kind, i.form) for i in run.load_inputs] != [(i.source, i.kind, i.form) for i in first]:
+            raise ConfigError(
+                f"trajectory {k} has the loads {'; '.join(map(str, run.load_inputs))} but trajectory 0 has "
+                f"{'; '.join(map(str, first))}: a surrogate with load input is trained on runs whose loads have the "
+                "same count, kinds and time-function forms; train on such runs, or without the load input "
+                "(load_input=False)")
+    return [run.load_signal for run in runs], tuple(first)
+
+
 def train_surrogates(
     trajectories,
     *,
@@ -328,7 +355,13 @@ def train_surrogates(
             (:class:`~jaxsync.surrogate.architecture.ArchitectureChoice`; default: the
             LSTM with n_H = 50, k = 2, unconditional, float32). ``n_cond_repeat`` > 0
             trains the conditional network. The linear model is fitted by least squares
-            with ``architecture.regularization``; the LSTM-only settings (``n_hidden``,
+            with ``architecture.regularization``. ``architecture.load_input`` (default
+            None: on when every trajectory records its load signals, as every run of
+            ``jaxsync simulate`` does) feeds both models the known load signals (the
+            time functions of the problem's loads and prescribed motions over the past and
+            the predicted window, :mod:`jaxsync.fem.load_signals`); trajectory files
+            written before those were recorded train the load-blind model, and
+            ``load_input=True`` refuses them. The LSTM-only settings (``n_hidden``,
             ``n_layers``, ``optimizer``, ``state``, ``devices``, ``progress``,
             ``callback``) do not apply to it.
         sampling: the windows and the seed (:class:`~jaxsync.surrogate.data.Sampling`;
@@ -379,6 +412,7 @@ def train_surrogates(
     exclude_jumps = sampling.load_jump_windows == "exclude"
     runs, names = _read_runs(trajectories, allow_predicted)
     loads = _load_parameters(runs, load_parameters, architecture.n_cond_repeat)
+    signals, load_inputs = _load_signals(runs, architecture.load_input)
     n_parts = len(runs[0].histories)
     row_strides = {run.for_sampling(n_s) for run in runs}
     if len(row_strides) > 1:
@@ -389,12 +423,12 @@ def train_surrogates(
         build_dataset([run.histories[p] for run in runs], row_stride, n_past, n_future, sampling.train_fraction,
                       sampling.val_fraction, sampling.seed, loads, n_offsets=sampling.n_offsets, split=sampling.split,
                       load_jumps=[[j / run.stride for j in run.load_jumps] if exclude_jumps else []
-                                  for run in runs])
+                                  for run in runs], signals=signals)
         for p in range(n_parts)
     ]
     if model == "linear":
         state = None  # a least-squares fit has no state to resume
-        data = stack_replicas(datasets)
+        data = stack_replicas(datasets, load_inputs)
         started = time.perf_counter()
         result = fit_linear(data, architecture.fit_config, architecture.dtype)
         train_seconds = time.perf_counter() - started
@@ -402,8 +436,8 @@ def train_surrogates(
     else:
         # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
         n_candidates = int(optimizer.n_candidates)
-        data = stack_replicas(datasets * n_candidates)
-        arch = architecture.lstm(data.n_dof_max, n_past, n_future)
+        data = stack_replicas(datasets * n_candidates, load_inputs)
+        arch = architecture.lstm(data.n_dof_max, n_past, n_future, data.n_load)
         started = time.perf_counter()
         result = train_replicas(data, arch, optimizer, jax.random.key(sampling.seed), progress=progress,
                                 devices=devices, state=state, callback=callback)
@@ -414,20 +448,23 @@ def train_surrogates(
     load = None if loads is None else loads[0]
     surrogate = Surrogate.from_result(result, n_s, load)
     first = runs[0]
+    # the offline checks read the first run's recorded load signals (kept every step there)
+    checked = surrogate if signals is None or first.stride != 1 else surrogate.with_load_signals(
+        RecordedLoadSignals(first.load_signal, load_inputs))
     n_app = min(checks.emse_applications, max_applications(first.histories[0].shape[0], n_s, n_past, n_future))
     if first.stride != 1:  # the refill reads every step of its input history
         n_app = 0
     sqrt_e_mse = rollout = None
     histories = np.stack([np.pad(h, ((0, 0), (0, arch.n_dof - h.shape[1]))) for h in first.histories])
     if n_app > 0:
-        sqrt_e_mse = tuple(float(v) for v in np.sqrt(e_mse(surrogate, histories, n_app)))
+        sqrt_e_mse = tuple(float(v) for v in np.sqrt(e_mse(checked, histories, n_app)))
     # from where an online run starts predicting: n_s n_p - 1, or after the last load jump
     # (simulate_sync_avoiding stays synchronized through it by default)
     start = n_s * n_past - 1 + (first.last_load_jump or 0)
     tolerance = checks.rollout_tolerance
     if (tolerance is not None and first.stride == 1
             and max_applications(histories.shape[1], n_s, n_past, n_future, start) > 0):
-        rollout = rollout_errors(surrogate, histories, start=start)
+        rollout = rollout_errors(checked, histories, start=start)
     if rollout is not None:
         worst = int(np.argmax(rollout.relative))
         if rollout.relative[worst] > tolerance:
@@ -473,7 +510,8 @@ def choose_candidates(result: TrainResult, n_parts: int, n_candidates: int) -> t
         dof_counts=tuple(result.dof_counts[k] for k in keep), mean=np.asarray(result.mean)[keep],
         std=np.asarray(result.std)[keep], train_loss=result.train_loss[:, keep], val_loss=result.val_loss[:, keep],
         initial_val_loss=np.asarray(result.initial_val_loss)[keep],
-        best_epoch=None if result.best_epoch is None else np.asarray(result.best_epoch)[keep])
+        best_epoch=None if result.best_epoch is None else np.asarray(result.best_epoch)[keep],
+        signal_scale=None if result.signal_scale is None else np.asarray(result.signal_scale)[keep])
     return picked, {"n_candidates": n_candidates, "chosen": [int(c) for c in chosen],
                     "best_val_loss": losses.tolist()}
 

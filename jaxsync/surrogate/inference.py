@@ -135,6 +135,11 @@ def surrogate_windows(surrogate: Surrogate, histories: Sequence[np.ndarray], *, 
 def _outputs(surrogate: Surrogate, windows, compute_dtype):
     """(n_parts, n_windows, n_f, n_dof) normalized predictions of every part's windows."""
     arch = surrogate.arch
+    if surrogate.n_load:
+        raise ConfigError("the reduced-precision check runs the networks on windows of displacements alone, but these "
+                          f"surrogates also read {surrogate.n_load} load signal(s): check them in their own dtype "
+                          "(leave --inference-dtype / with_inference_dtype out), or train them without the load "
+                          "input (--no-load-input) to run them in bfloat16")
     mask = jnp.asarray(surrogate.dof_mask, arch.dtype)
 
     def part(params, x, load, m):

@@ -27,6 +27,19 @@ would hold 2.1e9 numbers per part.  Parameters, one replica::
 Replicas are padded like the LSTM's: zeros on padded dofs and on the rank columns a part
 does not use, so a padded replica computes what it would alone and predicts 0 on padding.
 The model is unconditional (no load parameter).
+
+Load input (``n_load > 0``, ARX): the known load signals u (:mod:`jaxsync.fem.load_signals`,
+normalized by the surrogate's per-signal scale) at the window's n_p past and n_f future
+sample times, ``loads`` (n_p + n_f, n_load), are further inputs of the same affine map::
+
+    vec(y) = [vec(x), vec(u_past), vec(u_future)] W + b
+
+fitted by the same least squares: the load columns are more input directions (the centered
+inputs' SVD runs over the displacement and load columns together, with the same ridge and
+rank cut). Their rows of ``w_in`` are stored apart, ``"w_load": (n_p + n_f, n_load, rank)``,
+and their term added to the projection: a model whose ``w_load`` is zero computes bit for
+bit what the model without load input computes, and ``n_load = 0`` is that model (no
+``w_load``; surrogate files written before the load input load unchanged).
 """
 
 from __future__ import annotations
@@ -42,7 +55,7 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
-from jaxsync.surrogate.lstm import check_compute_dtype
+from jaxsync.surrogate.lstm import check_compute_dtype, check_loads
 
 if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
     from jaxsync.surrogate.train import TrainResult
@@ -72,6 +85,8 @@ class LinearArchitecture:
         n_past: n_p, snapshots in an input window.
         n_future: n_f, snapshots predicted.
         dtype: "float32" (default, as the LSTM) or "float64" for parameters and computation.
+        n_load: number of known load signals fed in (ARX, module docstring); 0 (default):
+            none.
     """
 
     kind: ClassVar[str] = "linear"
@@ -81,8 +96,11 @@ class LinearArchitecture:
     n_past: int = 20
     n_future: int = 20
     dtype: str = "float32"
+    n_load: int = 0
 
     def __post_init__(self):
+        if isinstance(self.n_load, bool) or not isinstance(self.n_load, (int, np.integer)) or self.n_load < 0:
+            raise ConfigError(f"LinearArchitecture.n_load must be an integer >= 0 (load signals), got {self.n_load!r}")
         for name in ("n_dof", "rank", "n_past", "n_future"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -101,10 +119,10 @@ class LinearArchitecture:
         return 0
 
     def to_dict(self) -> dict[str, Any]:
-        """The fields (JSON-ready); :func:`jaxsync.surrogate.architecture.architecture_to_dict`
-        adds the ``kind``."""
+        """The fields (JSON-ready; ``n_load`` only when > 0, as before it existed otherwise);
+        :func:`jaxsync.surrogate.architecture.architecture_to_dict` adds the ``kind``."""
         return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self)}
+                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "LinearArchitecture":
@@ -162,8 +180,11 @@ class LinearFitConfig:
 
 
 def _param_shapes(arch: LinearArchitecture) -> dict[str, tuple[int, ...]]:
-    return {"w_in": (arch.n_past, arch.n_dof, arch.rank), "w_out": (arch.rank, arch.n_future, arch.n_dof),
-            "b": (arch.n_future, arch.n_dof)}
+    shapes = {"w_in": (arch.n_past, arch.n_dof, arch.rank), "w_out": (arch.rank, arch.n_future, arch.n_dof),
+              "b": (arch.n_future, arch.n_dof)}
+    if arch.n_load:
+        shapes["w_load"] = (arch.n_past + arch.n_future, arch.n_load, arch.rank)
+    return shapes
 
 
 @functools.partial(jax.jit, static_argnames="arch")
@@ -189,6 +210,7 @@ def forward(
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
     compute_dtype: str | None = None,
+    loads: jax.Array | None = None,
 ) -> jax.Array:
     """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
 
@@ -201,6 +223,8 @@ def forward(
         compute_dtype: None (``arch.dtype`` throughout) or ``"bfloat16"``: parameters and
             window rounded to bfloat16, products accumulated in float32 (as the LSTM's,
             :mod:`jaxsync.surrogate.lstm`).
+        loads: (n_p + n_f, n_load) normalized load signals at the window's sample times
+            (past, then future), required when ``arch.n_load > 0``, None otherwise.
 
     Returns:
         Normalized predictions (n_f, n_dof), dtype ``arch.dtype``.
@@ -211,13 +235,19 @@ def forward(
     if load_parameter is not None:
         raise ConfigError("the linear surrogate is unconditional: it takes no load parameter")
     check_compute_dtype(compute_dtype)
+    loads = check_loads(arch, loads)
     xs = xs.astype(arch.dtype)
     if compute_dtype is None:
         coeffs = jnp.einsum("pd,pdr->r", xs, params["w_in"])
+        if loads is not None:
+            coeffs = coeffs + jnp.einsum("tu,tur->r", loads, params["w_load"])
         ys = jnp.einsum("r,rfd->fd", coeffs, params["w_out"]) + params["b"]
     else:
         low = lambda x: x.astype(compute_dtype)  # noqa: E731
         coeffs = jnp.einsum("pd,pdr->r", low(xs), low(params["w_in"]), preferred_element_type=jnp.float32)
+        if loads is not None:
+            coeffs = coeffs + jnp.einsum("tu,tur->r", low(loads), low(params["w_load"]),
+                                         preferred_element_type=jnp.float32)
         ys = jnp.einsum("r,rfd->fd", low(coeffs), low(params["w_out"]), preferred_element_type=jnp.float32)
         ys = (ys + low(params["b"]).astype(jnp.float32)).astype(arch.dtype)
     if dof_mask is not None:
@@ -260,14 +290,16 @@ def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DE
     return w_in, w_out, y_mean - (x_mean @ w_in) @ w_out
 
 
-def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask) -> np.ndarray:
+def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask, u=None) -> np.ndarray:
     """(n_parts,) MSE of the stacked replicas over windows, steps and real dofs
-    (normalized units; the LSTM's :func:`~jaxsync.surrogate.train.masked_mse`)."""
+    (normalized units; the LSTM's :func:`~jaxsync.surrogate.train.masked_mse`); ``u``
+    (n_parts, n_windows, n_p + n_f, n_load) the windows' load signals (load input only)."""
     if x.shape[1] == 0:  # no windows (e.g. no validation split)
         return np.full(x.shape[0], np.nan)
-    per_window = jax.vmap(forward, in_axes=(None, None, 0, None, None))
-    pred = np.asarray(jax.vmap(per_window, in_axes=(0, None, 0, None, 0))(params, arch, x, None, dof_mask),
-                      np.float64)
+    u_axis = None if u is None else 0
+    per_window = jax.vmap(lambda p, xs, m, us: forward(p, arch, xs, None, m, loads=us), in_axes=(None, 0, None, u_axis))
+    pred = np.asarray(jax.vmap(per_window, in_axes=(0, 0, 0, u_axis))(
+        params, x, dof_mask, None if u is None else jnp.asarray(u, arch.dtype)), np.float64)
     mask = np.asarray(dof_mask, np.float64)[:, None, None, :]
     sq = np.square(pred - np.asarray(y, np.float64)) * mask
     return sq.sum(axis=(1, 2, 3)) / (x.shape[1] * arch.n_future * mask.sum(axis=(1, 2, 3)))
@@ -278,7 +310,10 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
 
     Each part is solved alone on its real dofs (:func:`solve_least_squares` with inputs
     the flattened (n_p, n_dof_p) windows, targets the flattened (n_f, n_dof_p) ones), then
-    zero-padded and stacked like the LSTM's replicas.
+    zero-padded and stacked like the LSTM's replicas. With the windows' load signals
+    (``data.signal_train``, the load input), the flattened (n_p + n_f, n_load) signals are
+    appended to each input row (ARX, module docstring) and the model takes ``n_load`` of
+    them.
 
     Args:
         data: the normalized windows of all parts
@@ -307,16 +342,23 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
     n_future = data.y_train.shape[2]
     if n_windows == 0:
         raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
+    signals = data.signal_train
+    n_load = 0 if signals is None else signals.shape[-1]
     fits = []
     for p, count in enumerate(data.dof_counts):
         x = np.asarray(data.x_train[p, :, :, :count]).reshape(n_windows, n_past * count)
+        if n_load:
+            x = np.concatenate([x, np.asarray(signals[p]).reshape(n_windows, -1)], axis=1)
         y = np.asarray(data.y_train[p, :, :, :count]).reshape(n_windows, n_future * count)
         fits.append(solve_least_squares(x, y, config.regularization))
     rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
-    arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype)
+    arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype, n_load=n_load)
     params = {name: np.zeros((n_parts,) + shape) for name, shape in _param_shapes(arch).items()}
     for p, (count, (w_in, w_out, b)) in enumerate(zip(data.dof_counts, fits)):
         r = w_in.shape[1]
+        if n_load:
+            params["w_load"][p, :, :, :r] = w_in[n_past * count:].reshape(n_past + n_future, n_load, r)
+            w_in = w_in[:n_past * count]
         params["w_in"][p, :, :count, :r] = w_in.reshape(n_past, count, r)
         params["w_out"][p, :r, :, :count] = w_out.reshape(r, n_future, count)
         params["b"][p, :, :count] = b.reshape(n_future, count)
@@ -327,8 +369,9 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
     return TrainResult(
         params=params, arch=arch, config=config, dof_counts=tuple(int(c) for c in data.dof_counts),
         mean=np.asarray(data.mean), std=np.asarray(data.std),
-        train_loss=_masked_mse(params, arch, data.x_train, data.y_train, mask)[None],
-        val_loss=_masked_mse(params, arch, data.x_val, data.y_val, mask)[None],
-        initial_val_loss=_masked_mse(zero, arch, data.x_val, data.y_val, mask),
+        train_loss=_masked_mse(params, arch, data.x_train, data.y_train, mask, data.signal_train)[None],
+        val_loss=_masked_mse(params, arch, data.x_val, data.y_val, mask, data.signal_val)[None],
+        initial_val_loss=_masked_mse(zero, arch, data.x_val, data.y_val, mask, data.signal_val),
         seconds_per_epoch=seconds, compile_seconds=0.0, steps_per_epoch=0,
+        signal_scale=data.signal_scale, load_inputs=data.load_inputs,
     )

@@ -29,6 +29,18 @@ the encoder, 2 n_H in the decoder); the dense layer's weight and bias
 
 Conditional variant: the decoder input is ``[y_prev, alpha_f repeated q times]``.
 
+Load input (``n_load > 0``): the known load signals u (:mod:`jaxsync.fem.load_signals`,
+normalized by the surrogate's per-signal scale) at the window's n_p + n_f sample times,
+``loads`` (n_p + n_f, n_load). Their past values u(1 .. n_p) are appended to the inputs
+of the first encoder layer, step by step, and the future values u(n_p + 1 .. n_p + n_f)
+to the decoder's input of the step that predicts that snapshot. Their weights are kept
+apart, ``"w_u"`` (4 H, n_load) in the first layer's forward and backward cells and in the
+decoder cell, and added as a separate term ``W_u u`` to the input projection
+``W_d d + b``: a network whose ``w_u`` are zero computes bit for bit what the same
+network without load input computes, and with ``n_load = 0`` the parameters and the
+computation are those of a network without it (surrogate files written before the load
+input load unchanged).
+
 Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
 every matrix product takes bfloat16 operands -- the weights, the layer inputs, the hidden
 states and the fed-back predictions, rounded to bfloat16 -- and accumulates in float32
@@ -79,6 +91,8 @@ class LSTMArchitecture:
         n_cond_repeat: q, copies of the load parameter appended to every decoder input;
             0 gives the unconditional network.
         dtype: "float32" (default) or "float64" for the parameters and computation.
+        n_load: number of known load signals fed in (module docstring); 0 (default):
+            none, the network of the paper.
         kind: "lstm" (class attribute, not a field): the model a surrogate file holds
             (:mod:`jaxsync.surrogate.architecture`).
     """
@@ -92,8 +106,11 @@ class LSTMArchitecture:
     n_future: int = 20
     n_cond_repeat: int = 0
     dtype: str = "float32"
+    n_load: int = 0
 
     def __post_init__(self):
+        if isinstance(self.n_load, bool) or not isinstance(self.n_load, (int, np.integer)) or self.n_load < 0:
+            raise ConfigError(f"LSTMArchitecture.n_load must be an integer >= 0 (load signals), got {self.n_load!r}")
         for name in ("n_dof", "n_hidden", "n_layers", "n_past", "n_future"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -116,8 +133,10 @@ class LSTMArchitecture:
         return 2 * self.n_hidden
 
     def to_dict(self) -> dict[str, Any]:
+        """The fields (JSON-ready); ``n_load`` only when > 0, so that a network without load
+        input is stored as before it existed."""
         return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self)}
+                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
@@ -140,19 +159,22 @@ class LSTMArchitecture:
 
 def _param_shapes(arch: LSTMArchitecture) -> Params:
     """Pytree of ``(shape, init_bound)`` with the structure of the parameters."""
-    def cell(n_in, n_h):
+    def cell(n_in, n_h, n_load=0):
         bound = 1.0 / math.sqrt(n_h)
-        return {"w_d": ((4 * n_h, n_in), bound), "w_h": ((4 * n_h, n_h), bound), "b": ((4 * n_h,), bound)}
+        out = {"w_d": ((4 * n_h, n_in), bound), "w_h": ((4 * n_h, n_h), bound), "b": ((4 * n_h,), bound)}
+        if n_load:
+            out["w_u"] = ((4 * n_h, n_load), bound)
+        return out
 
     encoder = [
-        {"forward": cell(n_in, arch.n_hidden), "backward": cell(n_in, arch.n_hidden)}
-        for n_in in [arch.n_dof] + [2 * arch.n_hidden] * (arch.n_layers - 1)
+        {"forward": cell(n_in, arch.n_hidden, n_load), "backward": cell(n_in, arch.n_hidden, n_load)}
+        for n_in, n_load in [(arch.n_dof, arch.n_load)] + [(2 * arch.n_hidden, 0)] * (arch.n_layers - 1)
     ]
     n_dec = arch.decoder_hidden
     dense_bound = 1.0 / math.sqrt(n_dec)
     return {
         "encoder": encoder,
-        "decoder": cell(arch.n_dof + arch.n_cond_repeat, n_dec),
+        "decoder": cell(arch.n_dof + arch.n_cond_repeat, n_dec, arch.n_load),
         "dense": {"w": ((arch.n_dof, n_dec), dense_bound), "b": ((arch.n_dof,), dense_bound)},
     }
 
@@ -220,33 +242,42 @@ def _cell_update(w_h: jax.Array, carry: tuple[jax.Array, jax.Array], z_in: jax.A
     return h, c
 
 
-def lstm_cell(cell: Params, carry: tuple[jax.Array, jax.Array], d: jax.Array):
+def lstm_cell(cell: Params, carry: tuple[jax.Array, jax.Array], d: jax.Array, u: jax.Array | None = None):
     """One LSTM step (unbatched).
 
     Args:
-        cell: ``{"w_d": (4H, n_in), "w_h": (4H, H), "b": (4H,)}``, gates ordered (f, i, g, o).
+        cell: ``{"w_d": (4H, n_in), "w_h": (4H, H), "b": (4H,)}``, gates ordered (f, i, g, o),
+            and ``"w_u": (4H, n_load)`` for a cell that reads load signals.
         carry: ``(h, c)``, each (H,).
         d: input (n_in,).
+        u: the load signals (n_load,) of a cell with ``"w_u"``, added as ``W_u u``.
 
     Returns:
         The new ``(h, c)``.
     """
-    return _cell_update(cell["w_h"], carry, _matmul(cell["w_d"], d) + _bias(cell["b"]))
+    z_in = _matmul(cell["w_d"], d) + _bias(cell["b"])
+    if u is not None:
+        z_in = z_in + _matmul(cell["w_u"], u)
+    return _cell_update(cell["w_h"], carry, z_in)
 
 
-def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
+def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array], us: jax.Array | None = None):
     """Run one direction over a sequence with ``lax.scan``.
 
     Args:
         cell: cell parameters.
         xs: inputs (T, n_in), processed in the given order.
         carry: initial ``(h, c)``, each (H,).
+        us: the load signals (T, n_load) of a cell with ``"w_u"`` (in the order of ``xs``),
+            or None.
 
     Returns:
         ``(hs, (h_T, c_T))``: the hidden states (T, H) and the final state.
     """
     # The input projection does not depend on the recursion: one matmul for all steps.
     z_in = _matmul(xs, cell["w_d"].T) + _bias(cell["b"])[None]
+    if us is not None:
+        z_in = z_in + _matmul(us, cell["w_u"].T)
 
     def step(carry, z_t):
         carry = _cell_update(cell["w_h"], carry, z_t)
@@ -256,8 +287,10 @@ def run_lstm(cell: Params, xs: jax.Array, carry: tuple[jax.Array, jax.Array]):
     return hs, final
 
 
-def _bidirectional_layer(layer: Params, xs: jax.Array, n_hidden: int):
-    """One encoder layer: the forward cell reads ``xs``, the backward cell ``xs[::-1]``.
+def _bidirectional_layer(layer: Params, xs: jax.Array, n_hidden: int, us: jax.Array | None = None):
+    """One encoder layer: the forward cell reads ``xs``, the backward cell ``xs[::-1]``
+    (and the load signals ``us`` (T, n_load) alike, for the first layer of a network with
+    load input).
 
     Returns:
         ``(outputs (T, 2H) in time order [forward | backward], ((h_f, c_f), (h_b, c_b)))``
@@ -267,19 +300,21 @@ def _bidirectional_layer(layer: Params, xs: jax.Array, n_hidden: int):
     # Derived from the input, not a constant, so that it has the input's type (varying
     # over the mesh axis) when called under shard_map.
     zeros = jnp.zeros_like(xs[0, :1], shape=(n_hidden,))
-    hs_f, final_f = run_lstm(layer["forward"], xs, (zeros, zeros))
-    hs_b, final_b = run_lstm(layer["backward"], xs[::-1], (zeros, zeros))
+    hs_f, final_f = run_lstm(layer["forward"], xs, (zeros, zeros), us)
+    hs_b, final_b = run_lstm(layer["backward"], xs[::-1], (zeros, zeros), None if us is None else us[::-1])
     return jnp.concatenate([hs_f, hs_b[::-1]], axis=-1), (final_f, final_b)
 
 
 @functools.partial(jax.jit, static_argnames="arch")
-def encode(params: Params, arch: LSTMArchitecture, xs: jax.Array):
+def encode(params: Params, arch: LSTMArchitecture, xs: jax.Array, us: jax.Array | None = None):
     """Stacked bidirectional encoder.
 
     Args:
         params: network parameters.
         arch: architecture.
         xs: normalized input window (n_p, n_dof).
+        us: normalized past load signals (n_p, n_load) of a network with load input
+            (read by the first layer), else None.
 
     Returns:
         The decoder's initial state ``(h0, c0)``, each (2 n_H,): the last layer's final
@@ -287,8 +322,8 @@ def encode(params: Params, arch: LSTMArchitecture, xs: jax.Array):
     """
     layer_in = xs
     final = None
-    for layer in params["encoder"]:
-        layer_in, final = _bidirectional_layer(layer, layer_in, arch.n_hidden)
+    for k, layer in enumerate(params["encoder"]):
+        layer_in, final = _bidirectional_layer(layer, layer_in, arch.n_hidden, us if k == 0 else None)
     (h_f, c_f), (h_b, c_b) = final
     return jnp.concatenate([h_f, h_b]), jnp.concatenate([c_f, c_b])
 
@@ -301,6 +336,7 @@ def decode(
     first_input: jax.Array,
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
+    us: jax.Array | None = None,
 ) -> jax.Array:
     """Decoder fed its own predictions for ``n_future`` steps.
 
@@ -312,6 +348,8 @@ def decode(
         load_parameter: scalar load parameter (conditional networks only).
         dof_mask: (n_dof,) 1 for real dofs, 0 for padding; padded outputs are zeroed
             before being fed back so that padding never influences real dofs.
+        us: normalized future load signals (n_f, n_load) of a network with load input:
+            row j enters the step that predicts snapshot j; else None.
 
     Returns:
         Predictions (n_f, n_dof).
@@ -322,16 +360,16 @@ def decode(
         repeated_load = jnp.full((arch.n_cond_repeat,), load_parameter, dtype=first_input.dtype)
     dense = params["dense"]
 
-    def step(carry, _):
+    def step(carry, u):
         hc, y_prev = carry
         d = jnp.concatenate([y_prev, repeated_load]) if arch.conditional else y_prev
-        hc = lstm_cell(params["decoder"], hc, d)
+        hc = lstm_cell(params["decoder"], hc, d, u)
         y = _matmul(dense["w"], hc[0]) + _bias(dense["b"])
         if dof_mask is not None:
             y = y * dof_mask.astype(y.dtype)
         return (hc, y), y
 
-    _, ys = jax.lax.scan(step, (state, first_input), None, length=arch.n_future)
+    _, ys = jax.lax.scan(step, (state, first_input), us, length=arch.n_future)
     return ys
 
 
@@ -343,6 +381,7 @@ def forward(
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
     compute_dtype: str | None = None,
+    loads: jax.Array | None = None,
 ) -> jax.Array:
     """Predict the next ``n_future`` snapshots from ``n_past`` snapshots (unbatched).
 
@@ -354,6 +393,9 @@ def forward(
         dof_mask: optional (n_dof,) padding mask, see :func:`decode`.
         compute_dtype: None (``arch.dtype`` throughout) or ``"bfloat16"``: bfloat16
             operands, float32 accumulation (module docstring).
+        loads: (n_p + n_f, n_load) normalized load signals at the window's sample times
+            (rows 0 .. n_p - 1 those of the inputs, then those of the predictions), required
+            when ``arch.n_load > 0``, and None otherwise.
 
     Returns:
         Normalized predictions (n_f, n_dof), dtype ``arch.dtype``.
@@ -361,15 +403,41 @@ def forward(
     if xs.ndim != 2 or xs.shape[1] != arch.n_dof:
         raise ConfigError(f"input window must have shape (n_past, {arch.n_dof}), got {xs.shape}")
     check_compute_dtype(compute_dtype)
+    loads = check_loads(arch, loads)
     xs = xs.astype(arch.dtype)
     if compute_dtype is not None:
         params = _reduced(params, compute_dtype)
         # the states and outputs in the accumulation type, float32
         xs = xs.astype(jnp.float32)
+        loads = None if loads is None else loads.astype(jnp.float32)
         if dof_mask is not None:
             dof_mask = dof_mask.astype(jnp.float32)
-    state = encode(params, arch, xs)
-    return decode(params, arch, state, xs[-1], load_parameter, dof_mask).astype(arch.dtype)
+    past, future = (None, None) if loads is None else (loads[:arch.n_past], loads[arch.n_past:])
+    state = encode(params, arch, xs, past)
+    return decode(params, arch, state, xs[-1], load_parameter, dof_mask, future).astype(arch.dtype)
+
+
+def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
+    """``loads`` in ``arch.dtype``, checked: (n_p + n_f, n_load) for a model with load input
+    (``arch.n_load > 0``), None for one without.
+
+    Raises:
+        ConfigError: load signals missing, given to a model without load input, or of
+            the wrong shape."""
+    n_load = getattr(arch, "n_load", 0)
+    if n_load == 0:
+        if loads is not None:
+            raise ConfigError("load signals were given to a surrogate trained without load input (n_load=0), which "
+                              "would ignore them; train with the load input (load_input=True) or leave them out")
+        return None
+    if loads is None:
+        raise ConfigError(f"this surrogate takes {n_load} known load signal(s) (n_load={n_load}); pass loads of "
+                          f"shape (n_past + n_future, {n_load}), or bind the surrogate to its problem "
+                          "(Surrogate.for_problem)")
+    expected = (arch.n_past + arch.n_future, n_load)
+    if tuple(loads.shape) != expected:
+        raise ConfigError(f"load signals must have shape (n_past + n_future, n_load) = {expected}, got {loads.shape}")
+    return loads.astype(arch.dtype)
 
 
 def count_parameters(params: Params) -> int:

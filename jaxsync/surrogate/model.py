@@ -13,6 +13,13 @@ pytree (each part's replica on the device of its part) and calls, for one part,
   the one rollout of a surrogate, used by the offline evaluation
   (:func:`jaxsync.surrogate.evaluate.e_mse`) and by full-system modeling.
 
+Load input: replicas trained with the known load signals (``arch.n_load > 0``,
+:mod:`jaxsync.fem.load_signals`) read them at the refill's steps from the problem's own
+time functions: bind them to the problem first, :meth:`Surrogate.for_problem` (the
+solver does it: :func:`jaxsync.solve.predictors.predictor_for`), which refuses a problem
+with other loads (another count, kind or time-function form) and accepts other
+parameters of the same form (another waveform, another step-off time).
+
 Files: :meth:`Surrogate.save` / :meth:`Surrogate.load` go through
 :mod:`jaxsync.surrogate.saved` (a :class:`~jaxsync.surrogate.saved.SavedSurrogate`
 also keeps the shared node ids and training metadata).
@@ -28,7 +35,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxsync.errors import CheckpointError
+from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.fem.load_signals import LoadSignals, check_load_inputs
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
@@ -66,6 +74,15 @@ class Surrogate:
             :meth:`with_inference_dtype`, and check what it costs in accuracy with
             :func:`jaxsync.surrogate.inference.check_inference_precision`. A runtime option:
             surrogate files keep the parameters as trained and do not record it.
+        signal_scale: (n_parts, n_load) float64 scale of each load signal (the model reads
+            u / scale); None without load input.
+        load_inputs: (n_load,) :class:`~jaxsync.fem.load_signals.LoadInput`: the load
+            signals the replicas were trained with (static; empty without load input).
+        load_signals: where :meth:`predict` reads the signals (static): a
+            :class:`~jaxsync.fem.load_signals.LoadSignals` (a problem's time functions at
+            its dt, :meth:`for_problem`) or a
+            :class:`~jaxsync.fem.load_signals.RecordedLoadSignals` (a trajectory's record);
+            None until bound.
 
     ``surrogate.part(p)`` (or ``jax.tree_util.tree_map(lambda x: x[p], surrogate)``, as
     vmap and shard_map do) is part p alone: the same type without the leading axis,
@@ -81,6 +98,9 @@ class Surrogate:
     n_s: int = static_field()
     smooth: bool = static_field(default=True)
     inference_dtype: str | None = static_field(default=None)
+    signal_scale: Any = None
+    load_inputs: tuple = static_field(default=())
+    load_signals: Any = static_field(default=None)
 
     # ------------------------------------------------------------------ sizes
 
@@ -96,6 +116,11 @@ class Surrogate:
     def n_dof(self) -> int:
         """Padded width of a part's shared dofs."""
         return self.arch.n_dof
+
+    @property
+    def n_load(self) -> int:
+        """Known load signals the replicas read (0: no load input)."""
+        return getattr(self.arch, "n_load", 0)
 
     @property
     def n_parts(self) -> int:
@@ -129,10 +154,12 @@ class Surrogate:
         step + 1 - n_s n_p .. step [cm].  The network reads only ``buffer``; ``step`` is
         the predictor interface of the solver.  With ``smooth``, the refill as one smooth
         curve from ``buffer[-1]`` (:func:`~jaxsync.surrogate.refill.smooth_refill`).
-        Padded dofs are 0."""
+        Padded dofs are 0.  A surrogate with load input also reads the load signals at
+        steps step + 1 - n_s n_p .. step + n_s n_f from ``load_signals`` (bind it with
+        :meth:`for_problem`)."""
         load = self.load_parameter if self.arch.conditional else None
         out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask,
-                             self.inference_dtype)
+                             self.inference_dtype, self._signal_window(step))
         if self.smooth:
             out = smooth_refill(out, buffer[-1], self.n_s)
         return out * self.dof_mask[None]
@@ -152,10 +179,52 @@ class Surrogate:
         """
         return refill_rollout(self, buffer, step0, n_cycles)
 
+    def _signal_window(self, step):
+        """(n_s (n_p + n_f), n_load) normalized load signals of the refill at ``step``; None
+        without load input."""
+        if not self.n_load:
+            return None
+        if self.load_signals is None:
+            raise ConfigError(f"these surrogates read {self.n_load} known load signal(s) "
+                              f"({'; '.join(map(str, self.load_inputs))}): bind them to the problem they run on, "
+                              "surrogate.for_problem(problem) (the solver does it when given the surrogates)")
+        rows = self.n_s * (self.arch.n_past + self.arch.n_future)
+        values = self.load_signals.at_steps(step + 1 - self.history_steps, rows)
+        return (values / jnp.asarray(self.signal_scale)[None]).astype(self.arch.dtype)
+
+    def for_problem(self, problem, dt=None) -> "Surrogate":
+        """These replicas reading the load signals of ``problem`` at time step ``dt``
+        (default ``problem.dt``); replicas without load input are returned unchanged.
+
+        Raises:
+            CheckpointError: the problem's loads differ from those the replicas were
+                trained with in count, kind or time-function form (the message names the
+                difference; other parameters of the same form are accepted).
+            ConfigError: traced time functions or dt."""
+        if not self.n_load:
+            return self
+        check_load_inputs(self.load_inputs, problem)
+        return dataclasses.replace(self, load_signals=LoadSignals.of(problem, problem.dt if dt is None else dt))
+
+    def with_load_signals(self, signals) -> "Surrogate":
+        """These replicas reading their load signals from ``signals`` (a
+        :class:`~jaxsync.fem.load_signals.RecordedLoadSignals`, e.g. a trajectory's
+        record, or :class:`~jaxsync.fem.load_signals.LoadSignals`), checked to be the
+        signals they were trained with (count, kinds, forms)."""
+        if not self.n_load:
+            return self
+        trained = [(i.source, i.kind, i.form) for i in self.load_inputs]
+        given = [(i.source, i.kind, i.form) for i in signals.inputs]
+        if trained != given:
+            raise CheckpointError(f"these surrogates were trained with the load signals {trained} but were given "
+                                  f"{given}; give them the signals of a run of the same loads")
+        return dataclasses.replace(self, load_signals=signals)
+
     # ------------------------------------------------------------------ construction
 
     @classmethod
-    def _build(cls, arch, params, mean, std, dof_mask, n_s, load_parameter) -> "Surrogate":
+    def _build(cls, arch, params, mean, std, dof_mask, n_s, load_parameter, signal_scale=None,
+               load_inputs=()) -> "Surrogate":
         if arch.conditional and load_parameter is None:
             raise CheckpointError("the surrogates are conditional on a load parameter: pass load_parameter=")
         if not arch.conditional and load_parameter is not None:
@@ -164,10 +233,17 @@ class Surrogate:
                                   "or leave the load parameter out")
         mean = np.asarray(mean)
         n = mean.shape[0]
+        n_load = getattr(arch, "n_load", 0)
+        if n_load and (signal_scale is None or np.shape(signal_scale) != (n, n_load) or len(load_inputs) != n_load):
+            raise CheckpointError(f"the replicas read {n_load} load signals but come with a signal scale of shape "
+                                  f"{np.shape(signal_scale)} and {len(load_inputs)} load input descriptions; expected "
+                                  f"({n}, {n_load}) and {n_load}")
         return cls(params=params, mean=mean, std=np.asarray(std), dof_mask=np.asarray(dof_mask).astype(mean.dtype),
                    load_parameter=np.full(n, 0.0 if load_parameter is None else float(load_parameter),
                                           dtype=np.float32),
-                   arch=arch, n_s=int(n_s))
+                   arch=arch, n_s=int(n_s),
+                   signal_scale=np.asarray(signal_scale, np.float64) if n_load else None,
+                   load_inputs=tuple(load_inputs) if n_load else ())
 
     def with_load_parameter(self, load_parameter: float | None) -> "Surrogate":
         """These replicas conditioned on ``load_parameter`` (a value seen in training or
@@ -177,7 +253,8 @@ class Surrogate:
             CheckpointError: a value given to unconditional replicas, which would ignore it."""
         if load_parameter is None:
             return self
-        conditioned = self._build(self.arch, self.params, self.mean, self.std, self.dof_mask, self.n_s, load_parameter)
+        conditioned = self._build(self.arch, self.params, self.mean, self.std, self.dof_mask, self.n_s, load_parameter,
+                                  self.signal_scale, self.load_inputs)
         return dataclasses.replace(self, load_parameter=conditioned.load_parameter)
 
     def with_inference_dtype(self, dtype: str | None) -> "Surrogate":
@@ -232,14 +309,15 @@ class Surrogate:
         or of its file; ``load_parameter`` is required by conditional networks."""
         if not isinstance(saved, SavedSurrogate):
             saved = load_surrogate(saved)
-        return cls._build(saved.arch, saved.params, saved.mean, saved.std, saved.dof_mask, saved.n_s, load_parameter)
+        return cls._build(saved.arch, saved.params, saved.mean, saved.std, saved.dof_mask, saved.n_s, load_parameter,
+                          saved.signal_scale, saved.load_inputs)
 
     @classmethod
     def from_result(cls, result, n_s: int, load_parameter: float | None = None) -> "Surrogate":
         """The surrogate of a :class:`~jaxsync.surrogate.train.TrainResult` trained at
         sampling stride ``n_s``."""
         return cls._build(result.arch, result.params, result.mean, result.std, result.dof_mask, n_s,
-                          load_parameter)
+                          load_parameter, result.signal_scale, result.load_inputs)
 
     # ------------------------------------------------------------------ files
 
@@ -253,6 +331,8 @@ class Surrogate:
             dof_counts=self.dof_counts, n_s=self.n_s,
             shared_nodes=None if shared_nodes is None else tuple(np.asarray(n, np.int64) for n in shared_nodes),
             metadata=dict(metadata or {}),
+            signal_scale=None if self.signal_scale is None else np.asarray(self.signal_scale, np.float64),
+            load_inputs=tuple(self.load_inputs),
         )
 
     def save(self, path: str | os.PathLike, *, shared_nodes=None, metadata: dict | None = None) -> None:

@@ -121,6 +121,7 @@ def refill_predict(
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
     compute_dtype: str | None = None,
+    loads: jax.Array | None = None,
 ) -> jax.Array:
     """Predict the next n_s n_f steps from the last n_s n_p steps (one replica, unbatched).
 
@@ -135,6 +136,10 @@ def refill_predict(
         compute_dtype: None or ``"bfloat16"``, the network's reduced-precision inference
             (:func:`~jaxsync.surrogate.architecture.forward`); the normalization stays in
             the dtypes of ``buffer`` and ``mean``.
+        loads: a model with load input: (n_s (n_p + n_f), n_load) its normalized load
+            signals at steps n + 1 - n_s n_p .. n + n_s n_f (the buffer's steps, then the
+            predicted ones); application i reads rows i, i + n_s, ... (its N_p^i, then its
+            N_f^i). None otherwise.
 
     Returns:
         (n_s n_f, n_dof) predicted displacements of steps n + 1 .. n + n_s n_f, in the
@@ -147,8 +152,16 @@ def refill_predict(
     mean, std = mean[None], std[None]  # one row, broadcast over the buffer's steps
     z = normalize(buffer, mean, std).astype(arch.dtype)
     windows = refill_windows(z, n_s, n_past)  # (n_s, n_p, n_dof), rows N_p^i
-    # (n_s, n_f, n_dof)
-    pred = jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask, compute_dtype))(windows)
+    if loads is None:  # (n_s, n_f, n_dof)
+        pred = jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask, compute_dtype))(windows)
+    else:
+        expected = (n_s * (n_past + arch.n_future), arch.n_load)
+        if tuple(loads.shape) != expected:
+            raise ConfigError(f"refill load signals must have shape (n_s*(n_p+n_f), n_load) = {expected}, "
+                              f"got {loads.shape}")
+        signal_windows = refill_windows(loads, n_s, n_past + arch.n_future)  # (n_s, n_p + n_f, n_load)
+        pred = jax.vmap(lambda x, u: forward(params, arch, x, load_parameter, dof_mask, compute_dtype, u))(
+            windows, signal_windows)
     return refill_scatter(pred, n_s).astype(mean.dtype) * std + mean
 
 

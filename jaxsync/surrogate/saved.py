@@ -14,9 +14,17 @@ kept from before the linear surrogate, which the same format holds)::
     /normalization/std      (n_parts, n_dof) float64
     /dof_counts             (n_parts,) int64, real dofs of each part
     /shared_nodes/<p>       (n_shared_p,) int64 global node ids of part p (optional group)
+    /load_inputs/scale      (n_parts, n_load) float64 scale of each known load signal
+                            (load input only)
     attrs: format, format_version, architecture (JSON, with its ``kind``, "lstm" or
-           "linear"; a file without ``kind`` holds an LSTM), n_s, metadata (JSON),
+           "linear", and ``n_load`` when > 0; a file without ``kind`` holds an LSTM), n_s,
+           metadata (JSON), load_inputs (JSON list, load input only: per signal its
+           ``source`` "loads[i]"/"dirichlet[i]", ``kind``, time-function ``form`` and
+           ``function`` in words, :class:`~jaxsync.fem.load_signals.LoadInput`),
            checksum_sha256
+
+A surrogate without load input writes exactly the file it wrote before the load input
+existed, and such files (no ``n_load``, no ``load_inputs``) load as surrogates without it.
 
 The checksum is SHA-256 over every dataset (name, dtype, shape, bytes; sorted by name)
 and every other attribute (canonical JSON), so any change to stored values is detected.
@@ -37,6 +45,7 @@ import jax
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.fem.load_signals import LoadInput
 from jaxsync.io import array_checksum, atomic_h5
 from jaxsync.surrogate.architecture import Architecture, architecture_from_dict, architecture_to_dict, init_params
 from jaxsync.surrogate.data import padding_mask
@@ -63,6 +72,10 @@ class SavedSurrogate:
         shared_nodes: per part, global ids of its shared nodes (dofs node-interleaved),
             or None for histories that are not tied to a partition.
         metadata: JSON-serializable extras (training configuration, losses...).
+        signal_scale: (n_parts, n_load) float64 scale of the known load signals (load
+            input), or None.
+        load_inputs: (n_load,) :class:`~jaxsync.fem.load_signals.LoadInput`: which load
+            signals the replicas read (empty without load input).
     """
 
     arch: Architecture
@@ -73,6 +86,8 @@ class SavedSurrogate:
     n_s: int
     shared_nodes: tuple[np.ndarray, ...] | None = None
     metadata: dict[str, Any] = dataclasses.field(default_factory=dict)
+    signal_scale: np.ndarray | None = None
+    load_inputs: tuple = ()
 
     @property
     def n_parts(self) -> int:
@@ -97,6 +112,7 @@ class SavedSurrogate:
             dof_counts=result.dof_counts, n_s=int(n_s),
             shared_nodes=None if shared_nodes is None else tuple(np.asarray(n, np.int64) for n in shared_nodes),
             metadata={"training": result.config.to_dict(), **(metadata or {})},
+            signal_scale=result.signal_scale, load_inputs=tuple(result.load_inputs),
         )
 
 
@@ -140,6 +156,14 @@ def _to_datasets(saved: SavedSurrogate) -> dict[str, np.ndarray]:
             raise CheckpointError(f"{len(saved.shared_nodes)} shared-node lists for {saved.n_parts} parts")
         for p, nodes in enumerate(saved.shared_nodes):
             datasets[f"shared_nodes/{p}"] = np.asarray(nodes, np.int64)
+    n_load = getattr(saved.arch, "n_load", 0)
+    if n_load:
+        scale = None if saved.signal_scale is None else np.asarray(saved.signal_scale, np.float64)
+        if scale is None or scale.shape != (saved.n_parts, n_load) or len(saved.load_inputs) != n_load:
+            raise CheckpointError(f"the replicas read {n_load} load signals but come with a signal scale of shape "
+                                  f"{None if scale is None else scale.shape} and {len(saved.load_inputs)} load input "
+                                  f"descriptions; expected ({saved.n_parts}, {n_load}) and {n_load}")
+        datasets["load_inputs/scale"] = scale
     return datasets
 
 
@@ -163,6 +187,8 @@ def save_surrogate(path: str | os.PathLike, saved: SavedSurrogate) -> None:
         "n_s": int(saved.n_s),
         "metadata": metadata,
     }
+    if getattr(saved.arch, "n_load", 0):
+        attrs["load_inputs"] = json.dumps([i.to_dict() for i in saved.load_inputs], sort_keys=True)
     attrs[_CHECKSUM_ATTR] = _checksum(datasets, attrs)
     with atomic_h5(path) as fh:
         for name, array in datasets.items():
@@ -235,6 +261,13 @@ def load_surrogate(
         n_s = int(attrs["n_s"])
         dof_counts = tuple(int(c) for c in datasets["dof_counts"])
         mean, std = datasets["normalization/mean"], datasets["normalization/std"]
+        signal_scale, load_inputs = None, ()
+        if getattr(arch, "n_load", 0):
+            signal_scale = datasets["load_inputs/scale"]
+            load_inputs = tuple(LoadInput.from_dict(d) for d in json.loads(attrs["load_inputs"]))
+            if signal_scale.shape != (len(dof_counts), arch.n_load) or len(load_inputs) != arch.n_load:
+                raise ValueError(f"load inputs of shape {signal_scale.shape} and {len(load_inputs)} descriptions for "
+                                 f"n_load={arch.n_load}")
     except ConfigError as err:
         raise CheckpointError(f"surrogate file {path} holds an architecture this jaxsync does not know ({err}); "
                               "use the jaxsync that wrote it or retrain with `jaxsync train`") from err
@@ -258,6 +291,7 @@ def load_surrogate(
     saved = SavedSurrogate(
         arch=arch, params=jax.tree_util.tree_unflatten(treedef, leaves), mean=mean, std=std,
         dof_counts=dof_counts, n_s=n_s, shared_nodes=shared, metadata=metadata,
+        signal_scale=signal_scale, load_inputs=load_inputs,
     )
     if shared_nodes_per_part is not None:
         check_compatible(saved, shared_nodes_per_part)

@@ -187,6 +187,9 @@ class TrainResult:
         stopped_epoch: epochs run when early stopping ended the training, None when it
             ran all ``config.resolved_epochs``.
         resumed_from: epochs restored from a training state (0: a fresh start).
+        signal_scale: (n_parts, n_load) scale of the load signals (load input), or None.
+        load_inputs: (n_load,) :class:`~jaxsync.fem.load_signals.LoadInput` descriptions
+            of the load signals (empty without load input).
     """
 
     params: Params
@@ -204,6 +207,8 @@ class TrainResult:
     best_epoch: np.ndarray | None = None
     stopped_epoch: int | None = None
     resumed_from: int = 0
+    signal_scale: np.ndarray | None = None
+    load_inputs: tuple = ()
 
     @property
     def dof_mask(self) -> np.ndarray:
@@ -224,7 +229,7 @@ class TrainResult:
 # ----------------------------------------------------------------------------- loss
 
 
-def masked_mse(params, arch, x, y, load_parameter, weight, dof_mask):
+def masked_mse(params, arch, x, y, load_parameter, weight, dof_mask, signals=None):
     """Weighted mean squared error over windows, steps and real dofs (one replica).
 
     Args:
@@ -232,10 +237,13 @@ def masked_mse(params, arch, x, y, load_parameter, weight, dof_mask):
         load_parameter: (B,) load parameter of each window (used by conditional networks);
         weight: (B,) window weights (0 for the filler of a short last batch);
         dof_mask: (n_dof,) 1 on real dofs.
+        signals: (B, n_p + n_f, n_load) normalized load signals of each window (read by a
+            network with load input, ``arch.n_load > 0``; ignored otherwise).
     """
     load_arg = load_parameter if arch.conditional else None
-    in_axes = (None, None, 0, 0 if arch.conditional else None, None)
-    pred = jax.vmap(forward, in_axes=in_axes)(params, arch, x, load_arg, dof_mask)
+    signal_arg = signals if arch.n_load else None
+    in_axes = (None, None, 0, 0 if arch.conditional else None, None, None, 0 if arch.n_load else None)
+    pred = jax.vmap(forward, in_axes=in_axes)(params, arch, x, load_arg, dof_mask, None, signal_arg)
     sq = jnp.square(pred - y) * dof_mask[None, None]
     per_window = jnp.sum(sq, axis=(1, 2)) / (arch.n_future * jnp.sum(dof_mask))
     return jnp.sum(weight * per_window) / jnp.sum(weight)
@@ -283,7 +291,7 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
     optimizer = make_optimizer(config, steps)
     fill = steps * batch - n_train
 
-    def replica_epoch(params, opt_state, x, y, load, x_val, y_val, load_val, mask, key):
+    def replica_epoch(params, opt_state, x, y, load, x_val, y_val, load_val, mask, u, u_val, key):
         # A short last batch is filled with window 0 at weight 0 so every step has one shape.
         order = jax.random.permutation(key, n_train)
         order = jnp.concatenate([order, jnp.zeros(fill, order.dtype)])
@@ -292,7 +300,7 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         def step(carry, batch_ids):
             params, opt_state = carry
             ids, w = batch_ids
-            loss, grads = jax.value_and_grad(masked_mse)(params, arch, x[ids], y[ids], load[ids], w, mask)
+            loss, grads = jax.value_and_grad(masked_mse)(params, arch, x[ids], y[ids], load[ids], w, mask, u[ids])
             # optax mixes Python floats with int32 step counts (Adam's bias correction, the
             # decay schedule): standard dtype promotion, whatever the caller's setting
             with jax.numpy_dtype_promotion("standard"):
@@ -303,12 +311,12 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         (params, opt_state), losses = jax.lax.scan(
             step, (params, opt_state), (order.reshape(steps, batch), weights.reshape(steps, batch))
         )
-        val = masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask)
+        val = masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
         return params, opt_state, jnp.sum(losses) / n_train, val
 
     # Replicas are independent: each device trains its block of parts, no communication;
-    # the shuffling key (argument 9) is the same for all parts.
-    all_replicas = spmd_program(replica_epoch, mesh, n_in=10, n_out=4, replicated_in=(9,), jit=False)
+    # the shuffling key (argument 11) is the same for all parts.
+    all_replicas = spmd_program(replica_epoch, mesh, n_in=12, n_out=4, replicated_in=(11,), jit=False)
 
     def run_chunk(state, data, shuffle_key, epochs, patience):
         def run_epoch(carry, epoch):
@@ -337,10 +345,10 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         state, (train, val, ran) = jax.lax.scan(body, state, epochs)
         return state, train, val, ran
 
-    def replica_val_loss(params, x_val, y_val, load_val, mask):
-        return masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask)
+    def replica_val_loss(params, x_val, y_val, load_val, mask, u_val):
+        return masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
 
-    val_loss = spmd_program(replica_val_loss, mesh, n_in=5, n_out=1)
+    val_loss = spmd_program(replica_val_loss, mesh, n_in=6, n_out=1)
     return optimizer, steps, jax.jit(run_chunk), val_loss, {}
 
 
@@ -424,6 +432,9 @@ def train_replicas(
     """
     if arch.n_dof != data.n_dof_max:
         raise ConfigError(f"architecture has n_dof={arch.n_dof} but the data are padded to {data.n_dof_max}")
+    if data.n_load != arch.n_load:
+        raise ConfigError(f"the windows carry {data.n_load} load signals but the architecture reads n_load="
+                          f"{arch.n_load}; make the architecture with n_load=data.n_load")
     if data.x_train.shape[2] != arch.n_past or data.y_train.shape[2] != arch.n_future:
         raise ConfigError(
             f"windows are {data.x_train.shape[2]} -> {data.y_train.shape[2]} snapshots but the architecture "
@@ -444,9 +455,12 @@ def train_replicas(
     opt_state = jax.vmap(optimizer.init)(params)
     carry = (params, opt_state, params, jnp.full(data.n_parts, jnp.inf, dtype),
              jnp.zeros(data.n_parts, jnp.int32))
+    def signals(u, x):  # windows without load signals carry an empty (n_parts, n, n_p + n_f, 0) array
+        return np.zeros(x.shape[:2] + (arch.n_past + arch.n_future, 0)) if u is None else u
+
     arrays = tuple(jnp.asarray(a, dtype) for a in (
         data.x_train, data.y_train, data.load_parameter_train, data.x_val, data.y_val, data.load_parameter_val,
-        data.dof_mask,
+        data.dof_mask, signals(data.signal_train, data.x_train), signals(data.signal_val, data.x_val),
     ))
 
     n_epochs = config.resolved_epochs
@@ -465,7 +479,7 @@ def train_replicas(
     resumed_from = int(info["epochs_done"])
     carry, arrays = jax.device_put((carry, arrays), NamedSharding(mesh, part_spec()))
     if initial_val is None:
-        initial_val = np.asarray(val_loss_fn(carry[0], *arrays[3:7]))
+        initial_val = np.asarray(val_loss_fn(carry[0], *arrays[3:7], arrays[8]))
     patience = jnp.int32(config.patience or 0)
 
     def executable(chunk):
@@ -537,4 +551,6 @@ def train_replicas(
         best_epoch=best_epoch,
         stopped_epoch=done if info["stopped"] else None,
         resumed_from=resumed_from,
+        signal_scale=data.signal_scale,
+        load_inputs=tuple(data.load_inputs),
     )

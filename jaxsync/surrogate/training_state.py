@@ -93,7 +93,9 @@ def training_fingerprint(data: ReplicaData, arch: LSTMArchitecture, config, key:
     """
     return {
         "data_sha256": _digest([data.x_train, data.y_train, data.load_parameter_train, data.x_val, data.y_val,
-                                data.load_parameter_val, data.dof_mask, data.mean, data.std]),
+                                data.load_parameter_val, data.dof_mask, data.mean, data.std]
+                               + ([] if data.signal_train is None else
+                                  [data.signal_train, data.signal_val, data.signal_scale])),
         "architecture": arch.to_dict(),
         "config": config.to_dict(),
         "key": np.asarray(jax.random.key_data(key)).ravel().tolist(),
