@@ -27,11 +27,12 @@ from jaxsync.surrogate import (
     TrainingChecks,
     build_dataset,
     fit_linear,
+    linear,
     load_surrogate,
+    lstm,
     stack_replicas,
     train_surrogates,
 )
-from jaxsync.surrogate import linear, lstm
 from jaxsync.surrogate.evaluate import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode
@@ -286,7 +287,8 @@ def test_jaxsync_train_takes_the_load_input_by_default_and_leaves_it_out_on_requ
               "--no-progress"]
     for flag, n_load in ((None, 1), ("--no-load-input", 0), ("--load-input", 1)):
         out = tmp_path / str(flag)
-        args = parser.parse_args(["train", str(tmp_path / "run.h5"), "-o", str(out)] + common + ([flag] if flag else []))
+        flags = [flag] if flag else []
+        args = parser.parse_args(["train", str(tmp_path / "run.h5"), "-o", str(out)] + common + flags)
         assert args.func(args) == 0
         assert load_surrogate(out / "surrogate.h5").arch.n_load == n_load
         summary = json.loads((out / "train_summary.json").read_text())

@@ -266,6 +266,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     cycle_steps, history = n_s * n_f, n_s * n_p
     n_steps = n_cycles * cycle_steps
     dt = float(problem.dt if dt is None else dt)
+    if hasattr(predictor, "for_problem"):  # surrogates with load input read the problem's load signals
+        predictor = predictor.for_problem(problem, dt)
     system, d0, dm1 = _start(problem, dt, mode)
     n_dof, _ = shared_dof_layout(part_info)
 

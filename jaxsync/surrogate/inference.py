@@ -57,6 +57,7 @@ from jaxsync.surrogate.lstm import check_compute_dtype
 from jaxsync.surrogate.model import Surrogate
 
 __all__ = ["DEFAULT_BOUND", "ReducedPrecisionWarning", "InferencePrecisionReport", "surrogate_windows",
+           "surrogate_signal_windows",
            "inference_deviation", "check_inference_precision", "reduced_precision"]
 
 #: Largest accepted relative deviation of reduced-precision inference from full precision,
@@ -132,28 +133,60 @@ def surrogate_windows(surrogate: Surrogate, histories: Sequence[np.ndarray], *, 
     return x
 
 
-def _outputs(surrogate: Surrogate, windows, compute_dtype):
-    """(n_parts, n_windows, n_f, n_dof) normalized predictions of every part's windows."""
-    arch = surrogate.arch
-    if surrogate.n_load:
-        raise ConfigError("the reduced-precision check runs the networks on windows of displacements alone, but these "
-                          f"surrogates also read {surrogate.n_load} load signal(s): check them in their own dtype "
-                          "(leave --inference-dtype / with_inference_dtype out), or train them without the load "
-                          "input (--no-load-input) to run them in bfloat16")
-    mask = jnp.asarray(surrogate.dof_mask, arch.dtype)
+def surrogate_signal_windows(surrogate: Surrogate, n_steps: int, *, offset: int = 0,
+                             max_windows: int | None = None) -> np.ndarray:
+    """The load signals of the windows :func:`surrogate_windows` makes from histories of
+    ``n_steps`` steps (same ``offset`` and ``max_windows``), normalized as the surrogate
+    normalizes them, for a surrogate with load input bound to its problem
+    (:meth:`~jaxsync.surrogate.Surrogate.for_problem`).
 
-    def part(params, x, load, m):
-        return jax.vmap(lambda w: forward(params, arch, w, load, m, compute_dtype))(x)
+    Returns:
+        (n_parts, n_windows, n_p + n_f, n_load) float32 (the same for every part).
+    """
+    if not surrogate.n_load:
+        raise ConfigError("these surrogates take no load signals (trained without load input)")
+    if surrogate.load_signals is None:
+        raise ConfigError("bind the surrogates to their problem first: surrogate.for_problem(problem)")
+    n_s, n_p, n_f = surrogate.n_s, surrogate.n_past, surrogate.n_future
+    n_windows = len(range(offset, n_steps, n_s)) - n_p  # those of make_windows(..., n_p, 1)
+    if n_windows < 1:
+        raise ConfigError(f"histories of {n_steps} steps make no window of n_p={n_p} snapshots every n_s={n_s} steps")
+    table = np.asarray(surrogate.load_signals.at_steps(0, offset + n_s * (n_windows + n_p + n_f)), np.float64)
+    rows = offset + n_s * (np.arange(n_windows)[:, None] + np.arange(n_p + n_f)[None, :])
+    if max_windows is not None and n_windows > max_windows:
+        rows = rows[np.unique(np.linspace(0, n_windows - 1, int(max_windows)).round().astype(np.int64))]
+    scale = np.asarray(surrogate.signal_scale, np.float64)  # (n_parts, n_load)
+    return (table[rows][None] / scale[:, None, None, :]).astype(np.float32)
+
+
+def _outputs(surrogate: Surrogate, windows, compute_dtype, signals=None):
+    """(n_parts, n_windows, n_f, n_dof) normalized predictions of every part's windows
+    (``signals``: their load signals, surrogates with load input)."""
+    arch = surrogate.arch
+    mask = jnp.asarray(surrogate.dof_mask, arch.dtype)
+    if surrogate.n_load and signals is None:
+        raise ConfigError(f"these surrogates also read {surrogate.n_load} load signal(s): pass the windows' signals "
+                          "(surrogate_signal_windows, after surrogate.for_problem(problem))")
+    if signals is None:
+        signals = jnp.zeros(windows.shape[:2] + (0,), arch.dtype)  # a placeholder per window, not read
+    signals = jnp.asarray(signals, arch.dtype)
+
+    def part(params, x, load, m, u):
+        return jax.vmap(lambda w, uw: forward(params, arch, w, load, m, compute_dtype,
+                                              uw if surrogate.n_load else None))(x, u)
 
     if arch.conditional:
-        return jax.vmap(part)(surrogate.params, windows, jnp.asarray(surrogate.load_parameter), mask)
-    return jax.vmap(lambda params, x, m: part(params, x, None, m))(surrogate.params, windows, mask)
+        return jax.vmap(part)(surrogate.params, windows, jnp.asarray(surrogate.load_parameter), mask, signals)
+    return jax.vmap(lambda params, x, m, u: part(params, x, None, m, u))(surrogate.params, windows, mask, signals)
 
 
-def inference_deviation(surrogate: Surrogate, windows, dtype: str = "bfloat16") -> tuple[np.ndarray, np.ndarray]:
+def inference_deviation(surrogate: Surrogate, windows, dtype: str = "bfloat16",
+                        signals=None) -> tuple[np.ndarray, np.ndarray]:
     """``(relative (n_parts,), max_abs (n_parts,))``: the deviation of ``dtype`` inference
     from the network's own dtype on ``windows`` (n_parts, n_windows, n_p, n_dof),
-    normalized (as :func:`surrogate_windows` gives them); module docstring."""
+    normalized (as :func:`surrogate_windows` gives them), with their load signals
+    ``signals`` (:func:`surrogate_signal_windows`) for surrogates with load input; module
+    docstring."""
     check_compute_dtype(dtype)
     if dtype is None:
         raise ConfigError("inference_deviation compares a reduced dtype with full precision: give dtype='bfloat16'")
@@ -162,8 +195,8 @@ def inference_deviation(surrogate: Surrogate, windows, dtype: str = "bfloat16") 
                                                                                             surrogate.n_dof):
         raise ConfigError(f"windows must be (n_parts, n_windows, n_p, n_dof) = ({surrogate.n_parts}, n, "
                           f"{surrogate.n_past}, {surrogate.n_dof}), got {windows.shape}")
-    full = np.asarray(_outputs(surrogate, windows, None), np.float64)
-    low = np.asarray(_outputs(surrogate, windows, dtype), np.float64)
+    full = np.asarray(_outputs(surrogate, windows, None, signals), np.float64)
+    low = np.asarray(_outputs(surrogate, windows, dtype, signals), np.float64)
     mask = np.asarray(surrogate.dof_mask, bool)[:, None, None, :]
     diff = np.where(mask, low - full, 0.0)
     full = np.where(mask, full, 0.0)
@@ -175,7 +208,7 @@ def inference_deviation(surrogate: Surrogate, windows, dtype: str = "bfloat16") 
 
 
 def check_inference_precision(surrogate: Surrogate, windows, dtype: str = "bfloat16", *,
-                              bound: float = DEFAULT_BOUND,
+                              bound: float = DEFAULT_BOUND, signals=None,
                               on_excess: Literal["raise", "warn"] = "raise") -> InferencePrecisionReport:
     """Measure the deviation of ``dtype`` inference (:func:`inference_deviation`) and
     refuse or flag it above ``bound``.
@@ -186,6 +219,8 @@ def check_inference_precision(surrogate: Surrogate, windows, dtype: str = "bfloa
         windows: (n_parts, n_windows, n_p, n_dof) normalized input windows
             (:func:`surrogate_windows`), ideally of the run the surrogate will predict.
         dtype: the reduced dtype, ``"bfloat16"``.
+        signals: (n_parts, n_windows, n_p + n_f, n_load) the windows' normalized load
+            signals (:func:`surrogate_signal_windows`); surrogates with load input only.
         bound: largest accepted relative deviation of any part (default
             :data:`DEFAULT_BOUND`, justified in the module docstring).
         on_excess: ``"raise"`` (:class:`~jaxsync.errors.InferencePrecisionError`) or
@@ -198,7 +233,7 @@ def check_inference_precision(surrogate: Surrogate, windows, dtype: str = "bfloa
         raise ConfigError(f"on_excess must be 'raise' or 'warn', got {on_excess!r}")
     if not (isinstance(bound, (int, float)) and np.isfinite(bound) and bound > 0):
         raise ConfigError(f"bound must be a positive number, got {bound!r}")
-    relative, max_abs = inference_deviation(surrogate, windows, dtype)
+    relative, max_abs = inference_deviation(surrogate, windows, dtype, signals)
     report = InferencePrecisionReport(dtype=dtype, bound=float(bound), deviation=relative, max_abs=max_abs,
                                       n_windows=int(np.shape(windows)[1]))
     if not report.passed:
@@ -213,8 +248,10 @@ def check_inference_precision(surrogate: Surrogate, windows, dtype: str = "bfloa
 
 
 def reduced_precision(surrogate: Surrogate, windows, dtype: str = "bfloat16", *, bound: float = DEFAULT_BOUND,
-                      on_excess: Literal["raise", "warn"] = "raise") -> tuple[Surrogate, InferencePrecisionReport]:
+                      on_excess: Literal["raise", "warn"] = "raise",
+                      signals=None) -> tuple[Surrogate, InferencePrecisionReport]:
     """``(surrogate computing in dtype, report)`` after :func:`check_inference_precision`
-    (which raises, or warns, above ``bound``)."""
-    report = check_inference_precision(surrogate, windows, dtype, bound=bound, on_excess=on_excess)
+    (which raises, or warns, above ``bound``; ``signals``: the windows' load signals)."""
+    report = check_inference_precision(surrogate, windows, dtype, bound=bound, on_excess=on_excess,
+                                       signals=signals)
     return surrogate.with_inference_dtype(dtype), report

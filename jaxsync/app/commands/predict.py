@@ -65,7 +65,8 @@ def run(args) -> int:
     surrogates = dataclasses.replace(Surrogate.from_saved(saved, args.load_parameter),
                                      smooth=not args.raw_refill)
     if args.inference_dtype == "bfloat16":
-        surrogates = _reduced_precision(surrogates, reference, args.trajectory)
+        # bound to the problem's load signals first (surrogates with load input read them)
+        surrogates = _reduced_precision(surrogates.for_problem(problem, reference.dt), reference, args.trajectory)
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=common.mode_of(args),
                                     save=args.save_every or reference.save_every,
@@ -82,14 +83,17 @@ def _reduced_precision(surrogate, reference, name):
     histories (:func:`jaxsync.surrogate.inference.reduced_precision`: refused above the
     default bound, with the deviation in the message)."""
     from ...errors import ConfigError
-    from ...surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_windows
+    from ...surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_signal_windows, surrogate_windows
 
     if reference.shared_stride != 1:
         raise ConfigError(f"--inference-dtype bfloat16 checks the reduced precision on the shared "
                           f"histories of {name} at every step, which keeps them every "
                           f"{reference.shared_stride} steps: rerun it with --shared-every 1")
-    windows = surrogate_windows(surrogate, [p.shared_displacement for p in reference.parts], max_windows=256)
-    reduced, report = reduced_precision(surrogate, windows, "bfloat16")
+    histories = [p.shared_displacement for p in reference.parts]
+    windows = surrogate_windows(surrogate, histories, max_windows=256)
+    signals = (surrogate_signal_windows(surrogate, len(histories[0]), max_windows=256) if surrogate.n_load
+               else None)
+    reduced, report = reduced_precision(surrogate, windows, "bfloat16", signals=signals)
     print(f"bfloat16 inference: deviates from {surrogate.arch.dtype} by at most {100 * report.worst:.3g} % "
           f"(RMS over {report.n_windows} windows of {name}; bound {100 * DEFAULT_BOUND:.3g} %)")
     return reduced
