@@ -309,3 +309,47 @@ def test_the_load_signals_of_a_problem_at_its_steps():
         jaxsync.Dirichlet("x1", (0.0, 0.0, 0.01), components=(2,), time=jaxsync.Ramp(0.1)),))
     assert [(i.source, i.kind, i.form) for i in load_inputs_of(moving)] == [
         ("loads[0]", "BodyForce", "StepOff(Ramp)"), ("dirichlet[1]", "Dirichlet", "Ramp")]
+
+
+def test_an_lstm_with_load_input_trains_saves_and_runs_online(tmp_path, step_off_run):
+    """The LSTM's path end to end (a few epochs: the plumbing, not the accuracy): its load
+    weights are trained and stored, the file round-trips exactly, and it runs online."""
+    problem, reference = step_off_run
+    trained = train_surrogates(reference, architecture=ArchitectureChoice(n_hidden=4, n_layers=1), sampling=SAMPLING,
+                               checks=UNCHECKED, optimizer=TrainConfig(n_epochs=3, n_candidates=1), progress=False)
+    arch = trained.result.arch
+    assert isinstance(arch, LSTMArchitecture) and arch.n_load == 1
+    params = trained.result.params
+    assert params["decoder"]["w_u"].shape == (2, 4 * 2 * 4, 1)
+    assert params["encoder"][0]["forward"]["w_u"].shape == (2, 4 * 4, 1)
+    trained.write(tmp_path)
+    saved = load_surrogate(tmp_path / "surrogate.h5")
+    assert saved.arch == arch
+    for a, b in zip(jax.tree_util.tree_leaves(saved.params), jax.tree_util.tree_leaves(params)):
+        np.testing.assert_array_equal(a, b)
+    online = simulate_sync_avoiding(problem, 400, partitions=jaxsync.partition(problem.mesh, 2), surrogates=saved,
+                                    n_cri=200)
+    assert online.stats.n_predicted_steps == 200 and np.all(np.isfinite(online.displacement))
+
+
+def test_the_reduced_precision_check_reads_the_windows_load_signals(step_off_run):
+    from jaxsync.surrogate.inference import reduced_precision, surrogate_signal_windows, surrogate_windows
+
+    problem, reference = step_off_run
+    trained = train_surrogates(reference, architecture=ArchitectureChoice(model="linear"), sampling=SAMPLING,
+                               checks=UNCHECKED, progress=False)
+    surrogate = trained.surrogate.for_problem(problem)
+    histories = [p.shared_displacement for p in reference.parts]
+    windows = surrogate_windows(surrogate, histories, max_windows=50)
+    signals = surrogate_signal_windows(surrogate, len(histories[0]), max_windows=50)
+    assert signals.shape == (2, windows.shape[1], 16, 1)
+    # window w of the first: the recorded signal at steps 5 (w' + j), j = 0 .. 15, w' the window kept
+    n_windows = len(range(0, N_STEPS + 1, 5)) - 8
+    kept = np.unique(np.linspace(0, n_windows - 1, 50).round().astype(np.int64))
+    rows = 5 * (kept[:, None] + np.arange(16)[None, :])
+    np.testing.assert_allclose(signals[0, :, :, 0], np.asarray(reference.load_signal)[np.minimum(rows, N_STEPS), 0],
+                               rtol=1e-6)
+    reduced, report = reduced_precision(surrogate, windows, signals=signals)
+    assert report.passed and reduced.inference_dtype == "bfloat16"
+    with pytest.raises(ConfigError, match="pass the windows' signals"):
+        reduced_precision(surrogate, windows)

@@ -202,6 +202,9 @@ class DemoSettings:
         mass_scaling_seconds: the vessel's mass-scaling check runs over this physical
             time [s] (default: the first half of the run up to 50 000 tets, 0.05 s above,
             where single-device runs at the CFL step take hours).
+        load_input: the surrogates' load input
+            (:class:`~jaxsync.surrogate.ArchitectureChoice`): None (default, on: the
+            synchronized run records its load signals), True or False.
     """
 
     n_steps: int | None = None
@@ -220,6 +223,7 @@ class DemoSettings:
     resync_tolerance: str | float | None = "default"
     save_every: int | None = None
     mass_scaling_seconds: float | None = None
+    load_input: bool | None = None
 
     def applied_to(self, defaults: DemoDefaults) -> DemoDefaults:
         """``defaults`` with the fields these settings give."""
@@ -278,7 +282,8 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
     staging = staging_folder(final)
     try:
         summary = _pipeline(staging, final, d, case=case, size=size, seed=seed, save_every=save_every,
-                            mass_scaling_seconds=mass_scaling_seconds, progress=progress, log=log)
+                            mass_scaling_seconds=mass_scaling_seconds, progress=progress, log=log,
+                            load_input=settings.load_input)
         retarget_paths(staging, final)
         install_folder(staging, final)
     except BaseException as exc:
@@ -343,7 +348,7 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
 
 
 def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_every, mass_scaling_seconds,
-              progress, log) -> dict:
+              progress, log, load_input=None) -> dict:
     """The stages of :func:`run_demo`, writing into the folder ``out``; every path that
     is printed or stored names ``final``, where the folder is moved at the end."""
     from .. import HostExecutor, SaveAt, cantilever, partition, simulate
@@ -398,7 +403,8 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         f"{100 * d.train_fraction:g} % of the run)")
     surrogate_folder = os.path.join(out, "surrogate")
     trained = train_surrogates(
-        reference_path, architecture=ArchitectureChoice(n_hidden=d.n_hidden, n_layers=d.n_layers),
+        reference_path, architecture=ArchitectureChoice(n_hidden=d.n_hidden, n_layers=d.n_layers,
+                                                        load_input=load_input),
         sampling=Sampling(n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, train_fraction=d.train_fraction,
                           seed=seed),
         optimizer=TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma, n_epochs=d.epochs,

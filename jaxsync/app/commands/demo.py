@@ -3,6 +3,7 @@ tree (:mod:`jaxsync.app.demo`)."""
 
 from __future__ import annotations
 
+import argparse
 import os
 
 from . import common
@@ -47,6 +48,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--save-every", type=int, default=None,
                    help="full-field snapshot stride of both runs; divides n_s n_p and n_s n_f "
                         "(default: n_s; the cantilever keeps the parts' shared nodes at every step)")
+    p.add_argument("--load-input", dest="load_input", action=argparse.BooleanOptionalAction, default=None,
+                   help="feed the surrogates the known load signals, as jaxsync train does (default: on, the "
+                        "synchronized run records them); --no-load-input trains the load-blind surrogates")
     p.add_argument("--resync-tolerance", default="default", metavar="CM|PCT%|none",
                    help="error control of the predicted run (see jaxsync predict --help); none turns it "
                         "off (default: the case's; cantilever none, vessel 1%%)")
@@ -73,7 +77,7 @@ def run(args) -> int:
                             n_future=args.n_future, n_hidden=args.n_hidden, n_layers=args.n_layers,
                             train_fraction=args.train_fraction, epochs=args.epochs, eta0=args.eta0,
                             gamma=args.gamma, n_candidates=args.n_candidates,
-                            save_every=args.save_every, resync_tolerance=tolerance)
+                            save_every=args.save_every, resync_tolerance=tolerance, load_input=args.load_input)
     summary = run_demo(args.out, settings, case=args.case, size=args.size, seed=args.seed,
                        progress=not args.no_progress, force=args.force)
     what = "cantilever" if args.case == "cantilever" else f"coronary tree ({summary['n_elements']} tets)"
