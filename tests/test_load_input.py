@@ -307,7 +307,7 @@ def test_the_load_signals_of_a_problem_at_its_steps():
     # a prescribed motion with a time function is a signal too, after the loads
     moving = dataclasses.replace(problem, dirichlet=problem.dirichlet + (
         jaxsync.Dirichlet("x1", (0.0, 0.0, 0.01), components=(2,), time=jaxsync.Ramp(0.1)),))
-    assert [(i.source, i.kind, i.form) for i in load_inputs_of(moving)] == [
+    assert [i.signature for i in load_inputs_of(moving)] == [
         ("loads[0]", "BodyForce", "StepOff(Ramp)"), ("dirichlet[1]", "Dirichlet", "Ramp")]
 
 

@@ -90,6 +90,12 @@ class LoadInput:
     form: str
     function: str = ""
 
+    @property
+    def signature(self) -> tuple[str, str, str]:
+        """``(source, kind, form)``: what must agree between the loads a surrogate was
+        trained with and those it runs with (the parameters need not)."""
+        return self.source, self.kind, self.form
+
     def to_dict(self) -> dict[str, str]:
         return dataclasses.asdict(self)
 
@@ -136,7 +142,7 @@ def check_load_inputs(trained: Sequence[LoadInput], problem, what: str = "the su
             f"{what} take {len(trained)} load signal(s) ({'; '.join(map(str, trained)) or 'none'}) but this problem "
             f"has {len(here)} ({'; '.join(map(str, here)) or 'none'}): {fix}")
     for a, b in zip(trained, here):
-        if (a.source, a.kind, a.form) != (b.source, b.kind, b.form):
+        if a.signature != b.signature:
             raise CheckpointError(
                 f"{what} were trained with {a.source} a {a.kind} of time function form {a.form} ({a.function}) but "
                 f"this problem's {b.source} is a {b.kind} of form {b.form} ({b.function}): {fix}")

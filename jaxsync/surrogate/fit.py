@@ -317,7 +317,7 @@ def _load_signals(runs, load_input: bool | None) -> tuple[list[np.ndarray] | Non
             "(jaxsync simulate) to record them, or train without the load input (load_input=False, --no-load-input)")
     first = runs[0].load_inputs
     for k, run in enumerate(runs[1:], start=1):
-        if [(i.source, i.kind, i.form) for i in run.load_inputs] != [(i.source, i.kind, i.form) for i in first]:
+        if [i.signature for i in run.load_inputs] != [i.signature for i in first]:
             raise ConfigError(
                 f"trajectory {k} has the loads {'; '.join(map(str, run.load_inputs))} but trajectory 0 has "
                 f"{'; '.join(map(str, first))}: a surrogate with load input is trained on runs whose loads have the "

@@ -213,8 +213,8 @@ class Surrogate:
         signals they were trained with (count, kinds, forms)."""
         if not self.n_load:
             return self
-        trained = [(i.source, i.kind, i.form) for i in self.load_inputs]
-        given = [(i.source, i.kind, i.form) for i in signals.inputs]
+        trained = [i.signature for i in self.load_inputs]
+        given = [i.signature for i in signals.inputs]
         if trained != given:
             raise CheckpointError(f"these surrogates were trained with the load signals {trained} but were given "
                                   f"{given}; give them the signals of a run of the same loads")
