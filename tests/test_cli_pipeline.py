@@ -253,7 +253,8 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
     run = run_cli(predict_args(demo, path, "--raw-refill"))
     assert run.code == 0, run.err
     raw = jaxsync.Trajectory.load(path)
-    surrogate = Surrogate.load(demo[1] / "surrogate" / "surrogate.h5")
+    # the demo's surrogates read the load signals (its default): bound to its problem, the cantilever
+    surrogate = Surrogate.load(demo[1] / "surrogate" / "surrogate.h5").for_problem(jaxsync.cantilever(), reference.dt)
     n_cri, history, every = N_S * 5, N_S * 5, online.save_every
     for p, part in enumerate(reference.parts):
         width = part.shared_displacement.shape[1]
@@ -275,19 +276,34 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
 def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_path):
     """A config whose load is switched off between steps 499 and 500: predict stays
     synchronized until the networks' 25 input steps follow the jump (step 524, saved at
-    525); ``--load-jumps predict`` predicts from n_cri = 25 through it."""
+    525); ``--load-jumps predict`` predicts from n_cri = 25 through it. The demo's
+    surrogates, trained with the load input on a ramped load, are refused on the
+    switched-off one (another time-function form); load-blind ones, trained with
+    --no-load-input, run there."""
     from importlib import resources
 
     text = resources.files("jaxsync").joinpath("data/cantilever.toml").read_text()
     config = tmp_path / "step_off.toml"
     config.write_text(text.replace("# t_off = 3.0", f"t_off = {499.5 * reference.dt!r}"))
-    kept = run_cli(predict_args(demo, tmp_path / "kept.h5", "--config", config))
+    refused = run_cli(predict_args(demo, tmp_path / "refused.h5", "--config", config))
+    assert refused.code == 2 and "trained with loads[0] a BodyForce of time function form Ramp" in refused.err
+    assert "form StepOff(Ramp)" in refused.err
+    blind = run_cli(["train", demo[1] / "synchronized.h5", "-o", tmp_path / "blind", "--no-load-input",
+                     "--epochs", "2", "--hidden", "8", "--n-s", N_S, "--n-past", "5", "--n-future", "5",
+                     "--rollout-tolerance", "100", "--no-progress"])
+    assert blind.code == 0, blind.err
+
+    def predict_blind(output, *extra):
+        return ["predict", demo[1] / "synchronized.h5", tmp_path / "blind" / "surrogate.h5", "-o", output,
+                "--no-progress", *extra]
+
+    kept = run_cli(predict_blind(tmp_path / "kept.h5", "--config", config))
     assert kept.code == 0, kept.err
     assert "1500 steps: 525 synchronized, 975 predicted (n_cri = 525)" in kept.out
     assert "synchronized through the load jump at step 500" in kept.out
     stats = jaxsync.Trajectory.load(tmp_path / "kept.h5").stats
     assert stats.load_jumps == (500,) and stats.n_cri == 525
-    through = run_cli(predict_args(demo, tmp_path / "through.h5", "--config", config, "--load-jumps", "predict"))
+    through = run_cli(predict_blind(tmp_path / "through.h5", "--config", config, "--load-jumps", "predict"))
     assert through.code == 0, through.err
     assert "1500 steps: 25 synchronized, 1475 predicted" in through.out
     assert jaxsync.Trajectory.load(tmp_path / "through.h5").stats.load_jumps is None
