@@ -238,13 +238,20 @@ def test_a_surrogate_file_records_its_load_inputs_and_runs_only_on_loads_of_the_
         simulate_sync_avoiding(other_form, 800, partitions=partition, surrogates=saved, n_cri=400)
     with pytest.raises(ConfigError, match="bind them to the problem"):
         Surrogate.from_saved(saved).part(0).predict(np.zeros((40, saved.arch.n_dof)), 39)
-    # the same form with another switch-off time runs, through the jump, as close as on the training run
+    # the same form with another switch-off time runs, online and through the jump: measured 4.3 % of the
+    # amplitude at worst (the load-blind surrogates of the same run: 166 %)
     moved = step_off_problem(0.6)
     truth = jaxsync.simulate(moved, N_STEPS, partitions=partition)
-    online = simulate_sync_avoiding(moved, N_STEPS, partitions=partition, surrogates=saved, n_cri=N_STEPS // 2,
-                                    load_jumps="predict")
     amplitude = np.abs(truth.displacement).max()
-    assert np.abs(online.displacement - truth.displacement).max() <= 0.05 * amplitude
+    errors = {}
+    for load_input, surrogates in ((True, saved), (False, None)):
+        if surrogates is None:
+            surrogates = train_surrogates(reference, architecture=ArchitectureChoice(model="linear", load_input=False),
+                                          sampling=SAMPLING, checks=UNCHECKED, progress=False).saved
+        online = simulate_sync_avoiding(moved, N_STEPS, partitions=partition, surrogates=surrogates,
+                                        n_cri=N_STEPS // 2, load_jumps="predict")
+        errors[load_input] = np.abs(online.displacement - truth.displacement).max() / amplitude
+    assert errors[True] <= 0.05 and errors[False] >= 10 * errors[True], errors
 
 
 def test_surrogates_and_trajectories_without_load_inputs_load_and_run_as_before(tmp_path, step_off_run):
