@@ -77,7 +77,12 @@ from jaxsync.perf.measure import best_times, per_step_times  # noqa: E402
 from jaxsync.solve.distributed import DistributedRunner  # noqa: E402
 from jaxsync.solve.predicted import PredictedPhase  # noqa: E402
 from jaxsync.surrogate import Surrogate, TrainingChecks  # noqa: E402
-from jaxsync.surrogate.inference import DEFAULT_BOUND, check_inference_precision, surrogate_windows  # noqa: E402
+from jaxsync.surrogate.inference import (  # noqa: E402
+    DEFAULT_BOUND,
+    check_inference_precision,
+    surrogate_signal_windows,
+    surrogate_windows,
+)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT = os.path.join(HERE, "results", "bench_surrogates.json")
@@ -230,20 +235,22 @@ def run_case(case: str, settings: Settings, seed: int, checkpoint: str | None, q
               "tip_node": tip, "reference": experiments.run_stats(reference, seconds), "variants": {}}
 
     lstm_source, lstm_record = lstm_checkpoint(case, reference, settings, seed, checkpoint, quiet)
-    lstm = Surrogate.from_saved(lstm_source)
+    lstm = Surrogate.from_saved(lstm_source).for_problem(problem)  # load-aware replicas read its loads
     log(f"[{case}] fitting the linear surrogate", quiet)
     linear_ckpt, linear_record = fit(reference, dataclasses.replace(settings, n_s=lstm.n_s, n_past=lstm.n_past,
                                                                     n_future=lstm.n_future), seed, "linear", quiet)
-    linear = Surrogate.from_saved(linear_ckpt)
+    linear = Surrogate.from_saved(linear_ckpt).for_problem(problem)
 
     # the check of reduced-precision inference on the reference's own windows
     histories = [p.shared_displacement for p in reference.parts]
     checks = {}
     for name, surrogate in (("lstm_bf16", lstm), ("linear_bf16", linear)):
         windows = surrogate_windows(surrogate, histories, max_windows=settings.check_windows)
+        signals = (surrogate_signal_windows(surrogate, len(histories[0]), max_windows=settings.check_windows)
+                   if surrogate.n_load else None)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            report = check_inference_precision(surrogate, windows, on_excess="warn")
+            report = check_inference_precision(surrogate, windows, signals=signals, on_excess="warn")
         checks[name] = {**report.to_dict(), "flagged": [str(w.message) for w in caught]}
     record["bf16_check"] = checks
 
