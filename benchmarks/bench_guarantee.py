@@ -13,7 +13,9 @@ autoregressive surrogate, the generated vessel (3 500 tets, 4 parts) -- the scri
   5 % of its largest value;
 * for each tolerance (a fraction of the reference's largest |displacement| at the shared
   nodes, fixed in cm), with ``indicator="estimate"`` (the default: es_hat and the
-  estimate) and ``indicator="es_hat"`` (es_hat only): the largest nodal error against the
+  estimate) and ``indicator="es_hat"`` (es_hat only), and with the estimate and online
+  learning (``ResyncTolerance(learning=True)``: the surrogates learn from every re-synchronized
+  stretch, :mod:`jaxsync.surrogate.online`): the largest nodal error against the
   synchronized run over every saved step, as a multiple of the tolerance, and the steps
   predicted.
 
@@ -142,19 +144,24 @@ def run_case(case: Case, tolerances, work: str) -> dict:
           f"median {row['estimate_over_error']['median']:.2f}, p90 {row['estimate_over_error']['p90']:.2f}",
           flush=True)
     for fraction in tolerances:
-        for indicator in ("estimate", "es_hat"):
-            tolerance = ResyncTolerance(relative=fraction, amplitude=amplitude, indicator=indicator)
+        for indicator, learning in (("estimate", False), ("es_hat", False), ("estimate", True)):
+            tolerance = ResyncTolerance(relative=fraction, amplitude=amplitude, indicator=indicator,
+                                        learning=learning)
             traj = online(tolerance)
             e = nodal_error(traj, reference).max()
             st = traj.stats
-            run = {"tolerance_fraction": fraction, "tolerance_cm": fraction * amplitude, "indicator": indicator,
+            label = indicator + (" + learning" if learning else "")
+            run = {"tolerance_fraction": fraction, "tolerance_cm": fraction * amplitude, "indicator": label,
+                   "online_learning": learning,
+                   "n_surrogate_updates": len(st.surrogate_updated_at) if learning else 0,
+                   "seconds_updating": st.seconds_updating if learning else 0.0,
                    "max_error_cm": float(e), "max_error_over_tolerance": float(e / (fraction * amplitude)),
                    "n_predicted_steps": st.n_predicted_steps, "n_steps_after_n_cri": case.n_steps - n_cri,
                    "n_resynchronizations": st.n_resynchronizations,
                    "us_per_step_predicted": st.us_per_step_predicted,
                    "us_per_step_synchronized": st.us_per_step_synchronized}
             row["runs"].append(run)
-            print(f"  tol {100 * fraction:g} % ({fraction * amplitude:.3e} cm), {indicator:>8}: max error "
+            print(f"  tol {100 * fraction:g} % ({fraction * amplitude:.3e} cm), {label:>8}: max error "
                   f"{run['max_error_over_tolerance']:.2f} x tol, predicted {st.n_predicted_steps} of "
                   f"{case.n_steps - n_cri}, {st.n_resynchronizations} re-synchronizations, "
                   f"{(st.us_per_step_predicted or float('nan')):.1f} us per predicted step", flush=True)
@@ -228,11 +235,11 @@ def main(argv=None):
     costs = [probe_cost("cantilever", 3000, 50), probe_cost("vessel", 1000, 100)]
     rows = [run_case(CASES[name], args.tolerances, args.work) for name in args.cases]
     print()
-    print(f"{'case':>9} {'tol %':>6} {'indicator':>9} {'max err / tol':>13} {'predicted':>10} {'resyncs':>7} "
+    print(f"{'case':>9} {'tol %':>6} {'indicator':>20} {'max err / tol':>13} {'predicted':>10} {'resyncs':>7} "
           f"{'us/pred':>8}")
     for row in rows:
         for r in row["runs"]:
-            print(f"{row['case']:>9} {100 * r['tolerance_fraction']:>6g} {r['indicator']:>9} "
+            print(f"{row['case']:>9} {100 * r['tolerance_fraction']:>6g} {r['indicator']:>20} "
                   f"{r['max_error_over_tolerance']:>13.2f} {r['n_predicted_steps']:>10} "
                   f"{r['n_resynchronizations']:>7} {(r['us_per_step_predicted'] or float('nan')):>8.1f}")
     atomic_json(args.out, {"date": time.strftime("%Y-%m-%d"), **device_summary(), "probe_cost": costs,

@@ -66,6 +66,9 @@ class RunStats:
       cycle), ``es_hat_trigger`` (its es_hat [cm]), ``error_estimate_trigger`` (its
       estimated error [cm]; NaN where es_hat rejected it before it ran) and
       ``tolerance_cm`` (the tolerance then [cm]).
+    - Online learning: ``surrogate_updated_at``, the steps after which the surrogates
+      learned from the steps recomputed synchronized (the end of each re-synchronized
+      stretch), and ``seconds_updating``, the time those updates took [s].
     - Load jumps: ``load_jumps``, the steps where a load's time function jumps that the run
       stayed synchronized through (None: not looked for).
     - Full-system modeling: ``dirichlet_max_abs_predicted``, the largest |predicted value|
@@ -94,10 +97,13 @@ class RunStats:
     tolerance_cm: tuple | None = None
     error_estimate_trigger: tuple | None = None
     load_jumps: tuple | None = None
+    surrogate_updated_at: tuple | None = None
+    seconds_updating: float | None = None
     dirichlet_max_abs_predicted: float | None = None
 
     def __post_init__(self):
-        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "error_estimate_trigger", "load_jumps"):
+        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "error_estimate_trigger", "load_jumps",
+                     "surrogate_updated_at"):
             value = getattr(self, name)
             if value is not None and not isinstance(value, tuple):
                 object.__setattr__(self, name, tuple(np.asarray(value).tolist()))

@@ -365,6 +365,24 @@ def test_resync_run_is_the_synchronized_run(resync, reference):
                                atol=1e-12 * np.abs(reference.displacement).max())
 
 
+def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
+    """``--learn``: an update after every re-synchronized stretch, said in the printed
+    counts; a tolerance of 1e-12 cm still gives the synchronized run."""
+    path = tmp_path / "learn.h5"
+    run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "60"))
+    assert run.code == 0, run.err
+    result = jaxsync.Trajectory.load(path)
+    st = result.stats
+    assert len(st.surrogate_updated_at) == st.n_resynchronizations >= 2 and st.seconds_updating > 0
+    assert f"{len(st.surrogate_updated_at)} surrogate updates" in run.out
+    np.testing.assert_allclose(result.displacement, reference.displacement, rtol=0,
+                               atol=1e-12 * np.abs(reference.displacement).max())
+    for extra, message in ((["--learn"], "give --resync-tolerance too"), (["--learn-budget", "5"], "give --learn too")):
+        bad = run_cli(predict_args(demo, tmp_path / "bad.h5", *extra))
+        assert bad.code != 0 and message in bad.err, bad.err
+        assert not (tmp_path / "bad.h5").exists()
+
+
 def test_report_of_the_resync_run(demo, resync):
     path, _ = resync
     report = demo[0] / "report_resync"

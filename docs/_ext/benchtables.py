@@ -299,6 +299,62 @@ def r_regime_map() -> Rendered:
     return Rendered([table], ["regime_map.json", "sync.json"])
 
 
+def r_gpu_projection() -> Rendered:
+    d = load("gpu_projection.json")
+    depths = sorted({int(k) for r in d["scenarios"] for k in r["halos"]})
+
+    def step(t, zeta):
+        return f"{num(t)} ({num(zeta, 3)})"
+
+    exact, learned = [], []
+    for r in d["scenarios"]:
+        halos = r["halos"]
+        best = r["best_exact"]
+        exact.append([r["label"], f"{num(r['gpus'])} ({num(r['parts'])})", num(r["t_c_us"]), num(r["t_s_us"]),
+                      num(r["t_sync_us"])]
+                     + [step(halos[str(k)]["t_step_us"], halos[str(k)]["zeta"]) if str(k) in halos else "-"
+                        for k in depths]
+                     + [f"{best['method']}: {step(best['t_step_us'], best['zeta'])}"])
+        be = r["break_even_t_d_vs_best_exact_us"]
+        surr = r["surrogates"]
+        learned.append([r["label"], f"{num(r['gpus'])} ({num(r['parts'])})",
+                        num(r["break_even_t_d_vs_synchronized_us"]),
+                        num(be) if be > 0 else f"never ({num(be)})", num(r["zeta_ceiling_vs_best_exact"], 3)]
+                       + [f"{num(surr[n]['t_d_cpu_rate_us'])}: {step(surr[n]['t_step_us'], surr[n]['zeta'])}"
+                          for n in ("linear", "lstm")]
+                       + [" / ".join("never" if surr[n]["rate_needed_vs_best_exact_GFlops"] is None
+                                     else num(surr[n]["rate_needed_vs_best_exact_GFlops"], 2)
+                                     for n in ("linear", "lstm"))])
+    v, cost, site = d["vessel"], d["surrogate_cost"], d["stand_in"]
+    t1 = Table(["scenario", "GPUs (parts)", "t_c", "t_s", "synchronized"] + [f"halo k = {k}" for k in depths]
+               + ["best exact"], exact,
+               f"Exact methods, projected for the paper-size vessel ({num(v['n_dofs'])} dofs): microseconds per "
+               "step (zeta against the synchronized step)",
+               [f"Inputs, {d['given']['sources']['h200']}; {d['given']['sources']['nccl']}; "
+                f"{d['given']['sources']['xla']}. Per-step floor t_0 = {num(d['floor_us'])} us.",
+                "Each exchange costs the cheaper of one collective sum of the interface vector (a ring allreduce) "
+                "and one grouped neighbour exchange, latency + bytes / bandwidth (NVLink 4 in a node, InfiniBand "
+                "NDR between nodes, HDR for the A100 figure).",
+                f"Halo redundancy and interface sizes from the generated tree at {num(site['n_elements'])} "
+                f"tetrahedra partitioned into each scenario's parts, scaled to the vessel by "
+                f"c = {num(site['scale_c'])} (its recorded 11-part interface of {num(v['n_interface'])} nodes "
+                "over the stand-in's)."])
+    t2 = Table(["scenario", "GPUs (parts)", "break-even t_d vs synchronized", "break-even t_d vs best exact",
+                "most gained over the best exact (t_d = 0)", "linear: t_d at the CPU rate, step (zeta)",
+                "LSTM: t_d at the CPU rate, step (zeta)",
+                "GFlop/s needed to beat the best exact, linear / LSTM"], learned,
+               "The learned method: break-even surrogate cost per step [us], and the step with the surrogate "
+               "run at the CPU's rate",
+               [f"t_d is not measured on a GPU. At the CPU rate: {cost['cpu_rate_source']}, "
+                f"{num(cost['cpu_rate_GFlops'])} GFlop/s, applied to each surrogate's flops per step "
+                f"(widest part of 11: linear {num(cost['flops_per_step_per_part']['linear'] / 1e6)}, LSTM "
+                f"{num(cost['flops_per_step_per_part']['lstm'] / 1e6)} MFlop per step, rank "
+                f"{num(cost['linear_rank'])} linear map; on one GPU the 11 parts' refills together); the last column "
+                "is the rate a GPU must sustain instead."])
+    sources = ["gpu_projection.json"] + ([v["source"]] if v["source"].startswith("benchmarks/") else [])
+    return Rendered([t1, t2], sources, recorded({"date": (d.get("generated") or {}).get("date")}))
+
+
 def _tip_metrics(metrics: dict) -> dict:
     """The worst component's metrics (a skewed load is judged on y and z)."""
     if "tip_max_error_relative" in metrics:
@@ -795,6 +851,7 @@ RENDERERS = {
     "speedup": r_speedup,
     "sync": r_sync,
     "regime-map": r_regime_map,
+    "gpu-projection": r_gpu_projection,
     "surrogates": r_surrogates,
     "experiments": r_experiments,
     "experiments-linear": r_experiments_linear,

@@ -99,12 +99,16 @@ class OnlineSettings:
         load_jumps: the steps where a load jumps that the run stays synchronized through
             (None: predicted through), for the statistics.
         all_load_jumps: every load jump of the run, for the trajectory's parameters.
+        learning: a :class:`~jaxsync.surrogate.online.OnlineLearning`: after every
+            rejected cycle, the surrogates learn from the steps recomputed synchronized
+            (None: they stay as given).
     """
 
     predictor: object
     tolerance: object = None
     load_jumps: tuple | None = None
     all_load_jumps: tuple = ()
+    learning: object = None
 
 
 @dataclasses.dataclass
@@ -324,6 +328,35 @@ class _OnlineRun:
             self.propagator = ErrorPropagator.build(problem, self.partition, dt, tolerance.modes)
         self._linearised_at = 0  # the step of the state the propagator is linearised at (0: at rest)
         self.dt = dt
+        self.learner = None
+        if online.learning is not None and tolerance is not None:
+            from ..surrogate.online import OnlineLearner
+
+            self.learner = OnlineLearner(online.learning, predictor, first.shared)
+
+    def _kept_rows(self, target: int, anchor_step: int) -> int | None:
+        """How many of a re-synchronized stretch's last steps to keep: the networks'
+        input history, and with online learning the span its windows come from."""
+        if self.learner is None:
+            return self.history
+        s = self.learner.settings
+        span = max(1, self.learner.n_s // s.starts_per_stride) * s.windows
+        return self.history + min(target - anchor_step, span + self.cycle_steps)
+
+    def _learn(self, segment: Segment, anchor: "_Anchor", target: int) -> None:
+        """Update the surrogates from a re-synchronized stretch (anchor.step .. target),
+        with the input history before it where the stretch was kept whole."""
+        stretch = target - anchor.step
+        rows = []
+        for p, values in enumerate(segment.shared):
+            values = np.asarray(values)
+            if len(values) >= stretch:  # whole: the anchor's history goes before it
+                values = np.concatenate([anchor.history[p, :, :values.shape[1]], values[-stretch:]])
+            rows.append(values)
+        self.learner.add_stretch(rows, target - len(rows[0]) + 1)
+        updated = self.learner.update(target)
+        if updated is not self.phase.predictor:
+            self.phase.predictor = self.runner.put(updated)
 
     def _predicted_runner(self, amplitude: float, anchor: "_Anchor"):
         if self.online.tolerance is None:
@@ -383,13 +416,17 @@ class _OnlineRun:
                     # the shared values of the last n_s n_p steps are all the next anchor needs:
                     # a long stretch keeps only those (bounded memory at the paper's size)
                     segment = run_chunks(runner, anchor.state, anchor.step, target, kind="synchronized",
-                                         limit=self.limit, progress=bar, keep_shared=self.history,
+                                         limit=self.limit, progress=bar,
+                                         keep_shared=self._kept_rows(target, anchor.step),
                                          chunk_steps=self.executor.chunk_steps)
                     seconds["synchronized"] += segment.seconds
                     compile_seconds += segment.compile_seconds
                     amplitude = max(amplitude, segment.shared_abs_max)
                     timeline.append(segment)
                     estimates.append(np.full(len(segment.displacement), np.nan))
+                    if self.learner is not None and not self.learner.exhausted:
+                        bar.label("learning")
+                        self._learn(segment, anchor, target)
                     anchor = _Anchor(segment.state, _histories(self.partition.n_parts, segment.shared, self.history,
                                                                self.n_dof, anchor.history), target)
                     step_now = target
@@ -426,6 +463,10 @@ class _OnlineRun:
             stats = dataclasses.replace(stats, resync_tolerance=str(tolerance),
                                         n_resynchronizations=len(resyncs["resynchronized_at"]),
                                         **{k: tuple(v) for k, v in resyncs.items()})
+            if self.learner is not None:
+                reports = self.learner.reports
+                stats = dataclasses.replace(stats, surrogate_updated_at=tuple(r.step for r in reports),
+                                            seconds_updating=float(sum(r.seconds for r in reports)))
             if resyncs["resynchronized_at"] and n_pred < 0.5 * (n_steps - n_cri):
                 held = ("es_hat" if tolerance.indicator == "es_hat"
                         else "es_hat and the estimated error")

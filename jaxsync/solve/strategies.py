@@ -410,6 +410,13 @@ class ResyncTolerance:
     synchronized state before each predicted stretch, rebuilt there: one sparse
     factorization and eigensolve per stretch). A linear law's propagator is the same
     either way.
+
+    ``learning``: learn while synchronized: after every rejected cycle the surrogates train
+    on the steps recomputed synchronized (and on windows replayed from the first
+    synchronized stretch) before the run predicts again (:mod:`jaxsync.surrogate.online`).
+    True: the defaults of :class:`jaxsync.surrogate.OnlineLearning`, or one of those (its
+    ``budget_seconds`` bounds the update time of the run); None or False (default): the
+    surrogates stay as given.
     """
 
     absolute: float | None = None
@@ -418,6 +425,7 @@ class ResyncTolerance:
     indicator: str = "estimate"
     modes: int | None = None
     linearization: str = "rest"
+    learning: object = None
 
     def __post_init__(self):
         if self.indicator not in ("estimate", "es_hat"):
@@ -447,6 +455,10 @@ class ResyncTolerance:
                                "large as the displacement itself would pass, so the control would accept any "
                                "prediction; give a percentage up to 100% (typically 1% to 10%), or leave the "
                                "tolerance out (none) to run without error control")
+        if not (self.learning is None or isinstance(self.learning, bool)
+                or type(self.learning).__name__ == "OnlineLearning"):
+            raise ProblemError(f"resync_tolerance: learning={self.learning!r}; give True (the defaults), "
+                               "jaxsync.surrogate.OnlineLearning(...), or None/False (no learning)")
         if self.amplitude is not None and (self.relative is None or not _positive(self.amplitude)):
             raise ProblemError(f"resync_tolerance: amplitude={self.amplitude!r} must be a length > 0 [cm] "
                                "and goes with a relative tolerance")
@@ -478,7 +490,8 @@ class ResyncTolerance:
     def __str__(self) -> str:
         text = (f"{self.absolute:g} cm" if self.absolute is not None else
                 f"{100 * self.relative:g} %" + ("" if self.amplitude is None else f" of {self.amplitude:.4g} cm"))
-        return text + (" (es_hat only)" if self.indicator == "es_hat" else "")
+        text += " (es_hat only)" if self.indicator == "es_hat" else ""
+        return text + (" + learning" if self.learning not in (None, False) else "")
 
 
 def _positive(value) -> bool:

@@ -85,7 +85,9 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
             the internal force).
         resync_tolerance: es_hat above which the run re-synchronizes: a number [cm], a
             string like ``"2%"`` (relative to the largest shared-node displacement seen in
-            synchronized steps), or a :class:`jaxsync.ResyncTolerance`; None: never.
+            synchronized steps), or a :class:`jaxsync.ResyncTolerance`; None: never. Its
+            ``learning`` lets the surrogates learn from the steps recomputed after every
+            rejected cycle (:mod:`jaxsync.surrogate.online`).
         load_jumps: ``"synchronize"`` (default) or ``"predict"``: what the run does at the
             steps where a load's time function jumps (see above).
         executor: as for :func:`jaxsync.simulate`: :class:`jaxsync.HostExecutor` (the
@@ -112,11 +114,14 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
         through), ``n_discarded_steps``, ``n_resynchronizations``,
         ``resynchronized_at`` (the first step of each rejected cycle), ``es_hat_trigger``
         (its es_hat) and ``tolerance_cm`` (the tolerance then) [cm], ``resync_tolerance``,
-        ``us_per_step_predicted``, ``us_per_step_synchronized``, ``compile_seconds``.
+        ``us_per_step_predicted``, ``us_per_step_synchronized``, ``compile_seconds``; with
+        online learning ``surrogate_updated_at`` (the steps after which the surrogates
+        learned) and ``seconds_updating``.
 
     Raises:
         ProblemError: n_cri too small, save_every not dividing n_cri, n_steps and n_s n_f,
-            a tolerance that is not > 0 or given with an oracle.
+            a tolerance that is not > 0 or given with an oracle, learning for a predictor
+            without weights (an oracle).
         CheckpointError: surrogates made for another partition.
         StabilityError: without a tolerance, a prediction turned NaN/Inf (the message
             names the step and the part; ``error.trajectory`` keeps the snapshots saved
@@ -136,6 +141,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
                            "where a load jumps) or 'predict' (predict through them, as the paper did)")
     dt = problem.dt if dt is None else dt
     tolerance = None if resync_tolerance is None else ResyncTolerance.parse(resync_tolerance)
+    learning = _online_learning(tolerance, surrogates)
     traced = is_traced(problem.material, problem.damping, problem.loads, dt, problem.initial_displacement,
                        problem.initial_velocity, surrogates)
     executor = choose_executor(executor, traced)
@@ -173,7 +179,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
         check_dt(problem, dt)
     system = build_system(problem, float(dt), mode)
     online = OnlineSettings(predictor, tolerance, None if jumps is None else tuple(int(j) for j in jumps),
-                            tuple(int(j) for j in all_jumps))
+                            tuple(int(j) for j in all_jumps), learning)
     return run_on_host(problem, system, initial_state(problem, system), schedule, save=save, executor=executor,
                        distributed=distributed, online=online)
 
@@ -199,6 +205,18 @@ def _traced_run(problem, dt, mode, schedule, save, executor, distributed, predic
                       save_every=save.every, parameters=run_parameters(problem, jumps),
                       parts=part_histories(partition, shared, predicted),
                       synchronized=synchronized, result=run.result)
+
+
+def _online_learning(tolerance, surrogates):
+    """The run's :class:`~jaxsync.surrogate.online.OnlineLearning` (``tolerance.learning``), or None."""
+    if tolerance is None or tolerance.learning is None or tolerance.learning is False:
+        return None
+    from ..surrogate.online import OnlineLearning
+
+    if isinstance(surrogates, OraclePredictor):
+        raise ProblemError("resync_tolerance: learning updates trained surrogates; an OraclePredictor replays known "
+                           "values and has no weights to learn: leave learning out")
+    return OnlineLearning.parse(tolerance.learning)
 
 
 def _find_load_jumps(loads, n_steps: int, dt, policy: str) -> np.ndarray:
@@ -264,6 +282,9 @@ def describe_run(online) -> str:
         text += (f"; tolerance {st.resync_tolerance}: {len(at)} re-synchronization"
                  f"{'' if len(at) == 1 else 's'}" + (f" (cycles rejected at steps {at})" if at else "")
                  + f", {st.n_discarded_steps} predicted steps recomputed")
+        if st.surrogate_updated_at is not None:
+            n = len(st.surrogate_updated_at)
+            text += f"; {n} surrogate update{'' if n == 1 else 's'} ({st.seconds_updating or 0.0:.1f} s)"
     if st.us_per_step_predicted is not None:
         text += f"; {st.us_per_step_predicted:.1f} us per predicted step"
     if st.us_per_step_synchronized is not None:

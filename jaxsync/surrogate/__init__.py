@@ -30,6 +30,8 @@ The names a user needs are here; everything else stays importable from its modul
 :mod:`.saved`              surrogate files of trained replicas (:class:`SavedSurrogate`)
 :mod:`.evaluate`           the offline rollout check, E_mse (:class:`TrainingChecks`) and
                            the grid search
+:mod:`.online`             learning while synchronized (:class:`OnlineLearning`): updates
+                           from the steps error control recomputes
 =========================  =================================================================
 """
 
@@ -44,7 +46,7 @@ __all__ = [
     "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
     "SavedSurrogate", "save_surrogate", "load_surrogate",
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
-    "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning",
+    "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning", "OnlineLearning",
 ]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
@@ -58,6 +60,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     "jaxsync.surrogate.linear": ("LinearArchitecture", "LinearFitConfig", "fit_linear"),
     "jaxsync.surrogate.lstm": ("LSTMArchitecture",),
     "jaxsync.surrogate.model": ("Surrogate",),
+    "jaxsync.surrogate.online": ("OnlineLearning",),
     "jaxsync.surrogate.saved": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
     "jaxsync.surrogate.train": ("TrainConfig", "TrainResult", "train_replicas"),
     "jaxsync.surrogate.training_state": ("TrainingState",),
@@ -79,6 +82,7 @@ if TYPE_CHECKING:
     from jaxsync.surrogate.linear import LinearArchitecture, LinearFitConfig, fit_linear
     from jaxsync.surrogate.lstm import LSTMArchitecture
     from jaxsync.surrogate.model import Surrogate
+    from jaxsync.surrogate.online import OnlineLearning
     from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
     from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
     from jaxsync.surrogate.training_state import TrainingState

@@ -258,19 +258,24 @@ def forward(
 # ----------------------------------------------------------------------------- fit
 
 
-def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DEFAULT_REGULARIZATION):
+def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DEFAULT_REGULARIZATION,
+                        weight: np.ndarray | None = None, max_rank: int | None = None):
     """Affine least squares ``y ~ x W + b``, W factored through the input directions.
 
-    Minimizes ||(x - x_mean) W - (y - y_mean)||^2 + lambda ||W||^2 with
-    lambda = ``regularization`` s_max^2, from the thin SVD of the centered inputs
-    ``U diag(s) V^T``: W = V diag(s / (s^2 + lambda)) U^T (y - y_mean),
+    Minimizes sum_i w_i ||(x_i - x_mean) W - (y_i - y_mean)||^2 + lambda ||W||^2 (w_i = 1
+    without ``weight``; the means weighted alike) with lambda = ``regularization``
+    s_max^2, from the thin SVD of the centered, row-scaled inputs ``U diag(s) V^T``:
+    W = V diag(s / (s^2 + lambda)) U^T (y - y_mean) (rows scaled by sqrt(w_i)),
     b = y_mean - x_mean W.  Singular values at or below ``eps * max(shape) * s_max``
-    (NumPy ``lstsq``'s rank cut) are dropped, so r = 0 is the minimum-norm solution.
+    (NumPy ``lstsq``'s rank cut) are dropped, so r = 0 is the minimum-norm solution, and
+    with ``max_rank`` only the leading ``max_rank`` directions are kept (truncated SVD).
 
     Args:
         x: (n_windows, n_in) inputs; y: (n_windows, n_out) targets (any float dtype;
             solved in float64).
         regularization: relative ridge parameter r >= 0.
+        weight: (n_windows,) window weights >= 0 (None: all 1).
+        max_rank: the most input directions kept (None: all above the rank cut).
 
     Returns:
         ``(w_in (n_in, rank), w_out (rank, n_out), b (n_out,))`` float64 with
@@ -278,16 +283,76 @@ def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DE
     """
     x = np.asarray(x, np.float64)
     y = np.asarray(y, np.float64)
-    x_mean, y_mean = x.mean(axis=0), y.mean(axis=0)
-    u, s, vt = np.linalg.svd(x - x_mean, full_matrices=False)
+    w = np.ones(x.shape[0]) if weight is None else np.asarray(weight, np.float64)
+    w = w / w.sum()
+    x_mean, y_mean = w @ x, w @ y
+    root = np.sqrt(w)[:, None]
+    u, s, vt = np.linalg.svd(root * (x - x_mean), full_matrices=False)
     if s.size == 0 or not s[0] > 0:  # constant inputs: predict the mean
         return np.zeros((x.shape[1], 0)), np.zeros((0, y.shape[1])), y_mean
     keep = s > np.finfo(np.float64).eps * max(x.shape) * s[0]
+    if max_rank is not None:
+        keep &= np.arange(s.size) < max_rank
     s, u, vt = s[keep], u[:, keep], vt[keep]
     gain = s / (s * s + regularization * s[0] ** 2)
     w_in = vt.T
-    w_out = gain[:, None] * (u.T @ (y - y_mean))
+    w_out = gain[:, None] * (u.T @ (root * (y - y_mean)))
     return w_in, w_out, y_mean - (x_mean @ w_in) @ w_out
+
+
+def _fit_parts(x, y, signals, dof_counts, regularization: float, weight=None, max_rank: int | None = None):
+    """One least-squares fit per part, on its real dofs: ``[(w_in, w_out, b), ...]``.
+
+    ``x`` (n_parts, n_windows, n_p, n_dof), ``y`` (n_parts, n_windows, n_f, n_dof) and
+    ``signals`` (n_parts, n_windows, n_p + n_f, n_load) or None, normalized."""
+    n_windows, n_past = x.shape[1], x.shape[2]
+    n_future = y.shape[2]
+    fits = []
+    for p, count in enumerate(dof_counts):
+        xp = np.asarray(x[p, :, :, :count]).reshape(n_windows, n_past * count)
+        if signals is not None:
+            xp = np.concatenate([xp, np.asarray(signals[p]).reshape(n_windows, -1)], axis=1)
+        yp = np.asarray(y[p, :, :, :count]).reshape(n_windows, n_future * count)
+        fits.append(solve_least_squares(xp, yp, regularization, weight, max_rank))
+    return fits
+
+
+def _packed(fits, dof_counts, arch: "LinearArchitecture") -> Params:
+    """The stacked, padded parameters (NumPy, ``arch.dtype``) of per-part fits of rank up
+    to ``arch.rank``."""
+    n_past, n_future, n_load = arch.n_past, arch.n_future, arch.n_load
+    params = {name: np.zeros((len(fits),) + shape) for name, shape in _param_shapes(arch).items()}
+    for p, (count, (w_in, w_out, b)) in enumerate(zip(dof_counts, fits)):
+        r = w_in.shape[1]
+        if n_load:
+            params["w_load"][p, :, :, :r] = w_in[n_past * count:].reshape(n_past + n_future, n_load, r)
+            w_in = w_in[:n_past * count]
+        params["w_in"][p, :, :count, :r] = w_in.reshape(n_past, count, r)
+        params["w_out"][p, :r, :, :count] = w_out.reshape(r, n_future, count)
+        params["b"][p, :, :count] = b.reshape(n_future, count)
+    return {name: value.astype(arch.dtype) for name, value in params.items()}
+
+
+def refit(params: Params, arch: "LinearArchitecture", x, y, signals, weight, dof_mask,
+          regularization: float = DEFAULT_REGULARIZATION) -> Params:
+    """The replicas fitted again by least squares on weighted windows, their rank (the
+    shape of their factors) kept: a fit of higher rank is truncated to ``arch.rank``
+    input directions. What online learning (:mod:`jaxsync.surrogate.online`) does to a
+    linear surrogate: one exact solve in place of gradient steps.
+
+    Args:
+        params: the stacked replicas (their shapes are kept; the values are not used).
+        arch: their architecture.
+        x, y, signals: (n_parts, n_windows, ...) normalized windows as in training
+            (``signals`` None without load input).
+        weight: (n_windows,) window weights >= 0.
+        dof_mask: (n_parts, n_dof) 1 on real dofs.
+    """
+    del params
+    counts = [int(c) for c in np.asarray(dof_mask).sum(axis=1)]
+    fits = _fit_parts(np.asarray(x), np.asarray(y), None if signals is None else np.asarray(signals), counts,
+                      regularization, np.asarray(weight, np.float64), max_rank=arch.rank)
+    return _packed(fits, counts, arch)
 
 
 def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask, u=None) -> np.ndarray:
@@ -344,25 +409,10 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
         raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
     signals = data.signal_train
     n_load = 0 if signals is None else signals.shape[-1]
-    fits = []
-    for p, count in enumerate(data.dof_counts):
-        x = np.asarray(data.x_train[p, :, :, :count]).reshape(n_windows, n_past * count)
-        if n_load:
-            x = np.concatenate([x, np.asarray(signals[p]).reshape(n_windows, -1)], axis=1)
-        y = np.asarray(data.y_train[p, :, :, :count]).reshape(n_windows, n_future * count)
-        fits.append(solve_least_squares(x, y, config.regularization))
+    fits = _fit_parts(data.x_train, data.y_train, signals, data.dof_counts, config.regularization)
     rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
     arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype, n_load=n_load)
-    params = {name: np.zeros((n_parts,) + shape) for name, shape in _param_shapes(arch).items()}
-    for p, (count, (w_in, w_out, b)) in enumerate(zip(data.dof_counts, fits)):
-        r = w_in.shape[1]
-        if n_load:
-            params["w_load"][p, :, :, :r] = w_in[n_past * count:].reshape(n_past + n_future, n_load, r)
-            w_in = w_in[:n_past * count]
-        params["w_in"][p, :, :count, :r] = w_in.reshape(n_past, count, r)
-        params["w_out"][p, :r, :, :count] = w_out.reshape(r, n_future, count)
-        params["b"][p, :, :count] = b.reshape(n_future, count)
-    params = {name: value.astype(dtype) for name, value in params.items()}
+    params = _packed(fits, data.dof_counts, arch)
     seconds = time.perf_counter() - started
     mask = data.dof_mask
     zero = {name: np.zeros_like(value) for name, value in params.items()}

@@ -154,16 +154,49 @@ def add_resync_tolerance_option(parser, help: str | None = None) -> None:
              "step) or 'es_hat' (the parts' disagreement only, no exchange while predicting)")
 
 
+def add_online_learning_option(parser) -> None:
+    """``--learn`` and ``--learn-budget``: learning while synchronized
+    (:func:`online_learning_of` reads them)."""
+    parser.add_argument(
+        "--learn", action="store_true",
+        help="with --resync-tolerance: after every rejected cycle, train the surrogates on the steps recomputed "
+             "synchronized (and on windows replayed from the first synchronized stretch) before predicting "
+             "again: least squares for the linear model, Adam steps for the LSTM (jaxsync.surrogate.online)")
+    parser.add_argument(
+        "--learn-budget", type=float, default=None, metavar="SECONDS",
+        help="the most wall time all updates of the run may take together (default: 120)")
+
+
+def online_learning_of(args):
+    """The :class:`jaxsync.surrogate.OnlineLearning` of ``--learn`` and ``--learn-budget``,
+    or None (checked: they go with ``--resync-tolerance``)."""
+    from ...errors import ConfigError
+
+    learn, budget = getattr(args, "learn", False), getattr(args, "learn_budget", None)
+    if not learn:
+        if budget is not None:
+            raise ConfigError("--learn-budget sets the time budget of --learn; give --learn too")
+        return None
+    if args.resync_tolerance is None or str(args.resync_tolerance).lower() == "none":
+        raise ConfigError("--learn learns from the steps that error control recomputes after a rejected cycle: "
+                          "give --resync-tolerance too (e.g. --resync-tolerance 1%)")
+    from ...surrogate.online import OnlineLearning
+
+    return OnlineLearning() if budget is None else OnlineLearning(budget_seconds=budget)
+
+
 def resync_tolerance_of(args, value=None):
-    """The :class:`jaxsync.ResyncTolerance` of ``--resync-tolerance`` (or ``value``) and
-    ``--error-indicator``; None without a tolerance."""
+    """The :class:`jaxsync.ResyncTolerance` of ``--resync-tolerance`` (or ``value``),
+    ``--error-indicator`` and (where the command has them) ``--learn``,
+    ``--learn-budget``; None without a tolerance."""
     from ...solve.strategies import ResyncTolerance
 
     value = args.resync_tolerance if value is None else value
+    learning = online_learning_of(args)
     if value is None or str(value).lower() == "none":
         return None
     tolerance = ResyncTolerance.parse(value)
-    return dataclasses.replace(tolerance, indicator=getattr(args, "error_indicator", "estimate"))
+    return dataclasses.replace(tolerance, indicator=getattr(args, "error_indicator", "estimate"), learning=learning)
 
 
 def add_progress_option(parser, what: str = "the progress bar") -> None:

@@ -26,6 +26,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--load-parameter", "--cond", dest="load_parameter", type=float, default=None,
                    help="load parameter of conditional surrogates (--cond: its former name)")
     common.add_resync_tolerance_option(p)
+    common.add_online_learning_option(p)
     p.add_argument("--raw-refill", action="store_true",
                    help="write the paper's raw refill into the solver (n_s interleaved network "
                         "applications, which jitter from step to step) instead of the default smooth "
@@ -53,6 +54,7 @@ def run(args) -> int:
 
     common.check_outputs((args.output, "output trajectory", "-o"))
     common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))
+    common.online_learning_of(args)  # --learn without a tolerance: refused before the run
     reference, part, problem, saved = common.load_trained_run(args)
     n_cri = args.n_cri or saved.n_s * saved.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
