@@ -48,7 +48,7 @@ def demo(tmp_path_factory):
     folder = tmp_path_factory.mktemp("pipeline")
     out = folder / "demo"
     run = run_cli(["demo", "--steps", N_STEPS, "--epochs", "2", "--hidden", "8", "--n-s", N_S,
-                   "--n-past", "5", "--n-future", "5", "--out", out, "--no-progress"])
+                   "--n-past", "5", "--n-future", "5", "--out", out, "--no-progress", "--resync-tolerance", "none"])
     assert run.code == 0, run.err
     return folder, out, run
 
@@ -78,7 +78,7 @@ def predict_args(demo, output, *extra):
 def predicted(demo):
     """``jaxsync predict`` on the demo's files: the same online run from the command line."""
     path = demo[0] / "again.h5"
-    return path, run_cli(predict_args(demo, path))
+    return path, run_cli(predict_args(demo, path, "--resync-tolerance", "none"))
 
 
 @pytest.fixture(scope="module")
@@ -236,6 +236,21 @@ def test_predict_prints_the_counts(predicted):
     assert "1500 steps: 25 synchronized, 1475 predicted" in run.out
 
 
+def test_predict_holds_the_run_to_1_percent_by_default(demo, reference, tmp_path):
+    """Without --resync-tolerance the run is held to 1 % of the largest shared-node
+    displacement of the trajectory (the 2-epoch networks fail it: the run falls back to the
+    synchronized solver, and says so)."""
+    path = tmp_path / "default.h5"
+    run = run_cli(predict_args(demo, path))
+    assert run.code == 0, run.err
+    amplitude = max(np.abs(p.shared_displacement).max() for p in reference.parts)
+    st = jaxsync.Trajectory.load(path).stats
+    assert st.resync_tolerance == f"1 % of {amplitude:.4g} cm"
+    assert np.allclose(st.tolerance_cm, 0.01 * amplitude) and st.n_resynchronizations >= 1
+    assert f"tolerance 1 % of {amplitude:.4g} cm:" in run.out
+    assert "retrain the surrogates or loosen the tolerance" in run.err
+
+
 def test_predict_repeats_the_demo_online_run(predicted, online):
     path, _ = predicted
     again = jaxsync.Trajectory.load(path)
@@ -250,7 +265,7 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
     from jaxsync.surrogate.refill import smooth_refill
 
     path = demo[0] / "raw.h5"
-    run = run_cli(predict_args(demo, path, "--raw-refill"))
+    run = run_cli(predict_args(demo, path, "--raw-refill", "--resync-tolerance", "none"))
     assert run.code == 0, run.err
     raw = jaxsync.Trajectory.load(path)
     # the demo's surrogates read the load signals (its default): bound to its problem, the cantilever
@@ -295,7 +310,7 @@ def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_pat
 
     def predict_blind(output, *extra):
         return ["predict", demo[1] / "synchronized.h5", tmp_path / "blind" / "surrogate.h5", "-o", output,
-                "--no-progress", *extra]
+                "--no-progress", "--resync-tolerance", "none", *extra]
 
     kept = run_cli(predict_blind(tmp_path / "kept.h5", "--config", config))
     assert kept.code == 0, kept.err
@@ -377,7 +392,8 @@ def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     assert f"{len(st.surrogate_updated_at)} surrogate updates" in run.out
     np.testing.assert_allclose(result.displacement, reference.displacement, rtol=0,
                                atol=1e-12 * np.abs(reference.displacement).max())
-    for extra, message in ((["--learn"], "give --resync-tolerance too"), (["--learn-budget", "5"], "give --learn too")):
+    for extra, message in ((["--learn", "--resync-tolerance", "none"], "give --resync-tolerance too"),
+                           (["--learn-budget", "5"], "give --learn too")):
         bad = run_cli(predict_args(demo, tmp_path / "bad.h5", *extra))
         assert bad.code != 0 and message in bad.err, bad.err
         assert not (tmp_path / "bad.h5").exists()
@@ -414,7 +430,8 @@ def test_predict_refuses_a_checkpoint_of_another_partition(tmp_path, capsys):
 def test_predict_in_bfloat16_is_checked_first_and_follows_the_float32_run(demo, predicted, tmp_path):
     path, first = predicted
     assert first.code == 0, first.err
-    run = run_cli(predict_args(demo, tmp_path / "bf16.h5", "--inference-dtype", "bfloat16"))
+    run = run_cli(predict_args(demo, tmp_path / "bf16.h5", "--inference-dtype", "bfloat16",
+                                   "--resync-tolerance", "none"))
     assert run.code == 0, run.err
     line = next(line for line in run.out.splitlines() if line.startswith("bfloat16 inference"))
     assert "bound 1 %" in line
@@ -466,7 +483,7 @@ def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
     again = run_cli(args)
     assert again.code == 2 and "--force" in again.err
     assert tuned.read_bytes() == written
-    predict = predict_args(demo, tmp_path / "tuned_online.h5")
+    predict = predict_args(demo, tmp_path / "tuned_online.h5", "--resync-tolerance", "none")
     predict[2] = tuned
     online = run_cli(predict)
     assert online.code == 0, online.err

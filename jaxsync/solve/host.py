@@ -343,9 +343,10 @@ class _OnlineRun:
         span = max(1, self.learner.n_s // s.starts_per_stride) * s.windows
         return self.history + min(target - anchor_step, span + self.cycle_steps)
 
-    def _learn(self, segment: Segment, anchor: "_Anchor", target: int) -> None:
+    def _learn(self, segment: Segment, anchor: "_Anchor", target: int) -> bool:
         """Update the surrogates from a re-synchronized stretch (anchor.step .. target),
-        with the input history before it where the stretch was kept whole."""
+        with the input history before it where the stretch was kept whole; True when
+        they changed."""
         stretch = target - anchor.step
         rows = []
         for p, values in enumerate(segment.shared):
@@ -355,8 +356,11 @@ class _OnlineRun:
             rows.append(values)
         self.learner.add_stretch(rows, target - len(rows[0]) + 1)
         updated = self.learner.update(target)
-        if updated is not self.phase.predictor:
+        changed = bool(self.learner.reports) and self.learner.reports[-1].step == target and bool(
+            np.any(self.learner.reports[-1].loss_after < self.learner.reports[-1].loss_before))
+        if changed:
             self.phase.predictor = self.runner.put(updated)
+        return changed
 
     def _predicted_runner(self, amplitude: float, anchor: "_Anchor"):
         if self.online.tolerance is None:
@@ -426,7 +430,8 @@ class _OnlineRun:
                     estimates.append(np.full(len(segment.displacement), np.nan))
                     if self.learner is not None and not self.learner.exhausted:
                         bar.label("learning")
-                        self._learn(segment, anchor, target)
+                        if self._learn(segment, anchor, target):
+                            failures = 0  # new surrogates: the next try is one cycle again
                     anchor = _Anchor(segment.state, _histories(self.partition.n_parts, segment.shared, self.history,
                                                                self.n_dof, anchor.history), target)
                     step_now = target

@@ -25,7 +25,14 @@ def add_parser(subparsers) -> None:
     common.add_sync_option(p)
     p.add_argument("--load-parameter", "--cond", dest="load_parameter", type=float, default=None,
                    help="load parameter of conditional surrogates (--cond: its former name)")
-    common.add_resync_tolerance_option(p)
+    common.add_resync_tolerance_option(
+        p, help="error control: hold the run to this tolerance -- in cm (1e-4) or as a percentage of the largest "
+                "shared-node displacement seen in synchronized steps (2%%): each refill cycle's es_hat (the parts' "
+                "disagreement, paper eq. 26) is checked before it runs and the estimated error since the last "
+                "synchronized state (the force-balance defect probed at the saved steps, see --error-indicator) "
+                "after; above it the run goes back to the last synchronized state and recomputes with the "
+                "synchronized solver (default: 1%% of the largest shared-node displacement of TRAJECTORY; none "
+                "turns it off)")
     common.add_online_learning_option(p)
     p.add_argument("--raw-refill", action="store_true",
                    help="write the paper's raw refill into the solver (n_s interleaved network "
@@ -54,11 +61,16 @@ def run(args) -> int:
 
     common.check_outputs((args.output, "output trajectory", "-o"))
     common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))
+    default_tolerance = args.resync_tolerance is None
+    if default_tolerance:
+        args.resync_tolerance = "1%"  # of the trajectory's shared amplitude (below)
     common.online_learning_of(args)  # --learn without a tolerance: refused before the run
     reference, part, problem, saved = common.load_trained_run(args)
     n_cri = args.n_cri or saved.n_s * saved.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     import dataclasses
+
+    import numpy as np
 
     from ...solve.strategies import HostExecutor
     from ...surrogate import Surrogate
@@ -69,10 +81,14 @@ def run(args) -> int:
     if args.inference_dtype == "bfloat16":
         # bound to the problem's load signals first (surrogates with load input read them)
         surrogates = _reduced_precision(surrogates.for_problem(problem, reference.dt), reference, args.trajectory)
+    tolerance = common.resync_tolerance_of(args)
+    if default_tolerance:  # a share of the amplitude of the run the surrogates were trained on
+        amplitude = max(float(np.abs(p.shared_displacement).max(initial=0.0)) for p in reference.parts)
+        tolerance = dataclasses.replace(tolerance, amplitude=amplitude) if amplitude > 0 else tolerance
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=common.mode_of(args),
                                     save=args.save_every or reference.save_every,
-                                    resync_tolerance=common.resync_tolerance_of(args), load_jumps=args.load_jumps,
+                                    resync_tolerance=tolerance, load_jumps=args.load_jumps,
                                     executor=HostExecutor(progress=not args.no_progress), **common.sync_of(args))
     with common.writing(args.output):
         online.save(args.output, compression=common.compression_of(args))
