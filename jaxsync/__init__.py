@@ -45,7 +45,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".fem.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
     ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
     ".fem.material": ("LinearElastic",),
-    ".fem.mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
+    ".mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
     ".fem.problem": ("Dirichlet", "LockingWarning", "Problem", "cantilever"),
     ".fem.rigid_body": ("RigidBodyWarning",),
     ".fem.support": ("ElasticSupport",),
@@ -83,12 +83,12 @@ if TYPE_CHECKING:
     from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
     from .fem.material import LinearElastic
-    from .fem.mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
     from .fem.rigid_body import RigidBodyWarning
     from .fem.support import ElasticSupport
     from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
     from .fem.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
+    from .mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .parallel import devices
     from .parallel.partitioning import Partition, partition
     from .solve.ensemble import ensemble

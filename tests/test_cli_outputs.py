@@ -409,8 +409,8 @@ def test_every_warning_is_one_line(capsys):
 
     from jaxsync.app.commands.common import is_package_warning, package_warnings
     from jaxsync.errors import SynchronizedRunWarning
-    from jaxsync.fem.mesh import MeshWarning
     from jaxsync.fem.timestep import MassScalingWarning
+    from jaxsync.mesh import MeshWarning
     from jaxsync.surrogate.evaluate import RolloutWarning
     from jaxsync.surrogate.inference import ReducedPrecisionWarning
 

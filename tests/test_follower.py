@@ -15,10 +15,10 @@ import scipy.optimize
 import jaxsync
 from jaxsync.errors import ProblemError
 from jaxsync.fem.follower import facet_nodes, follower_pressure, load_stiffness
-from jaxsync.fem.mesh import Mesh, validated_mesh
 from jaxsync.fem.space import VTK_TETRA10_ORDER, function_space
 from jaxsync.fem.stepper import SolverState, advance, build_system
 from jaxsync.fem.total_lagrangian import TotalLagrangian
+from jaxsync.mesh import Mesh, validated_mesh
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
 MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -54,7 +54,7 @@ def _deformed_pressure_load(problem, u, intorder):
     from skfem.helpers import dot
 
     from jaxsync.fem.assembly import boundary_facet_indices
-    from jaxsync.fem.mesh import to_skfem
+    from jaxsync.mesh import to_skfem
 
     mesh, space = problem.mesh, problem.space
     x = problem.points + u

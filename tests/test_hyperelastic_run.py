@@ -470,7 +470,7 @@ def test_mass_scaling_raises_every_element_step_of_the_tangent_to_the_target():
     rest, assembled here in numpy) over its scaled lumped mass, is the target where it was
     below it (and unchanged elsewhere); the scaled problem's default step is the target
     (alpha_s = 0.9 times the element rule), its added mass that of the densities."""
-    from jaxsync.fem.mesh import validated_mesh
+    from jaxsync.mesh import validated_mesh
 
     beam = jaxsync.box_beam(4.0, 1.0, 1.0, (6, 2, 2))
     graded = beam.points * [1.0, 1.0, 1.0]

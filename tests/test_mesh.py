@@ -7,7 +7,7 @@ import pytest
 
 import jaxsync
 from jaxsync import MeshError, MeshWarning
-from jaxsync.fem.mesh import tet_volumes, validated_mesh
+from jaxsync.mesh import tet_volumes, validated_mesh
 
 REFERENCE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "reference", "beam_coarse.vtk")
 
@@ -327,7 +327,7 @@ def test_a_mesh_cut_by_coincident_nodes_is_flagged_and_can_be_merged(tmp_path):
     messages = [str(w.message) for w in caught]
     assert any(f"{n_copies} pairs of coincident nodes" in m for m in messages)
     assert any("2 disconnected pieces" in m for m in messages)
-    assert int(jaxsync.fem.mesh.connected_components(cut).max()) == 1
+    assert int(jaxsync.mesh.connected_components(cut).max()) == 1
     # read from a file as a user would
     path = tmp_path / "split.vtu"
     meshio.write(str(path), meshio.Mesh(points, [("tetra", tets)]))
@@ -335,11 +335,11 @@ def test_a_mesh_cut_by_coincident_nodes_is_flagged_and_can_be_merged(tmp_path):
         read = jaxsync.read_mesh(path)
     assert any("the mesh is cut there" in str(w.message) for w in caught)
     # merged: the original beam (same nodes, same elements), one piece, no warning
-    merged = jaxsync.fem.mesh.merge_coincident_nodes(read)
+    merged = jaxsync.mesh.merge_coincident_nodes(read)
     assert merged.n_nodes == beam.n_nodes
     np.testing.assert_array_equal(merged.points, beam.points)
     np.testing.assert_array_equal(merged.tets, beam.tets)
-    assert np.all(jaxsync.fem.mesh.connected_components(merged) == 0)
+    assert np.all(jaxsync.mesh.connected_components(merged) == 0)
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         validated_mesh(merged.points, merged.tets)
@@ -350,7 +350,7 @@ def test_merging_keeps_facet_sets():
     # the end face x = 25 lies beyond the cut: its triangles use copied nodes only if on the cut
     with pytest.warns(MeshWarning):
         cut = validated_mesh(points, tets, facet_sets={"x1": beam.facet_sets["x1"]})
-    merged = jaxsync.fem.mesh.merge_coincident_nodes(cut)
+    merged = jaxsync.mesh.merge_coincident_nodes(cut)
     np.testing.assert_array_equal(merged.facet_sets["x1"], beam.facet_sets["x1"])
 
 
@@ -365,8 +365,8 @@ def test_separate_pieces_are_flagged():
 
 def test_generated_meshes_raise_no_topology_warning():
     for mesh in (jaxsync.box_beam(), jaxsync.box_beam(25.0, 1.0, 1.0, (50, 4, 4))):
-        assert len(jaxsync.fem.mesh.coincident_nodes(mesh)) == 0
-        assert np.all(jaxsync.fem.mesh.connected_components(mesh) == 0)
+        assert len(jaxsync.mesh.coincident_nodes(mesh)) == 0
+        assert np.all(jaxsync.mesh.connected_components(mesh) == 0)
 
 
 def test_merging_drops_the_faces_of_the_cut_and_refuses_to_collapse_elements():
@@ -387,7 +387,7 @@ def test_merging_drops_the_faces_of_the_cut_and_refuses_to_collapse_elements():
     with pytest.raises(MeshError, match="collapse element"):
         jaxsync.merge_coincident_nodes(merged, tol=2.0)
     with pytest.raises(MeshError, match="tolerance"):
-        jaxsync.fem.mesh.coincident_nodes(merged, tol=-1.0)
+        jaxsync.mesh.coincident_nodes(merged, tol=-1.0)
 
 
 # ----------------------------------------------------------------------------- arrays, as files are checked

@@ -13,7 +13,7 @@ Cross-references in docstrings (``:func:`simulate```, ``:class:`~jaxsync.solve.s
 that Sphinx cannot find under the name written -- an implementation module's path, or a
 re-exported name -- are resolved by identity: the object is imported and linked to the
 place where it is documented (``missing-reference`` handler). Module references to
-implementation modules (``:mod:`~jaxsync.fem.mesh```) link to the nearest documented
+implementation modules (``:mod:`~jaxsync.fem.total_lagrangian```) link to the nearest documented
 package. What still does not resolve is left as plain code text, as Sphinx does by default.
 """
 
@@ -37,6 +37,7 @@ logger = logging.getLogger(__name__)
 # Pages of the reference, in order: a name exported by several is documented on the first.
 API_MODULES = (
     "jaxsync",
+    "jaxsync.mesh",
     "jaxsync.fem",
     "jaxsync.parallel",
     "jaxsync.solve",

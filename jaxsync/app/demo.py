@@ -35,10 +35,12 @@ import dataclasses
 import math
 import os
 import shutil
-import tempfile
 import time
 
 import numpy as np
+
+from .demo_folder import DEMO_FILES, check_demo_output, install_folder, retarget_paths, staging_folder
+from .mass_scaling import mass_scaling_check, mass_scaling_figure
 
 __all__ = ["run_demo", "format_summary", "demo_defaults", "DemoDefaults", "DemoSettings", "SUMMARY_KEYS", "VESSEL_KEYS",
            "CASES", "VESSEL_SIZES", "vessel_problem", "DEMO_FILES", "check_demo_output", "check_demo_settings",
@@ -62,10 +64,6 @@ VESSEL_KEYS = ("es_max", "es_hat_max", "es_hat_tracking", "interior_max_relative
                "projection", "n_elements", "n_dofs", "n_shared_nodes")
 """Keys the vessel case adds (es, es_hat and their correlation, the mass-scaling check,
 the cost-model projection to 11 real processors, the mesh's size)."""
-
-DEMO_FILES = ("summary.json", "synchronized.h5", "online.h5", "surrogate", "report")
-"""What a demo writes into its folder: a folder holding any of them holds a demo (which
-``jaxsync demo`` replaces only with ``--force``)."""
 
 MASS_SCALING_BETA = 2.5
 """The vessel's step over its CFL step (paper: 5e-6 / 2.02e-6 = 2.48)."""
@@ -473,139 +471,6 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     return summary
 
 
-def check_demo_output(out: str, *, force: bool = False) -> None:
-    """Refuse, before anything runs, a demo folder ``out`` that holds the files of a
-    demo (:data:`DEMO_FILES`) unless ``force`` (:class:`jaxsync.ConfigError`), or that
-    cannot be written (:class:`jaxsync.io.OutputError`: the run is staged beside it, so
-    the folder above must be writable too)."""
-    from ..errors import ConfigError
-    from ..io import check_writable
-
-    out = os.path.abspath(os.fspath(out))
-    if os.path.isdir(out) and not force:
-        found = [name for name in DEMO_FILES if os.path.lexists(os.path.join(out, name))]
-        if found:
-            raise ConfigError(f"{out} holds the files of an earlier demo ({', '.join(found)}); pass --force to "
-                              "replace them, or choose another folder with -o/--out")
-    check_writable(out, what="demo folder", folder=True, option="-o/--out")
-    check_writable(os.path.dirname(out), what="folder of the demo folder", folder=True, option="-o/--out")
-    from ..io import claim_output, claiming
-
-    if claiming():  # the command line: a second demo writing the same folder stops at once
-        claim_output(out, replace=force, folder=True)
-
-
-_STAGING = ".partial-"
-_ASIDE = ".old-"
-
-
-def staging_folder(final: str) -> str:
-    """A new, empty folder beside ``final`` for the run's files
-    (``<name>.partial-<pid>@<host>.<random>``), after removing the staging and set-aside
-    folders of ``final`` left by runs on this host that are gone (killed hard).
-
-    Its permissions are those of the folder it replaces, or for a new one the usual
-    ones (``0o777`` less the umask, as :func:`os.makedirs` gives), with the owner's
-    always full (the run writes into it): not the ``0o700`` of :func:`tempfile.mkdtemp`,
-    which the folder would keep once renamed into place."""
-    import stat
-
-    staging = _new_folder_beside(final, _STAGING, clean=True)
-    if os.path.isdir(final):
-        mode = stat.S_IMODE(os.stat(final).st_mode)
-    else:
-        umask = os.umask(0)
-        os.umask(umask)
-        mode = 0o777 & ~umask
-    os.chmod(staging, mode | stat.S_IRWXU)
-    return staging
-
-
-def _new_folder_beside(final: str, marker: str, *, clean: bool = False) -> str:
-    import re
-
-    from ..io import host_tag, process_alive
-
-    parent, name = os.path.split(final)
-    os.makedirs(parent, exist_ok=True)
-    host = host_tag()
-    if clean:
-        left = re.compile(re.escape(name) + r"(?:" + re.escape(_STAGING) + "|" + re.escape(_ASIDE)
-                          + r")(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+$")
-        for entry in os.listdir(parent):
-            match = left.match(entry)
-            full = os.path.join(parent, entry)
-            if (match and match.group(2) == host and not process_alive(int(match.group(1)))
-                    and os.path.isdir(full) and not os.path.islink(full)):
-                shutil.rmtree(full, ignore_errors=True)
-    return tempfile.mkdtemp(prefix=f"{name}{marker}{os.getpid()}@{host}.", dir=parent)
-
-
-def retarget_paths(staging: str, final: str) -> None:
-    """Make the JSON files of ``staging`` name ``final`` where they name a path in
-    ``staging`` (``surrogate/train_summary.json`` names its trajectory and files)."""
-    import json
-
-    from ..io import atomic_json
-
-    def retarget(value):
-        if isinstance(value, str) and (value == staging or value.startswith(staging + os.sep)):
-            return final + value[len(staging):]
-        if isinstance(value, list):
-            return [retarget(v) for v in value]
-        if isinstance(value, dict):
-            return {k: retarget(v) for k, v in value.items()}
-        return value
-
-    for folder, _, names in os.walk(staging):
-        for name in names:
-            if name.endswith(".json"):
-                path = os.path.join(folder, name)
-                with open(path) as f:
-                    data = json.load(f)
-                new = retarget(data)
-                if new != data:
-                    atomic_json(path, new)
-
-
-def install_folder(staging: str, final: str) -> None:
-    """Put the complete folder ``staging`` in the place of ``final``.
-
-    ``final`` absent: one rename. Present: it is renamed aside
-    (``<name>.old-<pid>@<host>.<random>``), ``staging`` renamed in, the entries of the old folder
-    that are not a demo's (:data:`DEMO_FILES`; a user's own files) moved into the new one,
-    and the old folder deleted. ``final`` holds the old set or the new one at every moment
-    but the one between the two renames."""
-    if not os.path.lexists(final):
-        os.rename(staging, final)
-        return
-    aside = _new_folder_beside(final, _ASIDE)
-    os.rmdir(aside)  # a free name beside final
-    os.rename(final, aside)
-    try:
-        os.rename(staging, final)
-    except BaseException:
-        os.rename(aside, final)  # put the old folder back
-        raise
-    kept = []  # a user's own files, that could not be moved: the old folder stays
-    for entry in os.listdir(aside):
-        if entry in DEMO_FILES:
-            continue
-        try:
-            if os.path.lexists(os.path.join(final, entry)):
-                raise FileExistsError(entry)
-            os.rename(os.path.join(aside, entry), os.path.join(final, entry))
-        except OSError:
-            kept.append(entry)
-    if kept:
-        import warnings
-
-        warnings.warn(f"{final}: the earlier folder, with {', '.join(kept)}, is kept as {aside}", UserWarning,
-                      stacklevel=2)
-    else:
-        shutil.rmtree(aside, ignore_errors=True)
-
-
 def _shared_amplitude(reference) -> float:
     """The largest |displacement| at the shared nodes in the synchronized run [cm]."""
     return max(float(np.abs(part.shared_displacement).max(initial=0.0)) for part in reference.parts)
@@ -636,69 +501,6 @@ def cost_projection(timing, parts):
     top = timing.synchronized.max_average
     t_d_alone = max(timing.t_prediction) / timing.steps_per_prediction
     return costmodel.project(top.t_local, t_d_alone, costmodel.communication_pattern(parts))
-
-
-def mass_scaling_check(problem_cfl, problem_scaled, added_percent: float, seconds: float, *,
-                       progress: bool = True) -> dict:
-    """Paper figure 19's check: the same problem at its CFL step and mass-scaled to a
-    larger one, single-device runs over ``seconds`` of physical time, compared at the
-    node that moves most (the scaled run interpolated linearly to the CFL run's times).
-
-    Returns a JSON-ready dict: ``dt_cfl``, ``dt_scaled`` [s], ``added_mass_percent``,
-    ``node``, ``seconds``, ``max_abs_displacement`` (the node's largest |d| at the CFL
-    step [cm]), ``max_abs_difference`` (largest |d_scaled - d_cfl| of the node's
-    displacement vector [cm]), ``relative_difference`` (their ratio), and the curves
-    ``times``, ``cfl``, ``scaled`` (the node's displacement norm [cm]) for the figure.
-    """
-    from .. import HostExecutor, simulate
-
-    dt_cfl, dt_scaled = float(problem_cfl.dt), float(problem_scaled.dt)
-    n_scaled = max(1, int(round(seconds / dt_scaled)))
-    n_cfl = max(1, int(round(n_scaled * dt_scaled / dt_cfl)))
-    samples = 200
-    every_cfl, every_scaled = max(1, n_cfl // samples), max(1, n_scaled // samples)
-    n_cfl, n_scaled = n_cfl - n_cfl % every_cfl, n_scaled - n_scaled % every_scaled
-    cfl = simulate(problem_cfl, n_cfl, save=every_cfl, executor=HostExecutor(progress=progress))
-    scaled = simulate(problem_scaled, n_scaled, save=every_scaled, executor=HostExecutor(progress=progress))
-    d_cfl, d_scaled = np.asarray(cfl.displacement), np.asarray(scaled.displacement)
-    node = int(np.argmax(np.linalg.norm(d_cfl, axis=2).max(axis=0)))
-    t = np.asarray(cfl.times)
-    keep = t <= float(np.asarray(scaled.times)[-1]) + 1e-12
-    at = np.stack([np.interp(t[keep], scaled.times, d_scaled[:, node, k]) for k in range(3)], axis=1)
-    diff = np.linalg.norm(at - d_cfl[keep, node], axis=1)
-    amplitude = float(np.linalg.norm(d_cfl[:, node], axis=1).max())
-    return {"dt_cfl": dt_cfl, "dt_scaled": dt_scaled, "added_mass_percent": float(added_percent), "node": node,
-            "coordinates": [float(v) for v in problem_cfl.mesh.points[node]], "seconds": float(t[keep][-1]),
-            "n_steps_cfl": int(n_cfl), "n_steps_scaled": int(n_scaled),
-            "max_abs_displacement": amplitude, "max_abs_difference": float(diff.max()),
-            "relative_difference": float(diff.max() / amplitude) if amplitude > 0 else None,
-            "us_per_step_cfl": cfl.stats.us_per_step, "us_per_step_scaled": scaled.stats.us_per_step,
-            "times": t[keep].tolist(), "cfl": np.linalg.norm(d_cfl[keep, node], axis=1).tolist(),
-            "scaled": np.linalg.norm(at, axis=1).tolist()}
-
-
-def mass_scaling_figure(check: dict):
-    """Paper figure 19: the node's displacement at the CFL step and at the scaled step,
-    and their difference, from :func:`mass_scaling_check`."""
-    from .figures import new_figure
-
-    fig = new_figure(8.0, 5.5)
-    top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=[2.5, 1.0])
-    t = np.asarray(check["times"])
-    top.plot(t, check["cfl"], color="0.6", lw=3.0, label=f"CFL step {check['dt_cfl']:.3e} s")
-    top.plot(t, check["scaled"], color="C3", lw=1.2,
-             label=f"mass-scaled step {check['dt_scaled']:.3e} s (+{check['added_mass_percent']:.2f} % mass)")
-    bottom.plot(t, np.asarray(check["scaled"]) - np.asarray(check["cfl"]), color="C0", lw=1.0)
-    x, y, z = check["coordinates"]
-    top.set_title(f"Mass scaling: node {check['node']} at ({x:.3g}, {y:.3g}, {z:.3g}) cm, largest difference "
-                  f"{100 * (check['relative_difference'] or 0.0):.2f} % of its amplitude", fontsize=9)
-    top.set_ylabel("|d| [cm]")
-    bottom.set_ylabel("difference [cm]")
-    bottom.set_xlabel("time t [s]")
-    for ax in (top, bottom):
-        ax.grid(True, alpha=0.3)
-    top.legend(fontsize=8)
-    return fig
 
 
 def format_summary(summary: dict) -> str:

@@ -1,7 +1,7 @@
 """The finite-element layer: meshes, materials, loads, problems, assembly, the explicit
 time step and the sparse mat-vec (no devices, no parts).
 
-Modules: :mod:`~jaxsync.fem.mesh` (meshes, reading gmsh/VTK files), :mod:`~jaxsync.fem.geometry`
+Meshes are :mod:`jaxsync.mesh`'s (re-exported here). Modules: :mod:`~jaxsync.fem.geometry`
 (generated vessel meshes), :mod:`~jaxsync.fem.coronary_tree` (a generated left coronary
 tree), :mod:`~jaxsync.fem.material`, :mod:`~jaxsync.fem.loads` (body
 forces, pressure, time functions), :mod:`~jaxsync.fem.problem` (a problem and the paper's
@@ -36,7 +36,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
     ".loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Product", "Ramp", "StepOff", "TimeFunction"),
     ".material": ("LinearElastic",),
-    ".mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
+    "..mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
     ".problem": ("Dirichlet", "Problem", "cantilever"),
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
     ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
@@ -44,13 +44,13 @@ __getattr__, __dir__ = export_lazily(__name__, {
 })
 
 if TYPE_CHECKING:
+    from ..mesh import Mesh, MeshWarning, box_beam, read_mesh
     from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
     from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
     from .geometry import vessel_mesh
     from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
     from .material import LinearElastic
-    from .mesh import Mesh, MeshWarning, box_beam, read_mesh
     from .problem import Dirichlet, Problem, cantilever
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
     from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step

@@ -29,7 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import ProblemError
-from .mesh import Mesh, to_skfem
+from ..mesh import Mesh, to_skfem
 
 __all__ = ["UnitOperators", "assemble_unit_operators", "consistent_mass", "lumped_mass",
            "body_force_vectors", "pressure_vector", "traction_vectors", "boundary_facet_indices", "element_blocks"]

@@ -24,9 +24,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import MeshError, ProblemError
+from ..mesh import Mesh
 from .loads import Periodic, Pressure, Ramp, TimeFunction
 from .material import LinearElastic
-from .mesh import Mesh
 from .problem import Dirichlet, Problem
 
 __all__ = ["MMHG", "CORONARY_PERIOD", "DEFAULT_WAVEFORM", "coronary_material", "coronary_waveform",

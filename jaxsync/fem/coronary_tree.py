@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import MeshError
+from ..mesh import Mesh
 from .geometry import (
     MAX_ELEMENTS,
     add_physical_groups,
@@ -31,7 +32,6 @@ from .geometry import (
     positive_length,
     tag_surfaces,
 )
-from .mesh import Mesh
 
 __all__ = ["VesselSegment", "CoronaryTree", "coronary_tree", "coronary_mesh",
            "estimated_tree_elements"]

@@ -123,8 +123,8 @@ def _facet_rule(element: str):
 def facet_nodes(space, surface: str) -> tuple[np.ndarray, np.ndarray]:
     """(nodes (n_f, k_f) of the facets of ``surface``, outward oriented (as
     :class:`FollowerPressure` holds them), element (n_f,) of each facet)."""
+    from ..mesh import to_skfem
     from .assembly import boundary_facet_indices
-    from .mesh import to_skfem
 
     skmesh = to_skfem(space.mesh)
     index = boundary_facet_indices(space.mesh, skmesh, surface, what="a follower pressure")

@@ -23,7 +23,7 @@ import tempfile
 import numpy as np
 
 from ..errors import MeshError
-from .mesh import Mesh, read_mesh
+from ..mesh import Mesh, read_mesh
 
 __all__ = ["vessel_mesh", "estimated_elements", "vessel_centerline"]
 

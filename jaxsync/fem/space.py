@@ -22,8 +22,8 @@ from typing import Callable
 import numpy as np
 
 from ..errors import MeshError, ProblemError
+from ..mesh import Mesh
 from ..options import Element, choices
-from .mesh import Mesh
 
 __all__ = ["FunctionSpace", "ELEMENTS", "function_space", "VTK_TETRA10_ORDER", "vtk_cells"]
 
@@ -74,7 +74,7 @@ class FunctionSpace:
     def skfem_mesh(self):
         """The scikit-fem mesh of the space: ``MeshTet`` (straight elements) or the
         isoparametric ``MeshTet2`` with the edge nodes as given."""
-        from .mesh import to_skfem
+        from ..mesh import to_skfem
 
         skmesh = to_skfem(self.mesh)
         if not self.curved:
@@ -149,7 +149,7 @@ def _skfem_cells(skmesh, element) -> np.ndarray:
 def _cached(mesh_id: int, mesh: Mesh, element: str) -> FunctionSpace:
     from skfem import ElementTetP2
 
-    from .mesh import to_skfem
+    from ..mesh import to_skfem
 
     if element == "P1":
         return FunctionSpace(mesh, "P1", mesh.points, mesh.tets.astype(np.int64), np.zeros((0, 2), np.int64))

@@ -104,8 +104,8 @@ def _unit_surface_blocks(space, support: ElasticSupport) -> tuple[np.ndarray, np
     from skfem import BilinearForm
     from skfem.helpers import dot
 
+    from ..mesh import to_skfem
     from .assembly import boundary_facet_indices
-    from .mesh import to_skfem
 
     facets = boundary_facet_indices(space.mesh, to_skfem(space.mesh), support.surface, what="an elastic support")
     # integrand of degree 2 (P1) or 4 (P2): exact
