@@ -90,3 +90,37 @@ def test_no_private_name_is_imported_across_modules():
                   and f"{node.value.id}.{node.attr}" not in THIRD_PARTY_UTILITIES):
                 found.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.value.id}.{node.attr}")
     assert not found, "make the name public (documented) or keep its use in its module: " + ", ".join(found)
+
+
+def _private_module(name: str | None) -> bool:
+    return any(part.startswith("_") and not part.startswith("__") for part in (name or "").split("."))
+
+
+def _notebook_sources():
+    import json
+
+    for path in sorted((ROOT / "notebooks").glob("*.ipynb")):
+        cells = json.loads(path.read_text())["cells"]
+        code = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
+        # IPython magics and shell lines are not Python
+        code = "\n".join("" if line.lstrip().startswith(("%", "!")) else line for line in code.splitlines())
+        yield path, ast.parse(code, filename=str(path))
+
+
+def test_tests_benchmarks_and_notebooks_import_only_public_modules():
+    """Implementation modules (a ``_`` in the dotted path: ``jaxsync.mesh._read``) sit
+    behind their package's re-exports, so that files can move without breaking a user's
+    code: what the tests, benchmarks and notebooks import is what a user may import."""
+    trees = [(path, _tree(path)) for path in _modules("tests", "benchmarks")] + list(_notebook_sources())
+    found = []
+    for path, tree in trees:
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level == 0:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            found += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
+                      if n and n.startswith("jaxsync") and _private_module(n)]
+    assert not found, "import the public package that re-exports it: " + ", ".join(found)
