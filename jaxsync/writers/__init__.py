@@ -18,7 +18,8 @@ earlier files as they were, ``overwrite=False`` never replaces a file, and a fai
 :class:`~jaxsync.errors.OutputError` naming the output. :class:`OutputWriter` is a base
 class that supplies ``outputs`` for a writer of one file.
 
-The registry (:func:`register_writer`, :func:`writer_for`, :func:`registered_writers`)
+The registry (:func:`register_writer`, :func:`writer_for`, :func:`registered_writers`,
+:func:`unregister_writer`)
 is the one place that maps a format's name and suffixes to its writer; it holds the
 built-in ``"hdf5"`` (:class:`Hdf5Writer`, the trajectory file that
 :meth:`jaxsync.Trajectory.load` reads), ``"xdmf"`` (:class:`XdmfWriter`) and ``"vtu"``
@@ -38,8 +39,8 @@ from ._hdf5 import Hdf5Writer
 from ._vtu import VtuWriter, check_vtu_location, vtu_series_paths
 from ._xdmf import XdmfWriter, xdmf_paths
 
-__all__ = ["Writer", "OutputWriter", "register_writer", "writer_for", "registered_writers", "write_output",
-           "output_files", "Hdf5Writer", "XdmfWriter", "VtuWriter", "OutputFile", "StagedOutputs",
+__all__ = ["Writer", "OutputWriter", "register_writer", "unregister_writer", "writer_for", "registered_writers",
+           "write_output", "Hdf5Writer", "XdmfWriter", "VtuWriter", "OutputFile", "StagedOutputs",
            "xdmf_paths", "vtu_series_paths", "check_vtu_location"]
 
 
@@ -108,6 +109,13 @@ def register_writer(name: str, writer, *, replace: bool = False) -> None:
     _WRITERS[name] = writer
 
 
+def unregister_writer(name: str) -> None:
+    """Remove the writer registered under ``name`` (OutputError: none is)."""
+    if name not in _WRITERS:
+        raise OutputError(f"no output writer is registered under {name!r}; registered: {', '.join(_WRITERS)}")
+    del _WRITERS[name]
+
+
 def registered_writers() -> dict[str, Any]:
     """{name: writer} of every registered writer (a copy)."""
     return dict(_WRITERS)
@@ -132,12 +140,6 @@ def writer_for(name_or_path) -> Any:
     known = "; ".join(f"{n} ({', '.join(w.suffixes)}): {w.description}" for n, w in _WRITERS.items())
     raise OutputError(f"no output writer for {text!r}: give a registered format name or a file name with its "
                       f"suffix; registered: {known}")
-
-
-def output_files(path: str | os.PathLike, writer=None) -> tuple[OutputFile, ...]:
-    """The files (and folders) that :func:`write_output` writes for ``path`` (``writer``
-    as for :func:`writer_for`; None: found by the suffix of ``path``)."""
-    return tuple(writer_for(path if writer is None else writer).outputs(os.fspath(path)))
 
 
 def write_output(trajectory, path: str | os.PathLike, writer=None, *, overwrite: bool = True) -> str:
