@@ -3,7 +3,10 @@ content checksums.
 
 Every file jaxsync writes goes through :func:`atomic_path`: it is written under a
 temporary name in the target folder and renamed over the target only when complete, so
-a failed or interrupted write never replaces a good file.
+a failed or interrupted write never replaces a good file. Outputs of several files that
+belong together (an XDMF file and its data, a VTU series; any writer of
+:mod:`jaxsync.writers`) go through :func:`staged_outputs`: written in a staging folder
+beside them, and moved into place only when all are complete.
 
 Writing can fail after a long computation (a full disk, a folder that became read-only):
 :func:`atomic_path` then raises :class:`OutputError` (a :class:`jaxsync.JaxsyncError`
@@ -421,10 +424,13 @@ def staged_outputs(outputs: Sequence[OutputFile], *, main: str | os.PathLike | N
     Yields a :class:`StagedOutputs`: write each declared output at
     ``staged.path(output.path)``. When the block ends normally they are moved into place
     in the order of ``outputs`` (each file atomically, as :func:`atomic_path` does, with
-    the same ``replace`` rules; put the file that refers to the others last); when it
-    raises, nothing is moved and the staging folders are removed, so a failed write leaves
-    earlier outputs as they were. An :class:`OSError` becomes an :class:`OutputError`
-    naming ``main`` (default: the last output). A writer killed hard leaves a hidden
+    the same ``replace`` rules, and a folder replaces an earlier one only where a file
+    would be replaced, else :class:`OutputError`; put the file that refers to the others
+    last); when it raises, nothing is moved and the staging folders are removed, so a
+    failed write leaves earlier outputs as they were (and should a move fail, the files
+    already replaced are put back where the file system has hard links). An
+    :class:`OSError` becomes an :class:`OutputError` naming ``main`` (default: the last
+    output). A writer killed hard leaves a hidden
     ``.<name>.<pid>@<host>.<random>.stage`` folder, removed by the next write there once
     its process is gone."""
     outputs = tuple(outputs)

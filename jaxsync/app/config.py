@@ -85,7 +85,10 @@ prescribes a history: ``value`` times that time function.
 
 Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
-paths are strings; anything else is a :class:`ConfigError` naming the table and key.
+paths are strings; anything else is a :class:`ConfigError` naming the table and key. The
+keys of ``[material]`` (those of its model) and of ``[[support]]``, their kinds and the
+required ones are read from the fields of the classes they configure
+(:mod:`jaxsync.app.config_schema`, whose catalogue maps the model names to the laws).
 
 Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``) are
 taken relative to the folder of the TOML file, so a case folder can be run from anywhere;
