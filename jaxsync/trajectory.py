@@ -3,7 +3,8 @@ shared-node histories; HDF5 files (the one reader and writer) and ParaView outpu
 a VTU series with its .pvd collection).
 
 Files are written atomically (:mod:`jaxsync.io`): a failed or interrupted write never
-replaces a good file.
+replaces a good file. These formats are the writers ``"hdf5"``, ``"xdmf"`` and ``"vtu"`` of
+the registry :mod:`jaxsync.writers`, where other formats are added.
 """
 
 from __future__ import annotations
