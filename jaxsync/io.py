@@ -3,7 +3,10 @@ content checksums.
 
 Every file jaxsync writes goes through :func:`atomic_path`: it is written under a
 temporary name in the target folder and renamed over the target only when complete, so
-a failed or interrupted write never replaces a good file.
+a failed or interrupted write never replaces a good file. Outputs of several files that
+belong together (an XDMF file and its data, a VTU series; any writer of
+:mod:`jaxsync.writers`) go through :func:`staged_outputs`: written in a staging folder
+beside them, and moved into place only when all are complete.
 
 Writing can fail after a long computation (a full disk, a folder that became read-only):
 :func:`atomic_path` then raises :class:`OutputError` (a :class:`jaxsync.JaxsyncError`
@@ -20,8 +23,9 @@ import dataclasses
 import hashlib
 import json
 import os
+import shutil
 import tempfile
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -29,7 +33,8 @@ from .errors import OutputError
 
 __all__ = ["host_tag", "process_alive", "atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
            "STALE_TEMP_AGE_S", "OutputError", "check_writable", "recording_writes", "note_written",
-           "os_reason", "write_failure", "claimed_outputs", "claim_output", "claiming"]
+           "os_reason", "write_failure", "claimed_outputs", "claim_output", "claiming", "OutputFile",
+           "StagedOutputs", "staged_outputs"]
 
 
 _RECORDERS: list[list[str]] = []
@@ -312,6 +317,136 @@ def atomic_path(path: str | os.PathLike, *, replace: bool = True):
     note_written(path)
 
 
+@dataclasses.dataclass(frozen=True)
+class OutputFile:
+    """One file (or folder, ``folder=True``) that a write produces: its final ``path`` and
+    what it is (``what``, for messages: ``"XDMF data file"``)."""
+
+    path: str
+    what: str = "output"
+    folder: bool = False
+
+
+class StagedOutputs:
+    """The staging area of one multi-file write (:func:`staged_outputs`).
+
+    :meth:`path` gives, for each declared output, the path to write it at: a file or
+    folder of the same name inside a hidden staging folder beside the output, so that
+    files which refer to each other by name (an ``.xdmf`` and its ``.h5``) stay consistent,
+    and renaming them into place is atomic (the same file system)."""
+
+    def __init__(self, outputs: Sequence[OutputFile]):
+        self.outputs = tuple(outputs)
+        self._declared = {os.path.abspath(o.path): o for o in self.outputs}
+        self._folders: dict[str, str] = {}  # target folder -> its staging folder
+
+    def path(self, target: str | os.PathLike) -> str:
+        """Where to write the declared output ``target`` (its staged path)."""
+        full = os.path.abspath(os.fspath(target))
+        if full not in self._declared:
+            known = ", ".join(o.path for o in self.outputs)
+            raise OutputError(f"{os.fspath(target)} is not an output of this write (declared: {known}): a writer "
+                              "writes only the outputs it declares")
+        folder = os.path.dirname(full)
+        if folder not in self._folders:
+            name = os.path.basename(full)  # an OSError here is the write's failure (staged_outputs)
+            os.makedirs(folder, exist_ok=True)
+            _remove_stale_temporaries(folder, f".{name}.", suffix=".stage")
+            self._folders[folder] = tempfile.mkdtemp(prefix=f".{name}.{os.getpid()}@{host_tag()}.", suffix=".stage",
+                                                     dir=folder)
+        return os.path.join(self._folders[folder], os.path.basename(full))
+
+    def _commit(self, replace: bool) -> None:
+        """Move the staged outputs into place in their declared order; a failure puts back
+        what earlier outputs replaced (those already moved stay written)."""
+        undo: list = []
+        try:
+            for output in self.outputs:
+                full = os.path.abspath(output.path)
+                staging = self._folders.get(os.path.dirname(full))
+                staged = None if staging is None else os.path.join(staging, os.path.basename(full))
+                if staged is None or not os.path.lexists(staged):
+                    continue  # declared, not written (nothing to show for it)
+                if output.folder:
+                    _commit_folder(staged, full, replace, undo)
+                else:
+                    _keep_previous(full, staging, replace, undo)
+                    _commit(staged, full, replace)
+                note_written(full)
+        except BaseException:
+            for restore in reversed(undo):
+                with contextlib.suppress(OSError):
+                    restore()
+            raise
+
+    def _discard(self) -> None:
+        for staging in self._folders.values():
+            shutil.rmtree(staging, ignore_errors=True)
+
+
+def _keep_previous(path: str, staging: str, replace: bool, undo: list) -> None:
+    """A hard link to the file at ``path`` (the previous output) in the staging folder,
+    so that a failed commit can put it back."""
+    claim = _claim_of(path)
+    if not (replace and (claim is None or claim.replace or claim.written)) or not os.path.isfile(path):
+        return
+    backup = os.path.join(staging, os.path.basename(path) + ".previous")
+    with contextlib.suppress(OSError):
+        os.link(path, backup)
+        undo.append(lambda: os.replace(backup, path))
+        return
+    # no hard links: no way back for this file (it is replaced atomically all the same)
+
+
+def _commit_folder(staged: str, path: str, replace: bool, undo: list) -> None:
+    """Rename the staged folder onto ``path``; an earlier folder there (only when it may be
+    replaced) goes aside first and comes back on failure."""
+    claim = _claim_of(path)
+    may_replace = replace and (claim is None or claim.replace or claim.written)
+    if os.path.lexists(path):
+        if not may_replace:
+            raise OutputError(f"{path} exists and may not be replaced: it was left as it is; remove it, or choose "
+                              "another location")
+        aside = staged + ".previous"
+        os.rename(path, aside)
+        undo.append(lambda: os.rename(aside, path))
+    os.rename(staged, path)
+    undo.append(lambda: os.rename(path, staged))
+    if claim is not None:
+        claim.written = True
+
+
+@contextlib.contextmanager
+def staged_outputs(outputs: Sequence[OutputFile], *, main: str | os.PathLike | None = None,
+                   replace: bool = True):
+    """Write several files (and folders) that appear together, only when all are complete.
+
+    Yields a :class:`StagedOutputs`: write each declared output at
+    ``staged.path(output.path)``. When the block ends normally they are moved into place
+    in the order of ``outputs`` (each file atomically, as :func:`atomic_path` does, with
+    the same ``replace`` rules, and a folder replaces an earlier one only where a file
+    would be replaced, else :class:`OutputError`; put the file that refers to the others
+    last); when it raises, nothing is moved and the staging folders are removed, so a
+    failed write leaves earlier outputs as they were (and should a move fail, the files
+    already replaced are put back where the file system has hard links). An
+    :class:`OSError` becomes an :class:`OutputError` naming ``main`` (default: the last
+    output). A writer killed hard leaves a hidden
+    ``.<name>.<pid>@<host>.<random>.stage`` folder, removed by the next write there once
+    its process is gone."""
+    outputs = tuple(outputs)
+    main = os.fspath(main) if main is not None else (outputs[-1].path if outputs else "output")
+    staged = StagedOutputs(outputs)
+    try:
+        yield staged
+        staged._commit(replace)
+    except BaseException as exc:
+        if isinstance(exc, OSError) and not isinstance(exc, OutputError):
+            raise write_failure(main, exc) from exc
+        raise
+    finally:
+        staged._discard()
+
+
 def write_failure(path: str, exc: OSError) -> OutputError:
     """The :class:`OutputError` of a failed write of ``path`` (the previous file, if
     any, is left as it was)."""
@@ -354,16 +489,17 @@ def process_alive(pid: int) -> bool:
     return True
 
 
-def _remove_stale_temporaries(folder: str, prefix: str) -> None:
-    """Delete ``<prefix><pid>@<host>.<random>.tmp`` files whose writer is gone, and
-    ``<prefix><random>.tmp`` files (older jaxsync) unmodified for STALE_TEMP_AGE_S."""
+def _remove_stale_temporaries(folder: str, prefix: str, suffix: str = ".tmp") -> None:
+    """Delete ``<prefix><pid>@<host>.<random><suffix>`` files (``.stage``: folders) whose
+    writer is gone, and ``<prefix><random>.tmp`` files (older jaxsync) unmodified for
+    STALE_TEMP_AGE_S."""
     import re
     import time
 
-    owned = re.compile(re.escape(prefix) + r"(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+\.tmp$")
+    owned = re.compile(re.escape(prefix) + r"(\d+)@([A-Za-z0-9-]+)\.[A-Za-z0-9_]+" + re.escape(suffix) + "$")
     legacy = re.compile(re.escape(prefix) + r"[a-z0-9_]{8}\.tmp$")  # mkstemp's 8 characters
     try:
-        names = [n for n in os.listdir(folder) if n.startswith(prefix) and n.endswith(".tmp")]
+        names = [n for n in os.listdir(folder) if n.startswith(prefix) and n.endswith(suffix)]
     except OSError:
         return
     host, now = host_tag(), time.time()
@@ -379,6 +515,8 @@ def _remove_stale_temporaries(folder: str, prefix: str) -> None:
                 continue  # another target's temporary whose name starts alike
             if stale and os.path.isfile(full):
                 os.remove(full)
+            elif stale and suffix == ".stage" and os.path.isdir(full) and not os.path.islink(full):
+                shutil.rmtree(full, ignore_errors=True)
         except OSError:
             continue  # removed meanwhile, or not ours to remove
 

@@ -3,7 +3,8 @@ shared-node histories; HDF5 files (the one reader and writer) and ParaView outpu
 a VTU series with its .pvd collection).
 
 Files are written atomically (:mod:`jaxsync.io`): a failed or interrupted write never
-replaces a good file.
+replaces a good file. These formats are the writers ``"hdf5"``, ``"xdmf"`` and ``"vtu"`` of
+the registry :mod:`jaxsync.writers`, where other formats are added.
 """
 
 from __future__ import annotations
@@ -12,8 +13,6 @@ import dataclasses
 import enum
 import json
 import os
-import shutil
-import tempfile
 from typing import Any
 
 import jax
@@ -22,6 +21,7 @@ import numpy as np
 from .errors import CheckpointError, OutputError
 from .fem.mesh import Mesh
 from .io import atomic_h5
+from .writers._vtu import check_vtu_location, vtu_series_paths, write_pvd
 
 __all__ = ["Trajectory", "RunStats", "PartHistory", "Result", "vtu_series_paths", "check_vtu_location",
            "write_vtu"]
@@ -388,9 +388,11 @@ class Trajectory:
     def to_xdmf(self, path: str | os.PathLike, *, every: int = 1) -> str:
         """Write an XDMF time series for ParaView with the point field ``displacement``;
         ``every`` thins the snapshots. The heavy data go to ``<stem>.xdmf.h5`` beside it
-        (a name that cannot collide with a trajectory file ``<stem>.h5``).
+        (a name that cannot collide with a trajectory file ``<stem>.h5``), which the XDMF
+        file names relative to itself: the pair can be moved together.
 
-        Both files are written in a temporary folder and moved into place at the end.
+        Both files are written in a staging folder beside them and moved into place at the
+        end (:func:`jaxsync.io.staged_outputs`); the working directory is not changed.
         Returns the path of the data file.
 
         Raises:
@@ -398,50 +400,19 @@ class Trajectory:
                 the way, a folder that is not writable), or a failed write (an
                 :class:`OSError`); it names ``path``, and earlier files are left as they were.
         """
-        import meshio
+        from .io import OutputFile, check_writable, staged_outputs
+        from .writers._xdmf import write_xdmf_series, xdmf_paths
 
-        from .io import check_writable, write_failure
-
-        path = os.fspath(path)
-        if not path.endswith(".xdmf"):
-            path += ".xdmf"
-        folder = os.path.dirname(os.path.abspath(path))
-        stem = os.path.splitext(os.path.basename(path))[0]
-        data_name = f"{stem}.xdmf.h5"
+        path, data = xdmf_paths(path)
         check_writable(path, what="XDMF file")
-        check_writable(os.path.join(folder, data_name), what="XDMF data file")
-        try:
-            os.makedirs(folder, exist_ok=True)
-            tmpdir = tempfile.mkdtemp(prefix=".xdmf.", dir=folder)
-        except OSError as exc:
-            raise write_failure(path, exc) from exc
-        try:
-            cwd = os.getcwd()
-            # meshio writes the .h5 into the working directory, named after the stem.
-            os.chdir(tmpdir)
-            try:
-                with meshio.xdmf.TimeSeriesWriter(f"{stem}.xdmf") as writer:
-                    points, kind, cells = self.output_cells()
-                    writer.write_points_cells(points, [(kind, cells)])
-                    disp = np.asarray(self.displacement)
-                    for i in range(0, self.n_saved, every):
-                        writer.write_data(float(self.times[i]), point_data={"displacement": disp[i]})
-            finally:
-                os.chdir(cwd)
-            with open(os.path.join(tmpdir, f"{stem}.xdmf")) as f:
-                text = f.read().replace(f">{stem}.h5:/", f">{data_name}:/")
-            with open(os.path.join(tmpdir, f"{stem}.xdmf"), "w") as f:
-                f.write(text)
-            os.replace(os.path.join(tmpdir, f"{stem}.h5"), os.path.join(folder, data_name))
-            os.replace(os.path.join(tmpdir, f"{stem}.xdmf"), path)
-        except OSError as exc:
-            if isinstance(exc, OutputError):
-                raise
-            raise write_failure(path, exc) from exc
-        finally:
-            shutil.rmtree(tmpdir, ignore_errors=True)
-        return os.path.join(folder, data_name)
-
+        check_writable(data, what="XDMF data file")
+        points, kind, cells = self.output_cells()
+        disp, times = np.asarray(self.displacement), np.asarray(self.times)
+        steps = range(0, self.n_saved, every)
+        with staged_outputs((OutputFile(data, "XDMF data file"), OutputFile(path, "XDMF file")), main=path) as staged:
+            write_xdmf_series(staged.path(path), staged.path(data), points, kind, cells, times[list(steps)],
+                              ({"displacement": disp[i]} for i in steps))
+        return os.path.abspath(data)
 
     def to_vtu(self, path: str | os.PathLike, *, every: int = 1) -> str:
         """Write a VTU time series for ParaView: one ``.vtu`` file per saved snapshot (the
@@ -453,9 +424,10 @@ class Trajectory:
         ``path`` is the series' prefix: ``out/run`` (or ``out/run.pvd``, or the folder
         ``out/run/``) writes the collection ``out/run.pvd`` and the step files
         ``out/run/run_000000.vtu``, ... in the folder beside it (:func:`vtu_series_paths`).
-        Everything is written in a temporary folder and moved into place at the end, so a
-        failed write leaves an earlier series as it was; an existing folder of that name
-        is replaced only when it holds nothing but ``.vtu`` files (an earlier series).
+        Everything is written in a staging folder and moved into place at the end
+        (:func:`jaxsync.io.staged_outputs`), so a failed write leaves an earlier series as
+        it was; an existing folder of that name is replaced only when it holds nothing but
+        ``.vtu`` files (an earlier series).
 
         Returns the path of the ``.pvd`` file.
 
@@ -465,18 +437,13 @@ class Trajectory:
         """
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise OutputError(f"to_vtu: every must be a positive integer, got {every!r}")
-        from .io import write_failure
+        from .io import OutputFile, staged_outputs
 
         pvd, folder = check_vtu_location(path)
         stem = os.path.basename(folder)
-        parent = os.path.dirname(os.path.abspath(folder))
-        try:
-            os.makedirs(parent, exist_ok=True)
-            tmpdir = tempfile.mkdtemp(prefix=f".{stem}.vtu.", dir=parent)
-        except OSError as exc:  # an unwritable or missing location: nothing was written
-            raise write_failure(pvd, exc) from exc
-        try:
-            steps = os.path.join(tmpdir, stem)
+        with staged_outputs((OutputFile(folder, "VTU step files", folder=True), OutputFile(pvd, "VTU collection")),
+                            main=pvd) as staged:
+            steps = staged.path(folder)
             os.mkdir(steps)
             displacement, times = np.asarray(self.displacement), np.asarray(self.times)
             points, kind, cells = self.output_cells()
@@ -492,43 +459,8 @@ class Trajectory:
                 write_vtu(os.path.join(steps, name), points, cells, kind,
                           point_data={"displacement": displacement[i], "GlobalNodeID": numbers})
                 entries.append((float(times[i]), f"{stem}/{name}"))
-            staged_pvd = os.path.join(tmpdir, f"{stem}.pvd")
-            _write_pvd(staged_pvd, entries)
-            _install_series(staged_pvd, steps, pvd, folder, os.path.join(tmpdir, "previous"))
-        except OSError as exc:  # the earlier series, if any, is left as it was
-            raise write_failure(pvd, exc) from exc
-        finally:
-            shutil.rmtree(tmpdir, ignore_errors=True)
+            write_pvd(staged.path(pvd), entries)
         return pvd
-
-
-def vtu_series_paths(path: str | os.PathLike) -> tuple[str, str]:
-    """(collection file, folder of the step files) that :meth:`Trajectory.to_vtu` writes
-    for ``path``: ``out/run``, ``out/run.pvd`` and ``out/run/`` all give
-    (``out/run.pvd``, ``out/run``)."""
-    text = os.fspath(path)
-    prefix = text.rstrip("/" + os.sep)
-    if prefix.endswith(".pvd"):
-        prefix = prefix[:-len(".pvd")]
-    if os.path.basename(prefix) in ("", ".", ".."):
-        raise OutputError(f"cannot write a VTU series at {text!r}: give a prefix that ends in a "
-                          "name, such as out/run (out/run.pvd and the folder out/run/)")
-    return prefix + ".pvd", prefix
-
-
-def check_vtu_location(path: str | os.PathLike) -> tuple[str, str]:
-    """:func:`vtu_series_paths` of ``path``, with an :class:`OutputError` where
-    :meth:`Trajectory.to_vtu` would refuse to write: the collection's name is a folder, or
-    the folder of the step files exists and holds something else than ``.vtu`` files."""
-    pvd, folder = vtu_series_paths(path)
-    if os.path.isdir(pvd):
-        raise OutputError(f"cannot write the VTU collection {pvd}: it is a folder; choose "
-                          "another prefix")
-    if os.path.lexists(folder) and not _is_vtu_series(folder):
-        raise OutputError(
-            f"cannot write the VTU step files into {folder}: it exists and is not a VTU series "
-            "(a folder of .vtu files only); choose another prefix, or remove it")
-    return pvd, folder
 
 
 def write_vtu(path: str | os.PathLike, points, cells, cell_type: str, *,
@@ -541,51 +473,6 @@ def write_vtu(path: str | os.PathLike, points, cells, cell_type: str, *,
     mesh = meshio.Mesh(np.asarray(points), [(cell_type, np.asarray(cells))],
                        point_data=dict(point_data or {}))
     meshio.write(os.fspath(path), mesh, file_format="vtu")
-
-
-def _is_vtu_series(folder: str) -> bool:
-    """A folder that holds nothing but ``.vtu`` files (what :meth:`Trajectory.to_vtu` writes)."""
-    if not os.path.isdir(folder) or os.path.islink(folder):
-        return False
-    with os.scandir(folder) as entries:
-        return all(e.is_file(follow_symlinks=False) and e.name.endswith(".vtu") for e in entries)
-
-
-def _write_pvd(path: str, entries: list[tuple[float, str]]) -> None:
-    """A ParaView collection listing (time, file) ``entries``; times in full precision."""
-    from xml.sax.saxutils import quoteattr
-
-    lines = ['<?xml version="1.0"?>',
-             '<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">',
-             "  <Collection>"]
-    lines += [f'    <DataSet timestep="{time!r}" group="" part="0" file={quoteattr(name)}/>'
-              for time, name in entries]
-    lines += ["  </Collection>", "</VTKFile>", ""]
-    with open(path, "w") as f:
-        f.write("\n".join(lines))
-
-
-def _install_series(staged_pvd: str, staged_steps: str, pvd: str, folder: str, aside: str) -> None:
-    """Move a complete staged series into place: an earlier step folder goes aside (into
-    the staging folder, deleted with it), the new one in, then the collection file; a
-    failure puts the earlier folder back."""
-    previous = None
-    if os.path.isdir(folder):
-        os.rename(folder, aside)
-        previous = aside
-    try:
-        os.rename(staged_steps, folder)
-    except BaseException:
-        if previous:
-            os.rename(previous, folder)
-        raise
-    try:
-        os.replace(staged_pvd, pvd)
-    except BaseException:
-        os.rename(folder, staged_steps)
-        if previous:
-            os.rename(previous, folder)
-        raise
 
 
 def _part_history(group) -> PartHistory:

@@ -17,8 +17,10 @@ Layout (every table optional; defaults give the paper's cantilever)::
     divisions = [25, 1, 1]
 
     [material]
-    model = "linear-elastic"    # (the default) or "neo-hookean",
-                                # "nearly-incompressible-neo-hookean", "holzapfel-gasser-ogden"
+    model = "linear-elastic"    # (the default) or "neo-hookean", "nearly-incompressible-
+                                # neo-hookean", "holzapfel-gasser-ogden": the catalogue
+                                # jaxsync.app.config_schema.MATERIAL_MODELS; each law's keys
+                                # are the fields of its class
     E = 1.0e6                   # dyn/cm^2 (the first three models)
     nu = 0.3
     rho = 1.0                   # g/cm^3
@@ -83,7 +85,10 @@ prescribes a history: ``value`` times that time function.
 
 Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
-paths are strings; anything else is a :class:`ConfigError` naming the table and key.
+paths are strings; anything else is a :class:`ConfigError` naming the table and key. The
+keys of ``[material]`` (those of its model) and of ``[[support]]``, their kinds and the
+required ones are read from the fields of the classes they configure
+(:mod:`jaxsync.app.config_schema`, whose catalogue maps the model names to the laws).
 
 Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``) are
 taken relative to the folder of the TOML file, so a case folder can be run from anywhere;
@@ -104,24 +109,25 @@ import numpy as np
 
 from ..errors import ConfigError, JaxsyncError
 from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-from ..fem.material import LinearElastic
 from ..fem.mesh import box_beam, read_mesh
 from ..fem.problem import Dirichlet, Problem, cantilever
 from ..fem.support import ElasticSupport
 from ..options import Element, MeshGenerator, ProblemKind, check_option
+from .config_schema import DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, dataclass_schema, from_table
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
 # Entry types: "number" (int or float, not bool), "int", "string", "path" (a string,
 # resolved against the TOML file's folder), (type, n) a list of n entries of that type
-# (n None: any length >= 1), or a dict for an inline table.
+# (n None: any length >= 1), or a dict for an inline table. A table's schema is a dict of its
+# keys, or a function (table, origin) -> dict where the keys depend on the table ([material]:
+# those of its model, read from the law's dataclass in jaxsync.app.config_schema).
 _PLANE = {"axis": "int", "value": "number"}
-_SCHEMA: dict[str, dict[str, Any]] = {
+_SUPPORT = dataclass_schema(ElasticSupport)  # [[support]]: the fields of the class (surface required here)
+_SCHEMA: dict[str, Any] = {
     "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
              "width": "number", "height": "number", "divisions": ("int", 3)},
-    "material": {"model": "string", "E": "number", "nu": "number", "rho": "number", "mu": "number",
-                 "k1": "number", "k2": "number", "kappa_bulk": "number", "dispersion": "number",
-                 "fibre_angle": "number", "fibre_axis": ("number", 3), "fibre_origin": ("number", 3)},
+    "material": lambda table, origin: _material_schema(table, origin),  # the keys of its model
     "problem": {"kind": "string", "element": "string", "damping": "number", "body_force": ("number", 3),
                 "t_ramp": "number", "t_off": "number"},
     "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
@@ -137,17 +143,8 @@ _SCHEMA: dict[str, dict[str, Any]] = {
     "traction": {"surface": "string", "vector": ("number", 3), "t_ramp": "number",
                  "t_off": "number", "period": "number", "times": ("number", None),
                  "values": ("number", None)},
-    "support": {"surface": "string", "stiffness": "number", "damping": "number", "normal_only": "bool"},
+    "support": dict(_SUPPORT.keys),
 }
-_MATERIAL_KEYS = {
-    "linear-elastic": ("E", "nu", "rho"),
-    "neo-hookean": ("E", "nu", "rho"),
-    "nearly-incompressible-neo-hookean": ("E", "nu", "rho"),
-    "holzapfel-gasser-ogden": ("mu", "k1", "k2", "kappa_bulk", "rho", "dispersion", "fibre_angle", "fibre_axis",
-                               "fibre_origin"),
-}
-"""The [material] models and the keys each takes (besides ``model``)."""
-_MATERIAL_REQUIRED = {"holzapfel-gasser-ogden": ("mu", "k1", "k2", "kappa_bulk", "fibre_angle", "fibre_axis")}
 _ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
 _PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"))
 
@@ -237,7 +234,8 @@ def check_config(config: dict, origin: str = "configuration") -> None:
                                   f"under a [{table}] header")
             entries = [(f"[{table}]", value)]
         for where, entry in entries:
-            _check_table(entry, _SCHEMA[table], where, origin)
+            schema = _SCHEMA[table]
+            _check_table(entry, schema(entry, origin) if callable(schema) else schema, where, origin)
     _check_material(config.get("material", {}), origin)
     run = config.get("run", {})
     if "mass_scaling_dt" in run and "mass_scaling_beta" in run:
@@ -248,42 +246,43 @@ def check_config(config: dict, origin: str = "configuration") -> None:
             raise ConfigError(f"{origin}: [run] {key} = {run[key]!r} must be positive")
 
 
-def _check_material(material: dict, origin: str) -> None:
-    """The [material] model and the keys it takes (types are checked by the schema)."""
-    model = material.get("model", "linear-elastic")
-    models = ", ".join(f'"{m}"' for m in _MATERIAL_KEYS)
-    if model not in _MATERIAL_KEYS:
+def _material_schema(material: dict, origin: str) -> dict:
+    """The [material] keys: ``model`` and the keys of that model (:mod:`jaxsync.app.config_schema`);
+    ConfigError for a key that no model takes (known: those of every model) or an
+    unknown model."""
+    known = {"model": "string"}
+    for entry in MATERIAL_MODELS.values():
+        known.update({k: v for k, v in entry.schema.keys.items() if k not in known})
+    unknown = set(material) - set(known)
+    if unknown:
+        raise ConfigError(f"{origin}: unknown key(s) {sorted(unknown)} in [material]; known: {sorted(known)}")
+    model = material.get("model", DEFAULT_MATERIAL_MODEL)
+    if "model" in material:
+        _check_entry(model, "string", "[material] model", "model", origin)
+    if model not in MATERIAL_MODELS:
+        models = ", ".join(f'"{m}"' for m in MATERIAL_MODELS)
         raise ConfigError(f"{origin}: [material] model = {_shown(model)} is not a material model; allowed: {models}")
-    allowed = _MATERIAL_KEYS[model]
-    foreign = sorted(set(material) - set(allowed) - {"model"})
+    schema = MATERIAL_MODELS[model].schema
+    foreign = [k for k in material if k not in schema.keys and k != "model"]
     if foreign:
-        raise ConfigError(f"{origin}: [material] key(s) {', '.join(foreign)} are not parameters of model = "
-                          f"\"{model}\"; its keys: model, {', '.join(allowed)}")
-    missing = [k for k in _MATERIAL_REQUIRED.get(model, ()) if k not in material]
+        raise ConfigError(f"{origin}: [material] key(s) {', '.join(sorted(foreign))} are not parameters of model = "
+                          f"\"{model}\"; its keys: model, {', '.join(schema.keys)}")
+    return {"model": "string", **schema.keys}
+
+
+def _check_material(material: dict, origin: str) -> None:
+    """The keys that the [material] model needs (the others are checked by its schema)."""
+    model = material.get("model", DEFAULT_MATERIAL_MODEL)
+    schema = MATERIAL_MODELS[model].schema
+    missing = [k for k in schema.required if k not in material]
     if missing:
         raise ConfigError(f"{origin}: [material] model = \"{model}\" needs {', '.join(missing)}; its keys: model, "
-                          f"{', '.join(allowed)} ({', '.join(_MATERIAL_REQUIRED[model])} required)")
+                          f"{', '.join(schema.keys)} ({', '.join(schema.required)} required)")
 
 
 def _material(material: dict, mesh):
-    """The material law of a checked [material] table (the fibres of the Holzapfel-Gasser-
-    Ogden law: :func:`jaxsync.helical_fibres` of the mesh's element centroids)."""
-    from ..fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
-
-    model = material.get("model", "linear-elastic")
-    if model == "linear-elastic":
-        return LinearElastic(float(material.get("E", 1.0e6)), float(material.get("nu", 0.3)),
-                             float(material.get("rho", 1.0)))
-    if model in ("neo-hookean", "nearly-incompressible-neo-hookean"):
-        law = NeoHookean if model == "neo-hookean" else NearlyIncompressibleNeoHookean
-        return law(**{k: float(material[k]) for k in ("E", "nu", "rho") if k in material})
-    centres = mesh.points[mesh.tets].mean(axis=1)
-    fibres = helical_fibres(centres, axis=tuple(float(x) for x in material["fibre_axis"]),
-                            angle=float(material["fibre_angle"]),
-                            origin=tuple(float(x) for x in material.get("fibre_origin", (0.0, 0.0, 0.0))))
-    return HolzapfelGasserOgden(mu=float(material["mu"]), k1=float(material["k1"]), k2=float(material["k2"]),
-                                kappa_bulk=float(material["kappa_bulk"]), rho=float(material.get("rho", 1.0)),
-                                dispersion=float(material.get("dispersion", 0.0)), fibres=fibres)
+    """The material law of a checked [material] table (:data:`jaxsync.app.config_schema.MATERIAL_MODELS`)."""
+    return MATERIAL_MODELS[material.get("model", DEFAULT_MATERIAL_MODEL)].build(material, mesh)
 
 
 def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
@@ -558,7 +557,5 @@ def _supports(config: dict) -> list[ElasticSupport]:
         if "surface" not in entry or "stiffness" not in entry:
             raise ConfigError(f"[[support]] #{i}: 'surface' (a facet-set name) and 'stiffness' (dyn/cm^3) are "
                               "required")
-        supports.append(ElasticSupport(float(entry["stiffness"]), float(entry.get("damping", 0.0)),
-                                       surface=str(entry["surface"]), normal_only=bool(entry.get("normal_only",
-                                                                                                 False))))
+        supports.append(from_table(ElasticSupport, entry, _SUPPORT))
     return supports

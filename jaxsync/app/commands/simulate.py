@@ -88,48 +88,42 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-def outputs(args, config: dict) -> tuple[str, str | None, str | None, bool]:
-    """(trajectory path, xdmf path or None, checkpoint path or None, resuming) of a
-    ``jaxsync simulate`` run, from the command line over the (path-resolved) config."""
+FORMAT_OPTIONS = (("xdmf", "--xdmf"), ("vtu", "--vtu"))
+"""The output formats ``jaxsync simulate`` writes besides the trajectory: (the name of the
+writer in :mod:`jaxsync.writers`, its command-line option); the ``[run]`` key of each is
+the writer's name."""
+
+
+def outputs(args, config: dict) -> tuple[str, str | None, bool]:
+    """(trajectory path, checkpoint path or None, resuming) of a ``jaxsync simulate`` run,
+    from the command line over the (path-resolved) config."""
     from ..config import RunConfig
 
     run_table = config.get("run", {})
     output = args.output or run_table.get("output", RunConfig.output)
-    if args.xdmf:
-        xdmf = args.xdmf
-    elif run_table.get("xdmf") and args.output:  # two runs with different -o keep their own xdmf
-        xdmf = os.path.splitext(args.output)[0] + ".xdmf"
-    else:
-        xdmf = run_table.get("xdmf")
-    if xdmf and not xdmf.endswith(".xdmf"):
-        xdmf += ".xdmf"  # as Trajectory.to_xdmf names it
     checkpoint = args.checkpoint or run_table.get("checkpoint")
-    return output, xdmf, checkpoint, bool(checkpoint) and os.path.exists(checkpoint)
+    return output, checkpoint, bool(checkpoint) and os.path.exists(checkpoint)
 
 
-def vtu_output(args, config: dict) -> str | None:
-    """Prefix of the VTU series of a ``jaxsync simulate`` run (None: none), from the command
-    line over the (path-resolved) config; like the XDMF output, a ``[run] vtu`` of the
-    file is named after ``-o`` when that is given."""
+def format_outputs(args, config: dict) -> list[tuple[str, object, str, tuple]]:
+    """(option, writer, path, :class:`jaxsync.io.OutputFile` s) of each output format a
+    ``jaxsync simulate`` run writes (:data:`FORMAT_OPTIONS`), from the command line over
+    the (path-resolved) config. An output that the file asks for is named after ``-o``
+    when that is given (``-o out/b.h5``: ``out/b.xdmf``, ``out/b.pvd``), so that two runs of
+    one file with different ``-o`` keep their own."""
+    from ...writers import writer_for
+
     run_table = config.get("run", {})
-    if args.vtu:
-        return args.vtu
-    if run_table.get("vtu") and args.output:  # two runs with different -o keep their own series
-        return os.path.splitext(args.output)[0]
-    return run_table.get("vtu")
-
-
-def vtu_files(vtu: str) -> list[str]:
-    """What Trajectory.to_vtu writes: the collection ``<prefix>.pvd`` and the folder
-    ``<prefix>/`` of the step files."""
-    from ...trajectory import vtu_series_paths
-
-    return list(vtu_series_paths(vtu))
-
-
-def xdmf_files(xdmf: str) -> list[str]:
-    """The files Trajectory.to_xdmf writes: ``<stem>.xdmf`` and ``<stem>.xdmf.h5``."""
-    return [xdmf, os.path.splitext(xdmf)[0] + ".xdmf.h5"]
+    found = []
+    for name, option in FORMAT_OPTIONS:
+        writer = writer_for(name)
+        path = getattr(args, name)
+        if not path and run_table.get(name):
+            path = os.path.splitext(args.output)[0] + writer.suffixes[0] if args.output else run_table[name]
+        if path:
+            files = tuple(writer.outputs(path))  # a location the writer refuses is refused here
+            found.append((option, writer, files[-1].path, files))
+    return found
 
 
 def report_warnings(caught) -> None:
@@ -139,20 +133,14 @@ def report_warnings(caught) -> None:
     common.report_warnings(caught)
 
 
-def check_locations(output, xdmf, checkpoint, timings_path=None, vtu=None) -> None:
-    """Refuse, before anything runs, output locations that cannot be written."""
+def check_locations(output, checkpoint, timings_path=None, formats=()) -> None:
+    """Refuse, before anything runs, output locations that cannot be written
+    (``formats``: :func:`format_outputs`)."""
     if timings_path is not None:
         common.check_outputs((timings_path, "timings JSON", "--timings"))
         return
-    series = vtu_files(vtu) if vtu else []
-    if series:
-        from ...trajectory import check_vtu_location
-
-        check_vtu_location(vtu)
     common.check_outputs((output, "trajectory", "-o"),
-                         *((path, "XDMF output", "--xdmf") for path in (xdmf_files(xdmf) if xdmf else [])),
-                         *([(series[0], "VTU collection", "--vtu"), (series[1], "VTU step files", "--vtu", True)]
-                           if series else []),
+                         *((f.path, f.what, option, f.folder) for option, _, _, files in formats for f in files),
                          (checkpoint, "checkpoint", "--checkpoint"))
 
 
@@ -205,24 +193,24 @@ def run(args) -> int:
         return 0
     main_rank = common.is_main_process()
     config = load_config(args.config)
-    output, xdmf, checkpoint, resuming = outputs(args, config)
+    output, checkpoint, resuming = outputs(args, config)
     if args.checkpoint_every is not None and not checkpoint:
         from ...errors import ConfigError
 
         raise ConfigError(f"--checkpoint-every {args.checkpoint_every} needs a checkpoint file: add --checkpoint "
                           "PATH (or [run] checkpoint in the configuration)")
-    vtu = vtu_output(args, config)
+    formats = format_outputs(args, config) if args.timings is None else []
     inputs = [args.config, args.mesh, config.get("mesh", {}).get("file")]  # never written over
     if args.timings is not None:
         timings_path = args.timings or os.path.splitext(output)[0] + ".timings.json"
         if main_rank:
-            check_locations(output, xdmf, checkpoint, timings_path)
+            check_locations(output, checkpoint, timings_path)
             common.refuse_to_overwrite([timings_path], force=args.force, inputs=inputs, options="--timings")
     elif main_rank:  # the writer; checked before the mesh is read and anything runs
-        check_locations(output, xdmf, checkpoint, vtu=vtu)
-        common.refuse_to_overwrite([output] + (xdmf_files(xdmf) if xdmf else []) + (vtu_files(vtu) if vtu else []),
+        check_locations(output, checkpoint, formats=formats)
+        common.refuse_to_overwrite([output] + [f.path for *_, files in formats for f in files],
                                    force=args.force or resuming, checkpoint=checkpoint, inputs=inputs,
-                                   options="-o/--xdmf/--vtu")
+                                   options="/".join(["-o"] + [option for _, option in FORMAT_OPTIONS]))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         problem, run_config = problem_from_config(config, mesh_file=args.mesh,
@@ -249,8 +237,8 @@ def run(args) -> int:
                 report.save_json(timings_path)
             print(f"wrote {timings_path}")
         return 0
-    return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, xdmf=xdmf,
-                     checkpoint=checkpoint, main_rank=main_rank, vtu=vtu)
+    return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, formats=formats,
+                     checkpoint=checkpoint, main_rank=main_rank)
 
 
 def _partitions(problem, n_parts: int, seed: int):
@@ -261,7 +249,7 @@ def _partitions(problem, n_parts: int, seed: int):
     return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
 
 
-def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, main_rank, vtu=None) -> int:
+def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoint, main_rank) -> int:
     import dataclasses
 
     from ...errors import StabilityError
@@ -322,12 +310,11 @@ def _simulate(args, problem, run_config, *, dt, sync, output, xdmf, checkpoint, 
     steps = (f"resumed from step {first_step} of {n_steps} (checkpoint {checkpoint}): {ran} steps"
              if first_step else f"{ran} steps")
     print(f"{steps} in {elapsed:.2f} s ({speed}; {devices_text(st, parts)}); wrote {output}")
-    if xdmf:
-        with common.writing(*xdmf_files(xdmf)):
-            trajectory.to_xdmf(xdmf)
-        print(f"wrote {xdmf}")
-    if vtu:
-        with common.writing(*vtu_files(vtu)):
-            pvd = trajectory.to_vtu(vtu)
-        print(f"wrote {pvd} and its step files in {vtu_files(vtu)[1]}")
+    from ...writers import write_output
+
+    for _, writer, path, files in formats:
+        with common.writing(*(f.path for f in files)):
+            write_output(trajectory, path, writer)
+        others = [f.path for f in files[:-1]]
+        print(f"wrote {path}" + (f" (with {', '.join(others)})" if others else ""))
     return 0
