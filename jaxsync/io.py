@@ -335,8 +335,9 @@ class StagedOutputs:
     files which refer to each other by name (an ``.xdmf`` and its ``.h5``) stay consistent,
     and renaming them into place is atomic (the same file system)."""
 
-    def __init__(self, outputs: Sequence[OutputFile]):
+    def __init__(self, outputs: Sequence[OutputFile], *, replace: bool = True):
         self.outputs = tuple(outputs)
+        self._replace = replace
         self._declared = {os.path.abspath(o.path): o for o in self.outputs}
         self._folders: dict[str, str] = {}  # target folder -> its staging folder
 
@@ -355,6 +356,19 @@ class StagedOutputs:
             self._folders[folder] = tempfile.mkdtemp(prefix=f".{name}.{os.getpid()}@{host_tag()}.", suffix=".stage",
                                                      dir=folder)
         return os.path.join(self._folders[folder], os.path.basename(full))
+
+    def __enter__(self) -> "StagedOutputs":
+        return self
+
+    def __exit__(self, kind, exc, traceback) -> bool:
+        """On a normal exit, move the staged outputs into place; remove the staging
+        folders in every case."""
+        try:
+            if kind is None:
+                self._commit(self._replace)
+        finally:
+            self._discard()
+        return False
 
     def _commit(self, replace: bool) -> None:
         """Move the staged outputs into place in their declared order; a failure puts back
@@ -435,16 +449,13 @@ def staged_outputs(outputs: Sequence[OutputFile], *, main: str | os.PathLike | N
     its process is gone."""
     outputs = tuple(outputs)
     main = os.fspath(main) if main is not None else (outputs[-1].path if outputs else "output")
-    staged = StagedOutputs(outputs)
     try:
-        yield staged
-        staged._commit(replace)
+        with StagedOutputs(outputs, replace=replace) as staged:
+            yield staged
     except BaseException as exc:
         if isinstance(exc, OSError) and not isinstance(exc, OutputError):
             raise write_failure(main, exc) from exc
         raise
-    finally:
-        staged._discard()
 
 
 def write_failure(path: str, exc: OSError) -> OutputError:

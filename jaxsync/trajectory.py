@@ -19,8 +19,8 @@ import jax
 import numpy as np
 
 from .errors import CheckpointError, OutputError
-from .fem.mesh import Mesh
 from .io import atomic_h5
+from .mesh import Mesh
 from .writers._vtu import check_vtu_location, vtu_series_paths, write_pvd
 
 __all__ = ["Trajectory", "RunStats", "PartHistory", "Result", "vtu_series_paths", "check_vtu_location",

@@ -109,9 +109,9 @@ import numpy as np
 
 from ..errors import ConfigError, JaxsyncError
 from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-from ..fem.mesh import box_beam, read_mesh
 from ..fem.problem import Dirichlet, Problem, cantilever
 from ..fem.support import ElasticSupport
+from ..mesh import box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
 from .config_schema import DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, dataclass_schema, from_table
 
