@@ -263,3 +263,24 @@ def test_no_module_switches_on_an_exchange_class_or_name():
             if any(p.search(code) for p in patterns):
                 found.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
     assert not found, "\n".join(found)
+
+
+def test_installed_packages_name_exchanges_through_entry_points(monkeypatch):
+    """An entry point of the group jaxsync.exchanges is a registered name; one that cannot
+    be imported is left out with a warning, and the other names keep working."""
+    from importlib.metadata import EntryPoint
+
+    from jaxsync.solve import exchanges
+
+    points = [EntryPoint("psum-from-a-package", "jaxsync.solve.exchanges:Psum", exchanges.ENTRY_POINT_GROUP),
+              EntryPoint("broken-package", "no_such_module_for_jaxsync:Thing", exchanges.ENTRY_POINT_GROUP)]
+    monkeypatch.setattr("importlib.metadata.entry_points",
+                        lambda group: [p for p in points if p.group == group])
+    monkeypatch.setattr(exchanges, "_ENTRY_POINTS_READ", [])  # read the entry points again
+    try:
+        with pytest.warns(exchanges.EntryPointWarning, match="broken-package.*no_such_module_for_jaxsync"):
+            assert sync_strategy("psum-from-a-package") == jaxsync.Psum()
+        assert "broken-package" not in jaxsync.solve.exchange_names()
+        assert sync_strategy("halo:2") == jaxsync.Halo(2)
+    finally:
+        unregister_exchange("psum-from-a-package")

@@ -30,7 +30,7 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import jax
 
-from ..errors import PartitionError
+from ..errors import ConfigError, PartitionError
 from ..perf.costmodel import ALGORITHMS, CommunicationPattern, communication_pattern, sync_time
 from .exchange import Exchange
 from .layout import PartLayout
@@ -57,8 +57,6 @@ class ExchangeCost:
     every: int = 1
 
     def __post_init__(self):
-        from ..errors import ConfigError
-
         if self.algorithm not in ALGORITHMS:
             raise ConfigError(f"ExchangeCost.algorithm={self.algorithm!r}: use one of {ALGORITHMS}")
         if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:

@@ -20,14 +20,14 @@ colon to the factory (``"halo:4"`` is ``Halo(4)``).
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any, Callable
 
 from ..errors import ConfigError
 from ..parallel.plan import ExchangePlan, ExchangeStrategy, xla_devices, xla_plan
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "transport", "register_exchange",
-           "unregister_exchange", "exchange_names", "ENTRY_POINT_GROUP", "ExchangeStrategy",
-           "ExchangePlan"]
+           "unregister_exchange", "exchange_names", "ENTRY_POINT_GROUP", "EntryPointWarning"]
 
 
 def _devices(value):
@@ -146,8 +146,8 @@ class Mpi:
         from ..errors import PartitionError
         from ..parallel import multiprocess
 
-        local = list(jax.local_devices() if (self.devices if devices is None else devices) is None
-                     else (self.devices if devices is None else devices))
+        chosen = self.devices if devices is None else devices
+        local = list(jax.local_devices() if chosen is None else chosen)
         if len(local) != 1 or local[0].process_index != jax.process_index():
             raise ConfigError(
                 f"sync='mpi' runs each process's parts on one device of that process, got "
@@ -238,6 +238,12 @@ class Halo:
 
 _REGISTRY: dict[str, Callable[..., ExchangeStrategy]] = {
     "psum": Psum, "ppermute": Ppermute, "mpi": Mpi, "halo": Halo.of_text}
+class EntryPointWarning(UserWarning):
+    """An installed package's exchange entry point that cannot be imported: it is left out
+    of the registry (the other names keep working); the message names the package's entry
+    point and the error."""
+
+
 ENTRY_POINT_GROUP = "jaxsync.exchanges"
 """Installed packages name their exchanges here: an entry point ``name = "module:factory"``
 of this group is registered as ``name`` on the first lookup of a name (so that
@@ -255,10 +261,11 @@ def _registry() -> dict:
             if point.name not in _REGISTRY:
                 try:
                     _REGISTRY[point.name] = point.load()
-                except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the built-in names
-                    raise ConfigError(f"the exchange {point.name!r} of the installed package entry point "
-                                      f"{point.value!r} (group {ENTRY_POINT_GROUP!r}) cannot be imported: "
-                                      f"{type(exc).__name__}: {exc}; fix or uninstall that package") from exc
+                except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the other names
+                    warnings.warn(f"the exchange {point.name!r} of the installed entry point {point.value!r} "
+                                  f"(group {ENTRY_POINT_GROUP!r}) cannot be imported and is left out: "
+                                  f"{type(exc).__name__}: {exc}; fix or uninstall that package",
+                                  EntryPointWarning, stacklevel=3)
     return _REGISTRY
 
 
