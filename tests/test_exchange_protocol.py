@@ -284,3 +284,16 @@ def test_installed_packages_name_exchanges_through_entry_points(monkeypatch):
         assert sync_strategy("halo:2") == jaxsync.Halo(2)
     finally:
         unregister_exchange("psum-from-a-package")
+
+
+def test_an_exchange_that_does_not_synchronize_every_step_records_nothing(problem, partition):
+    """synchronizes_every_step=False (as deep halos): a run that records every step's
+    shared-node history is refused, through both executors, with the fix."""
+    periodic = dataclasses.make_dataclass("Periodic", [], bases=(GatherSum,), frozen=True,
+                                          namespace={"synchronizes_every_step": False})()
+    for executor in (jaxsync.HostExecutor(progress=False), jaxsync.TracedExecutor()):
+        with pytest.raises(jaxsync.ConfigError, match="does not synchronize every step.*sync='psum'"):
+            jaxsync.simulate(problem, 20, save=jaxsync.SaveAt(every=10, shared_every=1), partitions=partition,
+                             sync=periodic, executor=executor)
+    # a run that does not record is fine
+    jaxsync.simulate(problem, 20, save=10, partitions=partition, sync=periodic)

@@ -130,6 +130,18 @@ class DistributedParts:
         (:func:`jaxsync.parallel.spmd.spmd_program`)."""
         return spmd_program(per_part, self.device_mesh, n_in=n_in, n_out=n_out, jit=jit)
 
+    def check_recordable(self) -> None:
+        """Refuse to record every step's shared-node displacements with an exchange that
+        does not synchronize every step (deep halos, or any exchange whose
+        ``synchronizes_every_step`` is False): a :class:`~jaxsync.errors.ConfigError`
+        naming the fix."""
+        check_recordable(self.exchange)
+        if not self.sync.synchronizes_every_step:
+            raise ConfigError(
+                f"sync={self.sync.name!r} does not synchronize every step, so the shared-node displacements "
+                "after every step (the surrogates' training data, the synchronization-avoiding solver's "
+                "synchronized phases) are not known; use an exchange that does, e.g. sync='psum'")
+
     def check_save_every(self, save_every: int) -> int:
         """The steps of the smallest whole chunk: ``save_every``, or with deep halos the
         larger of it and the depth (which must divide one another)."""
@@ -161,7 +173,7 @@ class DistributedRunner:
         self.record_shared = bool(record_shared)
         self._unit = d.check_save_every(save_every)
         if record_shared:
-            check_recordable(d.exchange)
+            d.check_recordable()
         self.n_nodes = self.partition.n_nodes
         self.n_local = self.layout.n_local
         self.parts = d.put(d.systems(problem, system))

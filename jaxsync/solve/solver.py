@@ -318,6 +318,8 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
         from .distributed import DistributedParts
 
         distributed = DistributedParts(problem, partitions, sync, mode=mode)
+        if save.records_every_step:
+            distributed.check_recordable()
         unit = distributed.check_save_every(save.every)  # save.every, or whole exchange cycles of deep halos
         if n_steps % unit:
             raise ProblemError(f"with halo depth {distributed.halo_depth} and save_every={save.every}, n_steps "
