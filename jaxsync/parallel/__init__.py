@@ -4,7 +4,8 @@ SPMD builder, devices and processes.
 Modules: :mod:`~jaxsync.parallel.partitioning` (METIS parts, owned/shared nodes),
 :mod:`~jaxsync.parallel.layout` (padded local numbering, per-part systems, split and merge of
 fields), :mod:`~jaxsync.parallel.exchange` (``scatter_reverse`` / ``scatter_forward`` of
-shared-node values), :mod:`~jaxsync.parallel.halo` (deep halos), :mod:`~jaxsync.parallel.spmd`
+shared-node values), :mod:`~jaxsync.parallel.halo` (deep halos), :mod:`~jaxsync.parallel.plan` (the exchange protocol:
+what an exchange gives a run), :mod:`~jaxsync.parallel.spmd`
 (:func:`spmd_program`, the builder of every SPMD program), :mod:`~jaxsync.parallel.devices`
 (emulated CPU devices), :mod:`~jaxsync.parallel.multiprocess` (``mpiexec`` runs).
 """
@@ -17,7 +18,8 @@ from ..lazy import export_lazily
 __all__ = ["Partition", "Part", "partition", "partition_from_elements", "partition_of",
            "PartLayout", "PartSystems", "part_systems", "Exchange", "scatter_reverse", "scatter_forward",
            "synchronize_forces", "NeighbourExchange", "neighbour_exchange",
-           "spmd_program", "AXIS", "LOCAL_AXIS", "devices", "multiprocess"]
+           "spmd_program", "AXIS", "LOCAL_AXIS", "devices", "multiprocess",
+           "ExchangeStrategy", "ExchangePlan", "ExchangeCost", "xla_plan", "xla_devices"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -26,6 +28,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
                   "synchronize_forces"),
     ".layout": ("PartLayout", "PartSystems", "part_systems"),
     ".partitioning": ("Part", "Partition", "partition", "partition_from_elements", "partition_of"),
+    ".plan": ("ExchangeCost", "ExchangePlan", "ExchangeStrategy", "xla_devices", "xla_plan"),
     ".spmd": ("AXIS", "LOCAL_AXIS", "spmd_program"),
 })
 
@@ -41,4 +44,5 @@ if TYPE_CHECKING:
     )
     from .layout import PartLayout, PartSystems, part_systems
     from .partitioning import Part, Partition, partition, partition_from_elements, partition_of
+    from .plan import ExchangeCost, ExchangePlan, ExchangeStrategy, xla_devices, xla_plan
     from .spmd import AXIS, LOCAL_AXIS, spmd_program

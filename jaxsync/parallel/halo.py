@@ -112,6 +112,11 @@ class HaloPartition:
                 holders[k].append(part.index)
         return tuple(np.asarray(h, dtype=np.int64) for h in holders)
 
+    def alone(self, index: int) -> "HaloPartition":
+        """These grown parts with part ``index`` only (as
+        :meth:`jaxsync.parallel.partitioning.Partition.alone`)."""
+        return dataclasses.replace(self, parts=(self.parts[index],), owned_local=(self.owned_local[index],))
+
     def redundancy(self) -> float:
         """Elements held by all parts together over the mesh's elements (1 = no redundant
         work; grows with the depth)."""

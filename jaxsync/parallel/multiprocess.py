@@ -592,18 +592,17 @@ def allreduce_text(allreduce: str = "auto") -> str:
     return f"MPI Allreduce inside the compiled step ({name}) {_between()}"
 
 
-def collective_text(name: str, devices=None, n_parts: int | None = None) -> str:
-    """How XLA's collective ``name`` (``"psum"`` or ``"ppermute"``) exchanges values over
-    ``devices`` (default ``jax.devices()``) for a run of ``n_parts`` parts in this
-    process's setting: one line for ``jaxsync simulate``'s header
-    (:func:`jaxsync.solve.transport`)."""
+def collective_text(what: str, devices=None, n_parts: int | None = None) -> str:
+    """How XLA's collective ``what`` (its words as printed: ``"psum"``, ``"ppermute
+    (neighbouring devices only)"``) exchanges values over ``devices`` (default
+    ``jax.devices()``) for a run of ``n_parts`` parts in this process's setting: one line
+    for ``jaxsync simulate``'s header (:func:`jaxsync.solve.transport`)."""
     import jax
 
     devices = list(jax.devices() if devices is None else devices)
     if process_count() == 1 and n_parts:  # the runner takes as many as divide the parts
         devices = devices[:max(d for d in range(1, min(len(devices), n_parts) + 1) if n_parts % d == 0)]
     n, platform = len(devices), devices[0].platform
-    what = "psum" if name == "psum" else "ppermute (neighbouring devices only)"
     if process_count() > 1 and platform == "cpu":
         return (f"gloo {what} {_between()} (slow, ~0.2-1 ms per exchange: --sync mpi calls MPI inside "
                 "the step)")

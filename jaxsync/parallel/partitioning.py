@@ -98,6 +98,11 @@ class Partition:
         """Number of shared nodes (the interface has 3 times as many dofs)."""
         return len(self.shared_nodes)
 
+    def alone(self, index: int) -> "Partition":
+        """This partition with part ``index`` only (its geometry unchanged): what the
+        timings lay out to time one part by itself (:mod:`jaxsync.perf.timing`)."""
+        return dataclasses.replace(self, parts=(self.parts[index],))
+
     def dirichlet_local(self, dofs: np.ndarray) -> list[np.ndarray]:
         """For global Dirichlet ``dofs``, the local dof indices (3 * local node + c) of
         each part, a list of arrays."""

@@ -51,16 +51,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
+from ..errors import ConfigError, ProblemError
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..options import Mode, check_option
-from ..parallel.halo import HaloPartition
 from ..parallel.layout import PartLayout, part_systems
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
-from ..solve.distributed import DistributedRunner
+from ..solve.distributed import DistributedParts, DistributedRunner
+from ..solve.exchanges import Halo, sync_strategy
 from ..solve.predicted import PredictedPhase
-from ..solve.strategies import Halo, Ppermute, Psum, sync_strategy
 from ..surrogate.data import shared_dof_layout
 from . import kernels
 from .measure import best_times, describe_devices, per_step_times
@@ -87,17 +86,10 @@ def _start(problem, dt: float, mode: Mode):
     return system, np.asarray(state.displacement), np.asarray(state.previous)
 
 
-def _alone(layout, part):
-    """``layout`` (a :class:`Partition` or a :class:`HaloPartition`) with ``part`` only."""
-    if isinstance(layout, HaloPartition):
-        return dataclasses.replace(layout, parts=(part,), owned_local=(layout.owned_local[part.index],))
-    return dataclasses.replace(layout, parts=(part,))
-
-
 def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps, repeats, device):
     """({variant: seconds per step}, setup seconds) of one part alone on ``device``."""
     start = time.perf_counter()
-    stacked = part_systems(problem, system, PartLayout.of(_alone(part_info, part)), mode)
+    stacked = part_systems(problem, system, PartLayout.of(part_info.alone(part.index)), mode)
     setup_s = time.perf_counter() - start
     part_system = jax.device_put(jax.tree_util.tree_map(lambda x: np.asarray(x)[0], stacked.system), device)
     part_state = jax.device_put(SolverState(d0[part.nodes], dm1[part.nodes],
@@ -113,7 +105,7 @@ def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps,
 
 
 def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_steps: int | None = None,
-                     repeats: int = 100, dt=None, sync="psum") -> TimingReport:
+                     repeats: int = 100, dt=None, sync="psum", devices=None) -> TimingReport:
     """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
 
     Args:
@@ -128,12 +120,16 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
             compilation of 5-6 small programs per part.
         dt: time step [s] of the timed steps, which start from the paper's initial
             state; default ``problem.dt`` (the speed does not depend on it).
-        sync: the exchange timed as t_s, :class:`jaxsync.Psum`, :class:`jaxsync.Ppermute`
-            or :class:`jaxsync.Halo` (or their names), with the devices of the distributed
-            program (default as in :func:`jaxsync.simulate`; each part's own program runs
-            on the first). With a halo the parts are the grown ones of its depth k (their
-            redundant work is in t_e, t_m, t_o), t_s is the exchange every k steps per
-            step, and ``n_steps`` is rounded up to a multiple of k.
+        sync: the exchange timed as t_s, :class:`jaxsync.Psum`, :class:`jaxsync.Ppermute`,
+            :class:`jaxsync.Halo` or any other exchange of one process's devices (or a
+            registered name), with the devices of the distributed program (default as in
+            :func:`jaxsync.simulate`; each part's own program runs on the first). The parts
+            are those of its plan (with a halo the grown ones of its depth k, their
+            redundant work in t_e, t_m, t_o); an exchange every k steps
+            (``plan.cost.every``) gives t_s per step, and ``n_steps`` is rounded up to a
+            multiple of k.
+        devices: the devices of the distributed program, passed to the exchange's plan
+            (None: the exchange's own choice).
 
     Returns:
         :class:`jaxsync.perf.reports.TimingReport`, times in seconds per step.
@@ -147,16 +143,17 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
     _check_counts(n_steps=n_steps, repeats=repeats)
     dt = float(problem.dt if dt is None else dt)
     part_info = _partition_of(problem, partitions)
-    sync = sync_strategy(sync)
+    # The exchange's plan: the parts as the distributed program holds them, the devices.
+    distributed = DistributedParts(problem, part_info, sync_strategy(sync), mode=mode, devices=devices)
     if n_steps is None:
         n_steps = int(np.clip(round(20000 / max(p.n_local for p in part_info.parts)), 5, 400))
     n_steps, repeats = int(n_steps), int(repeats)
-    if isinstance(sync, Halo):
-        n_steps = -(-n_steps // sync.depth) * sync.depth
+    every = distributed.plan.cost.every  # timed calls hold whole exchange cycles
+    n_steps = -(-n_steps // every) * every
     system, d0, dm1 = _start(problem, dt, mode)
 
-    # The distributed program (padded parts on all devices); also places the devices.
-    runner = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode, sync=sync)
+    # The distributed program (padded parts on all devices).
+    runner = DistributedRunner(problem, system, distributed, save_every=n_steps)
 
     # Each part alone, at its own size, on one device.
     setup_s, local_times = 0.0, []
@@ -191,6 +188,20 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
                         device=describe_devices(runner.devices), n_devices=len(runner.devices),
                         rows=tuple(rows), t_step=t_step, t_step_nosync=t_step_nosync,
                         setup_s=setup_s, loadavg=os.getloadavg())
+
+
+def _baselines(syncs) -> dict:
+    """{label: exchange} of the synchronized baselines of :func:`speedup_breakdown`: each an
+    exchange or a registered name that synchronizes every step (ProblemError naming the
+    fix)."""
+    try:
+        strategies = [sync_strategy(m) for m in syncs]
+    except ConfigError as exc:
+        raise ProblemError(f"syncs: {exc}") from None
+    if not strategies or not all(m.synchronizes_every_step for m in strategies):
+        raise ProblemError(f"syncs must be exchanges that synchronize every step, e.g. 'psum' and/or 'ppermute' "
+                           f"(deep halos go in halo_depths=), got {syncs!r}")
+    return {m.name: m for m in strategies}
 
 
 def _part_prediction_times(predictor, n_parts: int, history: int, n_dof: int, device, repeats: int):
@@ -234,8 +245,9 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
             weights.
         mode: ``"preassembled"`` or ``"recompute"``.
         syncs: exchanges to time for the baseline (the faster one is kept):
-            :class:`jaxsync.Psum` and/or :class:`jaxsync.Ppermute`, or their names; the
-            first one's devices run every program.
+            :class:`jaxsync.Psum` and/or :class:`jaxsync.Ppermute`, or any exchange that
+            synchronizes every step, or registered names; the first one's devices run
+            every program. The report keys them by their ``name``.
         n_cycles, repeats: refill cycles per timed call, timed calls per program.
         stage_repeats: ``repeats`` of the per-part stage timing.
         prediction_repeats: timed calls of each part's prediction alone (default
@@ -248,12 +260,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
         :class:`jaxsync.perf.reports.SpeedupReport`.
     """
     require_float64("speedup_breakdown")
-    strategies = [sync_strategy(m) if isinstance(m, str) and m in ("psum", "ppermute") else m for m in syncs]
-    if not strategies or any(not isinstance(m, (Psum, Ppermute)) for m in strategies):
-        raise ProblemError(f"syncs must name 'psum' and/or 'ppermute' (or be jaxsync.Psum() / Ppermute()), "
-                           f"got {syncs!r}")
-    syncs = tuple(m.name for m in strategies)
-    devices = strategies[0].devices
+    strategies = _baselines(syncs)
+    syncs = tuple(strategies)
     _check_counts(n_cycles=n_cycles, repeats=repeats)
     part_info = _partition_of(problem, partitions)
     if part_info.n_parts < 2:
@@ -271,8 +279,11 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
     system, d0, dm1 = _start(problem, dt, mode)
     n_dof, _ = shared_dof_layout(part_info)
 
-    runners = {m.name: DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                                         sync=type(m)(devices)) for m in strategies}
+    first = DistributedParts(problem, part_info, strategies[syncs[0]], mode=mode)
+    devices = first.devices  # the first exchange's devices run every program
+    runners = {label: DistributedRunner(problem, system, first if label == syncs[0] else
+                                        DistributedParts(problem, part_info, m, mode=mode, devices=devices),
+                                        save_every=n_steps) for label, m in strategies.items()}
     runner = runners[syncs[0]]
     dist_state = runner.from_global(SolverState(d0, dm1, 0))
     online = PredictedPhase(runner, predictor, save_every=cycle_steps)
@@ -286,8 +297,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
         if n_steps % Halo(k).depth:
             raise ProblemError(f"halo depth {k} does not divide the {n_steps} timed steps "
                                f"(n_cycles n_s n_f): use a divisor of {n_steps}")
-        halo = DistributedRunner(problem, system, part_info, save_every=n_steps, mode=mode,
-                                 sync=Halo(k, devices))
+        halo = DistributedRunner(problem, system, DistributedParts(problem, part_info, Halo(k), mode=mode,
+                                                                   devices=devices), save_every=n_steps)
         calls[f"halo:{k}"] = (kernels.distributed_step(halo, n_steps, True),
                               (halo.parts, halo.from_global(SolverState(d0, dm1, 0))))
     calls["call"] = (kernels.distributed_no_step(runner), (runner.parts, dist_state))
@@ -302,7 +313,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
                                           max(repeats, 20) if prediction_repeats is None else prediction_repeats)
 
     synchronized = timing_breakdown(problem, part_info, mode=mode, repeats=stage_repeats, dt=dt,
-                                    sync={"psum": Psum, "ppermute": Ppermute}[best](devices))
+                                    sync=strategies[best], devices=devices)
     # every part's prediction runs at the same time in the program: each pays the SPMD time
     t_d = t_prediction_spmd / cycle_steps
     rows = tuple(dataclasses.replace(r, t_s=0.0, t_d=t_d, t_t=r.t_local + t_d)

@@ -27,13 +27,15 @@ __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "si
            "Psum", "Ppermute", "Mpi", "Halo", "SaveAt", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
            "Recompute", "StoreAll", "Synchronized", "Predicted",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
-           "DistributedParts", "DistributedRunner", "transport"]
+           "DistributedParts", "DistributedRunner", "transport", "sync_strategy", "register_exchange",
+           "unregister_exchange", "exchange_names"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
     ".distributed": ("DistributedParts", "DistributedRunner"),
     ".driver": ("Chunk", "Progress", "Runner", "Segment", "run_chunks"),
     ".ensemble": ("ensemble",),
+    ".exchanges": ("exchange_names", "register_exchange", "sync_strategy", "unregister_exchange"),
     ".full_system": ("simulate_full_system",),
     ".host": ("SingleDeviceRunner",),
     ".phases": ("Predicted", "Synchronized"),
@@ -48,6 +50,7 @@ if TYPE_CHECKING:
     from .distributed import DistributedParts, DistributedRunner
     from .driver import Chunk, Progress, Runner, Segment, run_chunks
     from .ensemble import ensemble
+    from .exchanges import exchange_names, register_exchange, sync_strategy, unregister_exchange
     from .full_system import simulate_full_system
     from .host import SingleDeviceRunner
     from .phases import Predicted, Synchronized

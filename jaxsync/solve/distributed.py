@@ -4,8 +4,8 @@ them in compiled chunks.
 :class:`DistributedParts` is what both executors need of a distributed run, built once
 on the host from the problem's mesh and the partition: the padded layout
 (:class:`~jaxsync.parallel.layout.PartLayout`), the devices and how the parts exchange
-across them (:class:`~jaxsync.parallel.exchange.Exchange`, from the run's ``sync``
-strategy), and the force model. Its :meth:`~DistributedParts.systems` are JAX functions of
+across them (the :class:`~jaxsync.parallel.plan.ExchangePlan` of the run's ``sync``
+exchange), and the force model. Its :meth:`~DistributedParts.systems` are JAX functions of
 the problem's global system, so traced material, damping, loads and dt flow through.
 
 :class:`DistributedRunner` is the host executor's runner of synchronized steps
@@ -24,45 +24,19 @@ from jax.sharding import Mesh as DeviceMesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from ..errors import ConfigError, PartitionError
+from ..errors import ConfigError
 from ..fem.internal_force import force_model
 from ..fem.stepper import ExplicitSystem, SolverState
-from ..parallel.exchange import Exchange, neighbour_exchange
-from ..parallel.halo import check_save_every, halo_partition
-from ..parallel.layout import PartLayout, PartSystems, part_systems
+from ..parallel.halo import check_save_every
+from ..parallel.layout import PartSystems, part_systems
 from ..parallel.partitioning import Partition, partition_from_elements
 from ..parallel.partitioning import partition as make_partition
 from ..parallel.spmd import AXIS, spmd_program
 from .driver import Chunk, chunk_of_saves
+from .exchanges import sync_strategy
 from .phases import check_recordable, part_synchronized_steps, synchronized_steps
-from .strategies import Halo, Mpi, sync_strategy
 
 __all__ = ["DistributedParts", "DistributedRunner", "to_host"]
-
-
-def _default_devices(n_parts: int, devices=None, transport: str = "xla"):
-    """Devices of this run's mesh.
-
-    ``"xla"``: the given devices or, by default, as many of ``jax.devices()`` as divide
-    n_parts; across processes, all devices of all processes (each process must hold
-    parts). ``"mpi"``: one device of this process (the others are reached through MPI)."""
-    if transport == "mpi":
-        local = list(jax.local_devices() if devices is None else devices)
-        if len(local) != 1 or local[0].process_index != jax.process_index():
-            raise ConfigError(
-                f"sync='mpi' runs each process's parts on one device of that process, got "
-                f"{len(local)} devices; start one process per device (mpiexec -n N_devices), "
-                "or use sync='psum'")
-        return local
-    available = list(jax.devices() if devices is None else devices)
-    if jax.process_count() > 1:
-        if n_parts % len(available):
-            raise PartitionError(
-                f"n_parts={n_parts} must be a multiple of the {len(available)} devices of the "
-                f"{jax.process_count()} processes; use a multiple of {len(available)} parts")
-        return available
-    n = max(d for d in range(1, min(len(available), n_parts) + 1) if n_parts % d == 0)
-    return available[:n]
 
 
 def _partition(problem, partitions) -> Partition:
@@ -94,66 +68,37 @@ class DistributedParts:
         problem: the problem (its mesh is partitioned).
         partitions: an int n_parts (METIS, seed 0; ``jaxsync.partition(mesh, n, seed=s)``
             for another seed) or a :class:`jaxsync.Partition`.
-        sync: the exchange (:func:`jaxsync.solve.strategies.sync_strategy`: a
-            :class:`~jaxsync.solve.strategies.Psum`, ``Ppermute``, ``Mpi`` or ``Halo``,
-            a name, or None for the default).
+        sync: the exchange (:func:`jaxsync.solve.exchanges.sync_strategy`: a
+            :class:`~jaxsync.solve.exchanges.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
+            :class:`~jaxsync.parallel.plan.ExchangeStrategy`, a registered name, or None
+            for the default).
         mode: the force model (:func:`jaxsync.fem.internal_force.force_model`).
+        devices: the devices to run on (None: the exchange's own choice); passed to
+            the exchange's ``plan``.
 
     Attributes:
         partition: the element :class:`Partition`.
-        sync: the strategy.
+        sync: the exchange.
+        plan: its :class:`~jaxsync.parallel.plan.ExchangePlan` for this partition, which
+            the attributes below unpack.
         layout: :class:`PartLayout` of the parts as the programs hold them (the grown
             parts of deep halos).
         exchange: :class:`Exchange` of the programs.
         transport: ``"mpi"`` (values cross processes through MPI from inside the step, one
             device per process) or ``"xla"`` (XLA's collectives).
+        part_slice: the parts this process holds (MPI: its own; else all).
         devices, device_mesh, sharding: where the parts run (the part axis sharded over
             the devices in order).
     """
 
-    def __init__(self, problem, partitions, sync=None, *, mode="preassembled"):
-        from ..parallel import multiprocess
-
+    def __init__(self, problem, partitions, sync=None, *, mode="preassembled", devices=None):
         self.sync = sync_strategy(sync)
         self.partition = _partition(problem, partitions)
         self.force_model = force_model(mode)
-        n_parts = self.partition.n_parts
-        # deep halos exchange through MPI wherever MPI is the default
-        self.transport = "mpi" if isinstance(self.sync, Mpi) or (
-            isinstance(self.sync, Halo) and multiprocess.default_sync() == "mpi") else "xla"
-        devices = _default_devices(n_parts, getattr(self.sync, "devices", None), self.transport)
-        if n_parts % len(devices):
-            raise PartitionError(f"n_parts={n_parts} must be a multiple of the number of devices "
-                                 f"({len(devices)})")
-        self.part_slice = slice(None)  # the parts this process holds (MPI: its own)
-        across = None
-        depth = None
-        parts = self.partition
-        if isinstance(self.sync, Halo):
-            depth = self.sync.depth
-            parts = halo_partition(self.partition, depth)
-        if self.transport == "mpi":
-            comm = getattr(self.sync, "comm", None)
-            if comm is None:
-                comm = multiprocess.world().Dup()  # the step's collectives, apart from others
-            size, rank = comm.Get_size(), comm.Get_rank()
-            if size > 1 and jax.process_count() != size:
-                raise ConfigError(
-                    f"sync='mpi' over {size} MPI ranks needs jax.distributed joined across them "
-                    f"(JAX sees {jax.process_count()} process); call "
-                    "jaxsync.parallel.multiprocess.initialize() at the start of every rank")
-            if n_parts % size:
-                raise PartitionError(f"n_parts={n_parts} must be a multiple of the {size} MPI "
-                                     f"ranks; use a multiple of {size} parts")
-            per_rank = n_parts // size
-            self.part_slice = slice(rank * per_rank, (rank + 1) * per_rank)
-            across = multiprocess.make_allreduce(comm, getattr(self.sync, "allreduce", "auto"))
-        elif self.sync.name == "ppermute":
-            across = neighbour_exchange(self.partition, len(devices))
-        self.layout = PartLayout.of(parts)
-        self.exchange = Exchange(parts.n_interface, across, depth)
-        self.devices = devices
-        self.device_mesh = DeviceMesh(np.array(devices), (AXIS,))
+        self.plan = self.sync.plan(self.partition, devices)
+        self.layout, self.exchange, self.devices = self.plan.layout, self.plan.exchange, list(self.plan.devices)
+        self.part_slice, self.transport = self.plan.part_slice, self.plan.transport
+        self.device_mesh = DeviceMesh(np.array(self.devices), (AXIS,))
         self.sharding = NamedSharding(self.device_mesh, P(AXIS))
 
     @property
@@ -185,6 +130,18 @@ class DistributedParts:
         (:func:`jaxsync.parallel.spmd.spmd_program`)."""
         return spmd_program(per_part, self.device_mesh, n_in=n_in, n_out=n_out, jit=jit)
 
+    def check_recordable(self) -> None:
+        """Refuse to record every step's shared-node displacements with an exchange that
+        does not synchronize every step (deep halos, or any exchange whose
+        ``synchronizes_every_step`` is False): a :class:`~jaxsync.errors.ConfigError`
+        naming the fix."""
+        check_recordable(self.exchange)
+        if not self.sync.synchronizes_every_step:
+            raise ConfigError(
+                f"sync={self.sync.name!r} does not synchronize every step, so the shared-node displacements "
+                "after every step (the surrogates' training data, the synchronization-avoiding solver's "
+                "synchronized phases) are not known; use an exchange that does, e.g. sync='psum'")
+
     def check_save_every(self, save_every: int) -> int:
         """The steps of the smallest whole chunk: ``save_every``, or with deep halos the
         larger of it and the depth (which must divide one another)."""
@@ -211,12 +168,12 @@ class DistributedRunner:
                             else DistributedParts(problem, partitions, sync, mode=mode))
         d = self.distributed
         self.partition, self.layout, self.devices = d.partition, d.layout, d.devices
-        self.device_mesh, self.sync, self.transport = d.device_mesh, d.sync.name, d.transport
+        self.device_mesh, self.sync, self.transport = d.device_mesh, d.sync.name, d.transport  # sync: a label
         self.save_every = save_every
         self.record_shared = bool(record_shared)
         self._unit = d.check_save_every(save_every)
         if record_shared:
-            check_recordable(d.exchange)
+            d.check_recordable()
         self.n_nodes = self.partition.n_nodes
         self.n_local = self.layout.n_local
         self.parts = d.put(d.systems(problem, system))

@@ -21,7 +21,7 @@ from ..errors import ProblemError
 from ..fem.stepper import build_system, initial_state
 from ..pytree import is_traced
 from .phases import Synchronized
-from .strategies import Halo, SaveAt, SolverCheckpoint, TracedExecutor, choose_executor
+from .strategies import SaveAt, SolverCheckpoint, TracedExecutor, choose_executor
 
 __all__ = ["simulate", "steady_state"]
 
@@ -265,9 +265,11 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
             distributed solver (paper Algorithm 1, ``jax.shard_map`` over devices).
         sync: distributed runs: how the parts exchange, :class:`jaxsync.Psum`,
             :class:`jaxsync.Ppermute`, :class:`jaxsync.Mpi` or :class:`jaxsync.Halo` (deep
-            halos, exact; ``save`` and the depth must divide one another), or their names;
-            default :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process,
-            MPI across CPU processes). The strategies carry the devices to run on.
+            halos, exact; ``save`` and the depth must divide one another), any
+            :class:`jaxsync.parallel.plan.ExchangeStrategy`, or a registered name
+            (:func:`jaxsync.solve.register_exchange`); default
+            :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process, MPI
+            across CPU processes). The exchanges carry the devices to run on.
         mode: the internal force, ``"preassembled"`` (sparse K, stored once) or
             ``"recompute"`` (element quantities formed every step), paper Remark 2
             (:mod:`jaxsync.fem.internal_force`).
@@ -316,11 +318,12 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
         from .distributed import DistributedParts
 
         distributed = DistributedParts(problem, partitions, sync, mode=mode)
-        if isinstance(distributed.sync, Halo):
-            unit = distributed.check_save_every(save.every)
-            if n_steps % unit:
-                raise ProblemError(f"with halo depth {distributed.sync.depth} and save_every={save.every}, n_steps "
-                                   f"must be a multiple of {unit}; use n_steps={n_steps - n_steps % unit + unit}")
+        if save.records_every_step:
+            distributed.check_recordable()
+        unit = distributed.check_save_every(save.every)  # save.every, or whole exchange cycles of deep halos
+        if n_steps % unit:
+            raise ProblemError(f"with halo depth {distributed.halo_depth} and save_every={save.every}, n_steps "
+                               f"must be a multiple of {unit}; use n_steps={n_steps - n_steps % unit + unit}")
     schedule = (Synchronized(n_steps),)
     if isinstance(executor, TracedExecutor):
         if checkpoint is not None:  # the reason, not a missing feature

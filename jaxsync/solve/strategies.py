@@ -6,7 +6,8 @@ the solvers take them as arguments, and the command line's strings map onto them
 (:func:`sync_strategy`, :meth:`SaveAt.of`, :meth:`SolverCheckpoint.of`).
 
 * How the parts exchange (``sync=``): :class:`Psum`, :class:`Ppermute`, :class:`Mpi`,
-  :class:`Halo`.
+  :class:`Halo`, defined in :mod:`jaxsync.solve.exchanges` (with the registry of their
+  names) and importable from here too.
 * What a run keeps (``save=``): :class:`SaveAt`.
 * Where a run can resume from (``checkpoint=``): :class:`SolverCheckpoint`.
 * Who runs it (``executor=``): :class:`HostExecutor` (compiled chunks driven from Python:
@@ -25,7 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError, ProblemError
+from ..errors import ProblemError
+from .exchanges import Halo, Mpi, Ppermute, Psum, sync_strategy, transport
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "SaveAt", "SolverCheckpoint",
            "HostExecutor", "TracedExecutor", "Recompute", "StoreAll", "ResyncTolerance", "choose_executor",
@@ -36,168 +38,6 @@ def _positive_int(name: str, value, error=ProblemError) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
         raise error(f"{name} must be a positive integer, got {value!r}")
     return int(value)
-
-
-def _devices(value):
-    return None if value is None else tuple(value)
-
-
-# --------------------------------------------------------------------------- exchange
-
-
-@dataclasses.dataclass(frozen=True)
-class Psum:
-    """The parts sum their shared-node forces with ``jax.lax.psum`` over all devices every
-    step (emulated devices in one process, gloo between CPU processes, NCCL between GPUs).
-
-    Attributes:
-        devices: the devices of the run (default: as many of ``jax.devices()`` as divide
-            the part count; across processes all of them).
-    """
-
-    devices: tuple | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "devices", _devices(self.devices))
-
-    name = "psum"
-
-    def transport(self, n_parts: int | None = None) -> str:
-        """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
-        from ..parallel.multiprocess import collective_text
-
-        return collective_text(self.name, self.devices, n_parts)
-
-
-@dataclasses.dataclass(frozen=True)
-class Ppermute:
-    """Each device sends only the nodes it shares with each neighbouring device
-    (``jax.lax.ppermute``; :class:`jaxsync.parallel.exchange.NeighbourExchange`): cheaper
-    than a psum of the whole interface when each device has few neighbours.
-
-    Attributes:
-        devices: as for :class:`Psum`.
-    """
-
-    devices: tuple | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "devices", _devices(self.devices))
-
-    name = "ppermute"
-
-    def transport(self, n_parts: int | None = None) -> str:
-        """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
-        from ..parallel.multiprocess import collective_text
-
-        return collective_text(self.name, self.devices, n_parts)
-
-
-@dataclasses.dataclass(frozen=True)
-class Mpi:
-    """One device per process; the shared-node forces are summed by an MPI Allreduce
-    called from inside the compiled step (processes started by ``mpiexec``).
-
-    Attributes:
-        allreduce: ``"mpi4jax"`` (mpi4jax's XLA custom call into MPI), ``"ctypes"``
-            (jaxsync's own XLA FFI handler calling the MPI library that mpi4py loaded),
-            ``"callback"`` (a host callback into mpi4py, slow) or ``"auto"`` (mpi4jax when
-            importable, else ctypes, else the callback):
-            :func:`jaxsync.parallel.multiprocess.make_allreduce`.
-        comm: the mpi4py communicator (default a duplicate of ``COMM_WORLD``); rank r runs
-            parts [r k, (r + 1) k), k = n_parts / size.
-        devices: the one device of this process that runs its parts (default
-            ``jax.local_devices()``, which must then be one).
-    """
-
-    allreduce: str = "auto"
-    comm: Any = None
-    devices: tuple | None = None
-
-    def __post_init__(self):
-        object.__setattr__(self, "devices", _devices(self.devices))
-        from ..parallel.multiprocess import ALLREDUCE_BACKENDS
-
-        if self.allreduce not in ALLREDUCE_BACKENDS:
-            raise ConfigError(f"Mpi(allreduce=...) must be one of {ALLREDUCE_BACKENDS}, got {self.allreduce!r}")
-
-    name = "mpi"
-
-    def transport(self, n_parts: int | None = None) -> str:
-        """One line: how the processes sum (:func:`transport`)."""
-        from ..parallel.multiprocess import allreduce_text
-
-        return allreduce_text(self.allreduce)
-
-
-@dataclasses.dataclass(frozen=True)
-class Halo:
-    """Deep halos (:mod:`jaxsync.parallel.halo`), the exact communication-avoiding scheme:
-    every part grown by ``depth`` layers of its neighbours' elements steps alone and
-    exchanges both displacement levels of its halo every ``depth`` steps (through a psum
-    in one process and across GPUs, through MPI across CPU processes). The same trajectory
-    as the synchronized solver to round-off.
-
-    Attributes:
-        depth: k, the steps between two exchanges; ``save_every`` and k must divide one
-            another.
-        devices: as for :class:`Psum`.
-    """
-
-    depth: int = 1
-    devices: tuple | None = None
-
-    def __post_init__(self):
-        from ..parallel.halo import check_halo_depth
-
-        object.__setattr__(self, "depth", check_halo_depth(self.depth))
-        object.__setattr__(self, "devices", _devices(self.devices))
-
-    name = "halo"
-
-    def transport(self, n_parts: int | None = None) -> str:
-        """One line: how the halos are exchanged (:func:`transport`)."""
-        from ..parallel.multiprocess import allreduce_text, collective_text, default_sync
-
-        every = f"deep halos of depth {self.depth}, both displacement levels exchanged every {self.depth} steps"
-        if default_sync() == "mpi":  # across CPU processes the halos go through MPI
-            return f"{every} by {allreduce_text()}"
-        inner = collective_text("psum", self.devices, n_parts)
-        return f"{every} by {inner}" if not inner.startswith("one device") else f"deep halos on {inner}"
-
-
-_SYNC = {"psum": Psum, "ppermute": Ppermute, "mpi": Mpi, "halo": Halo}
-SyncStrategy = Psum | Ppermute | Mpi | Halo
-
-
-def sync_strategy(value=None) -> SyncStrategy:
-    """The exchange of a distributed run: a strategy object as it is, a name
-    (``"psum"``, ``"ppermute"``, ``"mpi"``, ``"halo"``: the strategy with its defaults), or
-    None: :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process, MPI across
-    CPU processes)."""
-    from ..options import Sync, check_option
-    from ..parallel.multiprocess import default_sync
-
-    if isinstance(value, (Psum, Ppermute, Mpi, Halo)):
-        return value
-    name = default_sync() if value is None else check_option("sync", value, Sync)
-    return _SYNC[name]()
-
-
-def transport(sync=None, n_parts: int | None = None) -> str:
-    """One line that says how the parts of a distributed run exchange their shared-node
-    values: the synchronization ``sync`` (a strategy, a name, or None: :func:`sync_strategy`)
-    of a run of ``n_parts`` parts in this process's setting (the devices and processes of
-    JAX, the MPI backend that ``"auto"`` resolves to). ``jaxsync simulate`` prints it in its
-    header. For example::
-
-        XLA psum over 2 emulated CPU devices in one process
-        MPI Allreduce inside the compiled step (mpi4jax) between 2 processes
-        MPI Allreduce inside the compiled step (jaxsync's ctypes FFI handler) between 2 processes
-        gloo psum between 2 processes (slow, ~0.2-1 ms per exchange: --sync mpi calls MPI inside the step)
-
-    Reads only what JAX and mpi4py report (no collective): any rank may call it."""
-    return sync_strategy(sync).transport(n_parts)
 
 
 # --------------------------------------------------------------------------- saving

@@ -11,7 +11,7 @@ import dataclasses
 import os
 import sys
 
-from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, Sync, choices
+from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, choices
 
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "mode_of", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "resync_tolerance_of", "add_progress_option", "surrogate_defaults",
@@ -98,7 +98,11 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
     """``--sync``: how the parts sum shared-node forces; left None unless given, so that
     the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`).
     ``deep_halos``: also offer ``--sync halo`` and ``--halo-depth`` (synchronized runs only)."""
-    methods = [m for m in choices(Sync) if deep_halos or m != "halo"]
+    from ...solve.exchanges import exchange_names, sync_strategy
+
+    # every registered exchange (jaxsync.solve.register_exchange); without deep halos only
+    # those that synchronize every step
+    methods = [m for m in exchange_names() if deep_halos or sync_strategy(m).synchronizes_every_step]
     parser.add_argument("--sync", choices=methods, default=None,
                         help="how parts sum shared-node forces every synchronized step: XLA psum of "
                              "the whole interface (emulated devices, gloo between processes, NCCL "
