@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import PartitionError
-from ..fem.mesh import Mesh
+from ..mesh import Mesh
 
 __all__ = ["Part", "Partition", "partition", "partition_from_elements", "partition_of"]
 
