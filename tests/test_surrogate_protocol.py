@@ -40,6 +40,7 @@ from jaxsync.surrogate import (
     surrogate_class,
     surrogate_kinds,
     train_surrogates,
+    unregister_surrogate,
 )
 from jaxsync.surrogate.online import OnlineLearner
 
@@ -59,9 +60,6 @@ def _guide_module():
     return module
 
 
-WindowMLP = (sys.modules.get("extending_surrogates_guide") or _guide_module()).WindowMLP
-
-
 # ----------------------------------------------------------------------------- closed form
 
 
@@ -73,7 +71,6 @@ class RidgeSettings:
         return {"model": "ridge-test", "method": "ridge", "ridge": self.ridge}
 
 
-@register_surrogate
 @jax.tree_util.register_static
 @dataclasses.dataclass(frozen=True)
 class RidgeARX(LeastSquaresFitted):
@@ -156,6 +153,19 @@ class RidgeARX(LeastSquaresFitted):
 # ----------------------------------------------------------------------------- fixtures
 
 
+@pytest.fixture(scope="module", autouse=True)
+def models():
+    """The guide's MLP ("mlp", registered by the guide's code) and RidgeARX
+    ("ridge-test"), registered for this module's tests only: other tests see the
+    built-in kinds alone."""
+    guide = _guide_module()
+    register_surrogate(RidgeARX)
+    yield guide.WindowMLP
+    unregister_surrogate("mlp")
+    unregister_surrogate("ridge-test")
+    del sys.modules[guide.__name__]
+
+
 @pytest.fixture(scope="module")
 def problem():
     return jaxsync.cantilever()
@@ -210,7 +220,8 @@ def _refill_rms(surrogate, reference, first, last, persistence=False):
 # ----------------------------------------------------------------------------- tests
 
 
-def test_the_registry_names_the_models_and_refuses_what_is_not_one():
+def test_the_registry_names_the_models_and_refuses_what_is_not_one(models):
+    WindowMLP = models
     assert surrogate_kinds()[:2] == ("lstm", "linear") and {"mlp", "ridge-test"} <= set(surrogate_kinds())
     assert surrogate_class("mlp") is WindowMLP and surrogate_class("ridge-test") is RidgeARX
     with pytest.raises(ConfigError, match="model must be one of 'lstm', 'linear'.*'mlp'.*got 'gru'"):
@@ -263,10 +274,10 @@ def test_the_closed_form_fit_is_the_ridge_solution_of_numpy():
                                rtol=1e-6)
 
 
-def test_the_gradient_model_trains_below_persistence_and_round_trips(mlp, reference, problem, tmp_path):
+def test_the_gradient_model_trains_below_persistence_and_round_trips(models, mlp, reference, problem, tmp_path):
     """The MLP trained through train_surrogates predicts a refill with less than half the
     RMS error of holding the last value; its file names the model and loads back equal."""
-    assert isinstance(mlp.result.arch, WindowMLP) and mlp.model == "mlp" and mlp.result.arch.n_hidden == 16
+    assert isinstance(mlp.result.arch, models) and mlp.model == "mlp" and mlp.result.arch.n_hidden == 16
     assert mlp.result.arch.n_load == mlp.surrogate.n_load > 0  # the cantilever records its load signals
     assert mlp.result.n_epochs_run > 1 and mlp.summary()["training"]["n_epochs_run"] == mlp.result.n_epochs_run
     surrogate = mlp.surrogate.for_problem(problem)
@@ -332,7 +343,7 @@ def test_the_closed_form_model_trains_saves_and_loads(ridge, problem, tmp_path):
     jax.tree_util.tree_map(np.testing.assert_array_equal, saved.params, ridge.result.params)
 
 
-def test_the_command_line_trains_a_registered_model(reference, tmp_path, capsys):
+def test_the_command_line_trains_a_registered_model(models, reference, tmp_path, capsys):
     path = tmp_path / "run.h5"
     reference.save(path)
     out = tmp_path / "out"
@@ -341,16 +352,20 @@ def test_the_command_line_trains_a_registered_model(reference, tmp_path, capsys)
                  "--emse-applications", "0", "--rollout-tolerance", "0", "--no-progress"]) == 0
     assert "3 epochs" in capsys.readouterr().out
     saved = load_surrogate(out / "surrogate.h5")
-    assert saved.arch == WindowMLP(n_dof=saved.arch.n_dof, n_past=N_P, n_future=N_F, n_load=saved.arch.n_load,
+    assert saved.arch == models(n_dof=saved.arch.n_dof, n_past=N_P, n_future=N_F, n_load=saved.arch.n_load,
                                    n_hidden=8)
     assert json.loads((out / "train_summary.json").read_text())["architecture"]["kind"] == "mlp"
 
 
-def test_a_file_of_an_unregistered_model_names_the_fix(ridge, tmp_path, monkeypatch):
+def test_a_file_of_an_unregistered_model_names_the_fix(ridge, tmp_path):
     path = tmp_path / "ridge.h5"
     ridge.surrogate.save(path)
-    from jaxsync.surrogate import registry
-
-    monkeypatch.delitem(registry._REGISTERED, "ridge-test")
-    with pytest.raises(CheckpointError, match="got 'ridge-test'.*register its model"):
-        load_surrogate(path)
+    unregister_surrogate("ridge-test")
+    try:
+        with pytest.raises(CheckpointError, match="got 'ridge-test'.*register its model"):
+            load_surrogate(path)
+        with pytest.raises(ConfigError, match="built in"):
+            unregister_surrogate("lstm")
+    finally:
+        register_surrogate(RidgeARX)
+    assert load_surrogate(path).arch == ridge.result.arch

@@ -222,9 +222,11 @@ def run_train(args: argparse.Namespace) -> int:
         devices=args.devices, progress=not args.no_progress,
     ).write(args.output, surrogate_name=args.surrogate_name)
     result = trained.result
+    # the epoch each part kept, where training ran epochs
+    kept = "" if result.best_epoch is None else f" (best epochs {', '.join(str(int(e)) for e in result.best_epoch)})"
     print(f"wrote {os.path.join(args.output, args.surrogate_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
           f"and {SUMMARY_NAME} ({result.arch.fit_description(result)}); validation MSE of the kept parameters per "
-          f"part: {', '.join(f'{v:.3e}' for v in result.best_val_loss)}")
+          f"part: {', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
     inputs = result.load_inputs
     print(f"load input: {len(inputs)} known load signal(s): " + "; ".join(map(str, inputs)) if inputs else
           "load input: none (load-blind surrogates)")

@@ -53,7 +53,7 @@ __all__ = [
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
     "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning", "OnlineLearning",
     "SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
-    "register_surrogate", "surrogate_class", "surrogate_kinds",
+    "register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds",
 ]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
@@ -70,7 +70,8 @@ __getattr__, __dir__ = export_lazily(__name__, {
     "jaxsync.surrogate.online": ("OnlineLearning",),
     "jaxsync.surrogate.protocol": ("FitSettings", "GradientFitted", "LeastSquaresFitted", "PredictionCost",
                                    "SurrogateArchitecture"),
-    "jaxsync.surrogate.registry": ("register_surrogate", "surrogate_class", "surrogate_kinds"),
+    "jaxsync.surrogate.registry": ("register_surrogate", "surrogate_class", "surrogate_kinds",
+                                   "unregister_surrogate"),
     "jaxsync.surrogate.saved": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
     "jaxsync.surrogate.train": ("TrainConfig", "TrainResult", "train_replicas"),
     "jaxsync.surrogate.training_state": ("TrainingState",),
@@ -100,7 +101,12 @@ if TYPE_CHECKING:
         PredictionCost,
         SurrogateArchitecture,
     )
-    from jaxsync.surrogate.registry import register_surrogate, surrogate_class, surrogate_kinds
+    from jaxsync.surrogate.registry import (
+        register_surrogate,
+        surrogate_class,
+        surrogate_kinds,
+        unregister_surrogate,
+    )
     from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
     from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
     from jaxsync.surrogate.training_state import TrainingState

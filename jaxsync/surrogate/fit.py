@@ -3,9 +3,10 @@ and ``jaxsync demo``.
 
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
 distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
-builds the sample-refill windows of every part, trains all replicas together
-(:func:`~jaxsync.surrogate.train.train_replicas`; with
-``ArchitectureChoice(model="linear")``, fits the linear autoregressive baseline by least
+builds the sample-refill windows of every part, fits all replicas together the model's own
+way (its ``fit``, :mod:`jaxsync.surrogate.protocol`: the LSTM and other gradient-fitted
+models by :func:`~jaxsync.surrogate.train.train_replicas`; with
+``ArchitectureChoice(model="linear")``, the linear autoregressive baseline by least
 squares on the same windows instead, :func:`~jaxsync.surrogate.linear.fit_linear`),
 measures sqrt(E_mse) and the offline rollout on the first run and returns a
 :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the solver, its
@@ -65,9 +66,9 @@ from jaxsync.surrogate.evaluate import (
     max_applications,
     rollout_errors,
 )
-from jaxsync.surrogate.lstm import count_parameters
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.protocol import FitSettings
+from jaxsync.surrogate.replicas import count_parameters
 from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
 from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult
 from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
@@ -330,7 +331,9 @@ def train_surrogates(
     callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainedSurrogates:
     """Train one LSTM surrogate per part on distributed trajectories of one partition
-    (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``).
+    (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``, or
+    any registered model: ``ArchitectureChoice(model=kind)``, fitted by its own ``fit``,
+    :mod:`jaxsync.surrogate.protocol`).
 
     Computes only: write the results with :meth:`TrainedSurrogates.write`.
 

@@ -64,6 +64,11 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.protocol import GradientFitted, PredictionCost
+from jaxsync.surrogate.replicas import (
+    count_parameters,  # noqa: F401 - importable from here as before
+    pad_params,
+    stack_params,
+)
 
 Params = dict[str, Any]
 
@@ -170,8 +175,6 @@ class LSTMArchitecture(GradientFitted):
         """Replica r is ``init_params(fold_in(key, r))`` at its own dof count (so it equals a
         network initialized alone), zero-padded to ``n_dof``
         (:func:`~jaxsync.surrogate.replicas.pad_params`)."""
-        from jaxsync.surrogate.replicas import pad_params, stack_params
-
         replicas = []
         for r, count in enumerate(dof_counts):
             own = dataclasses.replace(self, n_dof=int(count))
@@ -472,11 +475,6 @@ def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
     if tuple(loads.shape) != expected:
         raise ConfigError(f"load signals must have shape (n_past + n_future, n_load) = {expected}, got {loads.shape}")
     return loads.astype(arch.dtype)
-
-
-def count_parameters(params: Params) -> int:
-    """Number of scalar parameters in a pytree."""
-    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params)))
 
 
 # ----------------------------------------------------------------------------- cost

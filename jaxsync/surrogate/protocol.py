@@ -8,7 +8,7 @@ pytree (``@jax.tree_util.register_static``: it never carries arrays), subclassin
 on the command line, :func:`jaxsync.surrogate.register_surrogate`). Its parameters are a
 pytree of arrays; one set per part (a *replica*), stacked on a leading part axis.
 
-Fields every model has (the window geometry, set from the data by :meth:`from_choice`):
+Fields every model has (the window geometry, set from the data by :meth:`SurrogateArchitecture.from_choice`):
 
 * ``n_dof``: D, values per snapshot: the shared-node displacements of a part (3 per
   shared node), padded to the widest part;
@@ -32,24 +32,26 @@ result              (n_f, D)                   the predicted snapshots, ``dtype`
 
 The methods (defaults in :class:`SurrogateArchitecture` where one exists):
 
-==========================  ==============================================================
-``init(key)``               initial parameters of one replica (required)
-``forward(params, xs, ...)``  the prediction above (required)
-``loss(params, x, y, ...)``  weighted masked MSE over windows (default :func:`masked_mse`);
-                            what gradient training and online learning minimise
-``fit(data, settings)``     train all replicas on windows (:class:`FitSettings`): by
-                            gradient (:class:`GradientFitted`, through
-                            :func:`~jaxsync.surrogate.train.train_replicas`) or in closed
-                            form (:class:`LeastSquaresFitted`, the model's own solve)
-``online_update(...)``      one update from the windows a run recomputes (gradient steps,
-                            or the model's ``refit``)
-``prediction_cost(n_s)``    bytes and flops of one refill prediction (n_s windows)
-``to_dict``/``from_dict``   the hyperparameters, JSON-ready, as a surrogate file stores
-                            them (default: the dataclass fields)
-``from_choice(choice, ...)``  the model for the data's windows from an
-                            :class:`~jaxsync.surrogate.ArchitectureChoice` (default: the
-                            choice's fields of the same names)
-==========================  ==============================================================
+==============================  ==========================================================
+``init(key)``                   initial parameters of one replica (required)
+``forward(params, xs, ...)``    the prediction above (required)
+``loss(params, x, y, ...)``     weighted masked MSE over windows (default
+                                :func:`~jaxsync.surrogate.loss.masked_mse`); what gradient
+                                training and online learning minimise
+``fit(data, settings)``         train all replicas on windows (:class:`FitSettings`): by
+                                gradient (:class:`GradientFitted`, through
+                                :func:`~jaxsync.surrogate.train.train_replicas`) or in
+                                closed form (:class:`LeastSquaresFitted`, the model's own
+                                solve)
+``online_update(...)``          one update from the windows a run recomputes (gradient
+                                steps, or the model's ``refit``)
+``prediction_cost(n_s)``        bytes and flops of one refill prediction (n_s windows)
+``to_dict``, ``from_dict``      the hyperparameters, JSON-ready, as a surrogate file stores
+                                them (default: the dataclass fields)
+``from_choice(choice, ...)``    the model for the data's windows from an
+                                :class:`~jaxsync.surrogate.ArchitectureChoice` (default:
+                                the choice's fields of the same names)
+==============================  ==========================================================
 
 A worked example: the guide "Extending the surrogates" (``docs/guides/extending-surrogates.md``).
 """
@@ -66,8 +68,7 @@ import numpy as np
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.loss import masked_mse
 
-__all__ = ["SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
-           "masked_mse"]
+__all__ = ["SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost"]
 
 Params = Any
 
@@ -166,7 +167,8 @@ class SurrogateArchitecture:
         return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *replicas)
 
     def loss(self, params, x, y, load_parameter, weight, dof_mask, signals=None):
-        """The training loss of one replica (default :func:`masked_mse`)."""
+        """The training loss of one replica (default
+        :func:`~jaxsync.surrogate.loss.masked_mse`)."""
         return masked_mse(params, self, x, y, load_parameter, weight, dof_mask, signals)
 
     def prediction_cost(self, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> PredictionCost:
@@ -289,9 +291,8 @@ class GradientFitted(SurrogateArchitecture):
                                               if result.seconds_per_epoch > 0 else None)}
 
     def fit_description(self, result) -> str:
-        how = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
-               else f"{result.n_epochs_run} epochs")
-        return f"{how}, best epochs {', '.join(str(int(e)) for e in result.best_epoch)}"
+        return (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
+                else f"{result.n_epochs_run} epochs")
 
 
 class LeastSquaresFitted(SurrogateArchitecture):

@@ -12,7 +12,8 @@ kind       class
 "linear"   :class:`~jaxsync.surrogate.linear.LinearArchitecture`
 =========  =====================================================
 
-:func:`register_surrogate` adds a model (its class attribute ``kind`` is its name); a model
+:func:`register_surrogate` adds a model (its class attribute ``kind`` is its name;
+:func:`unregister_surrogate` removes it again); a model
 must be registered before a file of its kind is loaded or ``jaxsync train --model`` names
 it (the command line's parser lists the kinds registered when it is built). The registry
 is the only global state of the surrogate package: a dictionary filled by the built-in
@@ -26,7 +27,7 @@ import importlib
 
 from jaxsync.errors import ConfigError
 
-__all__ = ["register_surrogate", "surrogate_class", "surrogate_kinds", "BUILTIN_SURROGATES"]
+__all__ = ["register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds", "BUILTIN_SURROGATES"]
 
 #: kind -> (module, class name) of the built-in models, imported on first lookup
 BUILTIN_SURROGATES: dict[str, tuple[str, str]] = {
@@ -79,6 +80,21 @@ def register_surrogate(cls: type, *, replace: bool = False) -> type:
                           f"give {cls.__name__} another kind, or pass replace=True")
     _REGISTERED[kind] = cls
     return cls
+
+
+def unregister_surrogate(kind: str) -> type:
+    """Remove the model registered under ``kind`` (e.g. at the end of a test); returns its
+    class. Its files no longer load until it is registered again.
+
+    Raises:
+        ConfigError: ``kind`` is built in, or no model of that kind is registered.
+    """
+    if kind in BUILTIN_SURROGATES:
+        raise ConfigError(f"the surrogate kind {kind!r} is built in and cannot be unregistered")
+    if kind not in _REGISTERED:
+        raise ConfigError(f"no surrogate model of kind {kind!r} is registered; the registered kinds are "
+                          f"{', '.join(map(repr, surrogate_kinds()))}")
+    return _REGISTERED.pop(kind)
 
 
 def surrogate_kinds() -> tuple[str, ...]:

@@ -15,12 +15,13 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxsync.errors import ConfigError
 
 Params = Any
 
-__all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas"]
+__all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas", "count_parameters"]
 
 
 def pad_params(params: Params, arch, n_dof: int) -> Params:
@@ -79,3 +80,8 @@ def init_replicas(key: jax.Array, arch, dof_counts: tuple[int, ...]) -> Params:
     LSTM, replica r is ``init_params(fold_in(key, r))`` at its own dof count, so it equals
     a replica initialized alone, zero-padded to ``arch.n_dof``)."""
     return arch.init_replicas(key, tuple(int(c) for c in dof_counts))
+
+
+def count_parameters(params: Params) -> int:
+    """Number of scalar parameters in a pytree."""
+    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params)))
