@@ -74,13 +74,9 @@ Params = Any
 
 
 class PredictionCost(NamedTuple):
-    """Counted cost of one refill prediction (n_s windows of one part).
-
-    Attributes:
-        bytes: memory traffic [bytes]: the parameters as read, the solver-side buffer,
-            normalization, mask and output.
-        flops: floating-point operations [flop].
-    """
+    """Counted cost of one refill prediction (n_s windows of one part): ``bytes``, the
+    memory traffic [bytes] (the parameters as read, the solver-side buffer, normalization,
+    mask and output), and ``flops``, the floating-point operations [flop]."""
 
     bytes: float
     flops: float
@@ -119,14 +115,13 @@ _CHOICE_FIELDS = ("n_hidden", "n_layers", "n_cond_repeat", "dtype")
 class SurrogateArchitecture:
     """Base of every surrogate model (module docstring: fields, shapes, methods).
 
-    Class attributes:
-        kind: the model's name in surrogate files and on the command line.
-        display_name: how messages and plots name it (default: ``kind``).
-        load_jump_windows: whether training keeps the windows across a recorded load jump
-            by default (``"keep"``, or ``"exclude"``: :class:`~jaxsync.surrogate.Sampling`).
-        resumes_training: its training writes a resumable state
-            (:class:`~jaxsync.surrogate.TrainingState`).
-        accuracy_advice: what a failed offline check advises first.
+    Its class attributes: ``kind``, the model's name in surrogate files and on the command
+    line; ``display_name``, how messages and plots name it (default: ``kind``);
+    ``load_jump_windows``, whether training keeps the windows across a recorded load jump
+    by default (``"keep"``, or ``"exclude"``: :class:`~jaxsync.surrogate.Sampling`);
+    ``resumes_training``, its training writes a resumable state
+    (:class:`~jaxsync.surrogate.TrainingState`); ``accuracy_advice``, what a failed offline
+    check advises first.
     """
 
     kind: ClassVar[str]
