@@ -123,26 +123,6 @@ class LinearArchitecture(LeastSquaresFitted):
         """0: no copies of a load parameter (the LSTM's q)."""
         return 0
 
-    def to_dict(self) -> dict[str, Any]:
-        """The fields (JSON-ready; ``n_load`` only when > 0, as before it existed otherwise);
-        :func:`jaxsync.surrogate.architecture.architecture_to_dict` adds the ``kind``."""
-        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "LinearArchitecture":
-        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"linear"``."""
-        values = dict(values)
-        kind = values.pop("kind", cls.kind)
-        if kind != cls.kind:
-            raise ConfigError(f"architecture of kind {kind!r} given to LinearArchitecture.from_dict; "
-                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - names
-        if unknown:
-            raise ConfigError(f"unknown LinearArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
-        return cls(**values)
-
     @classmethod
     def from_choice(cls, choice, n_dof: int, n_past: int, n_future: int, n_load: int) -> "LinearArchitecture":
         """The model for the data's windows, of the largest rank a fit can give (n_p n_dof +

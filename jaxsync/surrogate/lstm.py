@@ -140,27 +140,6 @@ class LSTMArchitecture(GradientFitted):
         """Hidden size of the decoder, 2 n_H (forward and backward states concatenated)."""
         return 2 * self.n_hidden
 
-    def to_dict(self) -> dict[str, Any]:
-        """The fields (JSON-ready); ``n_load`` only when > 0, so that a network without load
-        input is stored as before it existed."""
-        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
-
-    @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
-        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"lstm"``
-        (surrogate files written before the linear surrogate have none)."""
-        values = dict(values)
-        kind = values.pop("kind", cls.kind)
-        if kind != cls.kind:
-            raise ConfigError(f"architecture of kind {kind!r} given to LSTMArchitecture.from_dict; "
-                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - names
-        if unknown:
-            raise ConfigError(f"unknown LSTMArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
-        return cls(**values)
-
     @classmethod
     def from_choice(cls, choice, n_dof: int, n_past: int, n_future: int, n_load: int) -> "LSTMArchitecture":
         """The network of an :class:`~jaxsync.surrogate.ArchitectureChoice` for the data's

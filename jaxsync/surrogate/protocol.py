@@ -174,8 +174,11 @@ class SurrogateArchitecture:
     # ------------------------------------------------------------ hyperparameters
 
     def to_dict(self) -> dict[str, Any]:
-        """The hyperparameters, JSON-ready (what a surrogate file stores beside ``kind``)."""
-        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        """The hyperparameters, JSON-ready (what a surrogate file stores beside ``kind``):
+        the dataclass fields, ``n_load`` only when > 0 (a model without load input is
+        stored as before the load input existed)."""
+        return {f.name: _plain(getattr(self, f.name)) for f in dataclasses.fields(self)
+                if f.name != "n_load" or self.n_load}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]):
