@@ -224,6 +224,10 @@ def test_the_registry_names_the_models_and_refuses_what_is_not_one(models):
     WindowMLP = models
     assert surrogate_kinds()[:2] == ("lstm", "linear") and {"mlp", "ridge-test"} <= set(surrogate_kinds())
     assert surrogate_class("mlp") is WindowMLP and surrogate_class("ridge-test") is RidgeARX
+    # the model's own rule for windows across a load jump (the protocol's default: keep them)
+    assert Sampling().for_model("ridge-test").load_jump_windows == "keep"
+    assert Sampling().for_model(type("ExcludingRidge", (RidgeARX,), {"load_jump_windows": "exclude"})
+                                ).load_jump_windows == "exclude"
     with pytest.raises(ConfigError, match="model must be one of 'lstm', 'linear'.*'mlp'.*got 'gru'"):
         ArchitectureChoice(model="gru")
     with pytest.raises(ConfigError, match="SurrogateArchitecture"):
