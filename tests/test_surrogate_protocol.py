@@ -413,3 +413,18 @@ def test_the_counted_cost_is_that_of_the_arrays_and_products(models, name):
     masked = arch.prediction_cost(n_s, masked=True, io_bytes_per_value=8)
     assert masked.flops == cost.flops + n_s * f * d  # the mask
     assert masked.bytes == cost.bytes + 8 * (n_s * t * d + 2 * d + n_s * f * d + d)  # buffer, mean, std, output, mask
+
+
+def test_untrained_replicas_of_a_registered_model(models, partition):
+    """Surrogate.initialized makes any registered model: the guide's untrained MLP (zero
+    output layer) is the persistence predictor, every predicted snapshot the last input
+    one (zero on padding); a rank is refused for a model without one."""
+    surrogate = Surrogate.initialized(partition, 3, model="mlp", n_hidden=4, n_past=4, n_future=2)
+    assert isinstance(surrogate.arch, models) and surrogate.arch.n_hidden == 4
+    mask = np.asarray(surrogate.dof_mask[1])
+    xs = np.random.default_rng(0).normal(size=(4, surrogate.n_dof))
+    params = jax.tree_util.tree_map(lambda a: a[1], surrogate.params)
+    predicted = np.asarray(surrogate.arch.forward(params, jnp.asarray(xs, jnp.float32), dof_mask=jnp.asarray(mask)))
+    np.testing.assert_allclose(predicted, np.broadcast_to(xs[-1] * mask, (2, surrogate.n_dof)), rtol=1e-6)
+    with pytest.raises(ConfigError, match="leave rank out"):
+        Surrogate.initialized(partition, 3, model="mlp", rank=2)

@@ -288,6 +288,9 @@ class Surrogate:
         n = partition.n_parts
         arch = choice.model_class.from_choice(choice, n_dof, n_past, n_future, 0)
         if rank is not None:  # the linear map's inner width (default: the widest a fit can give)
+            if "rank" not in {f.name for f in dataclasses.fields(arch)}:
+                raise ConfigError(f"rank={rank} is the linear model's inner width; the {model} model has none: "
+                                  "leave rank out")
             arch = dataclasses.replace(arch, rank=rank)
         params = arch.init_replicas(jax.random.PRNGKey(seed), tuple(int(c) for c in counts))
         # normalization and mask in float64, as a surrogate file stores them
