@@ -23,7 +23,10 @@ Every default is the library's, read from its settings dataclasses
 without a better validation loss); the paper's is ``--n-hidden 100 --batch-size 5 --eta0 5e-4 --gamma
 0.9995 --epochs paper`` (13 812 epochs).  ``--model linear`` fits the affine map of least
 squares on the same windows (:mod:`jaxsync.surrogate.linear`, ridge ``--regularization``);
-it writes the same files, and the optimization options do not apply to it.
+it writes the same files, and the optimization options do not apply to it. ``--model``
+also names any model registered with :func:`jaxsync.surrogate.register_surrogate` before
+the parser is built (:mod:`jaxsync.surrogate.registry`): it takes the options of the names
+of its hyperparameters (``--n-hidden``, ``--n-layers``, ``--cond-repeat``).
 """
 
 from __future__ import annotations
@@ -31,11 +34,12 @@ from __future__ import annotations
 import argparse
 import os
 
-from jaxsync.options import EpochRule, LoadJumpWindows, SurrogateModel, ValidationSplit, choices
+from jaxsync.options import EpochRule, LoadJumpWindows, ValidationSplit, choices
 from jaxsync.surrogate.architecture import ArchitectureChoice
 from jaxsync.surrogate.data import Sampling
 from jaxsync.surrogate.evaluate import TrainingChecks
 from jaxsync.surrogate.fit import LOSS_CURVES_NAME, SUMMARY_NAME, SURROGATE_NAME, train_surrogates
+from jaxsync.surrogate.registry import surrogate_kinds
 from jaxsync.surrogate.train import TrainConfig
 from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
 
@@ -82,10 +86,11 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     )
     parser.add_argument("trajectories", nargs="+", help="trajectory HDF5 files (one run each, same partition)")
     parser.add_argument("-o", "--output", default="surrogate_out", help="output directory (default: %(default)s)")
-    parser.add_argument("--model", choices=choices(SurrogateModel), default=ARCHITECTURE.model,
+    parser.add_argument("--model", choices=surrogate_kinds(), default=ARCHITECTURE.model,
                         help="the surrogate: the LSTM encoder-decoder, or the linear autoregressive baseline "
                         "fitted by least squares on the same windows (unconditional; the optimization options "
-                        "do not apply to it) (default: %(default)s)")
+                        "do not apply to it), or a model registered with jaxsync.surrogate.register_surrogate "
+                        "before the parser was built (default: %(default)s)")
     parser.add_argument("--regularization", type=float, default=ARCHITECTURE.regularization, metavar="R",
                         help="--model linear: ridge parameter relative to the largest squared singular value of "
                         "the training inputs; 0 is plain least squares (default: %(default)s)")
@@ -196,13 +201,14 @@ def run_train(args: argparse.Namespace) -> int:
                     for name in (args.surrogate_name, LOSS_CURVES_NAME, SUMMARY_NAME, STATE_NAME)))
     refuse_to_overwrite(results, force=args.force, inputs=args.trajectories, options="-o/--surrogate-name")
     state = TrainingState(args.output, every=args.state_every) if args.state_every else None
-    if args.model == "lstm" and state is not None and os.path.exists(state.path):
+    architecture = ArchitectureChoice(model=args.model, n_hidden=args.n_hidden, n_layers=args.n_layers,
+                                      n_cond_repeat=args.cond_repeat, regularization=args.regularization,
+                                      load_input=args.load_input)
+    if architecture.model_class.resumes_training and state is not None and os.path.exists(state.path):
         print(f"resuming from the training state {state.path}")
     trained = train_surrogates(
         args.trajectories,
-        architecture=ArchitectureChoice(model=args.model, n_hidden=args.n_hidden, n_layers=args.n_layers,
-                                        n_cond_repeat=args.cond_repeat, regularization=args.regularization,
-                                        load_input=args.load_input),
+        architecture=architecture,
         sampling=Sampling(n_s=args.n_s, n_past=args.n_past, n_future=args.n_future,
                           train_fraction=args.train_fraction, val_fraction=args.val_fraction,
                           n_offsets=args.n_offsets, split=args.split, load_jump_windows=args.load_jump_windows,
@@ -216,16 +222,11 @@ def run_train(args: argparse.Namespace) -> int:
         devices=args.devices, progress=not args.no_progress,
     ).write(args.output, surrogate_name=args.surrogate_name)
     result = trained.result
-    if trained.model == "linear":
-        how = f"linear, least-squares fit of rank {result.arch.rank} in {result.seconds_per_epoch:.2f} s"
-        kept = ""
-    else:
-        how = (f"stopped early at epoch {result.stopped_epoch}" if result.stopped_epoch is not None
-               else f"{result.n_epochs_run} epochs")
-        kept = f" (best epochs {', '.join(str(int(e)) for e in result.best_epoch)})"
+    # the epoch each part kept, where training ran epochs
+    kept = "" if result.best_epoch is None else f" (best epochs {', '.join(str(int(e)) for e in result.best_epoch)})"
     print(f"wrote {os.path.join(args.output, args.surrogate_name)}, {os.path.join(args.output, LOSS_CURVES_NAME)} "
-          f"and {SUMMARY_NAME} ({how}); validation MSE of the kept parameters per part: "
-          f"{', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
+          f"and {SUMMARY_NAME} ({result.arch.fit_description(result)}); validation MSE of the kept parameters per "
+          f"part: {', '.join(f'{v:.3e}' for v in result.best_val_loss)}{kept}")
     inputs = result.load_inputs
     print(f"load input: {len(inputs)} known load signal(s): " + "; ".join(map(str, inputs)) if inputs else
           "load input: none (load-blind surrogates)")

@@ -387,16 +387,20 @@ def _slots_per_row(cells, n_nodes: int) -> int:
 # ----------------------------------------------------------------------------- surrogate
 
 
-def _check_arch(arch, n_s):
+def _check_arch(arch, n_s, lstm_only: bool = False):
     from ..surrogate.lstm import LSTMArchitecture
+    from ..surrogate.protocol import SurrogateArchitecture
 
-    if not isinstance(arch, LSTMArchitecture):
+    if lstm_only and not isinstance(arch, LSTMArchitecture):
         raise ProblemError(f"expected a jaxsync.surrogate.lstm.LSTMArchitecture, got {arch!r}")
+    if not isinstance(arch, SurrogateArchitecture):
+        raise ProblemError(f"expected a surrogate model (jaxsync.surrogate.SurrogateArchitecture), got {arch!r}")
     return _count(n_s, "n_s", 1)
 
 
 def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
-    """Flops of one refill prediction (n_s windows), by kind (formulas: module docstring).
+    """Flops of one LSTM refill prediction (n_s windows), by kind (formulas: module
+    docstring; :func:`jaxsync.surrogate.lstm.count_flops`).
 
     Returns:
         ``{"matmul": ..., "bias": ..., "cell": ..., "normalize": ..., "mask": ...}``:
@@ -404,47 +408,25 @@ def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
         the bias additions, ``"cell"`` the gate arithmetic (13 per hidden unit per
         step), ``"normalize"`` the input and output scaling, ``"mask"`` the padding mask.
     """
-    n_s = _check_arch(arch, n_s)
-    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
-    t, f = arch.n_past, arch.n_future
-    matmul = bias = cell = 0
-    for layer in range(arch.n_layers):
-        n_in = d if layer == 0 else 2 * h
-        # two directions, each: projection of all T inputs, then T recursive steps
-        matmul += 2 * (2 * 4 * h * n_in * t + t * 2 * 4 * h * h)
-        bias += 2 * 4 * h * t
-        cell += 2 * t * 13 * h
-    matmul += f * (2 * 4 * hd * (d + q) + 2 * 4 * hd * hd + 2 * d * hd)
-    bias += f * (4 * hd + d)
-    cell += f * 13 * hd
-    per_window = {"matmul": matmul, "bias": bias, "cell": cell, "normalize": 2 * d * (t + f),
-                  "mask": f * d if masked else 0}
-    return {k: float(n_s * v) for k, v in per_window.items()}
+    from ..surrogate.lstm import count_flops
+
+    return count_flops(arch, _check_arch(arch, n_s, lstm_only=True), masked)
 
 
 def surrogate_costs(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> StageCost:
-    """Bytes and flops of one refill prediction (n_s windows of one part), stage ``"t_d"``.
+    """Bytes and flops of one refill prediction (n_s windows of one part), stage ``"t_d"``:
+    the model's own count (:meth:`~jaxsync.surrogate.SurrogateArchitecture.prediction_cost`;
+    the LSTM's formulas are in the module docstring).
 
     Args:
-        arch: the :class:`jaxsync.surrogate.lstm.LSTMArchitecture`.
+        arch: the surrogate model (e.g. a :class:`jaxsync.surrogate.lstm.LSTMArchitecture`).
         n_s: sampling stride: windows per prediction.
         masked: the padding mask is applied (the synchronization-avoiding solver does).
         io_bytes_per_value: bytes per value of the solver-side buffer, mean, std, mask
             and output (8: float64).
     """
-    n_s = _check_arch(arch, n_s)
-    p_item = np.dtype(arch.dtype).itemsize
-    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
-    t, f = arch.n_past, arch.n_future
-    params = 0
-    for layer in range(arch.n_layers):
-        n_in = d if layer == 0 else 2 * h
-        params += 2 * ((4 * h * n_in + 4 * h) + t * 4 * h * h)  # w_d, b once; w_h per step
-    params += f * (4 * hd * (d + q) + 4 * hd * hd + 4 * hd)  # decoder cell per step
-    params += f * (d * hd + d)  # dense per step
-    io = n_s * t * d + 2 * d + n_s * f * d + (d if masked else 0)
-    flops = sum(surrogate_flop_breakdown(arch, n_s, masked).values())
-    return StageCost("t_d", p_item * params + io_bytes_per_value * io, flops)
+    cost = arch.prediction_cost(_check_arch(arch, n_s), masked, io_bytes_per_value)
+    return StageCost("t_d", cost.bytes, cost.flops)
 
 
 def surrogate_step_cost(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> StageCost:

@@ -7,7 +7,8 @@ holds the part's shared dofs at steps step - n_s n_p + 1 .. step (``step`` the l
 one), and the predictions are for steps step + 1 .. step + n_s n_f. Static sizes
 ``n_s``, ``n_past``, ``n_future``.
 
-:class:`jaxsync.surrogate.Surrogate` (trained LSTM replicas) and :class:`OraclePredictor`
+:class:`jaxsync.surrogate.Surrogate` (trained replicas of any surrogate model: the LSTM, the
+linear one or a registered model, :mod:`jaxsync.surrogate.protocol`) and :class:`OraclePredictor`
 (replays known displacements; pins the coupling independently of network error).
 """
 

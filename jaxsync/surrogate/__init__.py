@@ -13,7 +13,12 @@ The names a user needs are here; everything else stays importable from its modul
 :mod:`.lstm`               the network, written by hand (:class:`LSTMArchitecture`)
 :mod:`.linear`             the linear autoregressive baseline, fitted by least squares
                            (:class:`LinearArchitecture`, :func:`fit_linear`)
-:mod:`.architecture`       dispatch on the architecture: one code path for both models;
+:mod:`.protocol`           the surrogate-model protocol every model implements
+                           (:class:`SurrogateArchitecture`, :class:`GradientFitted`,
+                           :class:`LeastSquaresFitted`): init, forward, fit, cost, files
+:mod:`.registry`           model kinds by name (:func:`register_surrogate`): what
+                           surrogate files and ``jaxsync train --model`` name
+:mod:`.architecture`       one code path for every model through its methods;
                            :class:`ArchitectureChoice`, the model and size to train
 :mod:`.refill`             Algorithm 3's refill index sets and ``refill_predict``
 :mod:`.inference`          reduced-precision (bfloat16) inference: the check that it keeps
@@ -47,6 +52,8 @@ __all__ = [
     "SavedSurrogate", "save_surrogate", "load_surrogate",
     "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
     "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning", "OnlineLearning",
+    "SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
+    "register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds",
 ]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
@@ -61,6 +68,10 @@ __getattr__, __dir__ = export_lazily(__name__, {
     "jaxsync.surrogate.lstm": ("LSTMArchitecture",),
     "jaxsync.surrogate.model": ("Surrogate",),
     "jaxsync.surrogate.online": ("OnlineLearning",),
+    "jaxsync.surrogate.protocol": ("FitSettings", "GradientFitted", "LeastSquaresFitted", "PredictionCost",
+                                   "SurrogateArchitecture"),
+    "jaxsync.surrogate.registry": ("register_surrogate", "surrogate_class", "surrogate_kinds",
+                                   "unregister_surrogate"),
     "jaxsync.surrogate.saved": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
     "jaxsync.surrogate.train": ("TrainConfig", "TrainResult", "train_replicas"),
     "jaxsync.surrogate.training_state": ("TrainingState",),
@@ -83,6 +94,19 @@ if TYPE_CHECKING:
     from jaxsync.surrogate.lstm import LSTMArchitecture
     from jaxsync.surrogate.model import Surrogate
     from jaxsync.surrogate.online import OnlineLearning
+    from jaxsync.surrogate.protocol import (
+        FitSettings,
+        GradientFitted,
+        LeastSquaresFitted,
+        PredictionCost,
+        SurrogateArchitecture,
+    )
+    from jaxsync.surrogate.registry import (
+        register_surrogate,
+        surrogate_class,
+        surrogate_kinds,
+        unregister_surrogate,
+    )
     from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
     from jaxsync.surrogate.train import TrainConfig, TrainResult, train_replicas
     from jaxsync.surrogate.training_state import TrainingState

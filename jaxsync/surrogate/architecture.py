@@ -1,13 +1,13 @@
-"""The surrogate models, one interface: dispatch on the architecture's type.
+"""The surrogate models, one interface: every call goes through the model's own methods.
 
-A surrogate model is a module with an architecture class (a static frozen dataclass with
-``kind``, ``n_dof``, ``n_past``, ``n_future``, ``dtype``, ``conditional``,
-``to_dict``/``from_dict``), ``init_params(key, arch)`` and
-``forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=None, loads=None)``
-mapping a normalized window (n_p, n_dof) to (n_f, n_dof) (``compute_dtype="bfloat16"``:
-reduced-precision inference; ``loads`` (n_p + n_f, n_load): the known load signals of a
-model with load input, ``arch.n_load > 0``, :mod:`jaxsync.fem.load_signals`).  Two exist
-(:data:`jaxsync.options.SurrogateModel`):
+A surrogate model is a :class:`~jaxsync.surrogate.protocol.SurrogateArchitecture` (the
+protocol: ``init``, ``forward``, ``fit``, ``online_update``, ``prediction_cost``,
+``to_dict``/``from_dict``; :mod:`jaxsync.surrogate.protocol`) registered under its
+``kind`` (:mod:`jaxsync.surrogate.registry`). ``forward(params, xs, load_parameter,
+dof_mask, compute_dtype=None, loads=None)`` maps a normalized window (n_p, n_dof) to
+(n_f, n_dof) (``compute_dtype="bfloat16"``: reduced-precision inference; ``loads``
+(n_p + n_f, n_load): the known load signals of a model with load input, ``arch.n_load > 0``,
+:mod:`jaxsync.fem.load_signals`). Two are built in:
 
 =========  =====================================================  ============================
 kind       architecture                                           module
@@ -18,39 +18,36 @@ kind       architecture                                           module
 
 The refill (:mod:`jaxsync.surrogate.refill`) and the surrogate files
 (:mod:`jaxsync.surrogate.saved`) go through :func:`forward`, :func:`init_params`,
-:func:`architecture_to_dict` and :func:`architecture_from_dict`, so
-:class:`~jaxsync.surrogate.Surrogate` and the solver hold either model alike.
+:func:`architecture_to_dict` and :func:`architecture_from_dict` (thin functions over the
+model's methods and the registry), so :class:`~jaxsync.surrogate.Surrogate` and the solver
+hold any model alike.
 
-:class:`ArchitectureChoice` is what a user chooses before any data are read: the model and
-its sizes (:func:`jaxsync.surrogate.train_surrogates` makes the architecture from it once
-the padded width n_dof, and for the linear model the rank, are known).
+:class:`ArchitectureChoice` is what a user chooses before any data are read: the model (a
+registered kind) and its sizes (:func:`jaxsync.surrogate.train_surrogates` makes the model
+from it with the model's ``from_choice`` once the padded width n_dof is known).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import numbers
+import sys
 from types import ModuleType
-from typing import Any, Union
+from typing import Any
 
 import jax
 
 from jaxsync.errors import ConfigError
-from jaxsync.options import SurrogateModel, check_option
-from jaxsync.surrogate import linear, lstm
-from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearArchitecture, LinearFitConfig
+from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearFitConfig
 from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.surrogate.protocol import SurrogateArchitecture
+from jaxsync.surrogate.registry import surrogate_class
 
-__all__ = ["Architecture", "ArchitectureChoice", "MODELS", "model_module", "architecture_to_dict",
+__all__ = ["Architecture", "ArchitectureChoice", "model_module", "architecture_to_dict",
            "architecture_from_dict", "init_params", "forward"]
 
-Architecture = Union[LSTMArchitecture, LinearArchitecture]
-
-#: kind -> (architecture class, module)
-MODELS: dict[str, tuple[type, ModuleType]] = {
-    LSTMArchitecture.kind: (LSTMArchitecture, lstm),
-    LinearArchitecture.kind: (LinearArchitecture, linear),
-}
+#: Any surrogate model (the protocol's base class)
+Architecture = SurrogateArchitecture
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,7 +64,9 @@ class ArchitectureChoice:
     Attributes:
         model: ``"lstm"`` (default), the encoder-decoder trained with optax, or
             ``"linear"``, the affine autoregressive baseline fitted by least squares on
-            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional).
+            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional), or the kind
+            of a model registered with :func:`~jaxsync.surrogate.register_surrogate`
+            (which takes the fields below of the names of its own fields).
         n_hidden: n_H, hidden size of each encoder direction (default 50; the paper's
             text uses 100). LSTM only.
         n_layers: k, stacked bidirectional encoder layers (default 2). LSTM only.
@@ -88,7 +87,7 @@ class ArchitectureChoice:
             the load-blind model of the paper. Both models.
     """
 
-    model: SurrogateModel = "lstm"
+    model: str = "lstm"
     n_hidden: int = LSTMArchitecture.n_hidden
     n_layers: int = LSTMArchitecture.n_layers
     n_cond_repeat: int = LSTMArchitecture.n_cond_repeat
@@ -100,7 +99,7 @@ class ArchitectureChoice:
         if self.load_input is not None and not isinstance(self.load_input, bool):
             raise ConfigError(f"ArchitectureChoice.load_input must be True, False or None (on when the trajectories "
                               f"record load signals), got {self.load_input!r}")
-        check_option("model", self.model, SurrogateModel)
+        model = surrogate_class(self.model)  # refuses an unknown kind, naming the registered ones
         for name, low, what in (("n_hidden", 1, "encoder hidden size n_H"), ("n_layers", 1, "encoder layers k"),
                                 ("n_cond_repeat", 0, "copies q of the load parameter; 0: unconditional")):
             value = getattr(self, name)
@@ -108,9 +107,7 @@ class ArchitectureChoice:
                 raise ConfigError(f"ArchitectureChoice.{name} must be an integer >= {low} ({what}), got {value!r}")
         if self.dtype not in ("float32", "float64"):
             raise ConfigError(f"ArchitectureChoice.dtype must be 'float32' or 'float64', got {self.dtype!r}")
-        if self.model == "linear" and self.n_cond_repeat > 0:
-            raise ConfigError("the linear surrogate is unconditional: n_cond_repeat (--cond-repeat) must be 0; "
-                              "train model='lstm' (--model lstm) for a conditional surrogate")
+        model.check_choice(self)
         LinearFitConfig(self.regularization)  # refuses a bad regularization, naming it
 
     @property
@@ -125,18 +122,35 @@ class ArchitectureChoice:
                                 n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load)
 
 
+    @property
+    def model_class(self) -> type:
+        """The registered class of :attr:`model` (:func:`~jaxsync.surrogate.registry.surrogate_class`)."""
+        return surrogate_class(self.model)
+
+
+def _check_model(arch) -> SurrogateArchitecture:
+    if not isinstance(arch, SurrogateArchitecture):
+        raise ConfigError(f"{arch!r} is not a surrogate model; expected a jaxsync.surrogate.SurrogateArchitecture "
+                          "(LSTMArchitecture, LinearArchitecture or a registered model)")
+    return arch
+
+
 def model_module(arch: Architecture) -> ModuleType:
-    """The module that runs ``arch`` (:mod:`~jaxsync.surrogate.lstm` or :mod:`~jaxsync.surrogate.linear`)."""
-    entry = MODELS.get(getattr(arch, "kind", None))
-    if entry is None or not isinstance(arch, entry[0]):
-        raise ConfigError(f"{arch!r} is not a surrogate architecture; expected one of "
-                          + ", ".join(cls.__name__ for cls, _ in MODELS.values()))
-    return entry[1]
+    """The module that defines ``arch``'s class (:mod:`~jaxsync.surrogate.lstm`,
+    :mod:`~jaxsync.surrogate.linear`, or a user's)."""
+    return sys.modules[type(_check_model(arch)).__module__]
 
 
 def architecture_to_dict(arch: Architecture) -> dict[str, Any]:
-    """``{"kind": ..., **arch.to_dict()}`` (JSON-ready): what surrogate files and summaries store."""
-    model_module(arch)
+    """``{"kind": ..., **arch.to_dict()}`` (JSON-ready): what surrogate files and summaries store.
+
+    Raises:
+        ConfigError: ``arch`` is not a surrogate model, or its kind is not registered to
+            its class (a file of it could not be loaded)."""
+    if surrogate_class(_check_model(arch).kind) is not type(arch):
+        raise ConfigError(f"the surrogate kind {arch.kind!r} is registered to another class than "
+                          f"{type(arch).__name__}; register it (jaxsync.surrogate.register_surrogate) so that its "
+                          "files load")
     return {"kind": arch.kind, **arch.to_dict()}
 
 
@@ -147,13 +161,12 @@ def architecture_from_dict(values: dict[str, Any]) -> Architecture:
     Raises:
         ConfigError: an unknown kind or fields of another architecture.
     """
-    kind = check_option("architecture kind", values.get("kind", LSTMArchitecture.kind), SurrogateModel)
-    return MODELS[kind][0].from_dict(values)
+    return surrogate_class(values.get("kind", LSTMArchitecture.kind), "architecture kind").from_dict(values)
 
 
 def init_params(key: jax.Array, arch: Architecture):
-    """Initial parameters of one replica (the model's own ``init_params``)."""
-    return model_module(arch).init_params(key, arch)
+    """Initial parameters of one replica (the model's own ``init``)."""
+    return _check_model(arch).init(key)
 
 
 def forward(params, arch: Architecture, xs: jax.Array, load_parameter: jax.Array | None = None,
@@ -163,5 +176,4 @@ def forward(params, arch: Architecture, xs: jax.Array, load_parameter: jax.Array
     model's own ``forward``); ``compute_dtype="bfloat16"``: reduced-precision inference
     (bfloat16 operands, float32 accumulation; None: the architecture's dtype); ``loads``
     (n_p + n_f, n_load): the normalized load signals of a model with load input."""
-    return model_module(arch).forward(params, arch, xs, load_parameter, dof_mask, compute_dtype=compute_dtype,
-                                      loads=loads)
+    return _check_model(arch).forward(params, xs, load_parameter, dof_mask, compute_dtype=compute_dtype, loads=loads)

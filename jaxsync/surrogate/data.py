@@ -44,8 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.options import LoadJumpWindows, SurrogateModel, ValidationSplit, check_option, choices
-from jaxsync.surrogate.lstm import LSTMArchitecture
+from jaxsync.options import LoadJumpWindows, ValidationSplit, check_option, choices
 from jaxsync.trajectory import Trajectory
 
 # ----------------------------------------------------------------------------- windows
@@ -184,8 +183,8 @@ class Sampling:
     """
 
     n_s: int = 150
-    n_past: int = LSTMArchitecture.n_past
-    n_future: int = LSTMArchitecture.n_future
+    n_past: int = 20  # LSTMArchitecture's defaults
+    n_future: int = 20
     train_fraction: float = 0.5
     val_fraction: float = 0.25
     n_offsets: int = 1
@@ -214,13 +213,19 @@ class Sampling:
         if not _is_integer(self.seed) or self.seed < 0:
             raise ConfigError(f"Sampling.seed must be an integer >= 0, got {self.seed!r}")
 
-    def for_model(self, model: SurrogateModel) -> "Sampling":
+    def for_model(self, model) -> "Sampling":
         """These settings with ``load_jump_windows`` decided for ``model`` when it is None:
-        ``"exclude"`` for ``"linear"``, ``"keep"`` for ``"lstm"``."""
-        check_option("model", model, SurrogateModel)
+        the model's own ``load_jump_windows`` (``"exclude"`` for the linear model, ``"keep"``
+        for the LSTM; :mod:`jaxsync.surrogate.protocol`). ``model``: a surrogate model
+        (class or instance), or its kind (:mod:`jaxsync.surrogate.registry`)."""
+        from jaxsync.surrogate.registry import surrogate_class
+
+        rule = getattr(model, "load_jump_windows", None)
+        if rule is None:
+            rule = surrogate_class(model).load_jump_windows
         if self.load_jump_windows is not None:
             return self
-        return dataclasses.replace(self, load_jump_windows="exclude" if model == "linear" else "keep")
+        return dataclasses.replace(self, load_jump_windows=rule)
 
 
 # ----------------------------------------------------------------------------- normalization

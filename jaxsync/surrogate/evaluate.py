@@ -32,6 +32,7 @@ from jaxsync.io import atomic_json, atomic_path
 from jaxsync.surrogate.architecture import ArchitectureChoice
 from jaxsync.surrogate.data import Sampling, build_dataset, padding_mask, stack_replicas
 from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.protocol import GradientFitted
 from jaxsync.surrogate.train import TrainConfig, train_replicas
 
 __all__ = ["max_applications", "rollout_errors", "RolloutErrors", "RolloutWarning", "e_mse", "TrainingChecks",
@@ -286,7 +287,9 @@ def grid_search(
             (one per run) [solver units, cm in the paper].
         batch_sizes, hidden_sizes, learning_rates: the grid axes n_B, n_H, eta0.
         architecture: the LSTM's other settings (its ``n_hidden`` is replaced by the grid;
-            n_dof is the largest part's); ``model`` must be ``"lstm"``.
+            n_dof is the largest part's); ``model`` must be trained by gradient and have
+            an ``n_hidden`` (``"lstm"``, or a registered
+            :class:`~jaxsync.surrogate.protocol.GradientFitted` model).
         sampling: the windows (n_s, n_p, n_f, train/validation fractions, offsets, split)
             and the seed of the split, the mini-batch order and the initial weights;
             ``load_jump_windows`` does not apply (the histories record no load jumps).
@@ -307,9 +310,11 @@ def grid_search(
         ConfigError: a linear architecture, a conditional one without load parameters,
             too short runs.
     """
-    if architecture.model != "lstm":
-        raise ConfigError(f"grid_search trains LSTMs (n_B, n_H, eta0); got architecture model "
-                          f"{architecture.model!r}: use ArchitectureChoice(model='lstm')")
+    model = architecture.model_class
+    if not (issubclass(model, GradientFitted) and "n_hidden" in {f.name for f in dataclasses.fields(model)}):
+        raise ConfigError(f"grid_search trains models by gradient over n_B, n_H and eta0 (the LSTM, or a registered "
+                          f"GradientFitted model with an n_hidden); got architecture model {architecture.model!r}: "
+                          "use ArchitectureChoice(model='lstm')")
     if architecture.n_cond_repeat > 0 and load_parameters is None:
         raise ConfigError("a conditional architecture (n_cond_repeat > 0) needs load_parameters, one per run")
     s = sampling
@@ -328,7 +333,8 @@ def grid_search(
     key = jax.random.key(s.seed)
     points = []
     for n_b, n_h, eta0 in itertools.product(batch_sizes, hidden_sizes, learning_rates):
-        combo_arch = dataclasses.replace(architecture, n_hidden=int(n_h)).lstm(width, s.n_past, s.n_future)
+        combo_arch = model.from_choice(dataclasses.replace(architecture, n_hidden=int(n_h)), width, s.n_past,
+                                       s.n_future, 0)
         combo_config = dataclasses.replace(optimizer, batch_size=int(n_b), eta0=float(eta0))
         result = train_replicas(data, combo_arch, combo_config, key, progress=progress,
                                 description=f"n_B={n_b} n_H={n_h} eta0={eta0:g}")

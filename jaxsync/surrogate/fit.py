@@ -3,9 +3,10 @@ and ``jaxsync demo``.
 
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
 distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
-builds the sample-refill windows of every part, trains all replicas together
-(:func:`~jaxsync.surrogate.train.train_replicas`; with
-``ArchitectureChoice(model="linear")``, fits the linear autoregressive baseline by least
+builds the sample-refill windows of every part, fits all replicas together the model's own
+way (its ``fit``, :mod:`jaxsync.surrogate.protocol`: the LSTM and other gradient-fitted
+models by :func:`~jaxsync.surrogate.train.train_replicas`; with
+``ArchitectureChoice(model="linear")``, the linear autoregressive baseline by least
 squares on the same windows instead, :func:`~jaxsync.surrogate.linear.fit_linear`),
 measures sqrt(E_mse) and the offline rollout on the first run and returns a
 :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the solver, its
@@ -55,7 +56,6 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import RecordedLoadSignals
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.options import SurrogateModel
 from jaxsync.surrogate.architecture import ArchitectureChoice, architecture_to_dict
 from jaxsync.surrogate.data import Sampling, SharedHistories, build_dataset, read_shared_histories, stack_replicas
 from jaxsync.surrogate.evaluate import (
@@ -66,11 +66,11 @@ from jaxsync.surrogate.evaluate import (
     max_applications,
     rollout_errors,
 )
-from jaxsync.surrogate.linear import fit_linear
-from jaxsync.surrogate.lstm import count_parameters
 from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.protocol import FitSettings
+from jaxsync.surrogate.replicas import count_parameters
 from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
-from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult, train_replicas
+from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult
 from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
 from jaxsync.trajectory import Trajectory
 
@@ -143,8 +143,8 @@ class TrainedSurrogates:
     files: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
-    def model(self) -> SurrogateModel:
-        """``"lstm"`` or ``"linear"``: the kind of the trained replicas."""
+    def model(self) -> str:
+        """``"lstm"``, ``"linear"`` or a registered model's kind: the kind of the trained replicas."""
         return self.result.arch.kind
 
     @property
@@ -188,16 +188,7 @@ class TrainedSurrogates:
         ``loss_history`` has one row (the solve)."""
         result, arch = self.result, self.result.arch
         n_parts = len(result.dof_counts)
-        iterative = self.model != "linear"
-        if iterative:
-            training = {**result.config.to_dict(), "n_epochs_run": result.n_epochs_run,
-                        "stopped_early": result.stopped_epoch is not None,
-                        "stopped_at_epoch": result.stopped_epoch,
-                        "best_epoch": [int(e) for e in result.best_epoch],
-                        "resumed_from_epoch": result.resumed_from, "state_every": self.state_every}
-        else:
-            training = {**result.config.to_dict(), "fit_seconds": result.seconds_per_epoch, "n_epochs_run": None,
-                        "candidates": "not applicable: least squares has one solution (n_candidates ignored)"}
+        fields = arch.summary_fields(result, self.state_every)  # how the model was fitted
         s = self.sampling
         out = {
             "model": self.model,
@@ -208,7 +199,7 @@ class TrainedSurrogates:
             "dof_counts": list(result.dof_counts),
             "architecture": architecture_to_dict(arch),
             "parameters_per_replica_padded": count_parameters(result.params) // n_parts,
-            "training": training,
+            "training": fields["training"],
             "sampling": {"n_s": self.surrogate.n_s, "n_offsets": s.n_offsets, "train_fraction": s.train_fraction,
                          "val_fraction": s.val_fraction, "split": s.split, "seed": s.seed,
                          "n_train_windows": self.n_train_windows, "n_val_windows": self.n_val_windows,
@@ -219,11 +210,10 @@ class TrainedSurrogates:
             "final_train_loss": result.train_loss[-1].tolist(),
             "final_val_loss": result.best_val_loss.tolist(),
             "last_epoch_val_loss": result.val_loss[-1].tolist(),
-            "n_epochs_run": result.n_epochs_run if iterative else None,
+            "n_epochs_run": fields["n_epochs_run"],
             "stopped_at_epoch": result.stopped_epoch,
-            "seconds_per_epoch": result.seconds_per_epoch if iterative else None,
-            "gradient_steps_per_second": (result.steps_per_epoch / result.seconds_per_epoch
-                                          if iterative and result.seconds_per_epoch > 0 else None),
+            "seconds_per_epoch": fields["seconds_per_epoch"],
+            "gradient_steps_per_second": fields["gradient_steps_per_second"],
             "compile_seconds": result.compile_seconds,
             "train_seconds": self.train_seconds,
             "e_mse_applications": self.e_mse_applications,
@@ -341,7 +331,9 @@ def train_surrogates(
     callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainedSurrogates:
     """Train one LSTM surrogate per part on distributed trajectories of one partition
-    (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``).
+    (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``, or
+    any registered model: ``ArchitectureChoice(model=kind)``, fitted by its own ``fit``,
+    :mod:`jaxsync.surrogate.protocol`).
 
     Computes only: write the results with :meth:`TrainedSurrogates.write`.
 
@@ -406,7 +398,7 @@ def train_surrogates(
             raise ConfigError(f"{name} must be a jaxsync.surrogate.{cls.__name__}, got {value!r}")
     if state is not None and not isinstance(state, TrainingState):
         raise ConfigError(f"state must be a jaxsync.surrogate.TrainingState(folder, every) or None, got {state!r}")
-    model = architecture.model
+    model = architecture.model_class
     sampling = sampling.for_model(model)
     n_s, n_past, n_future = sampling.n_s, sampling.n_past, sampling.n_future
     exclude_jumps = sampling.load_jump_windows == "exclude"
@@ -426,23 +418,18 @@ def train_surrogates(
                                   for run in runs], signals=signals)
         for p in range(n_parts)
     ]
-    if model == "linear":
-        state = None  # a least-squares fit has no state to resume
-        data = stack_replicas(datasets, load_inputs)
-        started = time.perf_counter()
-        result = fit_linear(data, architecture.fit_config, architecture.dtype)
-        train_seconds = time.perf_counter() - started
-        candidates = None
-    else:
-        # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
-        n_candidates = int(optimizer.n_candidates)
-        data = stack_replicas(datasets * n_candidates, load_inputs)
-        arch = architecture.lstm(data.n_dof_max, n_past, n_future, data.n_load)
-        started = time.perf_counter()
-        result = train_replicas(data, arch, optimizer, jax.random.key(sampling.seed), progress=progress,
-                                devices=devices, state=state, callback=callback)
-        train_seconds = time.perf_counter() - started
-        result, candidates = choose_candidates(result, n_parts, n_candidates)
+    if not model.resumes_training:
+        state = None  # e.g. a least-squares fit: no state to resume
+    # candidate c of part p is replica c n_parts + p: the same windows, its own initial weights
+    n_candidates = model.candidates_per_part(optimizer)
+    data = stack_replicas(datasets * n_candidates, load_inputs)
+    arch = model.from_choice(architecture, data.n_dof_max, n_past, n_future, data.n_load)
+    started = time.perf_counter()
+    result = arch.fit(data, FitSettings(architecture=architecture, optimizer=optimizer,
+                                        key=jax.random.key(sampling.seed), progress=progress, devices=devices,
+                                        state=state, callback=callback))
+    train_seconds = time.perf_counter() - started
+    result, candidates = choose_candidates(result, n_parts, n_candidates)
     arch = result.arch
 
     load = None if loads is None else loads[0]
@@ -473,8 +460,7 @@ def train_surrogates(
                 f"{rollout.n_steps} steps of the first trajectory, part {worst}'s shared displacements are "
                 f"off by up to {100 * rollout.relative[worst]:.2g} % of their amplitude (tolerance "
                 f"{100 * tolerance:.2g} %); an online run would likely be as far off. "
-                + ("Train longer (more epochs or patience), on more data" if model == "lstm" else
-                   "Fit with another regularization, on more data")
+                + arch.accuracy_advice
                 + " (train_fraction, more runs), or run online with error control (resync_tolerance)"),
                 stacklevel=2)
     return TrainedSurrogates(
@@ -542,7 +528,7 @@ def plot_loss_curves(result: TrainResult, path: str | os.PathLike) -> None:
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("epoch" if marker is None else "least-squares solve")
     ax.set_ylabel("MSE of normalized displacements [-]")
-    what = "LSTM" if result.arch.kind == "lstm" else result.arch.kind
+    what = result.arch.display_name or result.arch.kind
     ax.set_title(f"Training of {result.train_loss.shape[1]} {what} replicas (one per part)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize="small")

@@ -1,7 +1,8 @@
 """Linear autoregressive surrogate: the baseline beside the LSTM.
 
-The same interface as :mod:`jaxsync.surrogate.lstm` -- an architecture, ``init_params``
-and ``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
+The same protocol as :mod:`jaxsync.surrogate.lstm` (:mod:`jaxsync.surrogate.protocol`;
+fitted in closed form) -- an architecture, ``init_params`` and
+``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
 of ``n_past`` snapshots (n_p, n_dof) to the next ``n_future`` (n_f, n_dof) -- so that
 :class:`~jaxsync.surrogate.Surrogate`, the refill, the surrogate file and the online solver run
 it unchanged.  The prediction is an affine map of the window::
@@ -56,6 +57,7 @@ import numpy as np
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
 from jaxsync.surrogate.lstm import check_compute_dtype, check_loads
+from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, PredictionCost
 
 if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
     from jaxsync.surrogate.train import TrainResult
@@ -74,8 +76,9 @@ DEFAULT_REGULARIZATION = 1e-8
 
 @jax.tree_util.register_static
 @dataclasses.dataclass(frozen=True)
-class LinearArchitecture:
-    """Shape of one linear autoregressive surrogate (static: it never carries arrays).
+class LinearArchitecture(LeastSquaresFitted):
+    """Shape of one linear autoregressive surrogate (static: it never carries arrays): a
+    surrogate model fitted in closed form (:mod:`jaxsync.surrogate.protocol`).
 
     Attributes:
         n_dof: degrees of freedom per snapshot; for replicas the padded width.
@@ -90,6 +93,8 @@ class LinearArchitecture:
     """
 
     kind: ClassVar[str] = "linear"
+    # windows across a load jump bend the least-squares fit (Sampling.load_jump_windows)
+    load_jump_windows: ClassVar[str] = "exclude"
 
     n_dof: int
     rank: int
@@ -118,25 +123,47 @@ class LinearArchitecture:
         """0: no copies of a load parameter (the LSTM's q)."""
         return 0
 
-    def to_dict(self) -> dict[str, Any]:
-        """The fields (JSON-ready; ``n_load`` only when > 0, as before it existed otherwise);
-        :func:`jaxsync.surrogate.architecture.architecture_to_dict` adds the ``kind``."""
-        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
-
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "LinearArchitecture":
-        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"linear"``."""
-        values = dict(values)
-        kind = values.pop("kind", cls.kind)
-        if kind != cls.kind:
-            raise ConfigError(f"architecture of kind {kind!r} given to LinearArchitecture.from_dict; "
-                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - names
-        if unknown:
-            raise ConfigError(f"unknown LinearArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
-        return cls(**values)
+    def from_choice(cls, choice, n_dof: int, n_past: int, n_future: int, n_load: int) -> "LinearArchitecture":
+        """The model for the data's windows, of the largest rank a fit can give (n_p n_dof +
+        (n_p + n_f) n_load input directions; :meth:`fit` returns the rank it used)."""
+        return cls(n_dof=n_dof, rank=n_past * n_dof + (n_past + n_future) * n_load, n_past=n_past,
+                   n_future=n_future, dtype=choice.dtype, n_load=n_load)
+
+    def init(self, key: jax.Array) -> Params:
+        """:func:`init_params`: zero parameters."""
+        return init_params(key, self)
+
+    def forward(self, params: Params, xs: jax.Array, load_parameter=None, dof_mask=None,
+                compute_dtype: str | None = None, loads=None) -> jax.Array:
+        """:func:`forward` of this model."""
+        return forward(params, self, xs, load_parameter, dof_mask, compute_dtype=compute_dtype, loads=loads)
+
+    def fit(self, data: ReplicaData, settings: FitSettings) -> "TrainResult":
+        """:func:`fit_linear` with the choice's ``regularization`` (the rank is the fit's)."""
+        return fit_linear(data, LinearFitConfig(settings.architecture.regularization), self.dtype)
+
+    def refit(self, params, x, y, signals, weight, dof_mask) -> Params:
+        """:func:`refit` with the default regularization (what online learning runs)."""
+        return refit(params, self, x, y, signals, weight, dof_mask)
+
+    def fit_description(self, result) -> str:
+        return f"linear, least-squares fit of rank {result.arch.rank} in {result.seconds_per_epoch:.2f} s"
+
+    def prediction_cost(self, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> PredictionCost:
+        """Bytes and flops of one refill prediction (n_s windows), with D = n_dof, T = n_p,
+        F = n_f, R = rank, L = n_load: per window 2 T D R (projection) + 2 (T + F) L R (load
+        projection) + 2 R F D (map to the outputs) + F D (bias) + F D (mask, when given) +
+        2 D (T + F) (normalization) flops; the parameters (T D R + (T + F) L R + R F D + F D
+        values of ``dtype``) read once for all n_s windows, plus the input buffer n_s T D,
+        mean and std 2 D, mask D and output n_s F D values of ``io_bytes_per_value``."""
+        d, t, f, r, u = self.n_dof, self.n_past, self.n_future, self.rank, self.n_load
+        per_window = (2 * t * d * r + 2 * (t + f) * u * r + 2 * r * f * d + f * d + (f * d if masked else 0)
+                      + 2 * d * (t + f))
+        params = t * d * r + (t + f) * u * r + r * f * d + f * d
+        io = n_s * t * d + 2 * d + n_s * f * d + (d if masked else 0)
+        return PredictionCost(float(np.dtype(self.dtype).itemsize * params + io_bytes_per_value * io),
+                              float(n_s * per_window))
 
 
 @dataclasses.dataclass(frozen=True)

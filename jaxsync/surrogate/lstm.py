@@ -63,6 +63,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
+from jaxsync.surrogate.protocol import GradientFitted, PredictionCost
+from jaxsync.surrogate.replicas import (
+    count_parameters,  # noqa: F401 - importable from here as before
+    pad_params,
+    stack_params,
+)
 
 Params = dict[str, Any]
 
@@ -75,8 +81,9 @@ COMPUTE_DTYPES = ("bfloat16",)
 
 @jax.tree_util.register_static
 @dataclasses.dataclass(frozen=True)
-class LSTMArchitecture:
-    """Shape of one encoder-decoder (static: it never carries arrays).
+class LSTMArchitecture(GradientFitted):
+    """Shape of one encoder-decoder (static: it never carries arrays): a surrogate model
+    trained by gradient (:mod:`jaxsync.surrogate.protocol`).
 
     Attributes:
         n_dof: degrees of freedom per snapshot (input and output width). For a set of
@@ -98,6 +105,7 @@ class LSTMArchitecture:
     """
 
     kind: ClassVar[str] = "lstm"
+    display_name: ClassVar[str] = "LSTM"
 
     n_dof: int
     n_hidden: int = 50
@@ -132,26 +140,34 @@ class LSTMArchitecture:
         """Hidden size of the decoder, 2 n_H (forward and backward states concatenated)."""
         return 2 * self.n_hidden
 
-    def to_dict(self) -> dict[str, Any]:
-        """The fields (JSON-ready); ``n_load`` only when > 0, so that a network without load
-        input is stored as before it existed."""
-        return {f.name: (getattr(self, f.name) if f.name == "dtype" else int(getattr(self, f.name)))
-                for f in dataclasses.fields(self) if f.name != "n_load" or self.n_load}
-
     @classmethod
-    def from_dict(cls, values: dict[str, Any]) -> "LSTMArchitecture":
-        """Inverse of :meth:`to_dict`; a ``kind`` entry, if present, must be ``"lstm"``
-        (surrogate files written before the linear surrogate have none)."""
-        values = dict(values)
-        kind = values.pop("kind", cls.kind)
-        if kind != cls.kind:
-            raise ConfigError(f"architecture of kind {kind!r} given to LSTMArchitecture.from_dict; "
-                              "read it with jaxsync.surrogate.architecture.architecture_from_dict")
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(values) - names
-        if unknown:
-            raise ConfigError(f"unknown LSTMArchitecture fields {sorted(unknown)}; expected {sorted(names)}")
-        return cls(**values)
+    def from_choice(cls, choice, n_dof: int, n_past: int, n_future: int, n_load: int) -> "LSTMArchitecture":
+        """The network of an :class:`~jaxsync.surrogate.ArchitectureChoice` for the data's
+        windows (:meth:`~jaxsync.surrogate.ArchitectureChoice.lstm`)."""
+        return choice.lstm(n_dof, n_past, n_future, n_load)
+
+    def init(self, key: jax.Array) -> Params:
+        """:func:`init_params` of this network."""
+        return init_params(key, self)
+
+    def init_replicas(self, key: jax.Array, dof_counts) -> Params:
+        """Replica r is ``init_params(fold_in(key, r))`` at its own dof count (so it equals a
+        network initialized alone), zero-padded to ``n_dof``
+        (:func:`~jaxsync.surrogate.replicas.pad_params`)."""
+        replicas = []
+        for r, count in enumerate(dof_counts):
+            own = dataclasses.replace(self, n_dof=int(count))
+            replicas.append(pad_params(init_params(jax.random.fold_in(key, r), own), own, self.n_dof))
+        return stack_params(replicas)
+
+    def forward(self, params: Params, xs: jax.Array, load_parameter=None, dof_mask=None,
+                compute_dtype: str | None = None, loads=None) -> jax.Array:
+        """:func:`forward` of this network."""
+        return forward(params, self, xs, load_parameter, dof_mask, compute_dtype=compute_dtype, loads=loads)
+
+    def prediction_cost(self, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> PredictionCost:
+        """Bytes and flops of one refill prediction (:func:`count_prediction_cost`)."""
+        return count_prediction_cost(self, n_s, masked, io_bytes_per_value)
 
 
 # ----------------------------------------------------------------------------- init
@@ -440,6 +456,51 @@ def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
     return loads.astype(arch.dtype)
 
 
-def count_parameters(params: Params) -> int:
-    """Number of scalar parameters in a pytree."""
-    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params)))
+# ----------------------------------------------------------------------------- cost
+
+
+def count_flops(arch: LSTMArchitecture, n_s: int, masked: bool = True) -> dict[str, float]:
+    """Flops of one refill prediction (n_s windows), by kind (the formulas of
+    :mod:`jaxsync.perf.roofline`'s module docstring).
+
+    Returns:
+        ``{"matmul": ..., "bias": ..., "cell": ..., "normalize": ..., "mask": ...}``:
+        ``"matmul"`` the matrix products (2 flops per weight entry per use), ``"bias"``
+        the bias additions, ``"cell"`` the gate arithmetic (13 per hidden unit per
+        step), ``"normalize"`` the input and output scaling, ``"mask"`` the padding mask.
+    """
+    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
+    t, f = arch.n_past, arch.n_future
+    matmul = bias = cell = 0
+    for layer in range(arch.n_layers):
+        n_in = d if layer == 0 else 2 * h
+        # two directions, each: projection of all T inputs, then T recursive steps
+        matmul += 2 * (2 * 4 * h * n_in * t + t * 2 * 4 * h * h)
+        bias += 2 * 4 * h * t
+        cell += 2 * t * 13 * h
+    matmul += f * (2 * 4 * hd * (d + q) + 2 * 4 * hd * hd + 2 * d * hd)
+    bias += f * (4 * hd + d)
+    cell += f * 13 * hd
+    per_window = {"matmul": matmul, "bias": bias, "cell": cell, "normalize": 2 * d * (t + f),
+                  "mask": f * d if masked else 0}
+    return {k: float(n_s * v) for k, v in per_window.items()}
+
+
+def count_prediction_cost(arch: LSTMArchitecture, n_s: int, masked: bool = True,
+                          io_bytes_per_value: int = 8) -> PredictionCost:
+    """Bytes and flops of one refill prediction (n_s windows of one part): the parameters
+    (itemsize of ``arch.dtype``) read once per sequential matrix product, plus the input
+    buffer, mean, std, mask and output at ``io_bytes_per_value`` (the formulas of
+    :mod:`jaxsync.perf.roofline`'s module docstring)."""
+    p_item = np.dtype(arch.dtype).itemsize
+    h, hd, d, q = arch.n_hidden, arch.decoder_hidden, arch.n_dof, arch.n_cond_repeat
+    t, f = arch.n_past, arch.n_future
+    params = 0
+    for layer in range(arch.n_layers):
+        n_in = d if layer == 0 else 2 * h
+        params += 2 * ((4 * h * n_in + 4 * h) + t * 4 * h * h)  # w_d, b once; w_h per step
+    params += f * (4 * hd * (d + q) + 4 * hd * hd + 4 * hd)  # decoder cell per step
+    params += f * (d * hd + d)  # dense per step
+    io = n_s * t * d + 2 * d + n_s * f * d + (d if masked else 0)
+    flops = sum(count_flops(arch, n_s, masked).values())
+    return PredictionCost(float(p_item * params + io_bytes_per_value * io), float(flops))

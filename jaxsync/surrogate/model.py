@@ -40,9 +40,8 @@ from jaxsync.fem.load_signals import LoadSignals, check_load_inputs
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
 from jaxsync.surrogate.data import padding_mask, shared_dof_layout
-from jaxsync.surrogate.lstm import LSTMArchitecture, check_compute_dtype
+from jaxsync.surrogate.lstm import check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
-from jaxsync.surrogate.replicas import init_replicas
 from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
 
 __all__ = ["Surrogate"]
@@ -282,23 +281,18 @@ class Surrogate:
         n_p = n_f = 20). ``model="linear"``: the linear autoregressive map instead
         (:mod:`jaxsync.surrogate.linear`, zero weights) of inner width ``rank`` (default
         n_p n_dof, the widest a fit can give); ``n_hidden`` and ``n_layers`` are unused."""
-        from jaxsync.options import SurrogateModel, check_option
+        from jaxsync.surrogate.architecture import ArchitectureChoice
 
-        check_option("model", model, SurrogateModel)
+        choice = ArchitectureChoice(model=model, n_hidden=n_hidden, n_layers=n_layers, dtype=dtype)
         n_dof, counts = shared_dof_layout(partition)
         n = partition.n_parts
-        if model == "linear":
-            from jaxsync.surrogate import linear
-            from jaxsync.surrogate.replicas import stack_params
-
-            arch = linear.LinearArchitecture(n_dof=n_dof, rank=rank or n_past * n_dof, n_past=n_past,
-                                             n_future=n_future, dtype=dtype)
-            params = stack_params([linear.init_params(jax.random.PRNGKey(seed), arch)] * n)
-            return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)),
-                              padding_mask(counts, n_dof), n_s, None)
-        arch = LSTMArchitecture(n_dof=n_dof, n_hidden=n_hidden, n_layers=n_layers, n_past=n_past,
-                                n_future=n_future, dtype=dtype)
-        params = init_replicas(jax.random.PRNGKey(seed), arch, tuple(int(c) for c in counts))
+        arch = choice.model_class.from_choice(choice, n_dof, n_past, n_future, 0)
+        if rank is not None:  # the linear map's inner width (default: the widest a fit can give)
+            if "rank" not in {f.name for f in dataclasses.fields(arch)}:
+                raise ConfigError(f"rank={rank} is the linear model's inner width; the {model} model has none: "
+                                  "leave rank out")
+            arch = dataclasses.replace(arch, rank=rank)
+        params = arch.init_replicas(jax.random.PRNGKey(seed), tuple(int(c) for c in counts))
         # normalization and mask in float64, as a surrogate file stores them
         return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)), padding_mask(counts, n_dof),
                           n_s, None)

@@ -11,9 +11,13 @@ trained on, so that an update does not unlearn it) and takes full-batch Adam ste
 replicas together, from their current weights, within a budget of update time. The
 update is kept only where it lowers the error on the new windows (per part).
 
-Both models learn the same way (the loss reads :func:`jaxsync.surrogate.architecture.forward`):
-the LSTM encoder-decoder and the linear autoregressive model (whose rank, the shape of
-its factors, stays as fitted).
+Each model learns the way it is fitted (its ``online_update``,
+:mod:`jaxsync.surrogate.protocol`): a model trained by gradient (the LSTM encoder-decoder,
+or a user's :class:`~jaxsync.surrogate.protocol.GradientFitted`) takes the Adam steps above
+(:meth:`OnlineLearner.gradient_steps`); a model fitted in closed form (the linear
+autoregressive model, :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`) is refitted
+on the same weighted windows in one solve (its rank, the shape of its factors, stays as
+fitted).
 
 :func:`sample_refill_windows` cuts windows from rows of every step;
 :class:`OnlineLearner` keeps a run's windows and updates the predictor.
@@ -31,7 +35,6 @@ import numpy as np
 import optax
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.architecture import forward, model_module
 from jaxsync.surrogate.data import normalize
 
 __all__ = ["OnlineLearning", "OnlineLearner", "UpdateReport", "sample_refill_windows"]
@@ -173,9 +176,9 @@ def _replica_loss(params, arch, x, y, u, weight, load_parameter, dof_mask):
     """Weighted mean squared error of one replica over its windows (normalized units)."""
     load = load_parameter if arch.conditional else None
     if u is None:
-        pred = jax.vmap(lambda xs: forward(params, arch, xs, load, dof_mask))(x)
+        pred = jax.vmap(lambda xs: arch.forward(params, xs, load, dof_mask))(x)
     else:
-        pred = jax.vmap(lambda xs, us: forward(params, arch, xs, load, dof_mask, None, us))(x, u)
+        pred = jax.vmap(lambda xs, us: arch.forward(params, xs, load, dof_mask, None, us))(x, u)
     sq = jnp.square(pred - y) * dof_mask[None, None]
     per_window = jnp.sum(sq, axis=(1, 2)) / (arch.n_future * jnp.maximum(jnp.sum(dof_mask), 1.0))
     return jnp.sum(weight * per_window) / jnp.sum(weight)
@@ -274,8 +277,15 @@ class OnlineLearner:
             del self._new[0]  # the newest windows are kept
         return int(starts.size)
 
-    def _adam(self, params, x, y, u, weight, q, mask, start: float):
-        """Full-batch Adam steps within the budget: (params, steps taken)."""
+    def gradient_steps(self, params, x, y, u, weight, q, mask, start: float):
+        """Full-batch Adam steps on the stacked replicas ``params`` within the budget, the
+        update started at ``start`` (``time.perf_counter()``): (params, steps taken). What
+        a :class:`~jaxsync.surrogate.protocol.GradientFitted` model's ``online_update`` runs.
+
+        Args:
+            x, y, u: (n_parts, n_w, ...) normalized windows (``u`` None without load input).
+            weight: (n_w,) window weights; q: the load parameter; mask: (n_parts, n_dof).
+        """
         s = self.settings
         opt_state = self._optimizer.init(params)
         done = 0
@@ -320,12 +330,7 @@ class OnlineLearner:
         mask = jnp.asarray(np.asarray(p.dof_mask), dtype)
         params = jax.tree_util.tree_map(lambda a: jnp.asarray(np.asarray(a)), p.params)
         before = np.asarray(_losses(params, x, y, u, only_new, q, mask, arch=arch))
-        refit = getattr(model_module(arch), "refit", None)
-        if refit is not None:  # a model with an exact solve (the linear one): one refit
-            trained = jax.tree_util.tree_map(jnp.asarray, refit(params, arch, x, y, u, weight, mask))
-            done = 1
-        else:
-            trained, done = self._adam(params, x, y, u, weight, q, mask, start)
+        trained, done = arch.online_update(self, params, x, y, u, weight, q, mask, start)
         after = np.asarray(_losses(trained, x, y, u, only_new, q, mask, arch=arch))
         better = np.isfinite(after) & (after < before)
         keep = jnp.asarray(better)

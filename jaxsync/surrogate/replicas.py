@@ -11,19 +11,22 @@ alone.
 
 from __future__ import annotations
 
-import dataclasses
+from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, init_params
 
-__all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas"]
+Params = Any
+
+__all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas", "count_parameters"]
 
 
-def pad_params(params: Params, arch: LSTMArchitecture, n_dof: int) -> Params:
-    """Zero-pad one replica's parameters from ``arch.n_dof`` to ``n_dof`` dofs.
+def pad_params(params: Params, arch, n_dof: int) -> Params:
+    """Zero-pad one LSTM replica's parameters (``arch`` its
+    :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`) from ``arch.n_dof`` to ``n_dof`` dofs.
 
     Pads the first encoder layer's input columns, the decoder's input columns (the dof
     block, before the q load-parameter columns) and the dense layer's output rows.
@@ -47,7 +50,7 @@ def pad_params(params: Params, arch: LSTMArchitecture, n_dof: int) -> Params:
     return {"encoder": encoder, "decoder": decoder, "dense": dense}
 
 
-def unpad_params(params: Params, arch: LSTMArchitecture, n_dof: int) -> Params:
+def unpad_params(params: Params, arch, n_dof: int) -> Params:
     """Inverse of :func:`pad_params`: keep the first ``n_dof`` dofs of a padded replica."""
     q = arch.n_cond_repeat
 
@@ -71,11 +74,14 @@ def replica_params(stacked: Params, index: int) -> Params:
     return jax.tree_util.tree_map(lambda leaf: leaf[index], stacked)
 
 
-def init_replicas(key: jax.Array, arch: LSTMArchitecture, dof_counts: tuple[int, ...]) -> Params:
-    """Initial stacked parameters: replica r is ``init_params(fold_in(key, r))`` at its own
-    dof count (so it equals a replica initialized alone), zero-padded to ``arch.n_dof``."""
-    replicas = []
-    for r, count in enumerate(dof_counts):
-        own = dataclasses.replace(arch, n_dof=int(count))
-        replicas.append(pad_params(init_params(jax.random.fold_in(key, r), own), own, arch.n_dof))
-    return stack_params(replicas)
+def init_replicas(key: jax.Array, arch, dof_counts: tuple[int, ...]) -> Params:
+    """Initial stacked parameters of one replica per part: the model's own
+    ``arch.init_replicas(key, dof_counts)`` (:mod:`jaxsync.surrogate.protocol`; for the
+    LSTM, replica r is ``init_params(fold_in(key, r))`` at its own dof count, so it equals
+    a replica initialized alone, zero-padded to ``arch.n_dof``)."""
+    return arch.init_replicas(key, tuple(int(c) for c in dof_counts))
+
+
+def count_parameters(params: Params) -> int:
+    """Number of scalar parameters in a pytree."""
+    return int(sum(np.size(leaf) for leaf in jax.tree_util.tree_leaves(params)))

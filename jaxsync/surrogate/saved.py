@@ -270,7 +270,8 @@ def load_surrogate(
                                  f"n_load={arch.n_load}")
     except ConfigError as err:
         raise CheckpointError(f"surrogate file {path} holds an architecture this jaxsync does not know ({err}); "
-                              "use the jaxsync that wrote it or retrain with `jaxsync train`") from err
+                              "register its model (jaxsync.surrogate.register_surrogate), use the jaxsync that "
+                              "wrote it or retrain with `jaxsync train`") from err
     except (KeyError, ValueError, TypeError) as err:
         raise CheckpointError(f"surrogate file {path} is incomplete ({err!r}); retrain with `jaxsync train`") from err
     paths, treedef = _param_paths(arch)

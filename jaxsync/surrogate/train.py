@@ -1,4 +1,7 @@
-"""Training of one LSTM replica per part, all parts in one compiled program.
+"""Training of one replica per part by gradient, all parts in one compiled program: the
+fit of every :class:`~jaxsync.surrogate.protocol.GradientFitted` model (the LSTM, or a
+user's), which minimises the model's own ``loss`` (default: the masked MSE of its
+``forward``, :func:`masked_mse`).
 
 Optimizer: optax Adam with a learning rate that decays once per epoch,
 ``eta(epoch) = eta0 * gamma**epoch`` (``optax.exponential_decay`` with staircase steps of
@@ -65,8 +68,8 @@ from tqdm.auto import tqdm
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
 from jaxsync.surrogate.data import ReplicaData, padding_mask
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params, forward
-from jaxsync.surrogate.replicas import init_replicas
+from jaxsync.surrogate.loss import masked_mse
+from jaxsync.surrogate.replicas import Params, init_replicas
 from jaxsync.surrogate.training_state import (
     TrainingState,
     load_training_state,
@@ -229,26 +232,6 @@ class TrainResult:
 # ----------------------------------------------------------------------------- loss
 
 
-def masked_mse(params, arch, x, y, load_parameter, weight, dof_mask, signals=None):
-    """Weighted mean squared error over windows, steps and real dofs (one replica).
-
-    Args:
-        x: (B, n_p, n_dof) inputs; y: (B, n_f, n_dof) targets;
-        load_parameter: (B,) load parameter of each window (used by conditional networks);
-        weight: (B,) window weights (0 for the filler of a short last batch);
-        dof_mask: (n_dof,) 1 on real dofs.
-        signals: (B, n_p + n_f, n_load) normalized load signals of each window (read by a
-            network with load input, ``arch.n_load > 0``; ignored otherwise).
-    """
-    load_arg = load_parameter if arch.conditional else None
-    signal_arg = signals if arch.n_load else None
-    in_axes = (None, None, 0, 0 if arch.conditional else None, None, None, 0 if arch.n_load else None)
-    pred = jax.vmap(forward, in_axes=in_axes)(params, arch, x, load_arg, dof_mask, None, signal_arg)
-    sq = jnp.square(pred - y) * dof_mask[None, None]
-    per_window = jnp.sum(sq, axis=(1, 2)) / (arch.n_future * jnp.sum(dof_mask))
-    return jnp.sum(weight * per_window) / jnp.sum(weight)
-
-
 def learning_rate_schedule(config: TrainConfig, steps_per_epoch: int) -> optax.Schedule:
     """Gradient step -> learning rate ``eta0 * gamma**floor(step / steps_per_epoch)``."""
     return optax.exponential_decay(
@@ -279,7 +262,7 @@ def _runner_config(config: TrainConfig) -> TrainConfig:
 
 
 @functools.lru_cache(maxsize=16)
-def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mesh: Mesh):
+def _epoch_runner(arch, config: TrainConfig, n_train: int, mesh: Mesh):
     """Compiled function running a chunk of epochs for all replicas (split over ``mesh``).
 
     The chunk carries ``(params, opt_state, best_params, best_val, best_epoch)``; an epoch
@@ -300,7 +283,7 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         def step(carry, batch_ids):
             params, opt_state = carry
             ids, w = batch_ids
-            loss, grads = jax.value_and_grad(masked_mse)(params, arch, x[ids], y[ids], load[ids], w, mask, u[ids])
+            loss, grads = jax.value_and_grad(arch.loss)(params, x[ids], y[ids], load[ids], w, mask, u[ids])
             # optax mixes Python floats with int32 step counts (Adam's bias correction, the
             # decay schedule): standard dtype promotion, whatever the caller's setting
             with jax.numpy_dtype_promotion("standard"):
@@ -311,7 +294,7 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         (params, opt_state), losses = jax.lax.scan(
             step, (params, opt_state), (order.reshape(steps, batch), weights.reshape(steps, batch))
         )
-        val = masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
+        val = arch.loss(params, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
         return params, opt_state, jnp.sum(losses) / n_train, val
 
     # Replicas are independent: each device trains its block of parts, no communication;
@@ -346,7 +329,7 @@ def _epoch_runner(arch: LSTMArchitecture, config: TrainConfig, n_train: int, mes
         return state, train, val, ran
 
     def replica_val_loss(params, x_val, y_val, load_val, mask, u_val):
-        return masked_mse(params, arch, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
+        return arch.loss(params, x_val, y_val, load_val, jnp.ones(x_val.shape[0], x_val.dtype), mask, u_val)
 
     val_loss = spmd_program(replica_val_loss, mesh, n_in=6, n_out=1)
     return optimizer, steps, jax.jit(run_chunk), val_loss, {}
@@ -391,7 +374,7 @@ def _initial_params(arch, data, init_key, init):
 
 def train_replicas(
     data: ReplicaData,
-    arch: LSTMArchitecture,
+    arch,
     config: TrainConfig,
     key: jax.Array,
     init: Params | None = None,
@@ -401,11 +384,13 @@ def train_replicas(
     state: TrainingState | None = None,
     callback: Callable[[TrainProgress], None] | None = None,
 ) -> TrainResult:
-    """Train one replica per part, all together.
+    """Train one replica per part, all together, by gradient on the model's ``loss``.
 
     Args:
         data: stacked, padded windows (:func:`jaxsync.surrogate.data.stack_replicas`).
-        arch: architecture; ``arch.n_dof`` must equal ``data.n_dof_max``.
+        arch: the model (a :class:`~jaxsync.surrogate.protocol.GradientFitted`: the
+            :class:`~jaxsync.surrogate.lstm.LSTMArchitecture` or a user's);
+            ``arch.n_dof`` must equal ``data.n_dof_max``.
         config: optimization settings.
         key: PRNG key (initialization and shuffling).
         init: optional initial stacked parameters (default

@@ -31,7 +31,8 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum, atomic_h5
 from jaxsync.surrogate.data import ReplicaData
-from jaxsync.surrogate.lstm import LSTMArchitecture, Params
+
+Params = Any  # a pytree of parameter arrays
 
 __all__ = ["TrainingState", "STATE_NAME", "training_fingerprint", "save_training_state", "load_training_state"]
 
@@ -82,7 +83,7 @@ def _digest(arrays) -> str:
     return array_checksum({f"{i:04d}": np.asarray(a) for i, a in enumerate(arrays)}, {})
 
 
-def training_fingerprint(data: ReplicaData, arch: LSTMArchitecture, config, key: jax.Array,
+def training_fingerprint(data: ReplicaData, arch, config, key: jax.Array,
                          init: Params | None = None, state_every: int | None = None) -> dict[str, Any]:
     """Everything that determines a training run, as a JSON-serializable dict
     (``config``: the :class:`~jaxsync.surrogate.train.TrainConfig`).
