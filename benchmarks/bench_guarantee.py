@@ -179,7 +179,7 @@ def probe_cost(name: str, steps: int, save_every: int, repeats: int = 5) -> dict
     from jaxsync.solve.error_estimate import ErrorPropagator
     from jaxsync.solve.predicted import PredictedPhase
     from jaxsync.solve.predictors import OraclePredictor
-    from jaxsync.surrogate.data import shared_dof_layout
+    from jaxsync.surrogate.histories import shared_dof_layout
 
     if name == "vessel":
         from jaxsync.app.demo import vessel_problem

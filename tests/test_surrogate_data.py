@@ -13,11 +13,11 @@ from jaxsync.surrogate.data import (
     Normalization,
     build_dataset,
     make_windows,
-    read_shared_histories,
     split_indices,
     stack_replicas,
     subsample,
 )
+from jaxsync.surrogate.histories import read_shared_histories
 from jaxsync.surrogate.refill import (
     refill_index_sets,
     refill_input_steps,

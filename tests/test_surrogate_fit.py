@@ -223,7 +223,7 @@ def test_simulate_records_the_last_load_jump(tmp_path):
                             100, partitions=2, labels=[0.5, 0.3], save=jaxsync.SaveAt(10, 1))
     assert [r.parameters["last_load_jump"] for r in runs] == [jump, jump]
     runs[0].save(tmp_path / "r.h5")
-    from jaxsync.surrogate.data import read_shared_histories
+    from jaxsync.surrogate.histories import read_shared_histories
     assert read_shared_histories(str(tmp_path / "r.h5")).last_load_jump == jump
     assert "last_load_jump" not in jaxsync.simulate(jaxsync.cantilever(), 100, save=10).parameters
     # only jumps within the run count

@@ -11,7 +11,7 @@ from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.solve.predicted import PredictedPhase
 from jaxsync.solve.predictors import OraclePredictor
 from jaxsync.solve.syncavoid import simulate_sync_avoiding
-from jaxsync.surrogate.data import shared_dof_layout
+from jaxsync.surrogate.histories import shared_dof_layout
 
 N_S, N_P, N_F = 5, 4, 4
 N_CRI = N_S * N_P + 1 + 19  # 40

@@ -115,7 +115,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
         labels: optional sequence of n_runs floats (the load magnitude, an
             initial-condition factor...), stored as ``parameters["load_parameter"]`` of
             each trajectory: the conditional surrogates' input
-            (:func:`jaxsync.surrogate.data.read_shared_histories`).
+            (:func:`jaxsync.surrogate.histories.read_shared_histories`).
         dt: time step [s]; default the first problem's ``dt``, checked against the exact
             stability bound as in :func:`jaxsync.simulate`.
         save: an int or a :class:`jaxsync.SaveAt` (with ``partitions``, ``shared_every=1``

@@ -310,7 +310,7 @@ class _OnlineRun:
 
     def __init__(self, problem, runner: DistributedRunner, first: _Synchronized, online: OnlineSettings,
                  dt: float, save_every: int, executor, limit: float):
-        from ..surrogate.data import shared_dof_layout
+        from ..surrogate.histories import shared_dof_layout
 
         self.problem, self.runner, self.first, self.online = problem, runner, first, online
         self.save_every, self.executor, self.limit = save_every, executor, limit

@@ -58,7 +58,7 @@ def predictor_for(surrogates, partition, problem=None, dt=None):
     surrogate file (its shared node ids checked against the partition's). Raises
     :class:`~jaxsync.errors.ProblemError` for anything else (a path: with the fix) and
     :class:`~jaxsync.errors.CheckpointError` for surrogates of another partition."""
-    from ..surrogate.data import shared_dof_layout
+    from ..surrogate.histories import shared_dof_layout
     from ..surrogate.model import Surrogate
     from ..surrogate.saved import SavedSurrogate, check_compatible
 

@@ -2,7 +2,7 @@
 and ``jaxsync demo``.
 
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
-distributed runs of one partition (:func:`~jaxsync.surrogate.data.read_shared_histories`),
+distributed runs of one partition (:func:`~jaxsync.surrogate.histories.read_shared_histories`),
 builds the sample-refill windows of every part, fits all replicas together the model's own
 way (its ``fit``, :mod:`jaxsync.surrogate.protocol`: the LSTM and other gradient-fitted
 models by :func:`~jaxsync.surrogate.train.train_replicas`; with
@@ -57,7 +57,7 @@ from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import RecordedLoadSignals
 from jaxsync.io import atomic_json, atomic_path
 from jaxsync.surrogate.architecture import ArchitectureChoice, architecture_to_dict
-from jaxsync.surrogate.data import Sampling, SharedHistories, build_dataset, read_shared_histories, stack_replicas
+from jaxsync.surrogate.data import Sampling, build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import (
     RolloutErrors,
     RolloutWarning,
@@ -66,6 +66,7 @@ from jaxsync.surrogate.evaluate import (
     max_applications,
     rollout_errors,
 )
+from jaxsync.surrogate.histories import SharedHistories, read_shared_histories
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.protocol import FitSettings
 from jaxsync.surrogate.replicas import count_parameters

@@ -39,7 +39,8 @@ from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadSignals, check_load_inputs
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
-from jaxsync.surrogate.data import padding_mask, shared_dof_layout
+from jaxsync.surrogate.data import padding_mask
+from jaxsync.surrogate.histories import shared_dof_layout
 from jaxsync.surrogate.lstm import check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
