@@ -46,7 +46,7 @@ import numpy as np
 
 from ..errors import ProblemError, StabilityError
 from ..pytree import pytree_dataclass
-from .hyperelastic import determinant, is_hyperelastic
+from .kinematics import determinant
 from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
@@ -172,7 +172,7 @@ def _element_unit_mass(space, density_scale) -> np.ndarray:
 def _material_and_fibres(problem):
     """(the law without its fibres, fibres (n_elements, 2, 3) or None), checked."""
     material = problem.material
-    if not is_hyperelastic(material):
+    if not material.finite_strain:
         raise ProblemError(f"the total-Lagrangian force model needs a hyperelastic material, got "
                            f"{type(material).__name__}: use jaxsync.NeoHookean(E, nu, rho) (the finite-strain law "
                            "that linearises to LinearElastic(E, nu, rho)), or mode='preassembled' for the linear law")
@@ -260,7 +260,6 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
         ProblemError: traced material parameters or initial displacement (pass dt=).
     """
     from ..pytree import is_traced
-    from .hyperelastic import material_parameters
 
     m, u0 = problem.material, problem.initial_displacement
     if is_traced(m, u0):
@@ -268,10 +267,10 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
             f"the default time step of a {type(m).__name__} problem comes from its tangent stiffness at rest, "
             "an eigenvalue computed on the host, so it cannot follow traced material parameters: pass dt= "
             "explicitly (for instance the problem.dt of the problem at concrete parameters)")
-    name, values, fibres = material_parameters(m)
+    law = m.parameters()
     fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
-    key = ("hyperelastic stable step", name, tuple(values.items()), fibres, fixed.tobytes(),
+    key = ("hyperelastic stable step", *law.key(), fixed.tobytes(),
            None if scale is None else np.asarray(scale, dtype=float).tobytes(),
            None if u0 is None else np.asarray(u0, dtype=float).tobytes(),
            tuple((s.surface, float(s.stiffness), s.normal_only) for s in problem.supports))
@@ -280,7 +279,7 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
         u = None if u0 is None else np.asarray(u0, dtype=float)
         memo[key] = (stable_dt(problem, u, alpha_s=1.0, rule="element"), exact_stable_dt(problem, u))
     rule, exact = memo[key]
-    return hyperelastic_step(rule, exact, alpha_s, element=problem.element, law=name)
+    return hyperelastic_step(rule, exact, alpha_s, element=problem.element, law=law.name)
 
 
 def _operator(problem_or_operator) -> HyperelasticForce:

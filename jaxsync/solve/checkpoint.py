@@ -81,13 +81,10 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     for bc in problem.dirichlet:
         if bc.time is not None:
             h.update(repr((bc.where if isinstance(bc.where, str) else "predicate", bc.time)).encode())
-    # a hyperelastic law: its type, every parameter and its fibre directions (a linear law
-    # adds nothing, so its fingerprints are those of before)
-    from ..fem.hyperelastic import is_hyperelastic, material_parameters
-
-    if is_hyperelastic(m):
-        name, values, fibres = material_parameters(m)
-        h.update(repr(("material", name, sorted(values.items()), fibres)).encode())
+    # what identifies the law besides E, nu, rho (a hyperelastic law: its type, every
+    # parameter, its fibre directions; the linear law adds nothing, so its fingerprints
+    # are those of before)
+    h.update(m.fingerprint())
     return h.hexdigest()
 
 
