@@ -52,7 +52,7 @@ from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
            "exact_stable_dt", "element_wave_speeds", "inverted_elements", "strain_energy",
            "STABLE_STEP_RULES", "element_stiffness", "element_frequencies", "tangent_matrix", "RunCheck",
-           "default_step"]
+           "default_step", "quadrature_order", "n_quadrature_points"]
 
 STABLE_STEP_RULES = ("cfl", "element")
 """The rules of :func:`stable_dt` (module docstring)."""
@@ -101,14 +101,28 @@ class HyperelasticForce:
 
     def element_forces(self, u):
         """(n_elements, k, 3) each element's nodal forces [dyn]."""
-        P = self.material.first_piola(self.deformation_gradient(u), self.fibres_at_points())
+        return self._nodal_forces(self.material.first_piola(self.deformation_gradient(u), self.fibres_at_points()))
+
+    def _nodal_forces(self, P):
+        """(n_elements, k, 3) sum_q w_q P_q grad N_a [dyn] of P (n_elements, n_q, 3, 3)."""
         # an einsum here (a sum of k products would be fused with P and recompute it k times)
         return jnp.einsum("mqij,mqkj->mki", P * self.weights[:, :, None, None], self.gradients)
 
+    def _assembled(self, forces, n_nodes: int):
+        return jax.ops.segment_sum(forces.reshape(-1, 3), self.cells.reshape(-1), num_segments=n_nodes)
+
     def matvec(self, u):
         """f_int(u) (n_nodes, 3) [dyn] of displacements u (n_nodes, 3) [cm]."""
-        forces = self.element_forces(u)
-        return jax.ops.segment_sum(forces.reshape(-1, 3), self.cells.reshape(-1), num_segments=u.shape[0])
+        return self._assembled(self.element_forces(u), u.shape[0])
+
+    def update(self, u, internal, dt):
+        """(f_int(u) (n_nodes, 3) [dyn], the law's internal variables after it) of a law
+        with state: its ``stress_update`` at every quadrature point
+        (:meth:`jaxsync.fem.material_law.FiniteStrainLaw.stress_update`), ``internal``
+        {name: (n_elements, n_q, ...)} its variables before, dt [s] the step."""
+        P, internal = self.material.stress_update(self.deformation_gradient(u), self.fibres_at_points(),
+                                                  internal, dt)
+        return self._assembled(self._nodal_forces(P), u.shape[0]), internal
 
     def energy(self, u):
         """The stored strain energy sum_e sum_q w_q psi(F_q) [erg] (its gradient in u is f_int)."""
@@ -132,9 +146,7 @@ def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, 
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
 
-    if intorder is None:
-        intorder = 1 if space.element == "P1" else (4 if space.curved else 2)
-    xi, w = get_quadrature(RefTet, intorder)
+    xi, w = get_quadrature(RefTet, quadrature_order(space) if intorder is None else intorder)
     element = space.scalar_element()
     k = space.nodes_per_cell
     dN = np.stack([element.lbasis(xi, a)[1].T for a in range(k)], axis=1)  # (n_q, k, 3) d N_a / d xi
@@ -146,6 +158,20 @@ def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, 
                            "total-Lagrangian run")
     grads = np.einsum("qkr,mqrj->mqkj", dN, np.linalg.inv(jac))  # dN/dX = dN/dxi . (dX/dxi)^-1
     return grads, np.abs(det) * w[None, :]
+
+
+def quadrature_order(space) -> int:
+    """The degree of the quadrature rule of the total-Lagrangian force on ``space``: 1 (one
+    point) for P1, 2 (four points) for straight P2, 4 for isoparametric (curved) P2."""
+    return 1 if space.element == "P1" else (4 if space.curved else 2)
+
+
+def n_quadrature_points(space) -> int:
+    """The quadrature points per element of :func:`reference_geometry` on ``space``."""
+    from skfem.quadrature import get_quadrature
+    from skfem.refdom import RefTet
+
+    return len(get_quadrature(RefTet, quadrature_order(space))[1])
 
 
 def _element_unit_mass(space, density_scale) -> np.ndarray:

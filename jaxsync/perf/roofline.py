@@ -337,13 +337,11 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     law = {}
     mode = problem.material.force_model(force_model(mode)).name  # the model the law runs on
     if mode == "total-lagrangian":
-        from skfem.quadrature import get_quadrature
-        from skfem.refdom import RefTet
+        from ..fem.total_lagrangian import n_quadrature_points
 
-        space = problem.space  # the rule of jaxsync.fem.total_lagrangian.reference_geometry
-        intorder = 1 if space.element == "P1" else (4 if space.curved else 2)
+        space = problem.space
         law = {"law": problem.material, "nodes_per_element": space.nodes_per_cell,
-               "n_points": len(get_quadrature(RefTet, intorder)[1])}
+               "n_points": n_quadrature_points(space)}
     if partition is None:
         width = _slots_per_row(problem.space.cells, problem.n_nodes) if mode == "preassembled" else None
         return step_costs(problem.n_nodes, width, mesh.n_elements, n_loads, mode, **law)
