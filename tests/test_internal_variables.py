@@ -183,7 +183,7 @@ def test_the_gradient_in_tau_and_beta_matches_finite_differences(beam):
     dt = float(problem.dt)
 
     def loss(tau, beta):
-        run = jaxsync.simulate(problem.replace(material=_sls(tau=tau, beta=beta)), 200, dt=dt, save=200)
+        run = jaxsync.simulate(problem.replace(material=_sls(tau=tau, beta=beta)), 100, dt=dt, save=100)
         return jnp.sum(run.displacement[-1] ** 2)
 
     g_tau, g_beta = jax.grad(loss, argnums=(0, 1))(TAU, BETA)

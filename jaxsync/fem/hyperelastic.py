@@ -1,7 +1,9 @@
 """Hyperelastic materials for total-Lagrangian explicit dynamics (finite strain).
 
 Each law is a frozen pytree dataclass (fields may be JAX tracers, so ``jax.grad`` with
-respect to its parameters works) with
+respect to its parameters works) deriving from
+:class:`jaxsync.fem.material_law.FiniteStrainLaw` (which answers the material-law protocol
+through the total-Lagrangian force model), with
 
 * ``energy(F, fibres=None)``: the strain energy density psi(F) per unit reference volume,
   (...,) [dyn/cm^2 = erg/cm^3], for deformation gradients F (..., 3, 3);

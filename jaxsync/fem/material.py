@@ -106,6 +106,24 @@ class LinearElastic:
                                "(problem.dt), or scale a P1 problem")
         return np.asarray(element_dt(problem, alpha_s=1.0), dtype=float)
 
+    def scaled_density(self, problem, dt_hat: float, alpha_s: float = ALPHA_S) -> tuple:
+        """Every P1 element whose CFL step alpha_s h_e / c_e is below dt_hat gets density
+        E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2)) (paper Algorithm 2), which raises its
+        step to dt_hat; returns (density_scale, scaled) as
+        :meth:`jaxsync.fem.material_law.MaterialLaw.scaled_density` says."""
+        from .timestep import element_size
+
+        self.element_steps(problem)  # refuses P2
+        E, nu, rho = float(self.E), float(self.nu), float(self.rho)
+        scale = (np.ones(problem.mesh.n_elements) if problem.density_scale is None
+                 else np.asarray(problem.density_scale, dtype=float).copy())
+        h = element_size(problem.mesh.points, problem.mesh.tets)
+        dt_e = alpha_s * h / np.sqrt(E / (rho * scale * (1.0 - nu**2)))
+        small = dt_e < dt_hat
+        new_density = E * dt_hat**2 / (alpha_s**2 * h**2 * (1.0 - nu**2))
+        scale[small] = new_density[small] / rho
+        return scale, small
+
     def tangent_stiffness(self, problem, displacement=None):
         """K (the same at every displacement), without the supports' springs."""
         return problem.operators.stiffness(self.lam, self.mu)

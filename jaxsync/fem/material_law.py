@@ -9,8 +9,9 @@ estimate and the cost model ask it:
   the total-Lagrangian model (:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`) for
   a finite-strain law;
 * its default stable step and exact bound at the problem's initial state
-  (:meth:`~MaterialLaw.stable_step`, :meth:`~MaterialLaw.max_stable_dt`) and each
-  element's own step (:meth:`~MaterialLaw.element_steps`, what mass scaling scales);
+  (:meth:`~MaterialLaw.stable_step`, :meth:`~MaterialLaw.max_stable_dt`), each element's
+  own step (:meth:`~MaterialLaw.element_steps`) and the density that raises it to a
+  target (:meth:`~MaterialLaw.scaled_density`, mass scaling);
 * its assembled tangent stiffness at a displacement (:meth:`~MaterialLaw.tangent_stiffness`,
   the error estimate's linearisation) and whether that tangent changes with the state
   (:attr:`~MaterialLaw.state_dependent_tangent`: the host then refreshes it);
@@ -117,6 +118,12 @@ class MaterialLaw(Protocol):
     def element_steps(self, problem) -> np.ndarray:
         """(n_elements,) each element's own stable step [s] (alpha_s = 1)."""
 
+    def scaled_density(self, problem, dt_hat: float, alpha_s: float = ALPHA_S) -> tuple:
+        """(density_scale (n_elements,), scaled (n_elements,) bool): the problem's density
+        scale with every element whose own step (alpha_s times :meth:`element_steps`) is
+        below ``dt_hat`` [s] made heavier so that its step is dt_hat (artificial mass
+        scaling, :func:`jaxsync.mass_scaling`), and which elements that changed."""
+
     def tangent_stiffness(self, problem, displacement=None):
         """The assembled tangent stiffness (scipy sparse, (n_dofs, n_dofs) [dyn/cm],
         symmetric) at ``displacement`` (n_nodes, 3) [cm] (None: the reference state),
@@ -142,8 +149,8 @@ class MaterialLaw(Protocol):
 
 
 PROTOCOL_MEMBERS = ("E", "nu", "rho", "finite_strain", "state_dependent_tangent", "force_model", "stable_step",
-                    "max_stable_dt", "element_steps", "tangent_stiffness", "parameters", "fingerprint", "cost",
-                    "run_check", "internal_variables")
+                    "max_stable_dt", "element_steps", "scaled_density", "tangent_stiffness", "parameters",
+                    "fingerprint", "cost", "run_check", "internal_variables")
 """The members of :class:`MaterialLaw`."""
 
 
@@ -220,7 +227,7 @@ class FiniteStrainLaw:
                                "--float32-blocks")
         from .total_lagrangian import TotalLagrangian
 
-        return requested if isinstance(requested, TotalLagrangian) else TotalLagrangian()
+        return TotalLagrangian()
 
     def stable_step(self, problem, alpha_s: float = ALPHA_S) -> StableStep:
         """alpha_s min(element rule, exact bound) of the tangent at the initial displacement
@@ -250,6 +257,16 @@ class FiniteStrainLaw:
         u0 = problem.initial_displacement
         u = jnp.zeros((problem.n_nodes, 3)) if u0 is None else jnp.asarray(u0, dtype=float)
         return 2.0 / np.sqrt(np.asarray(element_frequencies(op, u), dtype=float))
+
+    def scaled_density(self, problem, dt_hat: float, alpha_s: float = ALPHA_S) -> tuple:
+        """Each element below dt_hat gets its density times (dt_hat / its step)^2: its step
+        goes as the square root of its density."""
+        dt_e = alpha_s * self.element_steps(problem)
+        scale = (np.ones(problem.mesh.n_elements) if problem.density_scale is None
+                 else np.asarray(problem.density_scale, dtype=float).copy())
+        small = dt_e < dt_hat
+        scale[small] *= (dt_hat / dt_e[small]) ** 2
+        return scale, small
 
     def tangent_stiffness(self, problem, displacement=None):
         """K_T(u) (:func:`jaxsync.fem.total_lagrangian.tangent_matrix`), symmetrised (it is

@@ -322,8 +322,9 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
 
     Every element whose own step (its law's
     :meth:`~jaxsync.fem.material_law.MaterialLaw.element_steps`, times alpha_s) is below
-    the target ``dt_hat = beta * problem.dt`` (or ``dt_target``) gets its density times
-    (dt_hat / its step)^2, which raises its step to exactly dt_hat: for the linear law,
+    the target ``dt_hat = beta * problem.dt`` (or ``dt_target``) is made heavier, which
+    raises its step to exactly dt_hat (the law's
+    :meth:`~jaxsync.fem.material_law.MaterialLaw.scaled_density`): for the linear law,
     whose element step is the paper's CFL step, density
     ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``. The scaled problem's ``dt`` (the default step of
     :func:`jaxsync.simulate`, :func:`stable_step`) is then dt_hat, or the unscaled CFL step
@@ -354,12 +355,8 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
                              + (f" (beta={beta})" if beta is not None else ""))
     if warn_above_percent is not None and not float(warn_above_percent) >= 0:
         raise StabilityError(f"warn_above_percent must be >= 0 (or None), got {warn_above_percent}")
-    dt_e = alpha_s * problem.material.element_steps(problem)  # the law's own element rule
+    scale, small = problem.material.scaled_density(problem, dt_hat, alpha_s)  # by the law's own element rule
     rho = float(problem.material.rho)
-    scale = (np.ones(problem.mesh.n_elements) if problem.density_scale is None
-             else np.asarray(problem.density_scale, dtype=float).copy())
-    small = dt_e < dt_hat
-    scale[small] *= (dt_hat / dt_e[small]) ** 2  # an element's step goes as sqrt(its density)
     volumes = problem.operators.volumes
     old_mass = rho * np.sum(volumes * (1.0 if problem.density_scale is None
                                        else np.asarray(problem.density_scale, dtype=float)))
