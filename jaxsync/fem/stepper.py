@@ -263,7 +263,7 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     # The consistent P1 mass is well conditioned: CG converges in a few dozen iterations.
     a0, _ = jax.scipy.sparse.linalg.cg(operator, rhs, tol=1e-14, maxiter=1000)
     previous = apply_dirichlet(system, d0 - dt * v0 + 0.5 * dt * dt * a0, -dt)
-    from .total_lagrangian import n_quadrature_points
+    from .reference_element import n_quadrature_points
 
     variables = problem.material.internal_variables(problem.mesh.n_elements, n_quadrature_points(problem.space))
     return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32), variables)

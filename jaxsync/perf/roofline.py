@@ -337,7 +337,7 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     law = {}
     mode = problem.material.force_model(force_model(mode)).name  # the model the law runs on
     if mode == "total-lagrangian":
-        from ..fem.total_lagrangian import n_quadrature_points
+        from ..fem.reference_element import n_quadrature_points
 
         space = problem.space
         law = {"law": problem.material, "nodes_per_element": space.nodes_per_cell,
