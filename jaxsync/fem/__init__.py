@@ -8,7 +8,9 @@ forces, pressure, time functions), :mod:`~jaxsync.fem.problem` (a problem and th
 cantilever), :mod:`~jaxsync.fem.coronary` (the paper's coronary case: material, pulsatile
 lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
 :mod:`~jaxsync.fem.element_force` (element forces formed every step),
-:mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.total_lagrangian`
+:mod:`~jaxsync.fem.material_law` (the protocol every material law implements),
+:mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.viscoelastic` (a finite-strain
+standard linear solid, a law with internal variables), :mod:`~jaxsync.fem.total_lagrangian`
 (their internal force, total-Lagrangian explicit dynamics), :mod:`~jaxsync.fem.follower`
 (pressure on the deformed surface),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
@@ -26,7 +28,8 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "ExplicitSystem", "SolverState", "build_system",
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
-           "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements"]
+           "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
+           "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -36,11 +39,13 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
     ".loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Product", "Ramp", "StepOff", "TimeFunction"),
     ".material": ("LinearElastic",),
+    ".material_law": ("FiniteStrainLaw", "MaterialLaw"),
     "..mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
     ".problem": ("Dirichlet", "Problem", "cantilever"),
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
     ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
     ".total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
+    ".viscoelastic": ("StandardLinearSolid",),
 })
 
 if TYPE_CHECKING:
@@ -51,7 +56,9 @@ if TYPE_CHECKING:
     from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
     from .material import LinearElastic
+    from .material_law import FiniteStrainLaw, MaterialLaw
     from .problem import Dirichlet, Problem, cantilever
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
     from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
     from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
+    from .viscoelastic import StandardLinearSolid

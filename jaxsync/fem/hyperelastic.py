@@ -1,7 +1,9 @@
 """Hyperelastic materials for total-Lagrangian explicit dynamics (finite strain).
 
 Each law is a frozen pytree dataclass (fields may be JAX tracers, so ``jax.grad`` with
-respect to its parameters works) with
+respect to its parameters works) deriving from
+:class:`jaxsync.fem.material_law.FiniteStrainLaw` (which answers the material-law protocol
+through the total-Lagrangian force model), with
 
 * ``energy(F, fibres=None)``: the strain energy density psi(F) per unit reference volume,
   (...,) [dyn/cm^2 = erg/cm^3], for deformation gradients F (..., 3, 3);
@@ -39,48 +41,13 @@ import numpy as np
 
 from ..errors import MaterialError
 from ..pytree import concrete_scalar, pytree_dataclass
+from .kinematics import _det_from_cofactor, _sum3, _sum_squares, cofactor, determinant
 from .material import first_lame, shear_modulus
+from .material_law import FiniteStrainLaw
 from .parameter_checks import check_number
 
 __all__ = ["NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "HYPERELASTIC",
            "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters"]
-
-
-def _sum3(x):
-    """The sum over the last axis (of length 3) of x, as two additions.
-
-    Not ``jnp.sum``: XLA:CPU (jax 0.10.2) hands a reduction over a short trailing axis, with
-    the elementwise operations around it, to its YNN fusion, which is slower on batches of
-    3 x 3 matrices than the plain loop fusion the additions become. Measured (the
-    total-Lagrangian force on the generated vessel, one core, chains of products in one
-    call, best of 25 alternated calls; jnp.sum time over this one): P1, 5 000 elements:
-    nearly incompressible 1.95x, Holzapfel-Gasser-Ogden 1.57x, neo-Hookean 1.0x; P1,
-    38 000 elements: 1.5x, 1.45x, 1.04x; P2, 5 000 elements: 1.12x, 0.95x, 1.0x."""
-    return x[..., 0] + x[..., 1] + x[..., 2]
-
-
-def _sum_squares(F):
-    """(...,) sum of the squares of the entries of (..., 3, 3) F (I1 = tr F^T F)."""
-    return _sum3(_sum3(F * F))
-
-
-def determinant(F):
-    """(...,) det F of (..., 3, 3) matrices (the cofactor expansion: several times faster than
-    the LU of ``jnp.linalg.det`` on batches of 3 x 3 matrices)."""
-    f0, f1, f2 = F[..., 0, :], F[..., 1, :], F[..., 2, :]
-    return _sum3(f0 * jnp.cross(f1, f2))
-
-
-def cofactor(F):
-    """(..., 3, 3) cof F = d(det F)/dF = det F * F^-T: its rows are the cross products of F's
-    other two rows. Taken as the reverse-mode derivative of :func:`determinant`, which XLA
-    lays out better than stacking the cross products (measured: 25 % faster neo-Hookean P)."""
-    return jax.grad(lambda G: jnp.sum(determinant(G)))(F)
-
-
-def _det_from_cofactor(F, cof):
-    """(...,) det F from its first row and cof F (no second set of cross products)."""
-    return _sum3(F[..., 0, :] * cof[..., 0, :])
 
 
 def _isochoric_volumetric(F, cof, J, mu, bulk):
@@ -91,17 +58,6 @@ def _isochoric_volumetric(F, cof, J, mu, bulk):
     a = mu * j23
     b = (0.5 * bulk * (J * J - 1.0) - a * i1 / 3.0) / J
     return a[..., None, None] * F + b[..., None, None] * cof
-
-
-def _tangent(material, F, fibres):
-    """A = dP/dF (..., 3, 3, 3, 3) by forward-mode differentiation of the hand-written P."""
-    flat = F.reshape(-1, 3, 3)
-    if fibres is None:
-        A = jax.vmap(jax.jacfwd(lambda f: material.first_piola(f)))(flat)
-    else:
-        a = jnp.broadcast_to(fibres, F.shape[:-2] + (2, 3)).reshape(-1, 2, 3)
-        A = jax.vmap(jax.jacfwd(lambda f, b: material.first_piola(f, b)))(flat, a)
-    return A.reshape(F.shape + (3, 3))
 
 
 def _check_positive(law: str = "", **values) -> None:
@@ -122,7 +78,7 @@ def _check_young_poisson(E, nu, rho, *, law: str) -> None:
                       "use nu = 0.49 to 0.499 with P2 elements")
 
 
-class _SmallStrain:
+class _SmallStrain(FiniteStrainLaw):
     """The small-strain constants of a law given by E and nu."""
 
     @property
@@ -145,9 +101,21 @@ class _SmallStrain:
         """sqrt((lam + 2 mu) / rho) [cm/s] at F = I."""
         return jnp.sqrt((self.lam + 2.0 * self.mu) / self.rho)
 
-    def tangent(self, F, fibres=None):
-        """A = dP/dF (..., 3, 3, 3, 3) [dyn/cm^2], A[..., i, J, k, L] = dP_iJ / dF_kL."""
-        return _tangent(self, F, fibres)
+
+
+# Flops per quadrature point of each law's P(F), operation by operation of its formula (a
+# transcendental function, a division, a comparison or a select counts as one flop, as in
+# XLA's cost analysis); cof F = det F F^-T, J = det F (jaxsync.perf.roofline).
+_COFACTOR_J = {"cof F: 9 entries, 2 products and a difference each": 27,
+               "J = F_0 . cof_0": 5}
+_ISOCHORIC_VOLUMETRIC = {
+    **_COFACTOR_J,
+    "J^-2/3 = exp(-2/3 ln J)": 3,
+    "I1 = F : F": 17,  # 9 squares + 8 additions
+    "a = mu J^-2/3": 1,
+    "b = (K/2 (J^2 - 1) - a I1 / 3) / J": 7,
+    "P = a F + b cof F": 27,
+}
 
 
 @pytree_dataclass
@@ -169,6 +137,8 @@ class NeoHookean(_SmallStrain):
     E: Any = 1.0e6
     nu: Any = 0.3
     rho: Any = 1.0
+
+    point_flops = {**_COFACTOR_J, "ln J": 1, "s = (lam ln J - mu) / J": 3, "P = mu F + s cof F": 27}
 
     def __post_init__(self):
         _check_numbers(self)
@@ -208,6 +178,8 @@ class NearlyIncompressibleNeoHookean(_SmallStrain):
     nu: Any = 0.45
     rho: Any = 1.0
 
+    point_flops = dict(_ISOCHORIC_VOLUMETRIC)
+
     def __post_init__(self):
         _check_numbers(self)
         _check_young_poisson(self.E, self.nu, self.rho, law="NearlyIncompressibleNeoHookean")
@@ -231,7 +203,7 @@ _I4_ROUNDOFF = 1e-12
 
 
 @pytree_dataclass
-class HolzapfelGasserOgden:
+class HolzapfelGasserOgden(FiniteStrainLaw):
     """Holzapfel-Gasser-Ogden arterial wall (Gasser, Ogden & Holzapfel 2006): an isochoric
     neo-Hookean ground matrix, a volumetric term and two families of collagen fibres::
 
@@ -277,6 +249,18 @@ class HolzapfelGasserOgden:
     rho: Any = 1.0
     dispersion: Any = 0.0
     fibres: Any = None
+
+    point_flops = {
+        **_ISOCHORIC_VOLUMETRIC,
+        "F a_i, two families": 30,  # 9 products + 6 additions each
+        "I4_i = |F a_i|^2": 10,
+        "E_i = kappa (I1 - 3) + (1 - 3 kappa)(I4_i - 1)": 8,  # 2 shared + 3 per family
+        "slope_i = k1 E_i exp(k2 E_i^2)": 10,
+        "in tension: I4_i >= 1, else slope_i = 0": 4,  # a comparison and a select each
+        "2 kappa (slope_1 + slope_2) F, added to P": 20,
+        "slope_i F a_i (x) a_i, summed over the families": 33,  # 2 (3 + 9) + 9
+        "2 (1 - 3 kappa) times that, added to P": 18,
+    }
 
     def __post_init__(self):
         _check_numbers(self)
@@ -371,10 +355,6 @@ class HolzapfelGasserOgden:
         a = jnp.broadcast_to(fibres, Fa.shape)
         return P + 2.0 * (1.0 - 3.0 * kappa) * jnp.einsum("...f,...fi,...fj->...ij", slope, Fa, a)
 
-    def tangent(self, F, fibres=None):
-        """A = dP/dF (..., 3, 3, 3, 3) [dyn/cm^2]."""
-        return _tangent(self, F, fibres)
-
 
 HYPERELASTIC = (NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden)
 """The hyperelastic laws a :class:`jaxsync.Problem` takes (with
@@ -382,22 +362,19 @@ HYPERELASTIC = (NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden
 
 
 def is_hyperelastic(material) -> bool:
-    """True for the finite-strain laws of this module (:data:`HYPERELASTIC`)."""
-    return isinstance(material, HYPERELASTIC)
+    """True for a finite-strain law (its :attr:`~jaxsync.fem.material_law.MaterialLaw.finite_strain`):
+    a thin alias kept for existing code; jaxsync itself asks the law
+    (:mod:`jaxsync.fem.material_law`)."""
+    return bool(getattr(material, "finite_strain", False))
 
 
 def material_parameters(material) -> tuple[str, dict, str | None]:
     """(the law's class name, {parameter: float} of its scalar fields, sha256 hex of its fibre
-    directions or None) of a concrete hyperelastic law: what identifies it (checkpoint
-    fingerprints, memoised stable steps)."""
-    import dataclasses
-    import hashlib
-
-    values = {f.name: float(getattr(material, f.name)) for f in dataclasses.fields(material) if f.name != "fibres"}
-    fibres = getattr(material, "fibres", None)
-    digest = None if fibres is None else hashlib.sha256(
-        np.ascontiguousarray(np.asarray(fibres, dtype=float)).tobytes()).hexdigest()
-    return type(material).__name__, values, digest
+    directions or None) of a concrete law: its
+    :meth:`~jaxsync.fem.material_law.MaterialLaw.parameters` as a tuple (an alias kept for
+    existing code)."""
+    p = material.parameters()
+    return p.name, dict(p.values), p.fibres
 
 
 def helical_fibres(centres, axis=(0.0, 0.0, 1.0), angle: float = 40.0, origin=(0.0, 0.0, 0.0)) -> np.ndarray:

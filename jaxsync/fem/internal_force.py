@@ -20,10 +20,11 @@ the finite-strain hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`). :func:`fo
 maps the command line's names (``"preassembled"``, ``"recompute"``, ``"total-lagrangian"``)
 onto them.
 
-A problem whose material is hyperelastic has no stiffness K to store: the linear models
-hand it to :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian` (so that the default
-``mode="preassembled"`` of every solver runs the law the problem states, never its
-linearisation).
+The material law says which model runs it
+(:meth:`jaxsync.fem.material_law.MaterialLaw.force_model`): a finite-strain law has no
+stiffness K to store, so the linear models hand its problem to
+:class:`~jaxsync.fem.total_lagrangian.TotalLagrangian` (the default ``mode="preassembled"``
+of every solver runs the law the problem states, never its linearisation).
 """
 
 from __future__ import annotations
@@ -76,23 +77,13 @@ def _max_stable_dt(problem):
     return max_stable_dt(problem)
 
 
-def _finite_strain(problem, model=None):
-    """The total-Lagrangian model when the problem's material is hyperelastic, else None;
-    a setting of ``model`` that only a stored stiffness has (float32 blocks) is refused."""
-    from .hyperelastic import is_hyperelastic
-
-    if not is_hyperelastic(problem.material):
-        return None
-    if getattr(model, "blocks_dtype", "float64") != "float64":
-        from ..errors import ProblemError
-
-        law = type(problem.material).__name__
-        raise ProblemError(f"float32 stiffness blocks store the K of a linear law; the {law} "
-                           "law has none (every mode runs the total-Lagrangian force): leave out blocks_dtype / "
-                           "--float32-blocks")
-    from .total_lagrangian import TotalLagrangian
-
-    return TotalLagrangian()
+def _finite_strain(problem, model):
+    """The force model the problem's material law runs instead of ``model`` (a
+    finite-strain law: :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`), or None
+    when it runs ``model`` itself (:meth:`jaxsync.fem.material_law.MaterialLaw.force_model`;
+    a setting of ``model`` that only a stored stiffness has is refused there)."""
+    runs = problem.material.force_model(model)
+    return None if runs is model else runs
 
 
 LAYOUTS = ("grouped", "ell")

@@ -15,13 +15,13 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ProblemError
+from ..mesh import Mesh, box_beam
 from ..options import Element
 from ..pytree import is_traced
 from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector, traction_vectors
-from .hyperelastic import is_hyperelastic
 from .loads import LOADS, BodyForce, Pressure, Ramp, StepOff, TimeFunction, Traction
 from .material import LinearElastic
-from .mesh import Mesh, box_beam
+from .material_law import check_material_law
 from .parameter_checks import check_finite_array, check_number
 from .support import ElasticSupport
 
@@ -92,7 +92,9 @@ class Problem:
             ``mode``: the linear modes have no stiffness of a nonlinear law to store. The
             default step (:attr:`dt`) is that of the law's tangent at rest (the initial
             displacement); a run checks its deformed states between chunks
-            (:class:`jaxsync.fem.total_lagrangian.RunCheck`).
+            (:class:`jaxsync.fem.total_lagrangian.RunCheck`). Any law implementing
+            :class:`jaxsync.fem.material_law.MaterialLaw` (a finite-strain law of your own
+            deriving from :class:`jaxsync.fem.material_law.FiniteStrainLaw`) runs so too.
         element: ``"P1"`` (linear tetrahedra) or ``"P2"`` (quadratic: a node at every
             edge too, :mod:`jaxsync.fem.space`); default ``"P2"`` on a quadratic
             (``tetra10``) mesh, ``"P1"`` otherwise. Fields are (n_nodes, 3) on the
@@ -126,10 +128,7 @@ class Problem:
     def __post_init__(self):
         if not isinstance(self.mesh, Mesh):
             raise ProblemError(f"Problem.mesh must be a jaxsync.Mesh, got {type(self.mesh).__name__}")
-        if not isinstance(self.material, LinearElastic) and not is_hyperelastic(self.material):
-            raise ProblemError(f"Problem.material must be a jaxsync.LinearElastic or a hyperelastic law "
-                               f"(jaxsync.NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden), got "
-                               f"{type(self.material).__name__}")
+        check_material_law(self.material)
         for name in ("dirichlet", "loads", "supports"):  # one entry given alone counts as a list of one
             value = getattr(self, name)
             object.__setattr__(self, name, (value,) if isinstance(value, (Dirichlet, ElasticSupport) + LOADS)
@@ -140,7 +139,7 @@ class Problem:
                                    "jaxsync.Traction")
             if isinstance(load, (Pressure, Traction)):
                 self.mesh.facet_set(load.surface)  # clear error for an unknown tag
-            if isinstance(load, Pressure) and load.follower and not is_hyperelastic(self.material):
+            if isinstance(load, Pressure) and load.follower and not self.material.finite_strain:
                 raise ProblemError(
                     f"the follower pressure on {load.surface!r} acts on the deformed surface, a finite-strain "
                     f"effect, but the material is the small-strain {type(self.material).__name__}: use a "
@@ -217,39 +216,22 @@ class Problem:
     def time_step(self):
         """The default step with its rule and both bounds
         (:class:`jaxsync.fem.timestep.StableStep`)."""
-        if is_hyperelastic(self.material):
-            from .total_lagrangian import default_step
-
-            return default_step(self)
-        from .timestep import stable_step
-
-        return stable_step(self)
+        return self.material.stable_step(self)
 
     def element_steps(self) -> np.ndarray:
-        """(n_elements,) each element's own stable step [s] (alpha_s = 1) of a hyperelastic
-        law at the initial displacement: 2 / omega_e, omega_e^2 the largest eigenvalue of
-        the element's tangent stiffness over its lumped mass (density scaling included;
-        :func:`jaxsync.fem.total_lagrangian.element_frequencies`), as
-        :func:`jaxsync.mass_scaling` scales them.
+        """(n_elements,) each element's own stable step [s] (alpha_s = 1), as its material
+        law computes it (:meth:`jaxsync.fem.material_law.MaterialLaw.element_steps`) and
+        :func:`jaxsync.mass_scaling` scales them: for a hyperelastic law at the initial
+        displacement, 2 / omega_e, omega_e^2 the largest eigenvalue of the element's
+        tangent stiffness over its lumped mass (density scaling included;
+        :func:`jaxsync.fem.total_lagrangian.element_frequencies`); for the linear law the
+        paper's CFL step h_e / c_e of each P1 element (:func:`jaxsync.fem.timestep.element_dt`).
 
         Raises:
-            ProblemError: a linear law (its element steps are the paper's CFL rule,
-                :func:`jaxsync.fem.timestep.element_dt`), or traced parameters.
+            ProblemError: a linear law on P2 elements, or a hyperelastic law with traced
+                parameters.
         """
-        if not is_hyperelastic(self.material):
-            raise ProblemError("element_steps is the element rule of a hyperelastic law; a linear law's element "
-                               "steps are the paper's CFL rule (jaxsync.fem.timestep.element_dt)")
-        if is_traced(self.material, self.initial_displacement):
-            raise ProblemError("the element steps are eigenvalues computed on the host: give concrete material "
-                               "parameters and initial displacement")
-        import jax.numpy as jnp
-
-        from .total_lagrangian import TotalLagrangian, element_frequencies
-
-        op = TotalLagrangian().operator(self)
-        u0 = self.initial_displacement
-        u = jnp.zeros((self.n_nodes, 3)) if u0 is None else jnp.asarray(u0, dtype=float)
-        return 2.0 / np.sqrt(np.asarray(element_frequencies(op, u), dtype=float))
+        return self.material.element_steps(self)
 
     def dirichlet_dofs(self) -> tuple[np.ndarray, np.ndarray]:
         """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs (a

@@ -24,6 +24,7 @@ device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Any, Callable, NamedTuple
 
@@ -35,6 +36,7 @@ from .sparse import BlockEll
 from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step", "internal_forces",
+           "internal_forces_and_variables",
            "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance", "Probe",
            "STEP_UNROLL"]
 
@@ -89,11 +91,18 @@ class SolverState:
         displacement: (n_nodes, 3) d(n) [cm].
         previous: (n_nodes, 3) d(n-1) [cm].
         step: n (int); the time is n * dt.
+        internal: the material law's internal variables, {name: (n_elements, n_points,
+            ...) array} at the quadrature points
+            (:meth:`jaxsync.fem.material_law.MaterialLaw.internal_variables`), as the
+            force of d(n-1) left them; {} (the default) for a law without state. A
+            part's state holds those of its own elements (padded to the largest part);
+            they are never exchanged.
     """
 
     displacement: Any
     previous: Any
     step: Any
+    internal: Any = dataclasses.field(default_factory=dict)
 
 
 def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
@@ -164,8 +173,24 @@ def apply_dirichlet(system: ExplicitSystem, displacement, t):
 def internal_forces(system: ExplicitSystem, displacement, t=0.0):
     """(n_nodes, 3) K d [dyn]: the internal force of the (part's) elements plus the
     supports' springs, minus the follower pressures at time ``t`` [s] (the loads that
-    depend on the displacement, on the part's own facets), before any exchange."""
-    force = system.stiffness.matvec(displacement)
+    depend on the displacement, on the part's own facets), before any exchange. A law
+    with internal variables: its force from rest (its ``first_piola``)."""
+    return _springs_and_followers(system, displacement, system.stiffness.matvec(displacement), t)
+
+
+def internal_forces_and_variables(system: ExplicitSystem, state: SolverState, t):
+    """(K d(n) as :func:`internal_forces` computes it, the internal variables after it):
+    a law with state updates its variables in the element kernel, with the force
+    (``stiffness.update(u, internal, dt)``, :class:`jaxsync.fem.total_lagrangian.HyperelasticForce`);
+    a law without any returns them (empty) as they are."""
+    if not jax.tree_util.tree_leaves(state.internal):  # no state: the elastic kernel
+        return internal_forces(system, state.displacement, t), state.internal
+    force, internal = system.stiffness.update(state.displacement, state.internal, system.dt)
+    return _springs_and_followers(system, state.displacement, force, t), internal
+
+
+def _springs_and_followers(system: ExplicitSystem, displacement, force, t):
+    """The elements' ``force`` plus the supports' springs, minus the follower pressures."""
     if system.spring is not None:
         force = force + system.spring.matvec(displacement)
     if system.follower is not None:
@@ -186,13 +211,13 @@ def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite
     then returns ``(new_state, probe's value)`` (the synchronization-avoiding solver's
     force-balance defect, :func:`jaxsync.solve.phases.overwritten_steps`)."""
     t = jnp.asarray(state.step, dtype=system.dt.dtype) * system.dt
-    internal = internal_forces(system, state.displacement, t)
+    internal, variables = internal_forces_and_variables(system, state, t)
     if synchronize is not None:
         internal = synchronize(internal)
     updated = central_difference(system, state, internal)
     new = updated if overwrite is None else overwrite(updated)
     t_new = jnp.asarray(state.step + 1, dtype=system.dt.dtype) * system.dt
-    new_state = SolverState(apply_dirichlet(system, new, t_new), state.displacement, state.step + 1)
+    new_state = SolverState(apply_dirichlet(system, new, t_new), state.displacement, state.step + 1, variables)
     return new_state if probe is None else (new_state, probe(state, internal, updated, new_state))
 
 
@@ -238,7 +263,10 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     # The consistent P1 mass is well conditioned: CG converges in a few dozen iterations.
     a0, _ = jax.scipy.sparse.linalg.cg(operator, rhs, tol=1e-14, maxiter=1000)
     previous = apply_dirichlet(system, d0 - dt * v0 + 0.5 * dt * dt * a0, -dt)
-    return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32))
+    from .reference_element import n_quadrature_points
+
+    variables = problem.material.internal_variables(problem.mesh.n_elements, n_quadrature_points(problem.space))
+    return SolverState(d0, previous, jnp.asarray(0, dtype=jnp.int32), variables)
 
 
 class Probe(NamedTuple):

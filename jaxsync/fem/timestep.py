@@ -36,10 +36,10 @@ import warnings
 import numpy as np
 
 from ..errors import ProblemError, StabilityError
-from .hyperelastic import is_hyperelastic
 
 __all__ = ["ALPHA_S", "MassScalingWarning", "StableStep", "element_size", "element_dt", "cfl_dt",
-           "max_stable_dt", "stable_step", "hyperelastic_step", "check_dt", "divergence_advice", "mass_scaling"]
+           "max_stable_dt", "stable_step", "small_strain_step", "small_strain_max_stable_dt",
+           "hyperelastic_step", "check_dt", "divergence_advice", "mass_scaling"]
 
 ALPHA_S = 0.9
 
@@ -201,26 +201,31 @@ def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
 
 
 def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):
-    """Exact stability bound 2 / omega_max [s] of the central difference scheme: omega_max^2
-    the largest eigenvalue of the symmetric form M^-1/2 K M^-1/2 restricted to the free
-    dofs (lumped mass), dense for small problems, else Lanczos (ARPACK) to relative
-    accuracy ``tol``. Mass-proportional damping does not change the bound.
+    """Exact stability bound 2 / omega_max [s] of the central difference scheme at the
+    problem's initial state, as its material law computes it
+    (:meth:`jaxsync.fem.material_law.MaterialLaw.max_stable_dt`): the linear law's
+    :func:`small_strain_max_stable_dt`; a hyperelastic law's bound of its tangent at rest
+    (module docstring, :meth:`jaxsync.fem.total_lagrangian.TotalLagrangian.max_stable_dt`),
+    memoised per law, fibres, initial displacement, density scaling, Dirichlet set and
+    supports."""
+    return problem.material.max_stable_dt(problem, tol=tol, max_iter=max_iter, seed=seed)
+
+
+def small_strain_max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):
+    """Exact stability bound 2 / omega_max [s] of the linear law: omega_max^2 the largest
+    eigenvalue of the symmetric form M^-1/2 K M^-1/2 restricted to the free dofs (lumped
+    mass), dense for small problems, else Lanczos (ARPACK) to relative accuracy ``tol``.
+    Mass-proportional damping does not change the bound.
 
     The eigenvalue is computed once per mesh, nu, density scaling and Dirichlet set (for
     E = rho = 1) and scaled by sqrt(rho / E), so the bound is traced when E or rho are
     (a Python float otherwise); a traced nu raises :class:`jaxsync.ProblemError`.
-
-    A hyperelastic law: the force model's bound at rest (module docstring,
-    :meth:`jaxsync.fem.total_lagrangian.TotalLagrangian.max_stable_dt`), memoised per law,
-    fibres, initial displacement, density scaling, Dirichlet set and supports.
     """
     import jax.numpy as jnp
 
     from ..pytree import is_traced
 
     m = problem.material
-    if is_hyperelastic(m):
-        return problem.time_step.exact
     unit = _unit_bound(problem, tol, max_iter, seed)
     if is_traced(m.E, m.rho):
         return unit * jnp.sqrt(m.rho / m.E)
@@ -240,21 +245,24 @@ def hyperelastic_step(rule: float, exact: float, alpha_s: float = ALPHA_S, *, el
 
 
 def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
-    """The default time step ``min(paper CFL step, alpha_s * 2 / omega_max)`` and its rule
-    (quadratic elements: ``alpha_s * 2 / omega_max``, the paper's rule being for P1).
+    """The default time step of ``problem`` and its rule, as its material law sets it
+    (:meth:`jaxsync.fem.material_law.MaterialLaw.stable_step`): the linear law's
+    :func:`small_strain_step`; a hyperelastic law's ``alpha_s * min(element rule, exact
+    bound)`` of its tangent at the initial displacement, P1 and P2 (module docstring; a
+    concrete law only)."""
+    return problem.material.stable_step(problem, alpha_s)
+
+
+def small_strain_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
+    """The linear law's default time step ``min(paper CFL step, alpha_s * 2 / omega_max)``
+    and its rule (quadratic elements: ``alpha_s * 2 / omega_max``, the paper's rule being
+    for P1).
 
     Both steps scale as sqrt(rho / E), so which of them is smaller depends only on nu, the
     mesh, the density scaling and the Dirichlet set: the rule is decided without the
-    values of E and rho, and ``dt`` is traced when they are.
-
-    A hyperelastic law (module docstring): ``alpha_s * min(element rule, exact bound)`` of
-    its tangent at the initial displacement, P1 and P2 (a concrete law only)."""
-    if is_hyperelastic(problem.material):  # the force model's step (Problem.time_step), at this alpha_s
-        step = problem.time_step
-        return step if alpha_s == step.alpha_s else hyperelastic_step(
-            step.cfl / step.alpha_s, step.exact, alpha_s, element=step.element, law=step.law)
+    values of E and rho, and ``dt`` is traced when they are."""
     cfl = cfl_dt(problem, alpha_s)
-    exact = max_stable_dt(problem)
+    exact = small_strain_max_stable_dt(problem)
     if problem.element != "P1":  # the paper's rule is for linear tetrahedra
         return StableStep(dt=alpha_s * exact, rule="exact", cfl=cfl, exact=exact, alpha_s=alpha_s,
                           element=problem.element)
@@ -312,9 +320,13 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
                  warn_above_percent: float | None = MASS_SCALING_WARN_PERCENT):
     """Artificial mass scaling (paper Algorithm 2).
 
-    Every element whose own CFL step is below the target ``dt_hat = beta * problem.dt``
-    (or ``dt_target``) gets density ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``, which
-    raises its step to exactly dt_hat. The scaled problem's ``dt`` (the default step of
+    Every element whose own step (its law's
+    :meth:`~jaxsync.fem.material_law.MaterialLaw.element_steps`, times alpha_s) is below
+    the target ``dt_hat = beta * problem.dt`` (or ``dt_target``) is made heavier, which
+    raises its step to exactly dt_hat (the law's
+    :meth:`~jaxsync.fem.material_law.MaterialLaw.scaled_density`): for the linear law,
+    whose element step is the paper's CFL step, density
+    ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``. The scaled problem's ``dt`` (the default step of
     :func:`jaxsync.simulate`, :func:`stable_step`) is then dt_hat, or the unscaled CFL step
     when that is larger, unless alpha_s times the scaled problem's exact bound is smaller
     (nearly incompressible materials): then that.
@@ -335,11 +347,6 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
         (scaled_problem, mass_increase_percent): the problem with ``density_scale`` set,
         and R_m = 100 (M_scaled - M) / M for the total mass.
     """
-    hyperelastic = is_hyperelastic(problem.material)
-    if problem.element != "P1" and not hyperelastic:
-        raise ProblemError("artificial mass scaling (paper Algorithm 2) scales elements by the P1 CFL rule; this "
-                           f"problem uses {problem.element} elements: run it at its own step (problem.dt), or "
-                           "scale a P1 problem")
     if (beta is None) == (dt_target is None):
         raise StabilityError("give exactly one of beta (dt_hat = beta * dt) or dt_target")
     dt_hat = float(dt_target) if dt_target is not None else float(beta) * problem.dt
@@ -348,21 +355,8 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
                              + (f" (beta={beta})" if beta is not None else ""))
     if warn_above_percent is not None and not float(warn_above_percent) >= 0:
         raise StabilityError(f"warn_above_percent must be >= 0 (or None), got {warn_above_percent}")
-    m = problem.material
-    rho = float(m.rho)
-    scale = (np.ones(problem.mesh.n_elements) if problem.density_scale is None
-             else np.asarray(problem.density_scale, dtype=float).copy())
-    if hyperelastic:
-        dt_e = alpha_s * problem.element_steps()
-        small = dt_e < dt_hat
-        scale[small] *= (dt_hat / dt_e[small]) ** 2
-    else:
-        E, nu = float(m.E), float(m.nu)
-        h = element_size(problem.mesh.points, problem.mesh.tets)
-        dt_e = alpha_s * h / np.sqrt(E / (rho * scale * (1.0 - nu**2)))
-        small = dt_e < dt_hat
-        new_density = E * dt_hat**2 / (alpha_s**2 * h**2 * (1.0 - nu**2))
-        scale[small] = new_density[small] / rho
+    scale, small = problem.material.scaled_density(problem, dt_hat, alpha_s)  # by the law's own element rule
+    rho = float(problem.material.rho)
     volumes = problem.operators.volumes
     old_mass = rho * np.sum(volumes * (1.0 if problem.density_scale is None
                                        else np.asarray(problem.density_scale, dtype=float)))

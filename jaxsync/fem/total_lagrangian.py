@@ -46,13 +46,14 @@ import numpy as np
 
 from ..errors import ProblemError, StabilityError
 from ..pytree import pytree_dataclass
-from .hyperelastic import determinant, is_hyperelastic
+from .kinematics import determinant
+from .reference_element import _element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
 from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
            "exact_stable_dt", "element_wave_speeds", "inverted_elements", "strain_energy",
            "STABLE_STEP_RULES", "element_stiffness", "element_frequencies", "tangent_matrix", "RunCheck",
-           "default_step"]
+           "default_step", "quadrature_order", "n_quadrature_points"]
 
 STABLE_STEP_RULES = ("cfl", "element")
 """The rules of :func:`stable_dt` (module docstring)."""
@@ -101,14 +102,28 @@ class HyperelasticForce:
 
     def element_forces(self, u):
         """(n_elements, k, 3) each element's nodal forces [dyn]."""
-        P = self.material.first_piola(self.deformation_gradient(u), self.fibres_at_points())
+        return self._nodal_forces(self.material.first_piola(self.deformation_gradient(u), self.fibres_at_points()))
+
+    def _nodal_forces(self, P):
+        """(n_elements, k, 3) sum_q w_q P_q grad N_a [dyn] of P (n_elements, n_q, 3, 3)."""
         # an einsum here (a sum of k products would be fused with P and recompute it k times)
         return jnp.einsum("mqij,mqkj->mki", P * self.weights[:, :, None, None], self.gradients)
 
+    def _assembled(self, forces, n_nodes: int):
+        return jax.ops.segment_sum(forces.reshape(-1, 3), self.cells.reshape(-1), num_segments=n_nodes)
+
     def matvec(self, u):
         """f_int(u) (n_nodes, 3) [dyn] of displacements u (n_nodes, 3) [cm]."""
-        forces = self.element_forces(u)
-        return jax.ops.segment_sum(forces.reshape(-1, 3), self.cells.reshape(-1), num_segments=u.shape[0])
+        return self._assembled(self.element_forces(u), u.shape[0])
+
+    def update(self, u, internal, dt):
+        """(f_int(u) (n_nodes, 3) [dyn], the law's internal variables after it) of a law
+        with state: its ``stress_update`` at every quadrature point
+        (:meth:`jaxsync.fem.material_law.FiniteStrainLaw.stress_update`), ``internal``
+        {name: (n_elements, n_q, ...)} its variables before, dt [s] the step."""
+        P, internal = self.material.stress_update(self.deformation_gradient(u), self.fibres_at_points(),
+                                                  internal, dt)
+        return self._assembled(self._nodal_forces(P), u.shape[0]), internal
 
     def energy(self, u):
         """The stored strain energy sum_e sum_q w_q psi(F_q) [erg] (its gradient in u is f_int)."""
@@ -120,59 +135,10 @@ class HyperelasticForce:
         return determinant(self.deformation_gradient(u))
 
 
-def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(gradients (n_elements, n_q, k, 3) [1/cm], weights (n_elements, n_q) [cm^3]) of a
-    :class:`~jaxsync.fem.space.FunctionSpace`: the reference shape-function gradients
-    grad_X N_a at the quadrature points and the rule's weights times |det dX/dxi|.
-
-    The shape functions and the rule are scikit-fem's (``ElementTetP1``/``ElementTetP2``,
-    ``get_quadrature(RefTet, intorder)``); ``intorder`` None: 1 (one point) for P1, 2 (four
-    points) for straight P2, 4 for isoparametric (curved) P2. The map X(xi) is the
-    isoparametric one of the space's nodes (the straight map for a straight mesh)."""
-    from skfem.quadrature import get_quadrature
-    from skfem.refdom import RefTet
-
-    if intorder is None:
-        intorder = 1 if space.element == "P1" else (4 if space.curved else 2)
-    xi, w = get_quadrature(RefTet, intorder)
-    element = space.scalar_element()
-    k = space.nodes_per_cell
-    dN = np.stack([element.lbasis(xi, a)[1].T for a in range(k)], axis=1)  # (n_q, k, 3) d N_a / d xi
-    X = space.points[space.cells]  # (m, k, 3)
-    jac = np.einsum("mka,qkr->mqar", X, dN)  # dX_a / dxi_r
-    det = np.linalg.det(jac)
-    if not np.all(np.abs(det) > 0):
-        raise ProblemError("degenerate element (zero volume) in the mesh: repair the mesh before a "
-                           "total-Lagrangian run")
-    grads = np.einsum("qkr,mqrj->mqkj", dN, np.linalg.inv(jac))  # dN/dX = dN/dxi . (dX/dxi)^-1
-    return grads, np.abs(det) * w[None, :]
-
-
-def _element_unit_mass(space, density_scale) -> np.ndarray:
-    """(n_elements, k) the lumped mass of each element at its nodes per unit density [cm^3]:
-    P1 V/4 (row sums), P2 HRZ (the consistent mass's diagonal scaled to the element's
-    volume), as :func:`jaxsync.fem.assembly.lumped_mass` assembles them."""
-    from skfem.quadrature import get_quadrature
-    from skfem.refdom import RefTet
-
-    scale = np.ones(space.mesh.n_elements) if density_scale is None else np.asarray(density_scale, float)
-    if space.element == "P1":
-        return np.repeat((space.mesh.volumes() * scale / 4.0)[:, None], 4, axis=1)
-    xi, w = get_quadrature(RefTet, 4)  # exact for N_a^2 on straight elements
-    element = space.scalar_element()
-    k = space.nodes_per_cell
-    N = np.stack([element.lbasis(xi, a)[0] for a in range(k)], axis=1)  # (n_q, k)
-    dN = np.stack([element.lbasis(xi, a)[1].T for a in range(k)], axis=1)
-    det = np.abs(np.linalg.det(np.einsum("mka,qkr->mqar", space.points[space.cells], dN)))  # (m, n_q)
-    diagonal = np.einsum("mq,qk->mk", det * w, N**2)
-    volume = np.einsum("mq->m", det * w)
-    return diagonal * (volume * scale / diagonal.sum(axis=1))[:, None]
-
-
 def _material_and_fibres(problem):
     """(the law without its fibres, fibres (n_elements, 2, 3) or None), checked."""
     material = problem.material
-    if not is_hyperelastic(material):
+    if not material.finite_strain:
         raise ProblemError(f"the total-Lagrangian force model needs a hyperelastic material, got "
                            f"{type(material).__name__}: use jaxsync.NeoHookean(E, nu, rho) (the finite-strain law "
                            "that linearises to LinearElastic(E, nu, rho)), or mode='preassembled' for the linear law")
@@ -260,7 +226,6 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
         ProblemError: traced material parameters or initial displacement (pass dt=).
     """
     from ..pytree import is_traced
-    from .hyperelastic import material_parameters
 
     m, u0 = problem.material, problem.initial_displacement
     if is_traced(m, u0):
@@ -268,10 +233,10 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
             f"the default time step of a {type(m).__name__} problem comes from its tangent stiffness at rest, "
             "an eigenvalue computed on the host, so it cannot follow traced material parameters: pass dt= "
             "explicitly (for instance the problem.dt of the problem at concrete parameters)")
-    name, values, fibres = material_parameters(m)
+    law = m.parameters()
     fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
-    key = ("hyperelastic stable step", name, tuple(values.items()), fibres, fixed.tobytes(),
+    key = ("hyperelastic stable step", *law.key(), fixed.tobytes(),
            None if scale is None else np.asarray(scale, dtype=float).tobytes(),
            None if u0 is None else np.asarray(u0, dtype=float).tobytes(),
            tuple((s.surface, float(s.stiffness), s.normal_only) for s in problem.supports))
@@ -280,7 +245,7 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
         u = None if u0 is None else np.asarray(u0, dtype=float)
         memo[key] = (stable_dt(problem, u, alpha_s=1.0, rule="element"), exact_stable_dt(problem, u))
     rule, exact = memo[key]
-    return hyperelastic_step(rule, exact, alpha_s, element=problem.element, law=name)
+    return hyperelastic_step(rule, exact, alpha_s, element=problem.element, law=law.name)
 
 
 def _operator(problem_or_operator) -> HyperelasticForce:

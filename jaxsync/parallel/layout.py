@@ -165,9 +165,13 @@ class PartLayout:
         return jnp.where(mask, gathered, jnp.asarray(fill, gathered.dtype))
 
     def split_state(self, state: SolverState) -> SolverState:
-        """A global :class:`SolverState` as the parts' states (the step counter per part)."""
+        """A global :class:`SolverState` as the parts' states (the step counter per part; the
+        material's internal variables with the elements, :mod:`jaxsync.parallel.element_fields`)."""
+        from .element_fields import split_element_fields
+
         step = jnp.broadcast_to(jnp.asarray(state.step, dtype=jnp.int32), (self.n_parts,))
-        return SolverState(self.split(state.displacement), self.split(state.previous), step)
+        return SolverState(self.split(state.displacement), self.split(state.previous), step,
+                           split_element_fields(self.parts, state.internal))
 
     def merge(self, local, *, mean: bool = False):
         """(P, ..., n_local, c) per-part fields -> (..., n_nodes, c) global field (JAX).

@@ -118,6 +118,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import ProblemError
+from ..fem.hyperelastic import HYPERELASTIC
 from ..options import Mode, check_option
 
 __all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "hyperelastic_element_cost",
@@ -147,75 +148,59 @@ ELEMENT_FLOPS = {
 }
 SCATTER_FLOPS = 24  # recompute t_m per element: 12 times the weight, 12 scatter-adds
 
-# Flops per quadrature point of the first Piola-Kirchhoff stress P(F) of each hyperelastic
-# law (jaxsync.fem.hyperelastic), operation by operation of its formula (a transcendental
-# function, a division, a comparison or a select counts as one flop, as in XLA's cost
-# analysis); cof F = det F F^-T, J = det F.
-_COFACTOR_J = {"cof F: 9 entries, 2 products and a difference each": 27,
-               "J = F_0 . cof_0": 5}
-_ISOCHORIC_VOLUMETRIC = {
-    **_COFACTOR_J,
-    "J^-2/3 = exp(-2/3 ln J)": 3,
-    "I1 = F : F": 17,  # 9 squares + 8 additions
-    "a = mu J^-2/3": 1,
-    "b = (K/2 (J^2 - 1) - a I1 / 3) / J": 7,
-    "P = a F + b cof F": 27,
-}
-HYPERELASTIC_POINT_FLOPS = {
-    "NeoHookean": {
-        **_COFACTOR_J,
-        "ln J": 1,
-        "s = (lam ln J - mu) / J": 3,
-        "P = mu F + s cof F": 27,
-    },
-    "NearlyIncompressibleNeoHookean": dict(_ISOCHORIC_VOLUMETRIC),
-    "HolzapfelGasserOgden": {
-        **_ISOCHORIC_VOLUMETRIC,
-        "F a_i, two families": 30,  # 9 products + 6 additions each
-        "I4_i = |F a_i|^2": 10,
-        "E_i = kappa (I1 - 3) + (1 - 3 kappa)(I4_i - 1)": 8,  # 2 shared + 3 per family
-        "slope_i = k1 E_i exp(k2 E_i^2)": 10,
-        "in tension: I4_i >= 1, else slope_i = 0": 4,  # a comparison and a select each
-        "2 kappa (slope_1 + slope_2) F, added to P": 20,
-        "slope_i F a_i (x) a_i, summed over the families": 33,  # 2 (3 + 9) + 9
-        "2 (1 - 3 kappa) times that, added to P": 18,
-    },
-}
+HYPERELASTIC_POINT_FLOPS = {law.__name__: dict(law.point_flops) for law in HYPERELASTIC}
 """{law class name: {operation: flops}} per quadrature point (the t_e of the
-total-Lagrangian mode with the deformation gradient and the nodal forces)."""
+total-Lagrangian mode with the deformation gradient and the nodal forces): each built-in
+law's :attr:`~jaxsync.fem.material_law.FiniteStrainLaw.point_flops`, operation by
+operation of its formula (a transcendental function, a division, a comparison or a select
+counts as one flop, as in XLA's cost analysis)."""
 
 
-def hyperelastic_element_cost(law: str, nodes_per_element: int = 4, n_points: int = 1) -> dict:
+def _law_cost(law):
+    """The :class:`~jaxsync.fem.material_law.LawCost` of a law, or of a built-in law's class name."""
+    if isinstance(law, str):  # a name, as the cost model's callers have given it
+        if law not in HYPERELASTIC_POINT_FLOPS:
+            raise ProblemError(f"law must be one of {', '.join(HYPERELASTIC_POINT_FLOPS)}, got {law!r}")
+        return next(cls for cls in HYPERELASTIC if cls.__name__ == law).cost()
+    cost = law.cost()
+    if cost is None:
+        raise ProblemError(f"the {type(law).__name__} law has no per-point stress cost (its cost is that of its "
+                           "force mode): cost it with mode='preassembled' or 'recompute'")
+    return cost
+
+
+def hyperelastic_element_cost(law, nodes_per_element: int = 4, n_points: int = 1) -> dict:
     """Flops and compulsory bytes per element of the total-Lagrangian internal force
     (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.matvec`) of a law.
 
     Args:
-        law: the law's class name (a key of :data:`HYPERELASTIC_POINT_FLOPS`).
+        law: a finite-strain material law (its
+            :meth:`~jaxsync.fem.material_law.MaterialLaw.cost`), or a built-in law's class
+            name (a key of :data:`HYPERELASTIC_POINT_FLOPS`).
         nodes_per_element: k (4: P1, 10: P2).
         n_points: n_q quadrature points per element (1: P1, 4: P2).
 
     Returns:
         ``{"flops": per element, "flops_by_part": {"deformation gradient", "stress",
         "nodal forces", "scatter-add"}, "element_bytes": the arrays read once per element
-        (node ids, gradients, weights, fibres), "node_bytes": per node (u read, f written
+        (node ids, gradients, weights, fibres, internal variables read and written),
+        "node_bytes": per node (u read, f written
         once), "gather_bytes": the displacements gathered and the forces scattered when
         each element's touch is counted}``. The compulsory traffic of a mesh of m elements
         and n nodes is ``m element_bytes + n node_bytes``.
 
     Raises:
-        ProblemError: an unknown law or counts below 1.
+        ProblemError: an unknown law name, a law without a stress cost, or counts below 1.
     """
-    if law not in HYPERELASTIC_POINT_FLOPS:
-        raise ProblemError(f"law must be one of {', '.join(HYPERELASTIC_POINT_FLOPS)}, got {law!r}")
+    cost = _law_cost(law)
     k = _count(nodes_per_element, "nodes_per_element", 1)
     q = _count(n_points, "n_points", 1)
     parts = {"deformation gradient": q * (9 * (2 * k - 1) + 3),
-             "stress": q * sum(HYPERELASTIC_POINT_FLOPS[law].values()),
+             "stress": q * sum(cost.point_flops.values()),
              "nodal forces": q * (9 + 15 * k) + 3 * k * (q - 1),
              "scatter-add": 3 * k}
-    fibres = 2 * 3 * F64 if law == "HolzapfelGasserOgden" else 0
     return {"flops": sum(parts.values()), "flops_by_part": parts,
-            "element_bytes": I32 * k + F64 * q * (3 * k + 1) + fibres,
+            "element_bytes": I32 * k + F64 * q * (3 * k + 1) + cost.element_bytes + q * cost.point_bytes,
             "node_bytes": 2 * 3 * F64, "gather_bytes": 2 * 3 * k * F64}
 
 
@@ -266,7 +251,7 @@ def _count(value, name: str, minimum: int = 0) -> int:
 
 def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = None,
                n_load_vectors: int = 1, mode: Mode = "preassembled", n_shared: int = 0,
-               n_interface: int = 0, *, law: str = "NeoHookean", nodes_per_element: int = 4,
+               n_interface: int = 0, *, law="NeoHookean", nodes_per_element: int = 4,
                n_points: int = 1) -> dict:
     """Bytes and flops of each stage of one explicit step (formulas: module docstring).
 
@@ -279,8 +264,8 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
         mode: ``"preassembled"``, ``"recompute"`` or ``"total-lagrangian"``.
         n_shared: n_sh, shared nodes of the part (0: no synchronization).
         n_interface: N_a, shared nodes of the whole partition.
-        law, nodes_per_element, n_points: the hyperelastic law's class name, nodes and
-            quadrature points per element (``"total-lagrangian"`` only;
+        law, nodes_per_element, n_points: the finite-strain law (or a built-in law's
+            class name), nodes and quadrature points per element (``"total-lagrangian"`` only;
             :func:`hyperelastic_element_cost`).
 
     Returns:
@@ -345,20 +330,18 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
-    from ..fem.hyperelastic import is_hyperelastic
+    from ..fem.internal_force import force_model
 
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh
     law = {}
-    if is_hyperelastic(problem.material) or mode == "total-lagrangian":
-        mode = "total-lagrangian"
-        from skfem.quadrature import get_quadrature
-        from skfem.refdom import RefTet
+    mode = problem.material.force_model(force_model(mode)).name  # the model the law runs on
+    if mode == "total-lagrangian":
+        from ..fem.reference_element import n_quadrature_points
 
-        space = problem.space  # the rule of jaxsync.fem.total_lagrangian.reference_geometry
-        intorder = 1 if space.element == "P1" else (4 if space.curved else 2)
-        law = {"law": type(problem.material).__name__, "nodes_per_element": space.nodes_per_cell,
-               "n_points": len(get_quadrature(RefTet, intorder)[1])}
+        space = problem.space
+        law = {"law": problem.material, "nodes_per_element": space.nodes_per_cell,
+               "n_points": n_quadrature_points(space)}
     if partition is None:
         width = _slots_per_row(problem.space.cells, problem.n_nodes) if mode == "preassembled" else None
         return step_costs(problem.n_nodes, width, mesh.n_elements, n_loads, mode, **law)

@@ -1,6 +1,7 @@
-"""Resumable checkpoints of synchronized runs: the state (both displacement levels), the
-snapshots and shared histories so far, a fingerprint of the problem that refuses foreign
-files and checksums that refuse altered ones.
+"""Resumable checkpoints of synchronized runs: the state (both displacement levels, and the
+material's internal variables if its law carries any), the snapshots and shared histories
+so far, a fingerprint of the problem that refuses foreign files and checksums that refuse
+altered ones.
 
 A checkpoint costs the new snapshots only. The file (layout 2) holds the run's snapshot
 and shared-history rows in datasets allocated at their final size when it is first
@@ -81,13 +82,10 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     for bc in problem.dirichlet:
         if bc.time is not None:
             h.update(repr((bc.where if isinstance(bc.where, str) else "predicate", bc.time)).encode())
-    # a hyperelastic law: its type, every parameter and its fibre directions (a linear law
-    # adds nothing, so its fingerprints are those of before)
-    from ..fem.hyperelastic import is_hyperelastic, material_parameters
-
-    if is_hyperelastic(m):
-        name, values, fibres = material_parameters(m)
-        h.update(repr(("material", name, sorted(values.items()), fibres)).encode())
+    # what identifies the law besides E, nu, rho (a hyperelastic law: its type, every
+    # parameter, its fibre directions; the linear law adds nothing, so its fingerprints
+    # are those of before)
+    h.update(m.fingerprint())
     return h.hexdigest()
 
 
@@ -188,7 +186,8 @@ class CheckpointWriter:
         new = [self.snapshots.add(snapshots)]
         for stream, blocks in zip(self.shared, shared or [[] for _ in self.shared]):
             new.append(stream.add(blocks))
-        arrays = {"displacement": np.asarray(state.displacement), "previous": np.asarray(state.previous)}
+        arrays = {"displacement": np.asarray(state.displacement), "previous": np.asarray(state.previous),
+                  **_internal_arrays(state)}
         step = int(state.step)
         if self.sequence == 0 or not self._append(arrays, step, new):
             self._write_whole(arrays, step)
@@ -237,7 +236,8 @@ class CheckpointWriter:
             try:
                 if (f.attrs.get("kind") != _CHECKPOINT_KIND or f.attrs.get("layout") != LAYOUT
                         or f.attrs.get("fingerprint") != self.fingerprint
-                        or int(f["commit"][self.slot, 0]) != self.sequence):
+                        or int(f["commit"][self.slot, 0]) != self.sequence
+                        or any(name not in f for name in arrays)):
                     return False
                 datasets = [f[stream.name] for stream in self._streams()]
             except (KeyError, OSError, ValueError):
@@ -398,9 +398,25 @@ def load_checkpoint(path, fingerprint, n_steps, n_recorded: int = 0):
                 f"checkpoint {path} holds no every-step shared histories (it was written with "
                 "shared_every = save_every); delete it, or resume with the same shared_every")
         recorded = [[arrays[f"shared_{p}"]] for p in range(n_recorded)]
+    internal = {name[len(_INTERNAL):]: jnp.asarray(value) for name, value in arrays.items()
+                if name.startswith(_INTERNAL)}
     state = SolverState(jnp.asarray(arrays["displacement"]), jnp.asarray(arrays["previous"]),
-                        jnp.asarray(step_, dtype=jnp.int32))
+                        jnp.asarray(step_, dtype=jnp.int32), internal)
     return state, [arrays["snapshots"]], recorded
+
+
+_INTERNAL = "internal."
+"""The prefix of the material's internal variables among a commit's state arrays (files
+of laws without state, and those written before laws had state, hold none)."""
+
+
+def _internal_arrays(state: SolverState) -> dict:
+    """{"internal.<name>": array} of the state's internal variables (a flat dict)."""
+    if not isinstance(state.internal, dict):
+        raise CheckpointError("a checkpoint stores a material's internal variables as a flat dict {name: array}; "
+                              f"this state holds {type(state.internal).__name__}: return a dict from the law's "
+                              "internal_variables")
+    return {_INTERNAL + str(name): np.asarray(value) for name, value in sorted(state.internal.items())}
 
 
 def _shared_names(f) -> list:
@@ -442,7 +458,8 @@ def _read_layout2(f, path, fingerprint):
         n_rows = {"snapshots": record["n_snapshots"], **{name: record["n_shared"] for name in names}}
         if any(n > len(f[name]) for name, n in n_rows.items()):
             continue
-        state = {"displacement": f["displacement"][slot], "previous": f["previous"][slot]}
+        state = {name: f[name][slot] for name in ("displacement", "previous", *sorted(
+            k for k in f if k.startswith(_INTERNAL)))}
         rows = {name: f[name][:n] for name, n in n_rows.items()}
         streams = {name: (f[name].dtype.str, list(f[name].shape[1:]),
                           hashlib.sha256(np.ascontiguousarray(values).tobytes()).hexdigest())

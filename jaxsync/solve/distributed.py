@@ -245,8 +245,12 @@ class DistributedRunner:
 
     def to_global(self, state) -> SolverState:
         """The global state of the parts' ``state`` (host numpy)."""
+        from ..parallel.element_fields import merge_element_fields
+
         return SolverState(self.merge(to_host(state.displacement)), self.merge(to_host(state.previous)),
-                           int(to_host(state.step)[0]))
+                           int(to_host(state.step)[0]),
+                           merge_element_fields(self.layout.parts, jax.tree_util.tree_map(to_host, state.internal),
+                                                self.partition.mesh.n_elements))
 
     def from_global(self, state: SolverState):
         """The parts' state of a global ``state``, placed on the devices."""

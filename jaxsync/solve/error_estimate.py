@@ -223,25 +223,15 @@ class ErrorPropagator:
 
 def linearised_stiffness(problem, displacement=None):
     """The stiffness (scipy sparse, (n_dofs, n_dofs) [dyn/cm]) whose propagator A the
-    estimate runs: a linear law's K (:func:`jaxsync.fem.support.stiffness_matrix`), a
-    hyperelastic law's tangent K_T(u) at ``displacement`` u (default zero: at rest;
-    :func:`jaxsync.fem.total_lagrangian.tangent_matrix`), the elastic supports' springs
-    added to either."""
-    from ..fem.hyperelastic import is_hyperelastic
-    from ..fem.support import spring_matrix, stiffness_matrix
+    estimate runs: the material law's tangent stiffness at ``displacement`` u (default
+    zero: at rest; :meth:`jaxsync.fem.material_law.MaterialLaw.tangent_stiffness`: a linear
+    law's K, a hyperelastic law's K_T(u), :func:`jaxsync.fem.total_lagrangian.tangent_matrix`,
+    symmetrised), the elastic supports' springs added."""
+    from ..fem.support import spring_matrix
 
-    if not is_hyperelastic(problem.material):
-        return stiffness_matrix(problem)
-    from ..fem.total_lagrangian import tangent_matrix
-
-    u = np.zeros((problem.n_nodes, 3)) if displacement is None else np.asarray(displacement, dtype=float)
-    if u.shape != (problem.n_nodes, 3):
-        raise ProblemError(f"the error estimate's linearisation point has shape {u.shape}; give the "
-                           f"displacement of the problem's {problem.n_nodes} nodes, ({problem.n_nodes}, 3)")
-    K = tangent_matrix(problem, u)
-    K = 0.5 * (K + K.T)  # symmetric up to round-off: exactly, for the symmetric eigensolver
+    K = problem.material.tangent_stiffness(problem, displacement)
     springs = spring_matrix(problem)
-    return K.tocsr() if springs is None else (K + springs).tocsr()
+    return K if springs is None else (K + springs).tocsr()
 
 
 def _interface_flexibility(solve, free, shared, modes, omega, mass, dt):

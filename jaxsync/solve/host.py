@@ -41,7 +41,6 @@ import jax
 import numpy as np
 
 from ..errors import StabilityError, SynchronizedRunWarning
-from ..fem.hyperelastic import is_hyperelastic
 from ..fem.stepper import ExplicitSystem, SolverState, advance
 from ..fem.timestep import divergence_advice
 from ..trajectory import Result, RunStats
@@ -222,14 +221,13 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
 
 
 def _run_check(problem, system: ExplicitSystem, dt: float, executor):
-    """The between-chunks check of a hyperelastic run (None: a linear law, or
+    """The between-chunks check of a run, as its material law sets it
+    (:meth:`jaxsync.fem.material_law.MaterialLaw.run_check`: a hyperelastic law's
+    :class:`jaxsync.fem.total_lagrangian.RunCheck`; None for a linear law, or with
     ``HostExecutor(check_stability=False)``)."""
-    from ..fem.hyperelastic import is_hyperelastic
-    from ..fem.total_lagrangian import RunCheck
-
-    if not executor.check_stability or not is_hyperelastic(problem.material):
+    if not executor.check_stability:
         return None
-    return RunCheck(problem, system, dt)
+    return problem.material.run_check(problem, system, dt)
 
 
 def _joined(recorded, new):
@@ -369,7 +367,7 @@ class _OnlineRun:
         # a new runner starts from a synchronized state: its error estimate from zero
         tolerance = self.online.tolerance
         if (self.propagator is not None and tolerance.linearization == "synchronized"
-                and is_hyperelastic(self.problem.material) and anchor.step != self._linearised_at):
+                and self.problem.material.state_dependent_tangent and anchor.step != self._linearised_at):
             from .error_estimate import ErrorPropagator
 
             at = self.runner.to_global(anchor.state).displacement

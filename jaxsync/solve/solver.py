@@ -66,8 +66,6 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
         ProblemError: the Dirichlet conditions leave a rigid-body motion free (singular);
             traced inputs (inside ``jax.grad``, ``jit`` or ``vmap``).
     """
-    from ..fem.hyperelastic import is_hyperelastic
-
     if is_traced(problem.material, problem.loads, [bc.value for bc in problem.dirichlet], problem.supports,
                  problem.density_scale):
         raise ProblemError(
@@ -76,7 +74,7 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             "in a parameter theta use the implicit function theorem, du/dtheta = -K_T^-1 dr/dtheta, with "
             "K_T from jaxsync.fem.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
             "jax.jacfwd of the residual (docs: Gradients)")
-    if is_hyperelastic(problem.material):
+    if problem.material.finite_strain:  # a force nonlinear in u: Newton's method
         u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
                                             tol, max_iter)
         return (u, residuals) if history else u
