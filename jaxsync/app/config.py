@@ -18,10 +18,11 @@ Layout (every table optional; defaults give the paper's cantilever)::
 
     [material]
     model = "linear-elastic"    # (the default) or "neo-hookean", "nearly-incompressible-
-                                # neo-hookean", "holzapfel-gasser-ogden": the catalogue
+                                # neo-hookean", "holzapfel-gasser-ogden", "standard-linear-
+                                # solid" (E, nu, rho, beta, tau [s]): the catalogue
                                 # jaxsync.app.config_schema.MATERIAL_MODELS; each law's keys
                                 # are the fields of its class
-    E = 1.0e6                   # dyn/cm^2 (the first three models)
+    E = 1.0e6                   # dyn/cm^2 (all but holzapfel-gasser-ogden)
     nu = 0.3
     rho = 1.0                   # g/cm^3
     # holzapfel-gasser-ogden: mu, k1 (dyn/cm^2), k2, kappa_bulk (dyn/cm^2), fibre_angle
