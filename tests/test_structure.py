@@ -124,3 +124,13 @@ def test_tests_benchmarks_and_notebooks_import_only_public_modules():
             found += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
                       if n and n.startswith("jaxsync") and _private_module(n)]
     assert not found, "import the public package that re-exports it: " + ", ".join(found)
+
+
+MAX_MODULE_LINES = 600
+
+
+def test_no_module_is_longer_than_600_lines():
+    """A module holds one concept; one that grows past 600 lines holds several (split it)."""
+    long = [f"{path.relative_to(ROOT)}: {n} lines" for path in _modules("jaxsync")
+            if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES]
+    assert not long, "split these modules by concept: " + ", ".join(long)
