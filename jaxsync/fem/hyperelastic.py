@@ -41,7 +41,7 @@ import numpy as np
 
 from ..errors import MaterialError
 from ..pytree import concrete_scalar, pytree_dataclass
-from .kinematics import _det_from_cofactor, _sum3, _sum_squares, cofactor, determinant
+from .kinematics import cofactor, det_from_cofactor, determinant, sum3, sum_squares
 from .material import first_lame, shear_modulus
 from .material_law import FiniteStrainLaw
 from .parameter_checks import check_number
@@ -54,31 +54,36 @@ def _isochoric_volumetric(F, cof, J, mu, bulk):
     """P of mu/2 (J^-2/3 I1 - 3) + K/4 (J^2 - 1 - 2 ln J): a F + b cof F with scalar a, b
     (written as two scalar fields, not as products of 3 x 3 fields: ~25 % faster)."""
     j23 = jnp.exp(-2.0 / 3.0 * jnp.log(J))
-    i1 = _sum_squares(F)
+    i1 = sum_squares(F)
     a = mu * j23
     b = (0.5 * bulk * (J * J - 1.0) - a * i1 / 3.0) / J
     return a[..., None, None] * F + b[..., None, None] * cof
 
 
-def _check_positive(law: str = "", **values) -> None:
+def check_positive(law: str = "", **values) -> None:
+    """:class:`~jaxsync.MaterialError` naming ``<law>.<name>`` unless every value is a
+    finite number above 0."""
     for name, value in values.items():
         check_number(value, f"{law}.{name}" if law else name, error=MaterialError, above=0.0)
 
 
-def _check_numbers(material) -> None:
+def check_numbers(material) -> None:
+    """:class:`~jaxsync.MaterialError` naming the field where a law's parameter is a
+    string, not a number."""
     for name, value in vars(material).items():
         if isinstance(value, str):
             raise MaterialError(f"material parameter {name} must be a number, got {value!r}")
 
 
-def _check_young_poisson(E, nu, rho, *, law: str) -> None:
-    _check_positive(law, E=E, rho=rho)
+def check_young_poisson(E, nu, rho, *, law: str) -> None:
+    """:class:`~jaxsync.MaterialError` unless E, rho > 0 and -1 < nu < 0.5."""
+    check_positive(law, E=E, rho=rho)
     check_number(nu, f"{law}.nu (Poisson ratio)", error=MaterialError, above=-1.0, below=0.5,
                  hint="-1 < nu < 0.5; nu = 0.5 has no finite bulk modulus; for nearly incompressible tissue "
                       "use nu = 0.49 to 0.499 with P2 elements")
 
 
-class _SmallStrain(FiniteStrainLaw):
+class SmallStrain(FiniteStrainLaw):
     """The small-strain constants of a law given by E and nu."""
 
     @property
@@ -119,7 +124,7 @@ _ISOCHORIC_VOLUMETRIC = {
 
 
 @pytree_dataclass
-class NeoHookean(_SmallStrain):
+class NeoHookean(SmallStrain):
     """Compressible neo-Hookean solid (Bonet & Wood, eq. 6.28; felupe ``NeoHookeCompressible``):
 
         psi = mu/2 (I1 - 3) - mu ln J + lam/2 (ln J)^2,
@@ -141,13 +146,13 @@ class NeoHookean(_SmallStrain):
     point_flops = {**_COFACTOR_J, "ln J": 1, "s = (lam ln J - mu) / J": 3, "P = mu F + s cof F": 27}
 
     def __post_init__(self):
-        _check_numbers(self)
-        _check_young_poisson(self.E, self.nu, self.rho, law="NeoHookean")
+        check_numbers(self)
+        check_young_poisson(self.E, self.nu, self.rho, law="NeoHookean")
 
     def energy(self, F, fibres=None):
         """psi(F) (...,) [erg/cm^3] of F (..., 3, 3); ``fibres`` is ignored (isotropic)."""
         log_j = jnp.log(determinant(F))
-        i1 = _sum_squares(F)
+        i1 = sum_squares(F)
         return 0.5 * self.mu * (i1 - 3.0) - self.mu * log_j + 0.5 * self.lam * log_j**2
 
     def first_piola(self, F, fibres=None):
@@ -157,7 +162,7 @@ class NeoHookean(_SmallStrain):
 
 
 @pytree_dataclass
-class NearlyIncompressibleNeoHookean(_SmallStrain):
+class NearlyIncompressibleNeoHookean(SmallStrain):
     """Neo-Hookean solid split into an isochoric and a volumetric part, for nearly
     incompressible tissue (nu close to 0.5, with P2 elements):
 
@@ -181,8 +186,8 @@ class NearlyIncompressibleNeoHookean(_SmallStrain):
     point_flops = dict(_ISOCHORIC_VOLUMETRIC)
 
     def __post_init__(self):
-        _check_numbers(self)
-        _check_young_poisson(self.E, self.nu, self.rho, law="NearlyIncompressibleNeoHookean")
+        check_numbers(self)
+        check_young_poisson(self.E, self.nu, self.rho, law="NearlyIncompressibleNeoHookean")
 
     def energy(self, F, fibres=None):
         """psi(F) (...,) [erg/cm^3]; ``fibres`` is ignored (isotropic)."""
@@ -194,7 +199,7 @@ class NearlyIncompressibleNeoHookean(_SmallStrain):
     def first_piola(self, F, fibres=None):
         """P(F) (..., 3, 3) [dyn/cm^2]."""
         cof = cofactor(F)
-        J = _det_from_cofactor(F, cof)
+        J = det_from_cofactor(F, cof)
         return _isochoric_volumetric(F, cof, J, self.mu, self.bulk)
 
 
@@ -263,8 +268,8 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
     }
 
     def __post_init__(self):
-        _check_numbers(self)
-        _check_positive("HolzapfelGasserOgden", mu=self.mu, k2=self.k2, kappa_bulk=self.kappa_bulk, rho=self.rho)
+        check_numbers(self)
+        check_positive("HolzapfelGasserOgden", mu=self.mu, k2=self.k2, kappa_bulk=self.kappa_bulk, rho=self.rho)
         check_number(self.k1, "HolzapfelGasserOgden.k1 (fibre stiffness)", error=MaterialError, at_least=0.0,
                      unit="dyn/cm^2", hint="k1 = 0 leaves the neo-Hookean ground matrix alone")
         check_number(self.dispersion, "HolzapfelGasserOgden.dispersion", error=MaterialError)
@@ -324,8 +329,8 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
             raise MaterialError("HolzapfelGasserOgden needs fibre directions: pass fibres= (n_elements, 2, 3), "
                                 "for instance jaxsync.helical_fibres(...)")
         Fa = jnp.einsum("...ij,...fj->...fi", F, fibres)
-        i4 = _sum3(Fa * Fa)
-        i1 = _sum_squares(F)[..., None]
+        i4 = sum3(Fa * Fa)
+        i1 = sum_squares(F)[..., None]
         kappa = self.dispersion
         strain = kappa * (i1 - 3.0) + (1.0 - 3.0 * kappa) * (i4 - 1.0)
         # active from I4 = 1 on, less the round-off of a unit vector's |a|^2 (helical fibres
@@ -345,7 +350,7 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
     def first_piola(self, F, fibres=None):
         """P(F) (..., 3, 3) [dyn/cm^2]; ``fibres`` (..., 2, 3) the reference fibre directions."""
         cof = cofactor(F)
-        J = _det_from_cofactor(F, cof)
+        J = det_from_cofactor(F, cof)
         P = _isochoric_volumetric(F, cof, J, self.mu, self.kappa_bulk)
         strain, active, Fa = self._fibre_terms(F, fibres)
         # d psi_i / d E_i; dE_i/dF = 2 kappa F + 2 (1 - 3 kappa) F a_i (x) a_i

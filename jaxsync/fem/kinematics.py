@@ -10,7 +10,7 @@ import jax.numpy as jnp
 __all__ = ["determinant", "cofactor"]
 
 
-def _sum3(x):
+def sum3(x):
     """The sum over the last axis (of length 3) of x, as two additions.
 
     Not ``jnp.sum``: XLA:CPU (jax 0.10.2) hands a reduction over a short trailing axis, with
@@ -23,16 +23,16 @@ def _sum3(x):
     return x[..., 0] + x[..., 1] + x[..., 2]
 
 
-def _sum_squares(F):
+def sum_squares(F):
     """(...,) sum of the squares of the entries of (..., 3, 3) F (I1 = tr F^T F)."""
-    return _sum3(_sum3(F * F))
+    return sum3(sum3(F * F))
 
 
 def determinant(F):
     """(...,) det F of (..., 3, 3) matrices (the cofactor expansion: several times faster than
     the LU of ``jnp.linalg.det`` on batches of 3 x 3 matrices)."""
     f0, f1, f2 = F[..., 0, :], F[..., 1, :], F[..., 2, :]
-    return _sum3(f0 * jnp.cross(f1, f2))
+    return sum3(f0 * jnp.cross(f1, f2))
 
 
 def cofactor(F):
@@ -42,6 +42,6 @@ def cofactor(F):
     return jax.grad(lambda G: jnp.sum(determinant(G)))(F)
 
 
-def _det_from_cofactor(F, cof):
+def det_from_cofactor(F, cof):
     """(...,) det F from its first row and cof F (no second set of cross products)."""
-    return _sum3(F[..., 0, :] * cof[..., 0, :])
+    return sum3(F[..., 0, :] * cof[..., 0, :])

@@ -52,7 +52,7 @@ def n_quadrature_points(space) -> int:
     return len(get_quadrature(RefTet, quadrature_order(space))[1])
 
 
-def _element_unit_mass(space, density_scale) -> np.ndarray:
+def element_unit_mass(space, density_scale) -> np.ndarray:
     """(n_elements, k) the lumped mass of each element at its nodes per unit density [cm^3]:
     P1 V/4 (row sums), P2 HRZ (the consistent mass's diagonal scaled to the element's
     volume), as :func:`jaxsync.fem.assembly.lumped_mass` assembles them."""

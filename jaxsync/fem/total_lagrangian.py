@@ -47,7 +47,7 @@ import numpy as np
 from ..errors import ProblemError, StabilityError
 from ..pytree import pytree_dataclass
 from .kinematics import determinant
-from .reference_element import _element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
+from .reference_element import element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
 from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
@@ -175,7 +175,7 @@ class TotalLagrangian:
         return HyperelasticForce(
             cells=jnp.asarray(space.cells, dtype=jnp.int32), gradients=jnp.asarray(gradients),
             weights=jnp.asarray(weights), material=material, fibres=fibres, points=jnp.asarray(space.points),
-            unit_mass=jnp.asarray(_element_unit_mass(space, problem.density_scale)))
+            unit_mass=jnp.asarray(element_unit_mass(space, problem.density_scale)))
 
     def part_operators(self, problem, parts: Sequence, n_local: int) -> HyperelasticForce:
         """The parts' :class:`HyperelasticForce` stacked on a leading part axis: elements
@@ -184,7 +184,7 @@ class TotalLagrangian:
         material, fibres = _material_and_fibres(problem)
         space = problem.space
         gradients, weights = reference_geometry(space)
-        unit_mass = _element_unit_mass(space, problem.density_scale)
+        unit_mass = element_unit_mass(space, problem.density_scale)
         n_parts, k = len(parts), space.nodes_per_cell
         m = max(len(p.elements) for p in parts)
         cells = np.zeros((n_parts, m, k), dtype=np.int32)

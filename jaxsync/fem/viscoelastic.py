@@ -37,14 +37,14 @@ import jax.numpy as jnp
 
 from ..errors import MaterialError
 from ..pytree import pytree_dataclass
-from .hyperelastic import _check_numbers, _check_positive, _check_young_poisson, _SmallStrain
+from .hyperelastic import SmallStrain, check_numbers, check_positive, check_young_poisson
 from .kinematics import cofactor, determinant
 
 __all__ = ["StandardLinearSolid"]
 
 
 @pytree_dataclass
-class StandardLinearSolid(_SmallStrain):
+class StandardLinearSolid(SmallStrain):
     """A nearly incompressible neo-Hookean solid with one Maxwell branch on its isochoric
     part (module docstring), a :class:`jaxsync.fem.material_law.MaterialLaw` with internal
     variables.
@@ -70,9 +70,9 @@ class StandardLinearSolid(_SmallStrain):
                    "S_iso, S_vol": 40, "Q update": 45, "P = F (S_vol + S_iso + Q)": 63}
 
     def __post_init__(self):
-        _check_numbers(self)
-        _check_young_poisson(self.E, self.nu, self.rho, law="StandardLinearSolid")
-        _check_positive("StandardLinearSolid", tau=self.tau)
+        check_numbers(self)
+        check_young_poisson(self.E, self.nu, self.rho, law="StandardLinearSolid")
+        check_positive("StandardLinearSolid", tau=self.tau)
         from ..pytree import concrete_scalar
 
         beta = concrete_scalar(self.beta)
