@@ -52,12 +52,12 @@ from __future__ import annotations
 import numbers
 from typing import Literal, get_args
 
-from .errors import ConfigError, JaxsyncError
+from .errors import ConfigError, JaxsyncError, PartitionError
 
 __all__ = ["Element", "Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
            "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "choices", "check_option",
            "DEFAULT_MODE",
-           "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT"]
+           "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT", "check_halo_depth"]
 
 Element = Literal["P1", "P2"]
 Mode = Literal["preassembled", "recompute", "total-lagrangian"]
@@ -105,3 +105,12 @@ def _same_kind(value, allowed) -> bool:
     if isinstance(allowed, str):
         return isinstance(value, str)
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def check_halo_depth(halo_depth) -> int:
+    """``halo_depth`` (deep halos: steps between two exchanges) as a positive int, or
+    :class:`~jaxsync.PartitionError` naming the fix."""
+    if isinstance(halo_depth, bool) or not isinstance(halo_depth, numbers.Integral) or halo_depth < 1:
+        raise PartitionError(f"halo_depth must be a positive integer (steps between exchanges), "
+                             f"got {halo_depth!r}")
+    return int(halo_depth)

@@ -40,19 +40,12 @@ import scipy.sparse as sp
 
 from ..errors import PartitionError
 from ..fem.stepper import SolverState, advance
+from ..options import check_halo_depth
 from .exchange import scatter_forward, scatter_reverse
 from .partitioning import Part, Partition
 
 __all__ = ["HaloPartition", "halo_partition", "check_halo_depth", "refresh_halo", "advance_halo",
            "check_save_every"]
-
-
-def check_halo_depth(halo_depth) -> int:
-    """``halo_depth`` as a positive int, or :class:`PartitionError` naming the fix."""
-    if isinstance(halo_depth, bool) or not isinstance(halo_depth, (int, np.integer)) or halo_depth < 1:
-        raise PartitionError(f"halo_depth must be a positive integer (steps between exchanges), "
-                             f"got {halo_depth!r}")
-    return int(halo_depth)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

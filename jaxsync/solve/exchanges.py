@@ -21,10 +21,12 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable
 
 from ..errors import ConfigError
-from ..parallel.plan import ExchangePlan, ExchangeStrategy, xla_devices, xla_plan
+
+if TYPE_CHECKING:  # the command line builds its --sync choices from this module without JAX
+    from ..parallel.plan import ExchangePlan, ExchangeStrategy
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "transport", "register_exchange",
            "unregister_exchange", "exchange_names", "ENTRY_POINT_GROUP", "EntryPointWarning"]
@@ -63,6 +65,8 @@ class Psum:
     def plan(self, partition, devices=None) -> ExchangePlan:
         """All parts in one SPMD program; ``psum`` over the device axis
         (:class:`~jaxsync.parallel.plan.ExchangePlan`)."""
+        from ..parallel.plan import xla_devices, xla_plan
+
         devices = xla_devices(partition.n_parts, self.devices if devices is None else devices)
         return xla_plan(partition, devices, None, algorithm=_cost_algorithm())
 
@@ -95,6 +99,7 @@ class Ppermute:
         """All parts in one SPMD program; the neighbour exchange of ``partition`` over the
         devices (:func:`jaxsync.parallel.exchange.neighbour_exchange`)."""
         from ..parallel.exchange import neighbour_exchange
+        from ..parallel.plan import xla_devices, xla_plan
 
         devices = xla_devices(partition.n_parts, self.devices if devices is None else devices)
         return xla_plan(partition, devices, neighbour_exchange(partition, len(devices)),
@@ -145,6 +150,7 @@ class Mpi:
 
         from ..errors import PartitionError
         from ..parallel import multiprocess
+        from ..parallel.plan import ExchangePlan
 
         chosen = self.devices if devices is None else devices
         local = list(jax.local_devices() if chosen is None else chosen)
@@ -194,7 +200,7 @@ class Halo:
     devices: tuple | None = None
 
     def __post_init__(self):
-        from ..parallel.halo import check_halo_depth
+        from ..options import check_halo_depth
 
         object.__setattr__(self, "depth", check_halo_depth(self.depth))
         object.__setattr__(self, "devices", _devices(self.devices))
@@ -323,6 +329,8 @@ def sync_strategy(value=None) -> ExchangeStrategy:
     if value is None:
         value = default_sync()
     if not isinstance(value, str):
+        from ..parallel.plan import ExchangeStrategy
+
         if not isinstance(value, ExchangeStrategy):
             raise ConfigError(f"sync={value!r} is not an exchange: give one of {', '.join(map(repr, _REGISTRY))} "
                               "or an object with the methods of jaxsync.parallel.plan.ExchangeStrategy "
