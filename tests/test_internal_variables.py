@@ -203,3 +203,34 @@ def test_bad_parameters_and_deep_halos_are_refused(beam):
     problem = _cantilever(beam)
     with pytest.raises(PartitionError, match="internal variables"):
         jaxsync.simulate(problem, 20, dt=float(problem.dt), save=10, partitions=2, sync=jaxsync.Halo(2))
+
+
+def test_a_predicted_phase_carries_the_state(beam):
+    """A synchronization-avoiding run whose surrogate replays the synchronized run's exact
+    shared displacements (an oracle) reproduces that run to round-off: each part's
+    predicted steps update its elements' branch stresses as the synchronized steps do."""
+    from jaxsync.solve.predictors import OraclePredictor
+    from jaxsync.solve.syncavoid import simulate_sync_avoiding
+    from jaxsync.surrogate.histories import shared_dof_layout
+
+    problem = _cantilever(beam)
+    dt = float(problem.dt)
+    partition = jaxsync.partition(beam, 2)
+    n_s, n_p, n_f, n_cri, n_steps = 5, 4, 4, 20, 300
+    reference = jaxsync.simulate(problem, n_steps, dt=dt, partitions=partition)
+    n_dof, counts = shared_dof_layout(partition)
+    cycle = n_s * n_f
+    # one cycle more than the steps: n_cri moves past the ramp's kinks, so the last cycle reaches beyond n_steps
+    future = np.zeros((partition.n_parts, (-(-(n_steps - n_cri) // cycle) + 1) * cycle, n_dof))
+    for p, part in enumerate(partition.parts):
+        values = np.asarray(reference.displacement)[n_cri + 1:, part.shared_nodes].reshape(n_steps - n_cri, -1)
+        future[p, :len(values), :counts[p]] = values
+    oracle = OraclePredictor(future, first_step=n_cri + 1, n_s=n_s, n_past=n_p, n_future=n_f)
+    online = simulate_sync_avoiding(problem, n_steps, dt=dt, partitions=partition, surrogates=oracle, n_cri=n_cri)
+    # every step after the first synchronized phase predicted (n_cri moved past the load's ramp kinks)
+    assert online.stats.n_predicted_steps == n_steps - online.stats.n_cri >= n_steps - n_cri - cycle
+    scale = float(np.max(np.abs(reference.displacement)))
+    np.testing.assert_allclose(online.displacement, reference.displacement, rtol=0, atol=1e-12 * scale)
+    # the branch matters over these steps: the elastic law's run differs
+    elastic = jaxsync.simulate(problem.replace(material=_sls(beta=0.0)), n_steps, dt=dt, partitions=partition)
+    assert float(np.max(np.abs(elastic.displacement - reference.displacement))) > 1e-3 * scale
