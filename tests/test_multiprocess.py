@@ -334,7 +334,7 @@ def test_fallback_to_the_callback_warns_with_the_fix(monkeypatch):
             return 0
 
     monkeypatch.setattr(multiprocess, "mpi4jax_available", lambda: False)
-    monkeypatch.setattr(multiprocess, "_CTYPES_PROBLEM", ["jax.ffi is broken here"])
+    monkeypatch.setattr(multiprocess, "ctypes_problem", lambda: "jax.ffi is broken here")
     assert multiprocess.default_allreduce() == "callback"
     with pytest.warns(multiprocess.TransportWarning, match=r"host callback \(slow\).*jax.ffi is broken.*\[mpi\]"):
         multiprocess.make_allreduce(TwoRanks(), "auto")
