@@ -4,11 +4,28 @@ promotion (``jnp.float32 + jnp.float64`` is an error, not a silent upcast) and n
 rank promotion (adding a (n,) to an (n, 1) array is an error, not an (n, n) result)."""
 
 import os
+import shutil
+import tempfile
 
 os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2"
 ).strip()
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+
+# One XLA compilation cache for the test session: most of the suite's time is compiling, and
+# many tests compile the same programs (the cantilever's stepper, the training step, ...) in
+# either xdist worker or in the interpreters that tests start (documentation blocks,
+# notebooks, command lines), which inherit these variables. Only the compilation is skipped:
+# a cache hit is the executable XLA compiled from the same program with the same options.
+# The folder is new for every session (a test run never reads an earlier run's programs)
+# and removed at its end; a JAX_COMPILATION_CACHE_DIR set by the user is used as it is, and
+# JAXSYNC_TEST_XLA_CACHE=0 turns the cache off.
+_OWN_CACHE = None
+if os.environ.get("JAXSYNC_TEST_XLA_CACHE", "1") != "0" and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _OWN_CACHE = tempfile.mkdtemp(prefix="jaxsync-tests-xla-cache-")
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _OWN_CACHE
+    # every program, not only those that compile for more than a second (the default)
+    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 
 import jax  # noqa: E402
 
@@ -20,3 +37,9 @@ jax.config.update("jax_numpy_rank_promotion", "raise")
 def pytest_configure(config):
     config.addinivalue_line("markers", "slow: long test, excluded from the default run")
     config.addinivalue_line("markers", "mpi: starts real processes with mpiexec")
+
+
+def pytest_unconfigure(config):
+    # the process that made the session's cache removes it (the xdist workers inherited it)
+    if _OWN_CACHE is not None:
+        shutil.rmtree(_OWN_CACHE, ignore_errors=True)
