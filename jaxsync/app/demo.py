@@ -205,6 +205,8 @@ class DemoSettings:
         load_input: the surrogates' load input
             (:class:`~jaxsync.surrogate.ArchitectureChoice`): None (default, on: the
             synchronized run records its load signals), True or False.
+        highway: the LSTM's linear highway (:class:`~jaxsync.surrogate.ArchitectureChoice`):
+            None (default: the choice's default), True or False.
     """
 
     n_steps: int | None = None
@@ -224,6 +226,7 @@ class DemoSettings:
     save_every: int | None = None
     mass_scaling_seconds: float | None = None
     load_input: bool | None = None
+    highway: bool | None = None
 
     def applied_to(self, defaults: DemoDefaults) -> DemoDefaults:
         """``defaults`` with the fields these settings give."""
@@ -283,7 +286,7 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
     try:
         summary = _pipeline(staging, final, d, case=case, size=size, seed=seed, save_every=save_every,
                             mass_scaling_seconds=mass_scaling_seconds, progress=progress, log=log,
-                            load_input=settings.load_input)
+                            load_input=settings.load_input, highway=settings.highway)
         retarget_paths(staging, final)
         install_folder(staging, final)
     except BaseException as exc:
@@ -348,7 +351,7 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
 
 
 def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_every, mass_scaling_seconds,
-              progress, log, load_input=None) -> dict:
+              progress, log, load_input=None, highway=None) -> dict:
     """The stages of :func:`run_demo`, writing into the folder ``out``; every path that
     is printed or stored names ``final``, where the folder is moved at the end."""
     from .. import HostExecutor, SaveAt, cantilever, partition, simulate
@@ -403,8 +406,9 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         f"{100 * d.train_fraction:g} % of the run)")
     surrogate_folder = os.path.join(out, "surrogate")
     trained = train_surrogates(
-        reference_path, architecture=ArchitectureChoice(n_hidden=d.n_hidden, n_layers=d.n_layers,
-                                                        load_input=load_input),
+        reference_path, architecture=ArchitectureChoice(
+            n_hidden=d.n_hidden, n_layers=d.n_layers, load_input=load_input,
+            **({} if highway is None else {"highway": highway})),
         sampling=Sampling(n_s=d.n_s, n_past=d.n_past, n_future=d.n_future, train_fraction=d.train_fraction,
                           seed=seed),
         optimizer=TrainConfig(batch_size=d.batch_size, eta0=d.eta0, gamma=d.gamma, n_epochs=d.epochs,

@@ -137,6 +137,10 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
                         "becomes ARX). Default: on when the trajectories record them (every run of jaxsync "
                         "simulate does), off for files written before; --load-input requires them, "
                         "--no-load-input trains the load-blind model")
+    parser.add_argument("--highway", action=argparse.BooleanOptionalAction, default=ARCHITECTURE.highway,
+                        help="give the LSTM a linear autoregressive highway: the least-squares affine map of the "
+                        "window (the linear model, ARX with the load input) plus what the decoder learns on "
+                        "top, trained from that fit (default: off, the paper's network)")
     parser.add_argument("--cond-repeat", type=int, default=ARCHITECTURE.n_cond_repeat,
                         help="copies q of the load parameter fed to the decoder; 0 = unconditional "
                         "(default: %(default)s; paper: 12)")
@@ -203,7 +207,7 @@ def run_train(args: argparse.Namespace) -> int:
     state = TrainingState(args.output, every=args.state_every) if args.state_every else None
     architecture = ArchitectureChoice(model=args.model, n_hidden=args.n_hidden, n_layers=args.n_layers,
                                       n_cond_repeat=args.cond_repeat, regularization=args.regularization,
-                                      load_input=args.load_input)
+                                      load_input=args.load_input, highway=args.highway)
     if architecture.model_class.resumes_training and state is not None and os.path.exists(state.path):
         print(f"resuming from the training state {state.path}")
     trained = train_surrogates(

@@ -85,6 +85,11 @@ class ArchitectureChoice:
             does), off for trajectory files written before they were recorded. True
             requires them (a :class:`~jaxsync.errors.ConfigError` otherwise), False trains
             the load-blind model of the paper. Both models.
+        highway: give the LSTM a linear autoregressive highway: it predicts the
+            least-squares affine map of the window (the linear model, ARX with the load
+            input) plus what its decoder learns on top, trained from that fit
+            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`). Default False (the
+            paper's network). LSTM only.
     """
 
     model: str = "lstm"
@@ -94,11 +99,14 @@ class ArchitectureChoice:
     dtype: str = LSTMArchitecture.dtype
     regularization: float = DEFAULT_REGULARIZATION
     load_input: bool | None = None
+    highway: bool = False
 
     def __post_init__(self):
         if self.load_input is not None and not isinstance(self.load_input, bool):
             raise ConfigError(f"ArchitectureChoice.load_input must be True, False or None (on when the trajectories "
                               f"record load signals), got {self.load_input!r}")
+        if not isinstance(self.highway, bool):
+            raise ConfigError(f"ArchitectureChoice.highway must be True or False, got {self.highway!r}")
         model = surrogate_class(self.model)  # refuses an unknown kind, naming the registered ones
         for name, low, what in (("n_hidden", 1, "encoder hidden size n_H"), ("n_layers", 1, "encoder layers k"),
                                 ("n_cond_repeat", 0, "copies q of the load parameter; 0: unconditional")):
@@ -119,7 +127,8 @@ class ArchitectureChoice:
         """The LSTM of this choice for windows of ``n_past`` -> ``n_future`` snapshots of
         ``n_dof`` (padded) dofs, reading ``n_load`` load signals."""
         return LSTMArchitecture(n_dof=n_dof, n_hidden=self.n_hidden, n_layers=self.n_layers, n_past=n_past,
-                                n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load)
+                                n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load,
+                                highway=self.highway)
 
 
     @property

@@ -62,8 +62,8 @@ from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, Predicti
 if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
     from jaxsync.surrogate.train import TrainResult
 
-__all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "solve_least_squares",
-           "DEFAULT_REGULARIZATION"]
+__all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "fit_affine",
+           "solve_least_squares", "param_shapes", "DEFAULT_REGULARIZATION"]
 
 Params = dict[str, Any]
 
@@ -206,7 +206,9 @@ class LinearFitConfig:
 # ----------------------------------------------------------------------------- model
 
 
-def _param_shapes(arch: LinearArchitecture) -> dict[str, tuple[int, ...]]:
+def param_shapes(arch: LinearArchitecture) -> dict[str, tuple[int, ...]]:
+    """The parameters' shapes by name: ``w_in`` (n_p, n_dof, rank), ``w_out`` (rank, n_f,
+    n_dof), ``b`` (n_f, n_dof) and, with load input, ``w_load`` (n_p + n_f, n_load, rank)."""
     shapes = {"w_in": (arch.n_past, arch.n_dof, arch.rank), "w_out": (arch.rank, arch.n_future, arch.n_dof),
               "b": (arch.n_future, arch.n_dof)}
     if arch.n_load:
@@ -226,7 +228,7 @@ def init_params(key: jax.Array, arch: LinearArchitecture) -> Params:
         The parameter pytree (module docstring), dtype ``arch.dtype``.
     """
     del key
-    return {name: jnp.zeros(shape, jnp.dtype(arch.dtype)) for name, shape in _param_shapes(arch).items()}
+    return {name: jnp.zeros(shape, jnp.dtype(arch.dtype)) for name, shape in param_shapes(arch).items()}
 
 
 @functools.partial(jax.jit, static_argnames=("arch", "compute_dtype"))
@@ -348,7 +350,7 @@ def _packed(fits, dof_counts, arch: "LinearArchitecture") -> Params:
     """The stacked, padded parameters (NumPy, ``arch.dtype``) of per-part fits of rank up
     to ``arch.rank``."""
     n_past, n_future, n_load = arch.n_past, arch.n_future, arch.n_load
-    params = {name: np.zeros((len(fits),) + shape) for name, shape in _param_shapes(arch).items()}
+    params = {name: np.zeros((len(fits),) + shape) for name, shape in param_shapes(arch).items()}
     for p, (count, (w_in, w_out, b)) in enumerate(zip(dof_counts, fits)):
         r = w_in.shape[1]
         if n_load:
@@ -397,6 +399,27 @@ def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask, u=None
     return sq.sum(axis=(1, 2, 3)) / (x.shape[1] * arch.n_future * mask.sum(axis=(1, 2, 3)))
 
 
+def fit_affine(data: ReplicaData, regularization: float = DEFAULT_REGULARIZATION,
+               dtype: str = "float32") -> tuple[LinearArchitecture, Params]:
+    """The least-squares affine map of every replica's training windows (ARX with the
+    windows' load signals): ``(arch, stacked params)``, the rank the largest any part
+    needs. What :func:`fit_linear` fits, and the LSTM's linear highway starts from
+    (:mod:`jaxsync.surrogate.lstm`).
+
+    Raises:
+        ConfigError: no training windows."""
+    n_parts, n_windows, n_past, n_dof = data.x_train.shape
+    n_future = data.y_train.shape[2]
+    if n_windows == 0:
+        raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
+    signals = data.signal_train
+    n_load = 0 if signals is None else signals.shape[-1]
+    fits = _fit_parts(data.x_train, data.y_train, signals, data.dof_counts, regularization)
+    rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
+    arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype, n_load=n_load)
+    return arch, _packed(fits, data.dof_counts, arch)
+
+
 def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: str = "float32") -> TrainResult:
     """Fit one linear surrogate per part by least squares on the training windows.
 
@@ -430,16 +453,7 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
         raise ConfigError("the linear surrogate is unconditional: it cannot use load parameters; "
                           "train the LSTM (model='lstm', n_cond_repeat > 0) for a conditional surrogate")
     started = time.perf_counter()
-    n_parts, n_windows, n_past, n_dof = data.x_train.shape
-    n_future = data.y_train.shape[2]
-    if n_windows == 0:
-        raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
-    signals = data.signal_train
-    n_load = 0 if signals is None else signals.shape[-1]
-    fits = _fit_parts(data.x_train, data.y_train, signals, data.dof_counts, config.regularization)
-    rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
-    arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype, n_load=n_load)
-    params = _packed(fits, data.dof_counts, arch)
+    arch, params = fit_affine(data, config.regularization, dtype)
     seconds = time.perf_counter() - started
     mask = data.dof_mask
     zero = {name: np.zeros_like(value) for name, value in params.items()}

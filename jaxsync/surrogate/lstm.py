@@ -20,7 +20,8 @@ Parameters are a plain pytree of arrays::
 
     {"encoder": [{"forward": cell, "backward": cell}, ...],   # n_layers entries
      "decoder": cell,                                          # hidden size 2 n_H
-     "dense": {"w": (n_dof, 2 n_H), "b": (n_dof,)}}
+     "dense": {"w": (n_dof, 2 n_H), "b": (n_dof,)},
+     "highway": {...}}                                         # with a linear highway only
 
 Initialization (the defaults of PyTorch's ``nn.LSTM`` and ``nn.Linear``): every LSTM
 weight and bias ~ U(-1/sqrt(H), 1/sqrt(H)) with H the hidden size of that cell (n_H in
@@ -40,6 +41,18 @@ decoder cell, and added as a separate term ``W_u u`` to the input projection
 network without load input computes, and with ``n_load = 0`` the parameters and the
 computation are those of a network without it (surrogate files written before the load
 input load unchanged).
+
+Linear highway (``highway=True``, after LSTNet, Lai et al. 2018): the prediction is
+the least-squares affine map of the window -- the linear model of
+:mod:`jaxsync.surrogate.linear`, ARX with the load signals -- plus the decoder's
+output. Each decoder step adds the highway's prediction of its snapshot to its dense
+output and feeds the sum back. The map is fitted first, in closed form, on the training
+windows; the dense layer starts at zero, so training starts from the linear model's
+predictions and the recurrent part learns what they miss. No gradient reaches the map
+(training it with the decoder moves it off the least-squares fit and worsens the
+out-of-sample rollout), so online learning's gradient steps train the recurrent part
+only. Its parameters are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
+:func:`jaxsync.surrogate.linear.param_shapes`, of rank ``highway_rank``.
 
 Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
 every matrix product takes bfloat16 operands -- the weights, the layer inputs, the hidden
@@ -100,6 +113,12 @@ class LSTMArchitecture(GradientFitted):
         dtype: "float32" (default) or "float64" for the parameters and computation.
         n_load: number of known load signals fed in (module docstring); 0 (default):
             none, the network of the paper.
+        highway: add a linear autoregressive highway (module docstring): the
+            prediction is the least-squares affine map of the window (ARX with the load
+            signals) plus the decoder's output, trained together from the map's
+            least-squares fit (:meth:`fit`). False (default): the paper's network.
+        highway_rank: the highway's inner width (its least-squares rank, set by
+            :meth:`fit`; 0 without a highway).
         kind: "lstm" (class attribute, not a field): the model a surrogate file holds
             (:mod:`jaxsync.surrogate.architecture`).
     """
@@ -115,10 +134,18 @@ class LSTMArchitecture(GradientFitted):
     n_cond_repeat: int = 0
     dtype: str = "float32"
     n_load: int = 0
+    highway: bool = False
+    highway_rank: int = 0
 
     def __post_init__(self):
         if isinstance(self.n_load, bool) or not isinstance(self.n_load, (int, np.integer)) or self.n_load < 0:
             raise ConfigError(f"LSTMArchitecture.n_load must be an integer >= 0 (load signals), got {self.n_load!r}")
+        if not isinstance(self.highway, (bool, np.bool_)):
+            raise ConfigError(f"LSTMArchitecture.highway must be True or False, got {self.highway!r}")
+        rank = self.highway_rank
+        if isinstance(rank, bool) or not isinstance(rank, (int, np.integer)) or rank < 0 or (rank and not self.highway):
+            raise ConfigError(f"LSTMArchitecture.highway_rank must be an integer >= 0, and 0 without a highway; got "
+                              f"{rank!r} (highway={self.highway})")
         for name in ("n_dof", "n_hidden", "n_layers", "n_past", "n_future"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value < 1:
@@ -146,9 +173,49 @@ class LSTMArchitecture(GradientFitted):
         windows (:meth:`~jaxsync.surrogate.ArchitectureChoice.lstm`)."""
         return choice.lstm(n_dof, n_past, n_future, n_load)
 
+    @property
+    def highway_arch(self):
+        """The highway's :class:`~jaxsync.surrogate.linear.LinearArchitecture` (None
+        without a highway, or before :meth:`fit` set its rank)."""
+        if not self.highway_rank:
+            return None
+        from jaxsync.surrogate.linear import LinearArchitecture
+
+        return LinearArchitecture(n_dof=self.n_dof, rank=self.highway_rank, n_past=self.n_past,
+                                  n_future=self.n_future, dtype=self.dtype, n_load=self.n_load)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The hyperparameters; ``highway`` and ``highway_rank`` only with a highway (a
+        network without one is stored as before the highway existed)."""
+        values = super().to_dict()
+        if not self.highway:
+            values.pop("highway")
+            values.pop("highway_rank")
+        return values
+
     def init(self, key: jax.Array) -> Params:
         """:func:`init_params` of this network."""
         return init_params(key, self)
+
+    def fit(self, data, settings):
+        """Gradient training (:func:`~jaxsync.surrogate.train.train_replicas`); with a
+        highway, from the least-squares affine map of the training windows
+        (:func:`~jaxsync.surrogate.linear.fit_affine`, the choice's ``regularization``) and
+        a zero output layer, so that training starts from the linear model's predictions
+        and the decoder learns what they miss."""
+        if not self.highway:
+            return super().fit(data, settings)
+        from jaxsync.surrogate.linear import fit_affine
+        from jaxsync.surrogate.train import train_replicas
+
+        linear, highway = fit_affine(data, settings.architecture.regularization, self.dtype)
+        arch = dataclasses.replace(self, highway_rank=linear.rank)
+        init_key, _ = jax.random.split(settings.key)  # the key train_replicas initializes with
+        params = arch.init_replicas(init_key, data.dof_counts)
+        params = {**params, "highway": jax.tree_util.tree_map(jnp.asarray, highway),
+                  "dense": jax.tree_util.tree_map(jnp.zeros_like, params["dense"])}
+        return train_replicas(data, arch, settings.optimizer, settings.key, init=params, progress=settings.progress,
+                              devices=settings.devices, state=settings.state, callback=settings.callback)
 
     def init_replicas(self, key: jax.Array, dof_counts) -> Params:
         """Replica r is ``init_params(fold_in(key, r))`` at its own dof count (so it equals a
@@ -188,11 +255,16 @@ def _param_shapes(arch: LSTMArchitecture) -> Params:
     ]
     n_dec = arch.decoder_hidden
     dense_bound = 1.0 / math.sqrt(n_dec)
-    return {
+    shapes = {
         "encoder": encoder,
         "decoder": cell(arch.n_dof + arch.n_cond_repeat, n_dec, arch.n_load),
         "dense": {"w": ((arch.n_dof, n_dec), dense_bound), "b": ((arch.n_dof,), dense_bound)},
     }
+    if arch.highway_rank:  # zero: set by the least-squares fit (LSTMArchitecture.fit)
+        from jaxsync.surrogate.linear import param_shapes
+
+        shapes["highway"] = {name: (shape, 0.0) for name, shape in param_shapes(arch.highway_arch).items()}
+    return shapes
 
 
 @functools.partial(jax.jit, static_argnames="arch")
@@ -353,6 +425,7 @@ def decode(
     load_parameter: jax.Array | None = None,
     dof_mask: jax.Array | None = None,
     us: jax.Array | None = None,
+    offsets: jax.Array | None = None,
 ) -> jax.Array:
     """Decoder fed its own predictions for ``n_future`` steps.
 
@@ -366,6 +439,8 @@ def decode(
             before being fed back so that padding never influences real dofs.
         us: normalized future load signals (n_f, n_load) of a network with load input:
             row j enters the step that predicts snapshot j; else None.
+        offsets: (n_f, n_dof) the highway's predictions, added to the output of the
+            step that predicts each snapshot (and fed back with it); None: none.
 
     Returns:
         Predictions (n_f, n_dof).
@@ -376,16 +451,19 @@ def decode(
         repeated_load = jnp.full((arch.n_cond_repeat,), load_parameter, dtype=first_input.dtype)
     dense = params["dense"]
 
-    def step(carry, u):
+    def step(carry, inputs):
         hc, y_prev = carry
+        u, offset = inputs
         d = jnp.concatenate([y_prev, repeated_load]) if arch.conditional else y_prev
         hc = lstm_cell(params["decoder"], hc, d, u)
         y = _matmul(dense["w"], hc[0]) + _bias(dense["b"])
+        if offset is not None:
+            y = y + offset.astype(y.dtype)
         if dof_mask is not None:
             y = y * dof_mask.astype(y.dtype)
         return (hc, y), y
 
-    _, ys = jax.lax.scan(step, (state, first_input), us, length=arch.n_future)
+    _, ys = jax.lax.scan(step, (state, first_input), (us, offsets), length=arch.n_future)
     return ys
 
 
@@ -421,6 +499,14 @@ def forward(
     check_compute_dtype(compute_dtype)
     loads = check_loads(arch, loads)
     xs = xs.astype(arch.dtype)
+    offsets = None
+    if arch.highway_rank:
+        from jaxsync.surrogate.linear import forward as affine
+
+        # the highway stays the least-squares fit: no gradient reaches it (measured: trained with
+        # the decoder, it drifts from that fit and predicts worse out of sample)
+        highway = jax.lax.stop_gradient(params["highway"])
+        offsets = affine(highway, arch.highway_arch, xs, compute_dtype=compute_dtype, loads=loads)
     if compute_dtype is not None:
         params = _reduced(params, compute_dtype)
         # the states and outputs in the accumulation type, float32
@@ -430,7 +516,7 @@ def forward(
             dof_mask = dof_mask.astype(jnp.float32)
     past, future = (None, None) if loads is None else (loads[:arch.n_past], loads[arch.n_past:])
     state = encode(params, arch, xs, past)
-    return decode(params, arch, state, xs[-1], load_parameter, dof_mask, future).astype(arch.dtype)
+    return decode(params, arch, state, xs[-1], load_parameter, dof_mask, future, offsets).astype(arch.dtype)
 
 
 def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
@@ -481,6 +567,10 @@ def count_flops(arch: LSTMArchitecture, n_s: int, masked: bool = True) -> dict[s
     matmul += f * (2 * 4 * hd * (d + q) + 2 * 4 * hd * hd + 2 * d * hd)
     bias += f * (4 * hd + d)
     cell += f * 13 * hd
+    if arch.highway_rank:  # the affine map (LinearArchitecture.prediction_cost) and its addition
+        r, u = arch.highway_rank, arch.n_load
+        matmul += 2 * t * d * r + 2 * (t + f) * u * r + 2 * r * f * d
+        bias += 2 * f * d
     per_window = {"matmul": matmul, "bias": bias, "cell": cell, "normalize": 2 * d * (t + f),
                   "mask": f * d if masked else 0}
     return {k: float(n_s * v) for k, v in per_window.items()}
@@ -501,6 +591,9 @@ def count_prediction_cost(arch: LSTMArchitecture, n_s: int, masked: bool = True,
         params += 2 * ((4 * h * n_in + 4 * h) + t * 4 * h * h)  # w_d, b once; w_h per step
     params += f * (4 * hd * (d + q) + 4 * hd * hd + 4 * hd)  # decoder cell per step
     params += f * (d * hd + d)  # dense per step
+    if arch.highway_rank:  # read once
+        r, u = arch.highway_rank, arch.n_load
+        params += t * d * r + (t + f) * u * r + r * f * d + f * d
     io = n_s * t * d + 2 * d + n_s * f * d + (d if masked else 0)
     flops = sum(count_flops(arch, n_s, masked).values())
     return PredictionCost(float(p_item * params + io_bytes_per_value * io), float(flops))

@@ -21,6 +21,9 @@ from jaxsync.errors import ConfigError
 
 Params = Any
 
+# the dof axis of each linear-highway parameter (jaxsync.surrogate.linear.param_shapes)
+_HIGHWAY_DOF_AXIS = {"w_in": 1, "w_out": 2, "b": 1, "w_load": None}
+
 __all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas", "count_parameters"]
 
 
@@ -29,7 +32,8 @@ def pad_params(params: Params, arch, n_dof: int) -> Params:
     :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`) from ``arch.n_dof`` to ``n_dof`` dofs.
 
     Pads the first encoder layer's input columns, the decoder's input columns (the dof
-    block, before the q load-parameter columns) and the dense layer's output rows.
+    block, before the q load-parameter columns), the dense layer's output rows and the
+    linear highway's dof axes (a network with one).
     """
     extra = n_dof - arch.n_dof
     if extra < 0:
@@ -47,7 +51,12 @@ def pad_params(params: Params, arch, n_dof: int) -> Params:
         "w": jnp.pad(params["dense"]["w"], ((0, extra), (0, 0))),
         "b": jnp.pad(params["dense"]["b"], (0, extra)),
     }
-    return {"encoder": encoder, "decoder": decoder, "dense": dense}
+    padded = {"encoder": encoder, "decoder": decoder, "dense": dense}
+    if "highway" in params:  # the linear highway's dof axes
+        padded["highway"] = {name: jnp.pad(w, [(0, extra if axis == _HIGHWAY_DOF_AXIS[name] else 0)
+                                               for axis in range(w.ndim)])
+                             for name, w in params["highway"].items()}
+    return padded
 
 
 def unpad_params(params: Params, arch, n_dof: int) -> Params:
@@ -61,7 +70,11 @@ def unpad_params(params: Params, arch, n_dof: int) -> Params:
     encoder[0] = {d: {**cell, "w_d": cell["w_d"][:, :n_dof]} for d, cell in encoder[0].items()}
     decoder = {**params["decoder"], "w_d": cut_cols(params["decoder"]["w_d"])}
     dense = {"w": params["dense"]["w"][:n_dof], "b": params["dense"]["b"][:n_dof]}
-    return {"encoder": encoder, "decoder": decoder, "dense": dense}
+    cut = {"encoder": encoder, "decoder": decoder, "dense": dense}
+    if "highway" in params:
+        cut["highway"] = {name: jnp.take(w, jnp.arange(n_dof), axis=_HIGHWAY_DOF_AXIS[name])
+                          if _HIGHWAY_DOF_AXIS[name] is not None else w for name, w in params["highway"].items()}
+    return cut
 
 
 def stack_params(replicas: list[Params]) -> Params:

@@ -51,6 +51,9 @@ def add_parser(subparsers) -> None:
     p.add_argument("--load-input", dest="load_input", action=argparse.BooleanOptionalAction, default=None,
                    help="feed the surrogates the known load signals, as jaxsync train does (default: on, the "
                         "synchronized run records them); --no-load-input trains the load-blind surrogates")
+    p.add_argument("--highway", action=argparse.BooleanOptionalAction, default=None,
+                   help="give the LSTM surrogates a linear highway, as jaxsync train --highway does (default: "
+                        "jaxsync train's)")
     p.add_argument("--resync-tolerance", default="default", metavar="CM|PCT%|none",
                    help="error control of the predicted run (see jaxsync predict --help); none turns it "
                         "off (default: 1%% of the synchronized run's largest shared-node displacement)")
@@ -77,7 +80,8 @@ def run(args) -> int:
                             n_future=args.n_future, n_hidden=args.n_hidden, n_layers=args.n_layers,
                             train_fraction=args.train_fraction, epochs=args.epochs, eta0=args.eta0,
                             gamma=args.gamma, n_candidates=args.n_candidates,
-                            save_every=args.save_every, resync_tolerance=tolerance, load_input=args.load_input)
+                            save_every=args.save_every, resync_tolerance=tolerance, load_input=args.load_input,
+                            highway=args.highway)
     summary = run_demo(args.out, settings, case=args.case, size=args.size, seed=args.seed,
                        progress=not args.no_progress, force=args.force)
     what = "cantilever" if args.case == "cantilever" else f"coronary tree ({summary['n_elements']} tets)"

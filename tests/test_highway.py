@@ -1,0 +1,172 @@
+"""The LSTM's linear highway: the least-squares affine map of the window (the linear model,
+ARX with the load input) plus what the decoder learns on top."""
+
+import argparse
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxsync
+from jaxsync.app.train import add_train_parser
+from jaxsync.errors import ConfigError
+from jaxsync.surrogate import (
+    ArchitectureChoice,
+    LSTMArchitecture,
+    Sampling,
+    Surrogate,
+    TrainConfig,
+    TrainingChecks,
+    linear,
+    load_surrogate,
+    lstm,
+    train_surrogates,
+)
+from jaxsync.surrogate.evaluate import rollout_errors
+from jaxsync.surrogate.replicas import pad_params, unpad_params
+
+N_STEPS = 2400  # about four periods of the short beam's first bending mode
+SAMPLING = Sampling(n_s=5, n_past=8, n_future=8, train_fraction=0.5)
+UNCHECKED = TrainingChecks(rollout_tolerance=None, emse_applications=1)
+
+
+def _network(n_dof=6, n_load=2, rank=7):
+    return LSTMArchitecture(n_dof=n_dof, n_hidden=5, n_layers=1, n_past=4, n_future=3, n_load=n_load, highway=True,
+                            highway_rank=rank, dtype="float64")
+
+
+def _random_highway(arch, key):
+    """Random (normal) highway parameters of ``arch``."""
+    shapes = linear.param_shapes(arch.highway_arch)
+    keys = jax.random.split(key, len(shapes))
+    return {name: jax.random.normal(k, shape, jnp.float64) for k, (name, shape) in zip(keys, sorted(shapes.items()))}
+
+
+def test_with_a_zero_output_layer_the_network_is_its_linear_model():
+    arch = _network()
+    params = lstm.init_params(jax.random.key(0), arch)
+    assert set(params["highway"]) == {"w_in", "w_out", "b", "w_load"}
+    assert all(not np.any(w) for w in params["highway"].values())  # set by the fit, zero before
+    params["highway"] = _random_highway(arch, jax.random.key(1))
+    params["dense"] = jax.tree_util.tree_map(jnp.zeros_like, params["dense"])
+    xs = jax.random.normal(jax.random.key(2), (4, 6), jnp.float64)
+    loads = jax.random.normal(jax.random.key(3), (7, 2), jnp.float64)
+    mask = jnp.array([1.0, 1, 1, 1, 0, 0])
+    expected = linear.forward(params["highway"], arch.highway_arch, xs, dof_mask=mask, loads=loads)
+    np.testing.assert_array_equal(lstm.forward(params, arch, xs, dof_mask=mask, loads=loads), expected)
+    # the decoder's output adds to it, and only the recurrent part gets gradients
+    params["dense"] = jax.tree_util.tree_map(lambda w: w + 0.1, params["dense"])
+    assert not np.allclose(lstm.forward(params, arch, xs, loads=loads),
+                           linear.forward(params["highway"], arch.highway_arch, xs, loads=loads))
+    grads = jax.grad(lambda p: jnp.sum(lstm.forward(p, arch, xs, loads=loads) ** 2))(params)
+    assert all(not np.any(g) for g in jax.tree_util.tree_leaves(grads["highway"]))
+    assert np.any(grads["dense"]["w"]) and np.any(grads["decoder"]["w_h"])
+
+
+def test_padding_keeps_a_replica_alone():
+    """A replica of 4 dofs padded to 6 predicts on its 4 dofs what it predicts alone."""
+    small = _network(n_dof=4)
+    params = lstm.init_params(jax.random.key(0), small)
+    params["highway"] = _random_highway(small, jax.random.key(1))
+    padded = pad_params(params, small, 6)
+    wide = dataclasses.replace(small, n_dof=6)
+    assert jax.tree_util.tree_structure(padded) == jax.tree_util.tree_structure(lstm.init_params(
+        jax.random.key(0), wide))
+    xs = jax.random.normal(jax.random.key(2), (4, 4), jnp.float64)
+    loads = jax.random.normal(jax.random.key(3), (7, 2), jnp.float64)
+    alone = lstm.forward(params, small, xs, loads=loads)
+    within = lstm.forward(padded, wide, jnp.pad(xs, ((0, 0), (0, 2))), dof_mask=jnp.array([1.0, 1, 1, 1, 0, 0]),
+                          loads=loads)
+    np.testing.assert_allclose(within[:, :4], alone, rtol=1e-12, atol=1e-12)
+    assert not np.any(within[:, 4:])
+    back = unpad_params(padded, wide, 4)
+    for a, b in zip(jax.tree_util.tree_leaves(back), jax.tree_util.tree_leaves(params)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_counted_cost_adds_the_highway_products_and_parameters():
+    """prediction_cost of the network with a highway minus that of the same network
+    without: the dot_generals the highway adds to forward's jaxpr, its 2 n_f n_dof
+    additions (its bias and the sum with the decoder's output), and its parameters."""
+    from test_surrogate_protocol import _dot_flops
+
+    arch, n_s = _network(), 7
+    plain = dataclasses.replace(arch, highway=False, highway_rank=0)
+    params = {a: lstm.init_params(jax.random.key(0), a) for a in (arch, plain)}
+    xs, loads = jnp.zeros((4, 6)), jnp.zeros((7, 2))
+    dots = {a: _dot_flops(jax.make_jaxpr(lambda p, a=a: lstm.forward(p, a, xs, loads=loads))(params[a]).jaxpr)
+            for a in (arch, plain)}
+    flops = {a: lstm.count_flops(a, n_s) for a in (arch, plain)}
+    assert flops[arch]["matmul"] - flops[plain]["matmul"] == n_s * (dots[arch] - dots[plain]) > 0
+    assert flops[arch]["bias"] - flops[plain]["bias"] == n_s * 2 * 3 * 6
+    n_highway = sum(np.size(w) for w in params[arch]["highway"].values())
+    cost = {a: a.prediction_cost(n_s) for a in (arch, plain)}
+    assert cost[arch].bytes - cost[plain].bytes == 8 * n_highway
+
+
+def test_bad_settings_are_refused():
+    with pytest.raises(ConfigError, match="no linear highway.*model='lstm'"):
+        ArchitectureChoice(model="linear", highway=True)
+    with pytest.raises(ConfigError, match="highway_rank.*0 without a highway"):
+        LSTMArchitecture(n_dof=3, highway_rank=2)
+    with pytest.raises(ConfigError, match="highway must be True or False"):
+        ArchitectureChoice(highway="yes")
+    parser = argparse.ArgumentParser()
+    add_train_parser(parser.add_subparsers(dest="command"))
+    assert parser.parse_args(["train", "run.h5", "--highway"]).highway is True
+    assert parser.parse_args(["train", "run.h5"]).highway is False
+
+
+def _out_of_sample_error(surrogate, problem, reference):
+    """RMS error of the autonomous rollout over the second half (never trained on),
+    relative to the largest shared displacement."""
+    width = max(p.shared_displacement.shape[1] for p in reference.parts)
+    histories = np.stack([np.pad(p.shared_displacement, ((0, 0), (0, width - p.shared_displacement.shape[1])))
+                          for p in reference.parts])
+    rollout = rollout_errors(surrogate.for_problem(problem), histories, start=N_STEPS // 2 - 1)
+    return float(np.sqrt(rollout.mse.mean()) / rollout.amplitude.max())
+
+
+@pytest.fixture(scope="module")
+def step_off():
+    """A 5 x 1 x 1 cm cantilever (2 parts) whose load ramps on and is switched off at 70 %
+    of the run (out of sample)."""
+    base = jaxsync.cantilever(jaxsync.box_beam(5.0, 1.0, 1.0, (5, 1, 1)))
+    problem = jaxsync.cantilever(base.mesh, t_ramp=0.15, t_off=0.7 * N_STEPS * float(base.dt))
+    return problem, jaxsync.simulate(problem, N_STEPS, partitions=2)
+
+
+def _train(reference, choice, epochs=60):
+    return train_surrogates(reference, architecture=choice, sampling=SAMPLING, checks=UNCHECKED, progress=False,
+                            optimizer=TrainConfig(n_epochs=epochs, n_candidates=1))
+
+
+def test_the_network_with_a_highway_predicts_as_well_as_its_linear_model(step_off, tmp_path):
+    """Trained on the first half of the step-off run, rolled out over the second half.
+    Measured: the linear model (ARX) 0.618 %, the LSTM with a highway 0.616 % (the plain
+    LSTM of the same size 35 %, the slow test); asserted: within 5 % of the linear
+    model and below 2 %. The file keeps the highway."""
+    problem, reference = step_off
+    arx = _train(reference, ArchitectureChoice(model="linear"))
+    network = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1, highway=True))
+    arch = network.surrogate.arch
+    assert arch.highway and arch.highway_rank == arx.surrogate.arch.rank
+    errors = {name: _out_of_sample_error(t.surrogate, problem, reference)
+              for name, t in (("linear", arx), ("highway", network))}
+    assert errors["highway"] <= min(1.05 * errors["linear"], 0.02), errors
+    network.write(tmp_path / "out")
+    saved = load_surrogate(tmp_path / "out" / "surrogate.h5")
+    assert saved.arch == arch
+    assert _out_of_sample_error(Surrogate.from_saved(saved), problem, reference) == errors["highway"]
+
+
+@pytest.mark.slow
+def test_the_highway_turns_the_lstm_from_worse_to_as_good_as_the_linear_model(step_off):
+    """The same LSTM without a highway misses the switch-off (measured 35 % against 0.62 %)."""
+    problem, reference = step_off
+    plain = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1), epochs=150)
+    highway = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1, highway=True), epochs=150)
+    errors = [_out_of_sample_error(t.surrogate, problem, reference) for t in (plain, highway)]
+    assert errors[0] >= 10 * errors[1], errors
