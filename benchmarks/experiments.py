@@ -257,10 +257,12 @@ _SETTINGS = {"architecture": ArchitectureChoice, "sampling": Sampling, "checks":
 def training_arguments(flat: dict) -> dict:
     """train_surrogates' keyword arguments from flat setting names, the names the records
     keep: ``config`` (the optimizer, a TrainConfig) and any field of ArchitectureChoice
-    (``model``, ``n_hidden``, ``n_cond_repeat``...), Sampling (``n_s``, ``train_fraction``,
+    (``model``, ``n_hidden``, ``n_cond_repeat``...; ``highway`` False unless given, the
+    paper's network), Sampling (``n_s``, ``train_fraction``,
     ``seed``...) or TrainingChecks (``emse_applications``...), the library's defaults for
     the rest; any other name (``progress``...) is passed as it is."""
     out = dict(flat)
+    out.setdefault("highway", False)  # the paper's network, unless a case names a highway
     if "config" in out:
         out["optimizer"] = out.pop("config")
     for keyword, cls in _SETTINGS.items():

@@ -111,12 +111,15 @@ def test_bad_settings_are_refused():
         ArchitectureChoice(model="linear", highway=True)
     with pytest.raises(ConfigError, match="highway_rank.*0 without a highway"):
         LSTMArchitecture(n_dof=3, highway_rank=2)
-    with pytest.raises(ConfigError, match="highway must be True or False"):
+    with pytest.raises(ConfigError, match="highway must be True, False or None"):
         ArchitectureChoice(highway="yes")
     parser = argparse.ArgumentParser()
     add_train_parser(parser.add_subparsers(dest="command"))
     assert parser.parse_args(["train", "run.h5", "--highway"]).highway is True
-    assert parser.parse_args(["train", "run.h5"]).highway is False
+    assert parser.parse_args(["train", "run.h5"]).highway is None  # the model's default
+    assert parser.parse_args(["train", "run.h5", "--no-highway"]).highway is False
+    assert ArchitectureChoice().lstm(4, 3, 2).highway and not ArchitectureChoice(highway=False).lstm(4, 3, 2).highway
+    ArchitectureChoice(model="linear")  # the default does not apply to it
 
 
 def _out_of_sample_error(surrogate, problem, reference):

@@ -140,7 +140,8 @@ def add_train_parser(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--highway", action=argparse.BooleanOptionalAction, default=ARCHITECTURE.highway,
                         help="give the LSTM a linear autoregressive highway: the least-squares affine map of the "
                         "window (the linear model, ARX with the load input) plus what the decoder learns on "
-                        "top, trained from that fit (default: off, the paper's network)")
+                        "top, trained from that fit (default: on for the LSTM; --no-highway trains the paper's "
+                        "network)")
     parser.add_argument("--cond-repeat", type=int, default=ARCHITECTURE.n_cond_repeat,
                         help="copies q of the load parameter fed to the decoder; 0 = unconditional "
                         "(default: %(default)s; paper: 12)")

@@ -88,8 +88,11 @@ class ArchitectureChoice:
         highway: give the LSTM a linear autoregressive highway: it predicts the
             least-squares affine map of the window (the linear model, ARX with the load
             input) plus what its decoder learns on top, trained from that fit
-            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`). Default False (the
-            paper's network). LSTM only.
+            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`). None (default): on for
+            the LSTM (out of sample it predicts as well as the linear model where the
+            plain network misses; ``docs/guides/surrogates.md``), not applicable to
+            the other models. False trains the paper's network; True for a model
+            without a highway is refused.
     """
 
     model: str = "lstm"
@@ -99,14 +102,15 @@ class ArchitectureChoice:
     dtype: str = LSTMArchitecture.dtype
     regularization: float = DEFAULT_REGULARIZATION
     load_input: bool | None = None
-    highway: bool = False
+    highway: bool | None = None
 
     def __post_init__(self):
         if self.load_input is not None and not isinstance(self.load_input, bool):
             raise ConfigError(f"ArchitectureChoice.load_input must be True, False or None (on when the trajectories "
                               f"record load signals), got {self.load_input!r}")
-        if not isinstance(self.highway, bool):
-            raise ConfigError(f"ArchitectureChoice.highway must be True or False, got {self.highway!r}")
+        if self.highway is not None and not isinstance(self.highway, bool):
+            raise ConfigError(f"ArchitectureChoice.highway must be True, False or None (the model's default), "
+                              f"got {self.highway!r}")
         model = surrogate_class(self.model)  # refuses an unknown kind, naming the registered ones
         for name, low, what in (("n_hidden", 1, "encoder hidden size n_H"), ("n_layers", 1, "encoder layers k"),
                                 ("n_cond_repeat", 0, "copies q of the load parameter; 0: unconditional")):
@@ -128,7 +132,7 @@ class ArchitectureChoice:
         ``n_dof`` (padded) dofs, reading ``n_load`` load signals."""
         return LSTMArchitecture(n_dof=n_dof, n_hidden=self.n_hidden, n_layers=self.n_layers, n_past=n_past,
                                 n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load,
-                                highway=self.highway)
+                                highway=self.highway is not False)
 
 
     @property

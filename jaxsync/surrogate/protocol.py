@@ -200,7 +200,7 @@ class SurrogateArchitecture:
         train, before any data are read (default: a conditional choice for a model without
         an ``n_cond_repeat`` field)."""
         names = {f.name for f in dataclasses.fields(cls)}
-        if getattr(choice, "highway", False) and "highway" not in names:
+        if getattr(choice, "highway", None) is True and "highway" not in names:
             raise ConfigError(f"the {cls._name()} surrogate has no linear highway: highway (--highway) goes with "
                               "model='lstm' (--model lstm)")
         if choice.n_cond_repeat > 0 and "n_cond_repeat" not in names:
