@@ -22,9 +22,15 @@ Definitions (CGS units: barye, cm, s; 1 mmHg = :data:`MMHG` barye):
   factor), the whole record. Distensibility (D_max - D_min) / (D_min (p_max - p_min))
   [1/barye], diameter compliance (D_max - D_min) / (p_max - p_min) [cm/barye], volume
   compliance (V_max - V_min) / (p_max - p_min) [cm^3/barye], and the hysteresis
-  loop integral of p dV over the last full cycle [erg]: the work the lumen pressure
+  loop integral of p dV_w over the last full cycle [erg]: the work the lumen pressure
   does on the wall per cycle, the energy the wall dissipates per cycle in a periodic
-  state (positive for a dissipative, clockwise loop in the (V, p) plane).
+  state (positive for a dissipative, clockwise loop in the (V, p) plane). V_w is the
+  volume whose change is the pressure load's work per unit pressure: the enclosed
+  volume V for a follower pressure (it acts on the deformed surface); for a dead
+  pressure (on the reference surface) its first-order change V_0 + integral of u . n
+  over the reference lumen, n into the lumen (:func:`linearized_volume`). The two
+  differ by O(strain) relative, so a dead load's loop in V alone would not balance its
+  work.
 - **Stress**: the Cauchy stress at the quadrature points of the total-Lagrangian rule
   (:func:`jaxsync.fem.total_lagrangian.reference_geometry`): for a finite-strain law
   sigma = P F^T / J with P the law's ``first_piola(F, fibres)``; for the linear law
@@ -47,7 +53,7 @@ import numpy as np
 from .errors import ProblemError
 
 __all__ = ["MMHG", "boundary_loops", "enclosed_volume", "lumen_geometry", "lumen_pressure", "pulse_period",
-           "last_cycle", "loop_work", "PressureDiameterLoop", "pressure_diameter_loop", "VesselMetrics",
+           "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop", "pressure_diameter_loop", "VesselMetrics",
            "vessel_metrics", "cauchy_stress", "element_peaks", "facet_regions", "Peak", "RegionPeaks",
            "region_peaks", "NotAVessel"]
 
@@ -106,12 +112,18 @@ def enclosed_volume(points, triangles, loops=None) -> np.ndarray:
 
     Args:
         points: (n_nodes, 3) or (T, n_nodes, 3) node coordinates [cm].
-        triangles: (n_f, 3) consistently oriented triangles.
+        triangles: (n_f, 3) consistently oriented triangles (either way round).
         loops: :func:`boundary_loops` of ``triangles`` (computed when None).
 
     Returns:
         () or (T,) volumes.
     """
+    return np.abs(_closed_signed_volume(points, triangles, loops))
+
+
+def _closed_signed_volume(points, triangles, loops=None) -> np.ndarray:
+    """The signed volume of :func:`enclosed_volume`: positive when the triangles' right-hand
+    normals point out of the enclosed volume."""
     x = np.asarray(points, dtype=float)
     tri = np.asarray(triangles, dtype=np.int64)
     loops = boundary_loops(tri) if loops is None else loops
@@ -121,7 +133,7 @@ def enclosed_volume(points, triangles, loops=None) -> np.ndarray:
         # the cap triangles (centre, b, a) run each boundary edge the other way: a closed, oriented surface
         a, b = x[..., edges[:, 0], :], x[..., edges[:, 1], :]
         total = total + np.einsum("...i,...fi->...", centre, np.cross(b, a)) / 6.0
-    return np.abs(total)
+    return total
 
 
 def lumen_geometry(points, triangles, loops=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -133,6 +145,21 @@ def lumen_geometry(points, triangles, loops=None) -> tuple[np.ndarray, np.ndarra
     area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=-1).sum(axis=-1)
     volume = enclosed_volume(x, tri, loops)
     return volume, area, 4.0 * volume / area
+
+
+def linearized_volume(points, triangles, displacement) -> np.ndarray:
+    """V_0 + integral over the reference surface of u . n dA, n the normal out of the
+    enclosed volume (:func:`enclosed_volume`; exact for u linear on each flat triangle):
+    the volume change to first order, the work of a unit dead pressure acting from the
+    inside [cm^3]. ``points`` (n, 3) reference, ``displacement`` (n, 3) or (T, n, 3)."""
+    X = np.asarray(points, dtype=float)
+    tri = np.asarray(triangles, dtype=np.int64)
+    a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
+    n_area = 0.5 * np.cross(b - a, c - a)  # (n_f, 3): normal times area
+    u = np.asarray(displacement, dtype=float)
+    mean_u = (u[..., tri[:, 0], :] + u[..., tri[:, 1], :] + u[..., tri[:, 2], :]) / 3.0
+    signed = float(_closed_signed_volume(X, tri))  # its sign: whether the normals point out of the volume
+    return abs(signed) + np.sign(signed) * np.einsum("fi,...fi->...", n_area, mean_u)
 
 
 def _pressure_loads(problem) -> list:
@@ -216,6 +243,7 @@ class PressureDiameterLoop:
     volume: np.ndarray
     area: np.ndarray
     diameter: np.ndarray
+    work_volume: np.ndarray
     period: float | None
     cycle: np.ndarray | None
 
@@ -223,7 +251,7 @@ class PressureDiameterLoop:
         return {"surface": self.surface, "period": self.period,
                 "cycle": None if self.cycle is None else [int(self.cycle[0]), int(self.cycle[-1])],
                 **{k: np.asarray(getattr(self, k)).tolist() for k in ("times", "pressure", "volume", "area",
-                                                                       "diameter")}}
+                                                                       "diameter", "work_volume")}}
 
 
 def _vertex_displacement(space, displacement) -> np.ndarray:
@@ -262,12 +290,15 @@ def pressure_diameter_loop(problem, displacement, times, surface: str | None = N
     triangles, _ = facet_nodes(space, surface)
     x = problem.mesh.points[None] + d[:, :n]
     volume, area, diameter = lumen_geometry(x, triangles)
-    period = None
-    for load in _pressure_loads(problem):
-        if load.surface == surface and (period := pulse_period(load.time)) is not None:
-            break
+    on = [load for load in _pressure_loads(problem) if load.surface == surface]
+    periods = [found for load in on if (found := pulse_period(load.time)) is not None]
+    period = periods[0] if periods else None
+    # the pressure's work: p dV on the deformed surface (follower), p dV_lin on the reference one (dead)
+    work_volume = volume if all(load.follower for load in on) else linearized_volume(
+        problem.mesh.points, triangles, d[:, :n])
     return PressureDiameterLoop(surface=surface, times=np.asarray(times, float), pressure=p, volume=volume,
-                                area=area, diameter=diameter, period=period,
+                                area=area, diameter=diameter, work_volume=work_volume,
+                                period=period,
                                 cycle=last_cycle(times, period))
 
 
@@ -282,8 +313,8 @@ class VesselMetrics:
         p_min, p_max [barye]; d_min, d_max [cm]; v_min, v_max [cm^3].
         distensibility: [1/barye]; diameter_compliance: [cm/barye];
         volume_compliance: [cm^3/barye] (None where p_max = p_min).
-        hysteresis: the loop integral of p dV over the last full cycle [erg] (None
-            without a full cycle).
+        hysteresis: the loop integral of p dV_w over the last full cycle [erg] (None
+            without a full cycle; V_w the :attr:`PressureDiameterLoop.work_volume`).
     """
 
     full_cycle: bool
@@ -328,7 +359,8 @@ def vessel_metrics(loop: PressureDiameterLoop) -> VesselMetrics:
         p_min=float(p.min()), p_max=float(p.max()), d_min=float(d.min()), d_max=float(d.max()),
         v_min=float(v.min()), v_max=float(v.max()),
         distensibility=None if dist is None else dist / float(d.min()), diameter_compliance=dist,
-        volume_compliance=ratio(v), hysteresis=None if loop.cycle is None else loop_work(p, v))
+        volume_compliance=ratio(v),
+        hysteresis=None if loop.cycle is None else loop_work(p, np.asarray(loop.work_volume)[at]))
 
 
 def _gradients(space):
