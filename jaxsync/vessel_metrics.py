@@ -53,8 +53,8 @@ import numpy as np
 from .errors import ProblemError
 
 __all__ = ["MMHG", "boundary_loops", "enclosed_volume", "lumen_geometry", "lumen_pressure", "pulse_period",
-           "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop", "pressure_diameter_loop", "VesselMetrics",
-           "vessel_metrics", "cauchy_stress", "element_peaks", "facet_regions", "Peak", "RegionPeaks",
+           "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop", "pressure_diameter_loop",
+           "VesselMetrics", "vessel_metrics", "cauchy_stress", "element_peaks", "facet_regions", "Peak", "RegionPeaks",
            "region_peaks", "NotAVessel"]
 
 MMHG = 1333.2238741499998
