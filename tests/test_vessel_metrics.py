@@ -198,6 +198,31 @@ def test_neo_hookean_uniaxial_stress_against_the_closed_form():
     mises, principal, strain = vm.element_peaks(law, box, homogeneous(box, np.diag([l1, l2, l2])))
     np.testing.assert_allclose([mises.min(), mises.max(), principal.max()], s11, rtol=1e-10)
     np.testing.assert_allclose(strain, (l1 ** 2 - 1) / 2, rtol=1e-12)
+    # quadratic elements: the same homogeneous field at their 4 quadrature points
+    p2 = function_space(box, "P2")
+    u = p2.points @ (np.diag([l1, l2, l2]) - np.eye(3)).T
+    sigma2 = vm.cauchy_stress(law, p2, u)
+    assert sigma2.shape == (1, box.n_elements, 4, 3, 3)
+    np.testing.assert_allclose(sigma2, np.broadcast_to(np.diag([s11, 0.0, 0.0]), sigma2.shape), atol=1e-9 * s11)
+
+
+def test_holzapfel_gasser_ogden_stress_with_its_fibres_against_the_closed_form():
+    mu, k1, k2, bulk, beta = 3.0e4, 2.3632e4, 0.8393, 3.0e6, np.radians(29.0)
+    box = jaxsync.box_beam(1.0, 1.0, 1.0, divisions=(1, 1, 1))
+    families = np.array([[np.cos(beta), np.sin(beta), 0.0], [np.cos(beta), -np.sin(beta), 0.0]])
+    law = jaxsync.HolzapfelGasserOgden(mu=mu, k1=k1, k2=k2, kappa_bulk=bulk,
+                                       fibres=np.broadcast_to(families, (box.n_elements, 2, 3)))
+    F = np.diag([1.2, 0.93, 0.95])
+    J, b = np.linalg.det(F), F @ F.T
+    # sigma = mu J^(-5/3) dev b + K/2 (J - 1/J) I + sum_i 2 k1 E_i exp(k2 E_i^2) (F a_i)(F a_i)^T / J, E_i = I4_i - 1
+    expected = mu * J ** (-5 / 3) * (b - np.trace(b) / 3 * np.eye(3)) + 0.5 * bulk * (J - 1 / J) * np.eye(3)
+    for a in families:
+        fa = F @ a
+        strain = fa @ fa - 1.0
+        assert strain > 0  # both families in tension
+        expected += 2 * k1 * strain * np.exp(k2 * strain ** 2) * np.outer(fa, fa) / J
+    sigma = vm.cauchy_stress(law, box, homogeneous(box, F))
+    np.testing.assert_allclose(sigma, np.broadcast_to(expected, sigma.shape), rtol=1e-11, atol=1e-9 * mu)
 
 
 def test_peaks_by_region_where_and_when():
