@@ -52,7 +52,7 @@ import numpy as np
 
 from .errors import ProblemError
 
-__all__ = ["MMHG", "boundary_loops", "enclosed_volume", "lumen_geometry", "lumen_pressure", "pulse_period",
+__all__ = ["MMHG", "boundary_loops", "lumen_triangles", "enclosed_volume", "lumen_geometry", "lumen_pressure", "pulse_period",
            "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop", "pressure_diameter_loop",
            "VesselMetrics", "vessel_metrics", "cauchy_stress", "element_peaks", "facet_regions", "Peak", "RegionPeaks",
            "region_peaks", "NotAVessel"]
@@ -99,6 +99,19 @@ def boundary_loops(triangles) -> list[np.ndarray]:
             parent[max(ra, rb)] = min(ra, rb)
     label = np.array([root(i) for i in range(len(nodes))])[local[:, 0]]
     return [boundary[label == k] for k in np.unique(label)]
+
+
+def lumen_triangles(mesh, surface: str = "lumen") -> np.ndarray:
+    """(n_f, 3) the vertex triples of the facet set ``surface`` of ``mesh``, each ordered so
+    that its right-hand normal points out of the solid (into the lumen).
+
+    Raises:
+        MeshError or ProblemError: no such facet set (the message names the mesh's).
+    """
+    from .fem.follower import facet_nodes
+    from .fem.space import function_space
+
+    return facet_nodes(function_space(mesh, "P1"), surface)[0]
 
 
 def _signed_volume(x, tri) -> np.ndarray:
@@ -277,17 +290,13 @@ def pressure_diameter_loop(problem, displacement, times, surface: str | None = N
     Raises:
         NotAVessel: no pressure load; ProblemError: shapes that do not fit.
     """
-    from .fem.follower import facet_nodes
-    from .fem.space import function_space
-
     surface, p = lumen_pressure(problem, times, surface)
-    space = function_space(problem.mesh, "P1")
     n = problem.mesh.n_nodes
     d = np.asarray(displacement, dtype=float)
     if d.ndim != 3 or d.shape[0] != len(p) or d.shape[1] < n or d.shape[2] != 3:
         raise ProblemError(f"displacement of shape {d.shape} does not fit {len(p)} snapshots of a mesh of {n} "
                            "vertices")
-    triangles, _ = facet_nodes(space, surface)
+    triangles = lumen_triangles(problem.mesh, surface)
     x = problem.mesh.points[None] + d[:, :n]
     volume, area, diameter = lumen_geometry(x, triangles)
     on = [load for load in _pressure_loads(problem) if load.surface == surface]
