@@ -52,13 +52,13 @@ import numpy as np
 
 from .errors import ProblemError
 
-__all__ = ["MMHG", "boundary_loops", "lumen_triangles", "enclosed_volume", "lumen_geometry", "lumen_pressure", "pulse_period",
-           "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop", "pressure_diameter_loop",
-           "VesselMetrics", "vessel_metrics", "cauchy_stress", "element_peaks", "facet_regions", "Peak", "RegionPeaks",
-           "region_peaks", "NotAVessel"]
+__all__ = ["MMHG", "boundary_loops", "lumen_triangles", "enclosed_volume", "lumen_geometry", "lumen_pressure",
+           "pulse_period", "last_cycle", "loop_work", "linearized_volume", "PressureDiameterLoop",
+           "pressure_diameter_loop", "VesselMetrics", "vessel_metrics", "cauchy_stress", "element_peaks",
+           "facet_regions", "Peak", "RegionPeaks", "region_peaks", "NotAVessel"]
 
-MMHG = 1333.2238741499998
-"""Barye per mmHg (101325 / 76 dyn/cm^2)."""
+MMHG = 1333.22387415
+"""Barye per mmHg (the conventional millimetre of mercury, 133.322387415 Pa)."""
 
 
 class NotAVessel(ProblemError):

@@ -25,6 +25,7 @@ from jaxsync.mesh.simvascular import write_folder
 
 E, NU, A, B = 1.0e6, 0.3, 0.2, 0.25  # wall modulus [dyn/cm^2], Poisson ratio, lumen and outer radius [cm]
 PERIOD, P_LOW, P_HIGH, DAMPING = 0.06, 1.0e4, 2.0e4, 2000.0
+MMHG_BARYE = 1333.22387415  # 133.322387415 Pa, the conventional mmHg
 
 
 def tube_mesh(a=A, b=B, length=0.32, n_r=2, n_theta=16, n_z=4):
@@ -157,7 +158,7 @@ def test_metrics_of_a_synthetic_loop_and_the_last_cycle():
     np.testing.assert_allclose(m.volume_compliance, np.ptp(vc) / np.ptp(pc))
     np.testing.assert_allclose(m.hysteresis, vm.loop_work(pc, vc))
     assert m.hysteresis > 0
-    assert m.to_dict()["distensibility_per_mmHg"] == pytest.approx(m.distensibility * 101325 / 76)
+    assert m.to_dict()["distensibility_per_mmHg"] == pytest.approx(m.distensibility * MMHG_BARYE)
 
 
 # ------------------------------------------------------------------ stress and strain
@@ -375,7 +376,7 @@ def test_report_writes_the_vessel_section(vessel_run, tmp_path, capsys):
     assert metrics["p_min"] == pytest.approx(np.min(expected[cycle])) and metrics["p_max"] == pytest.approx(
         np.max(expected[cycle]))
     assert metrics["distensibility"] == pytest.approx(lame_distensibility(metrics["p_min"]), rel=0.05)
-    assert metrics["distensibility_per_mmHg"] == pytest.approx(metrics["distensibility"] * 101325 / 76)
+    assert metrics["distensibility_per_mmHg"] == pytest.approx(metrics["distensibility"] * MMHG_BARYE)
     assert metrics["hysteresis"] > 0
     peaks = entry["peaks"]
     assert set(peaks) == {"wall", "lumen", "outer", "inlet", "outlet"}
@@ -394,6 +395,18 @@ def test_report_writes_the_vessel_section(vessel_run, tmp_path, capsys):
     assert wall["value"] == pytest.approx(lame_mises, rel=0.03)
     printed = capsys.readouterr().out
     assert "distensibility" in printed and "peak von Mises" in printed
+    # the figures: titled, units on every axis, a legend; the loop drawn is the entry's, in mm and mmHg
+    again, drawn = vessel_section(problem, trajectory)
+    assert set(drawn) == {"pressure_diameter.png", "wall_stress.png"}
+    for name, fig in drawn.items():
+        fig.canvas.draw()
+        assert fig.get_suptitle() or all(ax.get_title() for ax in fig.axes), name
+        assert all("[" in ax.get_xlabel() and "[" in ax.get_ylabel() for ax in fig.axes), name
+        assert any(ax.get_legend() for ax in fig.axes), name
+    bold = drawn["pressure_diameter.png"].axes[0].lines[1]
+    np.testing.assert_allclose(bold.get_xdata(), 10 * np.asarray(loop["diameter"])[cycle])
+    np.testing.assert_allclose(bold.get_ydata(), np.asarray(loop["pressure"])[cycle] / MMHG_BARYE)
+    assert again["metrics"] == pytest.approx(metrics)
 
 
 def test_a_problem_without_pressure_is_skipped_with_a_note(tmp_path, capsys):
