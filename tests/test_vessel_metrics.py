@@ -18,7 +18,7 @@ from jaxsync import vessel_metrics as vm
 from jaxsync.app.cli import main
 from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.app.vessel_report import vessel_section
-from jaxsync.errors import ProblemError
+from jaxsync.errors import MeshError, ProblemError
 from jaxsync.fem.follower import facet_nodes
 from jaxsync.fem.space import function_space
 from jaxsync.mesh.simvascular import write_folder
@@ -136,6 +136,20 @@ def test_loop_work_is_the_polygon_area_of_an_elliptic_loop():
     np.testing.assert_allclose(vm.loop_work(pressure, volume), np.pi * a * b, rtol=2e-3)  # n = 64
     with pytest.raises(ProblemError, match="equal length"):
         vm.loop_work(pressure, volume[:-1])
+
+
+def test_bad_input_is_named():
+    mesh = tube_mesh()
+    problem = jaxsync.Problem(mesh=mesh, material=jaxsync.LinearElastic(E=E, nu=NU), dirichlet=supports(),
+                              loads=(jaxsync.Pressure(2.0, jaxsync.Ramp(0.5), surface="lumen"),))
+    surface, p = vm.lumen_pressure(problem, [0.0, 0.25, 1.0])
+    assert surface == "lumen" and p.tolist() == [0.0, 1.0, 2.0]
+    with pytest.raises(vm.NotAVessel, match="'outer'.*\\['lumen'\\]"):
+        vm.lumen_pressure(problem, [0.0], surface="outer")
+    with pytest.raises(MeshError, match="no facet set named 'nope'"):
+        vm.lumen_triangles(mesh, "nope")
+    with pytest.raises(ProblemError, match="does not fit 2 snapshots"):
+        vm.pressure_diameter_loop(problem, np.zeros((3, mesh.n_nodes, 3)), [0.0, 1.0])
 
 
 def test_metrics_of_a_synthetic_loop_and_the_last_cycle():
