@@ -82,22 +82,14 @@ def boundary_loops(triangles) -> list[np.ndarray]:
     boundary = edges[counts[inverse.ravel()] == 1]
     if not len(boundary):
         return []
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     nodes, local = np.unique(boundary, return_inverse=True)
     local = local.reshape(-1, 2)
-    # connected components of the boundary graph (union-find on the few boundary nodes)
-    parent = np.arange(len(nodes))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    for a, b in local:
-        ra, rb = root(a), root(b)
-        if ra != rb:
-            parent[max(ra, rb)] = min(ra, rb)
-    label = np.array([root(i) for i in range(len(nodes))])[local[:, 0]]
+    graph = coo_matrix((np.ones(len(local)), (local[:, 0], local[:, 1])), shape=(len(nodes), len(nodes)))
+    _, component = connected_components(graph, directed=False)
+    label = component[local[:, 0]]
     return [boundary[label == k] for k in np.unique(label)]
 
 

@@ -111,6 +111,14 @@ def test_tube_volume_area_and_diameter_are_exact_and_scale_exactly():
     np.testing.assert_allclose(D2, [s * D, s * D, D], rtol=1e-12)
 
 
+def test_a_bifurcation_is_closed_at_its_three_ends():
+    mesh = jaxsync.vessel_mesh(length=3.0, size=0.1, branch=True)  # lumen radius 0.175 cm
+    tri = vm.lumen_triangles(mesh)
+    assert len(vm.boundary_loops(tri)) == 3  # inlet and two outlets
+    _, _, D = vm.lumen_geometry(mesh.points, tri)
+    assert D == pytest.approx(0.35, rel=0.02)  # flat facets on the circle: slightly below 2 r
+
+
 def test_closed_surface_needs_no_cap_and_linearized_volume_is_first_order():
     box = jaxsync.box_beam(2.0, 1.5, 0.5, divisions=(2, 2, 1))
     space = function_space(box, "P1")
