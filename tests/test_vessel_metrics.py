@@ -4,6 +4,7 @@ closed-form area, distensibility against the Lame thick-walled cylinder and jaxs
 own static solution, the dissipated energy against the damping's energy balance, and
 stresses against uniaxial closed forms (linear and neo-Hookean)."""
 
+import dataclasses
 import itertools
 import json
 import os
@@ -329,7 +330,7 @@ values = {[float(v) for v in values]}
 """)
     problem, _ = problem_from_config(load_config(toml))
     n_steps = int(3 * PERIOD / problem.dt) // 50 * 50
-    trajectory = jaxsync.simulate(problem, n_steps, save=50)
+    trajectory = jaxsync.simulate(problem, n_steps, save=50, partitions=2)  # parts: a report can compare it
     trajectory.save(folder / "vessel.h5")
     return toml, folder / "vessel.h5", problem, trajectory, (samples, values)
 
@@ -466,6 +467,21 @@ def test_report_writes_the_vessel_section(vessel_run, tmp_path, capsys):
     np.testing.assert_allclose(bold.get_xdata(), 10 * np.asarray(loop["diameter"])[cycle])
     np.testing.assert_allclose(bold.get_ydata(), np.asarray(loop["pressure"])[cycle] / MMHG_BARYE)
     assert again["metrics"] == pytest.approx(metrics)
+
+
+def test_the_comparison_report_holds_the_reference_vessel_section(vessel_run, tmp_path, capsys):
+    toml, h5, _, trajectory, _ = vessel_run
+    # an "online" run that stayed synchronized throughout: the comparison has no predicted snapshot
+    online = dataclasses.replace(trajectory, synchronized=np.ones(trajectory.n_saved, bool), parts=tuple(
+        dataclasses.replace(p, predicted_shared_displacement=np.zeros((0, 3 * p.n_shared))) for p in trajectory.parts))
+    online.save(tmp_path / "online.h5")
+    assert main(["report", str(h5), str(tmp_path / "online.h5"), "--config", str(toml), "-o", str(tmp_path / "r")]) == 0
+    assert main(["report", str(h5), "--config", str(toml), "-o", str(tmp_path / "alone")]) == 0
+    both = json.loads((tmp_path / "r" / "summary.json").read_text())
+    alone = json.loads((tmp_path / "alone" / "summary.json").read_text())
+    assert both["n_predicted"] == 0 and both["vessel"] == alone["vessel"]
+    assert {"pressure_diameter.png", "wall_stress.png", "l2_error.png"} <= set(os.listdir(tmp_path / "r"))
+    assert "vessel (lumen 'lumen')" in capsys.readouterr().out
 
 
 def test_a_problem_without_pressure_is_skipped_with_a_note(tmp_path, capsys):
