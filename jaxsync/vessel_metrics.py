@@ -259,7 +259,7 @@ class PressureDiameterLoop:
                                                                        "diameter", "work_volume")}}
 
 
-def _vertex_displacement(space, displacement) -> np.ndarray:
+def _snapshots(space, displacement) -> np.ndarray:
     d = np.asarray(displacement, dtype=float)
     if d.ndim == 2:
         d = d[None]
@@ -388,9 +388,13 @@ def cauchy_stress(material, space, displacement, fibres=None) -> np.ndarray:
     from .fem.space import function_space
 
     space = space if hasattr(space, "cells") else function_space(space, "P1")
-    d = _vertex_displacement(space, displacement)
-    H = np.einsum("tmka,mqkj->tmqaj", d[:, np.asarray(space.cells)], _gradients(space))
-    return _stress(material, H, fibres)
+    d = _snapshots(space, displacement)
+    return _stress(material, _displacement_gradients(d, space, _gradients(space)), fibres)
+
+
+def _displacement_gradients(d, space, gradients) -> np.ndarray:
+    """grad_X u (t, m, q, 3, 3) of the displacements d (t, n_nodes, 3) at the quadrature points."""
+    return np.einsum("tmka,mqkj->tmqaj", d[:, np.asarray(space.cells)], gradients)
 
 
 def _stress(material, H, fibres=None) -> np.ndarray:
@@ -403,6 +407,9 @@ def _stress(material, H, fibres=None) -> np.ndarray:
     F = eye + H
     fibres = getattr(material, "fibres", None) if fibres is None else fibres
     law = dataclasses.replace(material, fibres=None) if getattr(material, "fibres", None) is not None else material
+    if fibres is not None and np.shape(fibres) != (H.shape[1], 2, 3):
+        raise ProblemError(f"fibres of shape {np.shape(fibres)} do not fit the {H.shape[1]} elements: give "
+                           f"({H.shape[1]}, 2, 3), two unit directions per element")
     a = None if fibres is None else np.asarray(fibres, float)[None, :, None]  # (1, m, 1, 2, 3)
     P = np.asarray(law.first_piola(F, a))
     return np.einsum("...ij,...kj->...ik", P, F) / np.linalg.det(F)[..., None, None]
@@ -413,20 +420,23 @@ def element_peaks(material, space, displacement, *, fibres=None, chunk_bytes: in
     von Mises stress, the largest principal Cauchy stress [dyn/cm^2] and the largest
     principal Green-Lagrange strain [-].
 
+    Args:
+        material, space, displacement, fibres: as :func:`cauchy_stress`.
+        chunk_bytes: working memory per block of snapshots (formed a block at a time).
+
     Returns:
         (von_mises, max_principal_stress, max_principal_strain), each (T, n_elements).
     """
     from .fem.space import function_space
 
     space = space if hasattr(space, "cells") else function_space(space, "P1")
-    d = _vertex_displacement(space, displacement)
+    d = _snapshots(space, displacement)
     grads = _gradients(space)
-    cells = np.asarray(space.cells)
     m, q = grads.shape[:2]
     block = max(1, int(chunk_bytes // max(1, m * q * 9 * 8 * 8)))
     out = [np.empty((len(d), m)) for _ in range(3)]
     for start in range(0, len(d), block):
-        H = np.einsum("tmka,mqkj->tmqaj", d[start:start + block][:, cells], grads)
+        H = _displacement_gradients(d[start:start + block], space, grads)
         sigma = _stress(material, H, fibres)
         dev = sigma - np.trace(sigma, axis1=-2, axis2=-1)[..., None, None] * np.eye(3) / 3.0
         mises = np.sqrt(1.5 * np.sum(dev * dev, axis=(-2, -1)))

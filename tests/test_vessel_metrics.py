@@ -247,6 +247,8 @@ def test_holzapfel_gasser_ogden_stress_with_its_fibres_against_the_closed_form()
         expected += 2 * k1 * strain * np.exp(k2 * strain ** 2) * np.outer(fa, fa) / J
     sigma = vm.cauchy_stress(law, box, homogeneous(box, F))
     np.testing.assert_allclose(sigma, np.broadcast_to(expected, sigma.shape), rtol=1e-11, atol=1e-9 * mu)
+    with pytest.raises(ProblemError, match=f"do not fit the {box.n_elements} elements"):
+        vm.cauchy_stress(law, box, homogeneous(box, F), fibres=families)
 
 
 def test_peaks_by_region_where_and_when():
