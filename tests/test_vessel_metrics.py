@@ -505,4 +505,6 @@ def test_a_problem_without_pressure_is_skipped_with_a_note(tmp_path, capsys):
     # one trajectory and no problem: refused, nothing written
     assert main(["report", str(h5), "-o", str(tmp_path / "none")]) != 0
     assert "--config" in capsys.readouterr().err
+    assert main(["report", str(h5), "--config", str(config), "--node", "3", "-o", str(tmp_path / "none")]) != 0
+    assert "--node and --train-until-step" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()

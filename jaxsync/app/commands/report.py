@@ -124,6 +124,9 @@ def run(args) -> int:
     if args.online is None and args.config is None:
         raise ConfigError("jaxsync report with one trajectory writes its vessel section, which needs the run's "
                           "TOML file: give --config, or give the synchronization-avoiding trajectory to compare")
+    if args.online is None and (args.node or args.train_until_step is not None):
+        raise ConfigError("--node and --train-until-step choose what the comparison of two runs shows: give the "
+                          "synchronization-avoiding trajectory too, or leave them out for the vessel section alone")
     # summary.json marks a report: an earlier one is replaced only with --force
     refuse_to_overwrite([os.path.join(args.out, "summary.json")], force=args.force,
                         inputs=[args.reference, args.online, args.config])
