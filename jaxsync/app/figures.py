@@ -7,7 +7,10 @@ chooses what to show and writes them (:func:`save_figure`).
 - :func:`l2_error_figure`: e(t) = ||d_hat(t) - d(t)||_2 over the whole field (paper eq. 24);
 - :func:`shared_errors_figure`: es(t) and es_hat(t) at the shared nodes (eqs. 25-26);
 - :func:`histogram_figure`: histograms of the time-averaged errors et_j and et_hat_j;
-- :func:`tracking_figure`: es_hat against es per predicted snapshot.
+- :func:`tracking_figure`: es_hat against es per predicted snapshot;
+- :func:`pressure_diameter_figure`: a vessel's pressure-diameter and pressure-volume loops
+  (:mod:`jaxsync.vessel_metrics`);
+- :func:`wall_stress_figure`: a vessel's largest von Mises stress per region over time.
 
 Every time plot marks the end of the initial synchronized phase (t(n_cri)) and shades the
 re-synchronized intervals (:func:`phases`, :func:`mark_phases`).
@@ -19,6 +22,7 @@ import numpy as np
 
 __all__ = ["new_figure", "save_figure", "phases", "mark_phases", "histogram_bins", "nodes_figure",
            "l2_error_figure", "shared_errors_figure", "tracking_figure", "histogram_figure",
+           "pressure_diameter_figure", "wall_stress_figure",
            "REFERENCE_STYLE", "PREDICTED_STYLE", "ERROR_STYLE", "SWITCH_STYLE", "RESYNC_STYLE"]
 
 AXES = "xyz"
@@ -214,4 +218,65 @@ def histogram_figure(errs):
     ax.set_title(f"Time-averaged errors at the {n} shared node{'s' if n != 1 else ''}")
     ax.grid(True, axis="y", alpha=0.3)
     ax.legend(fontsize=8)
+    return fig
+
+
+KPA = 1.0e4  # dyn/cm^2 per kPa
+
+
+def pressure_diameter_figure(loop, metrics):
+    """The pressure-diameter loop (left: p [mmHg] against the mean lumen diameter D [mm])
+    and the pressure-volume loop (right: p against the lumen volume V [mm^3 = uL]) of a
+    :class:`jaxsync.vessel_metrics.PressureDiameterLoop`: the whole record thin and grey,
+    the measured cycle (:class:`jaxsync.vessel_metrics.VesselMetrics`) bold, with an arrow
+    in the direction of travel (clockwise: energy dissipated)."""
+    from ..vessel_metrics import MMHG
+
+    fig = new_figure(9.0, 4.2)
+    cycle = np.arange(len(loop.times)) if loop.cycle is None else loop.cycle
+    p = np.asarray(loop.pressure) / MMHG
+    what = "last full cycle" if metrics.full_cycle else "whole record"
+    for k, (x, label) in enumerate(((10.0 * np.asarray(loop.diameter), "mean lumen diameter D = 4V/A [mm]"),
+                                    (1.0e3 * np.asarray(loop.volume), r"lumen volume V [mm$^3$]"))):
+        ax = fig.add_subplot(1, 2, k + 1)
+        ax.plot(x, p, color="0.7", lw=0.8, label="whole record")
+        ax.plot(x[cycle], p[cycle], color="tab:red", lw=1.6, label=f"{what}, t = {metrics.t_start:.3g}-"
+                f"{metrics.t_end:.3g} s")
+        if len(cycle) > 2:
+            i = int(cycle[len(cycle) // 3])
+            j = int(cycle[len(cycle) // 3 + 1])
+            ax.annotate("", xy=(x[j], p[j]), xytext=(x[i], p[i]),
+                        arrowprops=dict(arrowstyle="-|>", color="tab:red", lw=1.2))
+        ax.set_xlabel(label)
+        ax.set_ylabel("lumen pressure p [mmHg]")
+        ax.grid(True, alpha=0.3)
+        if k == 0:
+            ax.legend(fontsize=7, loc="upper left")
+    if metrics.distensibility is None:
+        detail = "constant pressure"
+    else:
+        hysteresis = "" if metrics.hysteresis is None else f", hysteresis {metrics.hysteresis:.3g} erg/cycle"
+        detail = (f"distensibility {100 * metrics.distensibility * MMHG:.3g} %/mmHg, compliance "
+                  f"{1e3 * metrics.volume_compliance * MMHG:.3g} " + r"mm$^3$/mmHg" + hysteresis)
+    fig.suptitle(f"Pressure-diameter and pressure-volume loops of the lumen '{loop.surface}'\n{detail}",
+                 fontsize=10)
+    return fig
+
+
+def wall_stress_figure(times, peaks):
+    """The largest von Mises stress [kPa] of each region over time
+    (:class:`jaxsync.vessel_metrics.RegionPeaks` by name), its peak marked."""
+    fig = new_figure()
+    ax = fig.add_subplot(1, 1, 1)
+    styles = ("-", "--", ":", "-.")  # regions with the same peak element draw the same line: tell them apart
+    for k, (name, region) in enumerate(peaks.items()):
+        line, = ax.plot(times, np.asarray(region.history) / KPA, lw=1.6 if name == "wall" else 1.0,
+                        ls=styles[k % len(styles)],
+                        label=f"{name} ({region.n_elements} elements): peak {region.von_mises.value / KPA:.3g} kPa")
+        ax.plot(region.von_mises.time, region.von_mises.value / KPA, "o", ms=4, color=line.get_color())
+    ax.set_xlabel("time t [s]")
+    ax.set_ylabel("largest von Mises stress [kPa]")
+    ax.set_title("Peak wall stress by region (elements with a face on each facet set; wall: all)")
+    ax.grid(True, alpha=0.3)
+    ax.legend(fontsize=7)
     return fig

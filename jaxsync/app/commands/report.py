@@ -1,5 +1,9 @@
 """``jaxsync report``: figures and ``summary.json`` comparing a synchronization-avoiding
-run with the synchronized one (:func:`jaxsync.app.plots.write_report`)."""
+run with the synchronized one (:func:`jaxsync.app.plots.write_report`), and, for a vessel
+under a lumen pressure, its pressure-diameter loop, distensibility, compliance,
+hysteresis and peak wall stress and strain by region
+(:func:`jaxsync.app.vessel_report.vessel_section`; needs the run's TOML, ``--config``).
+Given one trajectory only, the report is that section alone."""
 
 from __future__ import annotations
 
@@ -10,16 +14,25 @@ from ...options import DEFAULT_COMPONENT, Component, choices
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
-        "report", help="figures and summary.json comparing an online run with the synchronized one",
+        "report", help="figures and summary.json comparing an online run with the synchronized one, and a "
+                       "vessel's pressure-diameter loop and wall stresses",
         description="Compare a synchronization-avoiding trajectory (jaxsync predict) with the "
                     "synchronized reference: displacement at monitored nodes, e_l2(t), es and "
                     "es_hat, et histograms (PNG) and summary.json. By default the monitored nodes "
                     "are, for each part, the node that is neither shared nor constrained with the "
                     "largest amplitude in the reference, and the shared node with the largest "
                     "amplitude; never a node that does not move in the reference or belongs to "
-                    "the Dirichlet set of --config.")
+                    "the Dirichlet set of --config. With --config of a problem under a lumen pressure, "
+                    "also the vessel section of the reference run: pressure-diameter and pressure-volume "
+                    "loops (pressure_diameter.png), distensibility, compliance, the energy dissipated "
+                    "per cycle, and the peak von Mises and principal stress and strain by region "
+                    "(wall_stress.png; summary.json 'vessel'). Given only one trajectory (and --config), "
+                    "the report is that section alone; a problem without a pressure load is skipped "
+                    "with a note.")
     p.add_argument("reference", help="synchronized trajectory (HDF5)")
-    p.add_argument("online", help="synchronization-avoiding trajectory (HDF5)")
+    p.add_argument("online", nargs="?", default=None,
+                   help="synchronization-avoiding trajectory (HDF5); leave it out for the vessel section "
+                        "of REFERENCE alone (with --config)")
     p.add_argument("--out", "-o", default="report", help="output folder (default: %(default)s)")
     p.add_argument("--component", type=int, choices=choices(Component), default=DEFAULT_COMPONENT,
                    help="displacement component shown and compared at the nodes (default: "
@@ -28,9 +41,13 @@ def add_parser(subparsers) -> None:
                    help="monitor this node instead of the automatic choice: a node id or "
                         "coordinates x,y,z (the nearest node); repeat for several")
     p.add_argument("--config", default=None,
-                   help="TOML problem file of the run: its Dirichlet nodes are never chosen "
-                        "(default: none; then the constrained nodes are those that never move in "
-                        "the reference, which covers every fully clamped node)")
+                   help="TOML problem file of the run: its Dirichlet nodes are never chosen, and "
+                        "its loads and material give the vessel section (default: none; then the "
+                        "constrained nodes are those that never move in the reference, which covers "
+                        "every fully clamped node)")
+    p.add_argument("--lumen", default=None, metavar="FACET_SET",
+                   help="the vessel section's lumen facet set (default: the surface of the first pressure "
+                        "load of --config)")
     p.add_argument("--train-until-step", type=int, default=None, metavar="STEP",
                    help="the last step the surrogates were trained on (the demo's summary.json "
                         "train_until_step): summary.json then measures every error after it as well "
@@ -66,26 +83,74 @@ def same_steps(reference, online, reference_name: str, online_name: str):
                                displacement=reference.displacement[kept], save_every=online.save_every)
 
 
+def vessel_entry(args, reference) -> dict:
+    """The ``vessel`` entry of the report (:func:`jaxsync.app.vessel_report.vessel_section`
+    of ``reference`` under the problem of ``--config``; its figures written to ``--out``), or
+    the note of why there is none."""
+    from ..config import load_config, problem_from_config
+    from ..vessel_report import vessel_note, write_vessel_section
+
+    if args.config is None:
+        return vessel_note(reference)
+    problem, _ = problem_from_config(load_config(args.config), element=reference.space.element)
+    return write_vessel_section(problem, reference, args.out, surface=args.lumen)
+
+
+def print_vessel(entry: dict) -> None:
+    """The vessel section in a few lines (or its note)."""
+    if entry["skipped"]:
+        print(f"note: {entry['note']}")
+        return
+    from ...vessel_metrics import VesselMetrics
+
+    print(f"vessel (lumen '{entry['surface']}'): " + VesselMetrics(**{
+        k: v for k, v in entry["metrics"].items() if k != "distensibility_per_mmHg"}).summary())
+    for name, peaks in entry["peaks"].items():
+        mises, strain = peaks["von_mises"], peaks["max_principal_strain"]
+        print(f"  {name}: peak von Mises {mises['value'] / 1e4:.4g} kPa (element {mises['element']}, t = "
+              f"{mises['time']:.4g} s), largest principal strain {100 * strain['value']:.3g} % (element "
+              f"{strain['element']}, t = {strain['time']:.4g} s)")
+
+
 def run(args) -> int:
+    from ...errors import ConfigError
+    from ...io import atomic_json
     from ...parallel.partitioning import partition_of
     from ...trajectory import Trajectory
     from ..plots import constrained_nodes, write_report
     from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))
+    if args.online is None and args.config is None:
+        raise ConfigError("jaxsync report with one trajectory writes its vessel section, which needs the run's "
+                          "TOML file: give --config, or give the synchronization-avoiding trajectory to compare")
+    if args.online is None and (args.node or args.train_until_step is not None):
+        raise ConfigError("--node and --train-until-step choose what the comparison of two runs shows: give the "
+                          "synchronization-avoiding trajectory too, or leave them out for the vessel section alone")
     # summary.json marks a report: an earlier one is replaced only with --force
     refuse_to_overwrite([os.path.join(args.out, "summary.json")], force=args.force,
                         inputs=[args.reference, args.online, args.config])
     reference = Trajectory.load(args.reference)
+    if args.online is None:
+        entry = vessel_entry(args, reference)
+        atomic_json(os.path.join(args.out, "summary.json"),
+                    {"trajectory": os.path.abspath(args.reference), "vessel": entry})
+        print_vessel(entry)
+        print(f"wrote {'summary.json' if entry['skipped'] else 'figures and summary.json'} to "
+              f"{os.path.abspath(args.out)}")
+        return 0
     online = Trajectory.load(args.online)
-    reference = same_steps(reference, online, args.reference, args.online)
+    thinned = same_steps(reference, online, args.reference, args.online)
+    entry = vessel_entry(args, reference)  # over every snapshot of the reference
+    reference = thinned
     fixed = constrained_nodes(args.config, online.space, reference.displacement)
     summary = write_report(reference, online, partition_of(online), args.out,
                            component=args.component, fixed_nodes=fixed, nodes=args.node,
-                           extra={"online_statistics": online.stats.to_dict()},
+                           extra={"online_statistics": online.stats.to_dict(), "vessel": entry},
                            train_until_step=args.train_until_step)
     for line in summary["node_notes"]:
         print(f"note: {line}")
+    print_vessel(entry)
     if online.stats.to_dict():
         from ...solve.syncavoid import describe_run
 
