@@ -152,6 +152,23 @@ def test_vessel_mass_scaling_check(vessel):
     assert m["max_abs_displacement"] > 0 and m["relative_difference"] < 0.05
 
 
+def test_vessel_demo_reports_the_pressure_diameter_loop(vessel):
+    """The vessel section of the report (jaxsync.vessel_metrics) on the synchronized run:
+    the lumen pressure at every snapshot is the pressure load's magnitude times its time
+    function, evaluated here; the diameters are positive, the wall's peaks found, the
+    figures written."""
+    out, _, summary, reference, _ = vessel
+    section = summary["vessel"]
+    assert not section["skipped"]
+    pressure = [load for load in jaxsync.coronary(reference.mesh).loads if isinstance(load, jaxsync.Pressure)]
+    assert section["surface"] == pressure[0].surface
+    expected = [sum(float(p.magnitude) * float(p.time(t)) for p in pressure) for t in reference.times]
+    np.testing.assert_allclose(section["loop"]["pressure"], expected, rtol=1e-12)
+    assert len(section["loop"]["diameter"]) == reference.n_saved and min(section["loop"]["diameter"]) > 0
+    assert section["peaks"]["wall"]["von_mises"]["value"] > 0
+    assert (out / "report" / "pressure_diameter.png").is_file() and (out / "report" / "wall_stress.png").is_file()
+
+
 def test_vessel_demo_prints_its_table(vessel):
     text = vessel[1].out
     assert "coronary tree" in text and "mass scaling" in text and "es / es_hat" in text

@@ -61,9 +61,10 @@ SUMMARY_KEYS = ("n_steps", "n_synchronized", "n_predicted", "tip_max_abs_error",
 ``train_until_step``, :func:`jaxsync.app.plots.out_of_sample`)."""
 
 VESSEL_KEYS = ("es_max", "es_hat_max", "es_hat_tracking", "interior_max_relative_error", "mass_scaling",
-               "projection", "n_elements", "n_dofs", "n_shared_nodes")
+               "projection", "n_elements", "n_dofs", "n_shared_nodes", "vessel")
 """Keys the vessel case adds (es, es_hat and their correlation, the mass-scaling check,
-the cost-model projection to 11 real processors, the mesh's size)."""
+the cost-model projection to 11 real processors, the mesh's size, and the vessel section
+of the report: :func:`jaxsync.app.vessel_report.vessel_section`)."""
 
 MASS_SCALING_BETA = 2.5
 """The vessel's step over its CFL step (paper: 5e-6 / 2.02e-6 = 2.48)."""
@@ -470,6 +471,10 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     summary = write_report(reference, online, parts, os.path.join(out, "report"), component=d.component,
                            fixed_nodes=fixed_nodes, extra=extra,
                            train_until_step=train_until if train_until < d.n_steps else None)
+    if case == "vessel":  # the pressure-diameter loop and the wall's peaks of the synchronized run
+        from .vessel_report import write_vessel_section
+
+        summary["vessel"] = write_vessel_section(problem, reference, os.path.join(out, "report"))
     summary["report"] = os.path.join(final, "report")
     atomic_json(os.path.join(out, "summary.json"), summary)
     return summary
