@@ -475,3 +475,33 @@ def test_toml_models_and_their_errors(tmp_path):
         cfg.write_text(_BEAM + f'[material]\nmodel = "viscoelastic-neo-hookean"\n{keys}\n')
         with pytest.raises(error, match=match):
             problem_from_config(load_config(cfg))
+
+
+def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch):
+    """Deep halos of depth 3 and 2 (host and traced executors) against one device: each
+    part carries the state of its halo elements too, and the exchange copies that of the
+    shared elements from their owners. Without that copy (patched out) depth 3 drifts:
+    the outer halo elements' state went through displacements that were wrong there."""
+    from jaxsync.fem.stepper import SolverState
+    from jaxsync.parallel import halo
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1))
+    problem = _cantilever(mesh)
+    dt = float(problem.dt)
+    one = jaxsync.simulate(problem, 120, dt=dt, save=12)
+    scale = float(np.max(np.abs(one.displacement)))
+    grown = halo.halo_partition(jaxsync.partition(mesh, 2), 3)
+    assert grown.n_element_interface > 0 and all(len(p.elements) < mesh.n_elements for p in grown.parts)
+    for depth, executor in ((3, jaxsync.HostExecutor(chunk_steps=60)), (2, jaxsync.TracedExecutor())):
+        run = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(depth),
+                               executor=executor)
+        np.testing.assert_allclose(run.displacement, one.displacement, rtol=0, atol=1e-12 * scale)
+    refresh = halo.refresh_halo
+
+    def without_the_state(part, state, n_interface, across=None, n_element_interface=0):
+        s = refresh(part, SolverState(state.displacement, state.previous, state.step), n_interface, across)
+        return SolverState(s.displacement, s.previous, s.step, state.internal)
+
+    monkeypatch.setattr(halo, "refresh_halo", without_the_state)
+    drifted = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(3))
+    assert float(np.max(np.abs(drifted.displacement - one.displacement))) > 1e-6 * scale
