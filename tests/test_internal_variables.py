@@ -202,15 +202,20 @@ def test_bad_parameters_are_refused():
         _sls(beta=-0.5)
 
 
-def test_a_predicted_phase_carries_the_state(beam):
+@pytest.mark.parametrize("prony", [False, True])
+def test_a_predicted_phase_carries_the_state(beam, prony):
     """A synchronization-avoiding run whose surrogate replays the synchronized run's exact
     shared displacements (an oracle) reproduces that run to round-off: each part's
-    predicted steps update its elements' branch stresses as the synchronized steps do."""
+    predicted steps update its elements' branch stresses as the synchronized steps do
+    (the standard linear solid, and a two-branch Prony series)."""
+    from jaxsync.fem.viscoelastic import ViscoelasticNeoHookean
     from jaxsync.solve.predictors import OraclePredictor
     from jaxsync.solve.syncavoid import simulate_sync_avoiding
     from jaxsync.surrogate.histories import shared_dof_layout
 
     problem = _cantilever(beam)
+    if prony:
+        problem = problem.replace(material=ViscoelasticNeoHookean(E, NU, RHO, betas=(BETA, 0.5), taus=(TAU, 5 * TAU)))
     dt = float(problem.dt)
     partition = jaxsync.partition(beam, 2)
     n_s, n_p, n_f, n_cri, n_steps = 5, 4, 4, 20, 300
