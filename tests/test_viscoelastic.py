@@ -505,3 +505,20 @@ def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch)
     monkeypatch.setattr(halo, "refresh_halo", without_the_state)
     drifted = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(3))
     assert float(np.max(np.abs(drifted.displacement - one.displacement))) > 1e-6 * scale
+
+
+def test_the_stable_step_is_that_of_the_instantaneous_stiffness(beam):
+    """The default step of each law is that of the elastic law with its relaxing parts
+    (1 + sum beta) times stiffer (the neo-Hookean shear modulus; the HGO matrix and fibres)."""
+    problem = _cantilever(beam)
+    law = problem.material
+    mu = law.mu * (1 + sum(law.betas))
+    glassy = jaxsync.NearlyIncompressibleNeoHookean(9 * law.bulk * mu / (3 * law.bulk + mu),
+                                                     (3 * law.bulk - 2 * mu) / (2 * (3 * law.bulk + mu)), law.rho)
+    np.testing.assert_allclose(problem.dt, problem.replace(material=glassy).dt, rtol=1e-9)
+    assert problem.dt < 0.8 * problem.replace(material=law.elastic_law()).dt  # not the long-term law's step
+    problem = _hgo_cantilever(beam)
+    law = problem.material
+    glassy = jaxsync.HolzapfelGasserOgden(law.mu * (1 + sum(law.betas)), law.k1 * (1 + sum(law.fibre_betas)), law.k2,
+                                          law.kappa_bulk, law.rho, law.dispersion, law.fibres)
+    np.testing.assert_allclose(problem.dt, problem.replace(material=glassy).dt, rtol=1e-9)
