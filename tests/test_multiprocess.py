@@ -54,6 +54,38 @@ def _worker_sync(out_path: str) -> None:
             np.savez(out_path, **results)
 
 
+def _visco_cantilever():
+    """A small cantilever of a two-branch Prony series (the worker's and the test's)."""
+    import jaxsync
+    from jaxsync.fem.viscoelastic import ViscoelasticNeoHookean
+
+    law = ViscoelasticNeoHookean(1.0e6, 0.3, 1.0, betas=(1.0, 2.0), taus=(2.0e-3, 1.0e-2))
+    return jaxsync.cantilever(jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1)), material=law,
+                              body_force=(0.0, 0.0, -2.0e4), t_ramp=0.002, damping=50.0)
+
+
+def _worker_visco(out_path: str) -> None:
+    """The Prony-series cantilever on 2 parts, one per process, through the MPI sum and
+    deep halos of depth 2 (the branch stresses of halo elements copied through MPI); rank 0
+    writes the trajectories."""
+    from jaxsync.parallel import multiprocess
+
+    with multiprocess.abort_on_error():
+        multiprocess.initialize()
+        import jax
+        import numpy as np
+
+        jax.config.update("jax_enable_x64", True)
+        import jaxsync
+
+        problem = _visco_cantilever()
+        results = {name: jaxsync.simulate(problem, 120, save=12, partitions=2, sync=sync,
+                                          executor=jaxsync.HostExecutor(progress=False)).displacement
+                   for name, sync in (("mpi", jaxsync.Mpi(allreduce="ctypes")), ("halo-2", jaxsync.Halo(2)))}
+        if multiprocess.is_main_process():
+            np.savez(out_path, **results)
+
+
 def _worker_fail(kind: str) -> None:
     """Rank 1 fails while rank 0 waits in a collective that rank 1 never joins."""
     from jaxsync.parallel import multiprocess
@@ -73,6 +105,8 @@ def _worker_fail(kind: str) -> None:
 if __name__ == "__main__" and len(sys.argv) > 1:
     if sys.argv[1] == "sync":
         _worker_sync(sys.argv[2])
+    elif sys.argv[1] == "visco":
+        _worker_visco(sys.argv[2])
     elif sys.argv[1] == "fail":
         _worker_fail(sys.argv[2])
     sys.exit(0)
@@ -187,6 +221,22 @@ def test_psum_and_mpi_synchronization_across_processes(tmp_path, reference):
         assert {"psum", "mpi-callback", "mpi-ctypes", "halo-4"} <= names
         assert ("mpi-mpi4jax" in names) == multiprocess.mpi4jax_available()
         for name in names:
+            assert relative_error(runs[name], reference.displacement) <= 1e-12, name
+
+
+@pytest.mark.slow  # 90 s on 2 shared cores; the in-process partitioned and deep-halo tests are the fast ones
+@pytest.mark.mpi
+@needs_mpiexec
+def test_a_viscoelastic_law_runs_across_processes_as_in_one(tmp_path):
+    """The Prony series' internal variables across 2 processes: the MPI sum and deep halos
+    (whose exchange carries the shared elements' branch stresses) equal one process."""
+    path = tmp_path / "visco.npz"
+    out = _mpiexec(sys.executable, __file__, "visco", str(path))
+    assert out.returncode == 0, out.stderr
+    reference = jaxsync.simulate(_visco_cantilever(), 120, save=12)
+    with np.load(path) as runs:
+        assert set(runs.files) == {"mpi", "halo-2"}
+        for name in runs.files:
             assert relative_error(runs[name], reference.displacement) <= 1e-12, name
 
 

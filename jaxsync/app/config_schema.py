@@ -200,13 +200,15 @@ def register_material_model(name: str, law: type, *, derived: DerivedKeys | None
 def _register_builtin_laws() -> None:
     from ..fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean
     from ..fem.material import LinearElastic
-    from ..fem.viscoelastic import StandardLinearSolid
+    from ..fem.viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean
 
     register_material_model("linear-elastic", LinearElastic)
     register_material_model("neo-hookean", NeoHookean)
     register_material_model("nearly-incompressible-neo-hookean", NearlyIncompressibleNeoHookean)
     register_material_model("holzapfel-gasser-ogden", HolzapfelGasserOgden, derived=HGO_FIBRES)
     register_material_model("standard-linear-solid", StandardLinearSolid)
+    register_material_model("viscoelastic-neo-hookean", ViscoelasticNeoHookean)
+    register_material_model("viscoelastic-hgo", ViscoelasticHGO, derived=HGO_FIBRES)
 
 
 _register_builtin_laws()

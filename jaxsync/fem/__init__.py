@@ -29,7 +29,7 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
            "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
-           "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid"]
+           "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid", "ViscoelasticNeoHookean", "ViscoelasticHGO"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -45,7 +45,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
     ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
     ".total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
-    ".viscoelastic": ("StandardLinearSolid",),
+    ".viscoelastic": ("StandardLinearSolid", "ViscoelasticHGO", "ViscoelasticNeoHookean"),
 })
 
 if TYPE_CHECKING:
@@ -61,4 +61,4 @@ if TYPE_CHECKING:
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
     from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
     from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
-    from .viscoelastic import StandardLinearSolid
+    from .viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean

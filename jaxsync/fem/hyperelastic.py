@@ -47,7 +47,8 @@ from .material_law import FiniteStrainLaw
 from .parameter_checks import check_number
 
 __all__ = ["NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "HYPERELASTIC",
-           "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters"]
+           "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters",
+           "split_neo_hookean_stresses"]
 
 
 def _isochoric_volumetric(F, cof, J, mu, bulk):
@@ -58,6 +59,29 @@ def _isochoric_volumetric(F, cof, J, mu, bulk):
     a = mu * j23
     b = (0.5 * bulk * (J * J - 1.0) - a * i1 / 3.0) / J
     return a[..., None, None] * F + b[..., None, None] * cof
+
+
+def split_neo_hookean_stresses(F, mu, bulk) -> dict:
+    """The second Piola-Kirchhoff stresses of mu/2 (J^-2/3 I1 - 3) + K/4 (J^2 - 1 - 2 ln J)
+    split into {"volumetric": K/2 (J^2 - 1) C^-1, "isochoric": mu J^-2/3 (I - I1/3 C^-1)},
+    each (..., 3, 3) [dyn/cm^2], of F (..., 3, 3) (the parts viscoelastic branches act on,
+    :mod:`jaxsync.fem.viscoelastic`)."""
+    cof = cofactor(F)
+    J = determinant(F)
+    c_inv = jnp.einsum("...iJ,...iK->...JK", cof, cof) / (J * J)[..., None, None]
+    i1 = jnp.sum(F * F, axis=(-2, -1))
+    eye = jnp.broadcast_to(jnp.eye(3, dtype=F.dtype), F.shape)
+    s_iso = (mu * J ** (-2.0 / 3.0))[..., None, None] * (eye - (i1 / 3.0)[..., None, None] * c_inv)
+    s_vol = (0.5 * bulk * (J * J - 1.0))[..., None, None] * c_inv
+    return {"volumetric": s_vol, "isochoric": s_iso}
+
+
+def _split_neo_hookean_energies(F, mu, bulk) -> dict:
+    """{"volumetric": K/4 (J^2 - 1 - 2 ln J), "isochoric": mu/2 (J^-2/3 I1 - 3)} (...,) [erg/cm^3]."""
+    J = determinant(F)
+    i1 = jnp.sum(F * F, axis=(-2, -1))
+    return {"volumetric": 0.25 * bulk * (J * J - 1.0 - 2.0 * jnp.log(J)),
+            "isochoric": 0.5 * mu * (J ** (-2.0 / 3.0) * i1 - 3.0)}
 
 
 def check_positive(law: str = "", **values) -> None:
@@ -201,6 +225,15 @@ class NearlyIncompressibleNeoHookean(SmallStrain):
         cof = cofactor(F)
         J = det_from_cofactor(F, cof)
         return _isochoric_volumetric(F, cof, J, self.mu, self.bulk)
+
+    def stress_parts(self, F, fibres=None) -> dict:
+        """S = 2 d psi / d C split into {"volumetric", "isochoric"} (..., 3, 3) [dyn/cm^2]
+        (:func:`split_neo_hookean_stresses`); they sum to F^-1 P."""
+        return split_neo_hookean_stresses(F, self.mu, self.bulk)
+
+    def energy_parts(self, F, fibres=None) -> dict:
+        """psi split as :meth:`stress_parts` (...,) [erg/cm^3]."""
+        return _split_neo_hookean_energies(F, self.mu, self.bulk)
 
 
 _I4_ROUNDOFF = 1e-12
@@ -359,6 +392,29 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
         P = P + (2.0 * kappa * (slope[..., 0] + slope[..., 1]))[..., None, None] * F
         a = jnp.broadcast_to(fibres, Fa.shape)
         return P + 2.0 * (1.0 - 3.0 * kappa) * jnp.einsum("...f,...fi,...fj->...ij", slope, Fa, a)
+
+    def stress_parts(self, F, fibres=None) -> dict:
+        """S = 2 d psi / d C split into {"volumetric", "isochoric"} of the ground matrix
+        (:func:`split_neo_hookean_stresses`) and "fibres", sum_i 2 slope_i (kappa I +
+        (1 - 3 kappa) a_i (x) a_i) with slope_i = k1 E_i exp(k2 E_i^2) in tension, 0 in
+        compression (each (..., 3, 3) [dyn/cm^2]; they sum to F^-1 P)."""
+        parts = split_neo_hookean_stresses(F, self.mu, self.kappa_bulk)
+        strain, active, _ = self._fibre_terms(F, fibres)
+        slope = jnp.where(active, self.k1 * strain * jnp.exp(self.k2 * strain**2), 0.0)
+        kappa = self.dispersion
+        a = jnp.broadcast_to(fibres, strain.shape + (3,))
+        eye = jnp.broadcast_to(jnp.eye(3, dtype=F.dtype), F.shape)
+        parts["fibres"] = (2.0 * kappa * jnp.sum(slope, axis=-1))[..., None, None] * eye + 2.0 * (
+            1.0 - 3.0 * kappa) * jnp.einsum("...f,...fi,...fj->...ij", slope, a, a)
+        return parts
+
+    def energy_parts(self, F, fibres=None) -> dict:
+        """psi split as :meth:`stress_parts` (...,) [erg/cm^3]."""
+        parts = _split_neo_hookean_energies(F, self.mu, self.kappa_bulk)
+        strain, active, _ = self._fibre_terms(F, fibres)
+        fibre = jnp.where(active, self.k1 / (2.0 * self.k2) * jnp.expm1(self.k2 * strain**2), 0.0)
+        parts["fibres"] = jnp.sum(fibre, axis=-1)
+        return parts
 
 
 HYPERELASTIC = (NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden)

@@ -52,11 +52,14 @@ class Exchange:
             (:func:`jaxsync.parallel.multiprocess.make_allreduce`).
         halo_depth: None (the parts sum their forces every step) or k, deep halos
             (:mod:`jaxsync.parallel.halo`: both displacement levels every k steps).
+        n_element_interface: elements whose internal variables deep halos exchange (0:
+            none).
     """
 
     n_interface: int
     across: Callable | None = None
     halo_depth: int | None = None
+    n_element_interface: int = 0
 
     def force_sum(self, part) -> Callable:
         """One part's shared-node force sum (the ``synchronize`` of

@@ -18,6 +18,17 @@ N_k again: one exchange every k steps instead of one force sum every step, for t
 of the redundant work on the halo (which grows with k). k = 1 exchanges every step, like
 the synchronized solver, but displacements instead of forces.
 
+A material law's internal variables (:mod:`jaxsync.parallel.element_fields`) go with the
+elements, and a part carries those of all its elements, halo ones too. Inside a cycle a
+part's element state is right where its forces are: after the cycle's last step, on the
+elements touching its owned nodes (their nodes lie in N_1), not on the outer halo
+elements, whose state went through displacements that were wrong there. So every element
+has an *owner*, the part that owns its first node (the element touches that part's owned
+nodes), and the exchange also copies the state of every element that several parts hold
+(the *element interface*) from its owner, in the same collective: the next cycle starts
+with every local element's state right, and a deep-halo run of a law with state equals
+the synchronized run.
+
 The exchange uses the machinery of :mod:`jaxsync.parallel.exchange` unchanged: the
 *halo interface* numbers every node that is some part's halo node (sorted by global id),
 each part's ``shared_local`` / ``shared_interface`` list its local nodes in that
@@ -41,7 +52,7 @@ import scipy.sparse as sp
 from ..errors import PartitionError
 from ..fem.stepper import SolverState, advance
 from ..options import check_halo_depth
-from .exchange import scatter_forward, scatter_reverse
+from .exchange import AXIS, LOCAL_AXIS, scatter_forward
 from .partitioning import Part, Partition
 
 __all__ = ["HaloPartition", "halo_partition", "check_halo_depth", "refresh_halo", "advance_halo",
@@ -63,6 +74,10 @@ class HaloPartition:
         owned_local: per part, (n_owned_p,) local indices of its owned nodes.
         halo_nodes: (n_interface,) global ids of the halo interface: every node that is a
             halo (non-owned local) node of some part, increasing.
+        element_owner: (n_elements,) the part that owns each element (that of its first
+            node), whose internal variables the exchange copies to the other parts.
+        halo_elements: (n_element_interface,) global ids of the element interface: every
+            element that several parts hold, increasing.
     """
 
     partition: Partition
@@ -71,6 +86,8 @@ class HaloPartition:
     parts: tuple
     owned_local: tuple
     halo_nodes: np.ndarray
+    element_owner: np.ndarray
+    halo_elements: np.ndarray
 
     @property
     def mesh(self):
@@ -104,6 +121,31 @@ class HaloPartition:
             for k in part.shared_interface:
                 holders[k].append(part.index)
         return tuple(np.asarray(h, dtype=np.int64) for h in holders)
+
+    @property
+    def n_element_interface(self) -> int:
+        """Elements whose internal variables are exchanged (held by several parts)."""
+        return len(self.halo_elements)
+
+    def element_tables(self) -> tuple:
+        """(owned (P, m_max) bool, shared_local (P, n_max) int32, shared_interface (P,
+        n_max) int32): per part, which of its element slots (the order of
+        ``part.elements``, padded to the largest part, m_max) it owns, and the slots of its
+        elements in the element interface with their interface index (padding: m_max and
+        n_element_interface, out of range, so that the scatters drop it)."""
+        m = max(len(p.elements) for p in self.parts)
+        interface_of = np.full(self.mesh.n_elements, -1, dtype=np.int64)
+        interface_of[self.halo_elements] = np.arange(self.n_element_interface)
+        rows = [np.flatnonzero(interface_of[p.elements] >= 0) for p in self.parts]
+        n = max(max(len(r) for r in rows), 1)
+        owned = np.zeros((self.n_parts, m), dtype=bool)
+        local = np.full((self.n_parts, n), m, dtype=np.int32)
+        interface = np.full((self.n_parts, n), self.n_element_interface, dtype=np.int32)
+        for k, (part, row) in enumerate(zip(self.parts, rows)):
+            owned[k, :len(part.elements)] = self.element_owner[part.elements] == part.index
+            local[k, :len(row)] = row
+            interface[k, :len(row)] = interface_of[part.elements[row]]
+        return owned, local, interface
 
     def alone(self, index: int) -> "HaloPartition":
         """These grown parts with part ``index`` only (as
@@ -171,8 +213,10 @@ def halo_partition(partition: Partition, depth: int) -> HaloPartition:
         parts.append(Part(index=p, elements=elements, nodes=nodes, local_tets=local_of[tets[elements]],
                           shared_local=exchanged, shared_interface=interface_of[nodes[exchanged]]))
         owned_local.append(np.flatnonzero(owner[nodes] == p))
+    held = np.bincount(np.concatenate([elements for elements, _ in reach]), minlength=n_elements)
     return HaloPartition(partition=partition, depth=depth, owner=owner, parts=tuple(parts),
-                         owned_local=tuple(owned_local), halo_nodes=halo_nodes)
+                         owned_local=tuple(owned_local), halo_nodes=halo_nodes, element_owner=owner[tets[:, 0]],
+                         halo_elements=np.flatnonzero(held > 1))
 
 
 def check_save_every(save_every: int, depth: int) -> int:
@@ -186,17 +230,44 @@ def check_save_every(save_every: int, depth: int) -> int:
     return max(save_every, depth)
 
 
-def refresh_halo(part, state: SolverState, n_interface: int, across=None) -> SolverState:
+def _interface_vector(values, shared_local, shared_interface, n_interface: int):
+    """This part's (n_interface + 1, c) contribution to an interface vector (the local half
+    of :func:`jaxsync.parallel.exchange.scatter_reverse`)."""
+    interface = jnp.zeros((n_interface + 1,) + values.shape[1:], values.dtype)
+    return interface.at[shared_interface].add(values[shared_local], mode="clip")
+
+
+def refresh_halo(part, state: SolverState, n_interface: int, across=None, n_element_interface: int = 0) -> SolverState:
     """Both displacement levels of one part's non-owned local nodes replaced by their
-    owners' values: one exchange of (n_interface + 1, 6) values. Collective: every part of
+    owners' values, and the internal variables of its elements in the element interface
+    by their owners' (module docstring): one exchange of (n_interface + 1) x 6 values plus
+    (n_element_interface + 1) x the variables of an element. Collective: every part of
     every device calls it at the same step. ``part``: that part's
-    :class:`jaxsync.parallel.exchange.PartSystems` slice (with ``owned``); ``across``: as
-    in :func:`jaxsync.parallel.exchange.scatter_reverse` (None: ``psum``)."""
+    :class:`jaxsync.parallel.exchange.PartSystems` slice (with ``owned`` and, for a law
+    with state, ``element_exchange``); ``across``: as in
+    :func:`jaxsync.parallel.exchange.scatter_reverse` (None: ``psum``)."""
     levels = jnp.concatenate([state.displacement, state.previous], axis=1)  # (n_local, 6)
     mine = jnp.where(part.owned[:, None], levels, 0.0)  # every node has one owner: x + 0 = x
-    total = scatter_reverse(mine, part.shared_local, part.shared_interface, n_interface, across)
+    pieces = [_interface_vector(mine, part.shared_local, part.shared_interface, n_interface)]
+    leaves, tree = jax.tree_util.tree_flatten(state.internal)
+    if leaves:  # the elements' state, one row of every variable per element slot
+        owned, element_local, element_interface = part.element_exchange
+        rows = jnp.concatenate([x.reshape(x.shape[0], -1) for x in leaves], axis=1)
+        pieces.append(_interface_vector(jnp.where(owned[:, None], rows, 0.0), element_local, element_interface,
+                                        n_element_interface))
+    # one collective for both (MPI sums of one program must not be independent)
+    flat = jax.lax.psum(jnp.concatenate([x.ravel() for x in pieces]), LOCAL_AXIS)
+    flat = jax.lax.psum(flat, AXIS) if across is None else across(flat)
+    total = flat[:pieces[0].size].reshape(pieces[0].shape)
     levels = scatter_forward(levels, total, part.shared_local, part.shared_interface)
-    return SolverState(levels[:, :3], levels[:, 3:], state.step)
+    internal = state.internal
+    if leaves:
+        total = flat[pieces[0].size:].reshape(pieces[1].shape)
+        rows = scatter_forward(rows, total, element_local, element_interface)
+        sizes = np.cumsum([int(np.prod(x.shape[1:])) for x in leaves])[:-1]
+        internal = jax.tree_util.tree_unflatten(
+            tree, [r.reshape(x.shape) for r, x in zip(jnp.split(rows, sizes, axis=1), leaves)])
+    return SolverState(levels[:, :3], levels[:, 3:], state.step, internal)
 
 
 def advance_halo(part, state: SolverState, n_saves: int, save_every: int, exchange, *, loop=None):
@@ -216,7 +287,7 @@ def advance_halo(part, state: SolverState, n_saves: int, save_every: int, exchan
     def cycle(s, _):  # depth local steps, then the exchange; saves every save_every steps
         per_cycle = max(depth // save_every, 1)
         s, saved = advance(part.system, s, per_cycle, min(save_every, depth))
-        return refresh_halo(part, s, exchange.n_interface, exchange.across), saved
+        return refresh_halo(part, s, exchange.n_interface, exchange.across, exchange.n_element_interface), saved
 
     if save_every >= depth:
         def one_save(s, _):

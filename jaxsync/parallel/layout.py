@@ -56,12 +56,16 @@ class PartSystems:
         shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
         owned: (n_parts, n_local) bool, the nodes each part owns, for deep halos
             (:mod:`jaxsync.parallel.halo`); None for an element partition.
+        element_exchange: deep halos' element tables
+            (:meth:`jaxsync.parallel.halo.HaloPartition.element_tables`: owned element
+            slots, element-interface slots and indices), or None.
     """
 
     system: ExplicitSystem
     shared_local: Any
     shared_interface: Any
     owned: Any = None
+    element_exchange: Any = None
 
     def shared_displacement(self, state):
         """One part's (n_shared_max, 3) displacements at its shared nodes in ``state``
@@ -282,5 +286,7 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
         dashpot=None if d is None else Dashpot(split_blocks(d.inverse), split_blocks(d.coupling),
                                                split_blocks(d.prescribed)),
         follower=part_follower_pressures(problem, layout.parts, layout.n_local))
+    tables = getattr(partition, "element_tables", None)
     return PartSystems(stacked, jnp.asarray(layout.shared_local), jnp.asarray(layout.shared_interface),
-                       None if layout.owned is None else jnp.asarray(layout.owned))
+                       None if layout.owned is None else jnp.asarray(layout.owned),
+                       None if tables is None else tuple(jnp.asarray(a) for a in tables()))

@@ -138,7 +138,9 @@ class ExchangePlan:
         ``depth`` steps instead of forces every step: deep halos
         (:mod:`jaxsync.parallel.halo`; ``parts`` the grown parts of that depth)."""
         pattern = dataclasses.replace(self.cost.pattern, dofs_per_node=6)
-        return dataclasses.replace(self, exchange=dataclasses.replace(self.exchange, halo_depth=depth),
+        exchange = dataclasses.replace(self.exchange, halo_depth=depth,
+                                       n_element_interface=getattr(self.parts, "n_element_interface", 0))
+        return dataclasses.replace(self, exchange=exchange,
                                    cost=dataclasses.replace(self.cost, pattern=pattern, every=depth))
 
     @property

@@ -250,7 +250,8 @@ class DistributedRunner:
         return SolverState(self.merge(to_host(state.displacement)), self.merge(to_host(state.previous)),
                            int(to_host(state.step)[0]),
                            merge_element_fields(self.layout.parts, jax.tree_util.tree_map(to_host, state.internal),
-                                                self.partition.mesh.n_elements))
+                                                self.partition.mesh.n_elements,
+                                                getattr(self.layout.partition, "element_owner", None)))
 
     def from_global(self, state: SolverState):
         """The parts' state of a global ``state``, placed on the devices."""
