@@ -23,10 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConvergenceError, ProblemError
+from ..options import PrestressMethod, choices
 
 __all__ = ["PrestressResult", "prestress", "out_of_balance", "PRESTRESS_METHODS"]
 
-PRESTRESS_METHODS = ("zero-pressure", "mulf")
+PRESTRESS_METHODS = choices(PrestressMethod)
 """The methods of :func:`prestress`."""
 
 

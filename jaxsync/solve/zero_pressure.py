@@ -32,15 +32,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConvergenceError, MeshError, ProblemError
+from ..options import LinearSolver, ZeroPressureMethod, choices
 from ..pytree import is_traced
 
 __all__ = ["ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points", "problem_on",
            "ZERO_PRESSURE_METHODS", "LINEAR_SOLVERS"]
 
-ZERO_PRESSURE_METHODS = ("newton", "fixed-point")
+ZERO_PRESSURE_METHODS = choices(ZeroPressureMethod)
 """The methods of :func:`zero_pressure_geometry`."""
 
-LINEAR_SOLVERS = ("direct", "krylov")
+LINEAR_SOLVERS = choices(LinearSolver)
 """The linear solvers of the Newton method."""
 
 
