@@ -44,6 +44,9 @@ class PrestressResult:
             MULF: the largest displacement of the static solve over the geometry's size.
         residual: the relative out-of-balance force of the imaged geometry with the
             prestress, at the free dofs (:func:`out_of_balance`).
+        density_scale: (n_elements,) 1 / det F0 (averaged over the element's points): the
+            ``Problem.density_scale`` that gives each element the mass of its stress-free
+            state (the law's rho is per stress-free volume; the imaged one is det F0 larger).
     """
 
     material: object
@@ -51,6 +54,13 @@ class PrestressResult:
     iterations: int
     residuals: tuple
     residual: float
+    density_scale: np.ndarray
+
+
+def _result(problem, material, method, iterations, residuals) -> PrestressResult:
+    scale = 1.0 / np.mean(np.linalg.det(np.asarray(material.prestrain)), axis=1)
+    return PrestressResult(material, method, iterations, tuple(residuals),
+                           out_of_balance(problem.replace(material=material)), scale)
 
 
 def out_of_balance(problem, displacement=None) -> float:
@@ -125,9 +135,7 @@ def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max
                                           load_steps=load_steps)
         # F0 = dx/dX = (dX/dx)^-1, dX/dx = I + grad_x (X - x) at the imaged points
         F0 = np.linalg.inv(np.asarray(grad.deformation_gradient(jnp.asarray(geometry.points - x))))
-        material = Prestressed(law, F0)
-        return PrestressResult(material, method, geometry.iterations, geometry.residuals,
-                               out_of_balance(problem.replace(material=material)))
+        return _result(problem, Prestressed(law, F0), method, geometry.iterations, geometry.residuals)
     from .solver import steady_state
 
     size = float(np.linalg.norm(np.ptp(x, axis=0)))
@@ -143,9 +151,7 @@ def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max
         F0 = np.asarray(grad.deformation_gradient(jnp.asarray(u))) @ F0
         residuals.append(float(np.abs(u).max(initial=0.0)) / size)
         if residuals[-1] <= tol:
-            material = Prestressed(law, F0)
-            return PrestressResult(material, method, iteration, tuple(residuals),
-                                   out_of_balance(problem.replace(material=material)))
+            return _result(problem, Prestressed(law, F0), method, iteration, residuals)
     raise ConvergenceError(f"the MULF prestress did not converge in {max_iter} static solves: the last displaced "
                            f"the imaged geometry by {residuals[-1]:.3e} of its size (tolerance {tol:g}); raise "
                            "max_iter, or use method='zero-pressure'", increment=max_iter, residual=residuals[-1])

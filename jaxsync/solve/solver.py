@@ -12,6 +12,7 @@ divergence checks, checkpoints) for concrete inputs, the traced executor
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -99,9 +100,23 @@ def _well_posed(K, factor) -> bool:
     return bool(row_norm * response < 1e13)
 
 
+@jax.jit
+def _flat_force(op, x):
+    return op.matvec(x.reshape(-1, 3)).reshape(-1)
+
+
+@jax.jit
+def _flat_jacobians(op, x):
+    return op.jacobians(x.reshape(-1, 3))
+
+
+@jax.jit
+def _flat_follower_force(follower, x):
+    return follower.force(x.reshape(-1, 3), 0.0).reshape(-1)
+
+
 def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=None):
     """Newton's method with load increments (:func:`steady_state`); (u (n_nodes, 3), residuals)."""
-    import jax
     import scipy.sparse.linalg as spla
 
     from ..errors import ConvergenceError
@@ -117,13 +132,13 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=N
         raise ProblemError(f"tol must be a positive number, got {tol!r}")
     load_steps, max_iter = int(load_steps), int(max_iter)
     op = TotalLagrangian().operator(problem)
-    force = jax.jit(lambda x: op.matvec(x.reshape(-1, 3)).reshape(-1))
-    jacobians = jax.jit(lambda x: op.jacobians(x.reshape(-1, 3)))
+    force = functools.partial(_flat_force, op)  # compiled once per mesh size and law, not per call
+    jacobians = functools.partial(_flat_jacobians, op)
     springs = spring_matrix(problem)
     follower = follower_pressure(problem)
     if follower is not None:  # at full magnitude (time factor 1), scaled by the increment
         follower = dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
-        follower_force = jax.jit(lambda x: follower.force(x.reshape(-1, 3), 0.0).reshape(-1))
+        follower_force = functools.partial(_flat_follower_force, follower)
     n = problem.n_dofs
     f_full = np.zeros(n)
     for v in problem.load_vectors()[0]:

@@ -26,6 +26,7 @@ dX/dtheta = -(dR/dX)^-1 dR/dtheta.
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -372,6 +373,18 @@ def _fixed_point(problem, tol, max_iter, load_steps):
                            "method='newton' (quadratic convergence)", increment=max_iter, residual=residuals[-1])
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _law_cotangent(treedef, op, X, values, adjoint):
+    """The law's leaves' cotangents adjoint . d f_int(X) / d theta (a ``jax.vjp``, compiled)."""
+    from ..fem.inverse import split_fibres
+
+    def force(values):
+        stripped, fibres = split_fibres(jax.tree_util.tree_unflatten(treedef, values))
+        return dataclasses.replace(op, material=stripped, fibres=fibres).force(X).reshape(-1)
+
+    return jax.vjp(force, values)[1](adjoint)[0]
+
+
 def zero_pressure_points(problem, *, tol: float = 1e-12, max_iter: int = 50, load_steps: int = 4):
     """(n_nodes, 3) the unloaded positions of the solution nodes [cm], as
     :func:`zero_pressure_geometry` (``method="newton"``) finds them, differentiable in the
@@ -383,40 +396,35 @@ def zero_pressure_points(problem, *, tol: float = 1e-12, max_iter: int = 50, loa
         as :func:`zero_pressure_geometry`.
     """
     _check(problem, "newton", tol, max_iter, load_steps, "direct")
-    material = problem.material
+    leaves, treedef = jax.tree_util.tree_flatten(problem.material)
 
-    def concrete(m):
-        if is_traced(m):
+    def concrete(values):
+        if is_traced(values):
             raise ProblemError("zero_pressure_points solves on the host: differentiate it with jax.grad (or "
                                "jax.vjp) outside jit")
-        return problem.replace(material=m)
+        return problem.replace(material=jax.tree_util.tree_unflatten(treedef, values))
 
+    # over the law's leaves, not the law: a cotangent is no valid law (a zero density...)
     @jax.custom_vjp
-    def points(m):
-        return jnp.asarray(_newton(concrete(m), tol, max_iter, load_steps, "direct")[0])
+    def points(*values):
+        return jnp.asarray(_newton(concrete(values), tol, max_iter, load_steps, "direct")[0])
 
-    def forward(m):
-        X = points(m)
-        return X, (m, X)
+    def forward(*values):
+        X = points(*values)
+        return X, (values, X)
 
     def backward(saved, cotangent):
-        from ..fem.inverse import inverse_operator, split_fibres
+        from ..fem.inverse import inverse_operator
 
-        m, X = saved
-        inverse = _Inverse(concrete(m), "direct")
+        values, X = saved
+        inverse = _Inverse(concrete(values), "direct")
         X = np.asarray(X)
         adjoint = np.zeros(X.size)
         adjoint[inverse.free] = inverse.solve(X.reshape(-1), np.asarray(cotangent).reshape(-1)[inverse.free],
                                               transpose=True)
-        op = inverse_operator(concrete(m))
-
-        def force(law):
-            stripped, fibres = split_fibres(law)
-            return dataclasses.replace(op, material=stripped, fibres=fibres).force(jnp.asarray(X)).reshape(-1)
-
-        _, pull = jax.vjp(force, m)
-        (bar,) = pull(jnp.asarray(-adjoint))
-        return (bar,)
+        op = inverse_operator(concrete(values))
+        return tuple(_law_cotangent(treedef, op, jnp.asarray(X), [jnp.asarray(v, dtype=float) for v in values],
+                                    jnp.asarray(-adjoint)))
 
     points.defvjp(forward, backward)
-    return points(material)
+    return points(*leaves)
