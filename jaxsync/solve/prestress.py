@@ -69,17 +69,16 @@ def out_of_balance(problem, displacement=None) -> float:
     hyperelastic ``problem`` with every load at full magnitude (time factor 1), at
     ``displacement`` (n_nodes, 3) [cm] (default zero: the reference is in equilibrium when
     this is at round-off)."""
+    from ..fem.follower import full_follower_pressure
+    from ..fem.support import spring_matrix
     from ..fem.total_lagrangian import TotalLagrangian
-    from .zero_pressure import _constant_followers
 
     u = jnp.zeros((problem.n_nodes, 3)) if displacement is None else jnp.asarray(displacement, dtype=float)
-    from ..fem.support import spring_matrix
-
     r = np.asarray(TotalLagrangian().operator(problem).matvec(u)).reshape(-1)
     loads = np.zeros_like(r)
     for v in problem.load_vectors()[0]:
         loads += np.asarray(v, dtype=float).reshape(-1)
-    follower = _constant_followers(problem)
+    follower = full_follower_pressure(problem)
     if follower is not None:
         loads += np.asarray(follower.force(u, 0.0)).reshape(-1)
     springs = spring_matrix(problem)

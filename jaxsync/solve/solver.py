@@ -11,7 +11,6 @@ divergence checks, checkpoints) for concrete inputs, the traced executor
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 
 import jax
@@ -120,8 +119,7 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=N
     import scipy.sparse.linalg as spla
 
     from ..errors import ConvergenceError
-    from ..fem.follower import follower_pressure, load_stiffness
-    from ..fem.loads import Constant
+    from ..fem.follower import full_follower_pressure, load_stiffness
     from ..fem.support import spring_matrix
     from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
 
@@ -135,9 +133,8 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=N
     force = functools.partial(_flat_force, op)  # compiled once per mesh size and law, not per call
     jacobians = functools.partial(_flat_jacobians, op)
     springs = spring_matrix(problem)
-    follower = follower_pressure(problem)
-    if follower is not None:  # at full magnitude (time factor 1), scaled by the increment
-        follower = dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
+    follower = full_follower_pressure(problem)  # at full magnitude (time factor 1), scaled by the increment
+    if follower is not None:
         follower_force = functools.partial(_flat_follower_force, follower)
     n = problem.n_dofs
     f_full = np.zeros(n)

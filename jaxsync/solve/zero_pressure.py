@@ -194,27 +194,17 @@ def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-1
                                 residuals=tuple(residuals))
 
 
-def _constant_followers(problem):
-    """The follower pressures at full magnitude (time factor 1), or None."""
-    from ..fem.follower import follower_pressure
-    from ..fem.loads import Constant
-
-    follower = follower_pressure(problem)
-    if follower is None:
-        return None
-    return dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
-
-
 class _Inverse:
     """The inverse problem's residual and its Newton updates."""
 
     def __init__(self, problem, linear_solver: str):
+        from ..fem.follower import full_follower_pressure
         from ..fem.inverse import inverse_operator
 
         self.problem, self.linear_solver = problem, linear_solver
         self.op = inverse_operator(problem)
         x = problem.space.points
-        follower = _constant_followers(problem)
+        follower = full_follower_pressure(problem)
         self.pressure = (np.zeros(x.size) if follower is None
                          else np.asarray(follower.force(jnp.zeros(x.shape), 0.0)).reshape(-1))
         fixed, values = problem.dirichlet_dofs()
