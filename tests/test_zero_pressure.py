@@ -313,3 +313,20 @@ def test_write_mesh_round_trips_facet_sets_in_every_format(tmp_path, vessel):
             write_mesh(vessel, path)
     with pytest.raises(jaxsync.MeshError, match="cannot write a mesh"):
         write_mesh(vessel, os.path.join(tmp_path, "mesh.stl"))
+
+
+def test_prestressed_force_is_the_gradient_of_its_energy_and_the_identity_prestrain_changes_nothing(vessel,
+                                                                                                   prestressed):
+    import jax
+
+    from jaxsync.fem.total_lagrangian import TotalLagrangian, strain_energy
+
+    problem = _vessel_problem(vessel, material=prestressed.material)
+    op = TotalLagrangian().operator(problem)
+    u = 1e-3 * np.sin(7.0 * vessel.points)
+    np.testing.assert_allclose(jax.grad(lambda v: strain_energy(op, v))(u), op.matvec(u), rtol=1e-10,
+                               atol=1e-10 * np.abs(np.asarray(op.matvec(u))).max())
+    plain = TotalLagrangian().operator(_vessel_problem(vessel))
+    identity = TotalLagrangian().operator(_vessel_problem(vessel, material=jaxsync.Prestressed(LAW)))
+    np.testing.assert_allclose(identity.matvec(u), plain.matvec(u), rtol=0,
+                               atol=1e-12 * np.abs(np.asarray(plain.matvec(u))).max())
