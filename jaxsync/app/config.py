@@ -85,8 +85,7 @@ prescribes a history: ``value`` times that time function.
     # checkpoint_every = 10000
 
     [zero_pressure]             # jaxsync unload: the unloaded geometry of an imaged mesh
-    pressure = 1.6e5            # barye: every follower [[pressure]] at this magnitude
-                                # (default: their magnitudes, time factor 1)
+    pressure = 1.6e5            # barye, every follower [[pressure]] (default: their magnitudes)
     method = "newton"           # or "fixed-point" (backward displacement)
     tol = 1.0e-10
     max_iter = 50
