@@ -32,6 +32,8 @@ __all__ = [
     "Trajectory", "RunStats", "PartHistory", "Result",
     "SaveAt", "Psum", "Ppermute", "Mpi", "Halo", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
     "Recompute", "StoreAll",
+    "zero_pressure_geometry", "zero_pressure_points", "ZeroPressureGeometry", "prestress", "PrestressResult",
+    "Prestressed",
 ]
 
 # where each name of __all__ is imported from on first use: the imports of TYPE_CHECKING below
@@ -46,6 +48,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
     ".fem.material": ("LinearElastic",),
     ".mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
+    ".fem.prestress": ("Prestressed",),
     ".fem.problem": ("Dirichlet", "LockingWarning", "Problem", "cantilever"),
     ".fem.rigid_body": ("RigidBodyWarning",),
     ".fem.support": ("ElasticSupport",),
@@ -58,7 +61,9 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".solve.solver": ("simulate", "steady_state"),
     ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
+    ".solve.prestress": ("PrestressResult", "prestress"),
     ".solve.syncavoid": ("simulate_sync_avoiding",),
+    ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
     ".trajectory": ("PartHistory", "Result", "RunStats", "Trajectory"),
 })
 
@@ -83,6 +88,7 @@ if TYPE_CHECKING:
     from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
     from .fem.material import LinearElastic
+    from .fem.prestress import Prestressed
     from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
     from .fem.rigid_body import RigidBodyWarning
     from .fem.support import ElasticSupport
@@ -93,6 +99,7 @@ if TYPE_CHECKING:
     from .parallel.partitioning import Partition, partition
     from .solve.ensemble import ensemble
     from .solve.full_system import simulate_full_system
+    from .solve.prestress import PrestressResult, prestress
     from .solve.solver import simulate, steady_state
     from .solve.strategies import (
         Halo,
@@ -108,4 +115,5 @@ if TYPE_CHECKING:
         TracedExecutor,
     )
     from .solve.syncavoid import simulate_sync_avoiding
+    from .solve.zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
     from .trajectory import PartHistory, Result, RunStats, Trajectory

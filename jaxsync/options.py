@@ -45,6 +45,11 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   jumps (:func:`jaxsync.simulate_sync_avoiding`): ``"synchronize"`` (stay synchronized until
   the networks' input history follows the jump) or ``"predict"`` (predict through it, as the
   paper did).
+- :data:`ZeroPressureMethod`: how :func:`jaxsync.zero_pressure_geometry` finds the unloaded
+  geometry (``jaxsync unload --method``): ``"newton"`` (the inverse problem) or
+  ``"fixed-point"`` (backward displacement); :data:`LinearSolver`: its Newton updates'
+  linear solver, ``"direct"`` or ``"krylov"``; :data:`PrestressMethod`: how
+  :func:`jaxsync.prestress` finds the prestrain, ``"zero-pressure"`` or ``"mulf"``.
 """
 
 from __future__ import annotations
@@ -55,7 +60,8 @@ from typing import Literal, get_args
 from .errors import ConfigError, JaxsyncError, PartitionError
 
 __all__ = ["Element", "Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
-           "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "choices", "check_option",
+           "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "ZeroPressureMethod", "LinearSolver",
+           "PrestressMethod", "choices", "check_option",
            "DEFAULT_MODE",
            "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT", "check_halo_depth"]
 
@@ -71,6 +77,9 @@ ValidationSplit = Literal["interleaved", "random"]
 SurrogateModel = Literal["lstm", "linear"]
 LoadJumpWindows = Literal["exclude", "keep"]
 LoadJumps = Literal["synchronize", "predict"]
+ZeroPressureMethod = Literal["newton", "fixed-point"]
+LinearSolver = Literal["direct", "krylov"]
+PrestressMethod = Literal["zero-pressure", "mulf"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

@@ -1,4 +1,5 @@
-"""The ``jaxsync`` command line: ``demo``, ``simulate``, ``train``, ``predict``, ``finetune``, ``report``.
+"""The ``jaxsync`` command line: ``demo``, ``simulate``, ``train``, ``predict``, ``finetune``, ``report``,
+``unload``.
 
 This module builds the parser from the subcommand modules (:mod:`jaxsync.app.commands`;
 ``train`` from :mod:`jaxsync.app.train`) and dispatches to the chosen one. Errors of the
@@ -31,7 +32,7 @@ import os
 import sys
 from collections.abc import Callable
 
-from .commands import demo, finetune, predict, report, simulate
+from .commands import demo, finetune, predict, report, simulate, unload
 
 __all__ = ["build_parser", "main", "parts_of", "SubcommandParser", "DEFERRED_HELP"]
 
@@ -113,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=SubcommandParser)
     for name, add_parser in (("demo", demo.add_parser), ("simulate", simulate.add_parser),
                              ("train", _add_train_parser), ("predict", predict.add_parser),
-                             ("finetune", finetune.add_parser), ("report", report.add_parser)):
+                             ("finetune", finetune.add_parser), ("report", report.add_parser),
+                             ("unload", unload.add_parser)):
         if name in DEFERRED_HELP:
             subparser = subparsers.add_parser(name, help=DEFERRED_HELP[name])
             subparser.define_on_first_use(lambda made, add_parser=add_parser: add_parser(_MadeParser(made)))

@@ -84,6 +84,14 @@ prescribes a history: ``value`` times that time function.
     # checkpoint = "run.ckpt.h5"
     # checkpoint_every = 10000
 
+    [zero_pressure]             # jaxsync unload: the unloaded geometry of an imaged mesh
+    pressure = 1.6e5            # barye, every follower [[pressure]] (default: their magnitudes)
+    method = "newton"           # or "fixed-point" (backward displacement)
+    tol = 1.0e-10
+    max_iter = 50
+    load_steps = 4
+    output = "unloaded.vtu"     # .vtu, .vtk or .msh, facet sets kept
+
 Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
 paths are strings; anything else is a :class:`ConfigError` naming the table and key. The
@@ -91,7 +99,8 @@ keys of ``[material]`` (those of its model) and of ``[[support]]``, their kinds 
 required ones are read from the fields of the classes they configure
 (:mod:`jaxsync.app.config_schema`, whose catalogue maps the model names to the laws).
 
-Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``) are
+Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``,
+``[zero_pressure] output``) are
 taken relative to the folder of the TOML file, so a case folder can be run from anywhere;
 the outputs of the packaged default configuration go to the current directory.
 """
@@ -145,9 +154,12 @@ _SCHEMA: dict[str, Any] = {
                  "t_off": "number", "period": "number", "times": ("number", None),
                  "values": ("number", None)},
     "support": dict(_SUPPORT.keys),
+    "zero_pressure": {"pressure": "number", "method": "string", "tol": "number", "max_iter": "int",
+                      "load_steps": "int", "output": "path"},
 }
 _ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
-_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"))
+_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"),
+              ("zero_pressure", "output"))
 
 
 @dataclasses.dataclass(frozen=True)

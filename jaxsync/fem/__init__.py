@@ -12,7 +12,9 @@ lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem o
 :mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.viscoelastic` (a finite-strain
 standard linear solid, a law with internal variables), :mod:`~jaxsync.fem.total_lagrangian`
 (their internal force, total-Lagrangian explicit dynamics), :mod:`~jaxsync.fem.follower`
-(pressure on the deformed surface),
+(pressure on the deformed surface), :mod:`~jaxsync.fem.prestress` (a law with a prestrain
+per quadrature point), :mod:`~jaxsync.fem.inverse` (the internal force of an unknown reference
+at a known deformed configuration: the zero-pressure problem),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """
@@ -29,7 +31,8 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
            "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
-           "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid", "ViscoelasticNeoHookean", "ViscoelasticHGO"]
+           "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid", "ViscoelasticNeoHookean", "ViscoelasticHGO",
+           "Prestressed"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -41,6 +44,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".material": ("LinearElastic",),
     ".material_law": ("FiniteStrainLaw", "MaterialLaw"),
     "..mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
+    ".prestress": ("Prestressed",),
     ".problem": ("Dirichlet", "Problem", "cantilever"),
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
     ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
@@ -57,6 +61,7 @@ if TYPE_CHECKING:
     from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
     from .material import LinearElastic
     from .material_law import FiniteStrainLaw, MaterialLaw
+    from .prestress import Prestressed
     from .problem import Dirichlet, Problem, cantilever
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
     from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step

@@ -35,7 +35,8 @@ import numpy as np
 from ..errors import ProblemError
 from ..pytree import pytree_dataclass
 
-__all__ = ["FollowerPressure", "follower_pressure", "part_follower_pressures", "follower_loads", "facet_nodes",
+__all__ = ["FollowerPressure", "follower_pressure", "full_follower_pressure",
+           "part_follower_pressures", "follower_loads", "facet_nodes",
            "load_stiffness"]
 
 
@@ -173,6 +174,19 @@ def follower_pressure(problem) -> FollowerPressure | None:
     facets, _, load = _facets(problem)
     _, _, w = _facet_rule(problem.element)
     return _operator(problem, facets, load, np.broadcast_to(w, (len(facets), len(w))), problem.space.points)
+
+
+def full_follower_pressure(problem) -> FollowerPressure | None:
+    """The follower pressures at full magnitude (every time factor 1, as
+    :func:`jaxsync.steady_state` applies the loads), or None without any."""
+    import dataclasses
+
+    from .loads import Constant
+
+    follower = follower_pressure(problem)
+    if follower is None:
+        return None
+    return dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
 
 
 def part_follower_pressures(problem, parts: Sequence, n_local: int) -> FollowerPressure | None:

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..errors import ProblemError
 
-__all__ = ["reference_geometry", "quadrature_order", "n_quadrature_points"]
+__all__ = ["reference_geometry", "quadrature_order", "n_quadrature_points", "shape_derivatives"]
 
 
 def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -21,13 +21,7 @@ def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, 
     ``get_quadrature(RefTet, intorder)``); ``intorder`` None: 1 (one point) for P1, 2 (four
     points) for straight P2, 4 for isoparametric (curved) P2. The map X(xi) is the
     isoparametric one of the space's nodes (the straight map for a straight mesh)."""
-    from skfem.quadrature import get_quadrature
-    from skfem.refdom import RefTet
-
-    xi, w = get_quadrature(RefTet, quadrature_order(space) if intorder is None else intorder)
-    element = space.scalar_element()
-    k = space.nodes_per_cell
-    dN = np.stack([element.lbasis(xi, a)[1].T for a in range(k)], axis=1)  # (n_q, k, 3) d N_a / d xi
+    dN, w = shape_derivatives(space, intorder)
     X = space.points[space.cells]  # (m, k, 3)
     jac = np.einsum("mka,qkr->mqar", X, dN)  # dX_a / dxi_r
     det = np.linalg.det(jac)
@@ -36,6 +30,19 @@ def reference_geometry(space, intorder: int | None = None) -> tuple[np.ndarray, 
                            "total-Lagrangian run")
     grads = np.einsum("qkr,mqrj->mqkj", dN, np.linalg.inv(jac))  # dN/dX = dN/dxi . (dX/dxi)^-1
     return grads, np.abs(det) * w[None, :]
+
+
+def shape_derivatives(space, intorder: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(dN (n_q, k, 3) the derivatives d N_a / d xi of the space's shape functions at the
+    quadrature points of the reference tetrahedron, w (n_q,) the rule's weights), with the
+    rule of :func:`reference_geometry` (``intorder`` None: :func:`quadrature_order`)."""
+    from skfem.quadrature import get_quadrature
+    from skfem.refdom import RefTet
+
+    xi, w = get_quadrature(RefTet, quadrature_order(space) if intorder is None else intorder)
+    element = space.scalar_element()
+    dN = np.stack([element.lbasis(xi, a)[1].T for a in range(space.nodes_per_cell)], axis=1)
+    return dN, np.asarray(w, dtype=float)
 
 
 def quadrature_order(space) -> int:

@@ -74,6 +74,9 @@ class HyperelasticForce:
         points: (n_nodes, 3) reference node coordinates [cm] (for the deformed element size).
         unit_mass: (n_elements, k) each element's lumped mass at its nodes per unit
             density [cm^3] (density scaling included; P1 V/4, P2 HRZ).
+        state: a law with constant internal variables (a prestress,
+            :class:`jaxsync.Prestressed`): {name: (n_elements, n_q, ...)}, the state every
+            stress of this operator is computed with (``stress_update``); None otherwise.
 
     A part's operator (:meth:`TotalLagrangian.part_operators`) has a leading part axis on
     every leaf (the material's too) and is used one part at a time (under ``vmap`` or
@@ -87,6 +90,7 @@ class HyperelasticForce:
     fibres: Any
     points: Any
     unit_mass: Any
+    state: Any = None
 
     def deformation_gradient(self, u):
         """(n_elements, n_q, 3, 3) F = I + grad u at the quadrature points of u (n_nodes, 3) [cm]."""
@@ -102,7 +106,14 @@ class HyperelasticForce:
 
     def element_forces(self, u):
         """(n_elements, k, 3) each element's nodal forces [dyn]."""
-        return self._nodal_forces(self.material.first_piola(self.deformation_gradient(u), self.fibres_at_points()))
+        return self._nodal_forces(self.stress(self.deformation_gradient(u)))
+
+    def stress(self, F):
+        """(n_elements, n_q, 3, 3) P [dyn/cm^2] at the quadrature points' F: the law's
+        ``first_piola``, or its ``stress_update`` with the constant :attr:`state`."""
+        if self.state is None:
+            return self.material.first_piola(F, self.fibres_at_points())
+        return self.material.stress_update(F, self.fibres_at_points(), self.state, 0.0)[0]
 
     def _nodal_forces(self, P):
         """(n_elements, k, 3) sum_q w_q P_q grad N_a [dyn] of P (n_elements, n_q, 3, 3)."""
@@ -127,7 +138,8 @@ class HyperelasticForce:
 
     def energy(self, u):
         """The stored strain energy sum_e sum_q w_q psi(F_q) [erg] (its gradient in u is f_int)."""
-        psi = self.material.energy(self.deformation_gradient(u), self.fibres_at_points())
+        F, fibres = self.deformation_gradient(u), self.fibres_at_points()
+        psi = self.material.energy(F, fibres) if self.state is None else self.material.energy(F, fibres, self.state)
         return jnp.sum(self.weights * psi)
 
     def jacobians(self, u):
@@ -154,6 +166,14 @@ def _material_and_fibres(problem):
     return dataclasses.replace(material, fibres=None), jnp.asarray(fibres)
 
 
+def _constant_state(problem, material):
+    """(the law as the operator holds it, its constant state or None)."""
+    if not getattr(material, "constant_state", False):
+        return material, None
+    return material.stateless(), material.internal_variables(problem.mesh.n_elements,
+                                                              n_quadrature_points(problem.space))
+
+
 @dataclasses.dataclass(frozen=True)
 class TotalLagrangian:
     """The total-Lagrangian force model of a hyperelastic problem (module docstring), a
@@ -170,18 +190,20 @@ class TotalLagrangian:
     def operator(self, problem) -> HyperelasticForce:
         """The :class:`HyperelasticForce` of the whole mesh (the problem's P1 or P2 nodes)."""
         material, fibres = _material_and_fibres(problem)
+        material, state = _constant_state(problem, material)
         space = problem.space
         gradients, weights = reference_geometry(space)
         return HyperelasticForce(
             cells=jnp.asarray(space.cells, dtype=jnp.int32), gradients=jnp.asarray(gradients),
             weights=jnp.asarray(weights), material=material, fibres=fibres, points=jnp.asarray(space.points),
-            unit_mass=jnp.asarray(element_unit_mass(space, problem.density_scale)))
+            unit_mass=jnp.asarray(element_unit_mass(space, problem.density_scale)), state=state)
 
     def part_operators(self, problem, parts: Sequence, n_local: int) -> HyperelasticForce:
         """The parts' :class:`HyperelasticForce` stacked on a leading part axis: elements
         padded to the largest part (padding repeats the part's element 0 with weight 0),
         nodes to ``n_local``; the material's parameters broadcast to every part."""
         material, fibres = _material_and_fibres(problem)
+        material, state = _constant_state(problem, material)
         space = problem.space
         gradients, weights = reference_geometry(space)
         unit_mass = element_unit_mass(space, problem.density_scale)
@@ -203,7 +225,8 @@ class TotalLagrangian:
             weights=jnp.asarray(weights[index] * real[:, :, None]),
             material=jax.tree_util.tree_map(broadcast, material),
             fibres=None if fibres is None else fibres[jnp.asarray(index)], points=jnp.asarray(points),
-            unit_mass=jnp.asarray(unit_mass[index] * real[:, :, None]))
+            unit_mass=jnp.asarray(unit_mass[index] * real[:, :, None]),
+            state=None if state is None else jax.tree_util.tree_map(lambda x: jnp.asarray(x)[index], state))
 
     def max_stable_dt(self, problem):
         """The exact bound 2 / omega_max [s] of the tangent stiffness at the initial
@@ -320,15 +343,18 @@ def element_stiffness(op, u):
     displacements u (n_nodes, 3) [cm]: forward-mode derivative (``jax.jacfwd``) of the
     element's nodal forces, vmapped over the elements; dofs node-interleaved (node a,
     component i: 3 a + i)."""
-    def element_force(ue, gradients, weights, fibres):
+    def element_force(ue, gradients, weights, fibres, state):
         F = jnp.einsum("ka,qkj->qaj", ue, gradients) + jnp.eye(3)[None]
-        P = op.material.first_piola(F, None if fibres is None else fibres[None])
+        fibres = None if fibres is None else fibres[None]
+        P = (op.material.first_piola(F, fibres) if state is None
+             else op.material.stress_update(F, fibres, state, 0.0)[0])
         return jnp.einsum("q,qij,qkj->ki", weights, P, gradients).reshape(-1)
 
-    def stiffness(ue, gradients, weights, fibres):
-        return jax.jacfwd(lambda x: element_force(x.reshape(ue.shape), gradients, weights, fibres))(ue.reshape(-1))
+    def stiffness(ue, gradients, weights, fibres, state):
+        return jax.jacfwd(lambda x: element_force(x.reshape(ue.shape), gradients, weights, fibres, state))(
+            ue.reshape(-1))
 
-    return jax.vmap(stiffness)(u[op.cells], op.gradients, op.weights, op.fibres)
+    return jax.vmap(stiffness)(u[op.cells], op.gradients, op.weights, op.fibres, op.state)
 
 
 def tangent_matrix(problem_or_operator, u):

@@ -14,7 +14,7 @@ from ..lazy import export_lazily
 
 __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "tet_volumes", "to_skfem", "validated_mesh",
            "coincident_nodes", "connected_components", "merge_coincident_nodes", "warn_about_topology",
-           "COINCIDENT_TOLERANCE", "read_vtp", "PolyData", "CellBlock"]
+           "COINCIDENT_TOLERANCE", "read_vtp", "PolyData", "CellBlock", "write_mesh", "MESH_FORMATS"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -23,6 +23,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
                "merge_coincident_nodes", "tet_volumes", "to_skfem", "validated_mesh", "warn_about_topology"),
     "._read": ("read_mesh",),
     "._vtp": ("CellBlock", "PolyData", "read_vtp"),
+    "._write": ("MESH_FORMATS", "write_mesh"),
 })
 
 if TYPE_CHECKING:
@@ -41,3 +42,4 @@ if TYPE_CHECKING:
     )
     from ._read import read_mesh
     from ._vtp import CellBlock, PolyData, read_vtp
+    from ._write import MESH_FORMATS, write_mesh

@@ -219,6 +219,13 @@ def _triangle_sets(raw, tri_blocks) -> dict[str, np.ndarray]:
             if idx is not None and len(idx):
                 tagged_any = True
                 sets.setdefault(name, []).append(tri[np.asarray(idx)])
+    for key, per_block in raw.cell_data.items():  # jaxsync.mesh.write_mesh's VTK facet sets
+        if key.startswith("facet_set:"):
+            for i, tri in tri_blocks:
+                marked = np.asarray(per_block[i]).reshape(-1) == 1
+                if marked.any():
+                    tagged_any = True
+                    sets.setdefault(key[len("facet_set:"):], []).append(tri[marked])
     physical = raw.cell_data.get("gmsh:physical")
     for i, tri in tri_blocks:
         if physical is not None and len(physical[i]) == len(tri):

@@ -14,7 +14,9 @@ Entry points: :func:`simulate` (:mod:`~jaxsync.solve.solver`), :func:`simulate_s
 of a distributed run: :mod:`~jaxsync.solve.distributed`; the predicted phase's runners:
 :mod:`~jaxsync.solve.predicted`; predictors: :mod:`~jaxsync.solve.predictors`; resumable
 checkpoints: :mod:`~jaxsync.solve.checkpoint`; the trajectory of a run:
-:mod:`~jaxsync.solve.record`.
+:mod:`~jaxsync.solve.record`. The geometry of an imaged structure before its loads:
+:func:`zero_pressure_geometry` (:mod:`~jaxsync.solve.zero_pressure`) and its alternative,
+the prestress of the imaged geometry, :func:`prestress` (:mod:`~jaxsync.solve.prestress`).
 """
 
 
@@ -28,7 +30,8 @@ __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "si
            "Recompute", "StoreAll", "Synchronized", "Predicted",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
            "DistributedParts", "DistributedRunner", "transport", "sync_strategy", "register_exchange",
-           "unregister_exchange", "exchange_names"]
+           "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points",
+           "ZeroPressureGeometry", "prestress", "PrestressResult"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -40,10 +43,12 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".host": ("SingleDeviceRunner",),
     ".phases": ("Predicted", "Synchronized"),
     ".predictors": ("OraclePredictor",),
+    ".prestress": ("PrestressResult", "prestress"),
     ".solver": ("simulate", "steady_state"),
     ".strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance", "SaveAt",
                     "SolverCheckpoint", "StoreAll", "TracedExecutor", "transport"),
     ".syncavoid": ("describe_run", "simulate_sync_avoiding", "step_counts"),
+    ".zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
 })
 
 if TYPE_CHECKING:
@@ -55,6 +60,7 @@ if TYPE_CHECKING:
     from .host import SingleDeviceRunner
     from .phases import Predicted, Synchronized
     from .predictors import OraclePredictor
+    from .prestress import PrestressResult, prestress
     from .solver import simulate, steady_state
     from .strategies import (
         Halo,
@@ -71,3 +77,4 @@ if TYPE_CHECKING:
         transport,
     )
     from .syncavoid import describe_run, simulate_sync_avoiding, step_counts
+    from .zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points

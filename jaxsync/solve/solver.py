@@ -11,7 +11,7 @@ divergence checks, checkpoints) for concrete inputs, the traced executor
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +31,7 @@ NEWTON_LOAD_STEPS = 10
 
 
 def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, max_iter: int = 25,
-                 history: bool = False):
+                 history: bool = False, guess=None):
     """Static solution with every load at full magnitude (time factor 1) and the Dirichlet
     values imposed (those following a time function at their full value), (n_nodes, 3) [cm].
 
@@ -57,6 +57,9 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
         max_iter: hyperelastic laws: Newton iterations per increment at most.
         history: also return, per increment, the relative residuals of its iterations
             (a list of lists; empty for a linear law).
+        guess: hyperelastic laws: (n_nodes, 3) [cm] the displacement Newton's method starts
+            from (default zero), for instance the solution of a nearby problem; with
+            ``load_steps=1`` the full load is applied to it at once.
 
     Raises:
         ConvergenceError: an increment did not converge in ``max_iter`` iterations (or
@@ -76,7 +79,7 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             "jax.jacfwd of the residual (docs: Gradients)")
     if problem.material.finite_strain:  # a force nonlinear in u: Newton's method
         u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
-                                            tol, max_iter)
+                                            tol, max_iter, guess)
         return (u, residuals) if history else u
     u = _linear_steady_state(problem)
     return (u, []) if history else u
@@ -96,14 +99,27 @@ def _well_posed(K, factor) -> bool:
     return bool(row_norm * response < 1e13)
 
 
-def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
+@jax.jit
+def _flat_force(op, x):
+    return op.matvec(x.reshape(-1, 3)).reshape(-1)
+
+
+@jax.jit
+def _flat_jacobians(op, x):
+    return op.jacobians(x.reshape(-1, 3))
+
+
+@jax.jit
+def _flat_follower_force(follower, x):
+    return follower.force(x.reshape(-1, 3), 0.0).reshape(-1)
+
+
+def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=None):
     """Newton's method with load increments (:func:`steady_state`); (u (n_nodes, 3), residuals)."""
-    import jax
     import scipy.sparse.linalg as spla
 
     from ..errors import ConvergenceError
-    from ..fem.follower import follower_pressure, load_stiffness
-    from ..fem.loads import Constant
+    from ..fem.follower import full_follower_pressure, load_stiffness
     from ..fem.support import spring_matrix
     from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
 
@@ -114,13 +130,12 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
         raise ProblemError(f"tol must be a positive number, got {tol!r}")
     load_steps, max_iter = int(load_steps), int(max_iter)
     op = TotalLagrangian().operator(problem)
-    force = jax.jit(lambda x: op.matvec(x.reshape(-1, 3)).reshape(-1))
-    jacobians = jax.jit(lambda x: op.jacobians(x.reshape(-1, 3)))
+    force = functools.partial(_flat_force, op)  # compiled once per mesh size and law, not per call
+    jacobians = functools.partial(_flat_jacobians, op)
     springs = spring_matrix(problem)
-    follower = follower_pressure(problem)
-    if follower is not None:  # at full magnitude (time factor 1), scaled by the increment
-        follower = dataclasses.replace(follower, times=tuple(Constant() for _ in follower.times))
-        follower_force = jax.jit(lambda x: follower.force(x.reshape(-1, 3), 0.0).reshape(-1))
+    follower = full_follower_pressure(problem)  # at full magnitude (time factor 1), scaled by the increment
+    if follower is not None:
+        follower_force = functools.partial(_flat_follower_force, follower)
     n = problem.n_dofs
     f_full = np.zeros(n)
     for v in problem.load_vectors()[0]:
@@ -128,6 +143,12 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
     fixed, values = problem.dirichlet_dofs()
     free = np.setdiff1d(np.arange(n), fixed)
     u = np.zeros(n)
+    if guess is not None:
+        if np.shape(guess) != (problem.n_nodes, 3) or not np.all(np.isfinite(guess)):
+            raise ProblemError(f"guess must be a finite displacement of shape ({problem.n_nodes}, 3), got shape "
+                               f"{np.shape(guess)}")
+        u = np.asarray(guess, dtype=float).reshape(-1).copy()
+        u[fixed] = 0.0  # the prescribed dofs move to their values in the first increment
 
     def out_of_balance(x, f_ext, fraction):
         """f_int(x) + S x - f_ext - fraction f_follower(x), or None where an element is
@@ -147,6 +168,9 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int):
         target = fraction * values  # the prescribed values of this increment
         converged = u.copy()  # the last converged state
         r = out_of_balance(u, f_ext, fraction)
+        if r is None and k == 1 and guess is not None:  # a guess that inverts an element: start from rest
+            u = np.zeros(n)
+            converged, r = u.copy(), out_of_balance(u, f_ext, fraction)
         history = []
         for iteration in range(max_iter + 1):
             move = target - u[fixed]  # what the prescribed dofs still have to move

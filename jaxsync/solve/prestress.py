@@ -1,0 +1,156 @@
+"""The prestress of an imaged structure (:func:`prestress`): the imaged geometry kept as the
+reference, with a prestrain F0 at every quadrature point (:class:`jaxsync.Prestressed`)
+that puts it in equilibrium under the loads at imaging.
+
+Two routes to F0:
+
+* ``"zero-pressure"``: F0 = dx/dX, the deformation gradient of the imaged geometry x over
+  its zero-pressure geometry X (:func:`jaxsync.zero_pressure_geometry`), at the imaged
+  element's quadrature points. The prestressed problem is then the forward problem from X
+  written on x: the same equilibrium, the same response to further loads.
+* ``"mulf"``: the modified updated Lagrangian formulation (Gee, Foerster & Wall 2010),
+  a fixed point: from F0 = I, solve the static problem on the imaged reference with the
+  current prestrain (:func:`jaxsync.steady_state`), fold the deformation into the prestrain,
+  F0 <- (I + grad_x u) F0, forget the displacement, and repeat until it vanishes. It needs
+  no unloaded geometry, and its F0 need not be the gradient of one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConvergenceError, ProblemError
+from ..options import PrestressMethod, choices
+
+__all__ = ["PrestressResult", "prestress", "out_of_balance", "PRESTRESS_METHODS"]
+
+PRESTRESS_METHODS = choices(PrestressMethod)
+"""The methods of :func:`prestress`."""
+
+
+@dataclasses.dataclass(frozen=True)
+class PrestressResult:
+    """The prestress found by :func:`prestress`.
+
+    Attributes:
+        material: the :class:`jaxsync.Prestressed` law (the problem's law and F0); use it as
+            ``problem.replace(material=result.material)``.
+        method: ``"zero-pressure"`` or ``"mulf"``.
+        iterations: Newton iterations (zero-pressure) or static solves (MULF).
+        residuals: per iteration, zero-pressure: the inverse problem's relative residuals;
+            MULF: the largest displacement of the static solve over the geometry's size.
+        residual: the relative out-of-balance force of the imaged geometry with the
+            prestress, at the free dofs (:func:`out_of_balance`).
+        density_scale: (n_elements,) 1 / det F0 (averaged over the element's points): the
+            ``Problem.density_scale`` that gives each element the mass of its stress-free
+            state (the law's rho is per stress-free volume; the imaged one is det F0 larger).
+    """
+
+    material: object
+    method: str
+    iterations: int
+    residuals: tuple
+    residual: float
+    density_scale: np.ndarray
+
+
+def _result(problem, material, method, iterations, residuals) -> PrestressResult:
+    scale = 1.0 / np.mean(np.linalg.det(np.asarray(material.prestrain)), axis=1)
+    return PrestressResult(material, method, iterations, tuple(residuals),
+                           out_of_balance(problem.replace(material=material)), scale)
+
+
+def out_of_balance(problem, displacement=None) -> float:
+    """The largest out-of-balance force f_int(u) + S u - f_ext - f_follower(u) at the free
+    dofs over the force scale (the largest load, follower pressure force or reaction) of a
+    hyperelastic ``problem`` with every load at full magnitude (time factor 1), at
+    ``displacement`` (n_nodes, 3) [cm] (default zero: the reference is in equilibrium when
+    this is at round-off)."""
+    from ..fem.follower import full_follower_pressure
+    from ..fem.support import spring_matrix
+    from ..fem.total_lagrangian import TotalLagrangian
+
+    u = jnp.zeros((problem.n_nodes, 3)) if displacement is None else jnp.asarray(displacement, dtype=float)
+    r = np.asarray(TotalLagrangian().operator(problem).matvec(u)).reshape(-1)
+    loads = np.zeros_like(r)
+    for v in problem.load_vectors()[0]:
+        loads += np.asarray(v, dtype=float).reshape(-1)
+    follower = full_follower_pressure(problem)
+    if follower is not None:
+        loads += np.asarray(follower.force(u, 0.0)).reshape(-1)
+    springs = spring_matrix(problem)
+    r = r - loads + (0.0 if springs is None else springs @ np.asarray(u).reshape(-1))
+    fixed, _ = problem.dirichlet_dofs()
+    free = np.setdiff1d(np.arange(r.size), fixed)
+    scale = max(float(np.abs(loads).max(initial=0.0)), float(np.abs(r[fixed]).max(initial=0.0)))
+    return float(np.abs(r[free]).max(initial=0.0)) / scale if scale > 0 else 0.0
+
+
+def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max_iter: int = 100,
+              load_steps: int = 4) -> PrestressResult:
+    """The prestrain that puts the imaged ``problem`` in equilibrium (module docstring).
+
+    Args:
+        problem: a :class:`jaxsync.Problem` with an isotropic hyperelastic law on the imaged
+            geometry, its loads at full magnitude those at imaging (as for
+            :func:`jaxsync.zero_pressure_geometry`).
+        method: ``"zero-pressure"`` (F0 from the Newton zero-pressure geometry; follower
+            pressures and Dirichlet conditions) or ``"mulf"`` (any load and support).
+        tol: zero-pressure: the inverse problem's relative residual; MULF: the largest
+            displacement of a static solve over the geometry's size (its bounding-box
+            diagonal).
+        max_iter: Newton iterations per increment (zero-pressure) or static solves (MULF).
+        load_steps: pressure increments of the first solve.
+
+    Returns:
+        :class:`PrestressResult`.
+
+    Raises:
+        ConvergenceError: as :func:`jaxsync.zero_pressure_geometry`, or MULF iterations that
+            do not converge in ``max_iter``.
+        ProblemError: bad options; a law that :class:`jaxsync.Prestressed` does not take.
+    """
+    from ..fem.prestress import Prestressed
+    from ..fem.total_lagrangian import TotalLagrangian
+
+    if method not in PRESTRESS_METHODS:
+        raise ProblemError(f"method must be one of {', '.join(map(repr, PRESTRESS_METHODS))}, got {method!r}")
+    for name, value in (("max_iter", max_iter), ("load_steps", load_steps)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ProblemError(f"{name} must be an integer >= 1, got {value!r}")
+    if not (isinstance(tol, (int, float)) and np.isfinite(tol) and tol > 0):
+        raise ProblemError(f"tol must be a positive number, got {tol!r}")
+    law = problem.material
+    Prestressed(law)  # refuses a law it cannot take, before any solve
+    grad = TotalLagrangian().operator(problem)  # the imaged geometry's shape-function gradients
+    x = problem.space.points
+    if method == "zero-pressure":
+        from .zero_pressure import zero_pressure_geometry
+
+        geometry = zero_pressure_geometry(problem, method="newton", tol=tol, max_iter=max_iter,
+                                          load_steps=load_steps)
+        # F0 = dx/dX = (dX/dx)^-1, dX/dx = I + grad_x (X - x) at the imaged points
+        F0 = np.linalg.inv(np.asarray(grad.deformation_gradient(jnp.asarray(geometry.points - x))))
+        return _result(problem, Prestressed(law, F0), method, geometry.iterations, geometry.residuals)
+    from .solver import steady_state
+
+    size = float(np.linalg.norm(np.ptp(x, axis=0)))
+    F0 = np.broadcast_to(np.eye(3), np.shape(grad.weights) + (3, 3)).copy()
+    residuals = []
+    for iteration in range(1, max_iter + 1):
+        current = problem.replace(material=Prestressed(law, F0))
+        try:
+            u = np.asarray(steady_state(current, load_steps=load_steps if iteration == 1 else 1, tol=1e-12))
+        except ConvergenceError as exc:
+            raise ConvergenceError(f"the MULF prestress iteration {iteration} did not converge ({exc})",
+                                   increment=iteration) from exc
+        F0 = np.asarray(grad.deformation_gradient(jnp.asarray(u))) @ F0
+        residuals.append(float(np.abs(u).max(initial=0.0)) / size)
+        if residuals[-1] <= tol:
+            return _result(problem, Prestressed(law, F0), method, iteration, residuals)
+    raise ConvergenceError(f"the MULF prestress did not converge in {max_iter} static solves: the last displaced "
+                           f"the imaged geometry by {residuals[-1]:.3e} of its size (tolerance {tol:g}); raise "
+                           "max_iter, or use method='zero-pressure'", increment=max_iter, residual=residuals[-1])
