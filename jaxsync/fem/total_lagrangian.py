@@ -563,12 +563,13 @@ class RunCheck:
         if len(bad):
             raise self._inverted(bad, step)
         beta = self.problem.stiffness_damping  # the bounds with stiffness-proportional damping
+        name = "sqrt((2/omega_max)^2 + beta^2) - beta" if self.problem.stiffness_damped else "2/omega_max"
         bound = damped_bound(stable_dt(self.operator, u, alpha_s=1.0, rule="element"), beta)
         if self.dt > bound or self.problem.supports:
             bound = damped_bound(exact_stable_dt(self.problem, np.asarray(u)), beta)
             if self.dt > bound:
                 raise StabilityError(
-                    f"dt={self.dt:.4e} s is above the stable step {bound:.4e} s of the deformed "
+                    f"dt={self.dt:.4e} s is above the stable step {name} = {bound:.4e} s of the deformed "
                     f"state at step {step} (t = {step * self.dt:.6g} s; its tangent stiffness over the lumped "
                     f"mass): rerun with dt <= {ALPHA_S * bound:.4e} s (alpha_s = {ALPHA_S}) or smaller, as the "
                     "bound can shrink further as the body deforms, or with smaller loads")
