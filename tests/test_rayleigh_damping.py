@@ -145,7 +145,12 @@ def test_the_stable_step_is_the_damped_bound_and_it_is_tight(beam, modes):
     step = problem.time_step
     np.testing.assert_allclose(step.exact, bound, rtol=1e-9)
     np.testing.assert_allclose(jaxsync.max_stable_dt(problem), 2.0 / omega[-1], rtol=1e-9)  # undamped, as named
-    assert step.dt <= step.alpha_s * step.exact
+    # the default step: the paper's CFL step where it is at most alpha_s times the damped
+    # bound (a small beta), else alpha_s times that bound
+    assert step.rule == "exact" and step.dt == pytest.approx(step.alpha_s * bound, rel=1e-9)
+    slight = _clamped(beam, stiffness_damping=1e-6).time_step
+    assert slight.rule == "cfl" and slight.dt == _clamped(beam, stiffness_damping=0.0).dt
+    assert slight.exact < jaxsync.max_stable_dt(problem)
     # the characteristic polynomial of the fastest mode, A z^2 + B z + C, has its root at z = -1 there
     a, b, h = 0.5 * ALPHA * bound, beta * bound * omega[-1] ** 2, (bound * omega[-1]) ** 2
     assert abs((1.0 + a) + (2.0 - b - h) + (1.0 - a - b)) < 1e-12

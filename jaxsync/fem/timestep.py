@@ -14,9 +14,10 @@ that is ``sqrt((2 / omega_max)^2 + beta^2) - beta`` (:func:`damped_bound`; the r
 mode's characteristic polynomial at z = -1). The mass-proportional part alpha M and the
 supports' dashpots enter the update with the centred velocity (d(n+1) - d(n-1)) / (2 dt)
 and leave the bound where it is. The bound decreases with omega, so the fastest mode
-(or element) still sets it: every step and bound of a problem with beta > 0
-(:func:`stable_step`, its ``dt`` and ``exact``; the hyperelastic run-time check) is the
-undamped one passed through :func:`damped_bound`.
+(or element) still sets it: every bound of a problem with beta > 0 (:func:`stable_step`'s
+``exact``, the hyperelastic run-time check) is the undamped one passed through
+:func:`damped_bound`, and the default step is the law's rule where that is at most alpha_s
+times the damped bound, else alpha_s times it.
 
 The paper's c_e is the plate wave speed: it ignores the dilatational wave speed
 sqrt((lambda + 2 mu) / rho), which grows without bound as nu -> 0.5, so for nearly
@@ -71,9 +72,7 @@ class StableStep:
     """The default time step of a problem and the rule that set it.
 
     Attributes:
-        dt: the step [s]: ``min(cfl, alpha_s * 2 / omega_max)`` (a JAX tracer when E or
-            rho is); with stiffness-proportional damping that step passed through
-            :func:`damped_bound` (never above alpha_s times ``exact``).
+        dt: the step [s]: ``min(cfl, alpha_s * exact)`` (a JAX tracer when E or rho is).
         rule: ``"cfl"`` (the paper's CFL rule set it) or ``"exact"`` (alpha_s times the
             exact bound set it, because the CFL rule is above alpha_s times the bound).
         cfl: the paper's CFL step [s] (undamped).
@@ -108,7 +107,7 @@ class StableStep:
         if beta == 0.0:
             return line
         return line + (" (stiffness-proportional damping beta" + ("" if beta is None else f" = {beta:.4g} s")
-                       + ": step and bound sqrt(dt0^2 + beta^2) - beta of the undamped ones)")
+                       + ": the bound is sqrt((2/omega_max)^2 + beta^2) - beta, the step at most alpha_s times it)")
 
     def _describe(self, dt=None) -> str:
         if dt is not None:
@@ -275,13 +274,22 @@ def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     :func:`small_strain_step`; a hyperelastic law's ``alpha_s * min(element rule, exact
     bound)`` of its tangent at the initial displacement, P1 and P2 (module docstring; a
     concrete law only). With stiffness-proportional damping beta (``problem.stiffness_damping``)
-    the step and the exact bound are the law's passed through :func:`damped_bound`."""
+    the exact bound is the law's passed through :func:`damped_bound` and the step the law's
+    where that is at most alpha_s times it, else alpha_s times it (rule ``"exact"``; when E
+    or rho is traced the smaller of the two, the rule left as the law's)."""
     step = problem.material.stable_step(problem, alpha_s)
     if not problem.stiffness_damped:
         return step
     beta = problem.stiffness_damping
-    return dataclasses.replace(step, dt=damped_bound(step.dt, beta), exact=damped_bound(step.exact, beta),
-                               stiffness_damping=beta)
+    exact = damped_bound(step.exact, beta)
+    limit = step.alpha_s * exact
+    if concrete_or_none(step.dt) is None or concrete_or_none(limit) is None:  # traced: the rule is not decided
+        import jax.numpy as jnp
+
+        return dataclasses.replace(step, dt=jnp.minimum(step.dt, limit), exact=exact, stiffness_damping=beta)
+    if float(step.dt) <= float(limit):
+        return dataclasses.replace(step, exact=exact, stiffness_damping=beta)
+    return dataclasses.replace(step, dt=limit, rule="exact", exact=exact, stiffness_damping=beta)
 
 
 def damped_bound(bound, stiffness_damping):
