@@ -352,3 +352,29 @@ def test_bad_beta_is_refused_and_the_toml_key_is_read(beam):
     assert problem.stiffness_damping == 3.0e-5 and problem.damping == 0.5
     problem, _ = problem_from_config({"problem": {"kind": "cantilever"}})
     assert problem.stiffness_damping == 0.0  # a file without the key: none
+
+
+def test_without_beta_the_step_is_unchanged_and_a_force_model_without_the_damping_force_is_refused(beam):
+    """beta = 0 builds no damping term (the step of C = alpha M, bit for bit); a force model
+    whose operator has no damped_matvec cannot run beta > 0 and says so."""
+    import types
+
+    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.stepper import build_system
+
+    class MatvecOnly:  # a force model of one's own that knows no damping force
+        name = "matvec-only"
+
+        def operator(self, problem):
+            return types.SimpleNamespace(matvec=Preassembled().operator(problem).matvec)
+
+        def part_operators(self, problem, parts, n_local):
+            return Preassembled().part_operators(problem, parts, n_local)
+
+        def max_stable_dt(self, problem):
+            return Preassembled().max_stable_dt(problem)
+
+    assert build_system(_clamped(beam, stiffness_damping=0.0), 1e-4).stiffness_damping is None
+    assert build_system(_clamped(beam, stiffness_damping=0.0), 1e-4, MatvecOnly()).stiffness_damping is None
+    with pytest.raises(ProblemError, match="damped_matvec"):
+        build_system(_clamped(beam), 1e-4, MatvecOnly())
