@@ -107,9 +107,12 @@ class HyperelasticForce:
         F-dot = grad v of the velocity v (n_nodes, 3) [cm/s] (a ``jax.jvp`` of its
         ``first_piola``, the instantaneous response of a law with internal variables), beta
         [s]. Its nodal forces are beta K_T(u) v without any global tangent."""
+        return beta * self._stress_and_rate(F, velocity)[1]
+
+    def _stress_and_rate(self, F, velocity):
+        """(P(F), dP/dF[grad v]) of one ``jax.jvp`` of the law's ``first_piola``."""
         fibres = self.fibres_at_points()
-        _, rate = jax.jvp(lambda G: self.material.first_piola(G, fibres), (F,), (self.gradient(velocity),))
-        return beta * rate
+        return jax.jvp(lambda G: self.material.first_piola(G, fibres), (F,), (self.gradient(velocity),))
 
     def fibres_at_points(self):
         """(n_elements, 1, 2, 3) the fibres broadcast over the quadrature points, or None."""
@@ -135,9 +138,8 @@ class HyperelasticForce:
         """f_int(u) + beta K_T(u) v (n_nodes, 3) [dyn]: the internal force of u plus the
         stiffness-proportional damping force of the velocity v (n_nodes, 3) [cm/s], beta
         [s], summed in one element kernel (P + :meth:`viscous_stress` at each point)."""
-        F = self.deformation_gradient(u)
-        P = self.material.first_piola(F, self.fibres_at_points()) + self.viscous_stress(F, velocity, beta)
-        return self._assembled(self._nodal_forces(P), u.shape[0])
+        P, rate = self._stress_and_rate(self.deformation_gradient(u), velocity)
+        return self._assembled(self._nodal_forces(P + beta * rate), u.shape[0])
 
     def update(self, u, internal, dt, velocity=None, beta=None):
         """(f_int(u) (n_nodes, 3) [dyn], the law's internal variables after it) of a law
