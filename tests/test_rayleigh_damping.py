@@ -221,6 +221,22 @@ def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device
     assert float(np.max(np.abs(without.displacement - one.displacement))) > 0.01 * scale
 
 
+@pytest.mark.parametrize("partitions", [None, 2])
+def test_every_linear_force_model_applies_beta(beam, partitions):
+    """The matrix-free element kernel and the one-width ELL layout give the damped run of
+    the default grouped stiffness, on one device and on two parts."""
+    from jaxsync.fem.internal_force import Preassembled
+
+    problem = _cantilever(beam)
+    dt = float(problem.dt)
+    default = jaxsync.simulate(problem, 200, dt=dt, save=50, partitions=partitions)
+    scale = float(np.max(np.abs(default.displacement)))
+    for mode in ("recompute", Preassembled(layout="ell")):
+        run = jaxsync.simulate(problem, 200, dt=dt, save=50, partitions=partitions, mode=mode)
+        np.testing.assert_allclose(run.displacement, default.displacement, rtol=0, atol=1e-12 * scale,
+                                   err_msg=str(mode))
+
+
 def test_an_ensemble_equals_separate_runs_and_refuses_another_beta(beam):
     problems = [_cantilever(beam), _cantilever(beam, body_force=(0.0, 1.0e4, -1.0e4), initial_velocity=None)]
     dt = float(problems[0].dt)
