@@ -34,7 +34,9 @@ Layout (every table optional; defaults give the paper's cantilever)::
     kind = "cantilever"         # or "general" (then give [[dirichlet]] and loads)
     element = "P1"              # or "P2": quadratic tetrahedra (bending, nu -> 0.5); the
                                 # default is P2 on a quadratic (tetra10) mesh, else P1
-    damping = 0.5               # alpha, 1/s
+    damping = 0.5               # alpha, 1/s (C = alpha M + beta K)
+    stiffness_damping = 0.0     # beta, s (optional; damps a mode of frequency omega at
+                                # (alpha + beta omega^2) / 2 and lowers the stable step)
     body_force = [0.0, 0.0, -0.5]
     t_ramp = 1.0
     # t_off = 3.0
@@ -138,8 +140,8 @@ _SCHEMA: dict[str, Any] = {
     "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
              "width": "number", "height": "number", "divisions": ("int", 3)},
     "material": lambda table, origin: _material_schema(table, origin),  # the keys of its model
-    "problem": {"kind": "string", "element": "string", "damping": "number", "body_force": ("number", 3),
-                "t_ramp": "number", "t_off": "number"},
+    "problem": {"kind": "string", "element": "string", "damping": "number", "stiffness_damping": "number",
+                "body_force": ("number", 3), "t_ramp": "number", "t_off": "number"},
     "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
             "xdmf": "path", "vtu": "path", "checkpoint": "path", "checkpoint_every": "int",
             "mass_scaling_dt": "number", "mass_scaling_beta": "number"},
@@ -478,6 +480,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     if element is not None:
         check_option("[problem] element", element, Element)
     damping = float(prob.get("damping", 0.5))
+    stiffness_damping = float(prob.get("stiffness_damping", 0.0))
     if kind == "cantilever":
         for table in ("dirichlet", "body_force", "pressure", "traction", "support"):
             if table in config:
@@ -485,7 +488,8 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
                                   "cantilever sets its own clamp and load")
         t_off = prob.get("t_off")
         problem = cantilever(mesh, body_force=tuple(float(x) for x in prob.get("body_force", (0.0, 0.0, -0.5))),
-                             damping=damping, t_ramp=float(prob.get("t_ramp", 1.0)),
+                             damping=damping, stiffness_damping=stiffness_damping,
+                             t_ramp=float(prob.get("t_ramp", 1.0)),
                              t_off=None if t_off is None else float(t_off), material=material, element=element)
     else:  # "general"
         cantilever_keys = [key for key in ("body_force", "t_ramp", "t_off") if key in prob]
@@ -493,7 +497,8 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
             raise ConfigError(f"[problem] {', '.join(cantilever_keys)}: only used with kind = \"cantilever\"; a "
                               "general problem takes its loads from [[body_force]], [[pressure]] and [[traction]] "
                               "tables (each with its own t_ramp, t_off...)")
-        problem = Problem(mesh=mesh, material=material, damping=damping, element=element,
+        problem = Problem(mesh=mesh, material=material, damping=damping, stiffness_damping=stiffness_damping,
+                          element=element,
                           dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
                           loads=tuple(_loads(config)), supports=tuple(_supports(config)))
     run = config.get("run", {})

@@ -29,6 +29,7 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
            "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
            "ExplicitSystem", "SolverState", "build_system",
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
+           "damped_bound",
            "MassScalingWarning", "NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden",
            "helical_fibres", "TotalLagrangian", "stable_dt", "check_stable_dt", "inverted_elements",
            "MaterialLaw", "FiniteStrainLaw", "StandardLinearSolid", "ViscoelasticNeoHookean", "ViscoelasticHGO",
@@ -47,7 +48,8 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".prestress": ("Prestressed",),
     ".problem": ("Dirichlet", "Problem", "cantilever"),
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
-    ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
+    ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "damped_bound", "mass_scaling", "max_stable_dt",
+                  "stable_step"),
     ".total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
     ".viscoelastic": ("StandardLinearSolid", "ViscoelasticHGO", "ViscoelasticNeoHookean"),
 })
@@ -64,6 +66,6 @@ if TYPE_CHECKING:
     from .prestress import Prestressed
     from .problem import Dirichlet, Problem, cantilever
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
-    from .timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .timestep import MassScalingWarning, StableStep, cfl_dt, damped_bound, mass_scaling, max_stable_dt, stable_step
     from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
     from .viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean

@@ -45,6 +45,11 @@ class ElementStiffness:
         return jax.ops.segment_sum(forces.reshape(-1, 3), self.tets.reshape(-1),
                                    num_segments=u.shape[0])
 
+    def damped_matvec(self, u, velocity, beta):
+        """K (u + beta v): the force of u plus the stiffness-proportional damping force of
+        the velocity v (n_nodes, 3) [cm/s], beta [s] (K is linear: one evaluation)."""
+        return self.matvec(u + beta * velocity)
+
 
 def element_forces(points, tets, u, lam, mu):
     """(n_elements, 4, 3) nodal internal forces V sigma grad N_a of P1 tetrahedra.

@@ -42,9 +42,13 @@ __all__ = ["InternalForce", "ForceModel", "Preassembled", "ElementRecompute", "f
 
 
 class InternalForce(Protocol):
-    """A pytree that computes the internal force of displacements ``u``."""
+    """A pytree that computes the internal force of displacements ``u``, and (for
+    stiffness-proportional damping, ``Problem.stiffness_damping``) that force plus the
+    damping force beta K_T(u) v of a velocity v (:mod:`jaxsync.fem.stepper`)."""
 
     def matvec(self, u): ...
+
+    def damped_matvec(self, u, velocity, beta): ...
 
 
 class PartGeometry(Protocol):

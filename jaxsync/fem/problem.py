@@ -102,8 +102,16 @@ class Problem:
         dirichlet: prescribed displacements (:class:`Dirichlet`, constant or following a
             time function); later entries override earlier ones.
         loads: :class:`BodyForce`, :class:`Pressure` and :class:`Traction` terms, summed.
-        damping: mass-proportional damping coefficient alpha [1/s] (C = alpha M + the
-            supports' dashpots).
+        damping: mass-proportional damping coefficient alpha [1/s] (C = alpha M + beta K
+            + the supports' dashpots).
+        stiffness_damping: stiffness-proportional damping coefficient beta [s] (Rayleigh
+            damping C = alpha M + beta K; default 0). A mode of frequency omega decays at
+            the rate (alpha + beta omega^2) / 2: beta damps the fast modes. The explicit
+            step takes the damping force beta K v from the backward velocity
+            v = (d(n) - d(n-1)) / dt (a hyperelastic law: beta times its tangent applied
+            to v, :mod:`jaxsync.fem.stepper`), which lowers the stable step to
+            sqrt((2 / omega_max)^2 + beta^2) - beta (:func:`jaxsync.fem.timestep.damped_bound`;
+            the default :attr:`dt` follows it). May be a JAX tracer (differentiable).
         supports: :class:`jaxsync.ElasticSupport` terms (spring-dashpot supports on facet
             sets: :mod:`jaxsync.fem.support`).
         initial_displacement: (n_nodes, 3) [cm] or None (zero), on :attr:`points`.
@@ -123,6 +131,7 @@ class Problem:
     density_scale: Any = None
     supports: tuple = ()
     element: Element | None = None
+    stiffness_damping: Any = 0.0
     operators: UnitOperators | None = dataclasses.field(default=None, repr=False)
 
     def __post_init__(self):
@@ -150,6 +159,8 @@ class Problem:
                 raise ProblemError(f"unknown support {support!r}: use jaxsync.ElasticSupport")
             self.mesh.facet_set(support.surface)
         check_number(self.damping, "Problem.damping (mass-proportional alpha)", at_least=0.0, unit="1/s")
+        check_number(self.stiffness_damping, "Problem.stiffness_damping (stiffness-proportional beta)", at_least=0.0,
+                     unit="s", hint="give beta >= 0 (0: no stiffness-proportional damping)")
         from .space import function_space
 
         if self.element is None:
@@ -213,10 +224,20 @@ class Problem:
         return self.time_step.dt
 
     @property
+    def stiffness_damped(self) -> bool:
+        """Whether the problem has stiffness-proportional damping: ``stiffness_damping``
+        is not a concrete zero (a traced beta counts, so that its gradient flows)."""
+        from ..pytree import concrete_scalar
+
+        return concrete_scalar(self.stiffness_damping) != 0.0
+
+    @property
     def time_step(self):
         """The default step with its rule and both bounds
         (:class:`jaxsync.fem.timestep.StableStep`)."""
-        return self.material.stable_step(self)
+        from .timestep import stable_step
+
+        return stable_step(self)
 
     def element_steps(self) -> np.ndarray:
         """(n_elements,) each element's own stable step [s] (alpha_s = 1), as its material
@@ -350,7 +371,8 @@ class Problem:
         element = (f"; quadratic (P2) elements, {self.n_nodes} nodes"
                    f"{' (isoparametric)' if self.space.curved else ''}" if self.element == "P2" else "")
         return (f"{self.mesh!r}{element}\n"
-                f"material: E={m.E} dyn/cm^2, nu={m.nu}, rho={m.rho} g/cm^3; damping alpha={self.damping} 1/s\n"
+                f"material: E={m.E} dyn/cm^2, nu={m.nu}, rho={m.rho} g/cm^3; damping alpha={self.damping} 1/s"
+                + (f", beta={self.stiffness_damping} s" if self.stiffness_damped else "") + "\n"
                 f"Dirichlet dofs: {len(dofs)}" + (f" ({moving} condition{'s' if moving > 1 else ''} following a "
                                                   "time function)" if moving else "")
                 + f"; loads: {len(self.loads)}" + (f" ({kinds})" if kinds else "") + supports + f"; {step}")
@@ -376,13 +398,14 @@ def _warn_about_locking(problem: "Problem") -> None:
 
 
 def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping=0.5,
-               t_ramp: float = 1.0, t_off: float | None = None,
+               stiffness_damping=0.0, t_ramp: float = 1.0, t_off: float | None = None,
                material: LinearElastic | None = None, initial_displacement=None,
                initial_velocity=None, element: Element | None = None) -> Problem:
     """The paper's cantilever (Table 1): 25 x 1 x 1 cm beam clamped at x = 0.
 
     E = 1e6 dyn/cm^2, nu = 0.3, rho = 1 g/cm^3, body force (0, 0, -0.5) dyn/cm^3 ramped
-    over ``t_ramp`` s, damping alpha = 0.5 1/s, zero initial conditions. The default mesh
+    over ``t_ramp`` s, damping alpha = 0.5 1/s (``stiffness_damping``: beta [s], default 0),
+    zero initial conditions. The default mesh
     is the coarse :func:`box_beam` (104 nodes, 150 tetrahedra). Variants: skewed load
     ``body_force=(0, -0.5, -0.5)``; load switched off at ``t_off``; initial conditions.
     The clamp is every node with x equal to the mesh's smallest x; ``element`` as for
@@ -399,6 +422,6 @@ def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping
     clamp = Dirichlet(where=nodes_at_min_x)
     time = Ramp(t_ramp) if t_off is None else StepOff(t_off, Ramp(t_ramp))
     return Problem(mesh=mesh, material=material, dirichlet=(clamp,),
-                   loads=(BodyForce(body_force, time),), damping=damping,
+                   loads=(BodyForce(body_force, time),), damping=damping, stiffness_damping=stiffness_damping,
                    initial_displacement=initial_displacement, initial_velocity=initial_velocity,
                    element=element)

@@ -96,6 +96,12 @@ class BlockEll:
             return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u), self.scale)
         return _matvec(self.columns, self.blocks, jnp.asarray(u), scale=self.scale)
 
+    def damped_matvec(self, u, velocity, beta):
+        """K u + beta K v = K (u + beta v) for u, v = ``velocity`` (n_cols, 3) and the
+        stiffness-proportional damping beta [s]: one product (a linear operator's tangent is
+        itself; :mod:`jaxsync.fem.stepper`)."""
+        return self.matvec(u + beta * velocity)
+
     @property
     def shape(self) -> tuple[int, int]:
         return self.columns.shape

@@ -16,6 +16,19 @@ damping, C = alpha M + B; the update is then, node by node, the 3 x 3 solve
 ``f`` is evaluated at the time of the current displacement d(n), as in the paper's published code. The start follows the
 paper: a0 from the consistent-mass system, d(-1) = d0 - dt v0 + dt^2/2 a0.
 
+Stiffness-proportional (Rayleigh) damping, C = alpha M + beta K (``Problem.stiffness_damping``
+= beta [s]): its force beta K v is taken with the backward velocity v = (d(n) - d(n-1)) / dt
+and added to the internal force before any exchange, which keeps the update explicit and
+the same (K d(n) above becomes K d(n) + beta K v). For a linear law that is one product,
+K (d(n) + (beta / dt) (d(n) - d(n-1))); a hyperelastic law adds the viscous stress
+beta dP/dF[grad v] in its element kernel
+(:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.damped_matvec`), so no global
+tangent is formed. The supports' springs count in K; the follower pressures (loads) do
+not. Partial forces of parts, deep halos and predicted shared values (the
+synchronization-avoiding phase, whose overwritten d(n) and d(n-1) give v there) all
+follow. The stable step drops to sqrt((2 / omega_max)^2 + beta^2) - beta
+(:func:`jaxsync.fem.timestep.damped_bound`).
+
 State is explicit (:class:`SolverState`); :func:`step` is a pure function and
 :func:`advance` runs it in a ``lax.scan``. The host drivers that call them, for one
 device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
@@ -36,7 +49,7 @@ from .sparse import BlockEll
 from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step", "internal_forces",
-           "internal_forces_and_variables",
+           "internal_forces_and_variables", "backward_velocity",
            "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance", "Probe",
            "STEP_UNROLL"]
 
@@ -66,6 +79,8 @@ class ExplicitSystem:
             (:class:`jaxsync.fem.support.Dashpot`), or None.
         follower: the follower pressures, loads that depend on the displacement
             (:class:`jaxsync.fem.follower.FollowerPressure`), or None.
+        stiffness_damping: beta [s] of the stiffness-proportional damping beta K, or None
+            (the problem has none: the step is that of C = alpha M alone).
     """
 
     stiffness: BlockEll
@@ -81,6 +96,7 @@ class ExplicitSystem:
     spring: Any = None
     dashpot: Any = None
     follower: Any = None
+    stiffness_damping: Any = None
 
 
 @pytree_dataclass
@@ -111,11 +127,24 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     ``mode``: the internal force's model (:func:`jaxsync.fem.internal_force.force_model`:
     ``"preassembled"``, K stored in node-blocked ELL form, or ``"recompute"``, element
     quantities formed every step, paper Remark 2; or a force model itself).
-    Traceable in the material, damping, load magnitudes and dt (differentiable)."""
+    Traceable in the material, damping (alpha and beta), load magnitudes and dt
+    (differentiable).
+
+    Raises:
+        ProblemError: stiffness-proportional damping with a force model whose operator
+            has no ``damped_matvec`` (the damping force beta K_T(u) v)."""
+    from ..errors import ProblemError
     from .follower import follower_pressure
     from .internal_force import force_model
 
     stiffness = force_model(mode).operator(problem)
+    beta = None
+    if problem.stiffness_damped:
+        if not hasattr(stiffness, "damped_matvec"):
+            raise ProblemError(f"stiffness_damping={problem.stiffness_damping} needs the damping force beta K v, "
+                               f"but the force model {mode!r} gives an operator ({type(stiffness).__name__}) without "
+                               "damped_matvec(u, velocity, beta): add that method, or set stiffness_damping=0")
+        beta = jnp.asarray(problem.stiffness_damping, dtype=float)
     mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
     vectors, times = problem.load_vectors()
     n = problem.n_nodes
@@ -130,7 +159,7 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
         moving=jnp.stack([v for v, _ in moving]) if moving else None, moving_times=tuple(g for _, g in moving),
         spring=surface_spring(problem),
         dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, jnp.asarray(fixed)),
-        follower=follower_pressure(problem))
+        follower=follower_pressure(problem), stiffness_damping=beta)
 
 
 def external_force(system: ExplicitSystem, t):
@@ -170,29 +199,50 @@ def apply_dirichlet(system: ExplicitSystem, displacement, t):
     return jnp.where(system.fixed, prescribed_values(system, t), displacement)
 
 
-def internal_forces(system: ExplicitSystem, displacement, t=0.0):
+def internal_forces(system: ExplicitSystem, displacement, t=0.0, velocity=None):
     """(n_nodes, 3) K d [dyn]: the internal force of the (part's) elements plus the
     supports' springs, minus the follower pressures at time ``t`` [s] (the loads that
     depend on the displacement, on the part's own facets), before any exchange. A law
-    with internal variables: its force from rest (its ``first_piola``)."""
-    return _springs_and_followers(system, displacement, system.stiffness.matvec(displacement), t)
+    with internal variables: its force from rest (its ``first_piola``). With a
+    ``velocity`` v (n_nodes, 3) [cm/s] and the system's stiffness-proportional damping
+    beta, plus the damping force beta K v (module docstring)."""
+    damped = velocity is not None and system.stiffness_damping is not None
+    force = (system.stiffness.damped_matvec(displacement, velocity, system.stiffness_damping) if damped
+             else system.stiffness.matvec(displacement))
+    return _springs_and_followers(system, displacement, force, t, velocity if damped else None)
+
+
+def backward_velocity(system: ExplicitSystem, state: SolverState):
+    """(n_nodes, 3) v = (d(n) - d(n-1)) / dt [cm/s], the velocity the damping force beta K v
+    of a step uses, or None without stiffness-proportional damping."""
+    if system.stiffness_damping is None:
+        return None
+    return (state.displacement - state.previous) / system.dt
 
 
 def internal_forces_and_variables(system: ExplicitSystem, state: SolverState, t):
-    """(K d(n) as :func:`internal_forces` computes it, the internal variables after it):
-    a law with state updates its variables in the element kernel, with the force
+    """(K d(n) as :func:`internal_forces` computes it, with the damping force beta K v of
+    the :func:`backward_velocity`, if any; the internal variables after it): a law with
+    state updates its variables in the element kernel, with the force
     (``stiffness.update(u, internal, dt)``, :class:`jaxsync.fem.total_lagrangian.HyperelasticForce`);
     a law without any returns them (empty) as they are."""
+    velocity = backward_velocity(system, state)
     if not jax.tree_util.tree_leaves(state.internal):  # no state: the elastic kernel
-        return internal_forces(system, state.displacement, t), state.internal
-    force, internal = system.stiffness.update(state.displacement, state.internal, system.dt)
-    return _springs_and_followers(system, state.displacement, force, t), internal
+        return internal_forces(system, state.displacement, t, velocity), state.internal
+    if velocity is None:
+        force, internal = system.stiffness.update(state.displacement, state.internal, system.dt)
+    else:
+        force, internal = system.stiffness.update(state.displacement, state.internal, system.dt, velocity,
+                                                  system.stiffness_damping)
+    return _springs_and_followers(system, state.displacement, force, t, velocity), internal
 
 
-def _springs_and_followers(system: ExplicitSystem, displacement, force, t):
-    """The elements' ``force`` plus the supports' springs, minus the follower pressures."""
+def _springs_and_followers(system: ExplicitSystem, displacement, force, t, velocity=None):
+    """The elements' ``force`` plus the supports' springs (with their damping force
+    beta S v when a ``velocity`` is given), minus the follower pressures."""
     if system.spring is not None:
-        force = force + system.spring.matvec(displacement)
+        at = displacement if velocity is None else displacement + system.stiffness_damping * velocity
+        force = force + system.spring.matvec(at)
     if system.follower is not None:
         force = force - system.follower.force(displacement, t)
     return force
@@ -223,6 +273,7 @@ def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite
 
 def initial_state(problem, system: ExplicitSystem) -> SolverState:
     """The paper's start: a0 solves M a0 = f(0) - C v0 - K d0 with the CONSISTENT mass
+    (C v0 = alpha M v0 + beta K v0 + the dashpots' B v0)
     (Dirichlet rows and columns replaced by the identity, so a0 = 0 there), then
     d(-1) = d0 - dt v0 + dt^2 / 2 a0. Solved by conjugate gradients (differentiable).
 
@@ -250,7 +301,8 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
         before, now, after = (prescribed_values(system, t) for t in (-dt, 0.0, dt))
         v0 = jnp.where(system.fixed, (after - before) / (2.0 * dt), v0)
         accel_fixed = (1.0 - free) * (after - 2.0 * now + before) / (dt * dt)
-    rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - internal_forces(system, d0)
+    # with stiffness-proportional damping, C v0 includes beta K v0 (the tangent at d0)
+    rhs = external_force(system, 0.0) - system.damping * mass.matvec(v0) - internal_forces(system, d0, 0.0, v0)
     if system.dashpot is not None:  # the supports' dashpots, B v0 (B = coupling / (dt / 2))
         rhs = rhs - jnp.einsum("nij,nj->ni", system.dashpot.coupling, v0) / (0.5 * dt)
     if accel_fixed is not None:

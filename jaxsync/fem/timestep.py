@@ -7,6 +7,18 @@ The exact stability bound of the central difference scheme with lumped mass (wit
 without mass-proportional damping) is ``2 / omega_max``, omega_max^2 the largest
 eigenvalue of M^-1 K on the free dofs.
 
+Stiffness-proportional (Rayleigh) damping beta K (``Problem.stiffness_damping``) takes its
+force from the backward velocity (d(n) - d(n-1)) / dt, which keeps the step explicit and
+lowers the bound to ``(2 / omega_max) (sqrt(1 + xi^2) - xi)``, xi = beta omega_max / 2,
+that is ``sqrt((2 / omega_max)^2 + beta^2) - beta`` (:func:`damped_bound`; the root of the
+mode's characteristic polynomial at z = -1). The mass-proportional part alpha M and the
+supports' dashpots enter the update with the centred velocity (d(n+1) - d(n-1)) / (2 dt)
+and leave the bound where it is. The bound decreases with omega, so the fastest mode
+(or element) still sets it: every bound of a problem with beta > 0 (:func:`stable_step`'s
+``exact``, the hyperelastic run-time check) is the undamped one passed through
+:func:`damped_bound`, and the default step is the law's rule where that is at most alpha_s
+times the damped bound, else alpha_s times it.
+
 The paper's c_e is the plate wave speed: it ignores the dilatational wave speed
 sqrt((lambda + 2 mu) / rho), which grows without bound as nu -> 0.5, so for nearly
 incompressible tissue (nu >= ~0.44 on the cantilever) the paper's rule lies above the
@@ -36,9 +48,10 @@ import warnings
 import numpy as np
 
 from ..errors import ProblemError, StabilityError
+from ..pytree import concrete_scalar as concrete_or_none
 
 __all__ = ["ALPHA_S", "MassScalingWarning", "StableStep", "element_size", "element_dt", "cfl_dt",
-           "max_stable_dt", "stable_step", "small_strain_step", "small_strain_max_stable_dt",
+           "max_stable_dt", "stable_step", "small_strain_step", "small_strain_max_stable_dt", "damped_bound",
            "hyperelastic_step", "check_dt", "divergence_advice", "mass_scaling"]
 
 ALPHA_S = 0.9
@@ -62,14 +75,16 @@ class StableStep:
         dt: the step [s]: ``min(cfl, alpha_s * exact)`` (a JAX tracer when E or rho is).
         rule: ``"cfl"`` (the paper's CFL rule set it) or ``"exact"`` (alpha_s times the
             exact bound set it, because the CFL rule is above alpha_s times the bound).
-        cfl: the paper's CFL step [s].
-        exact: the exact stability bound 2 / omega_max [s].
+        cfl: the paper's CFL step [s] (undamped).
+        exact: the exact stability bound [s]: 2 / omega_max, with stiffness-proportional
+            damping ``damped_bound(2 / omega_max, stiffness_damping)``.
         alpha_s: the safety factor applied to the exact bound.
         element: ``"P1"`` or ``"P2"``.
         law: the class name of a hyperelastic law, or None for the linear law. With a law,
             ``exact`` is the bound of its tangent at the initial displacement and ``cfl``
             holds the element eigenvalue rule's step there (alpha_s min_e 2 / omega_e, never
             above ``alpha_s * exact`` without springs; rule ``"element"`` when it set ``dt``).
+        stiffness_damping: the problem's beta [s] that ``dt`` and ``exact`` include (0: none).
     """
 
     dt: float
@@ -79,6 +94,7 @@ class StableStep:
     alpha_s: float = ALPHA_S
     element: str = "P1"
     law: str | None = None
+    stiffness_damping: float = 0.0
 
     def describe(self, dt=None) -> str:
         """One line: the step, the rule that set it and the exact bound.
@@ -86,6 +102,14 @@ class StableStep:
         ``dt``: the step a run uses instead of the default [s] (``simulate(..., dt=)``,
         ``jaxsync simulate --dt``): the line then names it first, with the default and the
         bound beside it."""
+        line = self._describe(dt)
+        beta = concrete_or_none(self.stiffness_damping)
+        if beta == 0.0:
+            return line
+        return line + (" (stiffness-proportional damping beta" + ("" if beta is None else f" = {beta:.4g} s")
+                       + ": the bound is sqrt((2/omega_max)^2 + beta^2) - beta, the step at most alpha_s times it)")
+
+    def _describe(self, dt=None) -> str:
         if dt is not None:
             try:
                 given, default, exact = float(dt), float(self.dt), float(self.exact)
@@ -249,8 +273,42 @@ def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     (:meth:`jaxsync.fem.material_law.MaterialLaw.stable_step`): the linear law's
     :func:`small_strain_step`; a hyperelastic law's ``alpha_s * min(element rule, exact
     bound)`` of its tangent at the initial displacement, P1 and P2 (module docstring; a
-    concrete law only)."""
-    return problem.material.stable_step(problem, alpha_s)
+    concrete law only). With stiffness-proportional damping beta (``problem.stiffness_damping``)
+    the exact bound is the law's passed through :func:`damped_bound` and the step the law's
+    where that is at most alpha_s times it, else alpha_s times it (rule ``"exact"``; when E
+    or rho is traced the smaller of the two, the rule left as the law's)."""
+    step = problem.material.stable_step(problem, alpha_s)
+    if not problem.stiffness_damped:
+        return step
+    beta = problem.stiffness_damping
+    exact = damped_bound(step.exact, beta)
+    limit = step.alpha_s * exact
+    if concrete_or_none(step.dt) is None or concrete_or_none(limit) is None:  # traced: the rule is not decided
+        import jax.numpy as jnp
+
+        return dataclasses.replace(step, dt=jnp.minimum(step.dt, limit), exact=exact, stiffness_damping=beta)
+    if float(step.dt) <= float(limit):
+        return dataclasses.replace(step, exact=exact, stiffness_damping=beta)
+    return dataclasses.replace(step, dt=limit, rule="exact", exact=exact, stiffness_damping=beta)
+
+
+def damped_bound(bound, stiffness_damping):
+    """The stable step [s] of the central-difference scheme with stiffness-proportional
+    damping beta = ``stiffness_damping`` [s] (its force from the backward velocity), given
+    the undamped bound ``bound`` = 2 / omega [s] of the fastest mode:
+    ``(2 / omega) (sqrt(1 + xi^2) - xi)`` with xi = beta omega / 2, i.e.
+    ``sqrt(bound^2 + beta^2) - beta`` (module docstring), computed as
+    ``bound^2 / (sqrt(bound^2 + beta^2) + beta)`` (no cancellation when beta >> bound).
+    Increasing in ``bound``, equal to it at beta = 0. Python floats in, a float out;
+    JAX tracers in, a tracer out (differentiable)."""
+    if concrete_or_none(stiffness_damping) == 0.0:
+        return bound
+    if concrete_or_none(bound) is not None and concrete_or_none(stiffness_damping) is not None:
+        b, beta = float(bound), float(stiffness_damping)
+        return b * b / (float(np.hypot(b, beta)) + beta)
+    import jax.numpy as jnp
+
+    return bound * bound / (jnp.sqrt(bound * bound + stiffness_damping * stiffness_damping) + stiffness_damping)
 
 
 def small_strain_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
@@ -288,9 +346,16 @@ def check_dt(problem, dt: float) -> None:
     if dt > step.exact:
         of = "" if step.law is None else f" (the {step.law} tangent stiffness at rest)"
         raise StabilityError(
-            f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s of the "
+            f"dt={dt:.4e} s is above the stability bound {_bound_name(step)}={step.exact:.4e} s of the "
             f"central difference scheme{of}: use dt <= {step.alpha_s * step.exact:.4e} s (the "
             f"default step is {step.dt:.4e} s), or jaxsync.mass_scaling to raise the stable step")
+
+
+def _bound_name(step: StableStep) -> str:
+    """How messages name ``step.exact``: 2/omega_max, or its damped form."""
+    if concrete_or_none(step.stiffness_damping) == 0.0:
+        return "2/omega_max"
+    return "sqrt((2/omega_max)^2 + beta^2) - beta (stiffness-proportional damping beta)"
 
 
 def divergence_advice(problem, dt: float) -> str:
@@ -302,7 +367,7 @@ def divergence_advice(problem, dt: float) -> str:
         return f"dt={float(dt):.4e} s; reduce dt"
     dt = float(dt)
     if dt > step.exact:
-        return (f"dt={dt:.4e} s is above the stability bound 2/omega_max={step.exact:.4e} s: "
+        return (f"dt={dt:.4e} s is above the stability bound {_bound_name(step)}={step.exact:.4e} s: "
                 f"rerun with dt <= {step.alpha_s * step.exact:.4e} s (or leave dt unset: the "
                 f"default step is {step.dt:.4e} s)")
     if step.law is not None:

@@ -48,7 +48,7 @@ from ..errors import ProblemError, StabilityError
 from ..pytree import pytree_dataclass
 from .kinematics import determinant
 from .reference_element import element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
-from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
+from .timestep import ALPHA_S, StableStep, damped_bound, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
            "exact_stable_dt", "element_wave_speeds", "inverted_elements", "strain_energy",
@@ -92,13 +92,31 @@ class HyperelasticForce:
     unit_mass: Any
     state: Any = None
 
-    def deformation_gradient(self, u):
-        """(n_elements, n_q, 3, 3) F = I + grad u at the quadrature points of u (n_nodes, 3) [cm]."""
+    def gradient(self, u):
+        """(n_elements, n_q, 3, 3) grad u = du_i/dX_J at the quadrature points of a nodal
+        field u (n_nodes, 3) (displacements [cm] -> [1]; velocities [cm/s] -> F-dot [1/s])."""
         ue = u[self.cells]
         # a sum of k broadcast products, not an einsum: XLA:CPU fuses it into one loop, while
         # the einsum's batched 3 x k x 3 products ran 5x slower (P2, 60 000 elements: 50 -> 10 ms)
-        grad_u = sum(ue[:, a, None, :, None] * self.gradients[:, :, a, None, :] for a in range(ue.shape[1]))
+        return sum(ue[:, a, None, :, None] * self.gradients[:, :, a, None, :] for a in range(ue.shape[1]))
+
+    def deformation_gradient(self, u):
+        """(n_elements, n_q, 3, 3) F = I + grad u at the quadrature points of u (n_nodes, 3) [cm]."""
+        grad_u = self.gradient(u)
         return grad_u + jnp.eye(3, dtype=grad_u.dtype)[None, None]
+
+    def viscous_stress(self, F, velocity, beta):
+        """(n_elements, n_q, 3, 3) the stiffness-proportional damping stress beta dP/dF[F-dot]
+        [dyn/cm^2] at F (n_elements, n_q, 3, 3): the law's tangent applied to the rate
+        F-dot = grad v of the velocity v (n_nodes, 3) [cm/s] (a ``jax.jvp`` of its
+        ``first_piola``, the instantaneous response of a law with internal variables), beta
+        [s]. Its nodal forces are beta K_T(u) v without any global tangent."""
+        return beta * self._stress_and_rate(F, velocity)[1]
+
+    def _stress_and_rate(self, F, velocity):
+        """(P(F), dP/dF[grad v]) of one ``jax.jvp`` of the law's ``first_piola``."""
+        fibres = self.fibres_at_points()
+        return jax.jvp(lambda G: self.material.first_piola(G, fibres), (F,), (self.gradient(velocity),))
 
     def fibres_at_points(self):
         """(n_elements, 1, 2, 3) the fibres broadcast over the quadrature points, or None."""
@@ -127,13 +145,25 @@ class HyperelasticForce:
         """f_int(u) (n_nodes, 3) [dyn] of displacements u (n_nodes, 3) [cm]."""
         return self._assembled(self.element_forces(u), u.shape[0])
 
-    def update(self, u, internal, dt):
+    def damped_matvec(self, u, velocity, beta):
+        """f_int(u) + beta K_T(u) v (n_nodes, 3) [dyn]: the internal force of u plus the
+        stiffness-proportional damping force of the velocity v (n_nodes, 3) [cm/s], beta
+        [s], summed in one element kernel (P + :meth:`viscous_stress` at each point)."""
+        P, rate = self._stress_and_rate(self.deformation_gradient(u), velocity)
+        return self._assembled(self._nodal_forces(P + beta * rate), u.shape[0])
+
+    def update(self, u, internal, dt, velocity=None, beta=None):
         """(f_int(u) (n_nodes, 3) [dyn], the law's internal variables after it) of a law
         with state: its ``stress_update`` at every quadrature point
         (:meth:`jaxsync.fem.material_law.FiniteStrainLaw.stress_update`), ``internal``
-        {name: (n_elements, n_q, ...)} its variables before, dt [s] the step."""
-        P, internal = self.material.stress_update(self.deformation_gradient(u), self.fibres_at_points(),
-                                                  internal, dt)
+        {name: (n_elements, n_q, ...)} its variables before, dt [s] the step. With a
+        ``velocity`` v (n_nodes, 3) [cm/s] and beta [s], the force includes the
+        stiffness-proportional damping force (:meth:`viscous_stress`, from the law's
+        instantaneous tangent)."""
+        F = self.deformation_gradient(u)
+        P, internal = self.material.stress_update(F, self.fibres_at_points(), internal, dt)
+        if velocity is not None:
+            P = P + self.viscous_stress(F, velocity, beta)
         return self._assembled(self._nodal_forces(P), u.shape[0]), internal
 
     def energy(self, u):
@@ -508,7 +538,8 @@ class RunCheck:
 
     :meth:`check` refuses a state with an inverted element (J <= 0) or whose exact stable
     step 2 / omega_max (:func:`exact_stable_dt` of the deformed state: its tangent stiffness,
-    the supports' springs, the lumped mass) is below dt. The exact bound is computed only
+    the supports' springs, the lumped mass; with beta through
+    :func:`jaxsync.fem.timestep.damped_bound`) is below dt. The exact bound is computed only
     when the element rule (:func:`stable_dt`, ``rule="element"``, alpha_s = 1, never above
     it) does not already clear dt -- with the default step, alpha_s = 0.9 times the element
     rule at rest, only once the rule's bound has dropped by 10 % -- or when the problem has
@@ -559,12 +590,14 @@ class RunCheck:
         bad = inverted_elements(self.operator, u)
         if len(bad):
             raise self._inverted(bad, step)
-        bound = stable_dt(self.operator, u, alpha_s=1.0, rule="element")
+        beta = self.problem.stiffness_damping  # the bounds with stiffness-proportional damping
+        name = "sqrt((2/omega_max)^2 + beta^2) - beta" if self.problem.stiffness_damped else "2/omega_max"
+        bound = damped_bound(stable_dt(self.operator, u, alpha_s=1.0, rule="element"), beta)
         if self.dt > bound or self.problem.supports:
-            bound = exact_stable_dt(self.problem, np.asarray(u))
+            bound = damped_bound(exact_stable_dt(self.problem, np.asarray(u)), beta)
             if self.dt > bound:
                 raise StabilityError(
-                    f"dt={self.dt:.4e} s is above the stable step 2/omega_max = {bound:.4e} s of the deformed "
+                    f"dt={self.dt:.4e} s is above the stable step {name} = {bound:.4e} s of the deformed "
                     f"state at step {step} (t = {step * self.dt:.6g} s; its tangent stiffness over the lumped "
                     f"mass): rerun with dt <= {ALPHA_S * bound:.4e} s (alpha_s = {ALPHA_S}) or smaller, as the "
                     "bound can shrink further as the body deforms, or with smaller loads")

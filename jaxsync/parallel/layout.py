@@ -251,7 +251,7 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
     :func:`jaxsync.fem.internal_force.force_model`) and the supports' springs on each
     part's own elements and facets; the mass, the dashpots, loads and Dirichlet values
     (their histories too) are gathered from ``system`` (padding: unit mass, no load, fixed
-    at zero), damping and dt broadcast to every part; the follower pressures act on each
+    at zero), damping (alpha and beta) and dt broadcast to every part; the follower pressures act on each
     part's own facets (those of its elements). Traced values of ``problem`` and
     ``system`` stay traced."""
     from ..fem.internal_force import force_model
@@ -285,7 +285,8 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
         spring=part_surface_springs(problem, layout.parts, layout.n_local),
         dashpot=None if d is None else Dashpot(split_blocks(d.inverse), split_blocks(d.coupling),
                                                split_blocks(d.prescribed)),
-        follower=part_follower_pressures(problem, layout.parts, layout.n_local))
+        follower=part_follower_pressures(problem, layout.parts, layout.n_local),
+        stiffness_damping=None if system.stiffness_damping is None else broadcast(system.stiffness_damping))
     tables = getattr(partition, "element_tables", None)
     return PartSystems(stacked, jnp.asarray(layout.shared_local), jnp.asarray(layout.shared_interface),
                        None if layout.owned is None else jnp.asarray(layout.owned),

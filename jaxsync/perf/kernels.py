@@ -43,7 +43,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..fem.stepper import STEP_UNROLL, SolverState, apply_dirichlet, central_difference, step
+from ..fem.stepper import STEP_UNROLL, SolverState, apply_dirichlet, backward_velocity, central_difference, step
 from ..parallel.spmd import spmd_program
 
 __all__ = ["local_step", "step_without_force", "step_with_scaled_force", "scatter_only",
@@ -76,9 +76,15 @@ def step_without_force(system, state: SolverState, scale, n_steps: int) -> Solve
 
 
 def step_with_scaled_force(system, state: SolverState, scale, n_steps: int) -> SolverState:
-    """``n_steps`` steps with the internal force ``scale * K d`` (scale = 1: the real step)."""
-    return _scan(lambda s: _update(system, s, scale * system.stiffness.matvec(s.displacement)),
-                 state, n_steps)
+    """``n_steps`` steps with the internal force ``scale * K d`` (scale = 1: the real step;
+    with stiffness-proportional damping, its force beta K v included as the step forms it)."""
+    def force(s):
+        v = backward_velocity(system, s)
+        if v is None:
+            return system.stiffness.matvec(s.displacement)
+        return system.stiffness.damped_matvec(s.displacement, v, system.stiffness_damping)
+
+    return _scan(lambda s: _update(system, s, scale * force(s)), state, n_steps)
 
 
 def scatter_only(system, state: SolverState, scale, n_steps: int, forces) -> SolverState:

@@ -53,7 +53,9 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     """Hash of everything that determines a trajectory, to refuse foreign checkpoints: the
     mesh, the material (a hyperelastic law: its type, every parameter and a hash of its
     fibre directions), dt, save_every, the Dirichlet set and values, the loads, the initial
-    conditions, density scaling, element, supports and prescribed histories."""
+    conditions, density scaling, element, supports, prescribed histories and the
+    stiffness-proportional damping beta (only when nonzero: the fingerprints of problems
+    without it are unchanged)."""
     h = hashlib.sha256()
     mesh = problem.mesh
     for arr in (mesh.points, mesh.tets):
@@ -76,6 +78,8 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     # supports and prescribed histories (absent from the fingerprints of problems without them)
     if problem.element != "P1":
         h.update(problem.element.encode())
+    if problem.stiffness_damped:
+        h.update(repr(("stiffness damping", float(problem.stiffness_damping))).encode())
     for support in problem.supports:
         h.update(repr((support.surface, float(support.stiffness), float(support.damping),
                        support.normal_only)).encode())

@@ -30,11 +30,11 @@ from .strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
 
 __all__ = ["ensemble"]
 
-# Only the per-run data are batched: the stiffness, mass, damping, dt, constrained dofs and
+# Only the per-run data are batched: the stiffness, mass, damping (alpha, beta), dt, constrained dofs and
 # load time functions are one copy for all runs.
 _RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, load_vectors=0,
                            load_times=None, fixed=None, fixed_values=0, moving=0, moving_times=None,
-                           spring=None, dashpot=None, follower=None)
+                           spring=None, dashpot=None, follower=None, stiffness_damping=None)
 
 
 def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface, adjoint=None):
@@ -166,7 +166,8 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
                            "run has no shared nodes")
     first = problems[0]
     dt = first.dt if dt is None else dt
-    traced = any(is_traced(p.material, p.damping, p.loads, dt, p.initial_displacement, p.initial_velocity)
+    traced = any(is_traced(p.material, p.damping, p.stiffness_damping, p.loads, dt, p.initial_displacement,
+                           p.initial_velocity)
                  for p in problems)
     executor = choose_executor(executor, traced)
     if isinstance(executor, HostExecutor) and executor.check_stability:
@@ -295,7 +296,9 @@ def _difference(problem, system: ExplicitSystem, reference_problem, reference: E
         ("number of loads", lambda: len(system.load_times) == len(reference.load_times)),
         ("stiffness (material E, nu)", lambda: _same(system.stiffness, reference.stiffness)),
         ("lumped mass (density rho or density_scale)", lambda: _same(system.mass, reference.mass)),
-        ("damping", lambda: _same(system.damping, reference.damping)),
+        ("damping (alpha)", lambda: _same(system.damping, reference.damping)),
+        ("stiffness-proportional damping (beta)",
+         lambda: _same(system.stiffness_damping, reference.stiffness_damping)),
         ("time step", lambda: _same(system.dt, reference.dt)),
         ("constrained dofs (which dofs are fixed)", lambda: _same(system.fixed, reference.fixed)),
         ("prescribed-displacement time functions", lambda: _same(system.moving_times, reference.moving_times)

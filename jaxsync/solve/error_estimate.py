@@ -19,7 +19,9 @@ saved step, every step's defect counted).
 
 :class:`ErrorPropagator` runs that recursion in the lowest ``n_modes`` vibration modes of
 the structure (K phi = omega^2 M phi on the free dofs, mass-orthonormal): each mode is a
-scalar central-difference oscillator with the run's mass-proportional damping, driven by
+scalar central-difference oscillator with the run's Rayleigh damping (damping ratio
+alpha / (2 omega) + beta omega / 2, the beta K term from the backward velocity as the
+stepper takes it), driven by
 phi^T M B delta. Between probes (``stride`` steps) the defect is taken as constant (the
 block's sum spread evenly over its steps), so a probe advances every mode by an exact
 2 x 2 map. The estimate at a
@@ -152,8 +154,10 @@ class ErrorPropagator:
         injection = modes[shared] * mass_full[shared][..., None]
         a = 0.5 * float(problem.damping) * float(dt)
         omega2 = np.maximum(omega2, 0.0)
-        c = (2.0 - float(dt) ** 2 * omega2) / (1.0 + a)
-        d = np.full_like(c, -(1.0 - a) / (1.0 + a))
+        # the stiffness-proportional damping beta omega^2 (q(n) - q(n-1)) / dt of the stepper
+        b = float(problem.stiffness_damping) * float(dt) * omega2
+        c = (2.0 - float(dt) ** 2 * omega2 - b) / (1.0 + a)
+        d = -(1.0 - a - b) / (1.0 + a)
         transition = np.stack([np.stack([c, d], -1), np.stack([np.ones_like(c), np.zeros_like(c)], -1)], -2)
         flexibility = _interface_flexibility(solve, free, shared, modes, np.sqrt(omega2), mass_full, float(dt))
         return cls(modes=modes, omega=np.sqrt(omega2), injection=injection, transition=transition, dt=float(dt),

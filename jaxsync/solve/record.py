@@ -22,14 +22,16 @@ __all__ = ["synchronized_trajectory", "online_trajectory", "run_parameters", "pa
 def run_parameters(problem, jumps=None) -> dict:
     """Problem parameters stored with a trajectory (concrete values only): ``material``
     (the law's class name, e.g. ``"LinearElastic"``, ``"NeoHookean"``), its small-strain
-    E, nu, rho and the damping; given the run's
+    E, nu, rho, the damping alpha and the stiffness-proportional damping beta
+    (``"stiffness_damping"``; a record without it had none); given the run's
     load jumps (:func:`jaxsync.fem.loads.load_jumps`), also ``last_load_jump``, the last of
     them (absent when there is none), which the offline check of
     :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does, and
     ``load_jumps``, all of them, across which training takes no window."""
     m = problem.material
     out = {"material": type(m).__name__}
-    for name, value in (("E", m.E), ("nu", m.nu), ("rho", m.rho), ("damping", problem.damping)):
+    for name, value in (("E", m.E), ("nu", m.nu), ("rho", m.rho), ("damping", problem.damping),
+                        ("stiffness_damping", problem.stiffness_damping)):
         if not is_traced(value):
             out[name] = float(value)
     if jumps is not None and len(jumps):

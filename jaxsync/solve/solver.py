@@ -332,8 +332,8 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
     if partitions is None and sync is not None:
         raise ProblemError(f"sync={sync!r} needs a distributed run: pass partitions=n_parts")
     dt = problem.dt if dt is None else dt
-    traced = is_traced(problem.material, problem.damping, problem.loads, dt, problem.initial_displacement,
-                       problem.initial_velocity)
+    traced = is_traced(problem.material, problem.damping, problem.stiffness_damping, problem.loads, dt,
+                       problem.initial_displacement, problem.initial_velocity)
     executor = choose_executor(executor, traced)
     distributed = None
     if partitions is not None:

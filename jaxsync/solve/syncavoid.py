@@ -142,8 +142,8 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
     dt = problem.dt if dt is None else dt
     tolerance = None if resync_tolerance is None else ResyncTolerance.parse(resync_tolerance)
     learning = _online_learning(tolerance, surrogates)
-    traced = is_traced(problem.material, problem.damping, problem.loads, dt, problem.initial_displacement,
-                       problem.initial_velocity, surrogates)
+    traced = is_traced(problem.material, problem.damping, problem.stiffness_damping, problem.loads, dt,
+                       problem.initial_displacement, problem.initial_velocity, surrogates)
     executor = choose_executor(executor, traced)
     distributed = DistributedParts(problem, partitions, sync, mode=mode)
     predictor = predictor_for(surrogates, distributed.partition, problem, dt)
