@@ -301,7 +301,7 @@ class FiniteStrainLaw:
         return LawCost(dict(cls.point_flops), 2 * 3 * 8 if hasattr(cls, "fibres") else 0)
 
     def run_check(self, problem, system, dt):
-        """:class:`jaxsync.fem.total_lagrangian.RunCheck` (inversion and the deformed state's step)."""
-        from .total_lagrangian import RunCheck
+        """:class:`jaxsync.fem.run_check.RunCheck` (inversion and the deformed state's step)."""
+        from .run_check import RunCheck
 
         return RunCheck(problem, system, dt)

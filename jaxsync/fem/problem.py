@@ -92,7 +92,7 @@ class Problem:
             ``mode``: the linear modes have no stiffness of a nonlinear law to store. The
             default step (:attr:`dt`) is that of the law's tangent at rest (the initial
             displacement); a run checks its deformed states between chunks
-            (:class:`jaxsync.fem.total_lagrangian.RunCheck`). Any law implementing
+            (:class:`jaxsync.fem.run_check.RunCheck`). Any law implementing
             :class:`jaxsync.fem.material_law.MaterialLaw` (a finite-strain law of your own
             deriving from :class:`jaxsync.fem.material_law.FiniteStrainLaw`) runs so too.
         element: ``"P1"`` (linear tetrahedra) or ``"P2"`` (quadratic: a node at every

@@ -37,7 +37,7 @@ rule being 2 / max_e omega_e of the element tangent stiffnesses over their lumpe
 (:func:`~jaxsync.fem.total_lagrangian.stable_dt`, ``rule="element"``: never above the exact
 bound, Irons' element eigenvalue bound; 0.7-0.9 of it on P1 and P2 beams), the rule the
 run-time check screens deformed states with: a deformed state has another bound, which
-the host executor checks between chunks (:class:`~jaxsync.fem.total_lagrangian.RunCheck`).
+the host executor checks between chunks (:class:`~jaxsync.fem.run_check.RunCheck`).
 """
 
 from __future__ import annotations

@@ -141,7 +141,7 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
     with resumable checkpoints; a divergence raises :class:`StabilityError` with the
     snapshots saved before.
 
-    ``check``: a hyperelastic run's :class:`~jaxsync.fem.total_lagrangian.RunCheck`, applied
+    ``check``: a hyperelastic run's :class:`~jaxsync.fem.run_check.RunCheck`, applied
     to the global state after every chunk (before its checkpoint): an inverted element or
     dt above the deformed state's stable step stops the run with :class:`StabilityError`
     (the snapshots saved so far in ``error.trajectory``); a divergence inside a chunk is
@@ -223,7 +223,7 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
 def _run_check(problem, system: ExplicitSystem, dt: float, executor):
     """The between-chunks check of a run, as its material law sets it
     (:meth:`jaxsync.fem.material_law.MaterialLaw.run_check`: a hyperelastic law's
-    :class:`jaxsync.fem.total_lagrangian.RunCheck`; None for a linear law, or with
+    :class:`jaxsync.fem.run_check.RunCheck`; None for a linear law, or with
     ``HostExecutor(check_stability=False)``)."""
     if not executor.check_stability:
         return None

@@ -53,8 +53,8 @@ import numpy as np
 from jaxsync.errors import ConfigError, InferencePrecisionError
 from jaxsync.surrogate.architecture import forward
 from jaxsync.surrogate.data import make_windows, normalize, subsample
-from jaxsync.surrogate.lstm import check_compute_dtype
 from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.protocol import check_compute_dtype
 
 __all__ = ["DEFAULT_BOUND", "ReducedPrecisionWarning", "InferencePrecisionReport", "surrogate_windows",
            "surrogate_signal_windows",

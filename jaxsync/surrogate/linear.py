@@ -56,8 +56,7 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
-from jaxsync.surrogate.lstm import check_compute_dtype, check_loads
-from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, PredictionCost
+from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, PredictionCost, check_compute_dtype, check_loads
 
 if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
     from jaxsync.surrogate.train import TrainResult

@@ -76,7 +76,13 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.protocol import GradientFitted, PredictionCost
+from jaxsync.surrogate.protocol import (  # noqa: F401 - the input checks, importable from here as before
+    COMPUTE_DTYPES,
+    GradientFitted,
+    PredictionCost,
+    check_compute_dtype,
+    check_loads,
+)
 from jaxsync.surrogate.replicas import (
     count_parameters,  # noqa: F401 - importable from here as before
     pad_params,
@@ -86,11 +92,6 @@ from jaxsync.surrogate.replicas import (
 Params = dict[str, Any]
 
 _DTYPES = ("float32", "float64")
-
-#: Reduced-precision compute dtypes :func:`forward` accepts (``compute_dtype``); None is
-#: the architecture's own dtype.
-COMPUTE_DTYPES = ("bfloat16",)
-
 
 @jax.tree_util.register_static
 @dataclasses.dataclass(frozen=True)
@@ -291,13 +292,6 @@ def init_params(key: jax.Array, arch: LSTMArchitecture) -> Params:
 
 
 # ----------------------------------------------------------------------------- cell
-
-
-def check_compute_dtype(compute_dtype: str | None) -> None:
-    """Raise :class:`ConfigError` unless ``compute_dtype`` is None or in :data:`COMPUTE_DTYPES`."""
-    if compute_dtype is not None and compute_dtype not in COMPUTE_DTYPES:
-        raise ConfigError(f"reduced-precision compute dtype must be one of {COMPUTE_DTYPES} (or None for the "
-                          f"architecture's dtype), got {compute_dtype!r}")
 
 
 def _reduced(params: Params, compute_dtype: str | None) -> Params:
@@ -517,29 +511,6 @@ def forward(
     past, future = (None, None) if loads is None else (loads[:arch.n_past], loads[arch.n_past:])
     state = encode(params, arch, xs, past)
     return decode(params, arch, state, xs[-1], load_parameter, dof_mask, future, offsets).astype(arch.dtype)
-
-
-def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
-    """``loads`` in ``arch.dtype``, checked: (n_p + n_f, n_load) for a model with load input
-    (``arch.n_load > 0``), None for one without.
-
-    Raises:
-        ConfigError: load signals missing, given to a model without load input, or of
-            the wrong shape."""
-    n_load = getattr(arch, "n_load", 0)
-    if n_load == 0:
-        if loads is not None:
-            raise ConfigError("load signals were given to a surrogate trained without load input (n_load=0), which "
-                              "would ignore them; train with the load input (load_input=True) or leave them out")
-        return None
-    if loads is None:
-        raise ConfigError(f"this surrogate takes {n_load} known load signal(s) (n_load={n_load}); pass loads of "
-                          f"shape (n_past + n_future, {n_load}), or bind the surrogate to its problem "
-                          "(Surrogate.for_problem)")
-    expected = (arch.n_past + arch.n_future, n_load)
-    if tuple(loads.shape) != expected:
-        raise ConfigError(f"load signals must have shape (n_past + n_future, n_load) = {expected}, got {loads.shape}")
-    return loads.astype(arch.dtype)
 
 
 # ----------------------------------------------------------------------------- cost

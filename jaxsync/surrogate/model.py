@@ -41,7 +41,7 @@ from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.architecture import Architecture
 from jaxsync.surrogate.data import padding_mask
 from jaxsync.surrogate.histories import shared_dof_layout
-from jaxsync.surrogate.lstm import check_compute_dtype
+from jaxsync.surrogate.protocol import check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
 

@@ -68,7 +68,8 @@ import numpy as np
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.loss import masked_mse
 
-__all__ = ["SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost"]
+__all__ = ["SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
+           "COMPUTE_DTYPES", "check_compute_dtype", "check_loads"]
 
 Params = Any
 
@@ -329,6 +330,41 @@ class LeastSquaresFitted(SurrogateArchitecture):
 
     def fit_description(self, result) -> str:
         return f"{self._name()}, least-squares fit in {result.seconds_per_epoch:.2f} s"
+
+
+#: Reduced-precision compute dtypes :func:`forward` accepts (``compute_dtype``); None is
+#: the architecture's own dtype.
+COMPUTE_DTYPES = ("bfloat16",)
+
+
+def check_compute_dtype(compute_dtype: str | None) -> None:
+    """Raise :class:`ConfigError` unless ``compute_dtype`` is None or in :data:`COMPUTE_DTYPES`."""
+    if compute_dtype is not None and compute_dtype not in COMPUTE_DTYPES:
+        raise ConfigError(f"reduced-precision compute dtype must be one of {COMPUTE_DTYPES} (or None for the "
+                          f"architecture's dtype), got {compute_dtype!r}")
+
+
+def check_loads(arch, loads: jax.Array | None) -> jax.Array | None:
+    """``loads`` in ``arch.dtype``, checked: (n_p + n_f, n_load) for a model with load input
+    (``arch.n_load > 0``), None for one without.
+
+    Raises:
+        ConfigError: load signals missing, given to a model without load input, or of
+            the wrong shape."""
+    n_load = getattr(arch, "n_load", 0)
+    if n_load == 0:
+        if loads is not None:
+            raise ConfigError("load signals were given to a surrogate trained without load input (n_load=0), which "
+                              "would ignore them; train with the load input (load_input=True) or leave them out")
+        return None
+    if loads is None:
+        raise ConfigError(f"this surrogate takes {n_load} known load signal(s) (n_load={n_load}); pass loads of "
+                          f"shape (n_past + n_future, {n_load}), or bind the surrogate to its problem "
+                          "(Surrogate.for_problem)")
+    expected = (arch.n_past + arch.n_future, n_load)
+    if tuple(loads.shape) != expected:
+        raise ConfigError(f"load signals must have shape (n_past + n_future, n_load) = {expected}, got {loads.shape}")
+    return loads.astype(arch.dtype)
 
 
 def _plain(value):
