@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import jaxsync
+from jaxpr_counts import dot_flops
 from jaxsync.app.train import add_train_parser
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate import (
@@ -90,13 +91,11 @@ def test_the_counted_cost_adds_the_highway_products_and_parameters():
     """prediction_cost of the network with a highway minus that of the same network
     without: the dot_generals the highway adds to forward's jaxpr, its 2 n_f n_dof
     additions (its bias and the sum with the decoder's output), and its parameters."""
-    from test_surrogate_protocol import _dot_flops
-
     arch, n_s = _network(), 7
     plain = dataclasses.replace(arch, highway=False, highway_rank=0)
     params = {a: lstm.init_params(jax.random.key(0), a) for a in (arch, plain)}
     xs, loads = jnp.zeros((4, 6)), jnp.zeros((7, 2))
-    dots = {a: _dot_flops(jax.make_jaxpr(lambda p, a=a: lstm.forward(p, a, xs, loads=loads))(params[a]).jaxpr)
+    dots = {a: dot_flops(jax.make_jaxpr(lambda p, a=a: lstm.forward(p, a, xs, loads=loads))(params[a]).jaxpr)
             for a in (arch, plain)}
     flops = {a: lstm.count_flops(a, n_s) for a in (arch, plain)}
     assert flops[arch]["matmul"] - flops[plain]["matmul"] == n_s * (dots[arch] - dots[plain]) > 0

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 import jaxsync
+from jaxpr_counts import dot_flops
 from jaxsync.app.cli import main
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.perf.roofline import surrogate_costs
@@ -375,21 +376,6 @@ def test_a_file_of_an_unregistered_model_names_the_fix(ridge, tmp_path):
     assert load_surrogate(path).arch == ridge.result.arch
 
 
-def _dot_flops(jaxpr) -> int:
-    """2 x multiply-adds of every matrix product (dot_general) in a jaxpr, nested ones included."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name == "dot_general":
-            (contracting, _), _ = eqn.params["dimension_numbers"]
-            lhs = eqn.invars[0].aval.shape
-            total += 2 * int(np.prod(eqn.outvars[0].aval.shape)) * int(np.prod([lhs[d] for d in contracting]))
-        for value in eqn.params.values():
-            inner = getattr(value, "jaxpr", value)
-            if hasattr(inner, "eqns"):
-                total += _dot_flops(inner)
-    return total
-
-
 @pytest.mark.parametrize("name", ["linear", "mlp"])
 def test_the_counted_cost_is_that_of_the_arrays_and_products(models, name):
     """prediction_cost against the model itself: the parameter bytes are those of the
@@ -409,7 +395,7 @@ def test_the_counted_cost_is_that_of_the_arrays_and_products(models, name):
     jaxpr = jax.make_jaxpr(lambda p, x, u: arch.forward(p, x, loads=u))(
         params, jnp.zeros((t, d)), jnp.zeros((t + f, n_load))).jaxpr
     elementwise = f * d if name == "linear" else 2 * 9 + 2 * f * d  # bias; b1, tanh, b2 and the skip
-    assert cost.flops == n_s * (_dot_flops(jaxpr) + elementwise + 2 * d * (t + f))
+    assert cost.flops == n_s * (dot_flops(jaxpr) + elementwise + 2 * d * (t + f))
     masked = arch.prediction_cost(n_s, masked=True, io_bytes_per_value=8)
     assert masked.flops == cost.flops + n_s * f * d  # the mask
     assert masked.bytes == cost.bytes + 8 * (n_s * t * d + 2 * d + n_s * f * d + d)  # buffer, mean, std, output, mask
