@@ -347,3 +347,16 @@ def test_prestressed_force_is_the_gradient_of_its_energy_and_the_identity_prestr
     identity = TotalLagrangian().operator(_vessel_problem(vessel, material=jaxsync.Prestressed(LAW)))
     np.testing.assert_allclose(identity.matvec(u), plain.matvec(u), rtol=0,
                                atol=1e-12 * np.abs(np.asarray(plain.matvec(u))).max())
+
+
+def test_a_viscoelastic_wall_is_unloaded_at_rest(vessel, unloaded):
+    """The imaged state is relaxed: a Prony series is unloaded with its long-term elastic
+    law (the same geometry as that law's), and the recovered geometry inflates back onto
+    the image under that law; the problem the result gives carries the viscoelastic law."""
+    wall = jaxsync.fem.ViscoelasticNeoHookean(E=LAW.E, nu=LAW.nu, rho=LAW.rho, betas=[1.0, 0.5], taus=[0.01, 0.1])
+    imaged = _vessel_problem(vessel, material=wall)
+    geometry = jaxsync.zero_pressure_geometry(imaged, tol=1e-12)
+    np.testing.assert_allclose(geometry.points, unloaded.points, rtol=0, atol=1e-12 * DIAMETER)
+    assert geometry.problem(imaged).material == wall
+    relaxed = _vessel_problem(vessel)  # the long-term law, LAW
+    np.testing.assert_allclose(_inflated(relaxed, geometry), vessel.points, rtol=0, atol=1e-8 * DIAMETER)

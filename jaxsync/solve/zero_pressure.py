@@ -17,7 +17,10 @@ reference X whose static solution under those loads is x, phi_X(X) = x. Two meth
   problem on reference X; every forward solve starts from the previous one's displacement.
   It takes every load and support the forward problem takes.
 
-Prescribed displacements g keep their dofs at X = x - g. :func:`zero_pressure_points` is
+The imaged state is taken as at rest under the imaging loads: a viscoelastic law (a Prony
+series, :class:`jaxsync.fem.viscoelastic.PronySeries`) is unloaded with its long-term
+(relaxed) elastic law, its ``elastic_law()``, the response its branches relax to under a
+held pressure. Prescribed displacements g keep their dofs at X = x - g. :func:`zero_pressure_points` is
 the Newton solve as a differentiable function of the law's parameters: its reverse pass is
 the adjoint of the converged solve (implicit function theorem),
 dX/dtheta = -(dR/dX)^-1 dR/dtheta.
@@ -84,6 +87,13 @@ class _Nodes:
         mask = np.zeros(len(points), dtype=bool)
         mask[list(self.indices)] = True
         return mask
+
+
+def _at_rest(problem):
+    """``problem`` with a viscoelastic law replaced by its long-term elastic law (module
+    docstring): the imaged state is relaxed."""
+    relaxed = getattr(problem.material, "elastic_law", None)
+    return problem if relaxed is None else problem.replace(material=relaxed())
 
 
 def problem_on(problem, mesh):
@@ -181,6 +191,7 @@ def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-1
             method does not take, traced parameters (use :func:`zero_pressure_points`).
     """
     _check(problem, method, tol, max_iter, load_steps, linear_solver)
+    problem = _at_rest(problem)
     if is_traced(problem.material, problem.loads):
         raise ProblemError("zero_pressure_geometry solves on the host, so it cannot take traced inputs (jax.grad, "
                            "jit, vmap): for derivatives of the unloaded positions use "
@@ -386,6 +397,7 @@ def zero_pressure_points(problem, *, tol: float = 1e-12, max_iter: int = 50, loa
         as :func:`zero_pressure_geometry`.
     """
     _check(problem, "newton", tol, max_iter, load_steps, "direct")
+    problem = _at_rest(problem)
     leaves, treedef = jax.tree_util.tree_flatten(problem.material)
 
     def concrete(values):
