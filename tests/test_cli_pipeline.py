@@ -384,7 +384,7 @@ def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     """``--learn``: an update after every re-synchronized stretch, said in the printed
     counts; a tolerance of 1e-12 cm still gives the synchronized run."""
     path = tmp_path / "learn.h5"
-    run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "60"))
+    run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "600"))
     assert run.code == 0, run.err
     result = jaxsync.Trajectory.load(path)
     st = result.stats

@@ -21,7 +21,8 @@ from jaxsync.surrogate import (
 def test_the_settings_keep_the_library_defaults():
     arch, sampling, config, checks = ArchitectureChoice(), Sampling(), TrainConfig(), TrainingChecks()
     lstm = arch.lstm(7, sampling.n_past, sampling.n_future)
-    assert lstm == LSTMArchitecture(n_dof=7)  # n_H 50, k 2, n_p = n_f = 20, q 0, float32
+    assert lstm == LSTMArchitecture(n_dof=7, highway=True)  # n_H 50, k 2, n_p = n_f = 20, q 0, float32
+    assert not dataclasses.replace(arch, n_cond_repeat=12).lstm(7, 20, 20).highway  # the conditional network
     assert arch.model == "lstm" and arch.fit_config == LinearFitConfig()
     assert (sampling.n_s, sampling.train_fraction, sampling.val_fraction, sampling.n_offsets, sampling.split,
             sampling.load_jump_windows, sampling.seed) == (150, 0.5, 0.25, 1, "interleaved", None, 0)

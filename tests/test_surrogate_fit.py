@@ -22,7 +22,7 @@ from jaxsync.surrogate import (
 )
 from jaxsync.surrogate.data import build_dataset, stack_replicas
 from jaxsync.surrogate.evaluate import e_mse
-from jaxsync.surrogate.train import train_replicas
+from jaxsync.surrogate.protocol import FitSettings
 from jaxsync.trajectory import PartHistory, Trajectory
 
 NODES = (np.array([3, 8], np.int64), np.array([3, 8, 11], np.int64))
@@ -64,11 +64,13 @@ def test_in_memory_training_equals_the_library_steps_and_writes_nothing(tmp_path
     assert isinstance(trained, TrainedSurrogates) and trained.files == {} and not list(tmp_path.iterdir())
     assert trained.trajectories == (None,) and trained.load_parameters is None
     # the same as the steps it is made of: windows (twice: two candidates per part by
-    # default), train_replicas, the lower validation loss of each part's pair, E_mse
+    # default), the model's fit (train_replicas from the linear highway's least-squares
+    # fit), the lower validation loss of each part's pair, E_mse
     datasets = [build_dataset([p.shared_displacement], 2, 6, 5, 0.5, 0.25, 0) for p in traj.parts]
     data = stack_replicas(datasets * 2)
     assert (trained.n_train_windows, trained.n_val_windows) == data.x_train.shape[1:2] + data.x_val.shape[1:2]
-    both = train_replicas(data, trained.result.arch, CONFIG, jax.random.key(0), progress=False)
+    assert trained.result.arch.highway
+    both = trained.result.arch.fit(data, FitSettings(ARCH, CONFIG, jax.random.key(0)))
     losses = both.best_val_loss.reshape(2, 2)  # (candidate, part)
     chosen = np.argmin(losses, axis=0)
     assert trained.candidates == {"n_candidates": 2, "chosen": chosen.tolist(), "best_val_loss": losses.tolist()}

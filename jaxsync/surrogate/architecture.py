@@ -89,9 +89,10 @@ class ArchitectureChoice:
             least-squares affine map of the window (the linear model, ARX with the load
             input) plus what its decoder learns on top, trained from that fit
             (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`). None (default): on for
-            the LSTM (out of sample it predicts as well as the linear model where the
-            plain network misses; ``docs/guides/surrogates.md``), not applicable to
-            the other models. False trains the paper's network; True for a model
+            the unconditional LSTM (out of sample it predicts as well as the linear
+            model where the plain network misses; ``docs/guides/surrogates.md``), off
+            for the conditional one (the map does not read the load parameter), not
+            applicable to the other models. False trains the paper's network; True for a model
             without a highway is refused.
     """
 
@@ -132,7 +133,7 @@ class ArchitectureChoice:
         ``n_dof`` (padded) dofs, reading ``n_load`` load signals."""
         return LSTMArchitecture(n_dof=n_dof, n_hidden=self.n_hidden, n_layers=self.n_layers, n_past=n_past,
                                 n_future=n_future, n_cond_repeat=self.n_cond_repeat, dtype=self.dtype, n_load=n_load,
-                                highway=self.highway is not False)
+                                highway=self.n_cond_repeat == 0 if self.highway is None else self.highway)
 
 
     @property
