@@ -165,10 +165,25 @@ def test_the_network_with_a_highway_predicts_as_well_as_its_linear_model(step_of
 
 
 @pytest.mark.slow
-def test_the_highway_turns_the_lstm_from_worse_to_as_good_as_the_linear_model(step_off):
-    """The same LSTM without a highway misses the switch-off (measured 35 % against 0.62 %)."""
-    problem, reference = step_off
-    plain = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1), epochs=150)
-    highway = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1, highway=True), epochs=150)
-    errors = [_out_of_sample_error(t.surrogate, problem, reference) for t in (plain, highway)]
-    assert errors[0] >= 10 * errors[1], errors
+@pytest.mark.parametrize("case", ["step-off", "pulsatile"])
+def test_the_highway_turns_the_lstm_from_worse_to_as_good_as_the_linear_model(case, step_off):
+    """The table of the surrogates guide: the linear model, the plain LSTM and the LSTM with
+    a highway (n_H 16, one layer, 150 epochs) on the step-off and on a pulsatile load.
+    Measured: step-off 0.62 %, 35 %, 0.62 %; pulsatile 0.51 %, 4.7 %, 0.51 %; asserted:
+    the highway within 5 % of the linear model, the plain LSTM at least 5x worse."""
+    if case == "step-off":
+        problem, reference = step_off
+    else:
+        base = step_off[0]
+        period = 0.12
+        pulse = jaxsync.Periodic(times=[0.0, 0.2 * period, 0.35 * period, 0.6 * period], values=[0.0, 1.0, 0.3, 0.0],
+                                 period=period)
+        problem = dataclasses.replace(base, loads=(jaxsync.BodyForce((0.0, 0.0, -0.5), jaxsync.Ramp(0.05) * pulse),))
+        reference = jaxsync.simulate(problem, N_STEPS, partitions=2)
+    errors = {}
+    for name, choice in (("linear", ArchitectureChoice(model="linear")),
+                         ("plain", ArchitectureChoice(n_hidden=16, n_layers=1, highway=False)),
+                         ("highway", ArchitectureChoice(n_hidden=16, n_layers=1, highway=True))):
+        errors[name] = _out_of_sample_error(_train(reference, choice, epochs=150).surrogate, problem, reference)
+    assert errors["highway"] <= 1.05 * errors["linear"], errors
+    assert errors["plain"] >= 5 * errors["highway"], errors
