@@ -87,6 +87,38 @@ def test_padding_keeps_a_replica_alone():
         np.testing.assert_array_equal(a, b)
 
 
+def test_online_learning_refits_the_highway_by_least_squares():
+    """An online update refits the highway on the run's weighted windows (the linear model's
+    refit, checked against numpy.linalg.lstsq on the real dofs) before the gradient steps,
+    which get the refitted network."""
+    arch = dataclasses.replace(_network(n_dof=3, n_load=1, rank=11), n_past=3, n_future=2)  # rank: 3 x 2 + 5 x 1
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(1, 40, 3, 3))
+    y = np.einsum("pwtd,tdfe->pwfe", x, rng.normal(size=(3, 3, 2, 3))) + 0.1
+    u = rng.normal(size=(1, 40, 5, 1))
+    weight, mask = np.ones(40), np.array([[1.0, 1.0, 0.0]])
+    x[..., 2], y[..., 2] = 0.0, 0.0  # the padded dof
+    params = jax.tree_util.tree_map(lambda a: a[None], lstm.init_params(jax.random.key(0), arch))
+
+    class Steps:  # the learner's gradient steps: record what they get
+        def gradient_steps(self, given, *args):
+            self.given = given
+            return given, 0
+
+    steps = Steps()
+    updated, n = arch.online_update(steps, params, x, y, u, weight, None, mask, 0.0)
+    assert updated is steps.given and n == 0
+    one = jax.tree_util.tree_map(lambda a: a[0], updated["highway"])
+    design = np.concatenate([x[0, :, :, :2].reshape(40, -1), u[0].reshape(40, -1), np.ones((40, 1))], axis=1)
+    coeffs, *_ = np.linalg.lstsq(design, y[0, :, :, :2].reshape(40, -1), rcond=None)
+    got = np.stack([np.asarray(linear.forward(one, arch.highway_arch, x[0, w], loads=u[0, w]))[:, :2]
+                    for w in range(40)])
+    np.testing.assert_allclose(got.reshape(40, -1), design @ coeffs, rtol=0, atol=1e-6 * np.abs(y).max())
+    for name in ("encoder", "decoder", "dense"):  # the recurrent part is the gradient steps' to change
+        for a, b in zip(jax.tree_util.tree_leaves(updated[name]), jax.tree_util.tree_leaves(params[name])):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_the_counted_cost_adds_the_highway_products_and_parameters():
     """prediction_cost of the network with a highway minus that of the same network
     without: the dot_generals the highway adds to forward's jaxpr, its 2 n_f n_dof

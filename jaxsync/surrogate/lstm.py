@@ -50,8 +50,8 @@ output and feeds the sum back. The map is fitted first, in closed form, on the t
 windows; the dense layer starts at zero, so training starts from the linear model's
 predictions and the recurrent part learns what they miss. No gradient reaches the map
 (training it with the decoder moves it off the least-squares fit and worsens the
-out-of-sample rollout), so online learning's gradient steps train the recurrent part
-only. Its parameters are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
+out-of-sample rollout); online learning refits it by least squares on the run's windows,
+as the linear model learns, and trains the recurrent part by gradient. Its parameters are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
 :func:`jaxsync.surrogate.linear.param_shapes`, of rank ``highway_rank``.
 
 Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
@@ -197,6 +197,17 @@ class LSTMArchitecture(GradientFitted):
     def init(self, key: jax.Array) -> Params:
         """:func:`init_params` of this network."""
         return init_params(key, self)
+
+    def online_update(self, learner, params, x, y, signals, weight, load_parameter, dof_mask, started: float):
+        """With a highway, its least-squares refit on the run's weighted windows first
+        (:func:`jaxsync.surrogate.linear.refit`, as the linear model learns online; no
+        gradient reaches it), then the recurrent part's full-batch Adam steps."""
+        if self.highway_rank:
+            from jaxsync.surrogate.linear import refit
+
+            highway = refit(params["highway"], self.highway_arch, x, y, signals, weight, dof_mask)
+            params = {**params, "highway": jax.tree_util.tree_map(jnp.asarray, highway)}
+        return learner.gradient_steps(params, x, y, signals, weight, load_parameter, dof_mask, started)
 
     def fit(self, data, settings):
         """Gradient training (:func:`~jaxsync.surrogate.train.train_replicas`); with a
