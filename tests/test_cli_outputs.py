@@ -361,7 +361,8 @@ def test_no_help_text_shows_a_literal_double_percent():
     texts = [parser.format_help()]
     sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
     texts += [p.format_help() for p in sub.choices.values()]
-    assert len(texts) == 7
+    assert set(sub.choices) == {"demo", "simulate", "train", "predict", "finetune", "report", "unload"}
+    assert len(texts) == 8
     for text in texts:
         assert "%%" not in text
     assert "error control at 1 %;" in " ".join(sub.choices["demo"].format_help().split())
