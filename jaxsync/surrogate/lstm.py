@@ -51,7 +51,8 @@ windows; the dense layer starts at zero, so training starts from the linear mode
 predictions and the recurrent part learns what they miss. No gradient reaches the map
 (training it with the decoder moves it off the least-squares fit and worsens the
 out-of-sample rollout); online learning refits it by least squares on the run's windows,
-as the linear model learns, and trains the recurrent part by gradient. Its parameters are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
+as the linear model learns, and trains the recurrent part by gradient. Its parameters
+are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
 :func:`jaxsync.surrogate.linear.param_shapes`, of rank ``highway_rank``.
 
 Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
