@@ -321,12 +321,6 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
                     raise MaterialError("HolzapfelGasserOgden.fibres must be unit vectors (largest |1 - |a|| "
                                         f"{float(np.max(np.abs(norms - 1.0))):.3g}): normalise them")
 
-    def replace(self, **changes) -> "HolzapfelGasserOgden":
-        """A copy with some fields changed (``fibres=...``)."""
-        import dataclasses
-
-        return dataclasses.replace(self, **changes)
-
     @property
     def bulk(self):
         """Bulk modulus K [dyn/cm^2] (``kappa_bulk``)."""

@@ -201,6 +201,10 @@ class FiniteStrainLaw:
     point_flops: ClassVar[Mapping[str, int] | None] = None
     """{operation: flops} of P(F) at one quadrature point, or None (not costed)."""
 
+    def replace(self, **changes):
+        """A copy with some fields changed (``fibres=...``, ``k1=...``)."""
+        return dataclasses.replace(self, **changes)
+
     def first_piola(self, F, fibres=None):  # pragma: no cover - every law writes it
         raise NotImplementedError(f"{type(self).__name__} must define first_piola(F, fibres=None)")
 

@@ -285,12 +285,6 @@ class ViscoelasticHGO(PronySeries):
         """{"isochoric": (betas, taus), "fibres": (fibre_betas, fibre_taus)}."""
         return {"isochoric": (self.betas, self.taus), "fibres": (self.fibre_betas, self.fibre_taus)}
 
-    def replace(self, **changes) -> "ViscoelasticHGO":
-        """A copy with some fields changed (``fibres=...``)."""
-        import dataclasses
-
-        return dataclasses.replace(self, **changes)
-
     @property
     def bulk(self):
         """Bulk modulus K [dyn/cm^2] (``kappa_bulk``)."""
