@@ -67,22 +67,25 @@ def test_fixed_point_unloaded_vessel_inflates_back_and_agrees_with_newton(vessel
 
 def _annulus(a, b, height, n_r, n_t):
     """A quarter of a thick-walled tube (a <= r <= b, 0 <= theta <= pi/2, 0 <= z <= height),
-    a structured grid of hexahedra each split into 6 tetrahedra; facet set lumen at r = a."""
+    a structured grid of hexahedra each split into 6 tetrahedra; facet sets lumen at r = a
+    and outer at r = b."""
     r, t, z = np.linspace(a, b, n_r + 1), np.linspace(0, np.pi / 2, n_t + 1), np.array([0.0, height])
     R, T, Z = np.meshgrid(r, t, z, indexing="ij")
     points = np.stack([R * np.cos(T), R * np.sin(T), Z], -1).reshape(-1, 3)
     index = np.arange(len(points)).reshape(n_r + 1, n_t + 1, 2)
     kuhn = [(0, 1, 3, 7), (0, 1, 5, 7), (0, 2, 3, 7), (0, 2, 6, 7), (0, 4, 5, 7), (0, 4, 6, 7)]
-    tets, lumen = [], []
+    tets, lumen, outer = [], [], []
     for i in range(n_r):
         for j in range(n_t):
             c = [index[i + di, j + dj, dk] for di in (0, 1) for dj in (0, 1) for dk in (0, 1)]
             tets += [[c[q] for q in tet] for tet in kuhn]
             if i == 0:
                 lumen += [[c[0], c[2], c[3]], [c[0], c[1], c[3]]]
+            if i == n_r - 1:
+                outer += [[c[4], c[6], c[7]], [c[4], c[5], c[7]]]
     with warnings.catch_warnings():  # half the Kuhn tetrahedra come out left-handed: re-oriented
         warnings.simplefilter("ignore", jaxsync.MeshWarning)
-        return jaxsync.Mesh.from_arrays(points, np.array(tets), {"lumen": np.array(lumen)})
+        return jaxsync.Mesh.from_arrays(points, np.array(tets), {"lumen": np.array(lumen), "outer": np.array(outer)})
 
 
 def _plane_strain_tube(mesh, material, pressure, height, element="P1"):
@@ -208,9 +211,6 @@ def test_bad_options_and_unsupported_problems_are_refused(vessel):
     with pytest.raises(jaxsync.ProblemError, match="hyperelastic law"):
         jaxsync.zero_pressure_geometry(_vessel_problem(vessel, material=jaxsync.LinearElastic(), pressure=0.0)
                                        .replace(loads=()))
-    supported = problem.replace(supports=(jaxsync.ElasticSupport(1e5, surface="outer"),))
-    with pytest.raises(jaxsync.ProblemError, match="method='fixed-point'"):
-        jaxsync.zero_pressure_geometry(supported)
 
 
 @pytest.fixture(scope="module")
@@ -360,3 +360,72 @@ def test_a_viscoelastic_wall_is_unloaded_at_rest(vessel, unloaded):
     assert geometry.problem(imaged).material == wall
     relaxed = _vessel_problem(vessel)  # the long-term law, LAW
     np.testing.assert_allclose(_inflated(relaxed, geometry), vessel.points, rtol=0, atol=1e-8 * DIAMETER)
+
+
+def _supported_vessel(mesh, element="P1", material=LAW):
+    """The vessel clamped at its inlet only, on the surrounding tissue (a normal spring on the
+    outer wall, a full one on the outlet), under the lumen pressure and every dead load."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jaxsync.LockingWarning)
+        return jaxsync.Problem(
+            mesh, material, element=element, dirichlet=[jaxsync.Dirichlet("inlet")],
+            loads=[jaxsync.Pressure(PRESSURE, surface="lumen", follower=True),
+                   jaxsync.BodyForce((0.0, 2.0e4, -1.0e4), time=jaxsync.Constant()),
+                   jaxsync.Traction((1.0e3, 0.0, 5.0e3), surface="outlet"), jaxsync.Pressure(2.0e4, surface="outer")],
+            supports=(jaxsync.ElasticSupport(2.0e6, surface="outer", normal_only=True),
+                      jaxsync.ElasticSupport(5.0e5, surface="outlet")))
+
+
+def _newton_with_supports_inflates_back(mesh, element):
+    problem = _supported_vessel(mesh, element)
+    found = jaxsync.zero_pressure_geometry(problem, tol=1e-12 if element == "P1" else 1e-11)
+    assert np.abs(found.points - problem.points).max() > 1e-2 * DIAMETER
+    inflated = found.points + np.asarray(jaxsync.steady_state(found.problem(problem), tol=1e-12))
+    assert np.abs(inflated - problem.points).max() <= 1e-8 * DIAMETER
+    return problem, found
+
+
+def test_newton_unloads_a_vessel_on_supports_under_dead_loads_and_inflates_back(vessel):
+    """The forward static solve (jaxsync.steady_state: springs and dead loads assembled by
+    scikit-fem on the unloaded mesh) is the reference; the fixed point agrees."""
+    problem, found = _newton_with_supports_inflates_back(vessel, "P1")
+    fixed_point = jaxsync.zero_pressure_geometry(problem, method="fixed-point", tol=1e-10)
+    assert np.abs(fixed_point.points - found.points).max() <= 1e-8 * DIAMETER
+
+
+@pytest.mark.slow
+def test_newton_unloads_a_curved_quadratic_vessel_on_supports_and_inflates_back(vessel):
+    _newton_with_supports_inflates_back(vessel, "P2")
+
+
+def _supported_tube(mu, nu=0.4, element="P1"):
+    a, b, h = 0.2, 0.3, 0.05
+    law = jaxsync.NeoHookean(E=2.0 * mu * (1.0 + nu), nu=nu)
+    problem = _plane_strain_tube(_annulus(a, b, h, 2, 4), law, 2.0e5, h, element)
+    return problem.replace(supports=(jaxsync.ElasticSupport(1.0e6, surface="outer", normal_only=True),),
+                           loads=problem.loads + (jaxsync.Traction((0.0, 0.0, 0.0), surface="outer"),
+                                                  jaxsync.BodyForce((3.0e4, 1.0e4, 0.0), time=jaxsync.Constant())))
+
+
+def test_krylov_updates_with_supports_give_the_direct_solution():
+    problem = _supported_tube(1.0e6)
+    direct = jaxsync.zero_pressure_geometry(problem, tol=1e-12)
+    krylov = jaxsync.zero_pressure_geometry(problem, tol=1e-12, linear_solver="krylov")
+    assert np.abs(krylov.points - direct.points).max() <= 1e-10 * 0.3
+
+
+def test_gradient_of_the_unloaded_geometry_on_supports_matches_finite_differences():
+    """The adjoint of the converged solve carries the supports' and dead loads' tangent."""
+    import jax
+
+    weights = np.sin(np.arange(3 * _supported_tube(1.0e6).n_nodes)).reshape(-1, 3)
+
+    def scalar(mu):
+        return jax.numpy.sum(weights * jaxsync.zero_pressure_points(_supported_tube(mu), tol=1e-13))
+
+    mu = 1.0e6
+    gradient = float(jax.grad(scalar)(mu))
+    step = 1e-4 * mu
+    difference = (float(scalar(mu + step)) - float(scalar(mu - step))) / (2 * step)
+    assert abs(gradient) > 0
+    np.testing.assert_allclose(gradient, difference, rtol=1e-6)

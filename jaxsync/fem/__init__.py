@@ -14,7 +14,8 @@ standard linear solid, a law with internal variables), :mod:`~jaxsync.fem.total_
 (their internal force, total-Lagrangian explicit dynamics), :mod:`~jaxsync.fem.follower`
 (pressure on the deformed surface), :mod:`~jaxsync.fem.prestress` (a law with a prestrain
 per quadrature point), :mod:`~jaxsync.fem.inverse` (the internal force of an unknown reference
-at a known deformed configuration: the zero-pressure problem),
+at a known deformed configuration: the zero-pressure problem), :mod:`~jaxsync.fem.inverse_loads`
+(the supports and dead loads of that problem, integrals over the unknown reference),
 :mod:`~jaxsync.fem.sparse` (block-ELL stiffness), :mod:`~jaxsync.fem.timestep` (CFL step,
 stability bound, mass scaling), :mod:`~jaxsync.fem.stepper` (the pure explicit step).
 """

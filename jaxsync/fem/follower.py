@@ -37,7 +37,7 @@ from ..pytree import pytree_dataclass
 
 __all__ = ["FollowerPressure", "follower_pressure", "full_follower_pressure",
            "part_follower_pressures", "follower_loads", "facet_nodes",
-           "load_stiffness"]
+           "load_stiffness", "facet_rule"]
 
 
 @pytree_dataclass
@@ -98,13 +98,14 @@ def follower_loads(problem) -> list:
     return [load for load in problem.loads if isinstance(load, Pressure) and load.follower]
 
 
-def _facet_rule(element: str):
+def facet_rule(element: str, intorder: int | None = None):
     """(shape (n_q, k_f), tangents (n_q, 2, k_f), weights (n_q,)) on the reference triangle
-    (0, 0), (1, 0), (0, 1): P1 one point, P2 scikit-fem's degree-4 rule."""
+    (0, 0), (1, 0), (0, 1): scikit-fem's rule of degree ``intorder`` (None: P1 one point,
+    P2 the degree-4 rule)."""
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTri
 
-    xi, w = get_quadrature(RefTri, 1 if element == "P1" else 4)
+    xi, w = get_quadrature(RefTri, (1 if element == "P1" else 4) if intorder is None else intorder)
     s, t = xi
     L = np.stack([1.0 - s - t, s, t])  # barycentric coordinates (3, n_q)
     dL = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])  # (3, 2): d L_i / d (xi, eta)
@@ -159,7 +160,7 @@ def _facets(problem):
 
 def _operator(problem, facets, load, weights, points) -> FollowerPressure:
     loads = follower_loads(problem)
-    shape, tangents, _ = _facet_rule(problem.element)
+    shape, tangents, _ = facet_rule(problem.element)
     return FollowerPressure(
         facets=jnp.asarray(facets, dtype=jnp.int32), points=jnp.asarray(points), shape=jnp.asarray(shape),
         tangents=jnp.asarray(tangents), weights=jnp.asarray(weights), load=jnp.asarray(load, dtype=jnp.int32),
@@ -172,7 +173,7 @@ def follower_pressure(problem) -> FollowerPressure | None:
     if not follower_loads(problem):
         return None
     facets, _, load = _facets(problem)
-    _, _, w = _facet_rule(problem.element)
+    _, _, w = facet_rule(problem.element)
     return _operator(problem, facets, load, np.broadcast_to(w, (len(facets), len(w))), problem.space.points)
 
 
@@ -197,7 +198,7 @@ def part_follower_pressures(problem, parts: Sequence, n_local: int) -> FollowerP
     if not follower_loads(problem):
         return None
     facets, elements, load = _facets(problem)
-    _, _, w = _facet_rule(problem.element)
+    _, _, w = facet_rule(problem.element)
     cells = problem.space.cells
     # each facet node's slot in its element (the same slot in a part's local_tets)
     slot = np.argmax(cells[elements][:, None, :] == facets[:, :, None], axis=2)  # (n_f, k_f)

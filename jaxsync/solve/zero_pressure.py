@@ -8,10 +8,13 @@ reference X whose static solution under those loads is x, phi_X(X) = x. Two meth
 * ``"newton"``: Newton's method on the inverse problem (Govindjee & Mihalic 1996). The
   unknown is X, the residual R(X) = f_int(X; x) - f_p(x) the internal force at the deformed
   configuration x computed with reference X (:mod:`jaxsync.fem.inverse`) minus the follower
-  pressure's force on x, which does not depend on X. Its tangent dR/dX is exact (JAX),
+  pressure's force on x, which does not depend on X, plus the elastic supports' springs and
+  minus the dead loads (body force, traction, dead pressure), integrals over the unknown
+  reference (:mod:`jaxsync.fem.inverse_loads`). Its tangent dR/dX is exact (JAX),
   solved by scipy's sparse direct solver (``linear_solver="direct"``) or by GMRES on
   ``jax.jvp`` products with a node-block Jacobi preconditioner (``"krylov"``, for meshes
-  whose factorisation does not fit). The pressure is applied in ``load_steps`` increments.
+  whose factorisation does not fit). The loads are applied in ``load_steps`` increments
+  (the springs at full stiffness throughout).
 * ``"fixed-point"``: the backward-displacement method (Bols et al. 2013),
   X(k+1) = x - u(X(k)), u(X) the static displacement (:func:`jaxsync.steady_state`) of the
   problem on reference X; every forward solve starts from the previous one's displacement.
@@ -148,15 +151,9 @@ def _check(problem, method, tol, max_iter, load_steps, linear_solver):
                            "a small-strain law has no distinct deformed configuration to unload; use "
                            "jaxsync.NeoHookean, NearlyIncompressibleNeoHookean or HolzapfelGasserOgden")
     if method == "newton":
-        from ..fem.follower import follower_loads
+        from ..fem.inverse_loads import inverse_loads
 
-        followers = follower_loads(problem)
-        others = [type(load).__name__ for load in problem.loads if not any(load is f for f in followers)]
-        if others or problem.supports:
-            what = ", ".join(others + (["elastic supports"] if problem.supports else []))
-            raise ProblemError(f"method='newton' unloads follower pressures on a clamped structure; this problem "
-                               f"also has {what}, whose forces depend on the unknown reference geometry: use "
-                               "method='fixed-point', which solves the forward problem with every load and support")
+        inverse_loads(problem)  # refuses a load it does not take, before any solve
 
 
 def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-10, max_iter: int = 50,
@@ -168,9 +165,8 @@ def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-1
             geometry and whose loads, at full magnitude (time factor 1), are those at imaging
             (a follower :class:`jaxsync.Pressure` on the lumen); Dirichlet conditions clamp
             it as in the forward problem.
-        method: ``"newton"`` (the inverse problem; follower pressures and Dirichlet
-            conditions only) or ``"fixed-point"`` (backward displacement; any load, elastic
-            supports).
+        method: ``"newton"`` (the inverse problem) or ``"fixed-point"`` (backward
+            displacement); both take every load and elastic support of the forward problem.
         tol: Newton: the relative out-of-balance force of convergence (as
             :func:`jaxsync.steady_state`); fixed point: the largest gap between the
             inflated reference and the imaged nodes over the imaged geometry's size.
@@ -187,8 +183,8 @@ def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-1
         ConvergenceError: no convergence in ``max_iter`` iterations, or every update
             inverts an element of the reference (a pressure that would need a negative
             volume to unload); the message names the pressure and the iteration.
-        ProblemError: bad options, a small-strain law, loads or supports that the Newton
-            method does not take, traced parameters (use :func:`zero_pressure_points`).
+        ProblemError: bad options, a small-strain law, traced parameters (use
+            :func:`zero_pressure_points`).
     """
     _check(problem, method, tol, max_iter, load_steps, linear_solver)
     problem = _at_rest(problem)
@@ -211,6 +207,7 @@ class _Inverse:
     def __init__(self, problem, linear_solver: str):
         from ..fem.follower import full_follower_pressure
         from ..fem.inverse import inverse_operator
+        from ..fem.inverse_loads import inverse_loads, inverse_loads_force
 
         self.problem, self.linear_solver = problem, linear_solver
         self.op = inverse_operator(problem)
@@ -218,6 +215,13 @@ class _Inverse:
         follower = full_follower_pressure(problem)
         self.pressure = (np.zeros(x.size) if follower is None
                          else np.asarray(follower.force(jnp.zeros(x.shape), 0.0)).reshape(-1))
+        self.loads = inverse_loads(problem)
+        if not self.loads.empty:  # the dead loads' scale at the imaged geometry
+            self.pressure_scale = max(float(np.abs(self.pressure).max(initial=0.0)), float(np.abs(np.asarray(
+                inverse_loads_force(self.loads, jnp.asarray(x), 1.0)) - np.asarray(
+                inverse_loads_force(self.loads, jnp.asarray(x), 0.0))).max(initial=0.0)))
+        else:
+            self.pressure_scale = float(np.abs(self.pressure).max(initial=0.0))
         fixed, values = problem.dirichlet_dofs()
         self.fixed, self.free = fixed, np.setdiff1d(np.arange(x.size), fixed)
         self.start = x.reshape(-1).copy()
@@ -232,33 +236,42 @@ class _Inverse:
         if not np.all(np.isfinite(J) & (J > 0)):
             return None
         r = np.asarray(inverse_force(self.op, Xn)).reshape(-1) - fraction * self.pressure
+        if not self.loads.empty:
+            from ..fem.inverse_loads import inverse_loads_force
+
+            r = r + np.asarray(inverse_loads_force(self.loads, Xn, fraction)).reshape(-1)
         return r if np.all(np.isfinite(r)) else None
 
     def relative(self, r, fraction) -> float:
-        scale = max(fraction * float(np.abs(self.pressure).max(initial=0.0)),
+        scale = max(fraction * self.pressure_scale,
                     float(np.abs(r[self.fixed]).max(initial=0.0)))
         return float(np.abs(r[self.free]).max(initial=0.0)) / scale if scale > 0 else 0.0
 
-    def solve(self, X, rhs, *, transpose: bool = False):
-        """The free dofs' K^-1 rhs (or K^-T rhs), K = dR/dX at X."""
+    def solve(self, X, rhs, fraction, *, transpose: bool = False):
+        """The free dofs' K^-1 rhs (or K^-T rhs), K = dR/dX at X with the loads at
+        ``fraction`` of their magnitude."""
         import scipy.sparse.linalg as spla
 
         from ..fem.inverse import tangent
+        from ..fem.inverse_loads import loads_tangent
 
         if self.linear_solver == "direct" or transpose:
-            K = tangent(self.op, X.reshape(-1, 3))[self.free][:, self.free].tocsc()
+            K = tangent(self.op, X.reshape(-1, 3))
+            extra = loads_tangent(self.loads, X.reshape(-1, 3), fraction)
+            K = (K if extra is None else K + extra).tocsr()[self.free][:, self.free].tocsc()
             try:
                 factor = spla.splu(K.T.tocsc() if transpose else K)
             except RuntimeError as exc:  # SuperLU: "Factor is exactly singular"
                 raise ProblemError("the inverse problem is singular: the Dirichlet conditions do not prevent "
                                    "rigid-body motion; clamp more nodes") from exc
             return factor.solve(rhs)
-        return self._krylov(X, rhs)
+        return self._krylov(X, rhs, fraction)
 
-    def _krylov(self, X, rhs):
+    def _krylov(self, X, rhs, fraction):
         import scipy.sparse.linalg as spla
 
         from ..fem.inverse import inverse_blocks, inverse_product
+        from ..fem.inverse_loads import inverse_loads_product
 
         n = X.size
         Xn = jnp.asarray(X.reshape(-1, 3))
@@ -275,7 +288,11 @@ class _Inverse:
         def matvec(v):
             full = np.zeros(n)
             full[free] = v
-            return np.asarray(inverse_product(self.op, Xn, jnp.asarray(full.reshape(-1, 3)))).reshape(-1)[free]
+            V = jnp.asarray(full.reshape(-1, 3))
+            product = np.asarray(inverse_product(self.op, Xn, V))
+            if not self.loads.empty:
+                product = product + np.asarray(inverse_loads_product(self.loads, Xn, fraction, V))
+            return product.reshape(-1)[free]
 
         def precondition(v):
             full = np.zeros(n)
@@ -315,7 +332,7 @@ def _newton(problem, tol, max_iter, load_steps, linear_solver):
                     f"{load_steps} ({100 * fraction:.0f} % of the pressure), Newton iteration {iteration}, relative "
                     f"residual {relative:.3e} (tolerance {tol:g}); raise load_steps or max_iter, or check that the "
                     "wall can carry this pressure", increment=k, residual=relative)
-            dX = inverse.solve(X, -r[free])
+            dX = inverse.solve(X, -r[free], fraction)
             for _ in range(11):  # halve an update that inverts an element of the reference
                 trial = X.copy()
                 trial[free] += dX
@@ -422,7 +439,7 @@ def zero_pressure_points(problem, *, tol: float = 1e-12, max_iter: int = 50, loa
         inverse = _Inverse(concrete(values), "direct")
         X = np.asarray(X)
         adjoint = np.zeros(X.size)
-        adjoint[inverse.free] = inverse.solve(X.reshape(-1), np.asarray(cotangent).reshape(-1)[inverse.free],
+        adjoint[inverse.free] = inverse.solve(X.reshape(-1), np.asarray(cotangent).reshape(-1)[inverse.free], 1.0,
                                               transpose=True)
         op = inverse_operator(concrete(values))
         return tuple(_law_cotangent(treedef, op, jnp.asarray(X), [jnp.asarray(v, dtype=float) for v in values],
