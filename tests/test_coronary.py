@@ -182,6 +182,30 @@ def test_packaged_toml_is_the_coronary_problem(vessel, tmp_path):
     np.testing.assert_allclose(from_toml.density_scale, scaled.density_scale)
 
 
+def test_stiffness_damping_of_the_coronary_problem_from_python_and_toml(vessel, tmp_path):
+    """beta reaches the problem from coronary(...) and from the TOML file alike, and lowers
+    the exact stable step to (2 / omega) (sqrt(1 + xi^2) - xi), xi = beta omega / 2."""
+    beta = 5.0e-7
+    undamped = coronary(vessel, damping=0.0)
+    damped = coronary(vessel, damping=0.0, stiffness_damping=beta)
+    assert damped.stiffness_damping == beta and undamped.stiffness_damping == 0.0
+    omega = 2.0 / max_stable_dt(undamped, tol=1e-10)
+    xi = beta * omega / 2
+    assert xi > 0.05  # the damping matters to the step
+    from jaxsync.fem.timestep import stable_step
+
+    assert stable_step(damped).exact == pytest.approx(2.0 / omega * (np.sqrt(1 + xi * xi) - xi), rel=1e-7)
+    with pytest.raises(ProblemError, match="stiffness_damping"):
+        coronary(vessel, stiffness_damping=-1.0)
+    msh = tmp_path / "tube.msh"
+    jaxsync.vessel_mesh(msh, length=0.6, radius=0.175, wall=0.05, size=0.05)
+    config = load_config(str(resources.files("jaxsync") / "data" / "coronary.toml"))
+    config["run"].pop("mass_scaling_dt")
+    config["problem"]["stiffness_damping"] = beta
+    from_toml, _ = problem_from_config(config, mesh_file=str(msh))
+    reference = coronary(jaxsync.read_mesh(str(msh)), stiffness_damping=beta)
+    assert from_toml.stiffness_damping == reference.stiffness_damping == beta
+
 
 def test_packaged_toml_generates_the_coronary_tree(tmp_path):
     """Without --mesh the packaged file meshes the generated tree: the facet sets the

@@ -102,11 +102,12 @@ def _samples(samples) -> tuple[np.ndarray, np.ndarray]:
 
 def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONARY_PERIOD,
              t_ramp: float = 1.0, material: LinearElastic | None = None, damping=0.5,
-             outlets: str | Sequence[str] = "outlet") -> Problem:
+             outlets: str | Sequence[str] = "outlet", stiffness_damping=0.0) -> Problem:
     """The paper's coronary problem: a clamped artery under pulsatile lumen pressure.
 
     - Material :func:`coronary_material` (E = 6.26e6 dyn/cm^2, nu = 0.4, rho = 1 g/cm^3)
-      unless ``material`` is given; damping alpha = ``damping`` [1/s] (C = alpha M).
+      unless ``material`` is given; damping alpha = ``damping`` [1/s] and beta =
+      ``stiffness_damping`` [s] (Rayleigh, C = alpha M + beta K; beta = 0 by default).
     - Every displacement component fixed on the facet set ``inlet`` and on the outlet
       set(s) ``outlets``.
     - ``jaxsync.Pressure(1.0, coronary_waveform(...), surface="lumen")``: the pressure in
@@ -132,10 +133,13 @@ def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONAR
         damping: alpha [1/s].
         outlets: the facet set, or sequence of sets, clamped besides the inlet (default
             ``"outlet"``, the union of the generated tree's ``outlet_1`` ... ``outlet_6``).
+        stiffness_damping: beta [s] (>= 0; may be a JAX tracer): the stiffness-proportional
+            damping (:class:`jaxsync.Problem`'s ``stiffness_damping``), which also lowers the
+            stable step.
 
     Raises:
         MeshError: the mesh lacks one of the facet sets (the message names them).
-        ProblemError: bad waveform samples, period, ramp or damping.
+        ProblemError: bad waveform samples, period, ramp, damping or stiffness damping.
     """
     if mesh is None:
         from .coronary_tree import coronary_mesh
@@ -150,7 +154,8 @@ def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONAR
             else coronary_waveform(waveform, period=period, t_ramp=t_ramp))
     clamps = tuple(Dirichlet(name) for name in ("inlet", *outlets))
     return Problem(mesh=mesh, material=coronary_material() if material is None else material,
-                   dirichlet=clamps, loads=(Pressure(1.0, time, surface="lumen"),), damping=damping)
+                   dirichlet=clamps, loads=(Pressure(1.0, time, surface="lumen"),), damping=damping,
+                   stiffness_damping=stiffness_damping)
 
 
 def _require_facets(mesh: Mesh, names: Sequence[str]) -> None:
