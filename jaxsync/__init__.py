@@ -33,7 +33,7 @@ __all__ = [
     "SaveAt", "Psum", "Ppermute", "Mpi", "Halo", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
     "Recompute", "StoreAll",
     "zero_pressure_geometry", "zero_pressure_points", "ZeroPressureGeometry", "prestress", "PrestressResult",
-    "Prestressed",
+    "Prestressed", "static_displacement",
 ]
 
 # where each name of __all__ is imported from on first use: the imports of TYPE_CHECKING below
@@ -62,6 +62,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
     ".solve.prestress": ("PrestressResult", "prestress"),
+    ".solve.static_adjoint": ("static_displacement",),
     ".solve.syncavoid": ("simulate_sync_avoiding",),
     ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
     ".trajectory": ("PartHistory", "Result", "RunStats", "Trajectory"),
@@ -101,6 +102,7 @@ if TYPE_CHECKING:
     from .solve.full_system import simulate_full_system
     from .solve.prestress import PrestressResult, prestress
     from .solve.solver import simulate, steady_state
+    from .solve.static_adjoint import static_displacement
     from .solve.strategies import (
         Halo,
         HostExecutor,

@@ -429,3 +429,51 @@ def test_gradient_of_the_unloaded_geometry_on_supports_matches_finite_difference
     difference = (float(scalar(mu + step)) - float(scalar(mu - step))) / (2 * step)
     assert abs(gradient) > 0
     np.testing.assert_allclose(gradient, difference, rtol=1e-6)
+
+
+def _tube_law(mu, nu=0.4):
+    return jaxsync.NeoHookean(E=2.0 * mu * (1.0 + nu), nu=nu)
+
+
+def _central_difference(f, x, relative=1e-4):
+    step = relative * x
+    return (float(f(x + step)) - float(f(x - step))) / (2 * step)
+
+
+def test_prestressed_response_is_differentiable_in_the_shear_modulus():
+    """jax.grad of the zero-pressure route's prestressed response to a pressure increment
+    (prestress by the Newton solve's adjoint, the increment by static_displacement's)
+    against central finite differences."""
+    import jax
+
+    a, b, h = 0.2, 0.3, 0.05
+    mesh = _annulus(a, b, h, 2, 4)
+    weights = np.sin(np.arange(3 * mesh.n_nodes)).reshape(-1, 3)
+
+    def response(mu):
+        imaged = _plane_strain_tube(mesh, _tube_law(mu), 2.0e5, h)
+        law = jaxsync.prestress(imaged, tol=1e-13).material
+        increment = _plane_strain_tube(mesh, law, 2.2e5, h)
+        return jax.numpy.sum(weights * jaxsync.static_displacement(increment, load_steps=1, tol=1e-12))
+
+    gradient = float(jax.grad(response)(1.0e6))
+    assert abs(gradient) > 0
+    np.testing.assert_allclose(gradient, _central_difference(response, 1.0e6), rtol=1e-6)
+
+
+def test_mulf_prestrain_is_differentiable_in_the_shear_modulus():
+    """jax.grad back through the MULF iterations (each static solve by its adjoint) against
+    central finite differences of a weighted sum of the prestrain."""
+    import jax
+
+    a, b, h = 0.2, 0.3, 0.05
+    mesh = _annulus(a, b, h, 2, 4)
+    weights = np.cos(np.arange(9 * mesh.n_elements)).reshape(-1, 1, 3, 3)
+
+    def prestrain(mu):
+        result = jaxsync.prestress(_plane_strain_tube(mesh, _tube_law(mu), 2.0e5, h), method="mulf", tol=1e-13)
+        return jax.numpy.sum(weights * result.material.prestrain)
+
+    gradient = float(jax.grad(prestrain)(1.0e6))
+    assert abs(gradient) > 0
+    np.testing.assert_allclose(gradient, _central_difference(prestrain, 1.0e6), rtol=1e-6)

@@ -16,7 +16,9 @@ of a distributed run: :mod:`~jaxsync.solve.distributed`; the predicted phase's r
 checkpoints: :mod:`~jaxsync.solve.checkpoint`; the trajectory of a run:
 :mod:`~jaxsync.solve.record`. The geometry of an imaged structure before its loads:
 :func:`zero_pressure_geometry` (:mod:`~jaxsync.solve.zero_pressure`) and its alternative,
-the prestress of the imaged geometry, :func:`prestress` (:mod:`~jaxsync.solve.prestress`).
+the prestress of the imaged geometry, :func:`prestress` (:mod:`~jaxsync.solve.prestress`); the
+static solution as a differentiable function of the law, :func:`static_displacement`
+(:mod:`~jaxsync.solve.static_adjoint`).
 """
 
 
@@ -30,7 +32,7 @@ __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "si
            "Recompute", "StoreAll", "Synchronized", "Predicted",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
            "DistributedParts", "DistributedRunner", "transport", "sync_strategy", "register_exchange",
-           "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points",
+           "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points", "static_displacement",
            "ZeroPressureGeometry", "prestress", "PrestressResult"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
@@ -49,6 +51,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
                     "SolverCheckpoint", "StoreAll", "TracedExecutor", "transport"),
     ".syncavoid": ("describe_run", "simulate_sync_avoiding", "step_counts"),
     ".zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
+    ".static_adjoint": ("static_displacement",),
 })
 
 if TYPE_CHECKING:
@@ -62,6 +65,7 @@ if TYPE_CHECKING:
     from .predictors import OraclePredictor
     from .prestress import PrestressResult, prestress
     from .solver import simulate, steady_state
+    from .static_adjoint import static_displacement
     from .strategies import (
         Halo,
         HostExecutor,
