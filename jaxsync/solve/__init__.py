@@ -32,7 +32,8 @@ __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "si
            "Recompute", "StoreAll", "Synchronized", "Predicted",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
            "DistributedParts", "DistributedRunner", "transport", "sync_strategy", "register_exchange",
-           "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points", "static_displacement",
+           "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points",
+           "static_displacement",
            "ZeroPressureGeometry", "prestress", "PrestressResult"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
