@@ -49,7 +49,10 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
   geometry (``jaxsync unload --method``): ``"newton"`` (the inverse problem) or
   ``"fixed-point"`` (backward displacement); :data:`LinearSolver`: its Newton updates'
   linear solver, ``"direct"`` or ``"krylov"``; :data:`PrestressMethod`: how
-  :func:`jaxsync.prestress` finds the prestrain, ``"zero-pressure"`` or ``"mulf"``.
+  :func:`jaxsync.prestress` finds the prestrain, ``"zero-pressure"`` or ``"mulf"``;
+  :data:`ZeroPressureStart`: what ``jaxsync simulate`` runs from with a ``[zero_pressure]``
+  table (``start``): ``"unloaded"`` (the zero-pressure geometry), ``"prestressed"`` (the
+  imaged geometry with its prestress) or ``"imaged"`` (the imaged geometry as it is).
 """
 
 from __future__ import annotations
@@ -61,7 +64,7 @@ from .errors import ConfigError, JaxsyncError, PartitionError
 
 __all__ = ["Element", "Mode", "Sync", "Compression", "Component", "EpochRule", "ProblemKind", "MeshGenerator",
            "ValidationSplit", "SurrogateModel", "LoadJumpWindows", "LoadJumps", "ZeroPressureMethod", "LinearSolver",
-           "PrestressMethod", "choices", "check_option",
+           "PrestressMethod", "ZeroPressureStart", "choices", "check_option",
            "DEFAULT_MODE",
            "DEFAULT_COMPRESSION", "DEFAULT_COMPONENT", "check_halo_depth"]
 
@@ -80,6 +83,7 @@ LoadJumps = Literal["synchronize", "predict"]
 ZeroPressureMethod = Literal["newton", "fixed-point"]
 LinearSolver = Literal["direct", "krylov"]
 PrestressMethod = Literal["zero-pressure", "mulf"]
+ZeroPressureStart = Literal["unloaded", "prestressed", "imaged"]
 
 DEFAULT_MODE: Mode = "preassembled"
 DEFAULT_COMPRESSION: Compression = "gzip"

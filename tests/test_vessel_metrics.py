@@ -508,3 +508,29 @@ def test_a_problem_without_pressure_is_skipped_with_a_note(tmp_path, capsys):
     assert main(["report", str(h5), "--config", str(config), "--node", "3", "-o", str(tmp_path / "none")]) != 0
     assert "--node and --train-until-step" in capsys.readouterr().err
     assert not (tmp_path / "none").exists()
+
+
+def test_report_of_a_simulate_trajectory_needs_no_config(vessel_run, tmp_path, capsys):
+    """jaxsync simulate records its configuration in the trajectory, so jaxsync report
+    writes the vessel section from the trajectory alone: the same as with --config; an
+    older trajectory (without the record) still reports with --config."""
+    toml, _, _, trajectory, _ = vessel_run
+    h5 = tmp_path / "run.h5"
+    n_steps = (trajectory.n_saved - 1) * trajectory.save_every
+    assert main(["simulate", str(toml), "--steps", str(n_steps), "--save-every", str(trajectory.save_every),
+                 "-o", str(h5)]) == 0
+    run = jaxsync.Trajectory.load(h5)
+    assert json.loads(run.parameters["config"]) == load_config(toml)
+    assert main(["report", str(h5), "-o", str(tmp_path / "alone")]) == 0
+    assert main(["report", str(h5), "--config", str(toml), "-o", str(tmp_path / "given")]) == 0
+    alone = json.loads((tmp_path / "alone" / "summary.json").read_text())["vessel"]
+    given = json.loads((tmp_path / "given" / "summary.json").read_text())["vessel"]
+    assert not alone["skipped"] and alone == given
+    assert (tmp_path / "alone" / "pressure_diameter.png").stat().st_size > 10_000
+    old = dataclasses.replace(run, parameters={k: v for k, v in run.parameters.items() if k != "config"})
+    old.save(tmp_path / "old.h5")
+    capsys.readouterr()
+    assert main(["report", str(tmp_path / "old.h5"), "-o", str(tmp_path / "none")]) != 0
+    assert "--config" in capsys.readouterr().err and not (tmp_path / "none").exists()
+    assert main(["report", str(tmp_path / "old.h5"), "--config", str(toml), "-o", str(tmp_path / "again")]) == 0
+    assert json.loads((tmp_path / "again" / "summary.json").read_text())["vessel"] == given

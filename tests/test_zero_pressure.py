@@ -477,3 +477,41 @@ def test_mulf_prestrain_is_differentiable_in_the_shear_modulus():
     gradient = float(jax.grad(prestrain)(1.0e6))
     assert abs(gradient) > 0
     np.testing.assert_allclose(gradient, _central_difference(prestrain, 1.0e6), rtol=1e-6)
+
+
+@pytest.mark.parametrize("start", ["unloaded", "prestressed"])
+def test_cli_simulate_starts_from_the_zero_pressure_table(tmp_path, vessel, start):
+    """jaxsync simulate with a [zero_pressure] table runs from the unloaded geometry, or from
+    the imaged one with its prestress, as the Python API computes them; a prestressed wall
+    held at the imaging pressure stays where it was imaged."""
+    from jaxsync.app.cli import main
+    from jaxsync.app.config import load_config, problem_from_config
+    from jaxsync.mesh import write_mesh
+
+    write_mesh(vessel, tmp_path / "imaged.vtu")
+    cfg = _config(tmp_path, "imaged.vtu")
+    # the run holds the imaging pressure (magnitude PRESSURE, constant)
+    cfg.write_text(cfg.read_text().replace("magnitude = 1.0", f"magnitude = {PRESSURE}")
+                   .replace("[zero_pressure]\n", f'[zero_pressure]\nstart = "{start}"\n'))
+    out = tmp_path / "run.h5"
+    assert main(["simulate", str(cfg), "--steps", "20", "--save-every", "10", "-o", str(out)]) == 0
+    run = jaxsync.Trajectory.load(out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", jaxsync.LockingWarning)
+        imaged, _ = problem_from_config(load_config(cfg))
+    if start == "unloaded":
+        geometry = jaxsync.zero_pressure_geometry(imaged, tol=1e-11)
+        expected = geometry.problem(imaged)
+        np.testing.assert_allclose(run.mesh.points, geometry.mesh.points, rtol=0, atol=1e-13 * DIAMETER)
+        assert np.abs(run.mesh.points - vessel.points).max() > 1e-3 * DIAMETER
+    else:
+        result = jaxsync.prestress(imaged, tol=1e-11)
+        expected = imaged.replace(material=result.material, density_scale=result.density_scale)
+        np.testing.assert_array_equal(run.mesh.points, vessel.points)
+    reference = np.asarray(jaxsync.simulate(expected, 20, save=10).displacement)
+    scale = np.abs(reference).max() if start == "unloaded" else DIAMETER
+    np.testing.assert_allclose(run.displacement, reference, rtol=0, atol=1e-10 * scale)
+    if start == "prestressed":  # in equilibrium at the imaging pressure: it stays at rest
+        assert np.abs(run.displacement).max() <= 1e-9 * DIAMETER
+    else:
+        assert np.abs(reference[-1]).max() > 1e-4 * DIAMETER

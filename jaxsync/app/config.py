@@ -86,13 +86,16 @@ prescribes a history: ``value`` times that time function.
     # checkpoint = "run.ckpt.h5"
     # checkpoint_every = 10000
 
-    [zero_pressure]             # jaxsync unload: the unloaded geometry of an imaged mesh
-    pressure = 1.6e5            # barye, every follower [[pressure]] (default: their magnitudes)
+    [zero_pressure]             # the mesh is imaged under a pressure: jaxsync unload writes its unloaded
+    pressure = 1.6e5            # geometry; barye, every follower [[pressure]] (default: their magnitudes)
     method = "newton"           # or "fixed-point" (backward displacement)
     tol = 1.0e-10
     max_iter = 50
     load_steps = 4
     output = "unloaded.vtu"     # .vtu, .vtk or .msh, facet sets kept
+    start = "unloaded"          # jaxsync simulate runs from the unloaded geometry, or "prestressed" (the
+                                # imaged geometry with its prestress), or "imaged" (as it is)
+    prestress = "zero-pressure" # start = "prestressed": the route of jaxsync.prestress, or "mulf"
 
 Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
@@ -123,7 +126,7 @@ from ..errors import ConfigError, JaxsyncError
 from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
 from ..fem.problem import Dirichlet, Problem, cantilever
 from ..fem.support import ElasticSupport
-from ..mesh import box_beam, read_mesh
+from ..mesh import Mesh, box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
 from .config_schema import DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, dataclass_schema, from_table
 
@@ -157,7 +160,7 @@ _SCHEMA: dict[str, Any] = {
                  "values": ("number", None)},
     "support": dict(_SUPPORT.keys),
     "zero_pressure": {"pressure": "number", "method": "string", "tol": "number", "max_iter": "int",
-                      "load_steps": "int", "output": "path"},
+                      "load_steps": "int", "output": "path", "start": "string", "prestress": "string"},
 }
 _ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
 _PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"),
@@ -429,13 +432,14 @@ def _time_function(entry: dict, where: str):
     return g
 
 
-def problem_from_config(config: dict, *, mesh_file: str | None = None,
+def problem_from_config(config: dict, *, mesh_file: str | Mesh | None = None,
                         mass_scaling_dt: float | None = None,
                         mass_scaling_beta: float | None = None,
                         element: Element | None = None) -> tuple[Problem, RunConfig]:
     """Build the problem and run options of a configuration dictionary.
 
-    ``mesh_file`` overrides ``[mesh] file`` and ``element`` ``[problem] element``;
+    ``mesh_file`` (a file name, or a :class:`jaxsync.Mesh`) overrides ``[mesh] file`` and
+    ``element`` ``[problem] element``;
     ``mass_scaling_dt`` or ``mass_scaling_beta`` (at most one) override the ``[run]`` mass
     scaling. With mass scaling, the returned problem is the scaled one (its ``dt``, the
     default step, is the target step) and ``RunConfig.added_mass_percent`` the added mass;
@@ -463,7 +467,9 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     mesh_cfg = config.get("mesh", {})
     file = mesh_file or mesh_cfg.get("file")
     generator = check_option("[mesh] generate", mesh_cfg.get("generate", "box_beam"), MeshGenerator)
-    if file:
+    if isinstance(file, Mesh):
+        mesh = file
+    elif file:
         mesh = read_mesh(file)
     elif generator == "coronary_tree":
         from ..fem.coronary_tree import coronary_mesh

@@ -2,7 +2,8 @@
 run with the synchronized one (:func:`jaxsync.app.plots.write_report`), and, for a vessel
 under a lumen pressure, its pressure-diameter loop, distensibility, compliance,
 hysteresis and peak wall stress and strain by region
-(:func:`jaxsync.app.vessel_report.vessel_section`; needs the run's TOML, ``--config``).
+(:func:`jaxsync.app.vessel_report.vessel_section`; from the configuration ``jaxsync simulate``
+records in the trajectory, or the run's TOML, ``--config``).
 Given one trajectory only, the report is that section alone."""
 
 from __future__ import annotations
@@ -26,13 +27,14 @@ def add_parser(subparsers) -> None:
                     "also the vessel section of the reference run: pressure-diameter and pressure-volume "
                     "loops (pressure_diameter.png), distensibility, compliance, the energy dissipated "
                     "per cycle, and the peak von Mises and principal stress and strain by region "
-                    "(wall_stress.png; summary.json 'vessel'). Given only one trajectory (and --config), "
+                    "(wall_stress.png; summary.json 'vessel'); a trajectory of jaxsync simulate records its "
+                    "configuration, so --config is needed only for older ones. Given only one trajectory, "
                     "the report is that section alone; a problem without a pressure load is skipped "
                     "with a note.")
     p.add_argument("reference", help="synchronized trajectory (HDF5)")
     p.add_argument("online", nargs="?", default=None,
                    help="synchronization-avoiding trajectory (HDF5); leave it out for the vessel section "
-                        "of REFERENCE alone (with --config)")
+                        "of REFERENCE alone")
     p.add_argument("--out", "-o", default="report", help="output folder (default: %(default)s)")
     p.add_argument("--component", type=int, choices=choices(Component), default=DEFAULT_COMPONENT,
                    help="displacement component shown and compared at the nodes (default: "
@@ -42,7 +44,8 @@ def add_parser(subparsers) -> None:
                         "coordinates x,y,z (the nearest node); repeat for several")
     p.add_argument("--config", default=None,
                    help="TOML problem file of the run: its Dirichlet nodes are never chosen, and "
-                        "its loads and material give the vessel section (default: none; then the "
+                        "its loads and material give the vessel section (default for the vessel section: the "
+                        "configuration jaxsync simulate recorded in REFERENCE; for the nodes: none; then the "
                         "constrained nodes are those that never move in the reference, which covers "
                         "every fully clamped node)")
     p.add_argument("--lumen", default=None, metavar="FACET_SET",
@@ -83,16 +86,37 @@ def same_steps(reference, online, reference_name: str, online_name: str):
                                displacement=reference.displacement[kept], save_every=online.save_every)
 
 
+def run_config(args, reference) -> dict | None:
+    """The run's configuration: ``--config``'s, else the one ``jaxsync simulate`` recorded in
+    the trajectory (:data:`jaxsync.app.commands.simulate.CONFIG_PARAMETER`), else None (an
+    older trajectory, or one written by the Python API)."""
+    import json
+
+    from ..config import load_config
+    from .simulate import CONFIG_PARAMETER
+
+    if args.config is not None:
+        return load_config(args.config)
+    recorded = reference.parameters.get(CONFIG_PARAMETER)
+    return None if recorded is None else json.loads(recorded)
+
+
 def vessel_entry(args, reference) -> dict:
     """The ``vessel`` entry of the report (:func:`jaxsync.app.vessel_report.vessel_section`
-    of ``reference`` under the problem of ``--config``; its figures written to ``--out``), or
-    the note of why there is none."""
-    from ..config import load_config, problem_from_config
+    of ``reference`` under the problem of its configuration, :func:`run_config`, on the
+    trajectory's mesh (the unloaded one of a run from its zero-pressure geometry; a
+    prestressed start's prestrain computed again); its figures written to ``--out``), or the
+    note of why there is none."""
+    from ..config import problem_from_config
     from ..vessel_report import vessel_note, write_vessel_section
+    from .unload import settings, start_problem
 
-    if args.config is None:
+    config = run_config(args, reference)
+    if config is None:
         return vessel_note(reference)
-    problem, _ = problem_from_config(load_config(args.config), element=reference.space.element)
+    problem, _ = problem_from_config(config, mesh_file=reference.mesh, element=reference.space.element)
+    if "zero_pressure" in config and settings(None, config)["start"] == "prestressed":
+        problem, _ = start_problem(problem, config)
     return write_vessel_section(problem, reference, args.out, surface=args.lumen)
 
 
@@ -121,9 +145,6 @@ def run(args) -> int:
     from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))
-    if args.online is None and args.config is None:
-        raise ConfigError("jaxsync report with one trajectory writes its vessel section, which needs the run's "
-                          "TOML file: give --config, or give the synchronization-avoiding trajectory to compare")
     if args.online is None and (args.node or args.train_until_step is not None):
         raise ConfigError("--node and --train-until-step choose what the comparison of two runs shows: give the "
                           "synchronization-avoiding trajectory too, or leave them out for the vessel section alone")
@@ -131,6 +152,11 @@ def run(args) -> int:
     refuse_to_overwrite([os.path.join(args.out, "summary.json")], force=args.force,
                         inputs=[args.reference, args.online, args.config])
     reference = Trajectory.load(args.reference)
+    if args.online is None and run_config(args, reference) is None:
+        raise ConfigError("jaxsync report with one trajectory writes its vessel section, which needs the run's "
+                          "configuration: this trajectory does not record it (written before jaxsync simulate "
+                          "kept it, or by the Python API), so give the run's TOML file with --config, or give "
+                          "the synchronization-avoiding trajectory to compare")
     if args.online is None:
         entry = vessel_entry(args, reference)
         atomic_json(os.path.join(args.out, "summary.json"),

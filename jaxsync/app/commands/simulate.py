@@ -219,6 +219,11 @@ def run(args) -> int:
                                                   element=args.element)
     if main_rank:
         report_warnings(caught)
+    from .unload import start_problem
+
+    problem, start = start_problem(problem, config)  # a [zero_pressure] table: the unloaded or prestressed start
+    if start and main_rank:
+        print(start)
     dt = args.dt if args.dt is not None else run_config.dt  # None: the (mass-scaled) CFL step
     sync = common.sync_of(args)  # only when asked for: the library keeps its one default
     if args.timings is not None:
@@ -238,7 +243,7 @@ def run(args) -> int:
             print(f"wrote {timings_path}")
         return 0
     return _simulate(args, problem, run_config, dt=dt, sync=sync, output=output, formats=formats,
-                     checkpoint=checkpoint, main_rank=main_rank)
+                     checkpoint=checkpoint, main_rank=main_rank, config=config)
 
 
 def _partitions(problem, n_parts: int, seed: int):
@@ -249,8 +254,15 @@ def _partitions(problem, n_parts: int, seed: int):
     return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
 
 
-def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoint, main_rank) -> int:
+CONFIG_PARAMETER = "config"
+"""The trajectory parameter (``Trajectory.parameters``, HDF5 attribute ``param_config``) that
+holds the run's configuration, as JSON with its paths resolved: ``jaxsync report`` rebuilds
+the run's loads and material from it."""
+
+
+def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoint, main_rank, config) -> int:
     import dataclasses
+    import json
 
     from ...errors import StabilityError
     from ...solve import solver
@@ -298,9 +310,10 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     elapsed = time.perf_counter() - start
     if not main_rank:  # rank 0 writes and prints
         return 0
+    extra = {CONFIG_PARAMETER: json.dumps(config)}
     if run_config.added_mass_percent is not None:
-        trajectory = dataclasses.replace(trajectory, parameters={
-            **trajectory.parameters, "added_mass_percent": float(run_config.added_mass_percent)})
+        extra["added_mass_percent"] = float(run_config.added_mass_percent)
+    trajectory = dataclasses.replace(trajectory, parameters={**trajectory.parameters, **extra})
     with common.writing(output):
         trajectory.save(output, compression=common.compression_of(args))
     st = trajectory.stats

@@ -5,10 +5,11 @@ from __future__ import annotations
 
 import os
 
-from ...options import Element, ZeroPressureMethod, choices
+from ...options import Element, PrestressMethod, ZeroPressureMethod, ZeroPressureStart, check_option, choices
 from . import common
 
-DEFAULTS = {"method": "newton", "tol": 1e-10, "max_iter": 50, "load_steps": 4, "output": "unloaded.vtu"}
+DEFAULTS = {"method": "newton", "tol": 1e-10, "max_iter": 50, "load_steps": 4, "output": "unloaded.vtu",
+            "start": "unloaded", "prestress": "zero-pressure"}
 """The ``[zero_pressure]`` values used when neither the file nor the command line gives them."""
 
 
@@ -44,16 +45,62 @@ def add_parser(subparsers) -> None:
 
 
 def settings(args, config: dict) -> dict:
-    """The ``[zero_pressure]`` settings: the command line over the (path-resolved) file over
-    :data:`DEFAULTS`, with ``pressure`` (None: the file's magnitudes)."""
+    """The ``[zero_pressure]`` settings: the command line (``args``, or None) over the
+    (path-resolved) file over :data:`DEFAULTS`, with ``pressure`` (None: the file's
+    magnitudes)."""
     table = config.get("zero_pressure", {})
     found = {key: table.get(key, value) for key, value in DEFAULTS.items()}
     found["pressure"] = table.get("pressure")
     for key in ("pressure", "method", "tol", "max_iter", "load_steps", "output"):
-        value = getattr(args, key)
+        value = getattr(args, key, None)
         if value is not None:
             found[key] = value
+    check_option("[zero_pressure] method", found["method"], ZeroPressureMethod)
+    check_option("[zero_pressure] start", found["start"], ZeroPressureStart)
+    check_option("[zero_pressure] prestress", found["prestress"], PrestressMethod)
     return found
+
+
+def start_problem(problem, config: dict) -> tuple[object, str | None]:
+    """(the problem ``jaxsync simulate`` runs, a line saying what it did) for a file with a
+    ``[zero_pressure]`` table (``problem`` and None without one): its mesh is taken as
+    imaged under every follower pressure at ``pressure`` (time factor 1), and ``start``
+    says what the run starts from:
+
+    * ``"unloaded"``: the zero-pressure geometry (:func:`jaxsync.zero_pressure_geometry`
+      with the table's ``method``, ``tol``, ``max_iter``, ``load_steps``; the same as
+      ``jaxsync unload`` writes), with the file's loads, supports and clamps;
+    * ``"prestressed"``: the imaged geometry with the prestrain of
+      :func:`jaxsync.prestress` (route ``prestress``) and the stress-free state's mass
+      (its ``density_scale``, times a mass scaling's); in equilibrium at the imaging
+      pressure, so the file's loads should start there;
+    * ``"imaged"``: the imaged geometry as it is.
+    """
+    import numpy as np
+
+    if "zero_pressure" not in config:
+        return problem, None
+    found = settings(None, config)
+    if found["start"] == "imaged":
+        return problem, None
+    imaging = imaging_problem(problem, found["pressure"])
+    options = dict(tol=found["tol"], max_iter=found["max_iter"], load_steps=found["load_steps"])
+    if found["start"] == "unloaded":
+        from ...solve.zero_pressure import zero_pressure_geometry
+
+        result = zero_pressure_geometry(imaging, method=found["method"], **options)
+        moved = float(np.abs(result.points - problem.points).max())
+        return result.problem(problem), (f"start: the unloaded geometry ({result.method}, {result.iterations} "
+                                         f"iterations, final residual {result.residuals[-1]:.3e}; largest node "
+                                         f"move {moved:.4g} cm)")
+    from ...solve.prestress import prestress
+
+    result = prestress(imaging, method=found["prestress"], **options)
+    scale = result.density_scale if problem.density_scale is None else (
+        np.asarray(problem.density_scale) * result.density_scale)
+    return problem.replace(material=result.material, density_scale=scale), (
+        f"start: the imaged geometry prestressed ({result.method}, {result.iterations} iterations; out of balance "
+        f"{result.residual:.3e} at the imaging pressure)")
 
 
 def imaging_problem(problem, pressure):
