@@ -515,3 +515,46 @@ def test_cli_simulate_starts_from_the_zero_pressure_table(tmp_path, vessel, star
         assert np.abs(run.displacement).max() <= 1e-9 * DIAMETER
     else:
         assert np.abs(reference[-1]).max() > 1e-4 * DIAMETER
+
+
+def _fibre_tube():
+    """(mesh, the HGO law with helical fibres, the imaged tube at 1e5 barye)."""
+    a, b, h = 0.2, 0.3, 0.05
+    mesh = _annulus(a, b, h, 2, 4)
+    fibres = jaxsync.helical_fibres(mesh.points[mesh.tets].mean(axis=1), axis=(0.0, 0.0, 1.0), angle=40.0)
+    law = jaxsync.HolzapfelGasserOgden(mu=3.0e5, k1=2.0e5, k2=0.8, kappa_bulk=3.0e6, fibres=fibres)
+    return mesh, law, _plane_strain_tube(mesh, law, 1.0e5, h)
+
+
+def test_prestressed_fibre_law_is_in_equilibrium_and_responds_as_the_unloaded_geometry():
+    """Prestressed wraps HolzapfelGasserOgden (its fibres those of the stress-free state):
+    both routes put the imaged tube in equilibrium at round-off, and the zero-pressure
+    route's response to a pressure increment is the unloaded geometry's (forward statics)."""
+    b, h = 0.3, 0.05
+    mesh, law, imaged = _fibre_tube()
+    fibres = law.fibres
+    zero_pressure = jaxsync.prestress(imaged, tol=1e-12)
+    mulf = jaxsync.prestress(imaged, method="mulf", tol=1e-13)
+    assert zero_pressure.residual <= 1e-11 and mulf.residual <= 1e-11
+    from jaxsync.solve.prestress import out_of_balance
+
+    assert out_of_balance(imaged) > 0.1
+    assert np.array_equal(zero_pressure.material.fibres, fibres)
+    loaded = _plane_strain_tube(mesh, law, 1.05e5, h)
+    unloaded = jaxsync.zero_pressure_geometry(imaged, tol=1e-12)
+    expected = unloaded.points + np.asarray(jaxsync.steady_state(unloaded.problem(loaded), tol=1e-12)) - mesh.points
+    u = np.asarray(jaxsync.steady_state(loaded.replace(material=zero_pressure.material), load_steps=1, tol=1e-12))
+    assert np.abs(expected).max() > 1e-4 * b
+    assert np.abs(u - expected).max() <= 1e-6 * np.abs(expected).max()
+
+
+@pytest.mark.slow
+def test_prestressed_fibre_law_runs_alike_on_one_device_and_two_parts():
+    _, law, imaged = _fibre_tube()
+    result = jaxsync.prestress(imaged, tol=1e-12)
+    loaded = _plane_strain_tube(imaged.mesh, law, 1.05e5, 0.05)
+    run = loaded.replace(material=result.material, density_scale=result.density_scale)
+    one = np.asarray(jaxsync.simulate(run, 40, save=20).displacement)
+    two = np.asarray(jaxsync.simulate(run, 40, save=20, partitions=2).displacement)
+    assert np.abs(one[-1]).max() > 0
+    np.testing.assert_allclose(two, one, rtol=0, atol=1e-12 * np.abs(one).max())

@@ -19,7 +19,6 @@ problem will have: one point for P1, the 4-point degree-4 rule of curved (isopar
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import jax
@@ -42,7 +41,7 @@ def split_fibres(material) -> tuple:
     if material.fibres is None:
         raise ProblemError("HolzapfelGasserOgden needs fibre directions: give fibres= (n_elements, 2, 3), for "
                            "instance jaxsync.helical_fibres(mesh.points[mesh.tets].mean(axis=1), axis, angle)")
-    return dataclasses.replace(material, fibres=None), jnp.asarray(material.fibres)
+    return material.replace(fibres=None), jnp.asarray(material.fibres)
 
 
 @pytree_dataclass

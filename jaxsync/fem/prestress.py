@@ -24,6 +24,7 @@ run checks see it through the total-Lagrangian operator
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 from typing import Any, ClassVar
 
@@ -41,12 +42,15 @@ __all__ = ["Prestressed"]
 
 @pytree_dataclass
 class Prestressed(FiniteStrainLaw):
-    """An isotropic hyperelastic ``law`` with a prestrain F0 at every quadrature point
+    """A hyperelastic ``law`` with a prestrain F0 at every quadrature point
     (module docstring), a :class:`jaxsync.fem.material_law.MaterialLaw`.
 
     Attributes:
         law: the stress-free law (:class:`jaxsync.NeoHookean`,
-            :class:`jaxsync.NearlyIncompressibleNeoHookean`, or an isotropic law of your own).
+            :class:`jaxsync.NearlyIncompressibleNeoHookean`,
+            :class:`jaxsync.HolzapfelGasserOgden`, or an elastic law of your own); a fibre
+            law's directions are those of the stress-free state, element by element (as
+            the zero-pressure geometry's law has them), and ``fibres`` reads them.
         prestrain: (n_elements, n_q, 3, 3) F0 at the quadrature points of the problem's
             element (P1: n_q = 1; P2 on a straight mesh: 4), det F0 > 0; None: the
             identity (no prestress).
@@ -64,9 +68,9 @@ class Prestressed(FiniteStrainLaw):
         if not getattr(self.law, "finite_strain", False) or not hasattr(self.law, "first_piola"):
             raise MaterialError(f"Prestressed needs a hyperelastic law (jaxsync.NeoHookean, "
                                 f"NearlyIncompressibleNeoHookean), got {type(self.law).__name__}")
-        if hasattr(self.law, "fibres") or self.law.internal_variables(1, 1):
-            raise MaterialError(f"Prestressed takes an isotropic elastic law without internal variables; "
-                                f"{type(self.law).__name__} has fibres or a state of its own")
+        if self.law.internal_variables(1, 1):
+            raise MaterialError(f"Prestressed takes an elastic law without internal variables; "
+                                f"{type(self.law).__name__} has a state of its own")
         F0 = self.prestrain
         if isinstance(F0, (np.ndarray, jax.Array)) and not is_traced(F0):  # not a pytree's placeholder leaf
             if F0.ndim != 4 or F0.shape[-2:] != (3, 3):
@@ -80,6 +84,19 @@ class Prestressed(FiniteStrainLaw):
     rho = property(lambda self: self.law.rho)
     mu = property(lambda self: self.law.mu)
     lam = property(lambda self: self.law.lam)
+
+    def __getattr__(self, name):
+        # a fibre law's directions are the inner law's (those of the stress-free state,
+        # element by element); an isotropic inner law has none, and neither has this law
+        if name == "fibres" and "law" in self.__dict__ and hasattr(self.law, "fibres"):
+            return self.law.fibres
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def replace(self, **changes):
+        """A copy with some fields changed; ``fibres=`` changes the inner law's."""
+        if "fibres" in changes:
+            changes["law"] = self.law.replace(fibres=changes.pop("fibres"))
+        return dataclasses.replace(self, **changes)
 
     def stateless(self) -> "Prestressed":
         """The law without its stored prestrain (the operator holds that as its state)."""
@@ -99,14 +116,14 @@ class Prestressed(FiniteStrainLaw):
     def stress_update(self, F, fibres, internal, dt):
         """(P_0(F) = P(F F0) F0^T / J0 (..., 3, 3) [dyn/cm^2], the state unchanged)."""
         F0 = internal["F0"]
-        P = self.law.first_piola(F @ F0)
+        P = self.law.first_piola(F @ F0, fibres)
         return P @ jnp.swapaxes(F0, -1, -2) / determinant(F0)[..., None, None], internal
 
     def energy(self, F, fibres=None, internal=None):
         """psi(F F0) / J0 (...,) [erg/cm^3] per unit imaged volume, with ``internal`` the
         state ({"F0"}) of the points of F."""
         F0 = self._prestrain(internal)
-        return self.law.energy(F @ F0) / determinant(F0)
+        return self.law.energy(F @ F0, fibres) / determinant(F0)
 
     def first_piola(self, F, fibres=None):
         """P_0(F) with the stored prestrain (F of the shape (n_elements, n_q, 3, 3))."""
@@ -122,8 +139,11 @@ class Prestressed(FiniteStrainLaw):
                            "jaxsync.steady_state, jaxsync.simulate, stable_dt(..., rule='element')")
 
     def parameters(self) -> MaterialParameters:
-        """The inner law's class and parameters, and the sha256 of the prestrain."""
+        """The inner law's class and parameters, and the sha256 of the prestrain (and of
+        the inner law's fibres)."""
         inner = self.law.parameters()
         digest = None if self.prestrain is None else hashlib.sha256(
             np.ascontiguousarray(np.asarray(self.prestrain, dtype=float)).tobytes()).hexdigest()
+        if inner.fibres is not None:
+            digest = hashlib.sha256(f"{digest}:{inner.fibres}".encode()).hexdigest()
         return MaterialParameters(f"Prestressed[{inner.name}]", dict(inner.values), digest)

@@ -193,7 +193,7 @@ def _material_and_fibres(problem):
     if np.shape(fibres) != (problem.mesh.n_elements, 2, 3):
         raise ProblemError(f"HolzapfelGasserOgden.fibres has shape {np.shape(fibres)}, the mesh has "
                            f"{problem.mesh.n_elements} elements: give (n_elements, 2, 3)")
-    return dataclasses.replace(material, fibres=None), jnp.asarray(fibres)
+    return material.replace(fibres=None), jnp.asarray(fibres)
 
 
 def _constant_state(problem, material):

@@ -96,7 +96,7 @@ def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max
     """The prestrain that puts the imaged ``problem`` in equilibrium (module docstring).
 
     Args:
-        problem: a :class:`jaxsync.Problem` with an isotropic hyperelastic law on the imaged
+        problem: a :class:`jaxsync.Problem` with an elastic hyperelastic law on the imaged
             geometry, its loads at full magnitude those at imaging (as for
             :func:`jaxsync.zero_pressure_geometry`).
         method: ``"zero-pressure"`` (F0 from the Newton zero-pressure geometry) or
