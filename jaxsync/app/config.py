@@ -72,7 +72,7 @@ Layout (every table optional; defaults give the paper's cantilever)::
     normal_only = false         # true: along the surface normal only
 
 A ``[[dirichlet]]`` entry with ``t_ramp``, ``t_off`` or ``period``/``times``/``values``
-prescribes a history: ``value`` times that time function.
+prescribes a history: ``value`` times that time function. The run and the imaged geometry::
 
     [run]
     n_steps = 20000
