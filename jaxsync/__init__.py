@@ -26,7 +26,7 @@ __all__ = [
     "Periodic",
     "Dirichlet", "Problem", "LockingWarning", "RigidBodyWarning", "SynchronizedRunWarning",
     "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
+    "simulate", "ensemble", "steady_state", "SteadyState", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
     "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance", "Synchronized", "SyncAvoiding",
     "Trajectory", "RunStats", "SynchronizedStats", "SyncAvoidingStats", "FullSystemStats", "PartHistory", "Result",
@@ -60,7 +60,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".solve.coupling": ("Synchronized",),
     ".solve.ensemble": ("ensemble",),
     ".solve.full_system": ("simulate_full_system",),
-    ".solve.solver": ("simulate", "steady_state"),
+    ".solve.solver": ("SteadyState", "simulate", "steady_state"),
     ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
     ".solve.prestress": ("PrestressResult", "prestress"),
@@ -104,7 +104,7 @@ if TYPE_CHECKING:
     from .solve.ensemble import ensemble
     from .solve.full_system import simulate_full_system
     from .solve.prestress import PrestressResult, prestress
-    from .solve.solver import simulate, steady_state
+    from .solve.solver import SteadyState, simulate, steady_state
     from .solve.strategies import (
         Halo,
         HostExecutor,

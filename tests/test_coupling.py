@@ -238,3 +238,32 @@ def test_stats_of_files_load_as_their_kind(tmp_path, reference):
     back = jaxsync.Trajectory.load(path).stats
     assert back == reference.stats and type(back) is jaxsync.SynchronizedStats
     assert back.to_dict().keys() == reference.stats.to_dict().keys()
+
+
+def test_steady_state_returns_one_type():
+    """A linear and a hyperelastic law give a SteadyState (an ndarray): the linear one
+    satisfies K u = f at the free dofs (scipy's K of the problem) and has no residuals;
+    the hyperelastic one's residuals are one converged Newton history per increment. The
+    deprecated history=True gives the pair it gave before."""
+    from jaxsync.fem.support import stiffness_matrix
+
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 2, 2))
+    linear = jaxsync.cantilever(mesh)
+    u = jaxsync.steady_state(linear)
+    assert type(u) is jaxsync.SteadyState and isinstance(u, np.ndarray) and u.shape == (len(mesh.points), 3)
+    assert u.residuals == ()
+    K = stiffness_matrix(linear)
+    f = sum(np.asarray(v, dtype=float).reshape(-1) for v in linear.load_vectors()[0])
+    fixed, _ = linear.dirichlet_dofs()
+    free = np.setdiff1d(np.arange(K.shape[0]), fixed)
+    np.testing.assert_allclose((K @ u.reshape(-1))[free], f[free], rtol=0, atol=1e-9 * np.abs(f).max())
+    assert type(u * 2.0) is np.ndarray and type(u[:, 2].min()) is np.float64  # new fields are plain arrays
+
+    nonlinear = linear.replace(material=jaxsync.NeoHookean(1.0e6, 0.3, 1.0))
+    v = jaxsync.steady_state(nonlinear, load_steps=2, tol=1e-10)
+    assert type(v) is jaxsync.SteadyState and len(v.residuals) == 2
+    assert all(increment[-1] <= 1e-10 for increment in v.residuals)
+    with pytest.warns(DeprecationWarning, match="u.residuals"):
+        pair = jaxsync.steady_state(nonlinear, load_steps=2, tol=1e-10, history=True)
+    np.testing.assert_array_equal(pair[0], v)
+    assert pair[1] == [list(r) for r in v.residuals]

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING
 
 from ..lazy import export_lazily
 
-__all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
+__all__ = ["simulate", "ensemble", "steady_state", "SteadyState", "simulate_sync_avoiding", "simulate_full_system",
            "ResyncTolerance", "OraclePredictor", "describe_run", "step_counts",
            "Psum", "Ppermute", "Mpi", "Halo", "SaveAt", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
            "Recompute", "StoreAll", "Coupling", "Synchronized", "SyncAvoiding", "SynchronizedSteps",
@@ -50,7 +50,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".phases": ("PredictedSteps", "SynchronizedSteps"),
     ".predictors": ("OraclePredictor",),
     ".prestress": ("PrestressResult", "prestress"),
-    ".solver": ("simulate", "steady_state"),
+    ".solver": ("SteadyState", "simulate", "steady_state"),
     ".strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance", "SaveAt",
                     "SolverCheckpoint", "StoreAll", "TracedExecutor", "transport"),
     ".syncavoid": ("SyncAvoiding", "describe_run", "simulate_sync_avoiding", "step_counts"),
@@ -68,7 +68,7 @@ if TYPE_CHECKING:
     from .phases import PredictedSteps, SynchronizedSteps
     from .predictors import OraclePredictor
     from .prestress import PrestressResult, prestress
-    from .solver import simulate, steady_state
+    from .solver import SteadyState, simulate, steady_state
     from .strategies import (
         Halo,
         HostExecutor,

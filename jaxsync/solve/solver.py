@@ -24,17 +24,47 @@ from ..pytree import is_traced
 from .coupling import as_coupling, exchange_of
 from .strategies import SaveAt, SolverCheckpoint, TracedExecutor, choose_executor
 
-__all__ = ["simulate", "steady_state"]
+__all__ = ["simulate", "steady_state", "SteadyState"]
 
 
 NEWTON_LOAD_STEPS = 10
 """Default number of load increments of :func:`steady_state` for a hyperelastic law."""
 
 
+class SteadyState(np.ndarray):
+    """What :func:`steady_state` returns, for every law: the static displacement, a numpy
+    array (n_nodes, 3) [cm], with
+
+    Attributes:
+        residuals: per load increment, the relative residuals of its Newton iterations (a
+            tuple of tuples of floats; empty for a linear law, solved directly).
+
+    It is an ``np.ndarray`` in every use (indexing, NumPy and JAX functions, files);
+    arithmetic on it gives plain arrays, which carry no residuals.
+    """
+
+    residuals: tuple
+
+    def __new__(cls, displacement, residuals=()):
+        solution = np.asarray(displacement, dtype=float).view(cls)
+        solution.residuals = tuple(tuple(float(r) for r in increment) for increment in residuals)
+        return solution
+
+    def __array_finalize__(self, obj):  # views (slices, reshapes) keep the residuals
+        self.residuals = getattr(obj, "residuals", ())
+
+    def __array_wrap__(self, array, context=None, return_scalar=False):
+        # ufunc results are new fields, not this solution: plain arrays (or scalars)
+        array = np.asarray(array).view(np.ndarray)
+        return array[()] if return_scalar else array
+
+
 def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, max_iter: int = 25,
-                 history: bool = False, guess=None):
+                 history: bool = False, guess=None) -> SteadyState:
     """Static solution with every load at full magnitude (time factor 1) and the Dirichlet
-    values imposed (those following a time function at their full value), (n_nodes, 3) [cm].
+    values imposed (those following a time function at their full value): a
+    :class:`SteadyState`, the (n_nodes, 3) displacement [cm] as a numpy array whose
+    ``residuals`` hold the Newton iterations' relative residuals per increment.
 
     A linear elastic law: K u = f, K including the elastic supports' springs, one direct
     sparse solve (scipy; ``load_steps``, ``tol``, ``max_iter`` are not used).
@@ -56,8 +86,8 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
         load_steps: hyperelastic laws: the number of load increments (>= 1).
         tol: hyperelastic laws: the relative residual of convergence.
         max_iter: hyperelastic laws: Newton iterations per increment at most.
-        history: also return, per increment, the relative residuals of its iterations
-            (a list of lists; empty for a linear law).
+        history: deprecated: return the pair ``(u, u.residuals)`` as before
+            :class:`SteadyState` carried the residuals (read ``u.residuals`` instead).
         guess: hyperelastic laws: (n_nodes, 3) [cm] the displacement Newton's method starts
             from (default zero), for instance the solution of a nearby problem; with
             ``load_steps=1`` the full load is applied to it at once.
@@ -79,11 +109,18 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             "K_T from jaxsync.fem.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
             "jax.jacfwd of the residual (docs: Gradients)")
     if problem.material.finite_strain:  # a force nonlinear in u: Newton's method
-        u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
-                                            tol, max_iter, guess)
-        return (u, residuals) if history else u
-    u = _linear_steady_state(problem)
-    return (u, []) if history else u
+        u = SteadyState(*_newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
+                                              tol, max_iter, guess))
+    else:
+        u = SteadyState(_linear_steady_state(problem))
+    if history:
+        import warnings
+
+        warnings.warn("steady_state(history=True) is deprecated: steady_state returns one type, whose "
+                      "residuals attribute holds the Newton residuals (u = steady_state(problem); u.residuals)",
+                      DeprecationWarning, stacklevel=2)
+        return u, list(map(list, u.residuals))
+    return u
 
 
 def _singular() -> ProblemError:
