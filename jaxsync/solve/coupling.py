@@ -68,17 +68,20 @@ class RunPlan:
     def finish_on_host(self, run) -> object:
         """The :class:`jaxsync.Trajectory` of a host run from its first synchronized phase
         (``run``: a :class:`jaxsync.solve.host.HostRun`)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement finish_on_host(run)")
 
     def traced_trajectory(self, problem, dt, system, state, run, save) -> object:
         """The :class:`jaxsync.Trajectory` of a traced run at time step ``dt`` (``run``: the
         :class:`~jaxsync.solve.traced.TracedRun` of :attr:`schedule` from ``state``, with
         ``system`` the global system)."""
-        raise NotImplementedError
+        raise NotImplementedError(f"{type(self).__name__} must implement traced_trajectory(...)")
 
 
 @dataclasses.dataclass(frozen=True)
 class _SynchronizedPlan(RunPlan):
+    """The plan of a :class:`Synchronized` run: after its one phase, its trajectory with
+    its shared-node histories and a :class:`jaxsync.SynchronizedStats`."""
+
     def finish_on_host(self, run):
         from .host import run_summary
         from .record import synchronized_trajectory
