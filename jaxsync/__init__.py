@@ -26,10 +26,10 @@ __all__ = [
     "Periodic",
     "Dirichlet", "Problem", "LockingWarning", "RigidBodyWarning", "SynchronizedRunWarning",
     "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "ensemble", "steady_state", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
+    "simulate", "ensemble", "steady_state", "SteadyState", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
     "mass_scaling", "MassScalingWarning",
-    "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance",
-    "Trajectory", "RunStats", "PartHistory", "Result",
+    "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance", "Synchronized", "SyncAvoiding",
+    "Trajectory", "RunStats", "SynchronizedStats", "SyncAvoidingStats", "FullSystemStats", "PartHistory", "Result",
     "SaveAt", "Psum", "Ppermute", "Mpi", "Halo", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
     "Recompute", "StoreAll",
     "zero_pressure_geometry", "zero_pressure_points", "ZeroPressureGeometry", "prestress", "PrestressResult",
@@ -56,16 +56,18 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".fem.total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
     ".parallel": ("devices",),
     ".parallel.partitioning": ("Partition", "partition"),
+    ".run_stats": ("FullSystemStats", "RunStats", "SyncAvoidingStats", "SynchronizedStats"),
+    ".solve.coupling": ("Synchronized",),
     ".solve.ensemble": ("ensemble",),
     ".solve.full_system": ("simulate_full_system",),
-    ".solve.solver": ("simulate", "steady_state"),
+    ".solve.solver": ("SteadyState", "simulate", "steady_state"),
     ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
     ".solve.prestress": ("PrestressResult", "prestress"),
     ".solve.static_adjoint": ("static_displacement",),
-    ".solve.syncavoid": ("simulate_sync_avoiding",),
+    ".solve.syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
     ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
-    ".trajectory": ("PartHistory", "Result", "RunStats", "Trajectory"),
+    ".trajectory": ("PartHistory", "Result", "Trajectory"),
 })
 
 if TYPE_CHECKING:
@@ -98,10 +100,12 @@ if TYPE_CHECKING:
     from .mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .parallel import devices
     from .parallel.partitioning import Partition, partition
+    from .run_stats import FullSystemStats, RunStats, SyncAvoidingStats, SynchronizedStats
+    from .solve.coupling import Synchronized
     from .solve.ensemble import ensemble
     from .solve.full_system import simulate_full_system
     from .solve.prestress import PrestressResult, prestress
-    from .solve.solver import simulate, steady_state
+    from .solve.solver import SteadyState, simulate, steady_state
     from .solve.static_adjoint import static_displacement
     from .solve.strategies import (
         Halo,
@@ -116,6 +120,6 @@ if TYPE_CHECKING:
         StoreAll,
         TracedExecutor,
     )
-    from .solve.syncavoid import simulate_sync_avoiding
+    from .solve.syncavoid import SyncAvoiding, simulate_sync_avoiding
     from .solve.zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
-    from .trajectory import PartHistory, Result, RunStats, Trajectory
+    from .trajectory import PartHistory, Result, Trajectory

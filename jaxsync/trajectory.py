@@ -21,6 +21,7 @@ import numpy as np
 from .errors import CheckpointError, OutputError
 from .io import atomic_h5
 from .mesh import Mesh
+from .run_stats import RunStats
 from .writers._vtu import check_vtu_location, vtu_series_paths, write_pvd
 
 __all__ = ["Trajectory", "RunStats", "PartHistory", "Result", "vtu_series_paths", "check_vtu_location",
@@ -40,89 +41,6 @@ class Result(enum.IntEnum):
 
     SUCCESSFUL = 0
     DIVERGED = 1
-
-
-@dataclasses.dataclass(frozen=True)
-class RunStats:
-    """How a run went, apart from the physics (every field None when not measured).
-
-    - Timing (compiled chunks only; compilation is counted apart): ``us_per_step``, the
-      wall time per step of a synchronized run [us]; ``us_per_step_synchronized`` and
-      ``us_per_step_predicted``, the same for the two kinds of steps of a
-      synchronization-avoiding run [us]; ``compile_seconds``, the time spent compiling
-      [s]; ``seconds_discarded``, the time spent on predicted steps that were recomputed
-      [s].
-    - Devices: ``n_devices`` (those of every process of the run together),
-      ``n_processes`` (None: files written before it was recorded, one process),
-      ``device_kind``, ``platform``, ``emulated`` (several CPU devices emulated in one
-      process, sharing its cores).
-    - Steps of a synchronization-avoiding run (``n_synchronized_steps`` +
-      ``n_predicted_steps`` = ``n_steps``): ``n_steps``, ``n_cri`` (the last step of the
-      first synchronized stretch), ``n_synchronized_steps``, ``n_predicted_steps``,
-      ``n_discarded_steps`` (predicted, then recomputed synchronized after a rejected
-      cycle).
-    - Error control: ``resync_tolerance`` (as given, e.g. ``"1 %"``),
-      ``n_resynchronizations``, ``resynchronized_at`` (the first step of each rejected
-      cycle), ``es_hat_trigger`` (its es_hat [cm]), ``error_estimate_trigger`` (its
-      estimated error [cm]; NaN where es_hat rejected it before it ran) and
-      ``tolerance_cm`` (the tolerance then [cm]).
-    - Online learning: ``surrogate_updated_at``, the steps after which the surrogates
-      learned from the steps recomputed synchronized (the end of each re-synchronized
-      stretch), and ``seconds_updating``, the time those updates took [s].
-    - Load jumps: ``load_jumps``, the steps where a load's time function jumps that the run
-      stayed synchronized through (None: not looked for).
-    - Full-system modeling: ``dirichlet_max_abs_predicted``, the largest |predicted value|
-      on the Dirichlet dofs [cm].
-    """
-
-    us_per_step: float | None = None
-    us_per_step_synchronized: float | None = None
-    us_per_step_predicted: float | None = None
-    compile_seconds: float | None = None
-    seconds_discarded: float | None = None
-    n_devices: int | None = None
-    n_processes: int | None = None
-    device_kind: str | None = None
-    platform: str | None = None
-    emulated: bool | None = None
-    n_steps: int | None = None
-    n_cri: int | None = None
-    n_synchronized_steps: int | None = None
-    n_predicted_steps: int | None = None
-    n_discarded_steps: int | None = None
-    resync_tolerance: str | None = None
-    n_resynchronizations: int | None = None
-    resynchronized_at: tuple | None = None
-    es_hat_trigger: tuple | None = None
-    tolerance_cm: tuple | None = None
-    error_estimate_trigger: tuple | None = None
-    load_jumps: tuple | None = None
-    surrogate_updated_at: tuple | None = None
-    seconds_updating: float | None = None
-    dirichlet_max_abs_predicted: float | None = None
-
-    def __post_init__(self):
-        for name in ("resynchronized_at", "es_hat_trigger", "tolerance_cm", "error_estimate_trigger", "load_jumps",
-                     "surrogate_updated_at"):
-            value = getattr(self, name)
-            if value is not None and not isinstance(value, tuple):
-                object.__setattr__(self, name, tuple(np.asarray(value).tolist()))
-
-    def to_dict(self) -> dict:
-        """The measured fields (None left out), as plain Python values."""
-        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self)
-                if getattr(self, f.name) is not None}
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "RunStats":
-        """The inverse of :meth:`to_dict`; keys this jaxsync does not know are ignored
-        (files of a newer jaxsync stay readable)."""
-        known = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in known})
-
-    def merged(self, **changes) -> "RunStats":
-        """A copy with ``changes`` applied (None values leave a field as it is)."""
-        return dataclasses.replace(self, **{k: v for k, v in changes.items() if v is not None})
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -170,9 +88,10 @@ class Trajectory:
             (:class:`PartHistory`, one per part), or empty.
         synchronized: (n_saved,) bool, False where the snapshot's step was predicted
             by surrogates instead of synchronized (None: all synchronized).
-        stats: how the run went, apart from the physics (:class:`RunStats`: time per
-            step, compilation, devices, and for synchronization-avoiding runs the step
-            counts and re-synchronizations).
+        stats: how the run went, apart from the physics, typed by the kind of run
+            (:mod:`jaxsync.run_stats`: :class:`~jaxsync.SynchronizedStats`,
+            :class:`~jaxsync.SyncAvoidingStats`, ...; time per step, compilation, devices,
+            and for synchronization-avoiding runs the step counts and re-synchronizations).
         shared_every: steps between the entries of each part's ``shared_displacement``
             (None: ``save_every``, one per snapshot). Surrogate training needs 1.
         result: how the run ended (:class:`Result`; a JAX int32 array in a traced run,

@@ -1,7 +1,11 @@
 """The solve layer: runs of the explicit solver.
 
-A run is a schedule of phases (:mod:`~jaxsync.solve.phases`: synchronized and predicted
-steps, the pure per-part functions both executors call), run by one of two executors:
+One entry point, :func:`simulate`, takes a coupling (:mod:`~jaxsync.solve.coupling`:
+:class:`Synchronized`, or :class:`SyncAvoiding` of :mod:`~jaxsync.solve.syncavoid`), which
+it lowers into the run's plan: a schedule of phases (:mod:`~jaxsync.solve.phases`:
+synchronized and predicted steps, the pure per-part functions both executors call) and the
+coupling's host-side policy (:mod:`~jaxsync.solve.resync`: re-synchronization). The plan is
+run by one of two executors:
 :mod:`~jaxsync.solve.host` (compiled chunks driven from Python through the one host loop
 of :mod:`~jaxsync.solve.driver`: progress, divergence checks, checkpoints, error control)
 or :mod:`~jaxsync.solve.traced` (one JAX program, differentiable, its reverse pass from
@@ -9,7 +13,7 @@ or :mod:`~jaxsync.solve.traced` (one JAX program, differentiable, its reverse pa
 :mod:`~jaxsync.solve.strategies`.
 
 Entry points: :func:`simulate` (:mod:`~jaxsync.solve.solver`), :func:`simulate_sync_avoiding`
-(:mod:`~jaxsync.solve.syncavoid`, paper Algorithm 3 with error control), :func:`ensemble`,
+(the same as ``simulate(coupling=SyncAvoiding(...))``), :func:`ensemble`,
 :func:`simulate_full_system` (one surrogate for every dof), :func:`steady_state`. The parts
 of a distributed run: :mod:`~jaxsync.solve.distributed`; the predicted phase's runners:
 :mod:`~jaxsync.solve.predicted`; predictors: :mod:`~jaxsync.solve.predictors`; resumable
@@ -26,10 +30,11 @@ from typing import TYPE_CHECKING
 
 from ..lazy import export_lazily
 
-__all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "simulate_full_system",
+__all__ = ["simulate", "ensemble", "steady_state", "SteadyState", "simulate_sync_avoiding", "simulate_full_system",
            "ResyncTolerance", "OraclePredictor", "describe_run", "step_counts",
            "Psum", "Ppermute", "Mpi", "Halo", "SaveAt", "SolverCheckpoint", "HostExecutor", "TracedExecutor",
-           "Recompute", "StoreAll", "Synchronized", "Predicted",
+           "Recompute", "StoreAll", "Coupling", "Synchronized", "SyncAvoiding", "SynchronizedSteps",
+           "PredictedSteps",
            "Runner", "Chunk", "Segment", "Progress", "run_chunks", "SingleDeviceRunner",
            "DistributedParts", "DistributedRunner", "transport", "sync_strategy", "register_exchange",
            "unregister_exchange", "exchange_names", "zero_pressure_geometry", "zero_pressure_points",
@@ -38,34 +43,36 @@ __all__ = ["simulate", "ensemble", "steady_state", "simulate_sync_avoiding", "si
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
+    ".coupling": ("Coupling", "Synchronized"),
     ".distributed": ("DistributedParts", "DistributedRunner"),
     ".driver": ("Chunk", "Progress", "Runner", "Segment", "run_chunks"),
     ".ensemble": ("ensemble",),
     ".exchanges": ("exchange_names", "register_exchange", "sync_strategy", "unregister_exchange"),
     ".full_system": ("simulate_full_system",),
     ".host": ("SingleDeviceRunner",),
-    ".phases": ("Predicted", "Synchronized"),
+    ".phases": ("PredictedSteps", "SynchronizedSteps"),
     ".predictors": ("OraclePredictor",),
     ".prestress": ("PrestressResult", "prestress"),
-    ".solver": ("simulate", "steady_state"),
+    ".solver": ("SteadyState", "simulate", "steady_state"),
     ".strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance", "SaveAt",
                     "SolverCheckpoint", "StoreAll", "TracedExecutor", "transport"),
-    ".syncavoid": ("describe_run", "simulate_sync_avoiding", "step_counts"),
+    ".syncavoid": ("SyncAvoiding", "describe_run", "simulate_sync_avoiding", "step_counts"),
     ".zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
     ".static_adjoint": ("static_displacement",),
 })
 
 if TYPE_CHECKING:
+    from .coupling import Coupling, Synchronized
     from .distributed import DistributedParts, DistributedRunner
     from .driver import Chunk, Progress, Runner, Segment, run_chunks
     from .ensemble import ensemble
     from .exchanges import exchange_names, register_exchange, sync_strategy, unregister_exchange
     from .full_system import simulate_full_system
     from .host import SingleDeviceRunner
-    from .phases import Predicted, Synchronized
+    from .phases import PredictedSteps, SynchronizedSteps
     from .predictors import OraclePredictor
     from .prestress import PrestressResult, prestress
-    from .solver import simulate, steady_state
+    from .solver import SteadyState, simulate, steady_state
     from .static_adjoint import static_displacement
     from .strategies import (
         Halo,
@@ -81,5 +88,5 @@ if TYPE_CHECKING:
         TracedExecutor,
         transport,
     )
-    from .syncavoid import describe_run, simulate_sync_avoiding, step_counts
+    from .syncavoid import SyncAvoiding, describe_run, simulate_sync_avoiding, step_counts
     from .zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points

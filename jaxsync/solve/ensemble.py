@@ -258,11 +258,11 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             raise _diverged(bad, runner, from_segment(bad.segment, Result.DIVERGED), limit, dt, first,
                             labels) from None
     from ..parallel.devices import device_summary
-    from ..trajectory import RunStats
+    from ..run_stats import SynchronizedStats
 
-    stats = RunStats(compile_seconds=segment.compile_seconds,
-                     us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
-                     **device_summary(runner.devices))
+    stats = SynchronizedStats(compile_seconds=segment.compile_seconds,
+                              us_per_step=1e6 * segment.seconds / segment.n_steps if segment.n_steps else None,
+                              **device_summary(runner.devices))
     return tuple(dataclasses.replace(traj, stats=stats) for traj in from_segment(segment, Result.SUCCESSFUL))
 
 

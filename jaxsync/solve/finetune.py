@@ -36,7 +36,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..fem.stepper import SolverState, advance, build_system, initial_state
 from .distributed import DistributedParts
-from .phases import Predicted, Synchronized
+from .phases import PredictedSteps, SynchronizedSteps
 from .predictors import predictor_for
 from .strategies import Recompute
 from .traced import run_traced
@@ -164,7 +164,7 @@ def fine_tune_in_the_loop(problem, surrogate, partitions, *, n_steps: int, confi
     starts = np.unique(np.linspace(first, last, config.n_starts).round().astype(int) // save_every * save_every)
     distributed = DistributedParts(problem, partitions, sync, mode=mode)
     surrogate = predictor_for(surrogate, distributed.partition, problem, dt)  # made for this partition and its loads
-    schedule = (Synchronized(history), Predicted(window - history))
+    schedule = (SynchronizedSteps(history), PredictedSteps(window - history))
     system = build_system(problem, dt, mode)
     states, amplitude = _start_states(system, initial_state(problem, system), starts, int(n_steps), save_every)
     n_saves, n_history_saves = window // save_every, history // save_every

@@ -44,8 +44,9 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
     from ..precision import require_float64
+    from ..run_stats import FullSystemStats
     from ..surrogate.saved import SavedSurrogate
-    from ..trajectory import RunStats, Trajectory
+    from ..trajectory import Trajectory
 
     require_float64("simulate_full_system")
     if reference.save_every != 1:
@@ -92,7 +93,7 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
     return Trajectory(times=np.arange(n_steps + 1) * reference.dt, displacement=displacement,
                       mesh=problem.mesh, element=problem.element, dt=reference.dt, save_every=1,
                       parameters=dict(reference.parameters),
-                      stats=RunStats(**{"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
+                      stats=FullSystemStats(**{"n_steps": n_steps, "n_cri": n_cri, "n_synchronized_steps": n_cri,
                                   "n_predicted_steps": n_steps - n_cri,
                                   "dirichlet_max_abs_predicted": dirichlet_error,
                                   "compile_seconds": compile_seconds,

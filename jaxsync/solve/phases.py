@@ -1,9 +1,9 @@
 """The phases of a run and what one part computes in each: the pure functions that both
 executors run.
 
-A run is a schedule of phases: :class:`Synchronized` steps (paper Algorithm 1: every step
+A run is a schedule of phases: :class:`SynchronizedSteps` (paper Algorithm 1: every step
 completes the parts' shared-node forces, or with deep halos their displacements every k
-steps) and :class:`Predicted` steps (paper Algorithm 3: refill cycles of the surrogates,
+steps) and :class:`PredictedSteps` (paper Algorithm 3: refill cycles of the surrogates,
 no exchange). The host executor (:mod:`jaxsync.solve.host`) compiles these functions into
 chunks it drives from Python; the traced executor (:mod:`jaxsync.solve.traced`) composes
 them into one JAX program. Both call the functions below, so the numerics of a phase are
@@ -39,13 +39,13 @@ from ..parallel.layout import PartSystems
 from ..surrogate.refill import refill_cycle
 from .remat import advance_traced, recomputing_scan, segment_steps, state_bytes
 
-__all__ = ["Synchronized", "Predicted", "synchronized_steps", "part_synchronized_steps", "check_recordable",
+__all__ = ["SynchronizedSteps", "PredictedSteps", "synchronized_steps", "part_synchronized_steps", "check_recordable",
            "predict_cycle",
            "overwritten_steps", "defect_probe", "refill_steps", "predicted_cycles"]
 
 
 @dataclasses.dataclass(frozen=True)
-class Synchronized:
+class SynchronizedSteps:
     """``n_steps`` synchronized steps (paper Algorithm 1)."""
 
     n_steps: int
@@ -57,7 +57,7 @@ class Synchronized:
 
 
 @dataclasses.dataclass(frozen=True)
-class Predicted(Synchronized):
+class PredictedSteps(SynchronizedSteps):
     """``n_steps`` predicted steps (paper Algorithm 3): refill cycles of n_s n_f steps, the
     last one partial when n_steps is not a whole number of cycles."""
 

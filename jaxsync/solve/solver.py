@@ -1,12 +1,14 @@
-"""Synchronized runs of the explicit solver (:func:`simulate`) and the static solution
+"""The one entry point of the explicit solver (:func:`simulate`) and the static solution
 (:func:`steady_state`).
 
 The numerics (central differences with lumped mass, paper eq. 7; the paper's start) are
-the pure stepper of :mod:`jaxsync.fem.stepper`. :func:`simulate` checks its inputs, builds
-the global system and the start, and hands the schedule of one synchronized phase to an
-executor: the host executor (:mod:`jaxsync.solve.host`: compiled chunks, progress,
-divergence checks, checkpoints) for concrete inputs, the traced executor
-(:mod:`jaxsync.solve.traced`: one JAX program, differentiable) for traced ones.
+the pure stepper of :mod:`jaxsync.fem.stepper`. :func:`simulate` checks its inputs, lowers
+its coupling (:mod:`jaxsync.solve.coupling`: synchronized, or synchronization-avoiding)
+into the run's plan -- the schedule of phases and the coupling's own policy -- builds the
+global system and the start, and hands the plan to an executor: the host executor
+(:mod:`jaxsync.solve.host`: compiled chunks, progress, divergence checks, checkpoints) for
+concrete inputs, the traced executor (:mod:`jaxsync.solve.traced`: one JAX program,
+differentiable) for traced ones.
 """
 
 from __future__ import annotations
@@ -14,26 +16,55 @@ from __future__ import annotations
 import functools
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ProblemError
 from ..fem.stepper import build_system, initial_state
 from ..pytree import is_traced
-from .phases import Synchronized
+from .coupling import as_coupling, exchange_of
 from .strategies import SaveAt, SolverCheckpoint, TracedExecutor, choose_executor
 
-__all__ = ["simulate", "steady_state"]
+__all__ = ["simulate", "steady_state", "SteadyState"]
 
 
 NEWTON_LOAD_STEPS = 10
 """Default number of load increments of :func:`steady_state` for a hyperelastic law."""
 
 
+class SteadyState(np.ndarray):
+    """What :func:`steady_state` returns, for every law: the static displacement, a numpy
+    array (n_nodes, 3) [cm], with
+
+    Attributes:
+        residuals: per load increment, the relative residuals of its Newton iterations (a
+            tuple of tuples of floats; empty for a linear law, solved directly).
+
+    It is an ``np.ndarray`` in every use (indexing, NumPy and JAX functions, files);
+    arithmetic on it gives plain arrays, which carry no residuals.
+    """
+
+    residuals: tuple
+
+    def __new__(cls, displacement, residuals=()):
+        solution = np.asarray(displacement, dtype=float).view(cls)
+        solution.residuals = tuple(tuple(float(r) for r in increment) for increment in residuals)
+        return solution
+
+    def __array_finalize__(self, obj):  # views (slices, reshapes) keep the residuals
+        self.residuals = getattr(obj, "residuals", ())
+
+    def __array_wrap__(self, array, context=None, return_scalar=False):
+        # ufunc results are new fields, not this solution: plain arrays (or scalars)
+        array = np.asarray(array).view(np.ndarray)
+        return array[()] if return_scalar else array
+
+
 def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, max_iter: int = 25,
-                 history: bool = False, guess=None):
+                 history: bool = False, guess=None) -> SteadyState:
     """Static solution with every load at full magnitude (time factor 1) and the Dirichlet
-    values imposed (those following a time function at their full value), (n_nodes, 3) [cm].
+    values imposed (those following a time function at their full value): a
+    :class:`SteadyState`, the (n_nodes, 3) displacement [cm] as a numpy array whose
+    ``residuals`` hold the Newton iterations' relative residuals per increment.
 
     A linear elastic law: K u = f, K including the elastic supports' springs, one direct
     sparse solve (scipy; ``load_steps``, ``tol``, ``max_iter`` are not used).
@@ -55,8 +86,8 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
         load_steps: hyperelastic laws: the number of load increments (>= 1).
         tol: hyperelastic laws: the relative residual of convergence.
         max_iter: hyperelastic laws: Newton iterations per increment at most.
-        history: also return, per increment, the relative residuals of its iterations
-            (a list of lists; empty for a linear law).
+        history: deprecated: return the pair ``(u, u.residuals)`` as before
+            :class:`SteadyState` carried the residuals (read ``u.residuals`` instead).
         guess: hyperelastic laws: (n_nodes, 3) [cm] the displacement Newton's method starts
             from (default zero), for instance the solution of a nearby problem; with
             ``load_steps=1`` the full load is applied to it at once.
@@ -78,11 +109,18 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             "K_T from jaxsync.fem.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
             "jax.jacfwd of the residual (docs: Gradients)")
     if problem.material.finite_strain:  # a force nonlinear in u: Newton's method
-        u, residuals = _newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
-                                            tol, max_iter, guess)
-        return (u, residuals) if history else u
-    u = _linear_steady_state(problem)
-    return (u, []) if history else u
+        u = SteadyState(*_newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
+                                              tol, max_iter, guess))
+    else:
+        u = SteadyState(_linear_steady_state(problem))
+    if history:
+        import warnings
+
+        warnings.warn("steady_state(history=True) is deprecated: steady_state returns one type, whose "
+                      "residuals attribute holds the Newton residuals (u = steady_state(problem); u.residuals)",
+                      DeprecationWarning, stacklevel=2)
+        return u, list(map(list, u.residuals))
+    return u
 
 
 def _singular() -> ProblemError:
@@ -268,8 +306,8 @@ def _linear_steady_state(problem) -> np.ndarray:
     return u.reshape(-1, 3)
 
 
-def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=None, mode="preassembled",
-             checkpoint=None, executor=None):
+def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, coupling=None, exchange=None, sync=None,
+             mode="preassembled", checkpoint=None, executor=None):
     """Integrate ``problem`` for ``n_steps`` explicit steps.
 
     Args:
@@ -285,19 +323,26 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
         partitions: None for one device; an int n_parts (METIS, seed 0) or a
             :class:`jaxsync.Partition` (``jaxsync.partition(mesh, n, seed=...)``) for the
             distributed solver (paper Algorithm 1, ``jax.shard_map`` over devices).
-        sync: distributed runs: how the parts exchange, :class:`jaxsync.Psum`,
+        coupling: how the parts are coupled at their shared nodes:
+            :class:`jaxsync.Synchronized` (default: every step synchronized) or
+            :class:`jaxsync.SyncAvoiding` (synchronized up to n_cri, then surrogates
+            predict the shared nodes and the parts do not exchange, paper Algorithm 3,
+            with error control; needs ``partitions``).
+        exchange: distributed runs: how the parts exchange, :class:`jaxsync.Psum`,
             :class:`jaxsync.Ppermute`, :class:`jaxsync.Mpi` or :class:`jaxsync.Halo` (deep
             halos, exact; ``save`` and the depth must divide one another), any
             :class:`jaxsync.parallel.plan.ExchangeStrategy`, or a registered name
             (:func:`jaxsync.solve.register_exchange`); default
             :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process, MPI
             across CPU processes). The exchanges carry the devices to run on.
+        sync: another name for ``exchange`` (give one of them).
         mode: the internal force, ``"preassembled"`` (sparse K, stored once) or
             ``"recompute"`` (element quantities formed every step), paper Remark 2
             (:mod:`jaxsync.fem.internal_force`).
-        checkpoint: a :class:`jaxsync.SolverCheckpoint` or an HDF5 path for resumable runs:
-            the state is stored there as the run goes, and a run started again with the
-            same problem continues from it, giving the same trajectory.
+        checkpoint: a :class:`jaxsync.SolverCheckpoint` or an HDF5 path for resumable runs
+            (synchronized runs): the state is stored there as the run goes, and a run
+            started again with the same problem continues from it, giving the same
+            trajectory.
         executor: :class:`jaxsync.HostExecutor` (compiled chunks with progress, divergence
             checks and checkpoints: the default for concrete inputs) or
             :class:`jaxsync.TracedExecutor` (one traced program with a bounded-memory
@@ -306,56 +351,52 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
     Returns:
         :class:`jaxsync.Trajectory` with ``n_steps // every + 1`` snapshots (and, for
         distributed runs, the per-part shared-node histories in ``parts``, every
-        ``shared_every`` steps). ``stats`` holds ``us_per_step`` (compiled chunks only) and
-        ``compile_seconds``; ``result`` says how the run ended (:class:`jaxsync.Result`).
+        ``shared_every`` steps). ``stats`` is typed by the coupling: a synchronized run's
+        :class:`jaxsync.SynchronizedStats` holds ``us_per_step`` (compiled chunks only) and
+        ``compile_seconds``; a synchronization-avoiding run's is a
+        :class:`jaxsync.SyncAvoidingStats` (:class:`jaxsync.SyncAvoiding` says what else
+        such a run returns). ``result`` says how the run ended (:class:`jaxsync.Result`).
 
     Raises:
         StabilityError: dt above the bound, or the run diverged (NaN/Inf or blow-up); the
             error's ``trajectory`` holds the snapshots saved before divergence.
         CheckpointError: the checkpoint file belongs to another problem or is corrupt.
         PartitionError: a partition that cannot be made or does not fit the mesh.
+        ProblemError: a ``coupling`` that is not a coupling, both ``exchange`` and ``sync``,
+            an exchange or ``shared_every`` without partitions, a checkpoint of a traced run.
 
-    Differentiable: when the material, damping, loads, initial conditions or dt are JAX
-    tracers, the traced executor runs the same phase as one ``lax.scan`` (over the parts
-    under ``shard_map`` for a distributed run) and the trajectory holds JAX arrays; its
-    reverse pass recomputes segments of the run (``TracedExecutor(adjoint=Recompute())``)
-    so that memory grows like sqrt(n_steps).
+    Differentiable: when the material, damping, loads, initial conditions, dt or the
+    coupling's surrogates are JAX tracers, the traced executor runs the same phases as one
+    ``lax.scan`` (over the parts under ``shard_map`` for a distributed run) and the
+    trajectory holds JAX arrays; its reverse pass recomputes segments of the run
+    (``TracedExecutor(adjoint=Recompute())``) so that memory grows like sqrt(n_steps).
     """
     from ..precision import require_float64
 
     require_float64("simulate")
+    coupling = as_coupling(coupling)
+    exchange = exchange_of(exchange, sync)
     save = SaveAt.of(save)
     n_steps = save.check_steps(n_steps)
-    if partitions is None and save.records_every_step:
-        raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
-                           "run has no shared nodes")
-    if partitions is None and sync is not None:
-        raise ProblemError(f"sync={sync!r} needs a distributed run: pass partitions=n_parts")
     dt = problem.dt if dt is None else dt
     traced = is_traced(problem.material, problem.damping, problem.stiffness_damping, problem.loads, dt,
-                       problem.initial_displacement, problem.initial_velocity)
+                       problem.initial_displacement, problem.initial_velocity, coupling)
     executor = choose_executor(executor, traced)
-    distributed = None
-    if partitions is not None:
-        from .distributed import DistributedParts
-
-        distributed = DistributedParts(problem, partitions, sync, mode=mode)
-        if save.records_every_step:
-            distributed.check_recordable()
-        unit = distributed.check_save_every(save.every)  # save.every, or whole exchange cycles of deep halos
-        if n_steps % unit:
-            raise ProblemError(f"with halo depth {distributed.halo_depth} and save_every={save.every}, n_steps "
-                               f"must be a multiple of {unit}; use n_steps={n_steps - n_steps % unit + unit}")
-    schedule = (Synchronized(n_steps),)
+    plan = coupling.plan(problem, n_steps, dt=dt, save=save, partitions=partitions, exchange=exchange, mode=mode,
+                         executor=executor)
     if isinstance(executor, TracedExecutor):
         if checkpoint is not None:  # the reason, not a missing feature
             raise ProblemError("checkpoint= needs the host executor: a traced run is one JAX program, with no "
                                "point between its steps where a file could be written; leave it out of traced runs")
-        if distributed is None:
-            return _traced_simulation(problem, dt, mode, schedule, save, executor, distributed)
+        if plan.distributed is None:
+            return _traced_run(problem, dt, mode, plan, save, executor)
         # one compiled program: eager transformations (jax.grad without jit) would otherwise
         # add cotangents that live on the parts' devices to ones on the default device
-        return jax.jit(lambda: _traced_simulation(problem, dt, mode, schedule, save, executor, distributed))()
+        return jax.jit(lambda: _traced_run(problem, dt, mode, plan, save, executor))()
+    if checkpoint is not None and len(plan.schedule) > 1:
+        raise ProblemError("checkpoint= resumes synchronized runs; a synchronization-avoiding run's predicted "
+                           "phase and its re-synchronizations are not checkpointed: leave checkpoint out, or "
+                           "checkpoint the synchronized reference run")
     if executor.check_stability:
         from ..fem.timestep import check_dt
 
@@ -363,25 +404,16 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, sync=No
     from .host import run_on_host
 
     system = build_system(problem, float(dt), mode)
-    return run_on_host(problem, system, initial_state(problem, system), schedule, save=save, executor=executor,
-                       distributed=distributed, checkpoint=SolverCheckpoint.of(checkpoint))
+    return run_on_host(problem, system, initial_state(problem, system), plan, save=save, executor=executor,
+                       checkpoint=SolverCheckpoint.of(checkpoint))
 
 
-def _traced_simulation(problem, dt, mode, schedule, save, executor, distributed):
+def _traced_run(problem, dt, mode, plan, save, executor):
     """:func:`simulate` through the traced executor: a :class:`jaxsync.Trajectory` of JAX arrays."""
-    from .record import synchronized_trajectory
     from .traced import run_traced
 
     system = build_system(problem, dt, mode)
     state = initial_state(problem, system)
-    run = run_traced(problem, system, state, schedule, save_every=save.every, adjoint=executor.adjoint,
-                     distributed=distributed, record=save.records_every_step)
-    recorded = None
-    if run.recorded is not None:  # per part, rows from step 0
-        recorded = [jnp.concatenate([state.displacement[None, part.shared_nodes],
-                                     run.recorded[p, :, :part.n_shared]]).reshape(-1, 3 * part.n_shared)
-                    for p, part in enumerate(distributed.partition.parts)]
-    displacement = jnp.concatenate([state.displacement[None], run.saved])
-    return synchronized_trajectory(problem, displacement, dt, save,
-                                   None if distributed is None else distributed.partition, recorded,
-                                   result=run.result)
+    run = run_traced(problem, system, state, plan.schedule, save_every=save.every, adjoint=executor.adjoint,
+                     distributed=plan.distributed, predictor=plan.predictor, record=save.records_every_step)
+    return plan.traced_trajectory(problem, dt, system, state, run, save)

@@ -20,7 +20,7 @@ import jax.numpy as jnp
 from ..errors import ProblemError
 from ..fem.stepper import ExplicitSystem, SolverState
 from ..trajectory import Result
-from .phases import Predicted, Synchronized, part_synchronized_steps, predicted_cycles, synchronized_steps
+from .phases import PredictedSteps, SynchronizedSteps, part_synchronized_steps, predicted_cycles, synchronized_steps
 
 __all__ = ["run_traced", "TracedRun"]
 
@@ -58,7 +58,7 @@ def run_traced(problem, system: ExplicitSystem, state: SolverState, schedule, *,
         system: its global :class:`ExplicitSystem`.
         state: the global state to start from (its step counter carries on, for the loads'
             time functions).
-        schedule: ``(Synchronized(n),)`` or ``(Synchronized(n_cri), Predicted(n))``.
+        schedule: ``(SynchronizedSteps(n),)`` or ``(SynchronizedSteps(n_cri), PredictedSteps(n))``.
         save_every: the snapshot stride; divides every phase's steps and a refill cycle.
         adjoint: the reverse-pass policy (:class:`~jaxsync.solve.strategies.Recompute`,
             ``StoreAll``).
@@ -70,9 +70,9 @@ def run_traced(problem, system: ExplicitSystem, state: SolverState, schedule, *,
             synchronized-only distributed schedule).
     """
     kinds = tuple(type(p) for p in schedule)
-    if kinds not in ((Synchronized,), (Synchronized, Predicted)):
-        raise ProblemError(f"a traced run takes the phases (Synchronized,) or (Synchronized, Predicted), "
-                           f"got {[k.__name__ for k in kinds]}")
+    if kinds not in ((SynchronizedSteps,), (SynchronizedSteps, PredictedSteps)):
+        raise ProblemError("a traced run takes the phases (SynchronizedSteps,) or (SynchronizedSteps, "
+                           f"PredictedSteps), got {[k.__name__ for k in kinds]}")
     n_sync = schedule[0].n_steps
     if distributed is None:
         if len(schedule) > 1:
