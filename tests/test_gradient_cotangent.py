@@ -132,7 +132,7 @@ def test_scaled_product_and_reverse_pass_equal_the_lame_blocks(problem, layout, 
 # --- gradients of runs --------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("partitions", [None, 2])
+@pytest.mark.parametrize("partitions", [None, pytest.param(2, marks=pytest.mark.slow)])
 def test_gradient_in_E_equals_previous_formulation_and_differences(problem, partitions):
     kwargs = {} if partitions is None else {"partitions": partitions}
     names = ("E", "alpha")
@@ -155,7 +155,7 @@ def test_gradient_in_E_and_nu_equals_differences(problem):
     _check_against_differences(loss, names, jax.jit(jax.grad(loss, (0, 1)))(PARAMS["E"], PARAMS["nu"]))
 
 
-@pytest.mark.parametrize("partitions", [None, 2])
+@pytest.mark.parametrize("partitions", [None, pytest.param(2, marks=pytest.mark.slow)])
 def test_gradient_in_rho_and_damping_equals_differences(problem, partitions):
     kwargs = {} if partitions is None else {"partitions": partitions}
     names = ("rho", "alpha")

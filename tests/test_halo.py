@@ -150,7 +150,7 @@ def test_numpy_replay_of_the_halo_tables_equals_the_global_run(problem, n_parts)
 
 
 @pytest.mark.parametrize("mode", ["preassembled", "recompute"])
-@pytest.mark.parametrize("n_parts", [2, 4, 8])
+@pytest.mark.parametrize("n_parts", [2, 4, pytest.param(8, marks=pytest.mark.slow)])
 def test_deep_halos_equal_the_psum_run_to_round_off(problem, n_parts, mode):
     part = jaxsync.partition(problem.mesh, n_parts, seed=0)
     reference = jaxsync.simulate(problem, 24, save=6, executor=jaxsync.HostExecutor(progress=False), partitions=part,

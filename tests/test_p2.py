@@ -166,20 +166,33 @@ def test_p2_step_is_the_exact_bound_and_runs_stably():
         jaxsync.simulate(problem, 10, mode="recompute")
 
 
-def test_distributed_p2_equals_the_single_device_run():
+@pytest.fixture(scope="module")
+def p2_beam_run():
     problem = jaxsync.cantilever(beam((8, 2, 1), 8.0)).replace(element="P2")
-    single = jaxsync.simulate(problem, 150, save=10)
+    return problem, jaxsync.simulate(problem, 150, save=10)
+
+
+# psum in the default run; the P1 partition with ppermute and the deep halos in the slow run
+@pytest.mark.parametrize("exchange", ["psum", pytest.param("ppermute-p1-partition", marks=pytest.mark.slow),
+                                      pytest.param("halo", marks=pytest.mark.slow)])
+def test_distributed_p2_equals_the_single_device_run(p2_beam_run, exchange):
+    problem, single = p2_beam_run
     scale = np.abs(np.asarray(single.displacement)).max()
-    p1_parts = jaxsync.partition(problem.mesh, 2)  # a P1 partition: its parts take the edge nodes too
-    for partitions, sync in ((2, "psum"), (p1_parts, "ppermute"), (jaxsync.partition(problem, 2), jaxsync.Halo(2))):
-        run = jaxsync.simulate(problem, 150, save=10, partitions=partitions, sync=sync)
-        np.testing.assert_allclose(np.asarray(run.displacement), np.asarray(single.displacement), rtol=0,
-                                   atol=1e-12 * scale)
-        assert run.element == "P2" and max(int(n.max()) for n in (p.shared_nodes for p in run.parts)) >= \
-            problem.mesh.n_nodes  # edge nodes are shared too
+    partitions, sync = {
+        "psum": (2, "psum"),
+        # a P1 partition: its parts take the edge nodes too
+        "ppermute-p1-partition": (jaxsync.partition(problem.mesh, 2), "ppermute"),
+        "halo": (jaxsync.partition(problem, 2), jaxsync.Halo(2)),
+    }[exchange]
+    run = jaxsync.simulate(problem, 150, save=10, partitions=partitions, sync=sync)
+    np.testing.assert_allclose(np.asarray(run.displacement), np.asarray(single.displacement), rtol=0,
+                               atol=1e-12 * scale)
+    assert run.element == "P2" and max(int(n.max()) for n in (p.shared_nodes for p in run.parts)) >= \
+        problem.mesh.n_nodes  # edge nodes are shared too
 
 
-def test_p2_gradient_single_and_partitioned_against_finite_differences():
+@pytest.fixture(scope="module")
+def p2_gradient_case():
     import jax
 
     problem = jaxsync.cantilever(beam((4, 1, 1), 4.0)).replace(element="P2")
@@ -190,11 +203,22 @@ def test_p2_gradient_single_and_partitioned_against_finite_differences():
         p = problem.replace(material=jaxsync.LinearElastic(E_, NU, 1.0))
         return jaxsync.simulate(p, 120, dt=dt, save=120, partitions=partitions).displacement[-1, tip, 2]
 
-    g = float(jax.grad(loss)(E))
-    g2 = float(jax.jit(jax.grad(lambda e: loss(e, 2)))(E))
+    return loss, float(jax.grad(loss)(E))
+
+
+def test_p2_gradient_against_finite_differences(p2_gradient_case):
+    loss, g = p2_gradient_case
     h = 1e-3 * E
     fd = (float(loss(E + h)) - float(loss(E - h))) / (2 * h)
     assert g == pytest.approx(fd, rel=1e-6)
+
+
+@pytest.mark.slow
+def test_p2_partitioned_gradient_equals_the_single_device_one(p2_gradient_case):
+    import jax
+
+    loss, g = p2_gradient_case
+    g2 = float(jax.jit(jax.grad(lambda e: loss(e, 2)))(E))
     assert g2 == pytest.approx(g, rel=1e-10)
 
 

@@ -286,7 +286,7 @@ def test_float32_blocks_trajectory_within_the_documented_bound(vessel_problem, w
     assert 0.0 < error <= bound
 
 
-@pytest.mark.parametrize("which", ["rough vessel", "cantilever"])
+@pytest.mark.parametrize("which", [pytest.param("rough vessel", marks=pytest.mark.slow), "cantilever"])
 def test_float32_blocks_gradient_follows_float64(vessel_problem, which):
     """A loss of the displacement after n steps differentiated with respect to E with
     float32 blocks and with float64 ones: within the documented accuracy (the blocks'
