@@ -109,7 +109,9 @@ class SyncAvoiding(Coupling):
     pass ``load_jumps="predict"``). Error control decides on the host whether to go back to
     a synchronized state, so it is refused there.
 
-    Raises (when the run is planned):
+    The run's inputs are checked when it is planned (by :func:`jaxsync.simulate`).
+
+    Raises:
         ProblemError: no partitions, n_cri too small, save not dividing n_cri, n_steps and
             n_s n_f, ``SaveAt.shared_every``, a tolerance that is not > 0 or given with an
             oracle, learning for a predictor without weights (an oracle), a tolerance in a
