@@ -166,6 +166,22 @@ def test_gradient_of_the_unloaded_radius_in_the_shear_modulus_matches_finite_dif
     np.testing.assert_allclose(gradient, difference, rtol=1e-6)
 
 
+def test_host_solves_under_jit_are_refused_with_the_fix():
+    """The differentiable host solves (Newton on the host) cannot be traced by ``jit``: a
+    ProblemError that says to differentiate outside jit, not a tracer error."""
+    import jax
+
+    mesh = _annulus(0.2, 0.3, 0.05, 2, 4)
+
+    def problem(mu):
+        return _plane_strain_tube(mesh, jaxsync.NeoHookean(E=2.8 * mu, nu=0.4), 2.0e5, 0.05)
+
+    for solve, name in ((jaxsync.zero_pressure_points, "zero_pressure_points"),
+                        (jaxsync.static_displacement, "static_displacement")):
+        with pytest.raises(jaxsync.ProblemError, match=f"{name} solves on the host.*outside jit"):
+            jax.jit(lambda mu: solve(problem(mu)).sum())(1.0e6)
+
+
 @pytest.mark.parametrize("law, element", [("hgo", "P1"), ("neo-hookean", "P2")])
 def test_unloaded_tube_inflates_back_for_fibre_laws_and_curved_quadratic_elements(law, element):
     a, b, h = 0.2, 0.3, 0.05

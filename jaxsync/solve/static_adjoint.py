@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import ProblemError
 from ..pytree import is_traced
 
-__all__ = ["static_displacement", "law_cotangent"]
+__all__ = ["static_displacement", "law_cotangent", "differentiable_in_law"]
 
 
 def _tangent(problem, u):
@@ -87,27 +87,39 @@ def static_displacement(problem, *, load_steps: int | None = None, tol: float = 
     if not problem.material.finite_strain:
         raise ProblemError(f"static_displacement differentiates the Newton solve of a hyperelastic law, got "
                            f"{type(problem.material).__name__}: use jaxsync.steady_state")
+    from .solver import steady_state
+
+    return differentiable_in_law(
+        problem, lambda p: steady_state(p, load_steps=load_steps, tol=tol, max_iter=max_iter), law_cotangent,
+        "static_displacement")
+
+
+def differentiable_in_law(problem, solve, cotangent, name: str):
+    """``solve(problem)`` -- an array computed on the host from a concrete problem (a Newton
+    solve) -- as a function JAX differentiates in the leaves of ``problem.material`` (JAX
+    tracers under ``jax.grad``, not under ``jit``): the reverse pass is
+    ``cotangent(problem, result, result_bar)``, the list of the leaves' cotangents (an
+    adjoint solve at the converged result). Over the law's leaves, not the law: a
+    cotangent is no valid law (a zero density...). ``name`` is the function named in the
+    error where it is traced under ``jit``."""
     leaves, treedef = jax.tree_util.tree_flatten(problem.material)
 
     def concrete(values):
         if is_traced(values):
-            raise ProblemError("static_displacement solves on the host: differentiate it with jax.grad (or "
-                               "jax.vjp) outside jit")
+            raise ProblemError(f"{name} solves on the host: differentiate it with jax.grad (or jax.vjp) outside jit")
         return problem.replace(material=jax.tree_util.tree_unflatten(treedef, values))
 
-    from .solver import steady_state
-
     @jax.custom_vjp
-    def displacement(*values):
-        return jnp.asarray(steady_state(concrete(values), load_steps=load_steps, tol=tol, max_iter=max_iter))
+    def result(*values):
+        return jnp.asarray(solve(concrete(values)))
 
     def forward(*values):
-        u = displacement(*values)
-        return u, (values, u)
+        found = result(*values)
+        return found, (values, found)
 
-    def backward(saved, cotangent):
-        values, u = saved
-        return tuple(law_cotangent(concrete(values), u, cotangent))
+    def backward(saved, result_bar):
+        values, found = saved
+        return tuple(cotangent(concrete(values), found, result_bar))
 
-    displacement.defvjp(forward, backward)
-    return displacement(*leaves)
+    result.defvjp(forward, backward)
+    return result(*leaves)

@@ -413,37 +413,24 @@ def zero_pressure_points(problem, *, tol: float = 1e-12, max_iter: int = 50, loa
     Raises:
         as :func:`zero_pressure_geometry`.
     """
+    from .static_adjoint import differentiable_in_law
+
     _check(problem, "newton", tol, max_iter, load_steps, "direct")
-    problem = _at_rest(problem)
+    return differentiable_in_law(_at_rest(problem), lambda p: _newton(p, tol, max_iter, load_steps, "direct")[0],
+                                 _points_cotangent, "zero_pressure_points")
+
+
+def _points_cotangent(problem, X, X_bar) -> list:
+    """The law's leaves' cotangents of a scalar whose cotangent in the unloaded points X
+    (n_nodes, 3) of ``problem`` (concrete) is ``X_bar``: -(dR/dtheta)^T lambda with
+    (dR/dX)^T lambda = X_bar at the free dofs."""
+    from ..fem.inverse import inverse_operator
+
+    inverse = _Inverse(problem, "direct")
+    X = np.asarray(X)
+    adjoint = np.zeros(X.size)
+    adjoint[inverse.free] = inverse.solve(X.reshape(-1), np.asarray(X_bar).reshape(-1)[inverse.free], 1.0,
+                                          transpose=True)
     leaves, treedef = jax.tree_util.tree_flatten(problem.material)
-
-    def concrete(values):
-        if is_traced(values):
-            raise ProblemError("zero_pressure_points solves on the host: differentiate it with jax.grad (or "
-                               "jax.vjp) outside jit")
-        return problem.replace(material=jax.tree_util.tree_unflatten(treedef, values))
-
-    # over the law's leaves, not the law: a cotangent is no valid law (a zero density...)
-    @jax.custom_vjp
-    def points(*values):
-        return jnp.asarray(_newton(concrete(values), tol, max_iter, load_steps, "direct")[0])
-
-    def forward(*values):
-        X = points(*values)
-        return X, (values, X)
-
-    def backward(saved, cotangent):
-        from ..fem.inverse import inverse_operator
-
-        values, X = saved
-        inverse = _Inverse(concrete(values), "direct")
-        X = np.asarray(X)
-        adjoint = np.zeros(X.size)
-        adjoint[inverse.free] = inverse.solve(X.reshape(-1), np.asarray(cotangent).reshape(-1)[inverse.free], 1.0,
-                                              transpose=True)
-        op = inverse_operator(concrete(values))
-        return tuple(_law_cotangent(treedef, op, jnp.asarray(X), [jnp.asarray(v, dtype=float) for v in values],
-                                    jnp.asarray(-adjoint)))
-
-    points.defvjp(forward, backward)
-    return points(*leaves)
+    return list(_law_cotangent(treedef, inverse_operator(problem), jnp.asarray(X),
+                               [jnp.asarray(v, dtype=float) for v in leaves], jnp.asarray(-adjoint)))
