@@ -383,17 +383,39 @@ def test_resync_run_is_the_synchronized_run(resync, reference):
 def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     """``--learn``: an update after every re-synchronized stretch, said in the printed
     counts; a tolerance of 1e-12 cm still gives the synchronized run."""
-    path = tmp_path / "learn.h5"
-    run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "600"))
+    path, learned = tmp_path / "learn.h5", tmp_path / "learned.h5"
+    run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "600",
+                               "--learn-save", learned))
     assert run.code == 0, run.err
     result = jaxsync.Trajectory.load(path)
     st = result.stats
     assert len(st.surrogate_updated_at) == st.n_resynchronizations >= 2 and st.seconds_updating > 0
     assert f"{len(st.surrogate_updated_at)} surrogate updates" in run.out
+    assert f"the learned surrogates to {learned}" in run.out
     np.testing.assert_allclose(result.displacement, reference.displacement, rtol=0,
                                atol=1e-12 * np.abs(reference.displacement).max())
+    # --learn-save: the surrogates as learned, a surrogate file that predicts the last stretch it
+    # learned from (the synchronized run: the truth) better than the trained one
+    from jaxsync.surrogate import Surrogate
+    from jaxsync.surrogate.evaluate import rollout_errors
+    from jaxsync.surrogate.saved import load_surrogate
+
+    saved = load_surrogate(learned)
+    updates = saved.metadata["online_learning"]["updated_at"]
+    assert updates and set(updates) <= set(st.surrogate_updated_at)
+    assert [list(n) for n in saved.shared_nodes] == [list(p.shared_nodes) for p in reference.parts]
+    trained = Surrogate.load(demo[1] / "surrogate" / "surrogate.h5")
+    problem = jaxsync.cantilever()
+    histories = np.stack([np.pad(p.shared_displacement, [(0, 0), (0, trained.n_dof - p.shared_displacement.shape[1])])
+                          for p in reference.parts])
+    start = updates[-1] - trained.n_s * trained.n_future  # the last refill cycle before the last update
+    error = {name: rollout_errors(s.for_problem(problem, reference.dt), histories, 1, start).mse.sum()
+             for name, s in (("trained", trained), ("learned", Surrogate.from_saved(saved)))}
+    assert error["learned"] < 0.5 * error["trained"], error
     for extra, message in ((["--learn", "--resync-tolerance", "none"], "give --resync-tolerance too"),
-                           (["--learn-budget", "5"], "give --learn too")):
+                           (["--learn-budget", "5"], "give --learn too"),
+                           (["--learn-save", str(tmp_path / "x.h5")], "give --learn too"),
+                           (["--learn", "--resync-tolerance", "1e-12", "--learn-save", str(path)], "exists")):
         bad = run_cli(predict_args(demo, tmp_path / "bad.h5", *extra))
         assert bad.code != 0 and message in bad.err, bad.err
         assert not (tmp_path / "bad.h5").exists()

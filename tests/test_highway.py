@@ -88,9 +88,10 @@ def test_padding_keeps_a_replica_alone():
 
 
 def test_online_learning_refits_the_highway_by_least_squares():
-    """An online update refits the highway on the run's weighted windows (the linear model's
-    refit, checked against numpy.linalg.lstsq on the real dofs) before the gradient steps,
-    which get the refitted network."""
+    """An online update refits the highway on every window the run has synchronized (the
+    learner's every_window; the linear model's refit, checked against numpy.linalg.lstsq on
+    the real dofs) before the gradient steps, which get the refitted network and their own
+    sample of windows."""
     arch = dataclasses.replace(_network(n_dof=3, n_load=1, rank=11), n_past=3, n_future=2)  # rank: 3 x 2 + 5 x 1
     rng = np.random.default_rng(0)
     x = rng.normal(size=(1, 40, 3, 3))
@@ -100,13 +101,18 @@ def test_online_learning_refits_the_highway_by_least_squares():
     x[..., 2], y[..., 2] = 0.0, 0.0  # the padded dof
     params = jax.tree_util.tree_map(lambda a: a[None], lstm.init_params(jax.random.key(0), arch))
 
-    class Steps:  # the learner's gradient steps: record what they get
+    class Steps:  # the learner: every window for the refit; its gradient steps record what they get
+        def every_window(self):
+            return x, y, u, weight
+
         def gradient_steps(self, given, *args):
-            self.given = given
+            self.given, self.args = given, args
             return given, 0
 
     steps = Steps()
-    updated, n = arch.online_update(steps, params, x, y, u, weight, None, mask, 0.0)
+    sample = (x[:, :4], y[:, :4], u[:, :4], weight[:4])  # the gradient update's windows
+    updated, n = arch.online_update(steps, params, *sample, None, mask, 0.0)
+    assert steps.args[0] is sample[0]
     assert updated is steps.given and n == 0
     one = jax.tree_util.tree_map(lambda a: a[0], updated["highway"])
     design = np.concatenate([x[0, :, :, :2].reshape(40, -1), u[0].reshape(40, -1), np.ones((40, 1))], axis=1)

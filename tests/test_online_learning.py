@@ -112,9 +112,12 @@ def test_weighted_least_squares_against_numpy():
 
 def test_settings_are_checked():
     for bad in ({"iterations": 0}, {"learning_rate": -1.0}, {"budget_seconds": 0}, {"windows": 2.5},
-                {"new_weight": 1.5}, {"replay": -1}, {"starts_per_stride": True}):
+                {"new_weight": 1.5}, {"replay": -1}, {"starts_per_stride": True}, {"save_to": 3},
+                {"save_to": "/no/such/folder/learned.h5"}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             OnlineLearning(**bad)
+    with pytest.raises(ConfigError, match="create it first"):
+        OnlineLearning(save_to="/no/such/folder/learned.h5")
     assert OnlineLearning.parse(True) == OnlineLearning() and OnlineLearning.parse(False) is None
     with pytest.raises(ConfigError, match="learning"):
         OnlineLearning.parse("yes")
@@ -136,24 +139,30 @@ def _future_error(predictor, reference, first, n_steps):
     return float(np.sqrt(np.mean(np.square(out))))
 
 
-def test_the_linear_refit_is_the_least_squares_fit_of_the_new_windows(linear, reference):
-    """With the new windows alone (new_weight 1, no replay) the update IS the least-squares
-    fit of those windows: the same map as fit_linear on the same windows, and its error on
-    the steps after them is lower than before (the truth: the synchronized run)."""
-    learner = OnlineLearner(OnlineLearning(new_weight=1.0, replay=0, windows=1000, starts_per_stride=1), linear)
+def test_the_linear_refit_is_the_least_squares_fit_of_every_window_seen(linear, reference):
+    """A closed-form model's update corrects its first fit: it replays every chained window
+    of the first synchronized stretch (one per stride, not the gradient models' sample),
+    weighs them like the new windows, and the refit IS the least-squares fit of their
+    union -- the same map as fit_linear on the same windows -- with a lower error on the
+    new windows and no higher error on the steps after them than before (the truth: the
+    synchronized run)."""
+    replay = shared_rows(reference, 0, 981)  # a union within the surrogate's rank: no direction truncated
+    learner = OnlineLearner(OnlineLearning(windows=1000, starts_per_stride=1), linear, replay)
+    n_replay = len(window_starts(981, N_S, N_P, N_F, 1))
     first, last = 2000, 3000
     rows = shared_rows(reference, first, last)
     added = learner.add_stretch(rows, first)
     assert added == ((last - first - N_S * N_F - 1) - N_S * (N_P - 1)) // N_S + 1  # one per stride
     updated = learner.update(last - 1)
     report = learner.reports[-1]
-    assert report.n_new == added and report.n_replay == 0 and report.iterations == 1
-    assert np.all(report.loss_after < 1e-2 * report.loss_before)
+    assert report.n_new == added and report.iterations == 1
+    assert np.all(report.loss_after < report.loss_before)
     before = _future_error(linear, reference, last, 800)
     after = _future_error(updated, reference, last, 800)
-    assert after < 0.5 * before, (before, after)
-    # fit_linear on windows normalized like the surrogate's gives the same predictions
-    x, y, u = learner._new[-1]
+    assert after < 1.05 * before, (before, after)
+    # fit_linear on the union, normalized like the surrogate's windows, gives the same predictions
+    x, y, u, _ = learner.every_window()
+    assert x.shape[1] == added + n_replay
     from jaxsync.surrogate.data import ReplicaData
 
     stacked = ReplicaData(x_train=x, y_train=y, load_parameter_train=np.zeros(x.shape[:2]),
@@ -170,7 +179,7 @@ def test_the_linear_refit_is_the_least_squares_fit_of_the_new_windows(linear, re
     for p in range(linear.n_parts):
         one = jax.tree_util.tree_map(lambda a: a[p], updated.params)
         ref = jax.tree_util.tree_map(lambda a: a[p], direct.params)
-        for w in (0, added // 2, added - 1):
+        for w in (0, added // 2, added - 1, x.shape[1] - 1):
             ua = None if u is None else u[p, w]
             mine = np.asarray(forward(one, linear.arch, x[p, w], None, linear.dof_mask[p], None, ua))
             theirs = np.asarray(forward(ref, direct.arch, x[p, w], None, linear.dof_mask[p], None, ua))
@@ -236,34 +245,38 @@ def test_learning_needs_weights_and_is_said_in_the_tolerance(problem, partition,
 
 def test_on_a_reduced_vessel_the_updates_turn_rejected_cycles_into_predicted_ones():
     """The generated coronary tree (3300 tets, three parts, the paper's pulsatile pressure
-    ramping up), the load-aware linear surrogate fitted on the first half, error control
-    at 3 % of the amplitude: without learning the run predicts only its last 200 steps
-    (three rejected cycles); learning from the recomputed steps, it predicts 900 of the
-    2000 (two rejections, each followed by an update), and the error against the
+    ramping up), the load-aware linear surrogate fitted on the first quarter, error control
+    at 3 % of the run's shared amplitude: without learning the run predicts nothing of the
+    3000 steps after n_cri (every cycle it tries beyond the pressure it was fitted under
+    is rejected); learning from the recomputed steps (its first fit corrected by them), it
+    predicts most of them after one rejection and one update, and the error against the
     synchronized run stays within the tolerance."""
     from jaxsync.app.demo import vessel_problem
 
     problem = vessel_problem(3300)[1]
     partition = jaxsync.partition(problem.mesh, 3, seed=0)
-    n_steps = 4000
+    n_steps, n_cri = 4000, 1000
     reference = jaxsync.simulate(problem, n_steps, partitions=partition, save=jaxsync.SaveAt(10, 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the offline rollout check
         net = train_surrogates(reference, architecture=ArchitectureChoice(model="linear"),
-                               sampling=Sampling(n_s=10, n_past=10, n_future=10), progress=False).surrogate
+                               sampling=Sampling(n_s=10, n_past=10, n_future=10, train_fraction=n_cri / n_steps),
+                               progress=False).surrogate
+    amplitude = max(float(np.abs(p.shared_displacement).max()) for p in reference.parts)
     runs = {}
     for learn in (False, True):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # "mostly synchronized"
+            tolerance = ResyncTolerance(relative=0.03, amplitude=amplitude, learning=learn)
             runs[learn] = simulate_sync_avoiding(problem, n_steps, partitions=partition, surrogates=net,
-                                                 n_cri=n_steps // 2, save=10,
-                                                 resync_tolerance=ResyncTolerance(relative=0.03, learning=learn))
+                                                 n_cri=n_cri, save=10, resync_tolerance=tolerance)
     blind, learning = runs[False].stats, runs[True].stats
-    assert blind.n_resynchronizations >= 1 and learning.n_resynchronizations >= 1
-    assert learning.surrogate_updated_at and learning.surrogate_updated_at[-1] < n_steps
-    assert learning.n_predicted_steps >= blind.n_predicted_steps + 400, (blind.n_predicted_steps,
-                                                                         learning.n_predicted_steps)
+    assert blind.n_resynchronizations >= 2 and blind.n_predicted_steps <= 500, blind.n_predicted_steps
+    assert 1 <= learning.n_resynchronizations < blind.n_resynchronizations
+    assert len(learning.surrogate_updated_at) == learning.n_resynchronizations
+    assert learning.n_predicted_steps >= blind.n_predicted_steps + 1500, (blind.n_predicted_steps,
+                                                                          learning.n_predicted_steps)
     # the predicted steps follow the last update, and are held to the tolerance
     assert learning.n_predicted_steps <= n_steps - learning.surrogate_updated_at[-1]
     error = np.linalg.norm(runs[True].displacement - reference.displacement, axis=2).max()
-    assert error <= learning.tolerance_cm[-1], (error, learning.tolerance_cm[-1])
+    assert error <= 0.03 * amplitude, (error, 0.03 * amplitude)

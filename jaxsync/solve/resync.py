@@ -115,7 +115,8 @@ class OnlineRun:
         if online.learning is not None and tolerance is not None:
             from ..surrogate.online import OnlineLearner
 
-            self.learner = OnlineLearner(online.learning, predictor, first.shared)
+            self.learner = OnlineLearner(online.learning, predictor, first.shared,
+                                         shared_nodes=[part.shared_nodes for part in self.partition.parts])
 
     def _kept_rows(self, target: int, anchor_step: int) -> int | None:
         """How many of a re-synchronized stretch's last steps to keep: the networks'
@@ -140,7 +141,7 @@ class OnlineRun:
         self.learner.add_stretch(rows, target - len(rows[0]) + 1)
         updated = self.learner.update(target)
         changed = bool(self.learner.reports) and self.learner.reports[-1].step == target and bool(
-            np.any(self.learner.reports[-1].loss_after < self.learner.reports[-1].loss_before))
+            np.any(self.learner.reports[-1].kept))
         if changed:
             self.phase.predictor = self.runner.put(updated)
         return changed

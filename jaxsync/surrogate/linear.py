@@ -56,6 +56,12 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import ReplicaData
+from jaxsync.surrogate.least_squares import (
+    DEFAULT_REGULARIZATION,
+    rollout_error,
+    select_regularization,
+    solve_least_squares,
+)
 from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, PredictionCost, check_compute_dtype, check_loads
 
 if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
@@ -68,9 +74,6 @@ Params = dict[str, Any]
 
 _DTYPES = ("float32", "float64")
 
-#: Default ridge parameter, relative to the largest squared singular value of the centered
-#: training inputs: lambda = 1e-8 s_max^2 (see :class:`LinearFitConfig`).
-DEFAULT_REGULARIZATION = 1e-8
 
 
 @jax.tree_util.register_static
@@ -171,10 +174,15 @@ class LinearFitConfig:
     :class:`~jaxsync.surrogate.train.TrainResult`).
 
     Attributes:
-        regularization: ridge parameter r, relative: lambda = r s_max^2 with s_max the
-            largest singular value of the centered training inputs, so r does not depend
-            on the number of windows or dofs.  The fit minimizes
-            ||X W - Y||^2 + lambda ||W||^2 (bias not penalized).  Default 1e-8: the
+        regularization: the smallest ridge parameter r the fit may use, relative:
+            lambda = r s_max^2 with s_max the largest singular value of the centered
+            training inputs, so r does not depend on the number of windows or dofs.  The
+            fit minimizes ||X W - Y||^2 + lambda ||W_x||^2 (bias and load columns not
+            penalized; :func:`~jaxsync.surrogate.least_squares.solve_least_squares`), with
+            r chosen from r, 1e-8 ... 1 by refill rollouts over the training and
+            validation windows
+            (:func:`~jaxsync.surrogate.least_squares.select_regularization`); r = 0 is
+            the exact least squares (no ridge, none chosen).  Default 1e-8: the
             windows are float32 (relative round-off ~6e-8), so the inputs have
             directions of singular value ~1e-7 s_max that are round-off only; unpenalized
             (r = 0) their gain would be ~1e7 / s_max, amplifying that noise in every
@@ -286,63 +294,38 @@ def forward(
 # ----------------------------------------------------------------------------- fit
 
 
-def solve_least_squares(x: np.ndarray, y: np.ndarray, regularization: float = DEFAULT_REGULARIZATION,
-                        weight: np.ndarray | None = None, max_rank: int | None = None):
-    """Affine least squares ``y ~ x W + b``, W factored through the input directions.
-
-    Minimizes sum_i w_i ||(x_i - x_mean) W - (y_i - y_mean)||^2 + lambda ||W||^2 (w_i = 1
-    without ``weight``; the means weighted alike) with lambda = ``regularization``
-    s_max^2, from the thin SVD of the centered, row-scaled inputs ``U diag(s) V^T``:
-    W = V diag(s / (s^2 + lambda)) U^T (y - y_mean) (rows scaled by sqrt(w_i)),
-    b = y_mean - x_mean W.  Singular values at or below ``eps * max(shape) * s_max``
-    (NumPy ``lstsq``'s rank cut) are dropped, so r = 0 is the minimum-norm solution, and
-    with ``max_rank`` only the leading ``max_rank`` directions are kept (truncated SVD).
-
-    Args:
-        x: (n_windows, n_in) inputs; y: (n_windows, n_out) targets (any float dtype;
-            solved in float64).
-        regularization: relative ridge parameter r >= 0.
-        weight: (n_windows,) window weights >= 0 (None: all 1).
-        max_rank: the most input directions kept (None: all above the rank cut).
-
-    Returns:
-        ``(w_in (n_in, rank), w_out (rank, n_out), b (n_out,))`` float64 with
-        W = w_in @ w_out; rank >= 0 is the number of directions kept.
-    """
-    x = np.asarray(x, np.float64)
-    y = np.asarray(y, np.float64)
-    w = np.ones(x.shape[0]) if weight is None else np.asarray(weight, np.float64)
-    w = w / w.sum()
-    x_mean, y_mean = w @ x, w @ y
-    root = np.sqrt(w)[:, None]
-    u, s, vt = np.linalg.svd(root * (x - x_mean), full_matrices=False)
-    if s.size == 0 or not s[0] > 0:  # constant inputs: predict the mean
-        return np.zeros((x.shape[1], 0)), np.zeros((0, y.shape[1])), y_mean
-    keep = s > np.finfo(np.float64).eps * max(x.shape) * s[0]
-    if max_rank is not None:
-        keep &= np.arange(s.size) < max_rank
-    s, u, vt = s[keep], u[:, keep], vt[keep]
-    gain = s / (s * s + regularization * s[0] ** 2)
-    w_in = vt.T
-    w_out = gain[:, None] * (u.T @ (root * (y - y_mean)))
-    return w_in, w_out, y_mean - (x_mean @ w_in) @ w_out
-
-
-def _fit_parts(x, y, signals, dof_counts, regularization: float, weight=None, max_rank: int | None = None):
-    """One least-squares fit per part, on its real dofs: ``[(w_in, w_out, b), ...]``.
+def _fit_parts(x, y, signals, dof_counts, regularization: float, weight=None, max_rank: int | None = None,
+               validation=None, select: bool = True):
+    """One least-squares fit per part, on its real dofs, its ridge parameter chosen by
+    rollouts (:func:`select_regularization`): ``([(w_in, w_out, b), ...], [r, ...])``.
 
     ``x`` (n_parts, n_windows, n_p, n_dof), ``y`` (n_parts, n_windows, n_f, n_dof) and
-    ``signals`` (n_parts, n_windows, n_p + n_f, n_load) or None, normalized."""
-    n_windows, n_past = x.shape[1], x.shape[2]
-    n_future = y.shape[2]
-    fits = []
+    ``signals`` (n_parts, n_windows, n_p + n_f, n_load) or None, normalized;
+    ``validation``: ``(x, y, signals)`` more windows of the same layout that the rollouts
+    may run over beside these; ``select`` False: no ridge chosen and no column left free
+    (the plain ridge least squares of every column at ``regularization``: what an online
+    refit on a run's few new windows does, where rollouts cannot choose)."""
+    fits, chosen = [], []
     for p, count in enumerate(dof_counts):
-        xp = np.asarray(x[p, :, :, :count]).reshape(n_windows, n_past * count)
-        if signals is not None:
-            xp = np.concatenate([xp, np.asarray(signals[p]).reshape(n_windows, -1)], axis=1)
-        yp = np.asarray(y[p, :, :, :count]).reshape(n_windows, n_future * count)
-        fits.append(solve_least_squares(xp, yp, regularization, weight, max_rank))
-    return fits
+        xp = np.asarray(x[p, :, :, :count], np.float64)
+        yp = np.asarray(y[p, :, :, :count], np.float64)
+        up = None if signals is None else np.asarray(signals[p], np.float64)
+        windows = None
+        if validation is not None and validation[0].shape[1]:
+            vx, vy, vu = validation
+            windows = (np.concatenate([xp, np.asarray(vx[p, :, :, :count], np.float64)]),
+                       np.concatenate([yp, np.asarray(vy[p, :, :, :count], np.float64)]),
+                       None if up is None else np.concatenate([up, np.asarray(vu[p], np.float64)]))
+        if select:
+            fit, r = select_regularization(xp, yp, up, regularization, weight, max_rank, windows)
+        else:
+            flat = xp.reshape(len(xp), -1) if up is None else np.concatenate(
+                [xp.reshape(len(xp), -1), up.reshape(len(up), -1)], axis=1)
+            fit, r = solve_least_squares(flat, yp.reshape(len(yp), -1), regularization, weight, max_rank), \
+                regularization
+        fits.append(fit)
+        chosen.append(r)
+    return fits, chosen
 
 
 def _packed(fits, dof_counts, arch: "LinearArchitecture") -> Params:
@@ -376,11 +359,42 @@ def refit(params: Params, arch: "LinearArchitecture", x, y, signals, weight, dof
         weight: (n_windows,) window weights >= 0.
         dof_mask: (n_parts, n_dof) 1 on real dofs.
     """
-    del params
     counts = [int(c) for c in np.asarray(dof_mask).sum(axis=1)]
-    fits = _fit_parts(np.asarray(x), np.asarray(y), None if signals is None else np.asarray(signals), counts,
-                      regularization, np.asarray(weight, np.float64), max_rank=arch.rank)
+    x, y = np.asarray(x), np.asarray(y)
+    signals = None if signals is None else np.asarray(signals)
+    weight = np.asarray(weight, np.float64)
+    used = weight > 0  # unused window slots (zero weight) would also chain in the rollouts
+    x, y, weight = x[:, used], y[:, used], weight[used]
+    signals = None if signals is None else signals[:, used]
+    fits, _ = _fit_parts(x, y, signals, counts, regularization, weight, max_rank=arch.rank)
+    # a refit on a run's few new windows can explain them better one step ahead and still
+    # drift when fed its own predictions: each part keeps its old map unless the new one
+    # rolls out better over the windows it was fitted on (rollout_error over the chained ones)
+    old = _unpacked(params, counts, arch)
+    for p, count in enumerate(counts):
+        xp, yp = x[p][..., :count].astype(np.float64), y[p][..., :count].astype(np.float64)
+        up = None if signals is None else signals[p].astype(np.float64)
+        before, after = rollout_error(old[p], xp, yp, up), rollout_error(fits[p], xp, yp, up)
+        if np.isfinite(before) and not after < before:
+            fits[p] = old[p]
     return _packed(fits, counts, arch)
+
+
+def _unpacked(params: Params, dof_counts, arch: "LinearArchitecture") -> list:
+    """The per-part fits ``[(w_in, w_out, b), ...]`` of flattened windows (float64) that
+    :func:`_packed` stacked: the inverse of :func:`_packed` (rank padded to ``arch.rank``)."""
+    n_past, n_future, n_load = arch.n_past, arch.n_future, arch.n_load
+    fits = []
+    for p, count in enumerate(dof_counts):
+        r = arch.rank
+        w_in = np.asarray(params["w_in"][p], np.float64)[:, :count, :r].reshape(n_past * count, r)
+        if n_load:
+            w_load = np.asarray(params["w_load"][p], np.float64)[..., :r].reshape((n_past + n_future) * n_load, r)
+            w_in = np.concatenate([w_in, w_load])
+        w_out = np.asarray(params["w_out"][p], np.float64)[:r, :, :count].reshape(r, n_future * count)
+        b = np.asarray(params["b"][p], np.float64)[:, :count].reshape(n_future * count)
+        fits.append((w_in, w_out, b))
+    return fits
 
 
 def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask, u=None) -> np.ndarray:
@@ -413,7 +427,9 @@ def fit_affine(data: ReplicaData, regularization: float = DEFAULT_REGULARIZATION
         raise ConfigError("no training windows: use a longer run, a larger train fraction or a smaller n_s")
     signals = data.signal_train
     n_load = 0 if signals is None else signals.shape[-1]
-    fits = _fit_parts(data.x_train, data.y_train, signals, data.dof_counts, regularization)
+    validation = (data.x_val, data.y_val, data.signal_val)
+    fits, _ = _fit_parts(data.x_train, data.y_train, signals, data.dof_counts, regularization,
+                         validation=validation)
     rank = max(1, max(w_in.shape[1] for w_in, _, _ in fits))
     arch = LinearArchitecture(n_dof=n_dof, rank=rank, n_past=n_past, n_future=n_future, dtype=dtype, n_load=n_load)
     return arch, _packed(fits, data.dof_counts, arch)

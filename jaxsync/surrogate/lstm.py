@@ -200,13 +200,15 @@ class LSTMArchitecture(GradientFitted):
         return init_params(key, self)
 
     def online_update(self, learner, params, x, y, signals, weight, load_parameter, dof_mask, started: float):
-        """With a highway, its least-squares refit on the run's weighted windows first
-        (:func:`jaxsync.surrogate.linear.refit`, as the linear model learns online; no
-        gradient reaches it), then the recurrent part's full-batch Adam steps."""
+        """With a highway, its least-squares refit first, on every window the run has
+        synchronized (``learner.every_window()``, as the linear model learns online; no
+        gradient reaches it), then the recurrent part's full-batch Adam steps on the
+        weighted sample ``x`` ... ``weight``."""
         if self.highway_rank:
             from jaxsync.surrogate.linear import refit
 
-            highway = refit(params["highway"], self.highway_arch, x, y, signals, weight, dof_mask)
+            hx, hy, hu, hw = learner.every_window()
+            highway = refit(params["highway"], self.highway_arch, hx, hy, hu, hw, dof_mask)
             params = {**params, "highway": jax.tree_util.tree_map(jnp.asarray, highway)}
         return learner.gradient_steps(params, x, y, signals, weight, load_parameter, dof_mask, started)
 

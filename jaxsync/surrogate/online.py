@@ -9,15 +9,21 @@ the next n_f samples as targets, with the load signals at the same steps), mixes
 windows replayed from the run's first synchronized stretch (the span the surrogates were
 trained on, so that an update does not unlearn it) and takes full-batch Adam steps on all
 replicas together, from their current weights, within a budget of update time. The
-update is kept only where it lowers the error on the new windows (per part).
+update is kept only where it lowers the error of what the run does with the surrogates
+(per part): the refill rollout over the newest recomputed stretch, each part fed its own
+predictions, against the recomputed values (a lower error one window ahead can still drift
+cycle after cycle).
 
 Each model learns the way it is fitted (its ``online_update``,
 :mod:`jaxsync.surrogate.protocol`): a model trained by gradient (the LSTM encoder-decoder,
 or a user's :class:`~jaxsync.surrogate.protocol.GradientFitted`) takes the Adam steps above
 (:meth:`OnlineLearner.gradient_steps`); a model fitted in closed form (the linear
-autoregressive model, :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`) is refitted
-on the same weighted windows in one solve (its rank, the shape of its factors, stays as
-fitted).
+autoregressive model, :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`) corrects
+its first fit: one solve on every window the run has synchronized -- each chained window
+of the first stretch (one per stride, so that the fit's rollouts run over them) and the
+recomputed ones, all weighed alike (its rank, the shape of its factors, stays as fitted).
+A refit on the recomputed windows alone, a short stretch in which the loads hardly vary,
+explains them and still drifts when fed its own predictions beyond them.
 
 :func:`sample_refill_windows` cuts windows from rows of every step;
 :class:`OnlineLearner` keeps a run's windows and updates the predictor.
@@ -27,6 +33,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import os
 import time
 
 import jax
@@ -66,13 +73,20 @@ class OnlineLearning:
         windows: the most windows kept from recomputed stretches (the newest; windows
             that start within one stride n_s of each other are thinned to
             ``starts_per_stride`` per stride).
-        replay: windows of the first synchronized stretch mixed into every update
-            (evenly spread over it); 0: none.
+        replay: windows of the first synchronized stretch mixed into every gradient
+            update (evenly spread over it); a closed-form refit replays every chained
+            window of that stretch (one per stride) instead; 0: none, for either.
         starts_per_stride: window starts per n_s steps taken from a recomputed stretch.
-        new_weight: the share of the loss carried by the new windows (the replayed ones
-            carry the rest), 0 < new_weight <= 1.
+        new_weight: the share of a gradient update's loss carried by the new windows
+            (the replayed ones carry the rest), 0 < new_weight <= 1; a closed-form refit
+            weighs every window alike.
         iterations_per_call: Adam steps per compiled call (the budget is checked between
             calls).
+        save_to: a surrogate file (``.h5``) the learned surrogates are written to after
+            every update that changed them, atomically, with the run's shared nodes and
+            the steps of the updates in its metadata (``online_learning``): a surrogate
+            file like the trained one, to run or learn from again; None (default): kept
+            in memory only.
     """
 
     iterations: int = 100
@@ -83,6 +97,7 @@ class OnlineLearning:
     starts_per_stride: int = 4
     new_weight: float = 0.5
     iterations_per_call: int = 10
+    save_to: str | None = None
 
     def __post_init__(self):
         _whole(self.iterations, "iterations", 1)
@@ -94,6 +109,14 @@ class OnlineLearning:
         _whole(self.iterations_per_call, "iterations_per_call", 1)
         if not 0 < _positive(self.new_weight, "new_weight") <= 1:
             raise ConfigError(f"OnlineLearning.new_weight must be in (0, 1], got {self.new_weight!r}")
+        if self.save_to is not None:
+            if not isinstance(self.save_to, (str, os.PathLike)) or not os.fspath(self.save_to):
+                raise ConfigError(f"OnlineLearning.save_to must be a file path, got {self.save_to!r}")
+            folder = os.path.dirname(os.path.abspath(os.fspath(self.save_to)))
+            if not os.path.isdir(folder):
+                raise ConfigError(f"OnlineLearning.save_to={os.fspath(self.save_to)!r}: the folder {folder!r} does "
+                                  "not exist; create it first")
+            object.__setattr__(self, "save_to", os.fspath(self.save_to))
 
     @classmethod
     def parse(cls, value) -> "OnlineLearning | None":
@@ -155,11 +178,17 @@ class UpdateReport:
     Attributes:
         step: the run's step it followed (the end of a recomputed stretch).
         n_new, n_replay: windows of recomputed stretches and of the first synchronized
-            stretch it trained on.
+            stretch the gradient update trained on (a closed-form refit fits every
+            chained window of that stretch, :meth:`OnlineLearner.every_window`).
         iterations: Adam steps taken.
         loss_before, loss_after: (n_parts,) mean squared error on the new windows
-            (normalized units) before and after; parts whose loss did not fall kept
+            (normalized units) before and after (after: as kept).
+        kept: (n_parts,) bool, the parts that took the update: those whose rollout error
+            over the newest recomputed stretch fell (where it holds a whole refill cycle
+            beyond the input history; else those whose ``loss`` fell); the others kept
             their weights.
+        rollout_before, rollout_after: (n_parts,) that rollout's mean squared error [cm^2]
+            before and after (after: as kept), or None where the stretch is too short.
         seconds: its wall time (compilation included) [s].
     """
 
@@ -170,6 +199,16 @@ class UpdateReport:
     loss_before: np.ndarray
     loss_after: np.ndarray
     seconds: float
+    kept: np.ndarray | None = None
+    rollout_before: np.ndarray | None = None
+    rollout_after: np.ndarray | None = None
+
+
+@functools.partial(jax.jit, static_argnames="n_cycles")
+def _rollouts(predictor, buffers, step0, n_cycles: int):
+    """Every part's refill rollout (:meth:`~jaxsync.surrogate.Surrogate.rollout`), one
+    compiled call: (n_parts, n_cycles n_s n_f, n_dof)."""
+    return jax.vmap(lambda one, buffer: one.rollout(buffer, step0, n_cycles))(predictor, buffers)
 
 
 def _replica_loss(params, arch, x, y, u, weight, load_parameter, dof_mask):
@@ -218,24 +257,32 @@ class OnlineLearner:
             bound to the problem's load signals when it reads them).
         replay_rows: per part, (n_rows, 3 n_shared_p) the shared values of the first
             synchronized stretch at every step from step 0, or None (no replay).
+        shared_nodes: per part, the global ids of its shared nodes, recorded in the file
+            of ``settings.save_to`` (None: not recorded).
     """
 
-    def __init__(self, settings: OnlineLearning, predictor, replay_rows=None):
+    def __init__(self, settings: OnlineLearning, predictor, replay_rows=None, shared_nodes=None):
         if not hasattr(predictor, "params") or not hasattr(predictor, "arch"):
             raise ConfigError(f"online learning updates trained surrogates (jaxsync.surrogate.Surrogate); "
                               f"{type(predictor).__name__} has no weights to learn")
         self.settings, self.predictor = settings, predictor
+        self.shared_nodes = shared_nodes
         self.n_s, self.n_past, self.n_future = predictor.n_s, predictor.n_past, predictor.n_future
         self.spent = 0.0
         self._optimizer = optax.adam(settings.learning_rate)  # one per run: its compiled steps are reused
         self.reports: list[UpdateReport] = []
         self._new: list[tuple] = []  # (x, y, u) normalized windows of recomputed stretches, oldest first
-        self._replay = None
+        self._stretch = None  # (rows per part, first step) of the newest recomputed stretch
+        self._replay = self._replay_chained = None
         if replay_rows is not None and settings.replay:
-            starts = window_starts(len(replay_rows[0]), self.n_s, self.n_past, self.n_future,
-                                   settings.starts_per_stride, settings.replay)
+            n_rows = len(replay_rows[0])
+            starts = window_starts(n_rows, self.n_s, self.n_past, self.n_future, settings.starts_per_stride,
+                                   settings.replay)
             if starts.size:
                 self._replay = self._windows(replay_rows, 0, starts)
+                # a closed-form refit corrects the first fit: every chained window of the stretch
+                self._replay_chained = self._windows(replay_rows, 0,
+                                                     window_starts(n_rows, self.n_s, self.n_past, self.n_future, 1))
 
     @property
     def exhausted(self) -> bool:
@@ -273,6 +320,7 @@ class OnlineLearner:
             return 0
         starts = starts[-s.windows:]
         self._new.append(self._windows(rows, first_step, starts))
+        self._stretch = ([np.asarray(r) for r in rows], int(first_step))  # the rollout that judges an update
         while sum(w[0].shape[1] for w in self._new[1:]) >= s.windows:
             del self._new[0]  # the newest windows are kept
         return int(starts.size)
@@ -297,6 +345,46 @@ class OnlineLearner:
             if self.spent + time.perf_counter() - start >= s.budget_seconds:
                 break
         return params, done
+
+    def rollout_error(self, predictor):
+        """(n_parts,) mean squared error [cm^2] of ``predictor``'s refill rollout over the
+        newest recomputed stretch (each part fed its own predictions from the first step
+        with a whole input history, as a predicted run does, against the recomputed values:
+        the truth), over as many whole cycles as the stretch holds; None when it holds
+        none."""
+        if self._stretch is None:
+            return None
+        rows, first = self._stretch
+        history, cycle = self.n_s * self.n_past, self.n_s * self.n_future
+        n_cycles = (len(rows[0]) - history) // cycle
+        if n_cycles < 1:
+            return None
+        width = predictor.n_dof
+        padded = np.stack([np.pad(r, [(0, 0), (0, width - r.shape[1])]) for r in rows])
+        buffers = jnp.asarray(padded[:, :history])  # the solver's values, as a run feeds them
+        predicted = np.asarray(_rollouts(predictor, buffers, first + history - 1, n_cycles), np.float64)
+        truth = padded[:, history:history + n_cycles * cycle]
+        counts = np.array([r.shape[1] for r in rows])
+        return np.square(predicted - truth).sum(axis=(1, 2)) / (predicted.shape[1] * counts)
+
+    def every_window(self):
+        """What a closed-form refit fits (a :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`
+        model's ``online_update``, an LSTM's linear highway): the windows of the recomputed
+        stretches kept so far and every chained window of the first synchronized stretch
+        (one per stride, so that rollouts run over them; none with ``replay=0``), all
+        weighed alike, in the replicas' dtype.
+
+        Returns:
+            ``(x, y, u, weight)``: (n_parts, n_w, n_p, D), (n_parts, n_w, n_f, D),
+            (n_parts, n_w, n_p + n_f, L) or None, (n_w,) ones.
+        """
+        sets = list(self._new) + ([self._replay_chained] if self._replay_chained is not None else [])
+        if not sets:
+            raise ConfigError("no windows to refit on: add a recomputed stretch first (add_stretch)")
+        dtype = np.dtype(self.predictor.arch.dtype)
+        x, y, u = (None if sets[0][k] is None else np.concatenate([w[k] for w in sets], axis=1).astype(dtype)
+                   for k in range(3))
+        return x, y, u, np.ones(x.shape[1], dtype)
 
     def update(self, step: int):
         """Train on the windows kept so far; returns the updated predictor (the same
@@ -332,7 +420,15 @@ class OnlineLearner:
         before = np.asarray(_losses(params, x, y, u, only_new, q, mask, arch=arch))
         trained, done = arch.online_update(self, params, x, y, u, weight, q, mask, start)
         after = np.asarray(_losses(trained, x, y, u, only_new, q, mask, arch=arch))
-        better = np.isfinite(after) & (after < before)
+        # judged by what the run does with it: fed its own predictions over the newest stretch
+        # (a lower error one window ahead can still drift cycle after cycle)
+        rollout_before = self.rollout_error(p)
+        if rollout_before is None:  # a stretch too short for one cycle: the windows' error
+            better = np.isfinite(after) & (after < before)
+            rollout_after = None
+        else:
+            rollout_after = self.rollout_error(dataclasses.replace(p, params=trained))
+            better = np.isfinite(rollout_after) & (rollout_after < rollout_before)
         keep = jnp.asarray(better)
 
         def choose(new_leaf, old_leaf):
@@ -344,5 +440,21 @@ class OnlineLearner:
         self.spent += seconds
         self.reports.append(UpdateReport(step=int(step), n_new=n_new, n_replay=n_replay, iterations=done,
                                          loss_before=before, loss_after=np.where(better, after, before),
-                                         seconds=seconds))
+                                         seconds=seconds, kept=better,
+                                         rollout_before=rollout_before,
+                                         rollout_after=None if rollout_after is None
+                                         else np.where(better, rollout_after, rollout_before)))
+        if s.save_to is not None and np.any(better):
+            self.save(s.save_to)
         return self.predictor
+
+    def save(self, path) -> None:
+        """Write the surrogates as learned so far to the surrogate file ``path`` (atomically;
+        the run's shared nodes, and the steps and seconds of the updates in the metadata's
+        ``online_learning``)."""
+        changed = [r for r in self.reports if np.any(r.kept)]
+        metadata = {"online_learning": {"updated_at": [r.step for r in changed],
+                                        "seconds_updating": float(sum(r.seconds for r in self.reports)),
+                                        "settings": {k: v for k, v in dataclasses.asdict(self.settings).items()
+                                                     if k != "save_to"}}}
+        self.predictor.save(path, shared_nodes=self.shared_nodes, metadata=metadata)

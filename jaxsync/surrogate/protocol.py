@@ -318,7 +318,11 @@ class LeastSquaresFitted(SurrogateArchitecture):
         raise NotImplementedError(f"{type(self).__name__} must define refit")
 
     def online_update(self, learner, params, x, y, signals, weight, load_parameter, dof_mask, started: float):
-        """One :meth:`refit` (an exact solve in place of gradient steps)."""
+        """One :meth:`refit` (an exact solve in place of gradient steps) on every window the
+        run has synchronized (``learner.every_window()``: the first fit corrected, not
+        replaced by a fit of the few new windows; ``x`` ... ``weight`` are the gradient
+        update's sample and are not used)."""
+        x, y, signals, weight = learner.every_window()
         refitted = self.refit(params, x, y, signals, weight, dof_mask)
         return jax.tree_util.tree_map(jnp.asarray, refitted), 1
 

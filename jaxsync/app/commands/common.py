@@ -169,6 +169,10 @@ def add_online_learning_option(parser) -> None:
     parser.add_argument(
         "--learn-budget", type=float, default=None, metavar="SECONDS",
         help="the most wall time all updates of the run may take together (default: 120)")
+    parser.add_argument(
+        "--learn-save", default=None, metavar="FILE",
+        help="with --learn: write the learned surrogates to this surrogate file (.h5) after every update "
+             "that changed them, to run or learn from again (refused if it exists, unless --force)")
 
 
 def online_learning_of(args):
@@ -177,16 +181,19 @@ def online_learning_of(args):
     from ...errors import ConfigError
 
     learn, budget = getattr(args, "learn", False), getattr(args, "learn_budget", None)
+    save_to = getattr(args, "learn_save", None)
     if not learn:
         if budget is not None:
             raise ConfigError("--learn-budget sets the time budget of --learn; give --learn too")
+        if save_to is not None:
+            raise ConfigError("--learn-save writes the surrogates that --learn updates; give --learn too")
         return None
     if args.resync_tolerance is None or str(args.resync_tolerance).lower() == "none":
         raise ConfigError("--learn learns from the steps that error control recomputes after a rejected cycle: "
                           "give --resync-tolerance too (e.g. --resync-tolerance 1%)")
     from ...surrogate.online import OnlineLearning
 
-    return OnlineLearning() if budget is None else OnlineLearning(budget_seconds=budget)
+    return OnlineLearning(**({} if budget is None else {"budget_seconds": budget}), save_to=save_to)
 
 
 def resync_tolerance_of(args, value=None):

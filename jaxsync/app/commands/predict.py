@@ -3,6 +3,8 @@ surrogates, on the partition of a synchronized trajectory."""
 
 from __future__ import annotations
 
+import os
+
 from . import common
 
 
@@ -59,8 +61,11 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     from ...solve.syncavoid import describe_run, simulate_sync_avoiding
 
-    common.check_outputs((args.output, "output trajectory", "-o"))
-    common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))
+    learned = getattr(args, "learn_save", None)
+    common.check_outputs((args.output, "output trajectory", "-o"),
+                         *([(learned, "learned surrogate file", "--learn-save")] if learned else []))
+    common.refuse_to_overwrite([args.output] + ([learned] if learned else []), force=args.force,
+                               inputs=common.trained_run_inputs(args))
     default_tolerance = args.resync_tolerance is None
     if default_tolerance:
         args.resync_tolerance = "1%"  # of the trajectory's shared amplitude (below)
@@ -92,7 +97,8 @@ def run(args) -> int:
                                     executor=HostExecutor(progress=not args.no_progress), **common.sync_of(args))
     with common.writing(args.output):
         online.save(args.output, compression=common.compression_of(args))
-    print(describe_run(online) + f"; wrote {args.output}")
+    print(describe_run(online) + f"; wrote {args.output}"
+          + (f" and the learned surrogates to {learned}" if learned and os.path.exists(learned) else ""))
     return 0
 
 
