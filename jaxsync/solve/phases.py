@@ -121,7 +121,7 @@ def predict_cycle(predictor, buffer, last, steps: int, save_every: int):
     return pred, buffer, pred[save_every - 1:steps:save_every]
 
 
-def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, save_every: int,
+def overwritten_steps(part: PartSystems, state: SolverState, pred, modal=None, *, steps: int, save_every: int,
                       probe: Exchange | None = None):
     """One part: ``steps`` solver steps without synchronization, each followed by writing
     the predicted shared-node displacements ``pred[j]`` into the part's state (the
@@ -130,20 +130,23 @@ def overwritten_steps(part: PartSystems, state: SolverState, pred, steps: int, s
     ``probe``: None, or the run's exchange: then each part also measures its
     force-balance defect at its shared nodes, summed over each ``save_every`` steps, with
     one exchange of partial forces at every saved step (:func:`defect_probe`;
-    :mod:`jaxsync.solve.error_estimate`).
+    :mod:`jaxsync.solve.error_estimate`), and, with ``modal`` (its tables, see
+    :func:`defect_probe`), its share of the modal error's response to every step's defect.
 
     Returns (state, saved displacement (steps // save_every, n_local, 3)), with ``probe``
-    (state, (saved, defect sums (steps // save_every, n_shared_max, 3) [cm]))."""
+    (state, (saved, defect sums (steps // save_every, n_shared_max, 3) [cm])), with
+    ``modal`` too (state, (saved, (defect sums, modal responses (steps // save_every,
+    n_modes, 2))))."""
     nodes = pred.reshape(pred.shape[0], -1, 3)
 
     def overwrite(j, new):
         return new.at[part.shared_local].set(nodes[j], mode="drop")
 
     return advance(part.system, state, steps // save_every, save_every, overwrite=overwrite,
-                   probe=None if probe is None else defect_probe(part, probe))
+                   probe=None if probe is None else defect_probe(part, probe, modal))
 
 
-def defect_probe(part: PartSystems, exchange: Exchange):
+def defect_probe(part: PartSystems, exchange: Exchange, modal=None):
     """The force-balance defect of one part, summed over each ``save_every`` steps, as a
     :class:`~jaxsync.fem.stepper.Probe`.
 
@@ -156,7 +159,20 @@ def defect_probe(part: PartSystems, exchange: Exchange):
     sum(delta) = sum(kept - u) + L(sum(f) - sum(f_p)): each part sums kept - u and f_p at
     its shared nodes locally, and one exchange of the summed partial forces at the end of
     the block completes it (exact; every step's defect counted, none sampled). Zero on
-    prescribed dofs and in padding slots. Returns the (n_shared_max, 3) block sums [cm]."""
+    prescribed dofs and in padding slots. Returns the (n_shared_max, 3) block sums [cm].
+
+    ``modal``: None, or ``(injection, share, response)``: the part's rows of the modal
+    injection phi^T M at its shared slots, (n_shared_max, 3, n_modes), 1 / c at each slot
+    (c the parts that hold its node; 0 in padding), (n_shared_max,), and the response of every
+    mode's (q(n), q(n-1)) a block's end to a unit injection ``save_every - 1 - j`` steps
+    before it, (save_every, n_modes, 2) (:meth:`~jaxsync.solve.error_estimate.ErrorPropagator.device_tables`).
+    Then the probe also returns, per block, this part's share of the modal error's
+    response to each of its steps' defects, at the step it happened: the mean defect over
+    the parts that hold a shared node is a sum over the parts of (kept - u) / c - (1 -
+    1 / c) L f_p (c the parts that hold it), each term the part's own, so every part
+    drives the modes with its share every step and no exchange is needed; the host adds
+    the parts' shares (:meth:`~jaxsync.solve.error_estimate.ErrorPropagator.propagate`).
+    Returns then (block sums, (n_modes, 2) modal responses)."""
     system, total = part.system, exchange.force_sum(part)
     zero = jnp.zeros_like(system.mass)
     still = SolverState(zero, zero, jnp.asarray(0, dtype=jnp.int32))
@@ -165,20 +181,44 @@ def defect_probe(part: PartSystems, exchange: Exchange):
     def at_shared(field):
         return field.at[part.shared_local].get(mode="fill", fill_value=0.0)
 
+    def linear_update(field):
+        # L(g) = central_difference(g) - central_difference(0) of any state (it is affine in g)
+        return central_difference(system, still, field) - central_difference(system, still, zero)
+
+    if modal is not None:
+        injection, share, response = modal
+        every = response.shape[0]
+        # the part's share of a step's mean defect, projected on the modes: (kept - u) . a + f_p . b
+        # with a = injection / c and b = -(1 - 1/c) L^T injection (L per node, 3 x 3 with dashpots)
+        share = share.astype(zero.dtype)[:, None, None]
+        columns = [at_shared(linear_update(zero.at[part.shared_local, c].set(1.0, mode="drop")))
+                   for c in range(3)]
+        lmat = jnp.stack(columns, axis=-1)  # (n_shared_max, 3, 3): L at each shared node
+        mask = free[..., None].astype(zero.dtype)
+        injection = injection.astype(zero.dtype)
+        kept_gain = mask * injection * share
+        force_gain = -(1.0 - share) * jnp.einsum("icd,ick->idk", lmat, mask * injection)
+        response = response.astype(zero.dtype)
+
     def per_step(state, internal, updated, new_state):
-        return at_shared(new_state.displacement - updated), at_shared(internal)
+        kept, own = at_shared(new_state.displacement - updated), at_shared(internal)
+        if modal is None:
+            return kept, own
+        drive = jnp.einsum("ic,ick->k", kept, kept_gain) + jnp.einsum("ic,ick->k", own, force_gain)
+        weight = response[every - 1 - jnp.mod(state.step, every)]  # this step's place in its block
+        return kept, own, weight * drive[:, None]
 
     def initial(state):
         shape = part.shared_local.shape + (3,)
-        return jnp.zeros(shape, zero.dtype), jnp.zeros(shape, zero.dtype)
+        sums = (jnp.zeros(shape, zero.dtype), jnp.zeros(shape, zero.dtype))
+        return sums if modal is None else sums + (jnp.zeros(response.shape[1:], zero.dtype),)
 
     def finish(sums):
-        kept, own = sums
+        kept, own = sums[:2]
         own_field = zero.at[part.shared_local].set(own, mode="drop")
-        # L(g) = central_difference(g) - central_difference(0) of any state (it is affine in g)
-        change = (central_difference(system, still, total(own_field) - own_field)
-                  - central_difference(system, still, zero))
-        return jnp.where(free, kept - at_shared(change), 0.0)
+        change = linear_update(total(own_field) - own_field)
+        defects = jnp.where(free, kept - at_shared(change), 0.0)
+        return defects if modal is None else (defects, sums[2])
 
     return Probe(per_step, initial, finish)
 
@@ -192,7 +232,7 @@ def refill_steps(part: PartSystems, predictor, carry, steps: int, save_every: in
     n_local, 3), the predictions at the saved steps (steps // save_every, n_dof)))."""
     state, buffer, last = carry
     pred, buffer, kept = predict_cycle(predictor, buffer, last, steps, save_every)
-    state, saved = overwritten_steps(part, state, pred, steps, save_every)
+    state, saved = overwritten_steps(part, state, pred, steps=steps, save_every=save_every)
     return (state, buffer, last + steps), (saved, kept)
 
 

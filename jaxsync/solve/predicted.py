@@ -96,37 +96,55 @@ class PredictedPhase:
                                                      save_every=self.save_every), 3, 3)
         return self._ahead(("rollout", steps), build, lambda: (self.predictor, buffer, self.step_counter(0)))
 
-    def _apply_program(self, state, pred, steps: int, probe: bool = False):
+    def _apply_program(self, state, pred, steps: int, probe: bool = False, modal=None):
         exchange = self.runner.distributed.exchange if probe else None
+        n_in = 3 if modal is None else 4
         build = lambda: self._spmd(functools.partial(overwritten_steps, steps=steps,  # noqa: E731
-                                                     save_every=self.save_every, probe=exchange), 3, 2)
-        return self._ahead(("apply", steps, probe), build, lambda: (self.runner.parts, state, pred()))
+                                                     save_every=self.save_every, probe=exchange), n_in, 2)
+        extra = () if modal is None else (modal,)
+        return self._ahead(("apply", steps, probe, n_in), build, lambda: (self.runner.parts, state, pred()) + extra)
 
-    def prepare_monitored(self, state, buffer, steps: int, probe: bool = False) -> None:
+    def prepare_monitored(self, state, buffer, steps: int, probe: bool = False, modal=None) -> None:
         """Compile both halves of a monitored cycle of ``steps`` ahead (nothing runs);
-        ``probe``: the second half probes the force-balance defect at the saved steps."""
+        ``probe``: the second half probes the force-balance defect at the saved steps
+        (``modal``: and drives the modes with every step's defect, :func:`defect_probe`'s
+        tables placed on the devices)."""
         def pred():  # the shape of a cycle's predictions, for compiling
             length = self.predictor.n_s * self.predictor.n_future
             return jax.ShapeDtypeStruct(buffer.shape[:1] + (length,) + buffer.shape[2:], buffer.dtype,
                                         sharding=buffer.sharding)
 
         self._rollout_program(buffer, steps)
-        self._apply_program(state, pred, steps, probe)
+        self._apply_program(state, pred, steps, probe, modal)
 
     def rollout(self, buffer, step0: int, steps: int):
         """One cycle predicted ahead: (predictions, buffer, predictions at saved steps)."""
         return self._rollout_program(buffer, steps)(self.predictor, buffer, self.step_counter(step0))
 
-    def apply(self, state, pred, steps: int, probe: bool = False):
+    def apply(self, state, pred, steps: int, probe: bool = False, modal=None):
         """The steps of one cycle with the predictions of :meth:`rollout`: (state, saved),
-        with ``probe`` (state, (saved, defects (P, steps // save_every, n_shared_max, 3)))."""
-        return self._apply_program(state, lambda: pred, steps, probe)(self.runner.parts, state, pred)
+        with ``probe`` (state, (saved, defects (P, steps // save_every, n_shared_max, 3))),
+        with ``modal`` too (state, (saved, (defects, modal responses (P, steps //
+        save_every, n_modes, 2))))."""
+        extra = () if modal is None else (modal,)
+        return self._apply_program(state, lambda: pred, steps, probe, modal)(self.runner.parts, state, pred, *extra)
 
-    def lowered_apply_text(self, state, buffer, steps: int, probe: bool = True) -> str:
+    def modal_tables(self, propagator, monitor):
+        """:func:`~jaxsync.solve.phases.defect_probe`'s modal tables of ``propagator``,
+        placed on the devices like the parts (made once per propagator)."""
+        key = ("modal", id(propagator))
+        if key not in self._compiled:
+            width = int(np.asarray(self.runner.parts.shared_local).shape[-1])
+            tables = propagator.device_tables(monitor.columns, monitor.share, self.save_every, width)
+            self._compiled = {k: v for k, v in self._compiled.items() if k[0] != "modal"}  # an older propagator's
+            self._compiled[key] = self.runner.put(tables)
+        return self._compiled[key]
+
+    def lowered_apply_text(self, state, buffer, steps: int, probe: bool = True, modal=None) -> str:
         """The compiled HLO text of a monitored cycle's second half (to count its
         collectives)."""
-        self.prepare_monitored(state, buffer, steps, probe)
-        return self._compiled[("apply", steps, probe)].as_text()
+        self.prepare_monitored(state, buffer, steps, probe, modal)
+        return self._compiled[("apply", steps, probe, 3 if modal is None else 4)].as_text()
 
 
 class CycleRejected(Stopped):
@@ -210,10 +228,13 @@ class MonitoredRunner(_PredictedRunnerBase):
     def chunk_steps(self, steps_left: int, preferred: int) -> int:
         return min(self.cycle_steps, steps_left)
 
+    def _modal(self):
+        return None if self.propagator is None else self.phase.modal_tables(self.propagator, self.monitor)
+
     def compile(self, state, steps: int) -> float:
         solver_state, buffer, _ = state
         return self._compiled_delta(lambda: self.phase.prepare_monitored(solver_state, buffer, steps,
-                                                                         self.propagator is not None))
+                                                                         self.propagator is not None, self._modal()))
 
     def advance(self, state, steps: int):
         solver_state, buffer, step0 = state
@@ -225,9 +246,11 @@ class MonitoredRunner(_PredictedRunnerBase):
         if self.propagator is None:
             solver_state, disp = self.phase.apply(solver_state, pred, steps)
         else:
-            solver_state, (disp, defects) = self.phase.apply(solver_state, pred, steps, probe=True)
+            solver_state, (disp, (defects, modal)) = self.phase.apply(solver_state, pred, steps, probe=True,
+                                                                      modal=self._modal())
             error_state, estimates = self.propagator.propagate(
-                self.error_state, self.monitor.interface_values(to_host(defects)), self.save_every)
+                self.error_state, self.monitor.interface_values(to_host(defects)), self.save_every,
+                modal=to_host(modal).sum(axis=0))
             if not estimates.max(initial=0.0) <= self.tolerance:
                 raise CycleRejected(step0, float(es_hat.max()), self.tolerance,
                                     float(np.nan_to_num(estimates.max(), nan=np.inf)))
@@ -250,6 +273,8 @@ class DisagreementMonitor:
         self.holds = np.zeros((partition.n_parts, len(partition.shared_nodes)), bool)
         for p, cols in enumerate(self.columns):
             self.holds[p, cols] = True
+        #: (n_interface,) 1 / the number of parts that hold each shared node
+        self.share = 1.0 / np.maximum(self.holds.sum(axis=0), 1)
 
     def interface_values(self, values) -> np.ndarray:
         """(T, n_interface, 3): the mean over the parts that hold each shared node of the
