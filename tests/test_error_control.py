@@ -261,8 +261,10 @@ def test_the_static_remainder_made_once_or_solved_per_probe(problem, partition, 
     defects = np.random.default_rng(1).normal(size=(6, len(partition.shared_nodes), 3)) * 1e-7
     whole = per_probe._static_remainder(defects, 10)
     at_shared = np.einsum("icjd,pjd->pic", once.flexibility, defects) / 10
+    # equal to round-off: two direct solves of a stiffness of condition ~1e6 (numpy 2.4 and
+    # scipy 1.17 leave 2e-12 of the largest value on a near-zero entry)
     np.testing.assert_allclose(at_shared, whole[:, partition.shared_nodes], rtol=1e-9,
-                               atol=1e-12 * np.abs(whole).max())
+                               atol=1e-10 * np.abs(whole).max())
     state = once.zero_state()
     _, a = once.propagate(state, defects, 10)
     _, b = per_probe.propagate(state, defects, 10)

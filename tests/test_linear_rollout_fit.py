@@ -118,3 +118,35 @@ def test_fit_linear_takes_the_rollout_fit():
     coeffs = np.einsum("wpd,pdr->wr", x, p["w_in"][0]) + np.einsum("wtu,tur->wr", u, p["w_load"][0])
     got = np.einsum("wr,rfd->wfd", coeffs, p["w_out"][0]) + p["b"][0]
     np.testing.assert_allclose(got, expected, atol=1e-9 * np.abs(expected).max())
+
+
+def test_directions_the_ridge_suppresses_are_dropped_and_move_the_fit_by_at_most_the_cut():
+    """Against the ridge solution of the normal equations (numpy): with a ridge strong
+    enough to suppress most directions, the fit keeps only those of filter factor >=
+    FILTER_CUT, its fitted values are within FILTER_CUT of the targets' norm of the full
+    ridge's, and the directions it keeps are exactly those; without a ridge nothing is
+    dropped (numpy lstsq)."""
+    from jaxsync.surrogate.least_squares import FILTER_CUT
+
+    rng = np.random.default_rng(3)
+    n, n_in, n_out = 120, 60, 7
+    # input columns of singular values spread over six decades
+    q1, _ = np.linalg.qr(rng.normal(size=(n, n_in)))
+    q2, _ = np.linalg.qr(rng.normal(size=(n_in, n_in)))
+    sv = np.logspace(0, -6, n_in)
+    x = (q1 * sv) @ q2.T + rng.normal(size=n_in)
+    y = rng.normal(size=(n, n_out)) + x @ rng.normal(size=(n_in, n_out))
+    xc, yc = x - x.mean(0), y - y.mean(0)
+    s = np.linalg.svd(xc, compute_uv=False)
+    for relative in (1e-2, 1e-4):
+        lam = relative * s[0] ** 2
+        ridge = np.linalg.solve(xc.T @ xc + lam * np.eye(n_in), xc.T @ yc)
+        w_in, w_out, b = solve_least_squares(x, y, relative)
+        expected_rank = np.count_nonzero(s ** 2 >= FILTER_CUT * (s ** 2 + lam))
+        assert w_in.shape[1] == expected_rank < n_in
+        moved = np.linalg.norm((x @ w_in) @ w_out + b - (xc @ ridge + y.mean(0)))
+        assert 0 < moved <= FILTER_CUT * np.linalg.norm(yc)
+    w_in, w_out, b = solve_least_squares(x, y, 0.0)
+    design = np.concatenate([x, np.ones((n, 1))], axis=1)
+    np.testing.assert_allclose((x @ w_in) @ w_out + b, design @ np.linalg.lstsq(design, y, rcond=None)[0],
+                               atol=1e-6 * np.abs(y).max())

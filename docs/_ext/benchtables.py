@@ -842,8 +842,19 @@ def r_hyperelastic() -> Rendered:
     return Rendered([t], ["hyperelastic.json"], recorded(d.get("machine")))
 
 
+def r_predicted_step() -> Rendered:
+    d = load("predicted_step.json")
+    rows = [[r["surrogate"], num(r["rank"]), num(r["t_sync_us"]), num(r["t_nosync_us"]), num(r["t_avoid_us"]),
+             num(r["t_d_us"]), f"{num(100 * r['t_d_over_t_sync'], 2)} %", num(r["rest_us"], 2), num(r["zeta"])]
+            for r in d["rows"]]
+    t = Table(["surrogate", "rank", "t_sync", "t_nosync", "t_avoid", "t_d", "t_d / t_sync", "rest", "zeta"], rows,
+              d["header"])
+    return Rendered([t], ["predicted_step.json"], recorded(d.get("machine")))
+
+
 RENDERERS = {
     "float32": r_float32,
+    "predicted-step": r_predicted_step,
     "hyperelastic": r_hyperelastic,
     "locking": r_locking,
     "stepper": r_stepper,

@@ -46,8 +46,9 @@ def max_applications(n_steps: int, n_s: int, n_past: int, n_future: int, start: 
 
 
 @functools.partial(jax.jit, static_argnames="n_cycles")
-def _rollout_parts(surrogate: Surrogate, buffers, step0, n_cycles: int):
-    """:meth:`Surrogate.rollout` of every part (buffers (n_parts, n_s n_p, n_dof))."""
+def rollout_parts(surrogate: Surrogate, buffers, step0, n_cycles: int):
+    """:meth:`Surrogate.rollout` of every part, one compiled call: (n_parts, n_cycles n_s
+    n_f, n_dof) from buffers (n_parts, n_s n_p, n_dof)."""
     return jax.vmap(lambda one, buffer: one.rollout(buffer, step0, n_cycles))(surrogate, buffers)
 
 
@@ -128,7 +129,7 @@ def rollout_errors(
     counts = np.asarray(surrogate.dof_counts)
     mask = padding_mask(counts, n_dof)
     buffer = histories[:, start + 1 - n_s * n_past:start + 1]
-    pred = np.asarray(_rollout_parts(surrogate, jnp.asarray(buffer), start, n_applications))
+    pred = np.asarray(rollout_parts(surrogate, jnp.asarray(buffer), start, n_applications))
     truth = histories[:, start + 1:start + 1 + pred.shape[1]]
     error = np.abs(pred - truth) * mask[:, None, :]  # padded predictions are 0, truth padding 0
     return RolloutErrors(start=start, n_steps=int(pred.shape[1]),

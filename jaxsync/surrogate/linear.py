@@ -16,10 +16,12 @@ on the LSTM's windows (:func:`~jaxsync.surrogate.data.build_dataset`,
 
 Structure: W is stored factored, ``W = w_in w_out`` through the ``rank`` directions of
 the training inputs that the fit uses (:func:`fit_linear`: the right singular vectors of
-the centered inputs).  This is the least-squares solution itself, not an approximation --
-it lies in the span of the training inputs -- and its size grows with the number of
-windows, not with n_dof^2: a full W of the 11-part vessel (n_dof = 2 310, n_p = n_f = 20)
-would hold 2.1e9 numbers per part.  Parameters, one replica::
+the centered inputs).  This is the ridge least-squares solution itself -- it lies in the
+span of the training inputs -- less the directions its ridge suppresses below
+:data:`~jaxsync.surrogate.least_squares.FILTER_CUT` of their weight, and its size grows
+with the number of windows at most, not with n_dof^2: a full W of the 11-part vessel
+(n_dof = 2 310, n_p = n_f = 20) would hold 2.1e9 numbers per part.  Parameters, one
+replica::
 
     {"w_in":  (n_p, n_dof, rank),     input directions (orthonormal columns)
      "w_out": (rank, n_f, n_dof),     their least-squares map to the outputs

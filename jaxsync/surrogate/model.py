@@ -273,7 +273,7 @@ class Surrogate:
     @classmethod
     def initialized(cls, partition, n_s: int, *, n_hidden: int = 100, n_layers: int = 2, n_past: int = 20,
                     n_future: int = 20, dtype: str = "float32", seed: int = 0, model: str = "lstm",
-                    rank: int | None = None) -> "Surrogate":
+                    rank: int | None = None, highway_rank: int = 0) -> "Surrogate":
         """Untrained replicas for ``partition``, unit normalization.
 
         For timing studies: an untrained network costs exactly what a trained one of the
@@ -281,7 +281,9 @@ class Surrogate:
         meaningless.  The defaults are the paper's architecture (n_H = 100, 2 layers,
         n_p = n_f = 20). ``model="linear"``: the linear autoregressive map instead
         (:mod:`jaxsync.surrogate.linear`, zero weights) of inner width ``rank`` (default
-        n_p n_dof, the widest a fit can give); ``n_hidden`` and ``n_layers`` are unused."""
+        n_p n_dof, the widest a fit can give); ``n_hidden`` and ``n_layers`` are unused.
+        ``highway_rank`` > 0: the LSTM with a linear highway of that inner width (zero
+        weights; :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`)."""
         from jaxsync.surrogate.architecture import ArchitectureChoice
 
         choice = ArchitectureChoice(model=model, n_hidden=n_hidden, n_layers=n_layers, dtype=dtype)
@@ -293,6 +295,11 @@ class Surrogate:
                 raise ConfigError(f"rank={rank} is the linear model's inner width; the {model} model has none: "
                                   "leave rank out")
             arch = dataclasses.replace(arch, rank=rank)
+        if highway_rank:
+            if "highway_rank" not in {f.name for f in dataclasses.fields(arch)}:
+                raise ConfigError(f"highway_rank={highway_rank} is the LSTM's highway width; the {model} model has "
+                                  "none: leave highway_rank out")
+            arch = dataclasses.replace(arch, highway=True, highway_rank=int(highway_rank))
         params = arch.init_replicas(jax.random.PRNGKey(seed), tuple(int(c) for c in counts))
         # normalization and mask in float64, as a surrogate file stores them
         return cls._build(arch, params, np.zeros((n, n_dof)), np.ones((n, n_dof)), padding_mask(counts, n_dof),

@@ -43,6 +43,7 @@ import optax
 
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate.data import normalize
+from jaxsync.surrogate.evaluate import rollout_parts
 
 __all__ = ["OnlineLearning", "OnlineLearner", "UpdateReport", "sample_refill_windows"]
 
@@ -204,13 +205,6 @@ class UpdateReport:
     rollout_after: np.ndarray | None = None
 
 
-@functools.partial(jax.jit, static_argnames="n_cycles")
-def _rollouts(predictor, buffers, step0, n_cycles: int):
-    """Every part's refill rollout (:meth:`~jaxsync.surrogate.Surrogate.rollout`), one
-    compiled call: (n_parts, n_cycles n_s n_f, n_dof)."""
-    return jax.vmap(lambda one, buffer: one.rollout(buffer, step0, n_cycles))(predictor, buffers)
-
-
 def _replica_loss(params, arch, x, y, u, weight, load_parameter, dof_mask):
     """Weighted mean squared error of one replica over its windows (normalized units)."""
     load = load_parameter if arch.conditional else None
@@ -362,7 +356,7 @@ class OnlineLearner:
         width = predictor.n_dof
         padded = np.stack([np.pad(r, [(0, 0), (0, width - r.shape[1])]) for r in rows])
         buffers = jnp.asarray(padded[:, :history])  # the solver's values, as a run feeds them
-        predicted = np.asarray(_rollouts(predictor, buffers, first + history - 1, n_cycles), np.float64)
+        predicted = np.asarray(rollout_parts(predictor, buffers, first + history - 1, n_cycles), np.float64)
         truth = padded[:, history:history + n_cycles * cycle]
         counts = np.array([r.shape[1] for r in rows])
         return np.square(predicted - truth).sum(axis=(1, 2)) / (predicted.shape[1] * counts)

@@ -1,0 +1,44 @@
+"""benchmarks/bench_predicted_step.py runs (its quick settings): every surrogate's row,
+its parts consistent with one another, and the untrained LSTM with a highway it times."""
+
+import json
+
+import numpy as np
+import pytest
+
+import jaxsync
+from benchmark_scripts import load_benchmark
+from jaxsync.errors import ConfigError
+from jaxsync.surrogate.model import Surrogate
+
+
+def test_bench_predicted_step_quick(tmp_path):
+    bench = load_benchmark("bench_predicted_step")
+    out = tmp_path / "predicted_step.json"
+    assert bench.main(["--quick", "--highway-rank", "6", "--linear-rank", "5", "--out", str(out)]) == 0
+    result = json.loads(out.read_text())
+    rows = {r["surrogate"]: r for r in result["rows"]}
+    assert set(rows) == {"lstm", "lstm-bare", "linear"} and result["case"] == "cantilever"
+    assert (rows["lstm"]["rank"], rows["lstm-bare"]["rank"], rows["linear"]["rank"]) == (6, 0, 5)
+    for r in rows.values():
+        assert min(r["t_sync_us"], r["t_nosync_us"], r["t_avoid_us"], r["t_d_us"]) > 0
+        assert r["rest_us"] == pytest.approx(r["t_avoid_us"] - r["t_nosync_us"] - r["t_d_us"])
+        assert r["zeta"] == pytest.approx(r["t_sync_us"] / r["t_avoid_us"])
+        assert r["t_d_over_t_sync"] == pytest.approx(r["t_d_us"] / r["t_sync_us"])
+    assert result["table"].count("\n") == 4
+
+
+def test_an_untrained_lstm_with_a_highway_has_its_shape_and_cost():
+    problem = jaxsync.cantilever()
+    partition = jaxsync.partition(problem.mesh, 2, seed=0)
+    bare = Surrogate.initialized(partition, 10, n_hidden=4, n_layers=1)
+    wide = Surrogate.initialized(partition, 10, n_hidden=4, n_layers=1, highway_rank=7)
+    assert wide.arch.highway and wide.arch.highway_rank == 7
+    assert bare.arch.highway_rank == 0 and "highway" not in bare.params  # a highway is set by a fit
+    assert np.asarray(wide.params["highway"]["w_in"]).shape == (2, 20, wide.n_dof, 7)
+    # the highway's flops: 2 n_p n_dof r + 2 r n_f n_dof and its addition, per window
+    d = wide.n_dof
+    extra = wide.arch.prediction_cost(10).flops - bare.arch.prediction_cost(10).flops
+    assert extra == 10 * (2 * 20 * d * 7 + 2 * 7 * 20 * d + 2 * 20 * d)
+    with pytest.raises(ConfigError, match="highway_rank"):
+        Surrogate.initialized(partition, 10, model="linear", highway_rank=3)
