@@ -162,7 +162,7 @@ amplitude out of sample; within 2x of it, 1, 0.3 %)."""
 FILTER_CUT = 1e-3
 """The fit drops the displacement directions that its ridge keeps below this fraction of
 their least-squares weight (filter factor s^2 / (s^2 + lambda) < FILTER_CUT,
-:func:`select_regularization`): together they move no in-sample prediction by more than
+:func:`solve_least_squares`): together they move no in-sample prediction by more than
 FILTER_CUT of the targets' norm, yet each costs as much at every prediction as a strong
 one (2 (n_p + n_f) n_dof flops per window). The 4-part hyperelastic vessel under ridge 1:
 about 16 of its 305 directions are kept, at the same rollout error to 0.1 %."""
@@ -230,7 +230,6 @@ def select_regularization(x, y, signals, regularization: float, weight=None, max
         weight, max_rank: as in :func:`solve_least_squares`.
         windows: ``(x, y, signals)`` the rollouts run over (e.g. the training and the
             validation windows together, so that more windows have successors).
-
 
     Returns:
         ``((w_in, w_out, b), regularization chosen)``.
