@@ -208,14 +208,27 @@ def test_krylov_newton_updates_give_the_direct_solution():
     assert np.abs(krylov.points - direct.points).max() <= 1e-10 * a
 
 
-def test_a_pressure_that_cannot_be_unloaded_is_refused_naming_pressure_and_iteration():
-    a, b, h = 0.2, 0.3, 0.05
-    mesh = _annulus(a, b, h, 2, 4)
+def _hard_tube(pressure):
+    """The 2 x 4-element plane-strain tube at ``pressure`` [barye], far above its modulus."""
+    mesh = _annulus(0.2, 0.3, 0.05, 2, 4)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", jaxsync.LockingWarning)
-        problem = _plane_strain_tube(mesh, jaxsync.NearlyIncompressibleNeoHookean(E=2.6e6, nu=0.45), 5.0e7, h)
-    with pytest.raises(jaxsync.ConvergenceError, match=r"5e\+07 barye on 'lumen'.*iteration \d+"):
-        jaxsync.zero_pressure_geometry(problem, load_steps=1, max_iter=30)
+        return _plane_strain_tube(mesh, jaxsync.NearlyIncompressibleNeoHookean(E=2.6e6, nu=0.45), pressure, 0.05)
+
+
+def test_a_solve_that_does_not_converge_is_refused_naming_pressure_and_iteration():
+    # 5e7 barye is 19 E: in one increment Newton wanders with the residual near 1
+    message = r"did not converge at .*5e\+07 barye on 'lumen'.*Newton iteration 3,.*raise load_steps"
+    with pytest.raises(jaxsync.ConvergenceError, match=message) as info:
+        jaxsync.zero_pressure_geometry(_hard_tube(5.0e7), load_steps=1, max_iter=3)
+    assert info.value.increment == 1 and info.value.residual > 1e-3
+
+
+def test_a_pressure_whose_every_update_inverts_the_reference_is_refused_naming_pressure_and_iteration():
+    # 1e9 barye is 385 E: even 1/1024 of the first Newton update inverts an element
+    with pytest.raises(jaxsync.ConvergenceError,
+                       match=r"1e\+09 barye on 'lumen'.*Newton iteration 1, every update .* inverts an element"):
+        jaxsync.zero_pressure_geometry(_hard_tube(1.0e9), load_steps=1, max_iter=30)
 
 
 def test_bad_options_and_unsupported_problems_are_refused(vessel):

@@ -180,9 +180,10 @@ def zero_pressure_geometry(problem, *, method: str = "newton", tol: float = 1e-1
         :class:`ZeroPressureGeometry`.
 
     Raises:
-        ConvergenceError: no convergence in ``max_iter`` iterations, or every update
-            inverts an element of the reference (a pressure that would need a negative
-            volume to unload); the message names the pressure and the iteration.
+        ConvergenceError: no convergence in ``max_iter`` iterations (more ``load_steps``
+            often help), or every update inverts an element of the reference (likely a
+            pressure that would need a negative volume to unload); the message names the
+            pressure and the iteration.
         ProblemError: bad options, a small-strain law, traced parameters (use
             :func:`zero_pressure_points`).
     """
@@ -345,8 +346,8 @@ def _newton(problem, tol, max_iter, load_steps, linear_solver):
                     f"no zero-pressure geometry at {_pressures(problem)}: in increment {k} of {load_steps} "
                     f"({100 * fraction:.0f} % of the pressure), at Newton iteration {iteration + 1}, every update "
                     "(halved 10 times) inverts an element of the unloaded geometry (det dX/dxi <= 0 or det F <= 0): "
-                    "unloading would need a negative volume, so the pressure is too large for this wall and law; "
-                    f"check the pressure's units (barye) and the law's moduli, or raise load_steps",
+                    "the pressure is likely too large for this wall and law (unloading it would need a negative "
+                    f"volume); check the pressure's units (barye) and the law's moduli, or raise load_steps",
                     increment=k, residual=relative)
             X, r = trial, found
     return X.reshape(-1, 3), residuals
