@@ -258,6 +258,13 @@ def test_mass_scaling_from_the_command_line(tmp_path, capsys):
     assert main(["simulate", str(cfg), "-o", str(tmp_path / "m2.h5"), "--mass-scaling-dt",
                  str(target), "--no-progress"]) == 0
     assert jaxsync.Trajectory.load(tmp_path / "m2.h5").dt == pytest.approx(target, rel=1e-12)
+    capsys.readouterr()
+    # a target below the CFL step adds nothing, and the run says it keeps the larger step
+    assert main(["simulate", str(cfg), "-o", str(tmp_path / "m3.h5"), "--mass-scaling-dt",
+                 str(0.5 * problem.dt), "--no-progress", "--steps", "100"]) == 0
+    assert (f"mass scaling to dt {0.5 * problem.dt:.4e} s: added mass 0.00 % of the total (every element is "
+            f"stable at a larger step); the run takes the CFL step {problem.dt:.4e} s") in capsys.readouterr().out
+    assert jaxsync.Trajectory.load(tmp_path / "m3.h5").dt == pytest.approx(problem.dt, rel=1e-12)
     with pytest.raises(SystemExit):  # argparse: not allowed with
         main(["simulate", "--mass-scaling-dt", "1e-4", "--mass-scaling-beta", "2"])
     assert "not allowed with" in capsys.readouterr().err

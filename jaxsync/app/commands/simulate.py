@@ -46,7 +46,8 @@ def add_parser(subparsers) -> None:
     scaling = p.add_mutually_exclusive_group()
     scaling.add_argument("--mass-scaling-dt", type=float, default=None, metavar="S",
                          help="artificial mass scaling (paper Algorithm 2): make every element "
-                              "stable at this step in s, and run at it unless --dt is given "
+                              "stable at this step in s, and run at it (at the CFL step where that is larger) "
+                              "unless --dt is given "
                               "([run] mass_scaling_dt); the added mass is printed, with a warning "
                               "above 10 %%")
     scaling.add_argument("--mass-scaling-beta", type=float, default=None, metavar="B",
@@ -277,8 +278,14 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     if main_rank:
         print(problem.summary(dt))
         if run_config.added_mass_percent is not None:
-            print(f"mass scaling to dt {float(problem.dt):.4e} s: added mass "
-                  f"{run_config.added_mass_percent:.2f} % of the total")
+            target = run_config.mass_scaling_dt
+            if target is not None and float(problem.dt) > target:  # every element already stable at the target
+                print(f"mass scaling to dt {target:.4e} s: added mass {run_config.added_mass_percent:.2f} % of the "
+                      f"total (every element is stable at a larger step); the run takes the CFL step "
+                      f"{float(problem.dt):.4e} s")
+            else:
+                print(f"mass scaling to dt {float(problem.dt):.4e} s: added mass "
+                      f"{run_config.added_mass_percent:.2f} % of the total")
         if n_processes > 1:
             print(f"{n_processes} processes, {parts} parts")
         if parts is not None:  # how the parts exchange: the transport of this run
