@@ -21,7 +21,11 @@ def test_bench_predicted_step_quick(tmp_path):
     assert set(rows) == {"lstm", "lstm-bare", "linear"} and result["case"] == "cantilever"
     assert (rows["lstm"]["rank"], rows["lstm-bare"]["rank"], rows["linear"]["rank"]) == (6, 0, 5)
     for r in rows.values():
-        assert min(r["t_sync_us"], r["t_nosync_us"], r["t_avoid_us"], r["t_d_us"]) > 0
+        assert min(r["t_sync_us"], r["t_nosync_us"], r["t_avoid_us"]) > 0
+        # the refill's per-step time is its program's time less that of a call without a
+        # step, clipped at 0 (jaxsync.perf.measure.per_step_times): on the quick cantilever
+        # the difference is within the timer's noise and can be clipped
+        assert r["t_d_us"] >= 0
         assert r["rest_us"] == pytest.approx(r["t_avoid_us"] - r["t_nosync_us"] - r["t_d_us"])
         assert r["zeta"] == pytest.approx(r["t_sync_us"] / r["t_avoid_us"])
         assert r["t_d_over_t_sync"] == pytest.approx(r["t_d_us"] / r["t_sync_us"])
