@@ -29,7 +29,6 @@ wall time, the mesh, and each model's counts and errors).
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import shutil
@@ -56,13 +55,10 @@ def command(args: list[str], log: list, cwd: str) -> float:
     return seconds
 
 
-def nodal_errors(reference_path: str, online_path: str, train_until_step: int) -> dict:
-    """The largest nodal error [cm] of the online run against the reference, over every
-    saved snapshot after n_cri and over those after ``train_until_step``."""
-    import jaxsync
-
-    ref = jaxsync.Trajectory.load(reference_path)
-    onl = jaxsync.Trajectory.load(online_path)
+def nodal_errors(ref, onl, train_until_step: int) -> dict:
+    """The largest nodal error [cm] of the online run ``onl`` against the reference ``ref``
+    (:class:`jaxsync.Trajectory`), over every saved snapshot after n_cri and over those
+    after ``train_until_step``."""
     steps_ref = np.rint(np.asarray(ref.times) / float(ref.dt)).astype(int)
     steps_onl = np.rint(np.asarray(onl.times) / float(onl.dt)).astype(int)
     common, i_ref, i_onl = np.intersect1d(steps_ref, steps_onl, return_indices=True)
@@ -77,7 +73,7 @@ def nodal_errors(reference_path: str, online_path: str, train_until_step: int) -
                                                   if after_training.any() else None)}
 
 
-def run_model(model: str, args, workdir: str, log: list, n_steps: int, mesh: str) -> dict:
+def run_model(model: str, args, workdir: str, log: list, n_steps: int, mesh: str, reference) -> dict:
     surrogate_dir = f"surrogate_{model}"
     train = ["train", "sync.h5", "-o", surrogate_dir, "--model", model, "--n-s", str(args.n_s), "--seed",
              str(args.seed), "--force"]
@@ -93,11 +89,12 @@ def run_model(model: str, args, workdir: str, log: list, n_steps: int, mesh: str
 
     import jaxsync
 
-    stats = jaxsync.Trajectory.load(os.path.join(workdir, online)).stats
+    trajectory = jaxsync.Trajectory.load(os.path.join(workdir, online))
+    stats = trajectory.stats
     after = int(stats.n_steps) - int(stats.n_cri)
     tolerance_cm = max(float(t) for t in stats.tolerance_cm) if stats.tolerance_cm else None
     train_until = n_steps // 2
-    errors = nodal_errors(os.path.join(workdir, "sync.h5"), os.path.join(workdir, online), train_until)
+    errors = nodal_errors(reference, trajectory, train_until)
     row = {"model": model, "n_steps": int(stats.n_steps), "n_cri": int(stats.n_cri),
            "n_predicted": int(stats.n_predicted_steps), "n_synchronized": int(stats.n_synchronized_steps),
            "predicted_fraction_after_n_cri": int(stats.n_predicted_steps) / after if after else 0.0,
@@ -133,6 +130,7 @@ def main(argv=None):
     import jax
 
     import jaxsync
+    from jaxsync.io import atomic_json
 
     cycle = 20 * args.n_s  # n_p n_s = n_f n_s at the library's n_p = n_f = 20
     if args.steps % cycle:
@@ -155,7 +153,7 @@ def main(argv=None):
         simulate.append("--no-progress")
     command(simulate, log, workdir)
     reference = jaxsync.Trajectory.load(os.path.join(workdir, "sync.h5"))
-    rows = [run_model(model, args, workdir, log, args.steps, mesh_path) for model in args.models]
+    rows = [run_model(model, args, workdir, log, args.steps, mesh_path, reference) for model in args.models]
 
     record = {"experiment": "error control on an untuned vessel (bifurcating gmsh vessel, coronary pressure)",
               "mesh": {"generator": f"jaxsync.vessel_mesh(branch=True, size={args.size:g})",
@@ -177,9 +175,7 @@ def main(argv=None):
               f"{r.get('error_over_tolerance_out_of_sample') or float('nan'):12.2f} "
               f"{'met' if r.get('meets_target') else 'missed':>7}")
     path = os.path.join(out, "untuned_vessel.json")
-    with open(path + ".tmp", "w") as f:
-        json.dump(record, f, indent=2)
-    os.replace(path + ".tmp", path)
+    atomic_json(path, record)
     print(f"wrote {path}")
     if not args.keep:
         shutil.rmtree(workdir, ignore_errors=True)
