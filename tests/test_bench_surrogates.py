@@ -1,4 +1,4 @@
-"""benchmarks/bench_surrogates.py --quick, reduced to one case and 1 000 steps: it runs the
+"""benchmarks/bench_surrogates.py --quick, reduced to one case and 600 steps: it runs the
 three surrogates online, times them and writes the JSON the README table is made from."""
 
 import json
@@ -10,10 +10,10 @@ from benchmark_scripts import load_benchmark
 def test_quick_run_writes_every_surrogate_and_timing(tmp_path, capsys):
     script = load_benchmark("bench_surrogates")
     out = tmp_path / "bench_surrogates.json"
-    assert script.main(["--quick", "--case", "default", "--steps", "1000", "--quiet", "--out", str(out)]) == 0
+    assert script.main(["--quick", "--case", "default", "--steps", "600", "--quiet", "--out", str(out)]) == 0
     record = json.loads(out.read_text())
     assert {"benchmark", "settings", "seed", "bf16_bound", "cases", "machine", "wall_seconds"} <= set(record)
-    assert record["settings"]["quick"] is True and record["settings"]["n_steps"] == 1000
+    assert record["settings"]["quick"] is True and record["settings"]["n_steps"] == 600
     (case,) = record["cases"]
     assert case["case"] == "default"
     assert {"reference", "variants", "timing", "break_even", "bf16_check", "tip_node"} <= set(case)

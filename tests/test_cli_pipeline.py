@@ -19,6 +19,8 @@ import jaxsync
 from jaxsync.app.cli import main
 
 N_STEPS, N_S = 1500, 5
+# the predict runs that check one option each run the first third of the demo's steps
+SHORT = 500
 
 
 @dataclasses.dataclass
@@ -241,7 +243,7 @@ def test_predict_holds_the_run_to_1_percent_by_default(demo, reference, tmp_path
     displacement of the trajectory (the 2-epoch networks fail it: the run falls back to the
     synchronized solver, and says so)."""
     path = tmp_path / "default.h5"
-    run = run_cli(predict_args(demo, path))
+    run = run_cli(predict_args(demo, path))  # the whole run: its first 500 steps are all held to 1 %
     assert run.code == 0, run.err
     amplitude = max(np.abs(p.shared_displacement).max() for p in reference.parts)
     st = jaxsync.Trajectory.load(path).stats
@@ -265,7 +267,7 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
     from jaxsync.surrogate.refill import smooth_refill
 
     path = demo[0] / "raw.h5"
-    run = run_cli(predict_args(demo, path, "--raw-refill", "--resync-tolerance", "none"))
+    run = run_cli(predict_args(demo, path, "--raw-refill", "--resync-tolerance", "none", "--steps", SHORT))
     assert run.code == 0, run.err
     raw = jaxsync.Trajectory.load(path)
     # the demo's surrogates read the load signals (its default): bound to its problem, the cantilever
@@ -289,9 +291,9 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
 
 
 def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_path):
-    """A config whose load is switched off between steps 499 and 500: predict stays
-    synchronized until the networks' 25 input steps follow the jump (step 524, saved at
-    525); ``--load-jumps predict`` predicts from n_cri = 25 through it. The demo's
+    """A config whose load is switched off between steps 249 and 250: predict (the first
+    500 steps) stays synchronized until the networks' 25 input steps follow the jump (step
+    274, saved at 275); ``--load-jumps predict`` predicts from n_cri = 25 through it. The demo's
     surrogates, trained with the load input on a ramped load, are refused on the
     switched-off one (another time-function form); load-blind ones, trained with
     --no-load-input, run there."""
@@ -299,7 +301,7 @@ def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_pat
 
     text = resources.files("jaxsync").joinpath("data/cantilever.toml").read_text()
     config = tmp_path / "step_off.toml"
-    config.write_text(text.replace("# t_off = 3.0", f"t_off = {499.5 * reference.dt!r}"))
+    config.write_text(text.replace("# t_off = 3.0", f"t_off = {249.5 * reference.dt!r}"))
     refused = run_cli(predict_args(demo, tmp_path / "refused.h5", "--config", config))
     assert refused.code == 2 and "trained with loads[0] a BodyForce of time function form Ramp" in refused.err
     assert "form StepOff(Ramp)" in refused.err
@@ -310,17 +312,17 @@ def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_pat
 
     def predict_blind(output, *extra):
         return ["predict", demo[1] / "synchronized.h5", tmp_path / "blind" / "surrogate.h5", "-o", output,
-                "--no-progress", "--resync-tolerance", "none", *extra]
+                "--no-progress", "--resync-tolerance", "none", "--steps", str(SHORT), *extra]
 
     kept = run_cli(predict_blind(tmp_path / "kept.h5", "--config", config))
     assert kept.code == 0, kept.err
-    assert "1500 steps: 525 synchronized, 975 predicted (n_cri = 525)" in kept.out
-    assert "synchronized through the load jump at step 500" in kept.out
+    assert "500 steps: 275 synchronized, 225 predicted (n_cri = 275)" in kept.out
+    assert "synchronized through the load jump at step 250" in kept.out
     stats = jaxsync.Trajectory.load(tmp_path / "kept.h5").stats
-    assert stats.load_jumps == (500,) and stats.n_cri == 525
+    assert stats.load_jumps == (250,) and stats.n_cri == 275
     through = run_cli(predict_blind(tmp_path / "through.h5", "--config", config, "--load-jumps", "predict"))
     assert through.code == 0, through.err
-    assert "1500 steps: 25 synchronized, 1475 predicted" in through.out
+    assert "500 steps: 25 synchronized, 475 predicted" in through.out
     assert jaxsync.Trajectory.load(tmp_path / "through.h5").stats.load_jumps is None
 
 
@@ -382,17 +384,19 @@ def test_resync_run_is_the_synchronized_run(resync, reference):
 
 def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     """``--learn``: an update after every re-synchronized stretch, said in the printed
-    counts; a tolerance of 1e-12 cm still gives the synchronized run."""
+    counts; a tolerance of 1e-12 cm still gives the synchronized run (the first 500 steps:
+    rejected at 25, 75, 175 and 375)."""
     path, learned = tmp_path / "learn.h5", tmp_path / "learned.h5"
     run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "600",
-                               "--learn-save", learned))
+                               "--learn-save", learned, "--steps", SHORT))
     assert run.code == 0, run.err
     result = jaxsync.Trajectory.load(path)
     st = result.stats
     assert len(st.surrogate_updated_at) == st.n_resynchronizations >= 2 and st.seconds_updating > 0
     assert f"{len(st.surrogate_updated_at)} surrogate updates" in run.out
     assert f"the learned surrogates to {learned}" in run.out
-    np.testing.assert_allclose(result.displacement, reference.displacement, rtol=0,
+    assert result.n_saved == SHORT // 5 + 1
+    np.testing.assert_allclose(result.displacement, reference.displacement[:result.n_saved], rtol=0,
                                atol=1e-12 * np.abs(reference.displacement).max())
     # --learn-save: the surrogates as learned, a surrogate file that predicts the last stretch it
     # learned from (the synchronized run: the truth) better than the trained one
@@ -453,18 +457,19 @@ def test_predict_in_bfloat16_is_checked_first_and_follows_the_float32_run(demo, 
     path, first = predicted
     assert first.code == 0, first.err
     run = run_cli(predict_args(demo, tmp_path / "bf16.h5", "--inference-dtype", "bfloat16",
-                                   "--resync-tolerance", "none"))
+                                   "--resync-tolerance", "none", "--steps", SHORT))
     assert run.code == 0, run.err
     line = next(line for line in run.out.splitlines() if line.startswith("bfloat16 inference"))
     assert "bound 1 %" in line
     deviation = float(line.split("by at most ")[1].split(" %")[0])
     assert 0 < deviation <= 1.0
     # the same run up to n_cri (synchronized: no network involved), then the networks computing
-    # in bfloat16 make it differ from the float32 run
+    # in bfloat16 make it differ from the float32 run (over the first 500 steps here)
     full, reduced = jaxsync.Trajectory.load(path), jaxsync.Trajectory.load(tmp_path / "bf16.h5")
-    synchronized = full.stats.n_cri // full.save_every + 1
+    synchronized, n = full.stats.n_cri // full.save_every + 1, reduced.n_saved
+    assert n == SHORT // full.save_every + 1
     np.testing.assert_array_equal(reduced.displacement[:synchronized], full.displacement[:synchronized])
-    assert np.abs(reduced.displacement[synchronized:] - full.displacement[synchronized:]).max() > 0
+    assert np.abs(reduced.displacement[synchronized:] - full.displacement[synchronized:n]).max() > 0
 
 
 # ----------------------------------------------------------------------------- fine-tuning
@@ -505,7 +510,7 @@ def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
     again = run_cli(args)
     assert again.code == 2 and "--force" in again.err
     assert tuned.read_bytes() == written
-    predict = predict_args(demo, tmp_path / "tuned_online.h5", "--resync-tolerance", "none")
+    predict = predict_args(demo, tmp_path / "tuned_online.h5", "--resync-tolerance", "none", "--steps", SHORT)
     predict[2] = tuned
     online = run_cli(predict)
     assert online.code == 0, online.err

@@ -116,15 +116,21 @@ def test_bad_adjoint_is_refused(problem):
         jax.grad(make_loss(problem, 20, 1, executor=jaxsync.HostExecutor()), (0, 1))(1.0e6, 0.5)
 
 
+@pytest.fixture(scope="module")
+def single_device_gradient(problem):
+    # 200 steps: long enough that the loss depends on E at O(1) (relative sensitivity 0.08)
+    return jax.value_and_grad(make_loss(problem, 200, 10), (0, 1))(1.0e6, 0.5)
+
+
 @pytest.mark.parametrize("sync, jit", [
     ("psum", True),
-    ("ppermute", True),
+    # the default run checks ppermute in [ppermute-False] and the jitted gradient in [psum-True]
+    pytest.param("ppermute", True, marks=pytest.mark.slow),
     ("ppermute", False),  # eager: the partitioned run is still one compiled program
 ])
-def test_partitioned_gradient_equals_single_device(problem, sync, jit):
+def test_partitioned_gradient_equals_single_device(problem, single_device_gradient, sync, jit):
     args = (1.0e6, 0.5)
-    # 200 steps: long enough that the loss depends on E at O(1) (relative sensitivity 0.08)
-    value, single = jax.value_and_grad(make_loss(problem, 200, 10), (0, 1))(*args)
+    value, single = single_device_gradient
     grad = jax.value_and_grad(make_loss(problem, 200, 10, partitions=2, sync=sync), (0, 1))
     # jitted (staged) and eager: the parts' program placed on the mesh's devices either way
     value_p, parts = (jax.jit(grad) if jit else grad)(*args)

@@ -149,8 +149,15 @@ def test_numpy_replay_of_the_halo_tables_equals_the_global_run(problem, n_parts)
     assert np.abs(thin - expected[2::2]).max() > 1e-6 * scale
 
 
-@pytest.mark.parametrize("mode", ["preassembled", "recompute"])
-@pytest.mark.parametrize("n_parts", [2, 4, pytest.param(8, marks=pytest.mark.slow)])
+# the default run checks both modes and both part counts in [2-preassembled] and [4-recompute]
+@pytest.mark.parametrize("n_parts, mode", [
+    (2, "preassembled"),
+    pytest.param(2, "recompute", marks=pytest.mark.slow),
+    pytest.param(4, "preassembled", marks=pytest.mark.slow),
+    (4, "recompute"),
+    pytest.param(8, "preassembled", marks=pytest.mark.slow),
+    pytest.param(8, "recompute", marks=pytest.mark.slow),
+])
 def test_deep_halos_equal_the_psum_run_to_round_off(problem, n_parts, mode):
     part = jaxsync.partition(problem.mesh, n_parts, seed=0)
     reference = jaxsync.simulate(problem, 24, save=6, executor=jaxsync.HostExecutor(progress=False), partitions=part,

@@ -317,7 +317,9 @@ def test_static_uniaxial_solution_of_felupe_is_in_equilibrium(cube):
     assert np.abs(f[loadcase["dof1"]]).max() < 1e-10 * reaction
 
 
-@pytest.mark.parametrize("element", ["P1", "P2"])
+# the default run checks this feature for P2 (the same test) and, for P1, through the two-part runs of
+# test_follower.py::test_distributed_runs_equal_the_single_device_run
+@pytest.mark.parametrize("element", [pytest.param("P1", marks=pytest.mark.slow), "P2"])
 def test_part_operators_sum_to_the_whole_mesh_force(beam, element):
     """Each part's force on its own elements (padded, stacked), summed at the nodes: the
     whole mesh's force."""
@@ -411,7 +413,10 @@ def _energy_history(problem, dt, n_steps):
     return np.asarray(kinetic + jax.vmap(op.energy)(d[1:-1])), np.asarray(kinetic)
 
 
-@pytest.mark.parametrize("element", ["P1", pytest.param("P2", marks=pytest.mark.slow)])
+# the default run checks this feature (a neo-Hookean P1 run, with a follower pressure's potential) in
+# test_follower.py::test_undamped_run_under_follower_pressure_conserves_energy_to_second_order
+@pytest.mark.slow
+@pytest.mark.parametrize("element", ["P1", "P2"])
 def test_undamped_run_conserves_energy_to_second_order(element):
     """Free vibration from a finite initial deformation (5 % stretch and a bend, at rest),
     clamped, undamped: the energy stays within O(dt^2) of the initial strain energy."""

@@ -129,16 +129,21 @@ def check_gradient(gradients, law, partitions):
     assert np.all(errors < 1e-6), dict(zip(names, errors))
 
 
+# the default run checks the gradient of a run with neo-hookean (the same test); the gradients of the other laws'
+# forces in their parameters in test_hyperelastic.py::test_gradient_of_the_internal_force_wrt_parameters
 @pytest.mark.filterwarnings("ignore::jaxsync.fem.problem.LockingWarning")
-@pytest.mark.parametrize("law", list(LAWS))
+@pytest.mark.parametrize("law", ["neo-hookean", pytest.param("nearly-incompressible", marks=pytest.mark.slow),
+                                 pytest.param("hgo", marks=pytest.mark.slow)])
 def test_material_gradient_equals_central_differences(gradients, law):
     check_gradient(gradients, law, None)
 
 
 @pytest.mark.filterwarnings("ignore::jaxsync.fem.problem.LockingWarning")
+# the default run checks the partitioned gradient with neo-hookean (the same test); the hgo gradient
+# on one device in test_material_gradient_equals_central_differences[hgo]
 @pytest.mark.parametrize("law", [
     "neo-hookean",
-    "hgo",
+    pytest.param("hgo", marks=pytest.mark.slow),
     pytest.param("nearly-incompressible", marks=pytest.mark.slow),
 ])
 def test_partitioned_material_gradient_equals_central_differences(gradients, law):

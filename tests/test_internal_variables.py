@@ -182,6 +182,7 @@ def test_the_gradient_in_tau_and_beta_matches_finite_differences(beam):
     problem = _cantilever(beam)
     dt = float(problem.dt)
 
+    @jax.jit  # one program for the gradient and one for every finite-difference run
     def loss(tau, beta):
         run = jaxsync.simulate(problem.replace(material=_sls(tau=tau, beta=beta)), 100, dt=dt, save=100)
         return jnp.sum(run.displacement[-1] ** 2)
@@ -202,7 +203,8 @@ def test_bad_parameters_are_refused():
         _sls(beta=-0.5)
 
 
-@pytest.mark.parametrize("prony", [False, True])
+# the default run checks this feature for the standard linear solid (prony=False, the same test)
+@pytest.mark.parametrize("prony", [False, pytest.param(True, marks=pytest.mark.slow)])
 def test_a_predicted_phase_carries_the_state(beam, prony):
     """A synchronization-avoiding run whose surrogate replays the synchronized run's exact
     shared displacements (an oracle) reproduces that run to round-off: each part's

@@ -1,8 +1,14 @@
 """benchmarks/paper_experiments.py: the paper's cantilever experiment matrix (section 5.1),
-run once in ``--reduced`` mode in-process (2 emulated devices); the errors in every JSON
-are recomputed here from the time series the script saved."""
+run in ``--reduced`` mode in-process (2 emulated devices); the errors in every JSON are
+recomputed here from the time series the script saved.
+
+The default run runs the matrix once, shortened (``--steps``, FAST_STEPS) and without the two
+cases whose code paths other cases take too (training_size: a variant reusing the default
+run, as sequence_length; initial_conditions: an ensemble case, as loads); the slow run
+repeats every test on the whole matrix at the reduced settings (``--all``)."""
 
 import json
+from typing import NamedTuple
 
 import jax
 import numpy as np
@@ -34,6 +40,10 @@ EXPECTED = {
     "full_system": {**COMMON, "n_past": 5, "n_future": 5, "n_parts": 1, "save_every": 1, "metrics_every": 10,
                     "n_cri": 50, "n_predicted_steps": 2950, "n_dof": 312},
 }
+# the shortest run every case takes: step_off's load jump (t_off 0.5 s, step 1427) and the
+# synchronized history after it (n_cri 1480) inside it, a multiple of every save stride
+FAST_STEPS = 1600
+FAST_CASES = tuple(c for c in CASES if c not in ("training_size", "initial_conditions"))
 VARIANTS = {"default": ["default"], "sequence_length": ["np5_nf5", "np5_nf2"], "training_size": ["nts0.25", "nts0.50"],
             "refined_6_parts": ["refined"], "skewed": ["skewed"], "step_off": ["step_off"],
             "initial_conditions": ["unconditional", "conditional"], "loads": ["conditional"],
@@ -41,30 +51,81 @@ VARIANTS = {"default": ["default"], "sequence_length": ["np5_nf5", "np5_nf2"], "
 
 
 
+def expected_parameters(case, n_steps):
+    """EXPECTED[case], for a run of ``n_steps`` steps given with --steps (None: the reduced
+    settings' own)."""
+    expected = dict(EXPECTED[case])
+    if n_steps is not None:
+        expected["n_steps"] = n_steps
+        if "n_predicted_steps" in expected:
+            expected["n_predicted_steps"] = n_steps - expected["n_cri"]
+    return expected
+
+
+class Matrix(NamedTuple):
+    out: object
+    rc: int
+    records: dict
+    cases: tuple
+    steps: int | None  # --steps, or None
+
 
 @pytest.fixture(scope="module")
 def script():
     return load_benchmark("paper_experiments")
 
 
-@pytest.fixture(scope="module")
-def matrix(script, tmp_path_factory):
-    """The whole matrix, reduced, once: (output root, exit code, {case: record})."""
-    out = tmp_path_factory.mktemp("experiments")
-    rc = script.main(["--all", "--reduced", "--quiet", "--out", str(out)])
+def run_matrix(script, out, cases, steps):
+    argv = ["--all"] if cases == CASES else ["--case", *cases]
+    argv += ["--reduced", "--quiet", "--out", str(out)] + ([] if steps is None else ["--steps", str(steps)])
+    rc = script.main(argv)
     records = {}
     for case in CASES:
         path = out / case / f"{case}.json"
         if path.exists():
             records[case] = json.loads(path.read_text())
-    return out, rc, records
+    return Matrix(out, rc, records, cases, steps)
+
+
+@pytest.fixture(scope="module")
+def fast_matrix(script, tmp_path_factory):
+    """FAST_CASES, reduced and FAST_STEPS long, once."""
+    return run_matrix(script, tmp_path_factory.mktemp("experiments"), FAST_CASES, FAST_STEPS)
+
+
+@pytest.fixture(scope="module")
+def full_matrix(script, tmp_path_factory):
+    """The whole matrix, reduced (--all), once."""
+    return run_matrix(script, tmp_path_factory.mktemp("experiments_full"), CASES, None)
+
+
+# the default run checks every test on the fast matrix (FAST_CASES, FAST_STEPS)
+@pytest.fixture(params=["fast", pytest.param("full", marks=pytest.mark.slow)])
+def matrix(request):
+    return request.getfixturevalue(f"{request.param}_matrix")
+
+
+def case_runs(cases):
+    """(matrix, case) parameters: each of ``cases`` in the fast matrix where it runs, and in
+    the whole matrix (slow: the default run checks the fast ones)."""
+    return ([pytest.param("fast", c, id=f"fast-{c}") for c in cases if c in FAST_CASES]
+            + [pytest.param("full", c, id=f"full-{c}", marks=pytest.mark.slow) for c in cases])
+
+
+def test_the_reduced_settings_are_the_written_ones(script):
+    # what the slow run's matrix runs (the fast one gives --steps)
+    settings = script.reduced_settings(2)
+    assert settings.n_steps == EXPECTED["default"]["n_steps"] == 3000
+    assert settings.refined_steps == EXPECTED["refined_6_parts"]["n_steps"] == 4000
+    for case in CASES:
+        assert script.steps_problem(settings, case, FAST_STEPS) is None, case
 
 
 def test_every_case_writes_its_json_figure_and_series(matrix):
-    out, rc, records = matrix
+    out, rc, records, cases, _ = matrix
     assert rc == 0
-    assert sorted(records) == sorted(CASES)
-    for case in CASES:
+    assert sorted(records) == sorted(cases)
+    for case in cases:
         folder = out / case
         assert (folder / f"{case}.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
         assert (folder / "series.npz").is_file()
@@ -77,10 +138,11 @@ def test_every_case_writes_its_json_figure_and_series(matrix):
         assert not list(folder.glob(".*.tmp")), "no temporary files left behind"
 
 
-@pytest.mark.parametrize("case", CASES)
-def test_parameters_are_the_reduced_settings(matrix, case):
-    params = matrix[2][case]["parameters"]
-    for key, value in EXPECTED[case].items():
+@pytest.mark.parametrize("which, case", case_runs(CASES))
+def test_parameters_are_the_reduced_settings(request, which, case):
+    matrix = request.getfixturevalue(f"{which}_matrix")
+    params = matrix.records[case]["parameters"]
+    for key, value in expected_parameters(case, matrix.steps).items():
         assert params[key] == value, (key, params[key], value)
 
 
@@ -102,10 +164,10 @@ def excluded_nodes(case, record):
     return np.union1d(clamped, shared)
 
 
-@pytest.mark.parametrize("case", CASES)
-def test_errors_recomputed_from_the_series(matrix, case):
-    out, _, records = matrix
-    check_errors_from_series(out, records[case], case)
+@pytest.mark.parametrize("which, case", case_runs(CASES))
+def test_errors_recomputed_from_the_series(request, which, case):
+    matrix = request.getfixturevalue(f"{which}_matrix")
+    check_errors_from_series(matrix.out, matrix.records[case], case)
 
 
 def check_errors_from_series(out, record, case):
@@ -152,7 +214,10 @@ def test_variants_with_the_default_settings_reuse_the_default_run(matrix):
     records = matrix[2]
     default = records["default"]["variants"][0]
     assert "reused_from" not in default["training"] and "case" in records["default"]["reference"]
-    for case, variant in (("sequence_length", "np5_nf5"), ("training_size", "nts0.50")):
+    reusing = [(c, v) for c, v in (("sequence_length", "np5_nf5"), ("training_size", "nts0.50"))
+               if c in matrix.cases]
+    assert reusing
+    for case, variant in reusing:
         record = records[case]
         assert record["reference"]["reused_from_case"] == "default"
         same = next(v for v in record["variants"] if v["name"] == variant)
@@ -177,11 +242,13 @@ def test_final_errors_and_extra_components(matrix):
 
 
 def test_full_system_reports_the_clamped_end(matrix):
-    out, _, records = matrix
+    out, _, records = matrix[:3]
     variant = records["full_system"]["variants"][0]
     series = np.load(out / "full_system" / "series.npz")
     clamped = series["full_system__clamped_max_abs_predicted"]
-    assert len(clamped) == 3001 and not clamped[:51].any()
+    n_steps = records["full_system"]["parameters"]["n_steps"]
+    assert n_steps == (matrix.steps or 3000)
+    assert len(clamped) == n_steps + 1 and not clamped[:51].any()
     # the clamped dofs never move in the training data: their normalization has std 0, so
     # even a 2-epoch network predicts them at exactly their value (the paper's did not)
     assert clamped.max() == 0.0
@@ -194,8 +261,10 @@ def test_full_system_reports_the_clamped_end(matrix):
     assert variant["training"]["summary"]["architecture"]["n_dof"] == 312
 
 
-@pytest.mark.parametrize("case, low, high", [("initial_conditions", -0.25, 0.25), ("loads", 0.3, 0.7)])
-def test_ensemble_cases_record_their_training_runs(matrix, case, low, high):
+@pytest.mark.parametrize("which, case", case_runs(("initial_conditions", "loads")))
+def test_ensemble_cases_record_their_training_runs(request, which, case):
+    matrix = request.getfixturevalue(f"{which}_matrix")
+    low, high = {"initial_conditions": (-0.25, 0.25), "loads": (0.3, 0.7)}[case]
     record = matrix[2][case]
     data = record["training_data"]
     labels = data["labels"]
@@ -213,7 +282,9 @@ def test_ensemble_cases_record_their_training_runs(matrix, case, low, high):
         assert training["summary"]["load_parameters"] == (labels if conditional else None)
         assert variant["targets"]["kind"] == "unseen"
     series = np.load(matrix[0] / case / "series.npz")
-    assert series["training__z"].shape == (3, 301)
+    n_steps = record["parameters"]["n_steps"]
+    assert n_steps == (matrix.steps or 3000)
+    assert series["training__z"].shape == (3, n_steps // 10 + 1)
     np.testing.assert_array_equal(series["training__labels"], labels)
 
 
@@ -239,7 +310,7 @@ def test_training_passes_only_case_parameters(matrix):
 
 
 def test_table_has_a_row_per_case_and_variant(matrix, script):
-    out, _, records = matrix
+    out, _, records, cases, _ = matrix
     table = out / "table.md"
     table.unlink()
     assert script.main(["--table", "--out", str(out)]) == 0
@@ -247,11 +318,11 @@ def test_table_has_a_row_per_case_and_variant(matrix, script):
     header, rows = rows[0], rows[1:]
     assert "free-end max %" in header and "targets met" in header and "rollout check %" in header
     # and one for the step-off networks predicting through the load jump
-    assert len(rows) == sum(len(VARIANTS[c]) for c in CASES) + 1
+    assert len(rows) == sum(len(VARIANTS[c]) for c in cases) + 1
     assert sum(row.startswith("| step_off (reduced) | step_off, predicted through the load jump |")
                for row in rows) == 1
     assert "synchronized steps" in header
-    for case in CASES:
+    for case in cases:
         for variant in VARIANTS[case]:
             assert sum(row.startswith(f"| {case} (reduced) | {variant} |") for row in rows) == 1, (case, variant)
     default = next(row for row in rows if row.startswith("| default (reduced) |"))
@@ -263,7 +334,7 @@ def test_step_off_stays_synchronized_through_the_load_jump(matrix):
     """The step-off online run keeps synchronizing until the networks' input history
     (n_p n_s steps) follows the jump; the same networks predicting through it from n_cri
     are reported beside it. The jump step is read here from the load schedule itself."""
-    out, _, records = matrix
+    out, _, records = matrix[:3]
     record = records["step_off"]
     variant = record["variants"][0]
     dt, every = record["dt"], record["parameters"]["save_every"]
@@ -315,7 +386,8 @@ def linear_matrix(script, tmp_path_factory):
     through fit_linear."""
     out = tmp_path_factory.mktemp("experiments_linear")
     cases = ("loads", "full_system")
-    rc = script.main(["--case", *cases, "--reduced", "--quiet", "--model", "linear", "--out", str(out)])
+    rc = script.main(["--case", *cases, "--reduced", "--quiet", "--model", "linear", "--out", str(out),
+                      "--steps", str(FAST_STEPS)])
     return out, rc, {case: json.loads((out / case / f"{case}.json").read_text()) for case in cases}
 
 

@@ -221,7 +221,8 @@ def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device
     assert float(np.max(np.abs(without.displacement - one.displacement))) > 0.01 * scale
 
 
-@pytest.mark.parametrize("partitions", [None, 2])
+# the default run checks this feature on one device (partitions=None, the same test)
+@pytest.mark.parametrize("partitions", [None, pytest.param(2, marks=pytest.mark.slow)])
 def test_every_linear_force_model_applies_beta(beam, partitions):
     """The matrix-free element kernel and the one-width ELL layout give the damped run of
     the default grouped stiffness, on one device and on two parts."""
@@ -270,11 +271,13 @@ def test_a_resumed_run_is_bit_identical_and_the_records_carry_beta(beam, tmp_pat
     assert jaxsync.Trajectory.load(str(out)).parameters["stiffness_damping"] == BETA
 
 
-@pytest.mark.parametrize("partitions", [None, 2])
+# the default run checks this feature on one device (partitions=None, the same test)
+@pytest.mark.parametrize("partitions", [None, pytest.param(2, marks=pytest.mark.slow)])
 def test_the_gradient_in_beta_matches_finite_differences(beam, partitions):
     problem = _cantilever(beam)
     dt = float(problem.dt)
 
+    @jax.jit  # one program for the gradient and one for both finite-difference runs
     def loss(beta):
         run = jaxsync.simulate(problem.replace(stiffness_damping=beta), 150, dt=dt, save=150,
                                partitions=partitions)

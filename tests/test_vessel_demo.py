@@ -1,8 +1,8 @@
 """``jaxsync demo --case vessel``, reduced: a generated coronary tree of a few thousand
-tets in 3 parts, mass-scaled, a short training, the synchronization-avoiding run and the
-report. The summary is checked against the trajectories and independent computations
-(the shared-node errors recomputed node by node, the mass scaling redone), not against
-the code's own definitions."""
+tets (near the fewest its thinnest branch allows) in 3 parts, 1000 steps, mass-scaled, a
+short training, the synchronization-avoiding run and the report. The summary is checked
+against the trajectories and independent computations (the shared-node errors recomputed
+node by node, the mass scaling redone), not against the code's own definitions."""
 
 import json
 
@@ -15,7 +15,10 @@ from jaxsync.app.demo import SUMMARY_KEYS, VESSEL_KEYS, demo_defaults
 from jaxsync.errors import ConfigError
 from test_cli_pipeline import run_cli
 
-N_STEPS, N_S, N_P, N_PARTS, SIZE = 4000, 20, 5, 3, 3500
+N_STEPS, N_S, N_P, N_PARTS, SIZE = 1000, 10, 5, 3, 3500
+# the shared histories hold a row every N_S steps (rows 0 .. N_STEPS / N_S); training reads
+# the first half of them, floor(0.5 rows)
+TRAINED_ROWS = (N_STEPS // N_S + 1) // 2
 
 
 @pytest.fixture(scope="module")
@@ -113,16 +116,18 @@ def test_vessel_interior_nodes_in_their_dominant_component(vessel):
 
 def test_vessel_trains_on_the_first_half_and_measures_after_it(vessel):
     """Training ends at the last shared-history row of the first half (rows every
-    save_every = 20 steps: 201 rows, the first 100 up to step 1980); every out-of-sample
+    save_every = 10 steps: 101 rows, the first 50 up to step 490); every out-of-sample
     error is recomputed from the trajectories over the snapshots after that step only."""
     _, run, summary, reference, online = vessel
     assert demo_defaults("vessel").train_fraction == 0.5
-    assert summary["train_until_step"] == 99 * 20
+    assert TRAINED_ROWS == 50
+    last = (TRAINED_ROWS - 1) * N_S
+    assert summary["train_until_step"] == last == 490
     ref, pred = np.asarray(reference.displacement), np.asarray(online.displacement)
     steps = np.rint(np.asarray(online.times) / online.dt).astype(int)
-    after = steps > 1980
+    after = steps > last
     oos = summary["out_of_sample"]
-    assert oos["from_step"] == 2000 and oos["n_snapshots"] == after.sum() == (N_STEPS - 2000) // 20 + 1
+    assert oos["from_step"] == last + N_S and oos["n_snapshots"] == after.sum() == (N_STEPS - last - N_S) // N_S + 1
     worst = 0.0
     for row in oos["node_errors"]:
         node, k = row["node"], "xyz".index(row["component"])
@@ -135,7 +140,7 @@ def test_vessel_trains_on_the_first_half_and_measures_after_it(vessel):
     assert oos["interior_max_relative_error"] == pytest.approx(worst, rel=1e-9)
     l2 = np.sqrt(((pred[after] - ref[after]) ** 2).sum(axis=(1, 2)))  # e(t), paper eq. 24
     assert oos["l2_error_max"] == pytest.approx(l2.max(), rel=1e-9)
-    assert "out of sample (after step 1980)" in run.out
+    assert f"out of sample (after step {last})" in run.out
 
 
 def test_vessel_mass_scaling_check(vessel):

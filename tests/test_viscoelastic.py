@@ -388,6 +388,10 @@ def test_a_partitioned_run_and_its_state_equal_the_single_device_run(beam, tmp_p
     assert float(np.max(np.abs(elastic.displacement - one.displacement))) > 0.02 * scale
 
 
+# the default run checks partitioned viscoelastic runs in
+# test_a_partitioned_run_and_its_state_equal_the_single_device_run and the relaxing fibres in
+# test_large_strain_hgo_with_relaxing_fibres_matches_an_independent_integration
+@pytest.mark.slow
 def test_the_hgo_law_with_relaxing_fibres_runs_partitioned_as_on_one_device(beam):
     """The traced executor on two parts against one device, for ViscoelasticHGO with
     branches on the ground matrix and the fibres; its fibre branches change the run."""
@@ -479,7 +483,20 @@ def test_toml_models_and_their_errors(tmp_path):
             problem_from_config(load_config(cfg))
 
 
-def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch):
+@pytest.fixture(scope="module")
+def halo_beam_run():
+    """(the cantilever on an 8 x 1 x 1 beam, its step, its single-device run of 120 steps)."""
+    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1))
+    problem = _cantilever(mesh)
+    dt = float(problem.dt)
+    return problem, dt, jaxsync.simulate(problem, 120, dt=dt, save=12)
+
+
+# the default run checks deep halos carrying the state in the first case (depth 3, host executor), and the
+# traced executor carrying the state of two parts in
+# test_internal_variables.py::test_a_partitioned_run_and_its_state_equal_the_single_device_run
+@pytest.mark.parametrize("depth, traced", [(3, False), pytest.param(2, True, marks=pytest.mark.slow)])
+def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch, halo_beam_run, depth, traced):
     """Deep halos of depth 3 and 2 (host and traced executors) against one device: each
     part carries the state of its halo elements too, and the exchange copies that of the
     shared elements from their owners. Without that copy (patched out) depth 3 drifts:
@@ -487,17 +504,16 @@ def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch)
     from jaxsync.fem.stepper import SolverState
     from jaxsync.parallel import halo
 
-    mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1))
-    problem = _cantilever(mesh)
-    dt = float(problem.dt)
-    one = jaxsync.simulate(problem, 120, dt=dt, save=12)
+    problem, dt, one = halo_beam_run
+    mesh = problem.mesh
     scale = float(np.max(np.abs(one.displacement)))
     grown = halo.halo_partition(jaxsync.partition(mesh, 2), 3)
     assert grown.n_element_interface > 0 and all(len(p.elements) < mesh.n_elements for p in grown.parts)
-    for depth, executor in ((3, jaxsync.HostExecutor(chunk_steps=60)), (2, jaxsync.TracedExecutor())):
-        run = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(depth),
-                               executor=executor)
-        np.testing.assert_allclose(run.displacement, one.displacement, rtol=0, atol=1e-12 * scale)
+    executor = jaxsync.TracedExecutor() if traced else jaxsync.HostExecutor(chunk_steps=60)
+    run = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(depth), executor=executor)
+    np.testing.assert_allclose(run.displacement, one.displacement, rtol=0, atol=1e-12 * scale)
+    if traced:
+        return
     refresh = halo.refresh_halo
 
     def without_the_state(part, state, n_interface, across=None, n_element_interface=0):

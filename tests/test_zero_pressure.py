@@ -46,12 +46,19 @@ def _inflated(problem, geometry, **kw):
     return geometry.points + np.asarray(jaxsync.steady_state(geometry.problem(problem), tol=1e-13, **kw))
 
 
-def test_newton_unloaded_vessel_inflates_back_to_the_imaged_nodes(vessel, unloaded):
+@pytest.fixture(scope="module")
+def at_rest(vessel, unloaded):
+    """The displacement of the unloaded geometry inflated by the imaging pressure (solved once
+    for the tests that need it)."""
+    return np.asarray(jaxsync.steady_state(unloaded.problem(_vessel_problem(vessel)), tol=1e-13))
+
+
+def test_newton_unloaded_vessel_inflates_back_to_the_imaged_nodes(vessel, unloaded, at_rest):
     problem = _vessel_problem(vessel)
     assert unloaded.residuals[-1] <= 1e-12 and unloaded.iterations == len(unloaded.residuals) - 1
     moved = np.abs(unloaded.points - problem.points).max()
     assert moved > 1e-3 * DIAMETER  # the pressure does deform the wall
-    assert np.abs(_inflated(problem, unloaded) - problem.points).max() <= 1e-8 * DIAMETER
+    assert np.abs(unloaded.points + at_rest - problem.points).max() <= 1e-8 * DIAMETER  # _inflated(problem, unloaded)
     # the unloaded mesh keeps topology and facet sets
     assert np.array_equal(unloaded.mesh.tets, vessel.tets)
     assert all(np.array_equal(unloaded.mesh.facet_sets[k], vessel.facet_sets[k]) for k in vessel.facet_sets)
@@ -145,6 +152,9 @@ def test_tube_radii_converge_under_refinement():
     assert np.all(fine < coarse / 3)  # second order: 4x smaller at half the size
 
 
+# the default run checks the gradient of zero_pressure_points against finite differences in
+# test_gradient_of_the_unloaded_geometry_on_supports_matches_finite_differences (the same tube)
+@pytest.mark.slow
 def test_gradient_of_the_unloaded_radius_in_the_shear_modulus_matches_finite_differences():
     import jax
 
@@ -182,7 +192,9 @@ def test_host_solves_under_jit_are_refused_with_the_fix():
             jax.jit(lambda mu: solve(problem(mu)).sum())(1.0e6)
 
 
-@pytest.mark.parametrize("law, element", [("hgo", "P1"), ("neo-hookean", "P2")])
+# the default run checks the unloaded HGO tube in
+# test_prestressed_fibre_law_is_in_equilibrium_and_responds_as_the_unloaded_geometry (the same tube)
+@pytest.mark.parametrize("law, element", [pytest.param("hgo", "P1", marks=pytest.mark.slow), ("neo-hookean", "P2")])
 def test_unloaded_tube_inflates_back_for_fibre_laws_and_curved_quadratic_elements(law, element):
     a, b, h = 0.2, 0.3, 0.05
     mesh = _annulus(a, b, h, 2, 4)
@@ -199,6 +211,9 @@ def test_unloaded_tube_inflates_back_for_fibre_laws_and_curved_quadratic_element
     assert np.abs(_inflated(problem, found) - problem.points).max() <= 1e-8 * 2 * b
 
 
+# the default run checks the Krylov updates against the direct solution on the same tube in
+# test_krylov_updates_with_supports_give_the_direct_solution
+@pytest.mark.slow
 def test_krylov_newton_updates_give_the_direct_solution():
     a, b, h = 0.2, 0.3, 0.05
     problem = _plane_strain_tube(_annulus(a, b, h, 2, 4), jaxsync.NeoHookean(E=2.6e6, nu=0.3), 2.0e5, h)
@@ -254,6 +269,13 @@ def test_prestress_puts_the_imaged_geometry_in_equilibrium(vessel, prestressed):
     assert prestressed.residual <= 1e-12
     without = out_of_balance(problem)
     assert without > 0.1  # the imaged geometry alone is far from equilibrium
+
+
+# the default run checks that MULF puts an imaged geometry in equilibrium in
+# test_prestressed_fibre_law_is_in_equilibrium_and_responds_as_the_unloaded_geometry (the tube)
+@pytest.mark.slow
+def test_mulf_prestress_puts_the_imaged_vessel_in_equilibrium(vessel):
+    problem = _vessel_problem(vessel)
     mulf = jaxsync.prestress(problem, method="mulf", tol=1e-13)
     assert mulf.residuals[0] > 1e-3 and mulf.residuals[-1] <= 1e-13
     assert mulf.residual <= 1e-11
@@ -270,11 +292,10 @@ def test_prestressed_response_to_a_pressure_increment_is_the_zero_pressure_route
 
 
 def test_prestressed_dynamics_is_the_zero_pressure_routes_on_one_device_and_two_parts(vessel, unloaded,
-                                                                                     prestressed):
+                                                                                     prestressed, at_rest):
     increment = 5e-2 * PRESSURE
     loaded = _vessel_problem(vessel, PRESSURE + increment)
     on_unloaded = unloaded.problem(loaded)
-    at_rest = np.asarray(jaxsync.steady_state(unloaded.problem(_vessel_problem(vessel)), tol=1e-13))
     on_unloaded = on_unloaded.replace(initial_displacement=at_rest)  # in equilibrium at the imaging pressure
     imaged = loaded.replace(material=prestressed.material, density_scale=prestressed.density_scale)
     dt = 0.5 * min(on_unloaded.dt, imaged.dt)
@@ -416,7 +437,15 @@ def _newton_with_supports_inflates_back(mesh, element):
 
 def test_newton_unloads_a_vessel_on_supports_under_dead_loads_and_inflates_back(vessel):
     """The forward static solve (jaxsync.steady_state: springs and dead loads assembled by
-    scikit-fem on the unloaded mesh) is the reference; the fixed point agrees."""
+    scikit-fem on the unloaded mesh) is the reference."""
+    _newton_with_supports_inflates_back(vessel, "P1")
+
+
+# the default run checks the fixed point against Newton in
+# test_fixed_point_unloaded_vessel_inflates_back_and_agrees_with_newton, and Newton with the supports and dead
+# loads in test_newton_unloads_a_vessel_on_supports_under_dead_loads_and_inflates_back
+@pytest.mark.slow
+def test_fixed_point_on_supports_under_dead_loads_agrees_with_newton(vessel):
     problem, found = _newton_with_supports_inflates_back(vessel, "P1")
     fixed_point = jaxsync.zero_pressure_geometry(problem, method="fixed-point", tol=1e-10)
     assert np.abs(fixed_point.points - found.points).max() <= 1e-8 * DIAMETER
