@@ -164,7 +164,8 @@ def main(argv=None):
                           "max_nodal_error_over_tolerance_at_most": TARGET_ERROR_MULTIPLE},
               "models": rows, "commands": log, "wall_seconds": time.perf_counter() - started,
               "machine": {"platform": platform.platform(), "cores": os.cpu_count(), "jax": jax.__version__,
-                          "python": sys.version.split()[0]}}
+                          "python": sys.version.split()[0],
+                          "load_average": list(os.getloadavg())}}
     print(f"\nuntuned vessel: {mesh.n_elements} tets, {3 * mesh.n_nodes} dofs, {args.parts} parts, "
           f"{args.steps} steps (dt {float(reference.dt):.3g} s), control at {args.tolerance}")
     print(f"{'model':8} {'predicted':>10} {'resyncs':>8} {'tol [cm]':>10} {'err/tol':>8} {'oos err/tol':>12} "

@@ -565,6 +565,27 @@ def r_hyperelastic_vessel() -> Rendered:
                               "date": d.get("date")}))
 
 
+def r_untuned_vessel() -> Rendered:
+    d = load("untuned_vessel/untuned_vessel.json")
+    targets = d["targets"]
+    rows = []
+    for r in d["models"]:
+        oos = r.get("error_over_tolerance_out_of_sample")
+        rows.append([r["model"], f"{num(r['n_predicted'])} of {num(r['n_steps'] - r['n_cri'])}",
+                     pct(r["predicted_fraction_after_n_cri"], 3), num(r["n_resynchronizations"]),
+                     num(r["tolerance_cm"]), num(r["max_nodal_error_cm"]), num(r.get("error_over_tolerance"), 3),
+                     "-" if oos is None else num(oos, 3),
+                     "met" if r.get("meets_target") else "missed"])
+    mesh = d["mesh"]
+    table = Table(["surrogate", "steps predicted after n_cri", "%", "re-synchronizations", "tolerance [cm]",
+                   "largest nodal error [cm]", "error / tolerance", "out of sample", "target"], rows,
+                  f"{mesh['generator']}: {num(mesh['n_elements'])} tetrahedra, {d['n_parts']} parts, "
+                  f"{num(d['n_steps'])} steps under the packaged coronary pressure, control at {d['tolerance']} "
+                  f"(targets: at least {pct(targets['predicted_fraction_at_least'], 2)} % predicted, the largest "
+                  f"nodal error within {num(targets['max_nodal_error_over_tolerance_at_most'], 2)}x the tolerance)")
+    return Rendered([table], ["untuned_vessel/untuned_vessel.json"], recorded(d.get("machine")))
+
+
 def r_guarantee() -> Rendered:
     d = load("guarantee.json")
     rows, tracking = [], []
@@ -869,6 +890,7 @@ RENDERERS = {
     "seeds": r_seeds,
     "error-control": r_error_control,
     "guarantee": r_guarantee,
+    "untuned-vessel": r_untuned_vessel,
     "hyperelastic-vessel": r_hyperelastic_vessel,
     "refill": r_refill,
     "load-jumps": r_load_jumps,
