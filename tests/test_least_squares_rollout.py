@@ -59,10 +59,11 @@ def test_rollout_error_equals_full_window_rollouts(n_load, cycles):
         assert rollout_error(fit, x, y, u, cycles) == pytest.approx(expected, rel=1e-10)
 
 
-def test_a_good_fit_has_a_rollout_error_at_round_off_of_the_targets():
+@pytest.mark.parametrize("seed", range(4))
+def test_a_good_fit_has_a_rollout_error_at_round_off_of_the_targets(seed):
     # a fit that reproduces the windows exactly (the series is a linear recurrence): the
-    # expanded squared error must not leave a cancellation residue above round-off
-    rng = np.random.default_rng(3)
+    # expanded squared error must leave no more than round-off of the targets' square
+    rng = np.random.default_rng(seed)
     A = np.linalg.qr(rng.normal(size=(N_DOF, N_DOF)))[0] * 0.99
     series = [rng.normal(size=N_DOF)]
     for _ in range(60):
@@ -72,7 +73,13 @@ def test_a_good_fit_has_a_rollout_error_at_round_off_of_the_targets():
     y = np.stack([series[i + 1:i + 3] for i in range(50)])
     w = np.concatenate([A, A @ A], axis=1)  # x_last -> (x_last A, x_last A^2)
     fit = (w, np.eye(w.shape[1]), np.zeros(w.shape[1]))
-    assert rollout_error(fit, x, y, None) < 1e-26 * np.mean(np.square(y))
+    error = rollout_error(fit, x, y, None)
+    assert 0.0 <= error < 1e-14 * np.mean(np.square(y))
+    # and a fit off by 1e-6 shows as an error of that size, not round-off
+    off = (w * (1 + 1e-6), np.eye(w.shape[1]), np.zeros(w.shape[1]))
+    expected = direct_rollout_error(off, x, y, None)
+    assert expected > 1e-13 * np.mean(np.square(y))
+    assert rollout_error(off, x, y, None) == pytest.approx(expected, abs=1e-14 * np.mean(np.square(y)))
 
 
 def test_no_chained_window_gives_nan_and_selection_keeps_the_configured_ridge():
