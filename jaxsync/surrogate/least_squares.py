@@ -189,7 +189,8 @@ def rollout_error(fit, x, y, signals, cycles: int | None = None) -> float:
     to z G + c + (the next window's load columns) @ w_in with the (R, R) G, and the
     squared error |z w_out + b - y|^2 expands into (R, R) and (R,) products, so a cycle
     of A rollouts costs O(A R^2) instead of the O(A R (n_in + n_out)) of the full
-    windows (the 4-part vessel's fit: minutes to seconds).
+    windows (the whole linear fit of benchmarks/untuned_vessel.py's 4-part vessel: 609 s
+    to 120 s).
 
     Args:
         fit: ``(w_in, w_out, b)`` of flattened windows (:func:`solve_least_squares`).
