@@ -26,7 +26,8 @@ __all__ = [
     "Periodic",
     "Dirichlet", "Problem", "LockingWarning", "RigidBodyWarning", "SynchronizedRunWarning",
     "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
-    "simulate", "ensemble", "steady_state", "SteadyState", "cfl_dt", "max_stable_dt", "stable_step", "StableStep",
+    "simulate", "ensemble", "Members", "steady_state", "SteadyState", "cfl_dt", "max_stable_dt", "stable_step",
+    "StableStep",
     "mass_scaling", "MassScalingWarning",
     "simulate_sync_avoiding", "simulate_full_system", "ResyncTolerance", "Synchronized", "SyncAvoiding",
     "Trajectory", "RunStats", "SynchronizedStats", "SyncAvoidingStats", "FullSystemStats", "PartHistory", "Result",
@@ -59,6 +60,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".run_stats": ("FullSystemStats", "RunStats", "SyncAvoidingStats", "SynchronizedStats"),
     ".solve.coupling": ("Synchronized",),
     ".solve.ensemble": ("ensemble",),
+    ".solve.ensemble_members": ("Members",),
     ".solve.full_system": ("simulate_full_system",),
     ".solve.solver": ("SteadyState", "simulate", "steady_state"),
     ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
@@ -103,6 +105,7 @@ if TYPE_CHECKING:
     from .run_stats import FullSystemStats, RunStats, SyncAvoidingStats, SynchronizedStats
     from .solve.coupling import Synchronized
     from .solve.ensemble import ensemble
+    from .solve.ensemble_members import Members
     from .solve.full_system import simulate_full_system
     from .solve.prestress import PrestressResult, prestress
     from .solve.solver import SteadyState, simulate, steady_state

@@ -1,6 +1,8 @@
+import dataclasses
 import logging
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -109,12 +111,17 @@ def test_labels_are_load_parameters(generated, tmp_path):
 
 @pytest.mark.parametrize("other, what", [
     (lambda mesh: jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, (25, 1, 2))), "mesh"),
-    (lambda mesh: jaxsync.cantilever(mesh, material=jaxsync.LinearElastic(2.0e6, 0.3, 1.0)), "stiffness"),
-    (lambda mesh: jaxsync.cantilever(mesh, material=jaxsync.LinearElastic(1.0e6, 0.3, 2.0)), "mass"),
-    (lambda mesh: jaxsync.cantilever(mesh, damping=0.1), "damping"),
     (lambda mesh: jaxsync.cantilever(mesh, t_off=3.0), "load time functions"),
+    (lambda mesh: jaxsync.cantilever(mesh, material=jaxsync.NeoHookean(1.0e6, 0.3, 1.0)), "material law"),
+    (lambda mesh: jaxsync.cantilever(mesh).replace(dirichlet=(jaxsync.Dirichlet("x0"),
+                                                              jaxsync.Dirichlet("x1", components=(1,)))),
+     "constrained dofs"),
+    (lambda mesh: jaxsync.cantilever(mesh).replace(supports=(jaxsync.ElasticSupport(1e3, surface="z0"),)),
+     "elastic supports"),
+    (lambda mesh: jaxsync.cantilever(mesh).replace(density_scale=np.full(mesh.n_elements, 2.0)), "density_scale"),
 ])
 def test_refuses_problems_of_other_systems(mesh, other, what):
+    """What the runs must share; material, density and damping values may differ (below)."""
     runs = [jaxsync.cantilever(mesh), jaxsync.cantilever(mesh, body_force=(0, 0, -0.6)), other(mesh)]
     with pytest.raises(ProblemError, match=f"problem 2 .*{what}.*jaxsync.simulate"):
         jaxsync.ensemble(runs, 10)
@@ -149,3 +156,177 @@ def test_divergence_names_the_run(mesh):
     for traj in err.trajectories:
         assert traj.n_saved == n_saved and np.isfinite(traj.displacement).all()
         assert all(p.shared_displacement.shape[0] == (n_saved - 1) * 5 + 1 for p in traj.parts)
+
+
+# --- members that differ in material, damping, loads and initial conditions ------------------------
+
+QUIET = jaxsync.HostExecutor(progress=False)
+BETA = 2.0e-5  # [s], about a tenth of the cantilever's step
+
+
+def _members(case: str, static):
+    """Three members of the cantilever. ``"E"``: E, rho, alpha, load factors and initial
+    displacements differ (one stiffness, E as its scale); ``"E, nu"``: E, nu, rho, beta, load
+    factors and initial velocities differ (stiffness blocks per member)."""
+    material = {"E": np.array([0.8e6, 1.0e6, 1.3e6]), "rho": np.array([1.2, 1.0, 0.9])}
+    if case == "E":
+        return jaxsync.Members(material=material, damping=np.array([0.5, 0.1, 2.0]),
+                               load_scale=np.array([[0.6], [1.0], [1.4]]),
+                               initial_displacement=np.array([0.0, 0.5, -0.3])[:, None, None] * static)
+    material["nu"] = np.array([0.22, 0.3, 0.38])
+    return jaxsync.Members(material=material, stiffness_damping=np.array([BETA, 0.5 * BETA, 2 * BETA]),
+                           load_scale=np.array([1.0, 0.7, 1.2]),
+                           initial_velocity=np.array([0.0, 2.0, -1.0])[:, None, None] * static)
+
+
+@pytest.mark.parametrize("case", ["E", "E, nu"])
+def test_members_equal_their_own_problems_run_one_by_one(mesh, static, case):
+    """Each member's trajectory equals jaxsync.simulate of its own Problem at the ensemble's
+    step; the same members given as problems give the same; the default step is the
+    smallest member's."""
+    base = jaxsync.cantilever(mesh)
+    members = _members(case, static)
+    together = jaxsync.ensemble(base, 200, members=members, save=20, executor=QUIET)
+    own = [members.problem(base, r) for r in range(3)]
+    dt = together[0].dt
+    smallest = min(float(p.dt) for p in own)
+    if case == "E":  # nu shared: every member's exact bound, so the default is the smallest member's own
+        assert dt == pytest.approx(smallest, rel=1e-12)
+    else:  # nu differs: a lower bound on each member's, within a factor of it
+        assert 0.6 * smallest <= dt <= smallest
+    as_problems = jaxsync.ensemble(own, 200, dt=dt, save=20, executor=QUIET)
+    for r, (problem, traj, again) in enumerate(zip(own, together, as_problems)):
+        alone = jaxsync.simulate(problem, 200, dt=dt, save=20, executor=QUIET)
+        assert traj.displacement.shape == alone.displacement.shape == (11, mesh.n_nodes, 3)
+        assert np.abs(alone.displacement).max() > 0
+        assert relative_error(traj.displacement, alone.displacement) <= 1e-12, r
+        assert relative_error(again.displacement, alone.displacement) <= 1e-12, r
+        for name in ("E", "nu", "rho", "damping", "stiffness_damping"):
+            assert traj.parameters[name] == pytest.approx(alone.parameters[name], rel=1e-15), name
+            assert again.parameters[name] == pytest.approx(alone.parameters[name], rel=1e-15), name
+    assert len({round(t.parameters["E"]) for t in together}) == 3
+
+
+@pytest.mark.parametrize("case", ["E", "E, nu"])
+def test_vectorised_setup_equals_each_members_own_system(mesh, static, case):
+    """The batched system's member r (stiffness, lumped mass, damping, beta, loads,
+    prescribed values, the supports' springs and dashpots) and its start equal
+    build_system and initial_state of member r's own Problem."""
+    import jaxsync.solve.ensemble_members as em
+    from jaxsync.fem.stepper import build_system, initial_state
+
+    base = jaxsync.cantilever(mesh).replace(supports=(jaxsync.ElasticSupport(2.0e3, 50.0, surface="z0"),))
+    members = _members(case, static)
+    members = dataclasses.replace(members, damping=np.array([0.5, 0.1, 2.0]))  # with the supports' dashpots
+    setup = em.setup_of_members(base, members)
+    dt = em.default_dt(setup)
+    system, runs = em.batched_system(setup, dt)
+    states = em.initial_states(setup, system, runs)
+    u = np.random.default_rng(0).standard_normal((3, base.n_nodes, 3))
+    for r in range(3):
+        mine = em.member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs))
+        problem = members.problem(base, r)
+        own = build_system(problem, dt)
+        for v in u:
+            expected = np.asarray(own.stiffness.matvec(v))
+            assert relative_error(mine.stiffness.matvec(v), expected) <= 1e-14
+            assert relative_error(mine.spring.matvec(v), own.spring.matvec(v)) <= 1e-15
+        for name in ("mass", "damping", "stiffness_damping", "dt", "load_vectors", "fixed", "fixed_values"):
+            if getattr(own, name) is None:  # no beta: none in the batch either
+                assert getattr(mine, name) is None, name
+                continue
+            np.testing.assert_allclose(getattr(mine, name), getattr(own, name), rtol=1e-15, atol=0, err_msg=name)
+        for a, b in zip(jax.tree_util.tree_leaves(mine.dashpot), jax.tree_util.tree_leaves(own.dashpot)):
+            np.testing.assert_allclose(a, b, rtol=1e-14, atol=1e-14 * np.abs(b).max())
+        start = initial_state(problem, own)
+        for name in ("displacement", "previous"):
+            expected = getattr(start, name)
+            scale = max(float(np.abs(expected).max()), 1e-30)
+            np.testing.assert_allclose(getattr(states, name)[r], expected, rtol=0, atol=1e-12 * scale, err_msg=name)
+
+
+def test_gradient_in_each_members_E_matches_finite_differences(mesh):
+    """A batched inverse problem: three noisy observations of the tip deflection history fitted
+    at once; jax.grad of the loss summed over the members with respect to their E
+    equals central finite differences of it."""
+    base = jaxsync.cantilever(mesh)
+    tip = mesh.facet_nodes("x1")
+    truth = np.array([0.9e6, 1.1e6, 1.25e6])
+    observed = jaxsync.ensemble(base, 300, members=jaxsync.Members(material={"E": truth}), save=30, executor=QUIET)
+    dt = observed[0].dt
+    noise = np.random.default_rng(1).normal(0.0, 1e-4, (3, 10, len(tip), 3))
+    data = jnp.asarray(np.stack([t.displacement[1:, tip] for t in observed]) + noise)
+
+    @jax.jit
+    def loss(E):
+        runs = jaxsync.ensemble(base, 300, members=jaxsync.Members(material={"E": E}), dt=dt, save=30)
+        predicted = jnp.stack([t.displacement[1:, tip] for t in runs])
+        return 1e4 * jnp.sum((predicted - data) ** 2)
+
+    guess = np.array([1.0e6, 1.0e6, 1.0e6])
+    gradient = np.asarray(jax.jit(jax.grad(loss))(jnp.asarray(guess)))
+    assert np.all(gradient != 0)
+    for r in range(3):
+        h = 1e-5 * guess[r]
+        step = np.zeros(3)
+        step[r] = h
+        fd = (float(loss(jnp.asarray(guess + step))) - float(loss(jnp.asarray(guess - step)))) / (2 * h)
+        assert gradient[r] == pytest.approx(fd, rel=1e-6), r
+
+
+def test_a_member_above_its_stability_bound_is_named(mesh):
+    from jaxsync.solve.ensemble_members import member_bounds, setup_of_members
+
+    base = jaxsync.cantilever(mesh)
+    dt = float(base.dt)
+    with pytest.raises(StabilityError, match=r"member 2 of the ensemble \(E=4e\+06\).*above its stability bound"):
+        jaxsync.ensemble(base, 10, members=jaxsync.Members(material={"E": np.array([1e6, 0.5e6, 4e6])}), dt=dt)
+    members = jaxsync.Members(material={"E": np.array([1e6, 4e6, 1e6]), "nu": np.array([0.3, 0.3, 0.25])})
+    with pytest.raises(StabilityError, match=r"member 1 of the ensemble \(E=4e\+06, nu=0.3\).*stability bound"):
+        jaxsync.ensemble(base, 10, members=members, dt=dt)
+    bounds, exact = member_bounds(setup_of_members(base, members))
+    assert not exact  # nu differs: the bound from the unit operators' eigenvalues, below each member's own
+    for r in range(3):
+        own = float(jaxsync.max_stable_dt(members.problem(base, r)))
+        assert 0.6 * own <= bounds[r] <= own
+
+
+def test_members_refuse_bad_input(mesh):
+    base = jaxsync.cantilever(mesh)
+    E = np.array([1e6, 2e6])
+    for members, message in [
+        (jaxsync.Members(material={"E": E}, damping=np.array([0.1, 0.2, 0.3])),
+         r"damping has shape \(3,\); with 2 runs .* must be \(2,\)"),
+        (jaxsync.Members(material={"E": np.array([1e6, -2e6])}), r"Young's modulus.*run 1 is -2e\+06: give E > 0"),
+        (jaxsync.Members(material={"nu": np.array([0.3, 0.5])}), r"Poisson ratio.*run 1 is 0.5: give -1 < nu < 0.5"),
+        (jaxsync.Members(material={"k1": E}), r"LinearElastic does not have.*\['E', 'nu', 'rho'\]"),
+        (jaxsync.Members(material={"E": E}, load_scale=np.ones((2, 3))), r"load_scale has shape \(2, 3\)"),
+        (jaxsync.Members(initial_displacement=np.zeros((2, 5, 3))), r"initial_displacement has shape \(2, 5, 3\)"),
+        (jaxsync.Members(damping=np.array([-0.1, 0.2])), r"damping alpha.*run 0 is -0.1"),
+        (jaxsync.Members(), "at least one per-run array"),
+    ]:
+        with pytest.raises(ProblemError, match=message):
+            jaxsync.ensemble(base, 10, members=members)
+    with pytest.raises(ProblemError, match="must be a dict"):
+        jaxsync.Members(material=[1e6])
+    with pytest.raises(ProblemError, match="ONE problem"):
+        jaxsync.ensemble([base, base], 10, members=jaxsync.Members(damping=np.array([0.1, 0.2])))
+    with pytest.raises(ProblemError, match="2 labels for 3 runs"):
+        jaxsync.ensemble(base, 10, members=jaxsync.Members(damping=np.array([0.1, 0.2, 0.3])), labels=(1, 2))
+
+
+def test_hyperelastic_members_equal_their_own_problems(mesh):
+    """A neo-Hookean cantilever under a large load: members differing in E, nu and load
+    equal their own problems run one by one (the law's parameters vmapped)."""
+    base = jaxsync.cantilever(mesh, material=jaxsync.NeoHookean(1.0e6, 0.3, 1.0), body_force=(0.0, 0.0, -500.0),
+                              t_ramp=0.01)
+    members = jaxsync.Members(material={"E": np.array([0.9e6, 1.2e6]), "nu": np.array([0.3, 0.35])},
+                              load_scale=np.array([1.0, 1.5]))
+    together = jaxsync.ensemble(base, 150, members=members, save=50, executor=QUIET)
+    dt = together[0].dt
+    assert dt == pytest.approx(min(float(members.problem(base, r).dt) for r in range(2)), rel=1e-12)
+    for r, traj in enumerate(together):
+        alone = jaxsync.simulate(members.problem(base, r), 150, dt=dt, save=50, executor=QUIET)
+        assert np.abs(alone.displacement).max() > 1e-3  # deflections where the law is nonlinear
+        assert relative_error(traj.displacement, alone.displacement) <= 1e-12, r
+        assert traj.parameters["material"] == "NeoHookean" and traj.parameters["E"] == members.material["E"][r]

@@ -238,15 +238,20 @@ def test_every_linear_force_model_applies_beta(beam, partitions):
                                    err_msg=str(mode))
 
 
-def test_an_ensemble_equals_separate_runs_and_refuses_another_beta(beam):
-    problems = [_cantilever(beam), _cantilever(beam, body_force=(0.0, 1.0e4, -1.0e4), initial_velocity=None)]
+def test_an_ensemble_of_several_betas_equals_separate_runs_and_names_an_unstable_one(beam):
+    """Members that differ in load and in beta (a smaller beta is stable at the first
+    one's step) equal their separate runs; a member whose beta puts dt above its
+    stability bound is named, with its beta."""
+    problems = [_cantilever(beam), _cantilever(beam, body_force=(0.0, 1.0e4, -1.0e4), initial_velocity=None),
+                _cantilever(beam).replace(stiffness_damping=0.5 * BETA)]
     dt = float(problems[0].dt)
     together = jaxsync.ensemble(problems, 200, dt=dt, save=50)
     for problem, run in zip(problems, together):
         alone = jaxsync.simulate(problem, 200, dt=dt, save=50)
         scale = float(np.max(np.abs(alone.displacement)))
         np.testing.assert_allclose(run.displacement, alone.displacement, rtol=0, atol=1e-12 * scale)
-    with pytest.raises(ProblemError, match="stiffness-proportional damping"):
+    assert not np.allclose(together[2].displacement, together[0].displacement, rtol=1e-6)
+    with pytest.raises(StabilityError, match=r"member 1 .*beta"):
         jaxsync.ensemble([problems[0], problems[0].replace(stiffness_damping=2 * BETA)], 20, dt=dt, save=10)
 
 

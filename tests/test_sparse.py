@@ -44,15 +44,16 @@ def stiffness(tree):
     return ref.stiffness(tree.points, tree.tets, MATERIAL.E, MATERIAL.nu)
 
 
-def grouped(K, adjacency, dtype=jnp.float64):
-    """GroupedEll of the SciPy matrix K on ``adjacency`` (float32: split diagonal)."""
+def grouped(K, adjacency, dtype=jnp.float64, compact=False):
+    """GroupedEll of the SciPy matrix K on ``adjacency`` (float32: split diagonal;
+    ``compact``: the one-gather product)."""
     rows, columns, (blocks,) = grouped_layout(adjacency, block_ell_values(K, adjacency))
     blocks, diagonal = tuple(jnp.asarray(b) for b in blocks), None
     if dtype == jnp.float32:
         blocks, diagonal = zip(*(split_diagonal(b, jnp.float32) for b in blocks))
     return GroupedEll(columns=tuple(jnp.asarray(c) for c in columns), blocks=tuple(blocks), symmetric=True,
                       rows=tuple(None if r is None else jnp.asarray(r) for r in rows), n_rows=adjacency.shape[0],
-                      diagonal=None if diagonal is None else tuple(diagonal))
+                      diagonal=None if diagonal is None else tuple(diagonal), compact=compact)
 
 
 def test_degree_groups_follow_the_mean_degree(tree):
@@ -90,11 +91,12 @@ def test_degree_widths_minimize_slots_plus_a_cost_per_group():
     assert cost(degree_widths(degrees)) == cost(tuple(int(v) for v in best))
 
 
+@pytest.mark.parametrize("compact", [False, True], ids=["fused", "compact"])
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_grouped_product_equals_scipy_csr(tree, stiffness, dtype):
+def test_grouped_product_equals_scipy_csr(tree, stiffness, dtype, compact):
     K = stiffness
     adjacency = node_adjacency(tree.tets, tree.n_nodes)
-    op = grouped(K, adjacency, dtype)
+    op = grouped(K, adjacency, dtype, compact)
     assert len(op.columns) >= 2 and op.rows[0] is not None
     u = np.random.default_rng(0).standard_normal((tree.n_nodes, 3))
     expected = (K @ u.ravel()).reshape(-1, 3)
@@ -108,13 +110,14 @@ def test_grouped_product_equals_scipy_csr(tree, stiffness, dtype):
     assert abs(np.asarray(op.matvec(jnp.asarray(shift)))).max() < 1e-12 * abs(K).max()
 
 
-def test_grouped_reverse_pass_equals_the_transpose_product_and_autodiff(tree, stiffness):
+@pytest.mark.parametrize("compact", [False, True], ids=["fused", "compact"])
+def test_grouped_reverse_pass_equals_the_transpose_product_and_autodiff(tree, stiffness, compact):
     """The symmetric product's own reverse pass: u's cotangent K^T y_bar (SciPy), the
     blocks' the outer product y_bar[rows, i] u[columns, j]; autodiff of the same product
-    (symmetric=False) gives the same."""
+    (symmetric=False) gives the same. In both forms of the product."""
     K = stiffness
     adjacency = node_adjacency(tree.tets, tree.n_nodes)
-    op = grouped(K, adjacency)
+    op = grouped(K, adjacency, compact=compact)
     rng = np.random.default_rng(1)
     u, y_bar = rng.standard_normal((2, tree.n_nodes, 3))
     grads = {}
@@ -247,9 +250,10 @@ def vessel_reference(tree, vessel_problem):
     return reference_run(tree, vessel_problem, 300)
 
 
+@pytest.mark.parametrize("product", ["fused", "compact"])
 @pytest.mark.parametrize("layout", ["grouped", "ell"])
-def test_one_device_trajectory_equals_scipy_reference(vessel_problem, vessel_reference, layout):
-    run = jaxsync.simulate(vessel_problem, 300, save=100, mode=Preassembled(layout=layout))
+def test_one_device_trajectory_equals_scipy_reference(vessel_problem, vessel_reference, layout, product):
+    run = jaxsync.simulate(vessel_problem, 300, save=100, mode=Preassembled(layout=layout, product=product))
     expected = vessel_reference[::100]
     got = np.asarray(run.displacement).reshape(len(expected), -1)
     assert abs(got - expected).max() <= 1e-11 * abs(expected).max()
@@ -307,6 +311,47 @@ def test_float32_blocks_gradient_follows_float64(vessel_problem, which):
     g64 = jax.grad(loss)(problem.material.E, Preassembled())
     g32 = jax.grad(loss)(problem.material.E, Preassembled(blocks_dtype="float32"))
     assert np.isfinite(float(g32)) and abs(float(g32) - float(g64)) <= bound * abs(float(g64))
+
+
+def test_block_ell_compact_product_and_its_reverse_pass_equal_scipy(tree, stiffness):
+    """One block ELL as wide as the largest degree (padding slots included), with a
+    scale: the compact product equals SciPy's, and its reverse pass SciPy's transpose
+    product (u) and <K_1 y_bar, u> (the scale)."""
+    adjacency = node_adjacency(tree.tets, tree.n_nodes)
+    rng = np.random.default_rng(4)
+    u, y_bar = rng.standard_normal((2, tree.n_nodes, 3))
+    op = BlockEll(jnp.asarray(adjacency), jnp.asarray(block_ell_values(stiffness, adjacency)), symmetric=True,
+                  scale=jnp.asarray(2.5), compact=True)
+    y, pullback = jax.jit(lambda o, v: jax.vjp(lambda s, w: dataclasses.replace(o, scale=s).matvec(w),
+                                               o.scale, v))(op, jnp.asarray(u))
+    expected = 2.5 * (stiffness @ u.ravel()).reshape(-1, 3)
+    np.testing.assert_allclose(y, expected, rtol=0, atol=1e-13 * abs(expected).max())
+    scale_bar, u_bar = pullback(jnp.asarray(y_bar))
+    K_y_bar = (stiffness @ y_bar.ravel()).reshape(-1, 3)
+    np.testing.assert_allclose(u_bar, 2.5 * K_y_bar, rtol=0, atol=1e-13 * abs(K_y_bar).max() * 2.5)
+    assert abs(float(scale_bar) - float(np.sum(K_y_bar * u))) <= 1e-12 * float(np.sum(abs(K_y_bar * u)))
+
+
+def test_auto_product_is_chosen_by_the_run_length():
+    """Preassembled(product="auto"): compact for runs of fewer slot-steps than
+    COMPACT_SLOT_STEPS, fused for longer ones and where the run length is not known;
+    a product given explicitly, and a finite-strain problem, stay as they are."""
+    from jaxsync.fem.internal_force import COMPACT_SLOT_STEPS, run_force_model
+
+    problem = jaxsync.cantilever()
+    slots = int(np.prod(problem.operators.block_ell[0].shape))
+    below, above = int(COMPACT_SLOT_STEPS // slots) - 1, int(COMPACT_SLOT_STEPS // slots) + 1
+    assert run_force_model("preassembled", problem, below).product == "compact"
+    assert run_force_model("preassembled", problem, above).product == "fused"
+    assert run_force_model(Preassembled(product="fused"), problem, 10).product == "fused"
+    assert run_force_model(Preassembled(product="compact"), problem, 10 ** 9).product == "compact"
+    assert run_force_model("recompute", problem, 10) == "recompute"
+    assert not Preassembled().operator(problem).compact  # no run length: the fast step
+    assert Preassembled(product="compact").operator(problem).compact
+    neo = dataclasses.replace(problem, material=jaxsync.NeoHookean(1e6, 0.45, 1.0))
+    assert run_force_model("preassembled", neo, 10) == Preassembled()
+    with pytest.raises(ProblemError, match="product"):
+        Preassembled(product="einsum")
 
 
 def test_preassembled_options_are_checked():

@@ -873,7 +873,41 @@ def r_predicted_step() -> Rendered:
     return Rendered([t], ["predicted_step.json"], recorded(d.get("machine")))
 
 
+def r_product() -> Rendered:
+    d = load("product/product.json")
+    rows = []
+    for r in d["rows"]:
+        f, c = r["fused"], r["compact"]
+        rows.append([r["case"], num(r["parts"]), num(r["slots"]), num(r["n_steps"]),
+                     f"{num(f['compile_s'], 2)} / {num(c['compile_s'], 2)}",
+                     f"{num(f['wall_s'], 3)} / {num(c['wall_s'], 3)}",
+                     f"{num(f['us_per_step'])} / {num(c['us_per_step'])}",
+                     "-" if r["break_even_slot_steps"] is None else num(r["break_even_slot_steps"], 2)])
+    t = Table(["case", "parts", "slots", "steps", "compile [s] fused / compact", "simulate [s] fused / compact",
+               "step [us] fused / compact", "break-even slot-steps"], rows,
+              "The stiffness product fused (unrolled) and compact (one gather, one reduction)")
+    t.notes.append(f"product='auto' takes the compact form below {num(d['compact_slot_steps'], 2)} slot-steps "
+                   "(stored slots times steps); '-': the compact form was not slower per step.")
+    return Rendered([t], ["product/product.json"], recorded(d.get("machine")))
+
+
+def r_ensemble() -> Rendered:
+    d = load("ensemble/ensemble.json")
+    names = {"E": "E", "E,nu,rho": "E, nu, rho"}
+    rows = [[names.get(r["case"], r["case"]), num(r["members"]), num(r["setup_ms_per_member"]["cold"]),
+             num(r["setup_ms_per_member"]["warm"], 2), num(r["problems_ms_per_member"]),
+             num(r["own_systems_ms_per_member"]), num(r["us_per_batched_step"]), num(r["run_steps_per_s"]),
+             num(r["max_rel_diff_members_vs_problems"], 2)] for r in d["rows"]]
+    t = Table(["members differ in", "members", "setup [ms/member], first call", "setup, compiled",
+               "given as problems", "one system per problem", "batched step [us]", "run-steps/s",
+               "members vs problems"], rows,
+              "Ensembles of coarse cantilevers whose members differ in material, set up in one vectorised pass")
+    return Rendered([t], ["ensemble/ensemble.json"], recorded(d.get("machine")))
+
+
 RENDERERS = {
+    "product": r_product,
+    "ensemble": r_ensemble,
     "float32": r_float32,
     "predicted-step": r_predicted_step,
     "hyperelastic": r_hyperelastic,

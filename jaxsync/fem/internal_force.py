@@ -30,7 +30,7 @@ of every solver runs the law the problem states, never its linearisation).
 from __future__ import annotations
 
 import dataclasses
-from typing import Protocol, Sequence
+from typing import NamedTuple, Protocol, Sequence
 
 import jax.numpy as jnp
 import numpy as np
@@ -90,8 +90,20 @@ def _finite_strain(problem, model):
     return None if runs is model else runs
 
 
+class _Lame(NamedTuple):
+    """Lame parameters alone (no E): the moduli of a unit operator
+    (:meth:`Preassembled.unit_operators`)."""
+
+    lam: float
+    mu: float
+
+
 LAYOUTS = ("grouped", "ell")
 BLOCK_DTYPES = ("float64", "float32")
+PRODUCTS = ("auto", "fused", "compact")
+COMPACT_SLOT_STEPS = 2e8
+"""The run length, in stored slots times steps, below which ``Preassembled(product="auto")``
+computes K u in the compact form (:attr:`Preassembled.product`)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -131,6 +143,17 @@ class Preassembled:
             blocks (the default) where that matters. Only with the grouped layout. (Under
             a traced E with nu fixed, E's cotangent is a float64 sum, <K_1 y_bar, u> with
             the rounded K_1: no float32 accumulation.)
+        product: the form of the product K u. ``"fused"``: an unrolled sum over (slot,
+            column component) that XLA fuses with the gathers into one loop streaming
+            the blocks once, the fastest step (:func:`jaxsync.fem.sparse._matvec`);
+            ``"compact"``: one gather of all neighbours and one reduction, a program of a
+            few operations whatever the row width, compiled 1.7-3x faster and stepping
+            up to 1.7x slower on XLA:CPU (benchmarks/bench_product.py); ``"auto"`` (default): the runners
+            (:func:`jaxsync.simulate` and the solvers built on it) choose ``"compact"``
+            for runs shorter than :data:`COMPACT_SLOT_STEPS` slot-steps (about 2e5 steps
+            of the coarse cantilever, 2e4 of a 2 000-dof beam), ``"fused"`` otherwise
+            and wherever the run length is not known (:func:`jaxsync.fem.stepper.build_system`
+            alone, the timing harnesses). Both give K u to round-off.
         scale_min_nodes: the fewest nodes (rows of the mesh, or of each part) at which a
             traced E with a concrete nu is carried as the operator's scale (above). On
             smaller meshes XLA:CPU fuses the per-step dot product <K_1 y_bar, u> badly (it
@@ -149,11 +172,14 @@ class Preassembled:
     layout: str = "grouped"
     blocks_dtype: str = "float64"
     scale_min_nodes: int = 1500
+    product: str = "auto"
     name: str = dataclasses.field(default="preassembled", init=False)
 
     def __post_init__(self):
         if self.layout not in LAYOUTS:
             raise ProblemError(f"Preassembled(layout={self.layout!r}): choose one of {', '.join(LAYOUTS)}")
+        if self.product not in PRODUCTS:
+            raise ProblemError(f"Preassembled(product={self.product!r}): choose one of {', '.join(PRODUCTS)}")
         if self.blocks_dtype not in BLOCK_DTYPES:
             raise ProblemError(f"Preassembled(blocks_dtype={self.blocks_dtype!r}): choose one of "
                                f"{', '.join(BLOCK_DTYPES)}")
@@ -166,23 +192,57 @@ class Preassembled:
             raise ProblemError(f"Preassembled(scale_min_nodes={self.scale_min_nodes!r}): give a non-negative "
                                "integer (0: always carry a traced E as the stiffness's scale)")
 
+    def for_run(self, problem, n_steps: int) -> "Preassembled":
+        """This model with its product chosen for a run of ``n_steps`` steps of ``problem``:
+        ``product="auto"`` becomes ``"compact"`` when the run streams fewer than
+        :data:`COMPACT_SLOT_STEPS` stored blocks (the mesh's slots times ``n_steps``),
+        where the compilation it saves outweighs its slower steps, else ``"fused"``; a
+        product given explicitly is kept. Finite-strain problems are returned unchanged
+        (their operator has no block product)."""
+        if self.product != "auto" or _finite_strain(problem, self) is not None:
+            return self
+        adjacency = problem.operators.block_ell[0]
+        slots = int(np.prod(np.shape(adjacency)))
+        short = slots * int(n_steps) < COMPACT_SLOT_STEPS
+        return dataclasses.replace(self, product="compact" if short else "fused")
+
     def operator(self, problem):
         """The stiffness of the whole mesh: a :class:`~jaxsync.fem.sparse.GroupedEll` (or
         with ``layout="ell"`` a :class:`~jaxsync.fem.sparse.BlockEll`), u and K u in the
         mesh's node numbering. The grouped layout works in reverse Cuthill-McKee order
         inside (it gathers u into it and scatters its rows back) where that order brings
         the neighbours much closer (:func:`jaxsync.fem.sparse.bandwidth_order`)."""
-        from .sparse import bandwidth_order, permuted_block_ell
-
         if (tl := _finite_strain(problem, self)) is not None:  # no K of a nonlinear law: module docstring
             return tl.operator(problem)
+        return self._mesh_stiffness(problem, problem.material)
+
+    def unit_operators(self, problem) -> tuple:
+        """(K_lambda, K_mu): the operators of the unit stiffnesses (lambda = 1, mu = 0 and
+        lambda = 0, mu = 1 [dyn/cm^2]) of ``problem``'s mesh, in the layout :meth:`operator`
+        gives it (the same groups, rows and node order; no scale). An operator whose blocks
+        are lambda K_lambda + mu K_mu, combined group by group (``jax.tree_util.tree_map``
+        over ``blocks``), is then the stiffness of any isotropic linear material there: the
+        members of an ensemble (:mod:`jaxsync.solve.ensemble_members`) are built so, with
+        no assembly per member.
+
+        Raises:
+            ProblemError: float32 blocks (their diagonal is not linear in lambda and mu)."""
+        if self.blocks_dtype != "float64":
+            raise ProblemError("the unit operators K_lambda and K_mu are combined linearly, which float32 blocks "
+                               "(diagonal = minus the sum of the rounded blocks) are not: use blocks_dtype='float64'")
+        return tuple(self._mesh_stiffness(problem, _Lame(lam, mu)) for lam, mu in ((1.0, 0.0), (0.0, 1.0)))
+
+    def _mesh_stiffness(self, problem, material):
+        """The operator of the whole mesh for ``material`` (anything with ``lam`` and ``mu``)."""
+        from .sparse import bandwidth_order, permuted_block_ell
+
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
         if self.layout == "ell":
-            return self._stiffness(problem.material, adjacency, K_lambda, K_mu)
+            return self._stiffness(material, adjacency, K_lambda, K_mu)
         order = bandwidth_order(adjacency)
         if order is None:
-            return self._stiffness(problem.material, adjacency, K_lambda, K_mu)
-        return self._stiffness(problem.material, *permuted_block_ell(order, adjacency, K_lambda, K_mu), order=order)
+            return self._stiffness(material, adjacency, K_lambda, K_mu)
+        return self._stiffness(material, *permuted_block_ell(order, adjacency, K_lambda, K_mu), order=order)
 
     def part_operators(self, problem, parts, n_local: int):
         """The parts' stiffnesses stacked on a leading part axis, padded to ``n_local``
@@ -208,8 +268,10 @@ class Preassembled:
         def combine(a, b):  # constant (numpy) blocks K_1 under a scale, else lambda K_lambda + mu K_mu
             return lam * a + mu * b if scale is not None else lam * jnp.asarray(a) + mu * jnp.asarray(b)
 
+        compact = self.product == "compact"
         if self.layout == "ell":
-            return BlockEll(jnp.asarray(columns), jnp.asarray(combine(K_lambda, K_mu)), symmetric=True, scale=scale)
+            return BlockEll(jnp.asarray(columns), jnp.asarray(combine(K_lambda, K_mu)), symmetric=True, scale=scale,
+                            compact=compact)
         rows, group_columns, (lambdas, mus) = grouped_layout(columns, K_lambda, K_mu)
         blocks = [combine(a, b) for a, b in zip(lambdas, mus)]
         diagonal = None
@@ -223,7 +285,8 @@ class Preassembled:
                           blocks=tuple(jnp.asarray(b) for b in blocks), symmetric=True,
                           rows=tuple(None if r is None else jnp.asarray(r) for r in rows),
                           n_rows=n_rows, diagonal=None if diagonal is None else tuple(jnp.asarray(d) for d in diagonal),
-                          perm=None if order is None else jnp.asarray(order, dtype=jnp.int32), scale=scale)
+                          perm=None if order is None else jnp.asarray(order, dtype=jnp.int32), scale=scale,
+                          compact=compact)
 
     def _moduli(self, material, n_rows: int):
         """(scale, lambda, mu) of the stiffness blocks of ``n_rows`` rows: (E, lambda / E,
@@ -308,6 +371,15 @@ def _total_lagrangian():
 
 
 _MODELS = {"preassembled": Preassembled, "recompute": ElementRecompute, "total-lagrangian": _total_lagrangian}
+
+
+def run_force_model(mode, problem, n_steps: int):
+    """``mode`` for a run of ``n_steps`` steps of ``problem``: a force model that chooses
+    its form by the run's length (:meth:`Preassembled.for_run`) chosen now, any other
+    mode (a name or a model) as it is."""
+    model = force_model(mode)
+    choose = getattr(model, "for_run", None)
+    return mode if choose is None else choose(problem, n_steps)
 
 
 def force_model(mode: Mode | ForceModel = "preassembled") -> ForceModel:

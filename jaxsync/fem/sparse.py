@@ -81,6 +81,7 @@ class BlockEll:
     blocks: jnp.ndarray
     symmetric: bool = static_field(default=False)
     scale: jnp.ndarray | None = None
+    compact: bool = static_field(default=False)
 
     def matvec(self, u):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3).
@@ -93,8 +94,8 @@ class BlockEll:
         gathers (its fusion heuristics refuse to duplicate a broadcast gather): 1.6x
         slower at 250k dofs (benchmarks/bench_stepper.py)."""
         if self.symmetric:
-            return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u), self.scale)
-        return _matvec(self.columns, self.blocks, jnp.asarray(u), scale=self.scale)
+            return _symmetric_matvec(self.columns, self.blocks, jnp.asarray(u), self.scale, self.compact)
+        return _matvec(self.columns, self.blocks, jnp.asarray(u), scale=self.scale, compact=self.compact)
 
     def damped_matvec(self, u, velocity, beta):
         """K u + beta K v = K (u + beta v) for u, v = ``velocity`` (n_cols, 3) and the
@@ -114,13 +115,18 @@ multiply-adds per output was latency-bound; 4 and 8 partial sums were measured a
 (1.3-1.4x faster than 1 on the 51k-dof beam, 1.2-1.4x on the vessel)."""
 
 
-def _matvec(columns, blocks, u, diagonal=None, scale=None):
+def _matvec(columns, blocks, u, diagonal=None, scale=None, compact=False):
     """y = K u (:meth:`BlockEll.matvec`): u (n_cols, 3) -> y (n_rows, 3), in ``u``'s dtype
     (float32 blocks are widened term by term: the sums are float64 for float64 u).
 
     ``diagonal``: (n_rows, 3, 3) blocks of slot 0 kept apart (in u's dtype), ``blocks``
     then holding slots 1.. only (the split storage of :class:`GroupedEll`). ``scale``: a
-    scalar multiplying the sum (:attr:`BlockEll.scale`), or None."""
+    scalar multiplying the sum (:attr:`BlockEll.scale`), or None. ``compact``: the
+    product as one gather and one reduction (:func:`_compact_matvec`) instead of the
+    unrolled sum."""
+    if compact:
+        y = _compact_matvec(columns, blocks, u, diagonal)
+        return y if scale is None else _scaled(y, scale)
     # Kept together behind a barrier: inside a time loop XLA would otherwise hoist the
     # loop-invariant index broadcasts (and a blocks dtype conversion) out of the loop as
     # width separate (n_rows, 3) arrays, which the loop then streams instead of columns.
@@ -148,13 +154,31 @@ def _matvec(columns, blocks, u, diagonal=None, scale=None):
     return partial[0] if scale is None else _scaled(partial[0], scale)
 
 
+def _compact_matvec(columns, blocks, u, diagonal=None):
+    """y = K u (as :func:`_matvec`, without its scale) as one gather of every slot's
+    neighbour, (n_rows, width, 3), and one reduction over (slot, column component).
+
+    The program is a few operations whatever the width, where the unrolled sum is 3 width
+    gathers and products: XLA:CPU compiles a run's programs 1.7-3x faster, and steps up to 1.7x slower on
+    one device (the gathered array is materialized; alike within 5 % in partitioned
+    runs, whose step the exchange dominates: benchmarks/bench_product.py). The same sums in another order: equal to round-off."""
+    columns = columns.astype(jnp.uint32)
+    first = 0 if diagonal is None else 1
+    neighbours = u.at[columns[:, first:]].get(mode="promise_in_bounds")  # (n_rows, width - first, 3)
+    y = jnp.sum(blocks.astype(u.dtype) * neighbours[:, None], axis=(2, 3))
+    if diagonal is not None:
+        own = u.at[columns[:, 0]].get(mode="promise_in_bounds")
+        y = y + jnp.sum(diagonal.astype(u.dtype) * own[:, None, :], axis=2)
+    return y
+
+
 def _scaled(y, scale):
     """``scale * y`` in y's dtype (a scalar scale)."""
     return y * jnp.asarray(scale).astype(y.dtype)
 
 
-@jax.custom_vjp
-def _symmetric_matvec(columns, blocks, u, scale):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def _symmetric_matvec(columns, blocks, u, scale, compact=False):
     """y = K u for a symmetric K, with a reverse pass written for it: the cotangent of u is
     K^T y_bar = K y_bar (the forward gather form again, no scatter-add), and that of the
     blocks the outer product y_bar[r, i] u[columns[r, s], j] (a gather). Autodiff of
@@ -165,17 +189,18 @@ def _symmetric_matvec(columns, blocks, u, scale):
 
     With a ``scale`` s (K = s K_1, ``blocks`` holding K_1: :attr:`BlockEll.scale`), the
     reverse pass forms w = K_1 y_bar once: u's cotangent is s w and s's the dot product
-    <w, u> (= <y_bar, K_1 u>, K_1 being symmetric), and the blocks' s y_bar u^T."""
-    return _matvec(columns, blocks, u, scale=scale)
+    <w, u> (= <y_bar, K_1 u>, K_1 being symmetric), and the blocks' s y_bar u^T.
+    ``compact``: the form of the products (:func:`_matvec`), both passes."""
+    return _matvec(columns, blocks, u, scale=scale, compact=compact)
 
 
-def _symmetric_matvec_fwd(columns, blocks, u, scale):
-    return _matvec(columns, blocks, u, scale=scale), (columns, blocks, u, scale)
+def _symmetric_matvec_fwd(columns, blocks, u, scale, compact=False):
+    return _matvec(columns, blocks, u, scale=scale, compact=compact), (columns, blocks, u, scale)
 
 
-def _symmetric_matvec_bwd(residuals, y_bar):
+def _symmetric_matvec_bwd(compact, residuals, y_bar):
     columns, blocks, u, scale = residuals
-    w = _matvec(columns, blocks, y_bar)  # K_1^T y_bar = K_1 y_bar
+    w = _matvec(columns, blocks, y_bar, compact=compact)  # K_1^T y_bar = K_1 y_bar
     u_bar, scale_bar, y_bar = _unscaled_cotangents(w, u, y_bar, scale)
     blocks_bar = y_bar[:, :, None, None] * u[columns][:, None, :, :]  # (n_rows, 3, width, 3)
     return None, blocks_bar.astype(blocks.dtype), u_bar, scale_bar
@@ -246,7 +271,8 @@ class GroupedEll(BlockEll):
         """y = K u for u of shape (n_cols, 3); returns (n_rows, 3)."""
         u = jnp.asarray(u)
         diagonal = (None,) * len(self.columns) if self.diagonal is None else self.diagonal
-        args = (self.rows, self.columns, self.blocks, diagonal, self.perm, u, self.scale, self.n_rows)
+        args = (self.rows, self.columns, self.blocks, diagonal, self.perm, u, self.scale, self.n_rows,
+                self.compact)
         return _grouped_symmetric(*args) if self.symmetric else _grouped_matvec(*args)
 
     @property
@@ -265,7 +291,7 @@ class GroupedEll(BlockEll):
         return int(sum(np.prod(np.shape(c)) for c in self.columns))
 
 
-def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
+def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows, compact=False):
     """y = K u (:meth:`GroupedEll.matvec`). A scatter, not a gather, puts each group's
     rows in place: XLA fuses each group's product into its scatter and walks the group's
     own rows in order (measured: see the module docstring). ``scale``: None or a scalar
@@ -274,7 +300,7 @@ def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
         u = u.at[perm].get(mode="promise_in_bounds")
     y = None
     for r, c, b, d in zip(rows, columns, blocks, diagonal):
-        part = _matvec(c, b, u, d, scale)
+        part = _matvec(c, b, u, d, scale, compact)
         if r is None:
             y = part if y is None else y + part
             continue
@@ -284,24 +310,24 @@ def _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
     return y
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(7,))
-def _grouped_symmetric(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(7, 8))
+def _grouped_symmetric(rows, columns, blocks, diagonal, perm, u, scale, n_rows, compact=False):
     """:func:`_grouped_matvec` for a symmetric K with its own reverse pass (as
     :func:`_symmetric_matvec`): u's cotangent is K y_bar, each group's blocks' (and
     diagonal blocks') the outer product of y_bar at its rows and the gathered u; with a
     ``scale`` s (K = s K_1), w = K_1 y_bar is formed once, u's cotangent is s w and s's
     <w, u>. Only u (in the caller's numbering: the state itself) is kept per product."""
-    return _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows)
+    return _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows, compact)
 
 
-def _grouped_symmetric_fwd(rows, columns, blocks, diagonal, perm, u, scale, n_rows):
-    out = _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows)
+def _grouped_symmetric_fwd(rows, columns, blocks, diagonal, perm, u, scale, n_rows, compact=False):
+    out = _grouped_matvec(rows, columns, blocks, diagonal, perm, u, scale, n_rows, compact)
     return out, (rows, columns, blocks, diagonal, perm, u, scale)
 
 
-def _grouped_symmetric_bwd(n_rows, residuals, y_bar):
+def _grouped_symmetric_bwd(n_rows, compact, residuals, y_bar):
     rows, columns, blocks, diagonal, perm, u, scale = residuals
-    w = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, None, n_rows)  # K_1^T y_bar = K_1 y_bar
+    w = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, None, n_rows, compact)  # K_1^T y_bar = K_1 y_bar
     u_bar, scale_bar, y_bar = _unscaled_cotangents(w, u, y_bar, scale)
     # under a scale the blocks are constants: their cotangents below are unused, and the
     # compiled program drops them (no loop carries them: tests/test_gradient_cotangent.py)

@@ -19,40 +19,48 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import PartitionError, ProblemError, StabilityError
-from ..fem.stepper import ExplicitSystem, build_system, initial_state
+from ..fem.stepper import ExplicitSystem
 from ..fem.timestep import divergence_advice
 from ..pytree import is_traced
 from ..trajectory import Result
 from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
+from .ensemble_members import (
+    EnsembleSetup,
+    Members,
+    RunData,
+    batched_system,
+    check_members_dt,
+    default_dt,
+    initial_states,
+    member_system,
+    setup_of_members,
+    setup_of_problems,
+)
 from .phases import synchronized_steps
-from .record import synchronized_trajectory
+from .record import part_histories, run_parameters, synchronized_trajectory
 from .strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
 
-__all__ = ["ensemble"]
+__all__ = ["ensemble", "Members"]
 
-# Only the per-run data are batched: the stiffness, mass, damping (alpha, beta), dt, constrained dofs and
-# load time functions are one copy for all runs.
-_RUN_AXES = ExplicitSystem(stiffness=None, mass=None, damping=None, dt=None, load_vectors=0,
-                           load_times=None, fixed=None, fixed_values=0, moving=0, moving_times=None,
-                           spring=None, dashpot=None, follower=None, stiffness_damping=None)
-
-
-def _advance_runs(system: ExplicitSystem, states, n_saves: int, save_every: int, interface, adjoint=None):
-    """The synchronized phase of every run: ``system`` with load_vectors (n_runs, n_loads,
-    n_nodes, 3) and fixed_values (n_runs, n_nodes, 3), ``states`` with a leading runs axis.
-    Returns (states, saved (n_saves, n_runs, n_nodes, 3)), or with ``interface`` (node ids)
-    the pair (saved, recorded (n_saves * save_every, n_runs, n_interface, 3)) after every
-    step. ``adjoint``: as for :func:`jaxsync.solve.phases.synchronized_steps`."""
+def _advance_runs(system: ExplicitSystem, runs: RunData, states, n_saves: int, save_every: int, interface,
+                  adjoint=None):
+    """The synchronized phase of every run: the shared ``system`` with each run's own data
+    (``runs``, a :class:`jaxsync.solve.ensemble_members.RunData` whose leaves have a leading
+    runs axis), ``states`` with a leading runs axis. Returns (states, saved (n_saves, n_runs,
+    n_nodes, 3)), or with ``interface`` (node ids) the pair (saved, recorded (n_saves *
+    save_every, n_runs, n_interface, 3)) after every step. ``adjoint``: as for
+    :func:`jaxsync.solve.phases.synchronized_steps`."""
     record = None if interface is None else (lambda s: s.displacement[interface])
 
-    def one_run(run_system, state):
-        return synchronized_steps(run_system, state, n_saves, save_every, record=record, adjoint=adjoint)
+    def one_run(run, state):
+        return synchronized_steps(member_system(system, run), state, n_saves, save_every, record=record,
+                                  adjoint=adjoint)
 
     # runs axis second in the outputs: the host reads each chunk as one field of all runs
-    return jax.vmap(one_run, in_axes=(_RUN_AXES, 0), out_axes=(0, 1))(system, states)
+    return jax.vmap(one_run, in_axes=(0, 0), out_axes=(0, 1))(runs, states)
 
 
-_advance_runs_jit = jax.jit(_advance_runs, static_argnums=(2, 3))
+_advance_runs_jit = jax.jit(_advance_runs, static_argnums=(3, 4))
 
 
 class _EnsembleRunner:
@@ -61,9 +69,9 @@ class _EnsembleRunner:
     field (n_saves, n_runs * n_nodes, 3), so the host loop's divergence check covers every
     run; the shared-node record is one array (steps, n_runs, n_interface, 3)."""
 
-    def __init__(self, system: ExplicitSystem, n_runs: int, n_mesh_nodes: int, save_every: int,
+    def __init__(self, system: ExplicitSystem, runs: RunData, n_runs: int, n_mesh_nodes: int, save_every: int,
                  interface=None):
-        self.system, self.save_every = system, save_every
+        self.system, self.runs, self.save_every = system, runs, save_every
         self.n_runs, self.n_mesh_nodes = n_runs, n_mesh_nodes
         self.n_nodes = n_runs * n_mesh_nodes
         self.interface = None if interface is None else jnp.asarray(interface)
@@ -80,13 +88,14 @@ class _EnsembleRunner:
         if n_saves in self._programs:
             return 0.0
         start = time.perf_counter()
-        self._programs[n_saves] = _advance_runs_jit.lower(self.system, states, n_saves, self.save_every,
-                                                          self.interface).compile()
+        self._programs[n_saves] = _advance_runs_jit.lower(self.system, self.runs, states, n_saves,
+                                                          self.save_every, self.interface).compile()
         return time.perf_counter() - start
 
     def advance(self, states, steps: int):
         self.compile(states, steps)
-        states, out = self._programs[steps // self.save_every](self.system, states, self.interface)
+        states, out = self._programs[steps // self.save_every](self.system, self.runs, states,
+                                                                      self.interface)
         saved, recorded = out if self.interface is not None else (out, None)
         saved = np.asarray(saved)
         self.last, self._step = (self._step, saved), self._step + steps
@@ -94,19 +103,36 @@ class _EnsembleRunner:
         return states, Chunk(saved.reshape(len(saved), self.n_nodes, 3), shared)
 
 
-def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, save=1, executor=None) -> tuple:
-    """Integrate several problems of one system together, batched (``jax.vmap`` over runs).
+def ensemble(problems, n_steps: int, *, members: Members | None = None, partitions=None, labels=None, dt=None,
+             save=1, executor=None) -> tuple:
+    """Integrate several runs of one system together, batched (``jax.vmap`` over runs).
 
-    The runs share one mesh, material, damping, set of constrained dofs, load time
-    functions and density scale; they may differ in their load MAGNITUDES (and spatial
-    load vectors), Dirichlet values and initial displacement / velocity. All advance in
-    one compiled program on one device (one compilation per chunk length for the whole
-    ensemble, not one per run) -- the way to generate surrogate training sets.
+    The runs share one mesh, element, material law, supports, density scaling, set of
+    constrained dofs and load / prescribed-displacement time functions; each may have its
+    own material parameters (E, nu, rho, or a hyperelastic law's), damping alpha and beta,
+    load magnitudes (and spatial load vectors), Dirichlet values and initial displacement /
+    velocity. All advance in one compiled program on one device (one compilation per chunk
+    length for the whole ensemble, not one per run) -- the way to generate surrogate
+    training sets, or to fit many observations at once (``jax.grad`` through it).
+
+    Two ways to give the runs:
+
+    * ``ensemble(problems, n_steps)``: a sequence of n_runs :class:`jaxsync.Problem`
+      (e.g. ``jaxsync.cantilever(mesh, body_force=(0, 0, -fz))`` for several fz);
+    * ``ensemble(problem, n_steps, members=jaxsync.Members(...))``: one problem and per-run
+      arrays (:class:`jaxsync.Members`: ``material={"E": (n_runs,)...}``, ``damping``,
+      ``stiffness_damping``, ``load_scale``, ``initial_displacement``,
+      ``initial_velocity``), set up in one vectorised pass without a Problem per run (the
+      fast way to thousands of runs; differentiable in every array).
+
+    Either way nothing is assembled per run: :mod:`jaxsync.solve.ensemble_members` (the
+    stiffness of each run's E and nu from the two unit operators, E alone as one scale per
+    run; the lumped mass rho_r M_1; the damping per run).
 
     Args:
-        problems: sequence of n_runs :class:`jaxsync.Problem` (e.g.
-            ``jaxsync.cantilever(mesh, body_force=(0, 0, -fz))`` for several fz).
+        problems: a sequence of n_runs problems, or with ``members`` the one problem.
         n_steps: time steps of every run (a multiple of the save stride).
+        members: a :class:`jaxsync.Members`, or None (the runs are ``problems``).
         partitions: None; or an int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`:
             each trajectory then has the per-part shared-node histories of a distributed
             run (``parts``), laid out as ``jaxsync.simulate(problem, n_steps,
@@ -116,8 +142,13 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             initial-condition factor...), stored as ``parameters["load_parameter"]`` of
             each trajectory: the conditional surrogates' input
             (:func:`jaxsync.surrogate.histories.read_shared_histories`).
-        dt: time step [s]; default the first problem's ``dt``, checked against the exact
-            stability bound as in :func:`jaxsync.simulate`.
+        dt: time step [s], one for all runs; default the smallest of the runs' default
+            steps (runs of one material: run 0's ``dt``;
+            :func:`jaxsync.solve.ensemble_members.default_dt`). Checked against every run's
+            stability bound (:func:`jaxsync.solve.ensemble_members.check_members_dt`: for
+            the linear law a bound computed once for all runs, the exact bound of a run
+            above it; for a hyperelastic law the exact bound of each distinct run).
+            Needed when the runs' parameters are traced and differ.
         save: an int or a :class:`jaxsync.SaveAt` (with ``partitions``, ``shared_every=1``
             keeps the shared-node displacements after every step, for training).
         executor: :class:`jaxsync.HostExecutor` (default for concrete inputs: progress over
@@ -125,89 +156,82 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             (default for traced inputs: one differentiable program).
 
     Returns:
-        A tuple of n_runs :class:`jaxsync.Trajectory`, in the order of ``problems``: each
-        with ``n_steps // every + 1`` snapshots, displacement (n_saved, n_nodes, 3)
-        [cm], times [s], and with ``partitions`` the ``parts`` of a distributed run.
-        ``stats.us_per_step`` is the wall time of one BATCHED step, all runs advancing
-        together [us] (per run: divide by n_runs), compilation excluded;
-        ``stats.compile_seconds`` the compilation of the batched program (the same in
-        every trajectory).
+        A tuple of n_runs :class:`jaxsync.Trajectory`, in the order of the runs: each with
+        ``n_steps // every + 1`` snapshots, displacement (n_saved, n_nodes, 3) [cm], times
+        [s], its own E, nu, rho, damping in ``parameters``, and with ``partitions`` the
+        ``parts`` of a distributed run. ``stats.us_per_step`` is the wall time of one
+        BATCHED step, all runs advancing together [us] (per run: divide by n_runs),
+        compilation excluded; ``stats.compile_seconds`` the compilation of the batched
+        program (the same in every trajectory).
 
     Raises:
-        ProblemError: no problems, problems of different systems (the message names the
-            first differing problem and what differs), a wrong number of labels, bad
-            ``n_steps`` / ``save``.
-        StabilityError: dt above the stability bound, or a run diverged (NaN/Inf or
-            blow-up): the message names the run; ``error.run`` is its index,
-            ``error.trajectories`` the snapshots of every run before divergence and
-            ``error.trajectory`` those of the diverged run.
+        ProblemError: no runs, problems of different systems (the message names the first
+            differing problem and what differs), bad ``members`` (wrong lengths or shapes,
+            E or rho <= 0, nu outside (-1, 0.5), a field the law lacks), a wrong number of
+            labels, bad ``n_steps`` / ``save``, traced differing parameters without ``dt``.
+        StabilityError: dt above a run's stability bound (the message names the run), or a
+            run diverged (NaN/Inf or blow-up): the message names the run; ``error.run`` is
+            its index, ``error.trajectories`` the snapshots of every run before divergence
+            and ``error.trajectory`` those of the diverged run.
         PartitionError: a partition of another mesh.
     """
     from ..precision import require_float64
 
     require_float64("ensemble")
-    problems = tuple(problems)
-    if not problems:
-        raise ProblemError("ensemble needs at least one problem, got an empty sequence")
-    n_runs = len(problems)
+    if members is not None:
+        setup = setup_of_members(problems, members)
+    else:
+        from ..fem.problem import Problem
+
+        if isinstance(problems, Problem):
+            raise ProblemError("ensemble(problem, n_steps) needs the runs: a sequence of problems, or "
+                               "members=jaxsync.Members(...) with this one problem")
+        problems = tuple(problems)
+        if not problems:
+            raise ProblemError("ensemble needs at least one problem, got an empty sequence")
+        setup = setup_of_problems(problems)
+    n_runs = setup.n_runs
     if labels is not None:
         labels = tuple(labels)
         if len(labels) != n_runs:
-            raise ProblemError(f"got {len(labels)} labels for {n_runs} problems; give one label per "
-                               "problem (or labels=None)")
+            raise ProblemError(f"got {len(labels)} labels for {n_runs} {'runs' if members else 'problems'}; give "
+                               "one label per run (or labels=None)")
         try:
             labels = tuple(float(x) for x in labels)
         except (TypeError, ValueError) as exc:
-            raise ProblemError(f"labels must be numbers (one float per problem), got {labels!r}") from exc
+            raise ProblemError(f"labels must be numbers (one float per run), got {labels!r}") from exc
     save = SaveAt.of(save)
     n_steps = save.check_steps(n_steps)
     if partitions is None and save.records_every_step:
         raise ProblemError("shared_every needs a distributed run (partitions=...): a single-device "
                            "run has no shared nodes")
-    first = problems[0]
-    dt = first.dt if dt is None else dt
-    traced = any(is_traced(p.material, p.damping, p.stiffness_damping, p.loads, dt, p.initial_displacement,
-                           p.initial_velocity)
-                 for p in problems)
+    first = setup.base
+    dt = default_dt(setup) if dt is None else dt
+    traced = is_traced(first.material, first.damping, first.stiffness_damping, first.loads, dt,
+                       first.initial_displacement, first.initial_velocity, setup.leaves(),
+                       None if setup.problems is None else [(p.material, p.loads) for p in setup.problems])
     executor = choose_executor(executor, traced)
     if isinstance(executor, HostExecutor) and executor.check_stability:
-        from ..fem.timestep import check_dt
-
-        check_dt(first, dt)
+        check_members_dt(setup, dt)
     if not traced:
         dt = float(dt)
     mesh = first.mesh
     partition = _partition(first, partitions)
 
-    # One system for all runs: check every problem's against the first, keep its per-run data.
-    reference = build_system(first, dt)
-    load_vectors, fixed_values, moving, states = [], [], [], []
-    for index, problem in enumerate(problems):
-        system = reference if index == 0 else build_system(problem, dt)
-        what = None if traced else _difference(problem, system, first, reference)
-        if what is not None:
-            raise ProblemError(
-                f"problem {index} of the ensemble differs from problem 0 in its {what}: the runs of an "
-                "ensemble share one system (mesh, material, damping, supports, density scale, constrained dofs "
-                "and time functions) and may differ only in load magnitudes, Dirichlet values and "
-                f"initial conditions; run problem {index} separately with jaxsync.simulate")
-        load_vectors.append(system.load_vectors)
-        fixed_values.append(system.fixed_values)
-        moving.append(system.moving)
-    for problem, loads, values, history in zip(problems, load_vectors, fixed_values, moving):  # the start, per run
-        states.append(initial_state(problem, dataclasses.replace(reference, load_vectors=loads,
-                                                                 fixed_values=values, moving=history)))
-    batched = dataclasses.replace(reference, load_vectors=jnp.stack(load_vectors),
-                                  fixed_values=jnp.stack(fixed_values),
-                                  moving=None if reference.moving is None else jnp.stack(moving))
-    stacked = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *states)
+    # One shared system for all runs, and each run's own data (no assembly per run).
+    batched, runs = batched_system(setup, dt)
+    stacked = initial_states(setup, batched, runs)
     record = partition is not None and save.records_every_step
     interface = partition.shared_nodes if record else None
-    start_fields = [s.displacement for s in states]
+    start_fields = stacked.displacement  # (n_runs, n_nodes, 3)
+    problems = setup.problems or (first,) * n_runs
+    own = [setup.run_parameters(r) for r in range(n_runs)] if setup.problems is None else [{}] * n_runs
 
     def trajectories(saved, every_step, stats=None, result=None):
         """The runs' trajectories from step 0: ``saved`` (n_saves, n_runs, n_nodes, 3),
-        ``every_step`` (n_steps, n_runs, n_interface, 3) or None."""
+        ``every_step`` (n_steps, n_runs, n_interface, 3) or None. Run 0's is built in full;
+        the others share its times, load signals and load jumps (the runs share their time
+        functions) and have their own displacements, shared-node histories and parameters."""
         xp = jnp if traced else np
         out = []
         for r, problem in enumerate(problems):
@@ -219,26 +243,38 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
                                                                                      3 * part.n_shared)])
                             for part in partition.parts]
             displacement = xp.concatenate([xp.asarray(start_fields[r])[None], saved[:, r]])
-            traj = synchronized_trajectory(problem, displacement, dt, save, partition, recorded, stats=stats,
-                                           result=result if result is None or np.ndim(result) == 0 else result[r])
+            result_r = result if result is None or np.ndim(result) == 0 else result[r]
+            if r == 0:
+                traj = template = synchronized_trajectory(problem, displacement, dt, save, partition, recorded,
+                                                          stats=stats, result=result_r)
+            else:
+                parts = template.parts
+                if partition is not None:
+                    shared = ([displacement[:, part.shared_nodes].reshape(len(displacement), -1)
+                               for part in partition.parts] if recorded is None
+                              else [rows[::save.shared_every] for rows in recorded])
+                    parts = part_histories(partition, shared)
+                traj = dataclasses.replace(template, displacement=displacement, parts=parts, result=result_r,
+                                           parameters={**template.parameters, **run_parameters(problem)})
+            parameters = {**traj.parameters, **own[r]}
             if labels is not None:
-                traj = dataclasses.replace(traj, parameters={**traj.parameters, "load_parameter": labels[r]})
-            out.append(traj)
+                parameters["load_parameter"] = labels[r]
+            out.append(dataclasses.replace(traj, parameters=parameters))
         return out
 
     if isinstance(executor, TracedExecutor):
         n_saves = n_steps // save.every
         if n_saves == 0:
             return tuple(trajectories(jnp.zeros((0, n_runs, first.n_nodes, 3)), None))
-        _, out = _advance_runs(batched, stacked, n_saves, save.every,
+        _, out = _advance_runs(batched, runs, stacked, n_saves, save.every,
                                None if interface is None else jnp.asarray(interface), executor.adjoint)
         saved, every_step = out if record else (out, None)
         finite = jnp.isfinite(saved).all(axis=(0, 2, 3))
         result = jnp.where(finite, jnp.int32(Result.SUCCESSFUL), jnp.int32(Result.DIVERGED))
         return tuple(trajectories(saved, every_step, result=result))
 
-    start_fields = [np.asarray(f) for f in start_fields]
-    runner = _EnsembleRunner(batched, n_runs, first.n_nodes, save.every, interface)
+    start_fields = np.asarray(start_fields)
+    runner = _EnsembleRunner(batched, runs, n_runs, first.n_nodes, save.every, interface)
 
     def from_segment(segment, result):
         saved = segment.displacement.reshape(len(segment.displacement), n_runs, first.n_nodes, 3)
@@ -255,7 +291,7 @@ def ensemble(problems, n_steps: int, *, partitions=None, labels=None, dt=None, s
             segment = run_chunks(runner, stacked, 0, n_steps, kind="synchronized", limit=limit,
                                  progress=bar, chunk_steps=executor.chunk_steps)
         except Diverged as bad:
-            raise _diverged(bad, runner, from_segment(bad.segment, Result.DIVERGED), limit, dt, first,
+            raise _diverged(bad, runner, from_segment(bad.segment, Result.DIVERGED), limit, dt, setup,
                             labels) from None
     from ..parallel.devices import device_summary
     from ..run_stats import SynchronizedStats
@@ -284,57 +320,8 @@ def _partition(problem, partitions):
     return partitions
 
 
-def _difference(problem, system: ExplicitSystem, reference_problem, reference: ExplicitSystem) -> str | None:
-    """What makes ``problem``'s system differ from the reference's, or None."""
-    mesh, ref_mesh = problem.mesh, reference_problem.mesh
-    if mesh is not ref_mesh and not (np.array_equal(mesh.points, ref_mesh.points)
-                                     and np.array_equal(mesh.tets, ref_mesh.tets)):
-        return "mesh (points or tetrahedra)"
-    if problem.element != reference_problem.element:
-        return "element (P1 or P2)"
-    checks = (
-        ("number of loads", lambda: len(system.load_times) == len(reference.load_times)),
-        ("stiffness (material E, nu)", lambda: _same(system.stiffness, reference.stiffness)),
-        ("lumped mass (density rho or density_scale)", lambda: _same(system.mass, reference.mass)),
-        ("damping (alpha)", lambda: _same(system.damping, reference.damping)),
-        ("stiffness-proportional damping (beta)",
-         lambda: _same(system.stiffness_damping, reference.stiffness_damping)),
-        ("time step", lambda: _same(system.dt, reference.dt)),
-        ("constrained dofs (which dofs are fixed)", lambda: _same(system.fixed, reference.fixed)),
-        ("prescribed-displacement time functions", lambda: _same(system.moving_times, reference.moving_times)
-         and (system.moving is None) == (reference.moving is None)),
-        ("elastic supports", lambda: _same(system.spring, reference.spring) and _same(system.dashpot,
-                                                                                     reference.dashpot)),
-        ("load time functions (ramp, switch-off time, waveform)",
-         lambda: _same(system.load_times, reference.load_times)),
-        ("follower pressures (surfaces, magnitudes, time functions: one copy for all runs)",
-         lambda: _same(system.follower, reference.follower)),
-    )
-    for what, same in checks:
-        if not same():
-            return what
-    return None
-
-
-def _same(a, b) -> bool:
-    """Equal pytrees: the same structure (node types included) and equal leaves."""
-    leaves_a, tree_a = jax.tree_util.tree_flatten(a)
-    leaves_b, tree_b = jax.tree_util.tree_flatten(b)
-    if tree_a != tree_b:
-        return False
-    for x, y in zip(leaves_a, leaves_b):
-        if np.shape(x) != np.shape(y):
-            return False
-        if isinstance(x, jax.Array) and isinstance(y, jax.Array):
-            if x.dtype != y.dtype or not bool(jnp.array_equal(x, y)):  # on the device
-                return False
-        elif not np.array_equal(np.asarray(x), np.asarray(y)):
-            return False
-    return True
-
-
-def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: float, dt: float, problem,
-              labels) -> StabilityError:
+def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: float, dt: float,
+              setup: EnsembleSetup, labels) -> StabilityError:
     """The error of a diverged ensemble, naming the run(s) whose field went bad first."""
     first_step, saved = runner.last
     snapshot = saved[(bad.step - first_step) // runner.save_every - 1]  # (n_runs, n_nodes, 3)
@@ -343,7 +330,7 @@ def _diverged(bad: Diverged, runner: _EnsembleRunner, partial: list, limit: floa
     run = runs[0]
     named = f"run {run}" + ("" if labels is None else f" (label {labels[run]:g})")
     also = f" (also runs {runs[1:]})" if len(runs) > 1 else ""
-    advice = divergence_advice(problem, dt)
+    advice = divergence_advice(setup.member(run), dt)
     return StabilityError(
         f"{named} of the ensemble diverged by step {bad.step} (t = {bad.step * dt:.6g} s){also}: displacement "
         f"is NaN/Inf or above {limit:.3g} cm. {advice}; check that "

@@ -19,6 +19,7 @@ import jax
 import numpy as np
 
 from ..errors import ProblemError
+from ..fem.internal_force import run_force_model
 from ..fem.stepper import build_system, initial_state
 from ..pytree import is_traced
 from .coupling import as_coupling, exchange_of
@@ -338,7 +339,9 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
         sync: another name for ``exchange`` (give one of them).
         mode: the internal force, ``"preassembled"`` (sparse K, stored once) or
             ``"recompute"`` (element quantities formed every step), paper Remark 2
-            (:mod:`jaxsync.fem.internal_force`).
+            (:mod:`jaxsync.fem.internal_force`), or a force model. The preassembled K's
+            product is chosen for the run's length (:attr:`jaxsync.fem.internal_force.Preassembled.product`:
+            the form that compiles faster for short runs, the faster step for long ones).
         checkpoint: a :class:`jaxsync.SolverCheckpoint` or an HDF5 path for resumable runs
             (synchronized runs): the state is stored there as the run goes, and a run
             started again with the same problem continues from it, giving the same
@@ -378,6 +381,7 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
     exchange = exchange_of(exchange, sync)
     save = SaveAt.of(save)
     n_steps = save.check_steps(n_steps)
+    mode = run_force_model(mode, problem, n_steps)
     dt = problem.dt if dt is None else dt
     traced = is_traced(problem.material, problem.damping, problem.stiffness_damping, problem.loads, dt,
                        problem.initial_displacement, problem.initial_velocity, coupling)
