@@ -320,3 +320,33 @@ def test_the_conditional_decoder_uses_its_load_parameter():
 
     for run, own, other in ((runs[0], 1.0, 0.6), (runs[1], 0.6, 1.0)):
         assert refill_error(run, own) < 0.9 * refill_error(run, other)
+
+
+def test_the_shared_amplitude_of_the_trained_steps_is_recorded_and_a_percentage_tolerance_refers_to_it(tmp_path):
+    """The surrogates record the largest shared displacement in the rows training read
+    (the first half here, of a response that keeps growing after it: not the whole run's),
+    in the summary and the surrogate file; ``jaxsync predict`` holds a percentage tolerance
+    to it, and to the trajectory's own amplitude for a file that does not record one."""
+    from types import SimpleNamespace
+
+    from jaxsync.app.commands.predict import trained_amplitude
+
+    traj = oscillator_trajectory(n_steps=301)
+    ramp = np.exp(np.linspace(0.0, 4.0, 301))[:, None]  # the amplitude grows through the run
+    traj = dataclasses.replace(traj, parts=tuple(
+        dataclasses.replace(p, shared_displacement=ramp * p.shared_displacement) for p in traj.parts))
+    trained = train_surrogates(traj, architecture=ArchitectureChoice(model="linear"), sampling=SAMPLING,
+                               checks=TrainingChecks(emse_applications=0, rollout_tolerance=None), progress=False)
+    first_half = max(np.abs(p.shared_displacement[:150]).max() for p in traj.parts)  # floor(0.5 * 301) rows
+    whole = max(np.abs(p.shared_displacement).max() for p in traj.parts)
+    assert whole > 1.5 * first_half
+    assert trained.shared_amplitude == trained.summary()["shared_amplitude_cm"] == first_half
+    path = tmp_path / "surrogate.h5"
+    trained.write(tmp_path)
+    saved = load_surrogate(path)
+    assert saved.metadata["shared_amplitude_cm"] == first_half
+    assert trained_amplitude(saved, traj) == first_half
+    older = dataclasses.replace(saved, metadata={k: v for k, v in saved.metadata.items() if k != "shared_amplitude_cm"})
+    assert trained_amplitude(older, traj) == whole
+    at_rest = SimpleNamespace(parts=[SimpleNamespace(shared_displacement=np.zeros((3, 6)))])
+    assert trained_amplitude(SimpleNamespace(metadata={}), at_rest) is None

@@ -421,7 +421,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         + f"; wrote {os.path.join(final, os.path.relpath(trained.files['surrogate'], out))}")
 
     n_cri = d.n_s * d.n_past
-    tolerance = _tolerance(d.resync_tolerance, reference)
+    tolerance = _tolerance(d.resync_tolerance, trained.shared_amplitude or _shared_amplitude(reference))
     tolerance_cm = None if tolerance is None else tolerance.cm(0.0)
     log(f"[{next(stage)}/{n_stages}] synchronization-avoiding run: synchronized to step {n_cri}, then predicted"
         + (f", error control at {tolerance_cm:.3e} cm ({tolerance}: es_hat and the estimated error)"
@@ -485,12 +485,13 @@ def _shared_amplitude(reference) -> float:
     return max(float(np.abs(part.shared_displacement).max(initial=0.0)) for part in reference.parts)
 
 
-def _tolerance(tolerance, reference):
+def _tolerance(tolerance, amplitude: float):
     """The demo's error control, a :class:`~jaxsync.solve.syncavoid.ResyncTolerance`
-    (None: none): a percentage is of the largest shared-node displacement of the
-    synchronized run the surrogates were trained on (under the vessel's pressure ramp the
-    amplitude the online run has seen by n_cri is a small fraction of the final one, and
-    a tolerance of it would reject well-trained cycles)."""
+    (None: none): a percentage is of ``amplitude`` [cm], the largest shared-node
+    displacement in the steps the surrogates were trained on (as ``jaxsync predict``
+    takes it: under the vessel's pressure ramp the amplitude the online run has seen by
+    n_cri is a small fraction of the final one, and a tolerance of it would reject
+    well-trained cycles)."""
     from ..solve.syncavoid import ResyncTolerance
 
     if tolerance is None:
@@ -498,7 +499,7 @@ def _tolerance(tolerance, reference):
     tolerance = ResyncTolerance.parse(tolerance)
     if tolerance.relative is None or tolerance.amplitude is not None:
         return tolerance
-    return dataclasses.replace(tolerance, amplitude=_shared_amplitude(reference))
+    return dataclasses.replace(tolerance, amplitude=amplitude)
 
 
 def cost_projection(timing, parts):

@@ -159,9 +159,10 @@ def _compact_matvec(columns, blocks, u, diagonal=None):
     neighbour, (n_rows, width, 3), and one reduction over (slot, column component).
 
     The program is a few operations whatever the width, where the unrolled sum is 3 width
-    gathers and products: XLA:CPU compiles a run's programs 1.7-3x faster, and steps up to 1.7x slower on
-    one device (the gathered array is materialized; alike within 5 % in partitioned
-    runs, whose step the exchange dominates: benchmarks/bench_product.py). The same sums in another order: equal to round-off."""
+    gathers and products: XLA:CPU compiles a run's programs 1.7-3x faster, and steps up
+    to 1.7x slower on one device (the gathered array is materialized; alike within 5 % in
+    partitioned runs, whose step the exchange dominates: benchmarks/bench_product.py).
+    The same sums in another order: equal to round-off."""
     columns = columns.astype(jnp.uint32)
     first = 0 if diagonal is None else 1
     neighbours = u.at[columns[:, first:]].get(mode="promise_in_bounds")  # (n_rows, width - first, 3)

@@ -85,7 +85,7 @@ LOSS_CURVES_NAME = "loss_curves.png"
 
 # what the surrogate file's metadata keeps of the summary
 _METADATA_KEYS = ("model", "training", "sampling", "candidates", "load_parameters", "final_val_loss", "sqrt_e_mse",
-                  "rollout_check")
+                  "rollout_check", "shared_amplitude_cm")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -123,6 +123,11 @@ class TrainedSurrogates:
             for the linear surrogate (least squares has one solution).
         files: the files written by :meth:`write`, by kind (``surrogate``: the surrogate
             file, ``loss_curves``, ``summary``); empty before.
+        shared_amplitude: the largest |displacement| component at the shared nodes [cm]
+            (solver units) in the steps training could read (the first ``train_fraction``
+            of every run, :func:`training_amplitude`): what a relative error-control
+            tolerance of a run of these surrogates refers to (``jaxsync predict``); None
+            when not known.
     """
 
     surrogate: Surrogate
@@ -142,6 +147,7 @@ class TrainedSurrogates:
     state: TrainingState | None = None
     candidates: dict | None = None
     files: dict[str, str] = dataclasses.field(default_factory=dict)
+    shared_amplitude: float | None = None
 
     @property
     def model(self) -> str:
@@ -219,6 +225,7 @@ class TrainedSurrogates:
             "train_seconds": self.train_seconds,
             "e_mse_applications": self.e_mse_applications,
             "sqrt_e_mse": None if self.sqrt_e_mse is None else list(self.sqrt_e_mse),
+            "shared_amplitude_cm": self.shared_amplitude,
             "rollout_check": None if self.rollout is None else {
                 **self.rollout.to_dict(), "tolerance": self.rollout_tolerance, "passed": self.rollout_passed},
         }
@@ -470,8 +477,20 @@ def train_surrogates(
         n_train_windows=int(data.x_train.shape[1]), n_val_windows=int(data.x_val.shape[1]),
         train_seconds=train_seconds, e_mse_applications=n_app if sqrt_e_mse is not None else None,
         sqrt_e_mse=sqrt_e_mse, rollout=rollout, n_excluded_windows=datasets[0].n_excluded, state=state,
-        candidates=candidates,
+        candidates=candidates, shared_amplitude=training_amplitude(runs, sampling.train_fraction),
     )
+
+
+def training_amplitude(runs, train_fraction: float) -> float:
+    """The largest |displacement| component at the shared nodes [cm] over the rows of
+    every run and part that training may read: the first ``trained_rows(n_rows,
+    train_fraction)`` of each part's history (:func:`jaxsync.surrogate.data.trained_rows`,
+    the rule :func:`~jaxsync.surrogate.data.build_dataset` samples by). ``runs``:
+    :class:`~jaxsync.surrogate.histories.SharedHistories`."""
+    from .data import trained_rows
+
+    return max(float(np.abs(h[:trained_rows(h.shape[0], train_fraction)]).max(initial=0.0))
+               for run in runs for h in run.histories)
 
 
 def choose_candidates(result: TrainResult, n_parts: int, n_candidates: int) -> tuple[TrainResult, dict | None]:

@@ -28,13 +28,13 @@ def add_parser(subparsers) -> None:
     p.add_argument("--load-parameter", "--cond", dest="load_parameter", type=float, default=None,
                    help="load parameter of conditional surrogates (--cond: its former name)")
     common.add_resync_tolerance_option(
-        p, help="error control: hold the run to this tolerance -- in cm (1e-4) or as a percentage of the largest "
-                "shared-node displacement seen in synchronized steps (2%%): each refill cycle's es_hat (the parts' "
-                "disagreement, paper eq. 26) is checked before it runs and the estimated error since the last "
-                "synchronized state (the force-balance defect probed at the saved steps, see --error-indicator) "
-                "after; above it the run goes back to the last synchronized state and recomputes with the "
-                "synchronized solver (default: 1%% of the largest shared-node displacement of TRAJECTORY; none "
-                "turns it off)")
+        p, help="error control: hold the run to this tolerance -- in cm (1e-4) or as a percentage (2%%) of the "
+                "shared amplitude the surrogates were trained on (the largest shared-node displacement in the steps "
+                "their training read, which the surrogate file records; a file without it: of TRAJECTORY): each "
+                "refill cycle's es_hat (the parts' disagreement, paper eq. 26) is checked before it runs and the "
+                "estimated error since the last synchronized state (the force-balance defect probed at the saved "
+                "steps, see --error-indicator) after; above it the run goes back to the last synchronized state "
+                "and recomputes with the synchronized solver (default: 1%%; none turns it off)")
     common.add_online_learning_option(p)
     p.add_argument("--raw-refill", action="store_true",
                    help="write the paper's raw refill into the solver (n_s interleaved network "
@@ -58,6 +58,20 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def trained_amplitude(saved, reference) -> float | None:
+    """The shared amplitude [cm] a percentage tolerance of ``jaxsync predict`` refers to:
+    the one the surrogate file records of its training data
+    (:attr:`jaxsync.surrogate.TrainedSurrogates.shared_amplitude`), else the largest
+    shared-node displacement of the trajectory ``reference``; None when that is 0 (the
+    tolerance then follows the amplitude the run observes)."""
+    import numpy as np
+
+    amplitude = saved.metadata.get("shared_amplitude_cm")
+    if amplitude is None:
+        amplitude = max(float(np.abs(p.shared_displacement).max(initial=0.0)) for p in reference.parts)
+    return float(amplitude) if amplitude and amplitude > 0 else None
+
+
 def run(args) -> int:
     from ...solve.syncavoid import describe_run, simulate_sync_avoiding
 
@@ -66,16 +80,13 @@ def run(args) -> int:
                          *([(learned, "learned surrogate file", "--learn-save")] if learned else []))
     common.refuse_to_overwrite([args.output] + ([learned] if learned else []), force=args.force,
                                inputs=common.trained_run_inputs(args))
-    default_tolerance = args.resync_tolerance is None
-    if default_tolerance:
-        args.resync_tolerance = "1%"  # of the trajectory's shared amplitude (below)
+    if args.resync_tolerance is None:
+        args.resync_tolerance = "1%"  # of the shared amplitude the surrogates were trained on (below)
     common.online_learning_of(args)  # --learn without a tolerance: refused before the run
     reference, part, problem, saved = common.load_trained_run(args)
     n_cri = args.n_cri or saved.n_s * saved.arch.n_past
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     import dataclasses
-
-    import numpy as np
 
     from ...solve.strategies import HostExecutor
     from ...surrogate import Surrogate
@@ -87,9 +98,8 @@ def run(args) -> int:
         # bound to the problem's load signals first (surrogates with load input read them)
         surrogates = _reduced_precision(surrogates.for_problem(problem, reference.dt), reference, args.trajectory)
     tolerance = common.resync_tolerance_of(args)
-    if default_tolerance:  # a share of the amplitude of the run the surrogates were trained on
-        amplitude = max(float(np.abs(p.shared_displacement).max(initial=0.0)) for p in reference.parts)
-        tolerance = dataclasses.replace(tolerance, amplitude=amplitude) if amplitude > 0 else tolerance
+    if tolerance is not None and tolerance.relative is not None and tolerance.amplitude is None:
+        tolerance = dataclasses.replace(tolerance, amplitude=trained_amplitude(saved, reference))
     online = simulate_sync_avoiding(problem, n_steps, partitions=part, surrogates=surrogates, n_cri=n_cri,
                                     dt=reference.dt, mode=common.mode_of(args),
                                     save=args.save_every or reference.save_every,
