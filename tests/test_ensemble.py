@@ -214,12 +214,13 @@ def test_vectorised_setup_equals_each_members_own_system(mesh, static, case):
     build_system and initial_state of member r's own Problem."""
     import jaxsync.solve.ensemble_members as em
     from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.solve.ensemble_stability import default_dt
 
     base = jaxsync.cantilever(mesh).replace(supports=(jaxsync.ElasticSupport(2.0e3, 50.0, surface="z0"),))
     members = _members(case, static)
     members = dataclasses.replace(members, damping=np.array([0.5, 0.1, 2.0]))  # with the supports' dashpots
     setup = em.setup_of_members(base, members)
-    dt = em.default_dt(setup)
+    dt = default_dt(setup)
     system, runs = em.batched_system(setup, dt)
     states = em.initial_states(setup, system, runs)
     u = np.random.default_rng(0).standard_normal((3, base.n_nodes, 3))
@@ -275,7 +276,8 @@ def test_gradient_in_each_members_E_matches_finite_differences(mesh):
 
 
 def test_a_member_above_its_stability_bound_is_named(mesh):
-    from jaxsync.solve.ensemble_members import member_bounds, setup_of_members
+    from jaxsync.solve.ensemble_members import setup_of_members
+    from jaxsync.solve.ensemble_stability import member_bounds
 
     base = jaxsync.cantilever(mesh)
     dt = float(base.dt)

@@ -9,6 +9,15 @@ import pytest
 NOTEBOOK = os.path.join(os.path.dirname(__file__), "..", "notebooks", "cantilever.ipynb")
 
 
+@pytest.fixture(autouse=True)
+def optimized_kernels(monkeypatch):
+    """The notebooks' kernels compile at XLA's default optimization level: they run inverse
+    problems and trainings (many steps per compiled program), where the unoptimized
+    machine code of the rest of the suite (conftest) costs more than it saves."""
+    flags = os.environ.get("XLA_FLAGS", "").split()
+    monkeypatch.setenv("XLA_FLAGS", " ".join(f for f in flags if not f.startswith("--xla_backend_optimization_level")))
+
+
 def test_cantilever_notebook_runs(tmp_path):
     nbformat = pytest.importorskip("nbformat")
     nbclient = pytest.importorskip("nbclient")

@@ -48,7 +48,7 @@ from ..pytree import pytree_dataclass
 from .sparse import BlockEll
 from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
-__all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "step", "internal_forces",
+__all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "start_levels", "step", "internal_forces",
            "internal_forces_and_variables", "backward_velocity",
            "central_difference", "apply_dirichlet", "prescribed_values", "external_force", "advance", "Probe",
            "STEP_UNROLL"]
@@ -293,7 +293,7 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
     if problem.density_scale is not None:
         M_1 = block_ell_values(consistent_mass(problem.mesh, problem.density_scale), adjacency)
     mass = BlockEll(jnp.asarray(adjacency), problem.material.rho * jnp.asarray(M_1), symmetric=True)
-    d0, previous = _start(system, mass, d0, v0)
+    d0, previous = start_levels(system, mass, d0, v0)
     from .reference_element import n_quadrature_points
 
     variables = problem.material.internal_variables(problem.mesh.n_elements, n_quadrature_points(problem.space))
@@ -301,9 +301,12 @@ def initial_state(problem, system: ExplicitSystem) -> SolverState:
 
 
 @jax.jit
-def _start(system: ExplicitSystem, mass: BlockEll, d0, v0):
-    """(d0, d(-1)) of :func:`initial_state` with the consistent ``mass``: one compiled
-    program (op by op, its conjugate gradients compiled a hundred small programs)."""
+def start_levels(system: ExplicitSystem, mass: BlockEll, d0, v0):
+    """(d0, d(-1)) (n_nodes, 3) [cm] of :func:`initial_state`: the initial displacement
+    ``d0`` with its Dirichlet values and the level before it from the initial velocity
+    ``v0`` [cm/s] and the acceleration of the consistent ``mass`` (conjugate gradients),
+    as one compiled program (op by op, its conjugate gradients compiled a hundred small
+    programs); ``jax.vmap`` over runs gives an ensemble's starts."""
     dt = system.dt
     d0 = apply_dirichlet(system, d0, 0.0)
     free = 1.0 - system.fixed.astype(float)

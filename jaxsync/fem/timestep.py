@@ -50,7 +50,8 @@ import numpy as np
 from ..errors import ProblemError, StabilityError
 from ..pytree import concrete_scalar as concrete_or_none
 
-__all__ = ["ALPHA_S", "MassScalingWarning", "StableStep", "element_size", "element_dt", "cfl_dt",
+__all__ = ["ALPHA_S", "DENSE_EIGEN_DOFS", "unit_bound", "MassScalingWarning", "StableStep", "element_size",
+           "element_dt", "cfl_dt",
            "max_stable_dt", "stable_step", "small_strain_step", "small_strain_max_stable_dt", "damped_bound",
            "hyperelastic_step", "check_dt", "divergence_advice", "mass_scaling"]
 
@@ -59,7 +60,7 @@ ALPHA_S = 0.9
 MASS_SCALING_WARN_PERCENT = 10.0
 """Default threshold of :func:`mass_scaling`'s warning: added mass in percent."""
 
-_DENSE_EIGEN_DOFS = 400
+DENSE_EIGEN_DOFS = 400
 """Up to this many free dofs the largest eigenvalue comes from a dense solver."""
 
 
@@ -167,7 +168,7 @@ def cfl_dt(problem, alpha_s: float = ALPHA_S):
     return dt if is_traced(dt) else float(dt)
 
 
-def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
+def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
     """2 / omega_max [s] of ``problem`` with E = 1 and rho = 1 (its nu, density scaling and
     Dirichlet set), memoised on the problem's operators: the bound of any E and rho is
     this times sqrt(rho / E), so traced E or rho (inside ``jax.grad``) need no solve."""
@@ -202,7 +203,7 @@ def _unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
     s = 1.0 / np.sqrt(mass[free])
     # the symmetric form M^-1/2 K M^-1/2 has the eigenvalues of M^-1 K
     A = K[free][:, free].multiply(s[:, None]).multiply(s[None, :]).tocsr()
-    if len(free) <= _DENSE_EIGEN_DOFS:
+    if len(free) <= DENSE_EIGEN_DOFS:
         import scipy.linalg
 
         largest = float(scipy.linalg.eigvalsh(A.toarray())[-1])
@@ -250,7 +251,7 @@ def small_strain_max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 2
     from ..pytree import is_traced
 
     m = problem.material
-    unit = _unit_bound(problem, tol, max_iter, seed)
+    unit = unit_bound(problem, tol, max_iter, seed)
     if is_traced(m.E, m.rho):
         return unit * jnp.sqrt(m.rho / m.E)
     return unit * float(np.sqrt(float(m.rho) / float(m.E)))
@@ -329,7 +330,7 @@ def small_strain_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     h = element_size(problem.mesh.points, problem.mesh.tets)
     scale = 1.0 if problem.density_scale is None else np.asarray(problem.density_scale, dtype=float)
     cfl_unit = float(np.min(alpha_s * h * np.sqrt(scale * (1.0 - float(m.nu) ** 2))))
-    if cfl_unit <= alpha_s * _unit_bound(problem, 1e-10, 20000, 0):
+    if cfl_unit <= alpha_s * unit_bound(problem, 1e-10, 20000, 0):
         return StableStep(dt=cfl, rule="cfl", cfl=cfl, exact=exact, alpha_s=alpha_s)
     return StableStep(dt=alpha_s * exact, rule="exact", cfl=cfl, exact=exact, alpha_s=alpha_s)
 

@@ -29,13 +29,12 @@ from .ensemble_members import (
     Members,
     RunData,
     batched_system,
-    check_members_dt,
-    default_dt,
     initial_states,
     member_system,
     setup_of_members,
     setup_of_problems,
 )
+from .ensemble_stability import check_members_dt, default_dt
 from .phases import synchronized_steps
 from .record import part_histories, run_parameters, synchronized_trajectory
 from .strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
@@ -144,8 +143,8 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
             (:func:`jaxsync.surrogate.histories.read_shared_histories`).
         dt: time step [s], one for all runs; default the smallest of the runs' default
             steps (runs of one material: run 0's ``dt``;
-            :func:`jaxsync.solve.ensemble_members.default_dt`). Checked against every run's
-            stability bound (:func:`jaxsync.solve.ensemble_members.check_members_dt`: for
+            :func:`jaxsync.solve.ensemble_stability.default_dt`). Checked against every run's
+            stability bound (:func:`jaxsync.solve.ensemble_stability.check_members_dt`: for
             the linear law a bound computed once for all runs, the exact bound of a run
             above it; for a hyperelastic law the exact bound of each distinct run).
             Needed when the runs' parameters are traced and differ.
