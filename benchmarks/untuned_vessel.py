@@ -55,6 +55,30 @@ def command(args: list[str], log: list, cwd: str) -> float:
     return seconds
 
 
+def held_tolerance_cm(tolerance: str, surrogate_path: str, reference, stats) -> float | None:
+    """The tolerance [cm] ``jaxsync predict --resync-tolerance tolerance`` held the run to:
+    a length as given, a percentage of the shared amplitude the surrogate file records
+    (:func:`jaxsync.app.commands.predict.trained_amplitude`, the rule predict applies),
+    whether or not any cycle was rejected; the largest the run recorded at its
+    re-synchronizations where it followed the amplitude it observed."""
+    import dataclasses
+
+    from jaxsync.app.commands.predict import trained_amplitude
+    from jaxsync.solve.strategies import ResyncTolerance
+    from jaxsync.surrogate import load_surrogate
+
+    held = ResyncTolerance.parse(tolerance)
+    if held.relative is not None and held.amplitude is None:
+        amplitude = trained_amplitude(load_surrogate(surrogate_path), reference)
+        if amplitude is None:  # the run followed its observed amplitude
+            return max(float(t) for t in stats.tolerance_cm) if stats.tolerance_cm else None
+        held = dataclasses.replace(held, amplitude=amplitude)
+    cm = float(held.cm(0.0))
+    recorded = [float(t) for t in (stats.tolerance_cm or ())]
+    assert all(abs(t - cm) <= 1e-12 * cm for t in recorded), (cm, recorded)  # the run held this one
+    return cm
+
+
 def nodal_errors(ref, onl, train_until_step: int) -> dict:
     """The largest nodal error [cm] of the online run ``onl`` against the reference ``ref``
     (:class:`jaxsync.Trajectory`), over every saved snapshot after n_cri and over those
@@ -92,7 +116,8 @@ def run_model(model: str, args, workdir: str, log: list, n_steps: int, mesh: str
     trajectory = jaxsync.Trajectory.load(os.path.join(workdir, online))
     stats = trajectory.stats
     after = int(stats.n_steps) - int(stats.n_cri)
-    tolerance_cm = max(float(t) for t in stats.tolerance_cm) if stats.tolerance_cm else None
+    tolerance_cm = held_tolerance_cm(args.tolerance, os.path.join(workdir, surrogate_dir, "surrogate.h5"),
+                                     reference, stats)
     train_until = n_steps // 2
     errors = nodal_errors(reference, trajectory, train_until)
     row = {"model": model, "n_steps": int(stats.n_steps), "n_cri": int(stats.n_cri),

@@ -33,5 +33,12 @@ def test_untuned_vessel_quick_run_reports_what_its_trajectories_hold(tmp_path):
     error = np.sqrt(((np.asarray(online.displacement) - np.asarray(reference.displacement)) ** 2).sum(-1))
     assert row["max_nodal_error_cm"] == pytest.approx(error[steps > stats.n_cri].max(), rel=1e-12)
     assert row["max_nodal_error_out_of_sample_cm"] == pytest.approx(error[steps > 1500].max(), rel=1e-12)
+    # 1 % of the shared amplitude of the trained steps (the surrogate file records it), at every re-synchronization
+    trained = jaxsync.surrogate.load_surrogate(out / "run" / "surrogate_linear" / "surrogate.h5")
+    rows = reference.parts[0].shared_displacement.shape[0]
+    amplitude = max(np.abs(p.shared_displacement[:rows // 2]).max() for p in reference.parts)
+    assert trained.metadata["shared_amplitude_cm"] == amplitude
+    assert row["tolerance_cm"] == pytest.approx(0.01 * amplitude, rel=1e-12)
+    assert all(t == pytest.approx(row["tolerance_cm"], rel=1e-12) for t in stats.tolerance_cm or ())
     assert row["tolerance_cm"] > 0 and row["error_over_tolerance"] == row["max_nodal_error_cm"] / row["tolerance_cm"]
     assert row["meets_target"] == (row["predicted_fraction_after_n_cri"] >= 0.8 and row["error_over_tolerance"] <= 2)

@@ -166,7 +166,7 @@ def test_sparse_exact_bound_equals_the_dense_one():
 
     problem = _with_nu(jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, (25, 2, 2))), 0.45)
     sparse = jaxsync.max_stable_dt(problem)
-    assert 3 * problem.mesh.n_nodes > timestep._DENSE_EIGEN_DOFS
+    assert 3 * problem.mesh.n_nodes > timestep.DENSE_EIGEN_DOFS
     K = problem.operators.stiffness(problem.material.lam, problem.material.mu)
     m = np.repeat(np.asarray(problem.lumped_mass()), 3)
     fixed, _ = problem.dirichlet_dofs()
