@@ -23,6 +23,7 @@ from jaxsync.fem.sparse import (
     block_ell_values,
     degree_widths,
     grouped_layout,
+    in_compact_form,
     node_adjacency,
     row_degrees,
     split_diagonal,
@@ -330,6 +331,24 @@ def test_block_ell_compact_product_and_its_reverse_pass_equal_scipy(tree, stiffn
     K_y_bar = (stiffness @ y_bar.ravel()).reshape(-1, 3)
     np.testing.assert_allclose(u_bar, 2.5 * K_y_bar, rtol=0, atol=1e-13 * abs(K_y_bar).max() * 2.5)
     assert abs(float(scale_bar) - float(np.sum(K_y_bar * u))) <= 1e-12 * float(np.sum(abs(K_y_bar * u)))
+
+
+def test_in_compact_form_keeps_the_product_and_leaves_other_operators(tree, stiffness):
+    """The start's operators (jaxsync.fem.stepper.start_levels): a fused BlockEll and
+    GroupedEll turned compact still compute SciPy's K u; an operator without stored blocks
+    is returned as it is."""
+    adjacency = node_adjacency(tree.tets, tree.n_nodes)
+    u = np.random.default_rng(5).standard_normal((tree.n_nodes, 3))
+    expected = (stiffness @ u.ravel()).reshape(-1, 3)
+    for op in (BlockEll(jnp.asarray(adjacency), jnp.asarray(block_ell_values(stiffness, adjacency)), symmetric=True),
+               grouped(stiffness, adjacency)):
+        compact = in_compact_form(op)
+        assert not op.compact and compact.compact and type(compact) is type(op)
+        np.testing.assert_allclose(jax.jit(lambda o: o.matvec(jnp.asarray(u)))(compact), expected,
+                                   rtol=0, atol=1e-13 * abs(expected).max())
+        assert in_compact_form(compact) is compact
+    other = object()
+    assert in_compact_form(other) is other
 
 
 def test_auto_product_is_chosen_by_the_run_length():

@@ -41,6 +41,7 @@ nothing). The product per group is :func:`_matvec`, so every group keeps the fus
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 
 import jax
@@ -52,7 +53,7 @@ from ..pytree import pytree_dataclass, static_field
 
 __all__ = ["BlockEll", "GroupedEll", "node_adjacency", "block_ell_values", "pad_block_ell",
            "degree_widths", "grouped_layout", "row_degrees", "split_diagonal", "bandwidth_order",
-           "permuted_block_ell", "PARTIAL_SUMS"]
+           "permuted_block_ell", "in_compact_form", "PARTIAL_SUMS"]
 
 
 @pytree_dataclass
@@ -352,6 +353,17 @@ def _grouped_symmetric_bwd(n_rows, compact, residuals, y_bar):
 
 
 _grouped_symmetric.defvjp(_grouped_symmetric_fwd, _grouped_symmetric_bwd)
+
+
+def in_compact_form(operator):
+    """``operator`` with its product in the compact form (one gather of every slot and one
+    reduction, :attr:`BlockEll.compact`) when it is a :class:`BlockEll` or
+    :class:`GroupedEll`, else ``operator`` itself (element-by-element forces have no
+    stored blocks). For programs that apply an operator a few times, where compiling is
+    the cost: the start's conjugate gradients (:func:`jaxsync.fem.stepper.start_levels`)."""
+    if isinstance(operator, BlockEll) and not operator.compact:
+        return dataclasses.replace(operator, compact=True)
+    return operator
 
 
 def split_diagonal(blocks, dtype):

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 
 from ..pytree import pytree_dataclass
-from .sparse import BlockEll
+from .sparse import BlockEll, in_compact_form
 from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "start_levels", "step", "internal_forces",
@@ -307,6 +307,11 @@ def start_levels(system: ExplicitSystem, mass: BlockEll, d0, v0):
     ``v0`` [cm/s] and the acceleration of the consistent ``mass`` (conjugate gradients),
     as one compiled program (op by op, its conjugate gradients compiled a hundred small
     programs); ``jax.vmap`` over runs gives an ensemble's starts."""
+    # A one-shot program: its compilation, not its few dozen products, is the cost, so its
+    # operators take the compact product whatever form the run's steps use (a coronary tree
+    # of 3 481 tets: 6.9 s -> 1.7 s to compile and run at XLA's default level).
+    system = dataclasses.replace(system, stiffness=in_compact_form(system.stiffness))
+    mass = in_compact_form(mass)
     dt = system.dt
     d0 = apply_dirichlet(system, d0, 0.0)
     free = 1.0 - system.fixed.astype(float)

@@ -52,8 +52,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError, ProblemError
+from ..fem.internal_force import ForceModel, force_model
 from ..fem.stepper import SolverState, build_system, initial_state
-from ..options import Mode, check_option
+from ..options import Mode
 from ..parallel.layout import PartLayout, part_systems
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
@@ -79,7 +80,7 @@ def _partition_of(problem, partitions):
     return partitions if isinstance(partitions, Partition) else partition(problem.mesh, partitions)
 
 
-def _start(problem, dt: float, mode: Mode):
+def _start(problem, dt: float, mode: Mode | ForceModel):
     """(global system, host d(0), host d(-1)) of the paper's start."""
     system = build_system(problem, dt, mode)
     state = initial_state(problem, system)
@@ -95,23 +96,27 @@ def _local_stage_times(problem, system, part_info, part, d0, dm1, mode, n_steps,
     part_state = jax.device_put(SolverState(d0[part.nodes], dm1[part.nodes],
                                             jnp.asarray(0, dtype=jnp.int32)), device)
     scale = jax.device_put(jnp.zeros(()), device)
-    names = ["full", "other", "force", "empty", "call"] + (["scatter"] if mode == "recompute" else [])
+    recompute = force_model(mode).name == "recompute"
+    names = ["full", "other", "force", "empty", "call"] + (["scatter"] if recompute else [])
     calls = {name: (jax.jit(kernels.LOCAL_VARIANTS[name], static_argnums=3),
                     (part_system, part_state, scale, n_steps)) for name in names}
-    if mode == "recompute":
+    if recompute:
         forces = jax.device_put(jnp.ones((len(part.elements), 4, 3)), device)
         calls["scatter"] = (calls["scatter"][0], (part_system, part_state, scale, n_steps, forces))
     return per_step_times(best_times(calls, repeats), n_steps), setup_s
 
 
-def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_steps: int | None = None,
+def timing_breakdown(problem, partitions=1, *, mode: Mode | ForceModel = "preassembled", n_steps: int | None = None,
                      repeats: int = 100, dt=None, sync="psum", devices=None) -> TimingReport:
     """Measure t_e, t_m, t_s, t_o and t_t per part and per step (method: module docstring).
 
     Args:
         problem: a :class:`jaxsync.Problem` (concrete, not traced).
         partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
-        mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2).
+        mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2), or a force model
+            (e.g. ``Preassembled(product="compact")``: the form a short run compiles,
+            :func:`jaxsync.fem.internal_force.run_force_model`); the report names its
+            ``name``.
         n_steps: steps per timed call; about 1 ms per call is a good choice (the per-call
             cost is measured and removed, so short calls lose no accuracy). Default
             (None): 20000 / (nodes of the largest part), clipped to [5, 400].
@@ -139,7 +144,7 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
         PartitionError: a partition that cannot be made or does not fit the mesh.
     """
     require_float64("timing_breakdown")
-    check_option("mode", mode, Mode, error=ProblemError)
+    mode_name = force_model(mode).name  # a bad name: ProblemError naming the allowed ones
     _check_counts(n_steps=n_steps, repeats=repeats)
     dt = float(problem.dt if dt is None else dt)
     part_info = _partition_of(problem, partitions)
@@ -178,11 +183,11 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode = "preassembled", n_st
     rows = []
     for part, t in zip(runner.layout.parts, local_times):
         t_force = max(t["force"] - t["other"], 0.0)
-        t_m = min(max(t["scatter"] - t["empty"], 0.0), t_force) if mode == "recompute" else t_force
+        t_m = min(max(t["scatter"] - t["empty"], 0.0), t_force) if mode_name == "recompute" else t_force
         rows.append(PartTiming(part=part.index, n_nodes=part.n_local, n_elements=len(part.elements),
                                n_shared=part.n_shared, t_e=t_force - t_m, t_m=t_m,
                                t_s=t_s, t_o=t["other"], t_local=t["full"], t_t=t["full"] + t_s))
-    return TimingReport(mode=mode, n_parts=part_info.n_parts, n_shared_nodes=part_info.n_interface,
+    return TimingReport(mode=mode_name, n_parts=part_info.n_parts, n_shared_nodes=part_info.n_interface,
                         n_nodes=problem.n_nodes, n_elements=problem.mesh.n_elements,
                         n_steps=n_steps, repeats=repeats, dt=dt,
                         device=describe_devices(runner.devices), n_devices=len(runner.devices),
@@ -217,7 +222,7 @@ def _part_prediction_times(predictor, n_parts: int, history: int, n_dof: int, de
     return tuple(out)
 
 
-def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "preassembled",
+def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | ForceModel = "preassembled",
                       syncs=("psum", "ppermute"), n_cycles: int = 1, repeats: int = 10,
                       stage_repeats: int = 50, dt=None, prediction_repeats: int | None = None,
                       halo_depths: tuple = ()) -> SpeedupReport:
@@ -243,7 +248,8 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode = "prea
             n_s = 80 (:meth:`jaxsync.surrogate.Surrogate.initialized`; another stride:
             ``Surrogate.initialized(partition, n_s)``): the cost does not depend on the
             weights.
-        mode: ``"preassembled"`` or ``"recompute"``.
+        mode: ``"preassembled"`` or ``"recompute"``, or a force model (as
+            :func:`timing_breakdown`).
         syncs: exchanges to time for the baseline (the faster one is kept):
             :class:`jaxsync.Psum` and/or :class:`jaxsync.Ppermute`, or any exchange that
             synchronizes every step, or registered names; the first one's devices run
