@@ -22,10 +22,21 @@ vectorised pass; ``jaxsync.ensemble(problems, n_steps)`` takes one
 - ``run_steps_per_s``: members times batched steps per second (``stats.us_per_step`` of the
   warm call, ``--steps`` steps; every call runs them).
 
-Usage: python benchmarks/bench_ensemble.py [--members 64 512] [--steps 2000] [--quick]
+Vessels (rows with ``"problem": "vessel"``): the demo's coronary tree
+(``jaxsync.app.demo.vessel_problem``: the generated tree of about ``--vessel-size``
+tetrahedra under the paper's pulsatile lumen pressure, mass-scaled to 2.5 times its CFL
+step), ``--vessel-members`` members whose E (and in the ``E,nu,rho`` case nu and rho)
+differ, ``--vessel-steps`` batched steps: the set-up per member (first call and compiled,
+as above), the batched step and run-steps per second, and ``max_rel_diff_member_vs_simulate``:
+the largest |difference| of the last member's trajectory from ``jaxsync.simulate`` of its
+own problem (``members.problem(problem, r)``) at the ensemble's step, over its largest
+|displacement|.
+
+Usage: python benchmarks/bench_ensemble.py [--members 64 512] [--steps 2000]
+    [--vessel-members 32] [--vessel-steps 500] [--vessel-size 3500] [--quick]
     [--out benchmarks/results/ensemble/ensemble.json]
 
-``--quick``: 8 members, 100 steps (the test's settings).
+``--quick``: 8 members, 100 steps; vessels: 2 members, 20 steps (the test's settings).
 """
 
 from __future__ import annotations
@@ -114,7 +125,7 @@ def measure(case: str, n: int, n_steps: int, own_systems_members: int) -> dict:
                      for a, b in zip(runs, together))
     own = own_systems_per_member(mesh, params, min(n, own_systems_members), dt)
     us = again[0].stats.us_per_step
-    return {"case": case, "members": n, "dofs": base.n_dofs, "dt": dt,
+    return {"problem": "cantilever", "case": case, "members": n, "dofs": base.n_dofs, "dt": dt,
             "setup_ms_per_member": {"cold": 1e3 * cold / n, "warm": 1e3 * warm / n},
             "problems_ms_per_member": 1e3 * (built + per_problem) / n,
             "problems_construction_ms_per_member": 1e3 * built / n,
@@ -124,12 +135,60 @@ def measure(case: str, n: int, n_steps: int, own_systems_members: int) -> dict:
             "compile_s": runs[0].stats.compile_seconds}
 
 
+def draw_vessel(case: str, n: int, material, seed: int = 0) -> dict:
+    """The vessel members' material: E ~ U(0.8, 1.2) times the problem's; with ``E,nu,rho``
+    also nu ~ U(0.35, 0.45) and rho ~ U(0.9, 1.1) times the problem's (the wall's 0.4 and 1)."""
+    rng = np.random.default_rng(seed)
+    out = {"E": material.E * rng.uniform(0.8, 1.2, n)}
+    if case == "E,nu,rho":
+        out.update(nu=rng.uniform(0.35, 0.45, n), rho=material.rho * rng.uniform(0.9, 1.1, n))
+    return out
+
+
+def vessel_case(size: int):
+    """The demo's vessel, mass-scaled (module docstring)."""
+    from jaxsync.app.demo import vessel_problem
+
+    return vessel_problem(size)[1]
+
+
+def measure_vessel(problem, case: str, n: int, n_steps: int) -> dict:
+    """One vessel row (module docstring)."""
+    members = jaxsync.Members(material=draw_vessel(case, n, problem.material))
+    quiet = jaxsync.HostExecutor(progress=False)
+
+    def vectorised():
+        return jaxsync.ensemble(problem, n_steps, members=members, save=n_steps, executor=quiet)
+
+    cold, runs = setup_seconds(vectorised, n_steps)
+    warm, again = setup_seconds(vectorised, n_steps)
+    dt = float(runs[0].dt)
+    last = n - 1  # the member checked against its own run
+    alone = jaxsync.simulate(members.problem(problem, last), n_steps, dt=dt, save=n_steps, executor=quiet)
+    reference = np.asarray(alone.displacement)
+    difference = float(np.abs(np.asarray(runs[last].displacement) - reference).max()
+                       / max(np.abs(reference).max(), 1e-300))
+    us = again[0].stats.us_per_step
+    return {"problem": "vessel", "case": case, "members": n, "dofs": problem.n_dofs,
+            "elements": int(problem.mesh.n_elements), "dt": dt,
+            "setup_ms_per_member": {"cold": 1e3 * cold / n, "warm": 1e3 * warm / n},
+            "max_rel_diff_member_vs_simulate": difference, "member_checked": last,
+            "us_per_step_member_alone": alone.stats.us_per_step,
+            "steps": n_steps, "us_per_batched_step": us, "run_steps_per_s": n * 1e6 / us,
+            "compile_s": runs[0].stats.compile_seconds}
+
+
 def table(rows: list[dict]) -> str:
-    lines = ["| varying | members | setup ms/member cold / warm | as problems ms/member | own systems ms/member "
-             "| us / batched step | run-steps/s |", "|---|---|---|---|---|---|---|"]
+    lines = ["| problem | varying | members | setup ms/member cold / warm | as problems ms/member "
+             "| own systems ms/member | us / batched step | run-steps/s |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s = r["setup_ms_per_member"]
-        lines.append(f"| {r['case']} | {r['members']} | {s['cold']:.2f} / {s['warm']:.2f} | "
+        if r.get("problem") == "vessel":
+            lines.append(f"| vessel ({r['dofs']} dofs) | {r['case']} | {r['members']} | {s['cold']:.2f} / "
+                         f"{s['warm']:.2f} | - | - | {r['us_per_batched_step']:.0f} | {r['run_steps_per_s']:.3g} |")
+            continue
+        lines.append(f"| cantilever ({r['dofs']} dofs) | {r['case']} | {r['members']} | {s['cold']:.2f} / "
+                     f"{s['warm']:.2f} | "
                      f"{r['problems_ms_per_member']:.1f} | {r['own_systems_ms_per_member']:.1f} | "
                      f"{r['us_per_batched_step']:.0f} | {r['run_steps_per_s']:.3g} |")
     return "\n".join(lines)
@@ -142,7 +201,13 @@ def main(argv=None) -> int:
     parser.add_argument("--case", nargs="+", choices=CASES, default=None, help="what varies (default: both)")
     parser.add_argument("--own-systems-members", type=int, default=64,
                         help="members set up on their own, timed (default 64)")
-    parser.add_argument("--quick", action="store_true", help="8 members, 100 steps")
+    parser.add_argument("--vessel-members", type=int, nargs="*", default=None,
+                        help="vessel ensemble sizes (default 32; --quick 2; none: no vessel rows)")
+    parser.add_argument("--vessel-steps", type=int, default=None,
+                        help="batched vessel steps timed (default 500; --quick 20)")
+    parser.add_argument("--vessel-size", type=int, default=3500,
+                        help="target tetrahedra of the vessel (default %(default)s)")
+    parser.add_argument("--quick", action="store_true", help="8 members, 100 steps; vessels 2 members, 20 steps")
     parser.add_argument("--out", default=DEFAULT_OUT, help="result JSON (default %(default)s)")
     args = parser.parse_args(argv)
     sizes = args.members or ([8] if args.quick else [64, 512])
@@ -158,11 +223,25 @@ def main(argv=None) -> int:
             print(f"{case} x {n}: setup {r['setup_ms_per_member']['cold']:.2f} ms/member (cold), "
                   f"{r['setup_ms_per_member']['warm']:.2f} (warm); as problems {r['problems_ms_per_member']:.1f}; "
                   f"own systems {r['own_systems_ms_per_member']:.1f}", flush=True)
+    vessel_sizes = [2] if args.quick and args.vessel_members is None else (
+        [32] if args.vessel_members is None else args.vessel_members)
+    vessel_steps = args.vessel_steps or (20 if args.quick else 500)
+    vessel = vessel_case(args.vessel_size) if vessel_sizes else None
+    for case in (args.case or CASES) if vessel_sizes else ():
+        for n in vessel_sizes:
+            rows.append(measure_vessel(vessel, case, n, vessel_steps))
+            r = rows[-1]
+            print(f"vessel ({r['elements']} tets, {r['dofs']} dofs) {case} x {n}: setup "
+                  f"{r['setup_ms_per_member']['cold']:.2f} ms/member (cold), {r['setup_ms_per_member']['warm']:.2f} "
+                  f"(warm); {r['us_per_batched_step']:.0f} us per batched step, {r['run_steps_per_s']:.3g} "
+                  f"run-steps/s; member {r['member_checked']} vs simulate {r['max_rel_diff_member_vs_simulate']:.1e}",
+                  flush=True)
     text = table(rows)
     print(text)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     atomic_json(args.out, {"rows": rows, "quick": args.quick, "table": text, "machine": experiments.machine(),
-                           "command": "python benchmarks/bench_ensemble.py" + (" --quick" if args.quick else "")})
+                           "command": " ".join(["python benchmarks/bench_ensemble.py",
+                                                   *(sys.argv[1:] if argv is None else map(str, argv))])})
     return 0
 
 

@@ -12,6 +12,7 @@ import pytest
 import jaxsync
 from jaxsync.app.cli import build_parser, parts_of
 from jaxsync.app.demo import SUMMARY_KEYS, VESSEL_KEYS, demo_defaults
+from jaxsync.app.run_estimate import NOT_INCLUDED, format_duration
 from jaxsync.errors import ConfigError
 from test_cli_pipeline import run_cli
 
@@ -204,3 +205,36 @@ def test_vessel_bad_sizes_are_refused(tmp_path):
     assert run.code == 2 and "from 1000 to 2000000" in run.err
     run = run_cli(["demo", "--train-fraction", "1.5", "--out", tmp_path / "y", "--no-progress"])
     assert run.code == 2 and "train fraction must be in (0, 1], got 1.5" in run.err and not (tmp_path / "y").exists()
+
+
+# The run-time estimate printed before the first stage (jaxsync.app.run_estimate; its
+# arithmetic and text: tests/test_demo_estimate.py), on this fixture's run.
+def test_the_estimate_comes_before_the_first_stage(vessel):
+    run, summary = vessel[1], vessel[2]
+    text = summary["estimate"]["text"]
+    assert text.startswith("estimated time on this machine (cpu, 2 devices emulated in one process): about ")
+    at = run.out.index(text)
+    assert run.out.index("estimating the run time") < run.out.index("; timing a training epoch") < at
+    assert at < run.out.index("[1/5] mass-scaling check") < run.out.index("[2/5] synchronized run")
+
+
+def test_the_recorded_estimate_is_the_product_of_what_it_measured(vessel):
+    """Each part is the count times the rate the code measured, both recorded; the total
+    is their sum; the counts are the run's own."""
+    summary = vessel[2]
+    e = summary["estimate"]
+    assert e["n_steps"] == summary["n_steps"] == N_STEPS and e["n_parts"] == N_PARTS
+    assert e["n_devices"] == summary["n_devices"] == 2 and e["device_kind"] == summary["device_kind"]
+    assert e["us_per_step_synchronized"] > 0 and e["calibration_steps"] >= 20
+    assert e["synchronized_s"] == pytest.approx(N_STEPS * e["us_per_step_synchronized"] * 1e-6, rel=1e-12)
+    assert e["sync_avoiding_s"] == e["synchronized_s"]
+    assert e["epochs"] == 2 and e["training_s"] == pytest.approx(2 * e["seconds_per_epoch"], rel=1e-12)
+    # both runs of the mass-scaling check, which trims each to whole sampling strides
+    m = summary["mass_scaling"]
+    assert 0 <= e["mass_scaling_steps"] - (m["n_steps_cfl"] + m["n_steps_scaled"]) <= 0.01 * e["mass_scaling_steps"]
+    assert e["mass_scaling_s"] == pytest.approx(e["mass_scaling_steps"] * e["us_per_step_single_device"] * 1e-6,
+                                                rel=1e-12)
+    parts = ("mass_scaling_s", "synchronized_s", "sync_avoiding_s", "training_s")
+    assert e["total_s"] == pytest.approx(sum(e[k] for k in parts), rel=1e-12)
+    assert format_duration(e["total_s"]) in e["text"].splitlines()[0]
+    assert e["measure_seconds"] > 0 and e["not_included"] == NOT_INCLUDED

@@ -17,10 +17,11 @@ laptop) and ``"paper"`` (about 250 000 dofs as the paper's mesh, 5 s = 1e6 steps
 5e-6 s, n_s = 1000: hours to days on a laptop; see ``benchmarks/paper_vessel.py``), or
 a target tetrahedron count.
 
-The pipeline: (0, vessel only) the mass-scaling check of paper figure 19: one node's
-displacement at the CFL step and at the scaled step, single-device runs over the same
-physical time; (1) a synchronized distributed run; (2) training of one LSTM surrogate
-per part on it (its first half;
+The pipeline: (vessel only) the run-time estimate on this machine, from short timed
+pieces of the run (:mod:`jaxsync.app.run_estimate`); (0, vessel only) the mass-scaling
+check of paper figure 19: one node's displacement at the CFL step and at the scaled
+step, single-device runs over the same physical time; (1) a synchronized distributed
+run; (2) training of one LSTM surrogate per part on it (its first half;
 :func:`jaxsync.surrogate.train_surrogates`, as ``jaxsync train``); (3) the
 synchronization-avoiding run from n_cri = n_s n_p on; (4) timing of the compiled
 programs (:func:`jaxsync.perf.timing.speedup_breakdown`), the cost-model projection to
@@ -61,10 +62,11 @@ SUMMARY_KEYS = ("n_steps", "n_synchronized", "n_predicted", "tip_max_abs_error",
 ``train_until_step``, :func:`jaxsync.app.plots.out_of_sample`)."""
 
 VESSEL_KEYS = ("es_max", "es_hat_max", "es_hat_tracking", "interior_max_relative_error", "mass_scaling",
-               "projection", "n_elements", "n_dofs", "n_shared_nodes", "vessel")
+               "projection", "n_elements", "n_dofs", "n_shared_nodes", "vessel", "estimate")
 """Keys the vessel case adds (es, es_hat and their correlation, the mass-scaling check,
-the cost-model projection to 11 real processors, the mesh's size, and the vessel section
-of the report: :func:`jaxsync.app.vessel_report.vessel_section`)."""
+the cost-model projection to 11 real processors, the mesh's size, the vessel section
+of the report: :func:`jaxsync.app.vessel_report.vessel_section`, and the run-time
+estimate printed before the first stage: :func:`jaxsync.app.run_estimate.measure_demo_estimate`)."""
 
 MASS_SCALING_BETA = 2.5
 """The vessel's step over its CFL step (paper: 5e-6 / 2.02e-6 = 2.48)."""
@@ -386,6 +388,13 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     if case == "vessel":
         window = ((0.5 * d.n_steps * problem.dt if _vessel_target(size) <= 50_000 else 0.05)
                   if mass_scaling_seconds is None else float(mass_scaling_seconds))
+        from .run_estimate import measure_demo_estimate  # timed pieces of the run, before its long stages
+
+        log("estimating the run time: timing the synchronized step, the single-device step and a training epoch")
+        extra["estimate"] = measure_demo_estimate(problem, parts, d, shared_every=shared_every, seed=seed,
+                                                  mass_scaling=(window, problem_cfl.dt), load_input=load_input,
+                                                  highway=highway, log=log)
+        log(extra["estimate"]["text"])
         log(f"[{next(stage)}/{n_stages}] mass-scaling check over {window:.3g} s: single-device runs at the CFL "
             f"step and at the scaled step")
         extra["mass_scaling"] = mass_scaling_check(problem_cfl, problem, added, window, progress=progress)
@@ -433,6 +442,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     log("  " + describe_run(online))
 
     log(f"[{next(stage)}/{n_stages}] timing (compiled programs, round-robin) and report")
+    from ..fem.internal_force import run_force_model
     from ..perf.timing import speedup_breakdown
 
     # the vessel's timed calls are long (one refill cycle, n_s n_f = 20 000 steps, about 10 s)
@@ -442,7 +452,9 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
         settings = dict(repeats=3, stage_repeats=10)
     else:
         settings = dict(repeats=1, stage_repeats=3, prediction_repeats=2, syncs=("psum",))
-    timing = speedup_breakdown(problem, parts, trained.surrogate, **settings)
+    # the programs in the form the runs compiled (a short run's compact product)
+    timing = speedup_breakdown(problem, parts, trained.surrogate,
+                               mode=run_force_model("preassembled", problem, d.n_steps), **settings)
     us_sync = float(reference.stats.us_per_step)
     us_pred = online.stats.us_per_step_predicted  # None when every step was re-synchronized
     extra.update({

@@ -18,9 +18,10 @@ def add_parser(subparsers) -> None:
                     "--case vessel: the paper's coronary case on a generated coronary tree with 11 parts, mass "
                     "scaling (with the check of paper figure 19) and error control at 1 %; --size small (default, "
                     "about 5 000 tets, about 15 minutes on a 2-core laptop) or paper (about 250 000 "
-                    "dofs and 1e6 steps: hours to days). Prints a summary table and writes trajectories, "
-                    "the surrogate file, figures and summary.json into --out; a folder that holds an earlier demo is "
-                    "replaced only with --force, and only once the new run is complete.")
+                    "dofs and 1e6 steps: hours to days); before its first stage the vessel prints how long the run "
+                    "will take on this machine, from short timed pieces of it. Prints a summary table and writes "
+                    "trajectories, the surrogate file, figures and summary.json into --out; a folder that holds an "
+                    "earlier demo is replaced only with --force, and only once the new run is complete.")
     p.add_argument("--case", choices=("cantilever", "vessel"), default="cantilever",
                    help="the problem (default: %(default)s)")
     p.add_argument("--size", default="small",
