@@ -207,6 +207,29 @@ def test_members_equal_their_own_problems_run_one_by_one(mesh, static, case):
     assert len({round(t.parameters["E"]) for t in together}) == 3
 
 
+def test_a_short_ensemble_compiles_the_compact_product(mesh, static):
+    """The stiffness product's form as for one run of n_runs * n_steps steps: compact below
+    COMPACT_SLOT_STEPS, fused above it and where the length is not given; both give every
+    member's K u to round-off."""
+    import jaxsync.solve.ensemble_members as em
+    from jaxsync.fem.internal_force import COMPACT_SLOT_STEPS
+    from jaxsync.solve.ensemble_stability import default_dt
+
+    base = jaxsync.cantilever(mesh)
+    slots = int(np.prod(base.operators.block_ell[0].shape))
+    short, long = int(COMPACT_SLOT_STEPS // (3 * slots)) - 1, int(COMPACT_SLOT_STEPS // (3 * slots)) + 1
+    u = np.random.default_rng(1).standard_normal((base.n_nodes, 3))
+    for case in ("E", "E, nu"):
+        setup = em.setup_of_members(base, _members(case, static))
+        dt = default_dt(setup)
+        forms = {n: em.batched_system(setup, dt, n) for n in (short, long, None)}
+        assert [forms[n][0].stiffness.compact for n in (short, long, None)] == [True, False, False], case
+        for r in range(3):
+            products = [em.member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs)).stiffness.matvec(u)
+                        for system, runs in forms.values()]
+            assert relative_error(products[0], products[1]) <= 1e-14, case
+
+
 @pytest.mark.parametrize("case", ["E", "E, nu"])
 def test_vectorised_setup_equals_each_members_own_system(mesh, static, case):
     """The batched system's member r (stiffness, lumped mass, damping, beta, loads,

@@ -130,7 +130,9 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
 
     Args:
         problems: a sequence of n_runs problems, or with ``members`` the one problem.
-        n_steps: time steps of every run (a multiple of the save stride).
+        n_steps: time steps of every run (a multiple of the save stride). With the number
+            of runs it chooses the stiffness product's form, as for one run of n_runs *
+            n_steps steps (:meth:`jaxsync.fem.internal_force.Preassembled.for_run`).
         members: a :class:`jaxsync.Members`, or None (the runs are ``problems``).
         partitions: None; or an int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`:
             each trajectory then has the per-part shared-node histories of a distributed
@@ -218,7 +220,7 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
     partition = _partition(first, partitions)
 
     # One shared system for all runs, and each run's own data (no assembly per run).
-    batched, runs = batched_system(setup, dt)
+    batched, runs = batched_system(setup, dt, n_steps)  # a short ensemble compiles the compact product
     stacked = initial_states(setup, batched, runs)
     record = partition is not None and save.records_every_step
     interface = partition.shared_nodes if record else None

@@ -489,17 +489,21 @@ def _same(a, b) -> bool:
     return True
 
 
-def batched_system(setup: EnsembleSetup, dt) -> tuple[ExplicitSystem, RunData]:
+def batched_system(setup: EnsembleSetup, dt, n_steps: int | None = None) -> tuple[ExplicitSystem, RunData]:
     """(the shared system, the runs' own data) of an ensemble: one
     :func:`~jaxsync.fem.stepper.build_system` of the base problem, then the per-run
-    arrays in the forms of the module docstring (no assembly per run)."""
+    arrays in the forms of the module docstring (no assembly per run). ``n_steps``: the
+    steps every run takes, which choose the stiffness product's form as for one run of
+    ``n_runs * n_steps`` steps (:func:`jaxsync.fem.internal_force.run_force_model`: the
+    batched product streams every run's field); None: the fused form."""
     from ..fem.assembly import lumped_mass
-    from ..fem.internal_force import Preassembled
+    from ..fem.internal_force import Preassembled, run_force_model
     from ..fem.material import first_lame, shear_modulus
     from ..fem.support import dashpot, dashpot_blocks
 
     base, n = setup.base, setup.n_runs
-    system = build_system(base, dt)
+    model = Preassembled() if n_steps is None else run_force_model(Preassembled(), base, n * n_steps)
+    system = build_system(base, dt, model)
     run = {}
     if setup.load_vectors is not None:
         run["load_vectors"] = jnp.asarray(setup.load_vectors, dtype=float)
@@ -524,7 +528,7 @@ def batched_system(setup: EnsembleSetup, dt) -> tuple[ExplicitSystem, RunData]:
                                                                           + jnp.shape(x)), held)
             run["law"] = dataclasses.replace(broadcast, **{k: jnp.asarray(v, dtype=float) for k, v in law.items()})
     elif "E" in law or "nu" in law:  # K = lambda K_lambda + mu K_mu from the two unit operators
-        K_lambda, K_mu = Preassembled().unit_operators(base)
+        K_lambda, K_mu = model.unit_operators(base)
         if "nu" not in law:  # one copy of K(E=1, nu), E per run as its scale
             nu = base.material.nu
             lam, mu = first_lame(1.0, nu), shear_modulus(1.0, nu)
