@@ -185,30 +185,43 @@ def _zero_state(problem):
     return SolverState(zeros, zeros.copy(), jnp.asarray(0, dtype=jnp.int32))
 
 
-def time_distributed_step(problem, parts, *, target_seconds: float = 1.0, max_steps: int = 10_000) -> tuple[float, int]:
+def _run_form(problem, n_steps: int | None):
+    """The force model a run of ``n_steps`` steps compiles (:func:`jaxsync.fem.internal_force.run_force_model`)."""
+    from ..fem.internal_force import run_force_model
+
+    return "preassembled" if n_steps is None else run_force_model("preassembled", problem, n_steps)
+
+
+def time_distributed_step(problem, parts, *, n_steps: int | None = None, target_seconds: float = 1.0,
+                          max_steps: int = 10_000) -> tuple[float, int]:
     """(wall time of one synchronized distributed step [us], steps timed): the run's own
     SPMD program (:class:`jaxsync.solve.distributed.DistributedRunner`, the default
     exchange and devices of :func:`jaxsync.simulate`) on ``problem`` split as ``parts``,
-    :data:`CHUNK_STEPS` steps per call, compilation excluded."""
+    :data:`CHUNK_STEPS` steps per call, compilation excluded. ``n_steps``: the run's
+    length, which chooses the product's form as :func:`jaxsync.simulate` does (None: the
+    fused form of a run of unknown length)."""
     from ..fem.stepper import build_system
     from ..perf.kernels import distributed_step
     from ..solve.distributed import DistributedRunner
 
-    runner = DistributedRunner(problem, build_system(problem, problem.dt), parts, save_every=CHUNK_STEPS)
+    mode = _run_form(problem, n_steps)
+    runner = DistributedRunner(problem, build_system(problem, problem.dt, mode), parts, save_every=CHUNK_STEPS,
+                               mode=mode)
     program = distributed_step(runner, CHUNK_STEPS, True)
     return _timed_calls(lambda s: program(runner.parts, s)[0], runner.from_global(_zero_state(problem)),
                         CHUNK_STEPS, target_seconds, max_steps)
 
 
-def time_single_device_step(problem, *, target_seconds: float = 1.0, max_steps: int = 10_000) -> tuple[float, int]:
+def time_single_device_step(problem, *, n_steps: int | None = None, target_seconds: float = 1.0,
+                            max_steps: int = 10_000) -> tuple[float, int]:
     """(wall time of one step of the whole mesh on one device [us], steps timed), compilation
-    excluded (the mass-scaling check's runs)."""
+    excluded (the mass-scaling check's runs); ``n_steps`` as :func:`time_distributed_step`."""
     import jax
 
     from ..fem.stepper import build_system
     from ..solve.phases import synchronized_steps
 
-    system = jax.device_put(build_system(problem, problem.dt))
+    system = jax.device_put(build_system(problem, problem.dt, _run_form(problem, n_steps)))
     program = jax.jit(lambda system, state: synchronized_steps(system, state, 1, CHUNK_STEPS)[0])
     return _timed_calls(lambda s: program(system, s), jax.device_put(_zero_state(problem)), CHUNK_STEPS,
                         target_seconds, max_steps)
@@ -279,12 +292,14 @@ def measure_demo_estimate(problem, parts, d, *, shared_every: int, mass_scaling=
     from ..surrogate.train import TrainConfig
 
     started = time.perf_counter()
-    us_sync, calibration_steps = time_distributed_step(problem, parts, target_seconds=target_seconds)
+    # each program in the form its run compiles (a short run's compact product)
+    us_sync, calibration_steps = time_distributed_step(problem, parts, n_steps=d.n_steps,
+                                                       target_seconds=target_seconds)
     us_single, n_check = None, 0
     if mass_scaling is not None:
         seconds, dt_cfl = mass_scaling
         n_check = mass_scaling_steps(seconds, dt_cfl, problem.dt)
-        us_single, _ = time_single_device_step(problem, target_seconds=target_seconds)
+        us_single, _ = time_single_device_step(problem, n_steps=n_check, target_seconds=target_seconds)
     timed_training = problem.mesh.n_elements <= TRAINING_TIMED_ELEMENTS
     if log is not None:
         log(f"  synchronized step {format_step_time(us_sync)} ({_count(d.n_steps)} steps: "
