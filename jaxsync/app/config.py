@@ -49,11 +49,11 @@ Layout (every table optional; defaults give the paper's cantilever)::
 
     [[body_force]]              # kind = "general" only
     vector = [0.0, 0.0, -0.5]
-    t_ramp = 1.0                # optional ramp; t_off optional
+    t_ramp = 1.0                # optional: the time keys of [[pressure]]
 
     [[pressure]]                # kind = "general" only
     surface = "lumen"
-    magnitude = 1.0             # barye (times the waveform)
+    magnitude = 1.0             # barye (times the waveform; default 1)
     t_ramp = 1.0
     period = 0.833              # optional periodic waveform ...
     times = [0.0, 0.4, 0.833]   # ... given by samples
@@ -71,7 +71,9 @@ Layout (every table optional; defaults give the paper's cantilever)::
     damping = 1.0e3             # c_s, dyn s/cm^3 (lumped dashpot)
     normal_only = false         # true: along the surface normal only
 
-A ``[[dirichlet]]`` entry with ``t_ramp``, ``t_off`` or ``period``/``times``/``values``
+Every load and ``[[dirichlet]]`` entry takes the same time keys: ``t_ramp`` (a ramp to 1),
+``period`` with ``times`` and ``values`` (one period of a waveform, sampled), ``t_off`` (off
+from then on); a load without them is constant, and a ``[[dirichlet]]`` entry with them
 prescribes a history: ``value`` times that time function. The run and the imaged geometry::
 
     [run]
@@ -100,8 +102,10 @@ prescribes a history: ``value`` times that time function. The run and the imaged
 Types are checked: numbers are TOML numbers (``E = 6.26e6``, not ``"6.26e6"``), counts are
 TOML integers (``n_steps = 20000``, not ``2e4``), vectors are lists of 3 numbers, names and
 paths are strings; anything else is a :class:`ConfigError` naming the table and key. The
-keys of ``[material]`` (those of its model) and of ``[[support]]``, their kinds and the
-required ones are read from the fields of the classes they configure
+keys of ``[material]`` (those of its model), of ``[run]`` (:class:`RunConfig`) and of the
+array tables (:class:`jaxsync.Dirichlet`, :class:`jaxsync.BodyForce`,
+:class:`jaxsync.Pressure`, :class:`jaxsync.Traction`, :class:`jaxsync.ElasticSupport`), their
+kinds and the required ones are read from the fields of the classes they configure
 (:mod:`jaxsync.app.config_schema`, whose catalogue maps the model names to the laws).
 
 Relative paths in a file (``[mesh] file``, ``[run] output``, ``xdmf``, ``vtu``, ``checkpoint``,
@@ -120,15 +124,11 @@ import tomllib
 from importlib import resources
 from typing import Any
 
-import numpy as np
-
 from ..errors import ConfigError, JaxsyncError
-from ..fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-from ..fem.problem import Dirichlet, Problem, cantilever
-from ..fem.support import ElasticSupport
+from ..fem.problem import Problem, cantilever
 from ..mesh import Mesh, box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
-from .config_schema import DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, dataclass_schema, from_table
+from .config_schema import BOUNDARY_TABLES, DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, TomlPath, dataclass_schema
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -136,37 +136,9 @@ __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "p
 # resolved against the TOML file's folder), (type, n) a list of n entries of that type
 # (n None: any length >= 1), or a dict for an inline table. A table's schema is a dict of its
 # keys, or a function (table, origin) -> dict where the keys depend on the table ([material]:
-# those of its model, read from the law's dataclass in jaxsync.app.config_schema).
-_PLANE = {"axis": "int", "value": "number"}
-_SUPPORT = dataclass_schema(ElasticSupport)  # [[support]]: the fields of the class (surface required here)
-_SCHEMA: dict[str, Any] = {
-    "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
-             "width": "number", "height": "number", "divisions": ("int", 3)},
-    "material": lambda table, origin: _material_schema(table, origin),  # the keys of its model
-    "problem": {"kind": "string", "element": "string", "damping": "number", "stiffness_damping": "number",
-                "body_force": ("number", 3), "t_ramp": "number", "t_off": "number"},
-    "run": {"n_steps": "int", "save_every": "int", "dt": "number", "output": "path",
-            "xdmf": "path", "vtu": "path", "checkpoint": "path", "checkpoint_every": "int",
-            "mass_scaling_dt": "number", "mass_scaling_beta": "number"},
-    "dirichlet": {"facet": "string", "plane": _PLANE, "value": ("number", 3),
-                  "components": ("int", None), "t_ramp": "number", "t_off": "number", "period": "number",
-                  "times": ("number", None), "values": ("number", None)},
-    "body_force": {"vector": ("number", 3), "t_ramp": "number", "t_off": "number"},
-    "pressure": {"surface": "string", "magnitude": "number", "t_ramp": "number",
-                 "t_off": "number", "period": "number", "times": ("number", None),
-                 "values": ("number", None), "follower": "bool"},
-    "traction": {"surface": "string", "vector": ("number", 3), "t_ramp": "number",
-                 "t_off": "number", "period": "number", "times": ("number", None),
-                 "values": ("number", None)},
-    "support": dict(_SUPPORT.keys),
-    "zero_pressure": {"pressure": "number", "method": "string", "tol": "number", "max_iter": "int",
-                      "load_steps": "int", "output": "path", "start": "string", "prestress": "string"},
-}
-_ARRAY_TABLES = ("dirichlet", "body_force", "pressure", "traction", "support")
-_PATH_KEYS = (("mesh", "file"), ("run", "output"), ("run", "xdmf"), ("run", "vtu"), ("run", "checkpoint"),
-              ("zero_pressure", "output"))
-
-
+# those of its model). The tables that configure a class are read from its fields
+# (jaxsync.app.config_schema): [material] from its law, [run] from RunConfig, and the array
+# tables of loads, supports and prescribed motions from BOUNDARY_TABLES.
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
     """Run options of a configuration file (see the module docstring)."""
@@ -174,16 +146,33 @@ class RunConfig:
     n_steps: int = 20000
     save_every: int = 100
     dt: float | None = None
-    output: str = "trajectory.h5"
-    xdmf: str | None = None
-    vtu: str | None = None
+    output: TomlPath = "trajectory.h5"
+    xdmf: TomlPath | None = None
+    vtu: TomlPath | None = None
     """Prefix of a VTU series (``<vtu>.pvd`` and ``<vtu>/``; :meth:`jaxsync.Trajectory.to_vtu`)."""
-    checkpoint: str | None = None
+    checkpoint: TomlPath | None = None
     checkpoint_every: int | None = None
     mass_scaling_dt: float | None = None
     mass_scaling_beta: float | None = None
     added_mass_percent: float | None = None
     """Total mass added by the mass scaling [%] (None: no mass scaling)."""
+
+
+_RUN = dataclass_schema(RunConfig, exclude=("added_mass_percent",))  # the result of the scaling, not a key
+_SCHEMA: dict[str, Any] = {
+    "mesh": {"file": "path", "generate": "string", "target_elements": "int", "length": "number",
+             "width": "number", "height": "number", "divisions": ("int", 3)},
+    "material": lambda table, origin: _material_schema(table, origin),  # the keys of its model
+    "problem": {"kind": "string", "element": "string", "damping": "number", "stiffness_damping": "number",
+                "body_force": ("number", 3), "t_ramp": "number", "t_off": "number"},
+    "run": dict(_RUN.keys),
+    **{name: dict(table.schema.keys) for name, table in BOUNDARY_TABLES.items()},
+    "zero_pressure": {"pressure": "number", "method": "string", "tol": "number", "max_iter": "int",
+                      "load_steps": "int", "output": "path", "start": "string", "prestress": "string"},
+}
+_ARRAY_TABLES = tuple(BOUNDARY_TABLES)
+_PATH_KEYS = (("mesh", "file"), *(("run", key) for key, kind in _RUN.keys.items() if kind == "path"),
+              ("zero_pressure", "output"))
 
 
 def default_config_path() -> str:
@@ -254,6 +243,8 @@ def check_config(config: dict, origin: str = "configuration") -> None:
         for where, entry in entries:
             schema = _SCHEMA[table]
             _check_table(entry, schema(entry, origin) if callable(schema) else schema, where, origin)
+            if table in BOUNDARY_TABLES:
+                _check_required(entry, BOUNDARY_TABLES[table].schema, where, origin)
     _check_material(config.get("material", {}), origin)
     run = config.get("run", {})
     if "mass_scaling_dt" in run and "mass_scaling_beta" in run:
@@ -301,6 +292,13 @@ def _check_material(material: dict, origin: str) -> None:
 def _material(material: dict, mesh):
     """The material law of a checked [material] table (:data:`jaxsync.app.config_schema.MATERIAL_MODELS`)."""
     return MATERIAL_MODELS[material.get("model", DEFAULT_MATERIAL_MODEL)].build(material, mesh)
+
+
+def _check_required(entry: dict, schema, where: str, origin: str) -> None:
+    missing = [key for key in schema.required if key not in entry]
+    if missing:
+        raise ConfigError(f"{origin}: {where} needs {', '.join(missing)}; its keys: {', '.join(schema.keys)} "
+                          f"({', '.join(schema.required)} required)")
 
 
 def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
@@ -415,23 +413,6 @@ def _check_entry(value, spec, where: str, key: str, origin: str) -> None:
                    else "is empty", _hint(value, spec, key))
 
 
-def _time_function(entry: dict, where: str):
-    t_ramp, t_off = entry.get("t_ramp"), entry.get("t_off")
-    g = Ramp(float(t_ramp)) if t_ramp else Constant()
-    if ("times" in entry or "values" in entry) and "period" not in entry:
-        raise ConfigError(f"{where}: 'times' and 'values' give one period of a waveform: add its 'period' (s); "
-                          "without it the waveform would be ignored")
-    if "period" in entry:
-        if "times" not in entry or "values" not in entry:
-            raise ConfigError(f"{where}: a periodic waveform needs 'times' and 'values'")
-        wave = Periodic(np.asarray(entry["times"], float), np.asarray(entry["values"], float),
-                        float(entry["period"]))
-        g = wave if isinstance(g, Constant) else g * wave
-    if t_off is not None:
-        g = StepOff(float(t_off), g)
-    return g
-
-
 def problem_from_config(config: dict, *, mesh_file: str | Mesh | None = None,
                         mass_scaling_dt: float | None = None,
                         mass_scaling_beta: float | None = None,
@@ -503,10 +484,11 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
             raise ConfigError(f"[problem] {', '.join(cantilever_keys)}: only used with kind = \"cantilever\"; a "
                               "general problem takes its loads from [[body_force]], [[pressure]] and [[traction]] "
                               "tables (each with its own t_ramp, t_off...)")
+        tables = {name: _entries(config, name, mesh) for name in BOUNDARY_TABLES}
         problem = Problem(mesh=mesh, material=material, damping=damping, stiffness_damping=stiffness_damping,
-                          element=element,
-                          dirichlet=tuple(_dirichlet(e, i) for i, e in enumerate(config.get("dirichlet", []))),
-                          loads=tuple(_loads(config)), supports=tuple(_supports(config)))
+                          element=element, dirichlet=tables["dirichlet"],
+                          loads=tables["body_force"] + tables["pressure"] + tables["traction"],
+                          supports=tables["support"])
     run = config.get("run", {})
     if scaling_dt is None and scaling_beta is None:  # no override: the file's
         scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")
@@ -530,56 +512,12 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     return problem, run_config
 
 
-def _dirichlet(entry: dict, i: int) -> Dirichlet:
-    value = tuple(float(x) for x in entry.get("value", (0.0, 0.0, 0.0)))
-    components = tuple(int(c) for c in entry.get("components", (0, 1, 2)))
-    # a history: value times the time function of t_ramp / period / t_off (none: constant)
-    time = (_time_function(entry, f"[[dirichlet]] #{i}")
-            if any(k in entry for k in ("t_ramp", "t_off", "period")) else None)
-    if "facet" in entry and "plane" in entry:
-        raise ConfigError(f"[[dirichlet]] #{i}: give one of 'facet' and 'plane', not both (one [[dirichlet]] "
-                          "entry per node set)")
-    if "facet" in entry:
-        return Dirichlet(str(entry["facet"]), value, components, time)
-    if "plane" in entry:
-        axis, coord = int(entry["plane"]["axis"]), float(entry["plane"]["value"])
-        if axis not in (0, 1, 2):
-            raise ConfigError(f"[[dirichlet]] #{i}: plane axis must be 0, 1 or 2, got {axis}")
-
-        def on_plane(points: np.ndarray, axis=axis, coord=coord) -> np.ndarray:
-            tol = 1e-8 * max(float(np.ptp(points[:, axis])), 1.0)
-            return np.abs(points[:, axis] - coord) <= tol
-
-        return Dirichlet(on_plane, value, components, time)
-    raise ConfigError(f"[[dirichlet]] #{i}: give 'facet' (a facet-set name) or 'plane'")
-
-
-def _loads(config: dict) -> list[Any]:
-    loads: list[Any] = []
-    for i, entry in enumerate(config.get("body_force", [])):
-        if "vector" not in entry:
-            raise ConfigError(f"[[body_force]] #{i}: 'vector' is required")
-        loads.append(BodyForce(tuple(float(x) for x in entry["vector"]),
-                               _time_function(entry, f"[[body_force]] #{i}")))
-    for i, entry in enumerate(config.get("pressure", [])):
-        if "surface" not in entry:
-            raise ConfigError(f"[[pressure]] #{i}: 'surface' (a facet-set name) is required")
-        loads.append(Pressure(float(entry.get("magnitude", 1.0)), _time_function(entry, f"[[pressure]] #{i}"),
-                              surface=str(entry["surface"]), follower=bool(entry.get("follower", False))))
-    for i, entry in enumerate(config.get("traction", [])):
-        if "surface" not in entry or "vector" not in entry:
-            raise ConfigError(f"[[traction]] #{i}: 'surface' (a facet-set name) and 'vector' (dyn/cm^2) are "
-                              "required")
-        loads.append(Traction(tuple(float(x) for x in entry["vector"]), _time_function(entry, f"[[traction]] #{i}"),
-                              surface=str(entry["surface"])))
-    return loads
-
-
-def _supports(config: dict) -> list[ElasticSupport]:
-    supports = []
-    for i, entry in enumerate(config.get("support", [])):
-        if "surface" not in entry or "stiffness" not in entry:
-            raise ConfigError(f"[[support]] #{i}: 'surface' (a facet-set name) and 'stiffness' (dyn/cm^3) are "
-                              "required")
-        supports.append(from_table(ElasticSupport, entry, _SUPPORT))
-    return supports
+def _entries(config: dict, name: str, mesh) -> tuple:
+    """The instances of the checked array table ``[[name]]`` (:data:`BOUNDARY_TABLES`)."""
+    out = []
+    for i, entry in enumerate(config.get(name, [])):
+        try:
+            out.append(BOUNDARY_TABLES[name].build(entry, mesh))
+        except ConfigError as exc:
+            raise ConfigError(f"[[{name}]] #{i}: {exc}") from None
+    return tuple(out)

@@ -144,7 +144,7 @@ class BodyForce:
         time: the time function (default: the paper's 1 s ramp).
     """
 
-    vector: Any = (0.0, 0.0, -0.5)
+    vector: tuple[float, float, float] | Any = (0.0, 0.0, -0.5)
     time: Any = Ramp(1.0)
 
     def __post_init__(self):
@@ -154,7 +154,8 @@ class BodyForce:
 
 @pytree_dataclass
 class Pressure:
-    """Pressure p(t) = magnitude * time(t) [barye] on the facet set ``surface``.
+    """Pressure p(t) = magnitude * time(t) [barye] on the facet set ``surface`` (magnitude 1 by
+    default: the time function's values are then the pressure, a measured waveform in barye).
 
     The traction is -p n with n the outward normal, so a positive pressure pushes into
     the solid (a lumen pressure inflates a vessel).
@@ -166,7 +167,7 @@ class Pressure:
     deformed surface to follow).
     """
 
-    magnitude: Any
+    magnitude: Any = 1.0
     time: Any = Constant()
     surface: str = static_field(default="pressure")
     follower: bool = static_field(default=False)
@@ -189,7 +190,7 @@ class Traction:
     functions of the problem's element (P1: a third of each triangle's area at each of
     its vertices; P2: a third at each edge node and none at the vertices)."""
 
-    vector: Any
+    vector: tuple[float, float, float] | Any
     time: Any = Constant()
     surface: str = static_field(default="traction")
 

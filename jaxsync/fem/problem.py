@@ -46,7 +46,7 @@ class Dirichlet:
     """
 
     where: str | Callable[[np.ndarray], np.ndarray]
-    value: Sequence[float] = (0.0, 0.0, 0.0)
+    value: tuple[float, float, float] | Any = (0.0, 0.0, 0.0)
     components: Sequence[int] = (0, 1, 2)
     time: TimeFunction | None = None
 
