@@ -1,7 +1,7 @@
 """The research question on finite strain: do the surrogates keep a hyperelastic vessel
 accurate out of sample, and which one earns its cost?
 
-The generated coronary tree (:func:`jaxsync.fem.coronary_tree.coronary_mesh`, about
+The generated coronary tree (:func:`jaxsync.coronary_mesh`, about
 ``--elements`` tetrahedra) with a compressible neo-Hookean wall (:class:`jaxsync.NeoHookean`,
 ``--E``, nu = 0.4, rho = 1) under the paper's pulsatile lumen pressure (80-120 mmHg,
 period 0.833 s, ramped over 1 s: :func:`jaxsync.coronary`) on the deformed surface (a
@@ -64,7 +64,7 @@ def build_problems(elements: int, E: float, nu: float, dt_target: float, followe
     dead load on the reference surface, its only kind)."""
     import dataclasses
 
-    from jaxsync.fem.coronary_tree import coronary_mesh
+    from jaxsync import coronary_mesh
 
     mesh = coronary_mesh(target_elements=elements)
     hyper = jaxsync.coronary(mesh, material=jaxsync.NeoHookean(E, nu, 1.0))

@@ -42,15 +42,14 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".errors": ("CheckpointError", "ConfigError", "ConvergenceError", "JaxsyncError", "MaterialError", "MeshError",
                 "OutputError", "PartitionError", "PrecisionError", "ProblemError", "StabilityError",
                 "SynchronizedRunWarning"),
-    ".fem.coronary": ("DEFAULT_WAVEFORM", "coronary", "coronary_waveform"),
-    ".fem.coronary_tree": ("coronary_mesh",),
-    ".fem.geometry": ("vessel_centerline", "vessel_mesh"),
+    ".cases": ("DEFAULT_WAVEFORM", "cantilever", "coronary", "coronary_mesh", "coronary_waveform", "vessel_centerline",
+               "vessel_mesh"),
     ".fem.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
     ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
     ".fem.material": ("LinearElastic",),
     ".mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
     ".fem.prestress": ("Prestressed",),
-    ".fem.problem": ("Dirichlet", "LockingWarning", "Problem", "cantilever"),
+    ".fem.problem": ("Dirichlet", "LockingWarning", "Problem"),
     ".fem.rigid_body": ("RigidBodyWarning",),
     ".fem.support": ("ElasticSupport",),
     ".fem.timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
@@ -73,6 +72,15 @@ __getattr__, __dir__ = export_lazily(__name__, {
 })
 
 if TYPE_CHECKING:
+    from .cases import (
+        DEFAULT_WAVEFORM,
+        cantilever,
+        coronary,
+        coronary_mesh,
+        coronary_waveform,
+        vessel_centerline,
+        vessel_mesh,
+    )
     from .errors import (
         CheckpointError,
         ConfigError,
@@ -87,14 +95,11 @@ if TYPE_CHECKING:
         StabilityError,
         SynchronizedRunWarning,
     )
-    from .fem.coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
-    from .fem.coronary_tree import coronary_mesh
-    from .fem.geometry import vessel_centerline, vessel_mesh
     from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
     from .fem.material import LinearElastic
     from .fem.prestress import Prestressed
-    from .fem.problem import Dirichlet, LockingWarning, Problem, cantilever
+    from .fem.problem import Dirichlet, LockingWarning, Problem
     from .fem.rigid_body import RigidBodyWarning
     from .fem.support import ElasticSupport
     from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step

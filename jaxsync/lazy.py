@@ -11,9 +11,9 @@ and a submodule (``jaxsync.trajectory``) is imported on first access as if the p
 imported it. Each ``__init__`` also imports its names under ``typing.TYPE_CHECKING``, so
 that type checkers, IDEs and linters see them.
 
-An export named like a submodule of its package (the function ``jaxsync.fem.coronary`` of
-the module ``jaxsync.fem.coronary``) stays the export when that submodule is imported,
-as after ``from .coronary import coronary``: the import system's binding of the submodule
+An export named like a submodule of its package (the function ``jaxsync.solve.ensemble`` of
+the module ``jaxsync.solve.ensemble``) stays the export when that submodule is imported,
+as after ``from .ensemble import ensemble``: the import system's binding of the submodule
 on the package is not kept (:class:`LazyPackage`).
 """
 

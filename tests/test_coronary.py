@@ -1,9 +1,7 @@
-"""The coronary problem (jaxsync.fem.coronary): the pulsatile waveform, the problem's
+"""The coronary problem (jaxsync.cases.coronary): the pulsatile waveform, the problem's
 material, clamps and load, its TOML description, mass scaling, and a static lumen-pressure
 solve against the thick-walled cylinder (Lame)."""
 
-import sys
-import types
 import warnings
 from importlib import resources
 
@@ -12,8 +10,8 @@ import pytest
 
 import jaxsync
 from jaxsync.app.config import load_config, problem_from_config
+from jaxsync.cases import DEFAULT_WAVEFORM, MMHG, coronary, coronary_waveform
 from jaxsync.errors import MeshError, ProblemError
-from jaxsync.fem.coronary import DEFAULT_WAVEFORM, MMHG, coronary, coronary_waveform
 from jaxsync.fem.timestep import max_stable_dt
 
 PERIOD, T_RAMP = 0.833, 1.0
@@ -137,15 +135,11 @@ def test_missing_facet_sets_are_named(vessel):
 
 
 def test_default_mesh_comes_from_the_coronary_tree(vessel, monkeypatch):
-    """mesh=None calls jaxsync.fem.coronary_tree.coronary_mesh() (stubbed here)."""
-    import jaxsync.fem as fem
+    """mesh=None calls jaxsync.cases.coronary_mesh() with its defaults (stubbed here)."""
+    import jaxsync.cases as cases
 
-    _ = fem.coronary_tree  # the lazy export resolved from the real module, before the stub replaces it
     calls = []
-    stub = types.ModuleType("jaxsync.fem.coronary_tree")
-    stub.coronary_mesh = lambda *args, **kwargs: calls.append((args, kwargs)) or vessel
-    monkeypatch.setitem(sys.modules, "jaxsync.fem.coronary_tree", stub)
-    monkeypatch.setattr(fem, "coronary_tree", stub, raising=False)
+    monkeypatch.setattr(cases, "coronary_mesh", lambda *args, **kwargs: calls.append((args, kwargs)) or vessel)
     assert coronary().mesh is vessel and calls == [((), {})]
 
 

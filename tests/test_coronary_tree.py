@@ -1,4 +1,4 @@
-"""The generated coronary tree (jaxsync.fem.coronary_tree): tags, geometry against the
+"""The generated coronary tree (jaxsync.cases.coronary_mesh): tags, geometry against the
 centerline, orientation, volume against an independent quadrature of the wall, the size
 knob, errors, and a user's own file with the same tags."""
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 import jaxsync
+from jaxsync.cases import coronary_mesh, coronary_tree, estimated_tree_elements
 from jaxsync.errors import MeshError
-from jaxsync.fem.coronary_tree import coronary_mesh, coronary_tree, estimated_tree_elements
 from test_geometry import outward_normals
 
 WALL, SIZE = 0.05, 0.1

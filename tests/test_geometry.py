@@ -1,4 +1,4 @@
-"""The generated vessel (jaxsync.fem.geometry.vessel_mesh): tags, geometry, orientation, a
+"""The generated vessel (jaxsync.cases.vessel_mesh): tags, geometry, orientation, a
 static lumen-pressure solve against the thick-walled cylinder (Lame), errors."""
 
 import math
@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 import jaxsync
+from jaxsync.cases import estimated_elements, vessel_centerline, vessel_mesh
 from jaxsync.errors import MeshError
-from jaxsync.fem.geometry import estimated_elements, vessel_centerline, vessel_mesh
 
 R_I, WALL, LENGTH, SIZE = 0.175, 0.05, 3.0, 0.06
 R_O = R_I + WALL

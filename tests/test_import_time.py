@@ -28,7 +28,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # imported by none of: import jaxsync, building the parser, --help, --version
 NUMERICAL = ("jax", "jaxlib", "numpy", "scipy", "skfem", "meshio", "h5py", "optax", "matplotlib", "gmsh",
              "pymetis", "tqdm", "mpi4py")
-LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.solve", "jaxsync.surrogate", "jaxsync.parallel", "jaxsync.perf")
+LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.solve", "jaxsync.surrogate", "jaxsync.parallel",
+                 "jaxsync.perf")
 
 
 def imported_after(code: str, *args: str, cwd=None) -> set[str]:
@@ -159,18 +160,14 @@ def test_type_checking_imports_are_the_lazy_exports(package):
 
 
 def test_an_export_named_like_its_module_stays_the_export():
-    """``jaxsync.fem.coronary`` is the function, ``jaxsync.solve.ensemble`` too, however
-    their modules were imported first (as with ``from .coronary import coronary``)."""
-    code = """import jaxsync.fem.coronary
-import jaxsync.fem.coronary_tree
-import jaxsync.solve.ensemble
+    """``jaxsync.solve.ensemble`` is the function however its module was imported first (as
+    with ``from .ensemble import ensemble``)."""
+    code = """import jaxsync.solve.ensemble
 import types
-from jaxsync.fem import coronary, coronary_tree
 from jaxsync.solve import ensemble
 import jaxsync
-for f in (coronary, coronary_tree, ensemble, jaxsync.fem.coronary, jaxsync.solve.ensemble, jaxsync.coronary):
+for f in (ensemble, jaxsync.solve.ensemble, jaxsync.ensemble):
     assert callable(f) and not isinstance(f, types.ModuleType), f
-assert jaxsync.coronary is jaxsync.fem.coronary is sys.modules["jaxsync.fem.coronary"].coronary
 assert jaxsync.ensemble is jaxsync.solve.ensemble is sys.modules["jaxsync.solve.ensemble"].ensemble
 print("ok")"""
     done = subprocess.run([sys.executable, "-c", "import sys\n" + code], capture_output=True, text=True, timeout=300)

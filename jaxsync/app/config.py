@@ -124,8 +124,9 @@ import tomllib
 from importlib import resources
 from typing import Any
 
+from ..cases import cantilever
 from ..errors import ConfigError, JaxsyncError
-from ..fem.problem import Problem, cantilever
+from ..fem.problem import Problem
 from ..mesh import Mesh, box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
 from .config_schema import BOUNDARY_TABLES, DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, TomlPath, dataclass_schema
@@ -453,7 +454,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
     elif file:
         mesh = read_mesh(file)
     elif generator == "coronary_tree":
-        from ..fem.coronary_tree import coronary_mesh
+        from ..cases import coronary_mesh
 
         mesh = coronary_mesh(target_elements=mesh_cfg.get("target_elements"))
     else:

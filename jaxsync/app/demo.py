@@ -7,7 +7,7 @@ synchronized run's largest shared-node displacement: about 4-5 minutes on a 2-co
 laptop.
 
 ``case="vessel"``: the paper's coronary case (section 5.2) on the generated coronary
-tree (:func:`jaxsync.fem.coronary_tree.coronary_mesh`) under the pulsatile lumen
+tree (:func:`jaxsync.coronary_mesh`) under the pulsatile lumen
 pressure (:func:`jaxsync.coronary`), mass-scaled to 2.5 times its CFL step as in the
 paper (2.02e-6 s -> 5e-6 s), split into the paper's 11 parts, one emulated device each,
 with error control at 1 % of the synchronized run's largest shared-node displacement.
@@ -181,7 +181,7 @@ def vessel_problem(size: str | int = "small", *, beta: float = MASS_SCALING_BETA
     under :func:`jaxsync.coronary`, and its mass scaling to ``beta`` times the CFL step
     (:func:`jaxsync.mass_scaling`; the paper's 2.5 added 21 % on its mesh)."""
     from .. import coronary, mass_scaling
-    from ..fem.coronary_tree import coronary_mesh
+    from ..cases import coronary_mesh
 
     problem = coronary(coronary_mesh(target_elements=_vessel_target(size)))
     scaled, added = mass_scaling(problem, beta=beta, warn_above_percent=None)

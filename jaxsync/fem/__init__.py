@@ -1,12 +1,10 @@
 """The finite-element layer: meshes, materials, loads, problems, assembly, the explicit
 time step and the sparse mat-vec (no devices, no parts).
 
-Meshes are :mod:`jaxsync.mesh`'s (re-exported here). Modules: :mod:`~jaxsync.fem.geometry`
-(generated vessel meshes), :mod:`~jaxsync.fem.coronary_tree` (a generated left coronary
-tree), :mod:`~jaxsync.fem.material`, :mod:`~jaxsync.fem.loads` (body
-forces, pressure, time functions), :mod:`~jaxsync.fem.problem` (a problem and the paper's
-cantilever), :mod:`~jaxsync.fem.coronary` (the paper's coronary case: material, pulsatile
-lumen pressure, inlet/outlet clamps), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
+Meshes are :mod:`jaxsync.mesh`'s (re-exported here); the paper's cases and the generated
+vessels, built on this layer, are :mod:`jaxsync.cases`. Modules: :mod:`~jaxsync.fem.material`,
+:mod:`~jaxsync.fem.loads` (body forces, pressure, time functions), :mod:`~jaxsync.fem.problem`
+(a problem), :mod:`~jaxsync.fem.assembly` (scikit-fem operators),
 :mod:`~jaxsync.fem.element_force` (element forces formed every step),
 :mod:`~jaxsync.fem.material_law` (the protocol every material law implements),
 :mod:`~jaxsync.fem.hyperelastic` (finite-strain laws), :mod:`~jaxsync.fem.viscoelastic` (a finite-strain
@@ -24,10 +22,9 @@ from typing import TYPE_CHECKING
 
 from ..lazy import export_lazily
 
-__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coronary_mesh",
-           "coronary_tree", "CoronaryTree", "VesselSegment", "LinearElastic",
+__all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "LinearElastic",
            "TimeFunction", "Constant", "Ramp", "StepOff", "Periodic", "Product", "BodyForce", "Pressure",
-           "Dirichlet", "Problem", "cantilever", "coronary", "coronary_waveform", "DEFAULT_WAVEFORM",
+           "Dirichlet", "Problem",
            "ExplicitSystem", "SolverState", "build_system",
            "initial_state", "step", "advance", "cfl_dt", "max_stable_dt", "stable_step", "StableStep", "mass_scaling",
            "damped_bound",
@@ -38,16 +35,13 @@ __all__ = ["Mesh", "MeshWarning", "read_mesh", "box_beam", "vessel_mesh", "coron
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
-    ".coronary": ("DEFAULT_WAVEFORM", "coronary", "coronary_waveform"),
-    ".coronary_tree": ("CoronaryTree", "VesselSegment", "coronary_mesh", "coronary_tree"),
-    ".geometry": ("vessel_mesh",),
     ".hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
     ".loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Product", "Ramp", "StepOff", "TimeFunction"),
     ".material": ("LinearElastic",),
     ".material_law": ("FiniteStrainLaw", "MaterialLaw"),
     "..mesh": ("Mesh", "MeshWarning", "box_beam", "read_mesh"),
     ".prestress": ("Prestressed",),
-    ".problem": ("Dirichlet", "Problem", "cantilever"),
+    ".problem": ("Dirichlet", "Problem"),
     ".stepper": ("ExplicitSystem", "SolverState", "advance", "build_system", "initial_state", "step"),
     ".timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "damped_bound", "mass_scaling", "max_stable_dt",
                   "stable_step"),
@@ -57,15 +51,12 @@ __getattr__, __dir__ = export_lazily(__name__, {
 
 if TYPE_CHECKING:
     from ..mesh import Mesh, MeshWarning, box_beam, read_mesh
-    from .coronary import DEFAULT_WAVEFORM, coronary, coronary_waveform
-    from .coronary_tree import CoronaryTree, VesselSegment, coronary_mesh, coronary_tree
-    from .geometry import vessel_mesh
     from .hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
     from .loads import BodyForce, Constant, Periodic, Pressure, Product, Ramp, StepOff, TimeFunction
     from .material import LinearElastic
     from .material_law import FiniteStrainLaw, MaterialLaw
     from .prestress import Prestressed
-    from .problem import Dirichlet, Problem, cantilever
+    from .problem import Dirichlet, Problem
     from .stepper import ExplicitSystem, SolverState, advance, build_system, initial_state, step
     from .timestep import MassScalingWarning, StableStep, cfl_dt, damped_bound, mass_scaling, max_stable_dt, stable_step
     from .total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt

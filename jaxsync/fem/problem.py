@@ -15,17 +15,17 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from ..errors import ProblemError
-from ..mesh import Mesh, box_beam
+from ..mesh import Mesh
 from ..options import Element
 from ..pytree import is_traced
 from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector, traction_vectors
-from .loads import LOADS, BodyForce, Pressure, Ramp, StepOff, TimeFunction, Traction
+from .loads import LOADS, BodyForce, Pressure, TimeFunction, Traction
 from .material import LinearElastic
 from .material_law import check_material_law
 from .parameter_checks import check_finite_array, check_number
 from .support import ElasticSupport
 
-__all__ = ["Dirichlet", "Problem", "cantilever", "LockingWarning", "LOCKING_NU"]
+__all__ = ["Dirichlet", "Problem", "LockingWarning", "LOCKING_NU"]
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -396,32 +396,3 @@ def _warn_about_locking(problem: "Problem") -> None:
                       "element='P2' (jaxsync simulate --element P2, [problem] element = \"P2\")",
                       LockingWarning, stacklevel=4)
 
-
-def cantilever(mesh: Mesh | None = None, *, body_force=(0.0, 0.0, -0.5), damping=0.5,
-               stiffness_damping=0.0, t_ramp: float = 1.0, t_off: float | None = None,
-               material: LinearElastic | None = None, initial_displacement=None,
-               initial_velocity=None, element: Element | None = None) -> Problem:
-    """The paper's cantilever (Table 1): 25 x 1 x 1 cm beam clamped at x = 0.
-
-    E = 1e6 dyn/cm^2, nu = 0.3, rho = 1 g/cm^3, body force (0, 0, -0.5) dyn/cm^3 ramped
-    over ``t_ramp`` s, damping alpha = 0.5 1/s (``stiffness_damping``: beta [s], default 0),
-    zero initial conditions. The default mesh
-    is the coarse :func:`box_beam` (104 nodes, 150 tetrahedra). Variants: skewed load
-    ``body_force=(0, -0.5, -0.5)``; load switched off at ``t_off``; initial conditions.
-    The clamp is every node with x equal to the mesh's smallest x; ``element`` as for
-    :class:`Problem` (``"P2"``: quadratic tetrahedra).
-    """
-    mesh = box_beam() if mesh is None else mesh
-    material = LinearElastic(1.0e6, 0.3, 1.0) if material is None else material
-    x0 = float(mesh.points[:, 0].min())
-    tol = 1e-8 * float(np.ptp(mesh.points[:, 0]))
-
-    def nodes_at_min_x(p):
-        return np.abs(p[:, 0] - x0) <= tol
-
-    clamp = Dirichlet(where=nodes_at_min_x)
-    time = Ramp(t_ramp) if t_off is None else StepOff(t_off, Ramp(t_ramp))
-    return Problem(mesh=mesh, material=material, dirichlet=(clamp,),
-                   loads=(BodyForce(body_force, time),), damping=damping, stiffness_damping=stiffness_damping,
-                   initial_displacement=initial_displacement, initial_velocity=initial_velocity,
-                   element=element)

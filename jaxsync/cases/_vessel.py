@@ -191,7 +191,7 @@ def _checked(length, radius, wall, angle, size, branch):
 
 
 # ---------------------------------------------------------------------------------------
-# gmsh machinery shared by the generators (also used by :mod:`jaxsync.fem.coronary_tree`)
+# gmsh machinery shared by the generators (also used by the coronary tree's, :func:`jaxsync.cases.coronary_mesh`)
 # ---------------------------------------------------------------------------------------
 
 def generated_mesh(path, who: str, build, *, size: float, verbose: bool, what: str,

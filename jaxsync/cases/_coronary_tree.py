@@ -23,7 +23,7 @@ import numpy as np
 
 from ..errors import MeshError
 from ..mesh import Mesh
-from .geometry import (
+from ._vessel import (
     MAX_ELEMENTS,
     add_physical_groups,
     generated_mesh,

@@ -5,7 +5,7 @@ pulsatile lumen pressure: E = 6.26e6 dyn/cm^2, nu = 0.4, rho = 1 g/cm^3, mass-pr
 damping alpha = 0.5 1/s; the pressure rises over the first second (the paper's ramp) and
 then oscillates between 80 and 120 mmHg (1.067e5 and 1.6e5 barye) with period 0.833 s.
 The paper's patient-specific mesh is not public: the default mesh is the generated
-coronary tree of :func:`jaxsync.fem.coronary_tree.coronary_mesh`.
+coronary tree of :func:`jaxsync.cases.coronary_mesh`.
 
 Artificial mass scaling to the paper's step is :func:`jaxsync.mass_scaling`, which
 returns the added mass::
@@ -24,10 +24,10 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import MeshError, ProblemError
+from ..fem.loads import Periodic, Pressure, Ramp, TimeFunction
+from ..fem.material import LinearElastic
+from ..fem.problem import Dirichlet, Problem
 from ..mesh import Mesh
-from .loads import Periodic, Pressure, Ramp, TimeFunction
-from .material import LinearElastic
-from .problem import Dirichlet, Problem
 
 __all__ = ["MMHG", "CORONARY_PERIOD", "DEFAULT_WAVEFORM", "coronary_material", "coronary_waveform",
            "coronary"]
@@ -51,7 +51,7 @@ end (0.833 s, the value at t = 0). The same samples as the README's vessel examp
 
 CORONARY_FACETS = ("inlet", "outlet_1", "outlet_2", "outlet_3", "outlet_4", "outlet_5", "outlet_6",
                    "outlet", "lumen", "outer")
-"""Facet sets written by :func:`jaxsync.fem.coronary_tree.coronary_mesh`."""
+"""Facet sets written by :func:`jaxsync.cases.coronary_mesh`."""
 
 
 def coronary_material() -> LinearElastic:
@@ -97,7 +97,7 @@ def _samples(samples) -> tuple[np.ndarray, np.ndarray]:
     except (TypeError, ValueError):
         raise ProblemError("coronary waveform samples must be a pair (times [s], pressures "
                            "[barye]) of equal-length number sequences, e.g. "
-                           "jaxsync.fem.coronary.DEFAULT_WAVEFORM") from None
+                           "jaxsync.cases.DEFAULT_WAVEFORM") from None
 
 
 def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONARY_PERIOD,
@@ -122,7 +122,7 @@ def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONAR
     Args:
         mesh: a tetrahedral mesh [cm] with facet sets ``inlet``, ``lumen`` and the
             outlets; None generates the default
-            :func:`jaxsync.fem.coronary_tree.coronary_mesh`.
+            :func:`jaxsync.cases.coronary_mesh`.
         waveform: ``(times, pressures)`` samples of one period (see
             :func:`coronary_waveform`; None: :data:`DEFAULT_WAVEFORM`), or a ready
             :class:`jaxsync.fem.loads.TimeFunction` giving p(t) [barye] (then ``period``
@@ -141,8 +141,8 @@ def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONAR
         MeshError: the mesh lacks one of the facet sets (the message names them).
         ProblemError: bad waveform samples, period, ramp, damping or stiffness damping.
     """
-    if mesh is None:
-        from .coronary_tree import coronary_mesh
+    if mesh is None:  # the package's generator (gmsh is imported only here)
+        from . import coronary_mesh
 
         mesh = coronary_mesh()
     outlets = (outlets,) if isinstance(outlets, str) else tuple(outlets)
@@ -169,6 +169,6 @@ def _require_facets(mesh: Mesh, names: Sequence[str]) -> None:
         raise MeshError(
             f"coronary: the mesh lacks the facet set(s) {', '.join(missing)} (found: {found}); "
             f"the problem clamps 'inlet' and the outlets and loads 'lumen'. "
-            f"jaxsync.fem.coronary_tree.coronary_mesh writes {', '.join(CORONARY_FACETS)}; "
+            f"jaxsync.coronary_mesh writes {', '.join(CORONARY_FACETS)}; "
             "tag your own mesh's surfaces as gmsh physical groups with these names, or pass "
             "outlets= the names of your outlet sets")
