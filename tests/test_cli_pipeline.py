@@ -21,6 +21,8 @@ from jaxsync.app.cli import main
 N_STEPS, N_S = 1500, 5
 # the predict runs that check one option each run the first third of the demo's steps
 SHORT = 500
+# the --learn run: three rejected cycles (test_predict_learns_after_every_rejected_cycle)
+LEARN_STEPS = 200
 
 
 @dataclasses.dataclass
@@ -386,18 +388,19 @@ def test_resync_run_is_the_synchronized_run(resync, reference):
 
 def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     """``--learn``: an update after every re-synchronized stretch, said in the printed
-    counts; a tolerance of 1e-12 cm still gives the synchronized run (the first 500 steps:
-    rejected at 25, 75, 175 and 375)."""
+    counts; a tolerance of 1e-12 cm still gives the synchronized run (the first LEARN_STEPS =
+    200 steps: rejected at 25, 75 and 175; each update is 100 Adam iterations, the run's
+    cost, so the run is shorter than the other predict runs' SHORT = 500 steps)."""
     path, learned = tmp_path / "learn.h5", tmp_path / "learned.h5"
     run = run_cli(predict_args(demo, path, "--resync-tolerance", "1e-12", "--learn", "--learn-budget", "600",
-                               "--learn-save", learned, "--steps", SHORT))
+                               "--learn-save", learned, "--steps", LEARN_STEPS))
     assert run.code == 0, run.err
     result = jaxsync.Trajectory.load(path)
     st = result.stats
     assert len(st.surrogate_updated_at) == st.n_resynchronizations >= 2 and st.seconds_updating > 0
     assert f"{len(st.surrogate_updated_at)} surrogate updates" in run.out
     assert f"the learned surrogates to {learned}" in run.out
-    assert result.n_saved == SHORT // 5 + 1
+    assert result.n_saved == LEARN_STEPS // 5 + 1
     np.testing.assert_allclose(result.displacement, reference.displacement[:result.n_saved], rtol=0,
                                atol=1e-12 * np.abs(reference.displacement).max())
     # --learn-save: the surrogates as learned, a surrogate file that predicts the last stretch it

@@ -67,16 +67,10 @@ def test_the_estimate_is_the_exact_error_with_every_mode(problem, partition, ref
     np.testing.assert_allclose(est[predicted], err[predicted], rtol=1e-6, atol=1e-12)
 
 
-def test_the_estimate_does_not_drift_away_from_the_error_under_rough_defects(problem, partition):
-    """Predictions that jitter from step to step (the same at a node in every part), probed
-    every 20 steps with the default modes over 8 000 steps: every step's defect drives the
-    modes at the step it happened (each part its share, summed at the probes), so the
-    modal error follows the true one instead of integrating the block sums spread evenly
-    over their steps, which for the modes whose period nears the block lost the timing
-    that keeps the true error bounded and grew to 5x the error by the end (13x at worst
-    over 20 000 steps). Measured: 0.5-1.0 of the error (the rest is high-frequency motion
-    above the modes kept)."""
-    n_steps = 8000
+def _rough_defects_ratio(problem, partition, n_steps):
+    """Estimate / true largest nodal error at the saved predicted steps (every 20) of an
+    n_steps run whose predictions jitter from step to step (the same at a node in every
+    part), probed with the default modes."""
     reference = jaxsync.simulate(problem, n_steps, partitions=partition)
     net = drifting_oracle(reference, partition, drift=(0.0, 0.0))
     index = {int(v): k for k, v in enumerate(partition.shared_nodes)}
@@ -86,7 +80,28 @@ def test_the_estimate_does_not_drift_away_from_the_error_under_rough_defects(pro
         path[p, :, :3 * part.n_shared] += noise[:, [index[int(v)] for v in part.shared_nodes]].reshape(len(noise), -1)
     traj = run(problem, partition, type(net)(net.reference, path), n_steps, ResyncTolerance(absolute=1e9), save=20)
     predicted = ~traj.synchronized
-    ratio = traj.error_estimate[predicted] / nodal_error(traj, reference)[predicted]
+    return traj.error_estimate[predicted] / nodal_error(traj, reference)[predicted]
+
+
+def test_the_estimate_follows_the_error_under_rough_defects(problem, partition):
+    """The slow test below over 2 000 steps instead of 8 000 (measured: median 0.71 of the
+    error over the second half, 0.98 at most)."""
+    ratio = _rough_defects_ratio(problem, partition, 2000)
+    late = ratio[len(ratio) // 2:]
+    assert 0.3 <= np.median(late) <= 1.5 and ratio.max() <= 2.0, (np.median(late), ratio.max())
+
+
+@pytest.mark.slow
+def test_the_estimate_does_not_drift_away_from_the_error_under_rough_defects(problem, partition):
+    """Predictions that jitter from step to step (the same at a node in every part), probed
+    every 20 steps with the default modes over 8 000 steps: every step's defect drives the
+    modes at the step it happened (each part its share, summed at the probes), so the
+    modal error follows the true one instead of integrating the block sums spread evenly
+    over their steps, which for the modes whose period nears the block lost the timing
+    that keeps the true error bounded and grew to 5x the error by the end (13x at worst
+    over 20 000 steps). Measured: 0.5-1.0 of the error (the rest is high-frequency motion
+    above the modes kept)."""
+    ratio = _rough_defects_ratio(problem, partition, 8000)
     late = ratio[len(ratio) // 2:]
     assert 0.3 <= np.median(late) <= 1.5 and ratio.max() <= 2.0, (np.median(late), ratio.max())
 
@@ -240,6 +255,11 @@ def test_the_report_summarizes_how_the_estimate_tracks(problem, partition, refer
         plain, partition))
 
 
+# the default run holds a trained linear surrogate to its tolerance by the estimate in
+# tests/test_hyperelastic_surrogates.py::test_a_trained_linear_surrogate_runs_online_under_error_control, and
+# checks that es_hat alone misses an error both parts make alike while the estimate bounds it in
+# test_shared_drift_is_caught_and_bounded
+@pytest.mark.slow
 def test_a_trained_surrogate_is_held_to_the_tolerance(problem, partition):
     """The linear surrogate trained on the first half of a 30 000-step run: at 2 % of the
     shared amplitude it predicts every step after n_cri within the tolerance; at 0.2 % it

@@ -184,13 +184,14 @@ def _train(reference, choice, epochs=60):
 
 
 def test_the_network_with_a_highway_predicts_as_well_as_its_linear_model(step_off, tmp_path):
-    """Trained on the first half of the step-off run, rolled out over the second half.
-    Measured: the linear model (ARX) 0.618 %, the LSTM with a highway 0.616 % (the plain
-    LSTM of the same size 35 %, the slow test); asserted: within 5 % of the linear
+    """Trained on the first half of the step-off run (the network 10 epochs, one compiled
+    call: the slow test trains 150), rolled out over the second half. Measured: the linear
+    model (ARX) 0.634 %, the LSTM with a highway 0.636 % after 10 epochs (0.636 % after 60;
+    the plain LSTM of the same size 35 %, the slow test); asserted: within 5 % of the linear
     model and below 2 %. The file keeps the highway."""
     problem, reference = step_off
     arx = _train(reference, ArchitectureChoice(model="linear"))
-    network = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1, highway=True))
+    network = _train(reference, ArchitectureChoice(n_hidden=16, n_layers=1, highway=True), epochs=10)
     arch = network.surrogate.arch
     assert arch.highway and arch.highway_rank == arx.surrogate.arch.rank
     errors = {name: _out_of_sample_error(t.surrogate, problem, reference)

@@ -245,6 +245,11 @@ def test_learning_needs_weights_and_is_said_in_the_tolerance(problem, partition,
     assert str(ResyncTolerance(relative=0.01, learning=False)) == "1 %"
 
 
+# slow (66 s of the default run's worker time): the default run keeps the same path -- a
+# synchronization-avoiding run with the linear surrogate that learns after every rejected
+# cycle -- on the cantilever (test_a_run_learns_after_every_rejected_cycle_and_stays_within_the_tolerance)
+# and from the command line (test_cli_pipeline.py::test_predict_learns_after_every_rejected_cycle)
+@pytest.mark.slow
 def test_on_a_reduced_vessel_the_updates_turn_rejected_cycles_into_predicted_ones():
     """The generated coronary tree (3300 tets, three parts, the paper's pulsatile pressure
     ramping up), the load-aware linear surrogate fitted on the first quarter, error control

@@ -156,21 +156,23 @@ def test_shared_histories_thinned_to_a_divisor_of_n_s_train_the_same_replicas():
 def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_loss():
     """Candidate 0 of each part starts from the weights a single-candidate training uses
     (replica p's key) and sees the same batches: it is that training, to float32
-    round-off; the part keeps the candidate of lower validation loss."""
+    round-off; the part keeps the candidate of lower validation loss. Two candidates, the
+    default (the program test_in_memory_training_equals_the_library_steps_and_writes_nothing
+    compiled for the same data and settings)."""
     from jaxsync.surrogate.fit import choose_candidates
 
     traj = oscillator_trajectory(n_steps=300)
     unchecked = TrainingChecks(emse_applications=0, rollout_tolerance=None)
     one = train_surrogates(traj, checks=unchecked, **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=1)))
-    three = train_surrogates(traj, checks=unchecked,
-                             **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=3)))
+    several = train_surrogates(traj, checks=unchecked,
+                               **dict(SMALL, optimizer=dataclasses.replace(CONFIG, n_candidates=2)))
     assert one.candidates is None and one.summary()["candidates"] is None
-    losses = np.asarray(three.candidates["best_val_loss"])
-    assert losses.shape == (3, 2)
+    losses = np.asarray(several.candidates["best_val_loss"])
+    assert losses.shape == (2, 2)
     np.testing.assert_allclose(losses[0], one.result.best_val_loss, rtol=1e-4)
-    assert three.candidates["chosen"] == np.argmin(losses, axis=0).tolist()
-    assert np.all(three.result.best_val_loss <= losses.min(axis=0))
-    assert three.summary()["candidates"] == three.saved.metadata["candidates"] == three.candidates
+    assert several.candidates["chosen"] == np.argmin(losses, axis=0).tolist()
+    assert np.all(several.result.best_val_loss <= losses.min(axis=0))
+    assert several.summary()["candidates"] == several.saved.metadata["candidates"] == several.candidates
     # the selection itself, on a constructed result: replica c * n_parts + p
     res = one.result
     fake = dataclasses.replace(res, params=jax.tree_util.tree_map(lambda a: np.concatenate([a, a + 1.0]), res.params),
@@ -296,10 +298,11 @@ def test_more_sampling_offsets_take_the_sequences_at_those_phases():
 
 
 def test_the_conditional_decoder_uses_its_load_parameter():
-    """Trained on two runs told apart by their load parameter, each run's refills are closer
-    to that run given its own parameter than given the other's."""
+    """Trained on two runs told apart by their load parameter (30 epochs, one compiled
+    call), each run's refills are closer to that run given its own parameter than given the
+    other's: measured 0.74 and 0.78 of the error given the other's (asserted: 0.9)."""
     runs = [oscillator_trajectory(n_steps=400, load=load) for load in (1.0, 0.6)]
-    config = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.99, n_epochs=60, epochs_per_call=20, patience=None)
+    config = TrainConfig(batch_size=8, eta0=1e-2, gamma=0.99, n_epochs=30, epochs_per_call=30, patience=None)
     trained = train_surrogates(runs, **dict(SMALL, optimizer=config,
                                             architecture=dataclasses.replace(ARCH, n_cond_repeat=4),
                                             sampling=dataclasses.replace(SAMPLING, train_fraction=1.0)),

@@ -559,7 +559,11 @@ def _step_off(problem, jump_step: int):
     return jaxsync.cantilever(problem.mesh, t_off=(jump_step - 0.5) * problem.dt)
 
 
-@pytest.mark.parametrize("jump, save_every, expected_n_cri", [(51, 1, 70), (53, 10, 80)])
+# the default run keeps the saved-every-10 case; the jump at 51 saved every step is also read
+# in the default run by test_an_oracle_of_the_unswitched_run_is_only_used_after_the_jump (the
+# run synchronized up to n_cri = 70) and test_load_jumps_policy_is_checked_and_saved
+@pytest.mark.parametrize("jump, save_every, expected_n_cri",
+                         [pytest.param(51, 1, 70, marks=pytest.mark.slow), (53, 10, 80)])
 def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jump, save_every, expected_n_cri):
     """The first synchronized stretch ends at the first saved step from which the
     networks' n_p n_s input steps all follow the jump (jump + n_p n_s - 1, rounded up to a
