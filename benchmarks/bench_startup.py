@@ -70,13 +70,13 @@ def cases(cli: list[str]) -> dict[str, list[str]]:
 
 def command_line() -> list[str]:
     """The argv of the ``jaxsync`` console script beside this Python (else on the PATH,
-    else ``python -m jaxsync.app.cli``)."""
+    else ``python -m jaxsync.cli``)."""
     script = os.path.join(os.path.dirname(sys.executable), "jaxsync")
     if os.path.exists(script):
         return [script]
     if shutil.which("jaxsync"):
         return [shutil.which("jaxsync")]
-    return [sys.executable, "-m", "jaxsync.app.cli"]
+    return [sys.executable, "-m", "jaxsync.cli"]
 
 
 def environment(checkout: str | None) -> dict:

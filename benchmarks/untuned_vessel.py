@@ -58,12 +58,12 @@ def command(args: list[str], log: list, cwd: str) -> float:
 def held_tolerance_cm(tolerance: str, surrogate_path: str, reference, stats) -> float | None:
     """The tolerance [cm] ``jaxsync predict --resync-tolerance tolerance`` held the run to:
     a length as given, a percentage of the shared amplitude the surrogate file records
-    (:func:`jaxsync.app.commands.predict.trained_amplitude`, the rule predict applies),
+    (:func:`jaxsync.cli.predict.trained_amplitude`, the rule predict applies),
     whether or not any cycle was rejected; the largest the run recorded at its
     re-synchronizations where it followed the amplitude it observed."""
     import dataclasses
 
-    from jaxsync.app.commands.predict import trained_amplitude
+    from jaxsync.cli.predict import trained_amplitude
     from jaxsync.solve.strategies import ResyncTolerance
     from jaxsync.surrogate import load_surrogate
 

@@ -11,7 +11,7 @@ import sys
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import build_parser, main, parts_of
+from jaxsync.cli import build_parser, main, parts_of
 from jaxsync.options import Component, Compression, Mode, Sync, check_option, choices
 
 
@@ -42,7 +42,7 @@ def test_every_option_is_documented():
 
 
 def test_console_script_help():
-    out = subprocess.run([sys.executable, "-m", "jaxsync.app.cli", "--help"], capture_output=True,
+    out = subprocess.run([sys.executable, "-m", "jaxsync.cli", "--help"], capture_output=True,
                          text=True, timeout=120)
     assert out.returncode == 0
     assert "simulate" in out.stdout and "demo" in out.stdout
@@ -103,8 +103,8 @@ def test_no_command_prints_the_help(capsys):
 def test_demo_and_train_spell_the_surrogate_options_alike():
     """Same flags; the demo leaves them None for its case's defaults, which for the
     cantilever are jaxsync train's."""
-    from jaxsync.app.commands.common import SURROGATE_OPTIONS
     from jaxsync.app.demo import demo_defaults
+    from jaxsync.cli.common import SURROGATE_OPTIONS
 
     commands = subcommands(build_parser())
     cantilever = demo_defaults("cantilever")
@@ -118,7 +118,7 @@ def test_demo_and_train_spell_the_surrogate_options_alike():
 
 
 def test_predict_load_parameter_keeps_its_former_spelling():
-    from jaxsync.app.cli import build_parser
+    from jaxsync.cli import build_parser
 
     for flag in ("--load-parameter", "--cond"):
         args = build_parser().parse_args(["predict", "a.h5", "s.h5", flag, "0.4"])

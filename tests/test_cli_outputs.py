@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import build_parser, main
+from jaxsync.cli import build_parser, main
 from jaxsync.io import OutputError, atomic_path, check_writable, recording_writes
 
 
@@ -103,10 +103,10 @@ def test_missing_folders_count_as_writable(tmp_path):
 
 
 def test_train_refuses_an_unwritable_output_folder(tmp_path, afile, capsys, monkeypatch):
-    import jaxsync.app.train
+    import jaxsync.cli.train
     from test_surrogate_fit import write_trajectory
 
-    monkeypatch.setattr(jaxsync.app.train, "train_surrogates", must_not_run)
+    monkeypatch.setattr(jaxsync.cli.train, "train_surrogates", must_not_run)
     traj = write_trajectory(tmp_path / "run.h5", n_steps=60)
     assert main(["train", str(traj), "-o", str(afile / "out"), "--no-progress"]) == 2
     assert_one_error_line(capsys.readouterr().err, afile / "out", "-o")
@@ -341,7 +341,7 @@ def test_a_resync_tolerance_that_is_not_positive_is_one_line_naming_it(value, tm
     """``--resync-tolerance 0`` (or 0%, =-1e-4, =-1%) said "'0' is neither a length in cm nor
     a percentage": the value is a number; what is wrong is that it is not > 0."""
     from jaxsync import ProblemError, ResyncTolerance
-    from jaxsync.app.commands.common import resync_tolerance_of
+    from jaxsync.cli.common import resync_tolerance_of
 
     with pytest.raises(ProblemError, match="> 0") as caught:
         ResyncTolerance.parse(value)
@@ -387,7 +387,7 @@ def test_resumed_run_says_how_many_steps_it_ran_and_from_where(tmp_path, capsys)
     (dict(n_devices=1, n_processes=1, device_kind="cpu", emulated=False), None, "1 cpu device"),
 ])
 def test_devices_are_counted_over_all_processes(stats, parts, text):
-    from jaxsync.app.commands.simulate import devices_text
+    from jaxsync.cli.simulate import devices_text
 
     assert devices_text(types.SimpleNamespace(**stats), parts) == text
 
@@ -408,7 +408,7 @@ def test_train_shows_the_rollout_warning_as_one_line(tmp_path, capsys):
 def test_every_warning_is_one_line(capsys):
     import warnings
 
-    from jaxsync.app.commands.common import is_package_warning, package_warnings
+    from jaxsync.cli.common import is_package_warning, package_warnings
     from jaxsync.errors import SynchronizedRunWarning
     from jaxsync.fem.timestep import MassScalingWarning
     from jaxsync.mesh import MeshWarning
@@ -617,7 +617,7 @@ def test_a_failed_command_removes_only_the_folders_it_made(tmp_path, capsys, mon
 
 
 def test_ctrl_c_says_how_each_command_resumes_and_only_where_it_can():
-    from jaxsync.app.cli import resume_hint
+    from jaxsync.cli import resume_hint
 
     parse = build_parser().parse_args
     assert "resumes from the checkpoint c.h5" in resume_hint(parse(["simulate", "--checkpoint", "c.h5"]))

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import main
+from jaxsync.cli import main
 
 N_STEPS, N_S = 1500, 5
 # the predict runs that check one option each run the first third of the demo's steps

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import main
 from jaxsync.app.config import load_config, problem_from_config
+from jaxsync.cli import main
 
 
 def test_simulate_from_the_packaged_config(tmp_path, capsys):
@@ -232,7 +232,7 @@ def test_negative_dt_reaches_the_package_check(tmp_path, capsys, dt):
 def test_negative_numbers_are_joined_to_their_option():
     """What lets ``--dt -1e-4`` through argparse (public parse_known_args, no private
     setting): a negative number after an option becomes its ``=`` value."""
-    from jaxsync.app.commands.common import join_negative_values
+    from jaxsync.cli.common import join_negative_values
 
     assert join_negative_values(["--dt", "-1e-4", "-o", "-.5", "--steps", "10"]) == [
         "--dt=-1e-4", "-o=-.5", "--steps", "10"]

@@ -6,8 +6,8 @@ import pytest
 
 import jaxsync
 from jaxsync import ConfigError
-from jaxsync.app.cli import main
 from jaxsync.app.config import RunConfig, default_config_path, load_config, problem_from_config
+from jaxsync.cli import main
 
 
 def write(path, text):

@@ -17,7 +17,7 @@ def _run_cli(args, tmp_path, extra_env=None):
     env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "JAX_NUM_CPU_DEVICES",
                                                              "JAX_PLATFORMS", "JAX_ENABLE_X64")}
     env.update(extra_env or {})
-    return subprocess.run([sys.executable, "-m", "jaxsync.app.cli", *args], cwd=tmp_path, env=env,
+    return subprocess.run([sys.executable, "-m", "jaxsync.cli", *args], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=300)
 
 
@@ -113,6 +113,6 @@ def test_a_request_after_jax_started_says_it_comes_too_late():
 
 @pytest.mark.parametrize("command", [["demo", "--parts", "4"]])
 def test_parts_of_a_command_are_read_without_jax(command):
-    from jaxsync.app.cli import build_parser, parts_of
+    from jaxsync.cli import build_parser, parts_of
 
     assert parts_of(build_parser().parse_args(command)) == 4

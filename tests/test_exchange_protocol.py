@@ -194,7 +194,7 @@ def test_the_plan_holds_layout_exchange_and_cost(partition):
 
 
 def test_registration_names_the_exchange(problem, partition, psum, single):
-    from jaxsync.app.cli import build_parser
+    from jaxsync.cli import build_parser
 
     with pytest.raises(jaxsync.ConfigError, match="must be one of 'psum', 'ppermute', 'mpi', 'halo', got 'gather-sum'"):
         sync_strategy("gather-sum")

@@ -196,7 +196,7 @@ def test_deep_halo_input_errors_name_the_fix(problem):
     with pytest.raises(PartitionError, match="positive integer"):
         jaxsync.simulate(problem, 12, partitions=part, sync=jaxsync.Halo(0))
     with pytest.raises(ConfigError, match="needs --sync halo"):  # the command line's two options
-        from jaxsync.app.commands.common import sync_of
+        from jaxsync.cli.common import sync_of
 
         sync_of(argparse.Namespace(sync="psum", halo_depth=2))
     with pytest.raises(ConfigError, match="sync='psum' or 'ppermute'"):

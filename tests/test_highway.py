@@ -11,7 +11,7 @@ import pytest
 
 import jaxsync
 from jaxpr_counts import dot_flops
-from jaxsync.app.train import add_train_parser
+from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import ConfigError
 from jaxsync.surrogate import (
     ArchitectureChoice,

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import main
 from jaxsync.app.config import load_config, problem_from_config
+from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError, ConvergenceError, StabilityError
 from jaxsync.fem.hyperelastic import HolzapfelGasserOgden, NeoHookean, helical_fibres
 from jaxsync.fem.run_check import RunCheck

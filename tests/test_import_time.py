@@ -1,5 +1,5 @@
 """Start-up: ``import jaxsync`` and the command line's parser import no numerical library,
-and a command imports only what it uses (:mod:`jaxsync.lazy`, :mod:`jaxsync.app.cli`).
+and a command imports only what it uses (:mod:`jaxsync.lazy`, :mod:`jaxsync.cli`).
 
 What is imported is checked in fresh interpreters; how long it takes is measured by
 ``benchmarks/bench_startup.py``, never asserted here. Laziness cannot hide a broken name:
@@ -28,8 +28,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # imported by none of: import jaxsync, building the parser, --help, --version
 NUMERICAL = ("jax", "jaxlib", "numpy", "scipy", "skfem", "meshio", "h5py", "optax", "matplotlib", "gmsh",
              "pymetis", "tqdm", "mpi4py")
-LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.solve", "jaxsync.surrogate", "jaxsync.parallel",
-                 "jaxsync.perf")
+LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.cli", "jaxsync.solve", "jaxsync.surrogate",
+                 "jaxsync.parallel", "jaxsync.perf")
 
 
 def imported_after(code: str, *args: str, cwd=None) -> set[str]:
@@ -51,7 +51,7 @@ def test_import_jaxsync_imports_no_numerical_library():
 
 def test_importing_the_packages_imports_no_numerical_library():
     loaded = imported_after("\n".join(f"import {name}" for name in LAZY_PACKAGES + (
-        "jaxsync.app", "jaxsync.app.commands", "jaxsync.app.cli", "jaxsync.errors", "jaxsync.options")))
+        "jaxsync.app", "jaxsync.cli", "jaxsync.cli", "jaxsync.errors", "jaxsync.options")))
     assert not loaded & set(NUMERICAL), sorted(loaded & set(NUMERICAL))
 
 
@@ -61,12 +61,12 @@ def test_importing_the_packages_imports_no_numerical_library():
 def test_the_parser_answers_without_jax(argv):
     """--help, --version, a subcommand's help and an argument error: the parser alone,
     as the console script runs it (``main`` with these arguments)."""
-    loaded = imported_after("from jaxsync.app.cli import main\nmain(sys.argv[1:])", *argv)
+    loaded = imported_after("from jaxsync.cli import main\nmain(sys.argv[1:])", *argv)
     assert not loaded & set(NUMERICAL), sorted(loaded & set(NUMERICAL))
 
 
 def test_building_and_using_the_parser_imports_no_numerical_library():
-    code = """from jaxsync.app.cli import build_parser, parts_of
+    code = """from jaxsync.cli import build_parser, parts_of
 parser = build_parser()
 for argv in (["simulate", "--parts", "2", "--steps", "5"], ["report", "a.h5", "b.h5"]):
     assert parts_of(parser.parse_args(argv)) in (0, 2)"""
@@ -100,7 +100,7 @@ def written_imports(*paths: str) -> set[str]:
 def test_report_imports_neither_optax_nor_gmsh():
     """Every module that ``jaxsync report`` and the report's writer (plots, figures) name,
     imported together; and the command itself, up to its first input."""
-    modules = written_imports("jaxsync/app/commands/report.py", "jaxsync/app/plots.py", "jaxsync/app/figures.py")
+    modules = written_imports("jaxsync/cli/report.py", "jaxsync/app/plots.py", "jaxsync/app/figures.py")
     assert "jaxsync.solve.syncavoid" in modules and "jaxsync.trajectory" in modules
     loaded = imported_after("\n".join(f"import {m}" for m in sorted(modules)))
     assert not loaded & {"optax", "gmsh"}, sorted(loaded & {"optax", "gmsh"})
@@ -108,14 +108,14 @@ def test_report_imports_neither_optax_nor_gmsh():
 
 def test_report_command_imports_neither_optax_nor_gmsh(tmp_path):
     (tmp_path / "README").write_text("not empty\n")  # the folder of a failed run is cleaned up to here
-    loaded = imported_after("from jaxsync.app.cli import main\nassert main(sys.argv[1:]) == 2",
+    loaded = imported_after("from jaxsync.cli import main\nassert main(sys.argv[1:]) == 2",
                             "report", "missing.h5", "missing.h5", "-o", "report", cwd=tmp_path)
     assert "jax" in loaded and not loaded & {"optax", "gmsh"}, sorted(loaded & {"optax", "gmsh"})
 
 
 def test_simulate_imports_neither_matplotlib_nor_optax():
     """Every module ``jaxsync simulate`` and the problem files' reader name."""
-    modules = written_imports("jaxsync/app/commands/simulate.py", "jaxsync/app/config.py")
+    modules = written_imports("jaxsync/cli/simulate.py", "jaxsync/app/config.py")
     assert "jaxsync.solve.solver" in modules
     loaded = imported_after("\n".join(f"import {m}" for m in sorted(modules)))
     assert not loaded & {"matplotlib", "optax"}, sorted(loaded & {"matplotlib", "optax"})
@@ -212,8 +212,8 @@ class _Recorder:
 
 
 def _made_eagerly(name: str) -> argparse.ArgumentParser:
-    from jaxsync.app.commands import demo
-    from jaxsync.app.train import add_train_parser
+    from jaxsync.cli import demo
+    from jaxsync.cli.train import add_train_parser
 
     parser = argparse.ArgumentParser(prog="jaxsync")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
@@ -226,9 +226,8 @@ def test_a_deferred_subcommand_is_the_one_its_module_makes(name):
     """``demo`` and ``train`` get their options on first use: the help line of
     ``jaxsync --help`` is the one their module gives, and their parser, once used, is the
     parser their module makes (same help, same defaults)."""
-    from jaxsync.app.cli import DEFERRED_HELP, build_parser
-    from jaxsync.app.commands import demo
-    from jaxsync.app.train import add_train_parser
+    from jaxsync.cli import DEFERRED_HELP, build_parser, demo
+    from jaxsync.cli.train import add_train_parser
 
     recorder = _Recorder()
     {"demo": demo.add_parser, "train": add_train_parser}[name](recorder)

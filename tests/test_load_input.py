@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.train import add_train_parser
+from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadSignals, load_inputs_of
 from jaxsync.solve.syncavoid import simulate_sync_avoiding

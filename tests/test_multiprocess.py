@@ -160,7 +160,7 @@ def _mpiexec(*command, n: int = 2, cwd=None) -> subprocess.CompletedProcess:
 
 
 def _jaxsync_cli() -> list[str]:
-    return [sys.executable, "-m", "jaxsync.app.cli"]
+    return [sys.executable, "-m", "jaxsync.cli"]
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync.app import figures, plots
-from jaxsync.app.cli import main
+from jaxsync.cli import main
 from jaxsync.errors import ConfigError, ProblemError
 from jaxsync.trajectory import PartHistory
 

@@ -19,7 +19,7 @@ import pytest
 
 import jaxsync
 from jaxsync import MeshError, OutputError
-from jaxsync.app.cli import main
+from jaxsync.cli import main
 from jaxsync.mesh import simvascular
 
 BLOCK = 48  # bytes per compressed block: small, so that arrays span several blocks

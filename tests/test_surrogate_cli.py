@@ -7,7 +7,7 @@ import h5py
 import numpy as np
 import pytest
 
-from jaxsync.app.train import add_train_parser
+from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate import (
     ArchitectureChoice,

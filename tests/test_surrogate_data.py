@@ -347,7 +347,7 @@ def test_shared_history_every_step_with_a_thinned_full_field(tmp_path):
 def test_a_one_part_run_is_refused_for_training_with_the_fix(tmp_path, capsys):
     """``jaxsync simulate --parts 1 --shared-every 1`` then ``jaxsync train``: a clear error
     (no shared nodes, nothing to predict: use 2 parts or more), not a numpy reshape error."""
-    from jaxsync.app.cli import main
+    from jaxsync.cli import main
     from jaxsync.surrogate.fit import train_surrogates
 
     problem = jaxsync.cantilever()

@@ -332,7 +332,7 @@ def test_the_shared_amplitude_of_the_trained_steps_is_recorded_and_a_percentage_
     to it, and to the trajectory's own amplitude for a file that does not record one."""
     from types import SimpleNamespace
 
-    from jaxsync.app.commands.predict import trained_amplitude
+    from jaxsync.cli.predict import trained_amplitude
 
     traj = oscillator_trajectory(n_steps=301)
     ramp = np.exp(np.linspace(0.0, 4.0, 301))[:, None]  # the amplitude grows through the run

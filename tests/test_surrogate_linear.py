@@ -12,7 +12,7 @@ import pytest
 from scipy.linalg import expm
 
 import jaxsync
-from jaxsync.app.train import add_train_parser
+from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum
 from jaxsync.solve.syncavoid import simulate_sync_avoiding

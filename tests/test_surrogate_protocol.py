@@ -20,7 +20,7 @@ import pytest
 
 import jaxsync
 from jaxpr_counts import dot_flops
-from jaxsync.app.cli import main
+from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.perf.roofline import surrogate_costs
 from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding

@@ -155,7 +155,7 @@ def test_a_folder_given_as_a_file_to_read_is_one_clear_line(tmp_path, capsys):
     """A folder as a trajectory (``Trajectory.load``, ``jaxsync report``, ``jaxsync train``),
     a surrogate file, a training state or a solver checkpoint: one line that says so, not
     h5py's two-line reason."""
-    from jaxsync.app.cli import main
+    from jaxsync.cli import main
     from jaxsync.solve.checkpoint import load_checkpoint
     from jaxsync.surrogate.saved import load_surrogate
     from jaxsync.surrogate.training_state import load_training_state

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import build_parser, parts_of
 from jaxsync.app.demo import SUMMARY_KEYS, VESSEL_KEYS, demo_defaults
 from jaxsync.app.run_estimate import NOT_INCLUDED, format_duration
+from jaxsync.cli import build_parser, parts_of
 from jaxsync.errors import ConfigError
 from test_cli_pipeline import run_cli
 

@@ -16,9 +16,9 @@ from scipy.optimize import brentq
 
 import jaxsync
 from jaxsync import vessel_metrics as vm
-from jaxsync.app.cli import main
 from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.app.vessel_report import vessel_section
+from jaxsync.cli import main
 from jaxsync.errors import MeshError, ProblemError
 from jaxsync.fem.follower import facet_nodes
 from jaxsync.fem.space import function_space

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.app.cli import main
+from jaxsync.cli import main
 from jaxsync.errors import OutputError
 from jaxsync.io import OutputFile, claim_output, claimed_outputs, host_tag
 from jaxsync.writers import (

@@ -348,7 +348,7 @@ tol = 1.0e-11
 
 def test_cli_writes_the_unloaded_mesh_with_its_facet_sets_and_does_not_overwrite(tmp_path, vessel, unloaded,
                                                                                   capsys):
-    from jaxsync.app.cli import main
+    from jaxsync.cli import main
     from jaxsync.mesh import write_mesh
 
     write_mesh(vessel, tmp_path / "imaged.vtu")
@@ -547,8 +547,8 @@ def test_cli_simulate_starts_from_the_zero_pressure_table(tmp_path, vessel, star
     """jaxsync simulate with a [zero_pressure] table runs from the unloaded geometry, or from
     the imaged one with its prestress, as the Python API computes them; a prestressed wall
     held at the imaging pressure stays where it was imaged."""
-    from jaxsync.app.cli import main
     from jaxsync.app.config import load_config, problem_from_config
+    from jaxsync.cli import main
     from jaxsync.mesh import write_mesh
 
     write_mesh(vessel, tmp_path / "imaged.vtu")

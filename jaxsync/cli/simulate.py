@@ -9,7 +9,7 @@ import os
 import sys
 import time
 
-from ...options import Element, choices
+from ..options import Element, choices
 from . import common
 
 
@@ -98,7 +98,7 @@ the writer's name."""
 def outputs(args, config: dict) -> tuple[str, str | None, bool]:
     """(trajectory path, checkpoint path or None, resuming) of a ``jaxsync simulate`` run,
     from the command line over the (path-resolved) config."""
-    from ..config import RunConfig
+    from ..app.config import RunConfig
 
     run_table = config.get("run", {})
     output = args.output or run_table.get("output", RunConfig.output)
@@ -112,7 +112,7 @@ def format_outputs(args, config: dict) -> list[tuple[str, object, str, tuple]]:
     the (path-resolved) config. An output that the file asks for is named after ``-o``
     when that is given (``-o out/b.h5``: ``out/b.xdmf``, ``out/b.pvd``), so that two runs of
     one file with different ``-o`` keep their own."""
-    from ...writers import writer_for
+    from ..writers import writer_for
 
     run_table = config.get("run", {})
     found = []
@@ -129,7 +129,7 @@ def format_outputs(args, config: dict) -> list[tuple[str, object, str, tuple]]:
 
 def report_warnings(caught) -> None:
     """Show warnings recorded while building the problem
-    (:func:`jaxsync.app.commands.common.report_warnings`: the package's own as one
+    (:func:`jaxsync.cli.common.report_warnings`: the package's own as one
     ``warning: ...`` line on stderr, any other as Python shows it)."""
     common.report_warnings(caught)
 
@@ -163,7 +163,7 @@ def checkpoint_step(checkpoint: str | None) -> int:
     there is none, or it is not one: the solver then refuses it with the reason)."""
     if not checkpoint or not os.path.exists(checkpoint):
         return 0
-    from ...solve.checkpoint import committed_step
+    from ..solve.checkpoint import committed_step
 
     return committed_step(checkpoint) or 0
 
@@ -186,7 +186,7 @@ def devices_text(st, parts) -> str:
 def run(args) -> int:
     import warnings
 
-    from ..config import default_config_path, load_config, problem_from_config
+    from ..app.config import default_config_path, load_config, problem_from_config
 
     if args.print_config:
         with open(default_config_path()) as f:
@@ -196,7 +196,7 @@ def run(args) -> int:
     config = load_config(args.config)
     output, checkpoint, resuming = outputs(args, config)
     if args.checkpoint_every is not None and not checkpoint:
-        from ...errors import ConfigError
+        from ..errors import ConfigError
 
         raise ConfigError(f"--checkpoint-every {args.checkpoint_every} needs a checkpoint file: add --checkpoint "
                           "PATH (or [run] checkpoint in the configuration)")
@@ -228,10 +228,10 @@ def run(args) -> int:
     dt = args.dt if args.dt is not None else run_config.dt  # None: the (mass-scaled) CFL step
     sync = common.sync_of(args)  # only when asked for: the library keeps its one default
     if args.timings is not None:
-        from ...perf.timing import timing_breakdown
+        from ..perf.timing import timing_breakdown
 
         if args.float32_blocks:
-            from ...errors import ConfigError
+            from ..errors import ConfigError
 
             raise ConfigError("--timings measures the float64 stages; leave out --float32-blocks")
 
@@ -250,7 +250,7 @@ def run(args) -> int:
 def _partitions(problem, n_parts: int, seed: int):
     """``n_parts`` (METIS with seed 0, rank 0's parts on every rank), or the partition of
     another ``--seed``."""
-    from ...parallel.partitioning import partition
+    from ..parallel.partitioning import partition
 
     return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
 
@@ -265,9 +265,9 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     import dataclasses
     import json
 
-    from ...errors import StabilityError
-    from ...solve import solver
-    from ...solve.strategies import HostExecutor, SaveAt, SolverCheckpoint
+    from ..errors import StabilityError
+    from ..solve import solver
+    from ..solve.strategies import HostExecutor, SaveAt, SolverCheckpoint
 
     n_steps = args.steps if args.steps is not None else run_config.n_steps
     save_every = args.save_every if args.save_every is not None else run_config.save_every
@@ -289,7 +289,7 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
         if n_processes > 1:
             print(f"{n_processes} processes, {parts} parts")
         if parts is not None:  # how the parts exchange: the transport of this run
-            from ...solve.strategies import transport
+            from ..solve.strategies import transport
 
             print(f"exchange: {transport(sync.get('sync'), parts)}")
     first_step = checkpoint_step(checkpoint)  # where a resumed run starts
@@ -330,7 +330,7 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     steps = (f"resumed from step {first_step} of {n_steps} (checkpoint {checkpoint}): {ran} steps"
              if first_step else f"{ran} steps")
     print(f"{steps} in {elapsed:.2f} s ({speed}; {devices_text(st, parts)}); wrote {output}")
-    from ...writers import write_output
+    from ..writers import write_output
 
     for _, writer, path, files in formats:
         with common.writing(*(f.path for f in files)):

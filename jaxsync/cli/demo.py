@@ -70,8 +70,8 @@ def demo_parts(args) -> int:
 
 
 def run(args) -> int:
-    from ...errors import ConfigError
-    from ..demo import DemoSettings, format_summary, run_demo
+    from ..app.demo import DemoSettings, format_summary, run_demo
+    from ..errors import ConfigError
 
     if common.process_count() > 1:
         raise ConfigError("jaxsync demo runs in one process (it uses emulated devices); "

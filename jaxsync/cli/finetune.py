@@ -41,9 +41,9 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     import dataclasses
 
-    from ...errors import ConfigError
-    from ...solve.finetune import FineTuneConfig, fine_tune_in_the_loop
-    from ...surrogate import Surrogate
+    from ..errors import ConfigError
+    from ..solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+    from ..surrogate import Surrogate
 
     common.check_outputs((args.output, "fine-tuned surrogate file", "-o"))
     common.refuse_to_overwrite([args.output], force=args.force, inputs=common.trained_run_inputs(args))

@@ -196,7 +196,7 @@ def run_train(args: argparse.Namespace) -> int:
     Raises:
         ConfigError, CheckpointError: unusable options or trajectory files.
     """
-    from jaxsync.app.commands.common import check_outputs, refuse_to_overwrite
+    from jaxsync.cli.common import check_outputs, refuse_to_overwrite
 
     # before any data is read: the folder (created if missing) and every file written into it
     results = [os.path.join(args.output, name) for name in (args.surrogate_name, LOSS_CURVES_NAME, SUMMARY_NAME)]

@@ -1,14 +1,13 @@
 """The ``jaxsync`` command line: ``demo``, ``simulate``, ``train``, ``predict``, ``finetune``, ``report``,
 ``unload``.
 
-This module builds the parser from the subcommand modules (:mod:`jaxsync.app.commands`;
-``train`` from :mod:`jaxsync.app.train`) and dispatches to the chosen one. Errors of the
-package's own types are printed as one line (``error: ...``) with exit status 2; anything
-else is a bug and keeps its traceback. Every command checks the locations it will write
-before it computes anything; a write that fails all the same (a full disk) is such an
-error too (:class:`jaxsync.io.OutputError`), and its line names the files written before
-it, which are kept. The package's own warnings are shown as one line (``warning: ...``;
-:func:`jaxsync.app.commands.common.package_warnings`).
+This module builds the parser from the subcommand modules of :mod:`jaxsync.cli` and
+dispatches to the chosen one. Errors of the package's own types are printed as one line
+(``error: ...``) with exit status 2; anything else is a bug and keeps its traceback. Every
+command checks the locations it will write before it computes anything; a write that fails
+all the same (a full disk) is such an error too (:class:`jaxsync.io.OutputError`), and its
+line names the files written before it, which are kept. The package's own warnings are shown
+as one line (``warning: ...``; :func:`jaxsync.cli.common.package_warnings`).
 
 Under ``mpiexec -n N`` (N > 1, detected from the launcher's environment) every rank joins
 the others through ``jax.distributed`` before using JAX (:mod:`jaxsync.parallel.multiprocess`),
@@ -32,7 +31,7 @@ import os
 import sys
 from collections.abc import Callable
 
-from .commands import demo, finetune, predict, report, simulate, unload
+from . import demo, finetune, predict, report, simulate, unload
 
 __all__ = ["build_parser", "main", "parts_of", "SubcommandParser", "DEFERRED_HELP"]
 
@@ -128,7 +127,7 @@ def parts_of(args) -> int:
     """How many parts the command runs (0: none), read without starting JAX."""
     command = getattr(args, "command", None)
     if command == "demo":
-        from .commands.demo import demo_parts
+        from .demo import demo_parts
 
         return demo_parts(args)
     if command == "simulate":
@@ -149,7 +148,7 @@ def _run(args) -> int:
     """Run the chosen command: the package's warnings as one line each, and a failed
     write (:class:`jaxsync.io.OutputError`) told with the files written before it."""
     from ..io import OutputError, claimed_outputs, recording_writes
-    from .commands.common import package_warnings, written_and_kept
+    from .common import package_warnings, written_and_kept
 
     with recording_writes() as written, package_warnings(), claimed_outputs():
         try:
@@ -205,7 +204,3 @@ def resume_hint(args) -> str:
         state = os.path.join(args.output, "training_state.h5")
         return f"; the same command resumes from the training state {state} if one was written"
     return ""
-
-
-if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())

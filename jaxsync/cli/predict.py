@@ -73,7 +73,7 @@ def trained_amplitude(saved, reference) -> float | None:
 
 
 def run(args) -> int:
-    from ...solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..solve.syncavoid import describe_run, simulate_sync_avoiding
 
     learned = getattr(args, "learn_save", None)
     common.check_outputs((args.output, "output trajectory", "-o"),
@@ -88,8 +88,8 @@ def run(args) -> int:
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     import dataclasses
 
-    from ...solve.strategies import HostExecutor
-    from ...surrogate import Surrogate
+    from ..solve.strategies import HostExecutor
+    from ..surrogate import Surrogate
 
     # the surrogate file's shared nodes were checked against the partition when it was loaded
     surrogates = dataclasses.replace(Surrogate.from_saved(saved, args.load_parameter),
@@ -116,8 +116,8 @@ def _reduced_precision(surrogate, reference, name):
     """``surrogate`` computing in bfloat16, after the check on ``reference``'s shared
     histories (:func:`jaxsync.surrogate.inference.reduced_precision`: refused above the
     default bound, with the deviation in the message)."""
-    from ...errors import ConfigError
-    from ...surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_signal_windows, surrogate_windows
+    from ..errors import ConfigError
+    from ..surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_signal_windows, surrogate_windows
 
     if reference.shared_stride != 1:
         raise ConfigError(f"--inference-dtype bfloat16 checks the reduced precision on the shared "

@@ -11,7 +11,7 @@ import dataclasses
 import os
 import sys
 
-from ...options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, choices
+from ..options import DEFAULT_COMPRESSION, DEFAULT_MODE, Compression, Mode, choices
 
 __all__ = ["add_compression_option", "compression_of", "add_mode_option", "mode_of", "add_sync_option", "sync_of",
            "add_resync_tolerance_option", "resync_tolerance_of", "add_progress_option", "surrogate_defaults",
@@ -43,11 +43,11 @@ def load_trained_run(args):
     trajectory's (:class:`jaxsync.PartitionError` otherwise)."""
     import numpy as np
 
-    from ...errors import PartitionError
-    from ...parallel.partitioning import partition_of
-    from ...surrogate.saved import load_surrogate
-    from ...trajectory import Trajectory
-    from ..config import load_config, problem_from_config
+    from ..app.config import load_config, problem_from_config
+    from ..errors import PartitionError
+    from ..parallel.partitioning import partition_of
+    from ..surrogate.saved import load_surrogate
+    from ..trajectory import Trajectory
 
     reference = Trajectory.load(args.trajectory)
     part = partition_of(reference)
@@ -83,13 +83,13 @@ def add_mode_option(parser) -> None:
 def mode_of(args):
     """The force model of ``--mode`` and ``--float32-blocks``: the mode's name, or
     :class:`jaxsync.fem.internal_force.Preassembled` with float32 blocks."""
-    from ...errors import ConfigError
+    from ..errors import ConfigError
 
     if not getattr(args, "float32_blocks", False):
         return args.mode
     if args.mode != "preassembled":
         raise ConfigError("--float32-blocks stores the preassembled K: use it with --mode preassembled")
-    from ...fem.internal_force import Preassembled
+    from ..fem.internal_force import Preassembled
 
     return Preassembled(blocks_dtype="float32")
 
@@ -98,7 +98,7 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
     """``--sync``: how the parts sum shared-node forces; left None unless given, so that
     the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`).
     ``deep_halos``: also offer ``--sync halo`` and ``--halo-depth`` (synchronized runs only)."""
-    from ...solve.exchanges import exchange_names, sync_strategy
+    from ..solve.exchanges import exchange_names, sync_strategy
 
     # every registered exchange (jaxsync.solve.register_exchange); without deep halos only
     # those that synchronize every step
@@ -123,8 +123,8 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
 def sync_of(args) -> dict:
     """``{"sync": strategy}`` when ``--sync`` was given (``--sync halo`` with its
     ``--halo-depth``: :class:`jaxsync.Halo`), else ``{}`` (the library's default)."""
-    from ...errors import ConfigError
-    from ...solve.strategies import Halo
+    from ..errors import ConfigError
+    from ..solve.strategies import Halo
 
     depth = getattr(args, "halo_depth", None)
     if depth is not None and args.sync != "halo":
@@ -178,7 +178,7 @@ def add_online_learning_option(parser) -> None:
 def online_learning_of(args):
     """The :class:`jaxsync.surrogate.OnlineLearning` of ``--learn`` and ``--learn-budget``,
     or None (checked: they go with ``--resync-tolerance``)."""
-    from ...errors import ConfigError
+    from ..errors import ConfigError
 
     learn, budget = getattr(args, "learn", False), getattr(args, "learn_budget", None)
     save_to = getattr(args, "learn_save", None)
@@ -191,7 +191,7 @@ def online_learning_of(args):
     if args.resync_tolerance is None or str(args.resync_tolerance).lower() == "none":
         raise ConfigError("--learn learns from the steps that error control recomputes after a rejected cycle: "
                           "give --resync-tolerance too (e.g. --resync-tolerance 1%)")
-    from ...surrogate.online import OnlineLearning
+    from ..surrogate.online import OnlineLearning
 
     return OnlineLearning(**({} if budget is None else {"budget_seconds": budget}), save_to=save_to)
 
@@ -200,7 +200,7 @@ def resync_tolerance_of(args, value=None):
     """The :class:`jaxsync.ResyncTolerance` of ``--resync-tolerance`` (or ``value``),
     ``--error-indicator`` and (where the command has them) ``--learn``,
     ``--learn-budget``; None without a tolerance."""
-    from ...solve.strategies import ResyncTolerance
+    from ..solve.strategies import ResyncTolerance
 
     value = args.resync_tolerance if value is None else value
     learning = online_learning_of(args)
@@ -219,7 +219,7 @@ def surrogate_defaults() -> dict:
     ``jaxsync train`` reads them): :class:`jaxsync.surrogate.Sampling` (n_s, n_p, n_f),
     :class:`jaxsync.surrogate.ArchitectureChoice` (n_H, k) and
     :class:`jaxsync.surrogate.TrainConfig` (eta0, gamma, epochs)."""
-    from ...surrogate import ArchitectureChoice, Sampling, TrainConfig
+    from ..surrogate import ArchitectureChoice, Sampling, TrainConfig
 
     sampling, architecture, config = Sampling(), ArchitectureChoice(), TrainConfig()
     return {"n_s": sampling.n_s, "n_past": sampling.n_past, "n_future": sampling.n_future,
@@ -304,8 +304,8 @@ def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None
     line's :func:`jaxsync.io.claimed_outputs`): a second jaxsync
     process writing the same file stops at once, and a file that appears while this one
     runs is never replaced."""
-    from ...errors import ConfigError
-    from ...io import claim_output, claiming
+    from ..errors import ConfigError
+    from ..io import claim_output, claiming
 
     def key(path):
         return os.path.normcase(os.path.realpath(path))
@@ -334,14 +334,14 @@ def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None
 
 def process_count() -> int:
     """Processes of this run (``mpiexec -n N``: N; otherwise 1)."""
-    from ...parallel.multiprocess import process_count as count
+    from ..parallel.multiprocess import process_count as count
 
     return count()
 
 
 def is_main_process() -> bool:
     """True on rank 0, which prints and writes files."""
-    from ...parallel.multiprocess import is_main_process as main
+    from ..parallel.multiprocess import is_main_process as main
 
     return main()
 
@@ -349,7 +349,7 @@ def is_main_process() -> bool:
 def barrier() -> None:
     """Wait for all processes (a no-op in a single-process run)."""
     if process_count() > 1:
-        from ...parallel.multiprocess import world
+        from ..parallel.multiprocess import world
 
         world().Barrier()
 
@@ -360,7 +360,7 @@ def check_outputs(*outputs) -> None:
     for a folder the command fills; None paths are skipped
     (:func:`jaxsync.io.check_writable`; :class:`jaxsync.io.OutputError` naming the path,
     why, and the option that chooses another location)."""
-    from ...io import check_writable
+    from ..io import check_writable
 
     for path, what, option, *folder in outputs:
         if path:
@@ -381,7 +381,7 @@ def writing(*paths):
     :class:`jaxsync.io.OutputError` naming them, and each of them the block did replace
     or create counts as written (:func:`jaxsync.io.note_written`), also on failure; the
     files written before are kept."""
-    from ...io import OutputError, note_written, os_reason
+    from ..io import OutputError, note_written, os_reason
 
     paths = [os.fspath(p) for p in paths]
     before = {p: _stat(p) for p in paths}

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import os
 
-from ...options import DEFAULT_COMPONENT, Component, choices
+from ..options import DEFAULT_COMPONENT, Component, choices
 
 
 def add_parser(subparsers) -> None:
@@ -70,7 +70,7 @@ def same_steps(reference, online, reference_name: str, online_name: str):
     """
     import dataclasses
 
-    from ...errors import CheckpointError
+    from ..errors import CheckpointError
 
     if online.synchronized is None:
         raise CheckpointError(f"{online_name} is not a synchronization-avoiding trajectory")
@@ -88,11 +88,11 @@ def same_steps(reference, online, reference_name: str, online_name: str):
 
 def run_config(args, reference) -> dict | None:
     """The run's configuration: ``--config``'s, else the one ``jaxsync simulate`` recorded in
-    the trajectory (:data:`jaxsync.app.commands.simulate.CONFIG_PARAMETER`), else None (an
+    the trajectory (:data:`jaxsync.cli.simulate.CONFIG_PARAMETER`), else None (an
     older trajectory, or one written by the Python API)."""
     import json
 
-    from ..config import load_config
+    from ..app.config import load_config
     from .simulate import CONFIG_PARAMETER
 
     if args.config is not None:
@@ -107,8 +107,8 @@ def vessel_entry(args, reference) -> dict:
     trajectory's mesh (the unloaded one of a run from its zero-pressure geometry; a
     prestressed start's prestrain computed again); its figures written to ``--out``), or the
     note of why there is none."""
-    from ..config import problem_from_config
-    from ..vessel_report import vessel_note, write_vessel_section
+    from ..app.config import problem_from_config
+    from ..app.vessel_report import vessel_note, write_vessel_section
     from .unload import settings, start_problem
 
     config = run_config(args, reference)
@@ -125,7 +125,7 @@ def print_vessel(entry: dict) -> None:
     if entry["skipped"]:
         print(f"note: {entry['note']}")
         return
-    from ...vessel_metrics import VesselMetrics
+    from ..vessel_metrics import VesselMetrics
 
     print(f"vessel (lumen '{entry['surface']}'): " + VesselMetrics(**{
         k: v for k, v in entry["metrics"].items() if k != "distensibility_per_mmHg"}).summary())
@@ -137,11 +137,11 @@ def print_vessel(entry: dict) -> None:
 
 
 def run(args) -> int:
-    from ...errors import ConfigError
-    from ...io import atomic_json
-    from ...parallel.partitioning import partition_of
-    from ...trajectory import Trajectory
-    from ..plots import constrained_nodes, write_report
+    from ..app.plots import constrained_nodes, write_report
+    from ..errors import ConfigError
+    from ..io import atomic_json
+    from ..parallel.partitioning import partition_of
+    from ..trajectory import Trajectory
     from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))
@@ -178,15 +178,15 @@ def run(args) -> int:
         print(f"note: {line}")
     print_vessel(entry)
     if online.stats.to_dict():
-        from ...solve.syncavoid import describe_run
+        from ..solve.syncavoid import describe_run
 
         print(describe_run(online))
     if "peak_strain" in summary:  # a hyperelastic run's
-        from ...metrics import PeakStrain
+        from ..metrics import PeakStrain
 
         print("reference " + PeakStrain(**summary["peak_strain"]).summary())
     if "es_hat_tracking" in summary:
-        from ...metrics import EstimateQuality
+        from ..metrics import EstimateQuality
 
         print(EstimateQuality(**summary["es_hat_tracking"]).summary())
     c = "xyz"[args.component]
