@@ -48,6 +48,22 @@ def test_console_script_help():
     assert "simulate" in out.stdout and "demo" in out.stdout
 
 
+def test_the_declared_console_script_and_its_former_target_are_the_command_line():
+    """pyproject's ``jaxsync`` script names jaxsync.cli:main, and a script installed before the
+    command line moved (``jaxsync.app.cli:main``) still runs the same function."""
+    import tomllib
+    from pathlib import Path
+
+    from jaxsync.app.cli import main as former
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert project["project"]["scripts"]["jaxsync"] == "jaxsync.cli:main"
+    assert former is main
+    out = subprocess.run([sys.executable, "-c", "import sys; from jaxsync.app.cli import main; sys.exit(main())",
+                          "--version"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0 and out.stdout.startswith("jaxsync "), out.stderr
+
+
 @pytest.mark.parametrize("command, flag, literal", [
     ("simulate", "--mode", Mode), ("predict", "--mode", Mode), ("simulate", "--sync", Sync),
     ("simulate", "--compression", Compression), ("predict", "--compression", Compression),
