@@ -112,6 +112,21 @@ def _piola(material, F, fibres=None):
     return np.asarray(material.first_piola(jnp.asarray(F), None if fibres is None else jnp.asarray(fibres)))
 
 
+def _matvec(op, u):
+    """op.matvec(u) as one compiled program (op by op, a hyperelastic force compiles dozens
+    of small programs)."""
+    return _compiled_matvec(op, u)
+
+
+def _energy(op, u):
+    """op.energy(u) as one compiled program."""
+    return _compiled_energy(op, u)
+
+
+_compiled_matvec = jax.jit(lambda op, u: op.matvec(u))
+_compiled_energy = jax.jit(lambda op, u: op.energy(u))
+
+
 # --- the laws ---------------------------------------------------------------------------
 
 @pytest.mark.parametrize("law", ["neo-hookean", "nearly-incompressible", "hgo"])
@@ -219,10 +234,10 @@ def test_small_strain_limit_is_the_linear_stiffness(beam, element, law):
         if law == "hgo":
             F = np.asarray(op.deformation_gradient(u))
             assert np.all(F[..., 0, 0] ** 2 + F[..., 1, 0] ** 2 + F[..., 2, 0] ** 2 < 1)
-        errors.append(float(jnp.abs(op.matvec(u) - K.matvec(u)).max()))
+        errors.append(float(jnp.abs(_matvec(op, u) - _matvec(K, u)).max()))
     order = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     assert np.all((order > 1.9) & (order < 2.1)), (errors, order)
-    assert errors[-1] < 1e-2 * float(jnp.abs(K.matvec(jnp.asarray(1e-3 * v))).max())
+    assert errors[-1] < 1e-2 * float(jnp.abs(_matvec(K, jnp.asarray(1e-3 * v))).max())
 
 
 @pytest.mark.parametrize("element", ["P1", "P2"])
@@ -234,7 +249,7 @@ def test_homogeneous_stretch_loads_only_the_end_faces(cube, element):
     X = problem.points
     stretch, lateral = 1.2, 0.95
     F = np.diag([stretch, lateral, lateral])
-    f = np.asarray(TotalLagrangian().operator(problem).matvec(jnp.asarray(X @ (F - np.eye(3)).T)))
+    f = np.asarray(_matvec(TotalLagrangian().operator(problem), jnp.asarray(X @ (F - np.eye(3)).T)))
     P = _piola_hgo_uniaxial(stretch, lateral, HGO["k1"])
     right, left = np.isclose(X[:, 0], 2.0), np.isclose(X[:, 0], 0.0)
     np.testing.assert_allclose(f[right].sum(axis=0), P[:, 0] * 1.0, rtol=1e-12, atol=1e-9 * abs(P[0, 0]))
@@ -258,15 +273,15 @@ def test_objectivity_and_rigid_motions(beam, element, law):
     c = np.array([0.3, -2.0, 1.5])
     x = np.asarray(X) + u
     u_rotated = x @ R.T + c - np.asarray(X)
-    energy = float(op.energy(jnp.asarray(u)))
-    f = np.asarray(op.matvec(jnp.asarray(u)))
+    energy = float(_energy(op, jnp.asarray(u)))
+    f = np.asarray(_matvec(op, jnp.asarray(u)))
     assert abs(energy) > 1e-3 * MU
-    assert float(op.energy(jnp.asarray(u_rotated))) == pytest.approx(energy, rel=1e-11)
-    np.testing.assert_allclose(np.asarray(op.matvec(jnp.asarray(u_rotated))), f @ R.T, rtol=1e-9,
+    assert float(_energy(op, jnp.asarray(u_rotated))) == pytest.approx(energy, rel=1e-11)
+    np.testing.assert_allclose(np.asarray(_matvec(op, jnp.asarray(u_rotated))), f @ R.T, rtol=1e-9,
                                atol=1e-10 * np.abs(f).max())
     rigid = np.asarray(X) @ (R - np.eye(3)).T + c  # a finite rotation and a translation
-    assert np.abs(np.asarray(op.matvec(jnp.asarray(rigid)))).max() < 1e-10 * np.abs(f).max()
-    assert abs(float(op.energy(jnp.asarray(rigid)))) < 1e-10 * energy
+    assert np.abs(np.asarray(_matvec(op, jnp.asarray(rigid)))).max() < 1e-10 * np.abs(f).max()
+    assert abs(float(_energy(op, jnp.asarray(rigid)))) < 1e-10 * energy
 
 
 @pytest.mark.parametrize("element", ["P1", "P2"])
@@ -279,7 +294,7 @@ def test_internal_force_matches_felupe(beam, element):
     problem = _problem(beam, NeoHookean(E, NU, RHO), element)
     X = problem.points
     u = 3.0 * _smooth_field(X)
-    f = np.asarray(TotalLagrangian().operator(problem).matvec(jnp.asarray(u)))
+    f = np.asarray(_matvec(TotalLagrangian().operator(problem), jnp.asarray(u)))
     _, cells = vtk_cells(problem.space)  # felupe's tetra10 numbers its edge nodes as VTK does
     mesh = fem.Mesh(X, cells, "tetra" if element == "P1" else "tetra10")
     # felupe's own 4-point rule has its points to 7 digits (a 1e-8 difference for this field):
@@ -311,7 +326,7 @@ def test_static_uniaxial_solution_of_felupe_is_in_equilibrium(cube):
     result = fem.newtonraphson(field, items=[solid], tol=1e-12, verbose=0, **loadcase)
     u = result.x[0].values
     assert np.abs(u).max() == pytest.approx(0.6)
-    f = np.asarray(TotalLagrangian().operator(problem).matvec(jnp.asarray(u))).ravel()
+    f = np.asarray(_matvec(TotalLagrangian().operator(problem), jnp.asarray(u))).ravel()
     reaction = np.abs(f[loadcase["dof0"]]).max()
     assert reaction > 0.05 * MU
     assert np.abs(f[loadcase["dof1"]]).max() < 1e-10 * reaction
@@ -329,11 +344,11 @@ def test_part_operators_sum_to_the_whole_mesh_force(beam, element):
     layout = PartLayout.of(jaxsync.partition(problem, 2, seed=0))
     stacked = TotalLagrangian().part_operators(problem, layout.parts, layout.n_local)
     u = 2.0 * _smooth_field(problem.points)
-    forces = jax.vmap(lambda o, x: o.matvec(x))(stacked, layout.split(jnp.asarray(u)))
+    forces = jax.jit(jax.vmap(lambda o, x: o.matvec(x)))(stacked, layout.split(jnp.asarray(u)))
     total = np.zeros_like(u)
     for k, part in enumerate(layout.parts):
         np.add.at(total, part.nodes, np.asarray(forces[k, :part.n_local]))
-    whole = np.asarray(TotalLagrangian().operator(problem).matvec(jnp.asarray(u)))
+    whole = np.asarray(_matvec(TotalLagrangian().operator(problem), jnp.asarray(u)))
     np.testing.assert_allclose(total, whole, rtol=1e-12, atol=1e-12 * np.abs(whole).max())
 
 
@@ -515,11 +530,12 @@ def test_gradient_of_the_internal_force_wrt_parameters(beam, law, names):
         w = jnp.asarray(np.random.default_rng(2).standard_normal(u.shape))
         base = op.material
 
-        def scalar(params):
+        @jax.jit  # one program for the value and every difference (op by op they dispatch slowly)
+        def scalar(params, op=op, base=base, u=u, w=w):
             return jnp.sum(w * dataclasses.replace(op, material=dataclasses.replace(base, **params)).matvec(u))
 
         params = {n: jnp.asarray(float(getattr(base, n))) for n in names}
-        grads = jax.grad(scalar)(params)
+        grads = jax.jit(jax.grad(scalar))(params)
         for n in names:
             step = 1e-6 * max(abs(float(params[n])), 1e-3)
             plus = float(scalar({**params, n: params[n] + step}))
@@ -533,13 +549,14 @@ def test_gradient_of_a_short_explicit_run_wrt_E(beam):
     dt = 0.5 * stable_dt(base)
     w = jnp.asarray(np.random.default_rng(3).standard_normal((base.n_nodes, 3)))
 
+    @jax.jit  # one program for both finite-difference runs
     def loss(young):
         problem = base.replace(material=NeoHookean(young, NU, RHO))
         system = build_system(problem, dt, TotalLagrangian())
         state, _ = advance(system, initial_state(problem, system), 1, 60)
         return jnp.sum(w * state.displacement)
 
-    g = float(jax.grad(loss)(jnp.asarray(E)))
+    g = float(jax.jit(jax.grad(loss))(jnp.asarray(E)))
     step = 1e-4 * E
     fd = (float(loss(jnp.asarray(E + step))) - float(loss(jnp.asarray(E - step)))) / (2 * step)
     assert g == pytest.approx(fd, rel=1e-6)

@@ -152,13 +152,14 @@ def test_grad_matches_finite_differences(problem):
     tip = tip_node(problem.mesh)
     dt = problem.dt
 
+    @jax.jit  # one program for the four finite-difference runs (eager, each run's values compile anew)
     def tip_z(E, alpha):
         p = problem.replace(material=jaxsync.LinearElastic(E, 0.3, 1.0), damping=alpha)
         traj = jaxsync.simulate(p, 400, dt=dt, save=400)
         return traj.displacement[-1, tip, 2]
 
     E0, a0 = 1.0e6, 0.5
-    gE, ga = jax.grad(tip_z, argnums=(0, 1))(E0, a0)
+    gE, ga = jax.jit(jax.grad(tip_z, argnums=(0, 1)))(E0, a0)
     hE, ha = 1e-4 * E0, 1e-4
     fdE = (tip_z(E0 + hE, a0) - tip_z(E0 - hE, a0)) / (2 * hE)
     fda = (tip_z(E0, a0 + ha) - tip_z(E0, a0 - ha)) / (2 * ha)
@@ -170,12 +171,13 @@ def test_grad_with_respect_to_nu_rho_and_load_is_finite_and_matches_fd(problem):
     tip = tip_node(problem.mesh)
     dt = problem.dt
 
+    @jax.jit  # one program for the five runs below (eager, each run's values compile anew)
     def tip_z(nu, rho, load):
         p = problem.replace(material=jaxsync.LinearElastic(1.0e6, nu, rho),
                             loads=(jaxsync.BodyForce(jnp.array([0.0, 0.0, -1.0]) * load),))
         return jaxsync.simulate(p, 300, dt=dt, save=300).displacement[-1, tip, 2]
 
-    grads = jax.grad(tip_z, argnums=(0, 1, 2))(0.3, 1.0, 0.5)
+    grads = jax.jit(jax.grad(tip_z, argnums=(0, 1, 2)))(0.3, 1.0, 0.5)
     # linear in the load: d(tip)/d(load) = tip / load
     assert float(grads[2]) == pytest.approx(float(tip_z(0.3, 1.0, 0.5)) / 0.5, rel=1e-10)
     for i, (x, h) in enumerate(((0.3, 1e-5), (1.0, 1e-5))):
