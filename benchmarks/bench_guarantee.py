@@ -15,7 +15,7 @@ autoregressive surrogate, the generated vessel (3 500 tets, 4 parts) -- the scri
   nodes, fixed in cm), with ``indicator="estimate"`` (the default: es_hat and the
   estimate) and ``indicator="es_hat"`` (es_hat only), and with the estimate and online
   learning (``ResyncTolerance(learning=True)``: the surrogates learn from every re-synchronized
-  stretch, :mod:`jaxsync.surrogate.online`): the largest nodal error against the
+  stretch, :mod:`jaxsync.surrogate.training.online`): the largest nodal error against the
   synchronized run over every saved step, as a multiple of the tolerance, and the steps
   predicted.
 
@@ -89,8 +89,8 @@ CASES = {
 def train(case: Case, problem, folder: str):
     """(reference, partition, saved surrogate) of ``case``, trained on the first half."""
     from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from jaxsync.surrogate.fit import train_surrogates
-    from jaxsync.surrogate.train import TrainConfig
+    from jaxsync.surrogate.training.fit import train_surrogates
+    from jaxsync.surrogate.training.train import TrainConfig
 
     os.makedirs(folder, exist_ok=True)
     parts = jaxsync.partition(problem.mesh, case.n_parts, seed=0)
@@ -179,7 +179,7 @@ def probe_cost(name: str, steps: int, save_every: int, repeats: int = 5) -> dict
     from jaxsync.solve.error_estimate import ErrorPropagator
     from jaxsync.solve.predicted import PredictedPhase
     from jaxsync.solve.predictors import OraclePredictor
-    from jaxsync.surrogate.histories import shared_dof_layout
+    from jaxsync.surrogate.training.histories import shared_dof_layout
 
     if name == "vessel":
         from jaxsync.app.demo import vessel_problem

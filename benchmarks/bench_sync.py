@@ -225,8 +225,8 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     from jaxsync.solve.distributed import DistributedRunner
     from jaxsync.solve.predicted import PredictedPhase
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.architecture import architecture_to_dict
-    from jaxsync.surrogate.histories import shared_dof_layout
+    from jaxsync.surrogate.models.architecture import architecture_to_dict
+    from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

@@ -132,7 +132,7 @@ from jaxsync.perf.costmodel import (  # noqa: E402
     sync_time,
 )
 from jaxsync.perf.roofline import surrogate_flop_breakdown  # noqa: E402
-from jaxsync.surrogate.lstm import LSTMArchitecture  # noqa: E402
+from jaxsync.surrogate.models.lstm import LSTMArchitecture  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT_DIR = os.path.join(HERE, "results")

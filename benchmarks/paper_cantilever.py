@@ -43,7 +43,7 @@ from jaxsync.surrogate import (  # noqa: E402
     stack_replicas,
     train_replicas,
 )
-from jaxsync.surrogate.train import n_epoch_rule  # noqa: E402
+from jaxsync.surrogate.training.train import n_epoch_rule  # noqa: E402
 
 
 def main(argv=None):

@@ -141,9 +141,9 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
 def run_material(material, problem, parts, args, dt, work):
     from jaxsync.metrics import peak_strain
     from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from jaxsync.surrogate.data import last_trained_step
-    from jaxsync.surrogate.fit import train_surrogates
-    from jaxsync.surrogate.train import TrainConfig
+    from jaxsync.surrogate.training.data import last_trained_step
+    from jaxsync.surrogate.training.fit import train_surrogates
+    from jaxsync.surrogate.training.train import TrainConfig
 
     folder = os.path.join(work, material)
     os.makedirs(folder, exist_ok=True)

@@ -119,7 +119,7 @@ def measure(args) -> dict:
     """The paper-size costs, measured, and the whole run projected from them."""
     from jaxsync.perf.timing import speedup_breakdown
     from jaxsync.surrogate import Surrogate, TrainConfig, build_dataset, stack_replicas, train_replicas
-    from jaxsync.surrogate.lstm import LSTMArchitecture
+    from jaxsync.surrogate.models.lstm import LSTMArchitecture
 
     d = demo_defaults("vessel", args.size)
     record: dict = {"experiment": "paper coronary (section 5.2), generated tree", "mode": "measure",

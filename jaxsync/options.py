@@ -32,10 +32,10 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
 - :data:`MeshGenerator`: ``[mesh] generate`` of a TOML problem file: the ``"box_beam"``
   (default) or the ``"coronary_tree"`` of :func:`jaxsync.coronary_mesh`.
 - :data:`ValidationSplit`: which training windows are held out for validation
-  (:func:`jaxsync.surrogate.data.split_indices`): evenly ``"interleaved"`` (default) or the
+  (:func:`jaxsync.surrogate.training.data.split_indices`): evenly ``"interleaved"`` (default) or the
   paper's seeded ``"random"`` subset.
 - :data:`SurrogateModel`: the surrogate ``jaxsync train --model`` fits
-  (:mod:`jaxsync.surrogate.architecture`): the ``"lstm"`` encoder-decoder (default) or the
+  (:mod:`jaxsync.surrogate.models.architecture`): the ``"lstm"`` encoder-decoder (default) or the
   ``"linear"`` autoregressive baseline, fitted by least squares.
 - :data:`LoadJumpWindows`: whether training takes the windows that straddle a recorded load
   jump (``jaxsync train --load-jump-windows``): ``"exclude"`` or ``"keep"``; by default

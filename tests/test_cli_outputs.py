@@ -240,7 +240,7 @@ def test_demo_into_a_folder_of_other_files_keeps_them(tmp_path, capsys, monkeypa
 def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeypatch):
     """A real run (100 steps) interrupted once the synchronized run is written: the old
     demo is untouched, the new files are gone with their staging folder."""
-    import jaxsync.surrogate.fit
+    import jaxsync.surrogate.training.fit
     from jaxsync.app.demo import DemoSettings, run_demo
 
     out = tmp_path / "demo"
@@ -255,7 +255,7 @@ def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeyp
         seen["written"] = jaxsync.Trajectory.load(reference_path).n_saved
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(jaxsync.surrogate.fit, "train_surrogates", interrupt)
+    monkeypatch.setattr(jaxsync.surrogate.training.fit, "train_surrogates", interrupt)
     with pytest.raises(KeyboardInterrupt):
         run_demo(str(out), DemoSettings(n_steps=100, n_s=5, n_past=2, n_future=2, epochs=1, n_hidden=4),
                  progress=False, log=lambda *a: None, force=True)
@@ -412,8 +412,8 @@ def test_every_warning_is_one_line(capsys):
     from jaxsync.errors import SynchronizedRunWarning
     from jaxsync.fem.timestep import MassScalingWarning
     from jaxsync.mesh import MeshWarning
-    from jaxsync.surrogate.evaluate import RolloutWarning
     from jaxsync.surrogate.inference import ReducedPrecisionWarning
+    from jaxsync.surrogate.training.evaluate import RolloutWarning
 
     for category in (MeshWarning, MassScalingWarning, RolloutWarning, ReducedPrecisionWarning):
         assert is_package_warning(category)

@@ -406,8 +406,8 @@ def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     # --learn-save: the surrogates as learned, a surrogate file that predicts the last stretch it
     # learned from (the synchronized run: the truth) better than the trained one
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.evaluate import rollout_errors
     from jaxsync.surrogate.saved import load_surrogate
+    from jaxsync.surrogate.training.evaluate import rollout_errors
 
     saved = load_surrogate(learned)
     updates = saved.metadata["online_learning"]["updated_at"]

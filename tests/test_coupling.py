@@ -20,7 +20,7 @@ import jaxsync
 from jaxsync import ProblemError
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.solve.predictors import OraclePredictor
-from jaxsync.surrogate.histories import shared_dof_layout
+from jaxsync.surrogate.training.histories import shared_dof_layout
 
 N_S, N_P, N_F = 5, 3, 4
 N_CRI = 40  # the networks' history: n_s n_p = 15 steps

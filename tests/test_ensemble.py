@@ -8,7 +8,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError, StabilityError
-from jaxsync.surrogate.histories import read_shared_histories
+from jaxsync.surrogate.training.histories import read_shared_histories
 
 FZ = (0.3, 0.5, 0.7)
 

@@ -12,7 +12,7 @@ from jaxsync import ProblemError
 from jaxsync.solve.error_estimate import ErrorPropagator
 from jaxsync.solve.predicted import PredictedPhase
 from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
-from jaxsync.surrogate.histories import shared_dof_layout
+from jaxsync.surrogate.training.histories import shared_dof_layout
 from test_syncavoid import N_CRI, N_F, N_P, N_S, drifting_oracle
 
 

@@ -16,7 +16,7 @@ import jaxsync
 from jaxsync.parallel import AXIS, xla_devices, xla_plan
 from jaxsync.solve import register_exchange, sync_strategy, unregister_exchange
 from jaxsync.solve.predictors import OraclePredictor
-from jaxsync.surrogate.histories import shared_dof_layout
+from jaxsync.surrogate.training.histories import shared_dof_layout
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 GUIDE = ROOT / "docs" / "guides" / "extending-exchanges.md"

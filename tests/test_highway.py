@@ -25,8 +25,8 @@ from jaxsync.surrogate import (
     lstm,
     train_surrogates,
 )
-from jaxsync.surrogate.evaluate import rollout_errors
-from jaxsync.surrogate.replicas import pad_params, unpad_params
+from jaxsync.surrogate.models.replicas import pad_params, unpad_params
+from jaxsync.surrogate.training.evaluate import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode
 SAMPLING = Sampling(n_s=5, n_past=8, n_future=8, train_fraction=0.5)

@@ -213,7 +213,7 @@ def test_a_predicted_phase_carries_the_state(beam, prony):
     from jaxsync.fem.viscoelastic import ViscoelasticNeoHookean
     from jaxsync.solve.predictors import OraclePredictor
     from jaxsync.solve.syncavoid import simulate_sync_avoiding
-    from jaxsync.surrogate.histories import shared_dof_layout
+    from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = _cantilever(beam)
     if prony:

@@ -33,7 +33,7 @@ from jaxsync.surrogate import (
     stack_replicas,
     train_surrogates,
 )
-from jaxsync.surrogate.evaluate import rollout_errors
+from jaxsync.surrogate.training.evaluate import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode
 SAMPLING = Sampling(n_s=5, n_past=8, n_future=8, train_fraction=0.5)

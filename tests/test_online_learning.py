@@ -1,4 +1,4 @@
-"""Learning while synchronized (jaxsync.surrogate.online): the windows cut from recomputed
+"""Learning while synchronized (jaxsync.surrogate.training.online): the windows cut from recomputed
 steps, the least-squares refit of the linear model, the gradient update of the LSTM, and
 the synchronization-avoiding run that learns after every rejected cycle."""
 
@@ -14,9 +14,9 @@ from jaxsync.errors import ConfigError
 from jaxsync.solve.predictors import OraclePredictor
 from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainConfig, TrainingChecks, train_surrogates
-from jaxsync.surrogate.linear import fit_linear, solve_least_squares
-from jaxsync.surrogate.online import OnlineLearner, OnlineLearning, sample_refill_windows, window_starts
+from jaxsync.surrogate.models.linear import fit_linear, solve_least_squares
 from jaxsync.surrogate.refill import refill_input_steps, refill_target_steps
+from jaxsync.surrogate.training.online import OnlineLearner, OnlineLearning, sample_refill_windows, window_starts
 
 N_STEPS = 4000
 N_S, N_P, N_F = 20, 10, 10
@@ -164,7 +164,7 @@ def test_the_linear_refit_is_the_least_squares_fit_of_every_window_seen(linear, 
     # fit_linear on the union, normalized like the surrogate's windows, gives the same predictions
     x, y, u, _ = learner.every_window()
     assert x.shape[1] == added + n_replay
-    from jaxsync.surrogate.data import ReplicaData
+    from jaxsync.surrogate.training.data import ReplicaData
 
     stacked = ReplicaData(x_train=x, y_train=y, load_parameter_train=np.zeros(x.shape[:2]),
                           x_val=x[:, :0], y_val=y[:, :0], load_parameter_val=np.zeros((x.shape[0], 0)),
@@ -175,7 +175,7 @@ def test_the_linear_refit_is_the_least_squares_fit_of_every_window_seen(linear, 
                           load_inputs=linear.load_inputs)
     direct = fit_linear(stacked, dtype=linear.arch.dtype)
     assert direct.arch.rank <= linear.arch.rank  # no direction truncated: the same map
-    from jaxsync.surrogate.architecture import forward
+    from jaxsync.surrogate.models.architecture import forward
 
     for p in range(linear.n_parts):
         one = jax.tree_util.tree_map(lambda a: a[p], updated.params)

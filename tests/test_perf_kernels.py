@@ -135,7 +135,7 @@ def test_distributed_programs_are_the_runners(problem, start):
 def test_prediction_programs_match_each_parts_predictor(problem, start):
     from jaxsync.solve.predicted import PredictedPhase
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.histories import shared_dof_layout
+    from jaxsync.surrogate.training.histories import shared_dof_layout
 
     system, _ = start
     part = jaxsync.partition(problem.mesh, 2, seed=0)

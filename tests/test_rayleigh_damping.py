@@ -185,7 +185,7 @@ def test_the_damped_bound_formula():
 def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device_run(beam):
     from jaxsync.solve.predictors import OraclePredictor
     from jaxsync.solve.syncavoid import simulate_sync_avoiding
-    from jaxsync.surrogate.histories import shared_dof_layout
+    from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = _cantilever(beam)
     dt, n_steps = float(problem.dt), 300

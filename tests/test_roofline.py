@@ -26,7 +26,7 @@ from jaxsync.perf.roofline import (
     surrogate_flop_breakdown,
     surrogate_step_cost,
 )
-from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
+from jaxsync.surrogate.models.lstm import LSTMArchitecture, init_params
 from jaxsync.surrogate.refill import refill_predict
 
 ELEMENTWISE = {"add", "sub", "mul", "div", "neg", "logistic", "tanh", "exp", "max", "min"}

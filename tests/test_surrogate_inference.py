@@ -31,7 +31,7 @@ from jaxsync.surrogate.inference import (
     reduced_precision,
     surrogate_windows,
 )
-from jaxsync.surrogate.replicas import init_replicas
+from jaxsync.surrogate.models.replicas import init_replicas
 
 N_P, N_F = 4, 3
 

@@ -11,10 +11,10 @@ import pytest
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate, load_surrogate
-from jaxsync.surrogate.histories import shared_dof_layout
-from jaxsync.surrogate.lstm import forward
+from jaxsync.surrogate.models.lstm import forward
+from jaxsync.surrogate.models.replicas import init_replicas, replica_params
 from jaxsync.surrogate.refill import refill_cycle, refill_index_sets, refill_rollout
-from jaxsync.surrogate.replicas import init_replicas, replica_params
+from jaxsync.surrogate.training.histories import shared_dof_layout
 
 N_S, N_P, N_F = 3, 4, 2
 

@@ -1,4 +1,4 @@
-"""The surrogate-model protocol (jaxsync.surrogate.protocol): models defined outside the
+"""The surrogate-model protocol (jaxsync.surrogate.models.protocol): models defined outside the
 package -- the MLP of the guide docs/guides/extending-surrogates.md (its code block is
 executed here) and a ridge-regularised linear model fitted in closed form, defined below --
 are trained through the public entry point, saved and loaded, named on the command line,
@@ -43,7 +43,7 @@ from jaxsync.surrogate import (
     train_surrogates,
     unregister_surrogate,
 )
-from jaxsync.surrogate.online import OnlineLearner
+from jaxsync.surrogate.training.online import OnlineLearner
 
 GUIDE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "guides" / "extending-surrogates.md"
 N_STEPS = 4000

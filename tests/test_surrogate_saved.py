@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError
-from jaxsync.surrogate.lstm import LSTMArchitecture
-from jaxsync.surrogate.replicas import init_replicas
+from jaxsync.surrogate.models.lstm import LSTMArchitecture
+from jaxsync.surrogate.models.replicas import init_replicas
 from jaxsync.surrogate.saved import (
     FORMAT_VERSION,
     SavedSurrogate,

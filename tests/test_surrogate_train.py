@@ -14,11 +14,11 @@ import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate import ArchitectureChoice, Sampling, Surrogate, TrainingState
-from jaxsync.surrogate.data import build_dataset, stack_replicas
-from jaxsync.surrogate.evaluate import e_mse, grid_search, max_applications
-from jaxsync.surrogate.lstm import LSTMArchitecture, init_params
-from jaxsync.surrogate.replicas import init_replicas, replica_params, stack_params, unpad_params
-from jaxsync.surrogate.train import (
+from jaxsync.surrogate.models.lstm import LSTMArchitecture, init_params
+from jaxsync.surrogate.models.replicas import init_replicas, replica_params, stack_params, unpad_params
+from jaxsync.surrogate.training.data import build_dataset, stack_replicas
+from jaxsync.surrogate.training.evaluate import e_mse, grid_search, max_applications
+from jaxsync.surrogate.training.train import (
     TrainConfig,
     learning_rate_schedule,
     masked_mse,

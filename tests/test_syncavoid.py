@@ -11,7 +11,7 @@ from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.solve.predicted import PredictedPhase
 from jaxsync.solve.predictors import OraclePredictor
 from jaxsync.solve.syncavoid import simulate_sync_avoiding
-from jaxsync.surrogate.histories import shared_dof_layout
+from jaxsync.surrogate.training.histories import shared_dof_layout
 
 N_S, N_P, N_F = 5, 4, 4
 N_CRI = N_S * N_P + 1 + 19  # 40
@@ -164,7 +164,7 @@ def test_full_system_needs_one_replica_over_all_dofs(problem, partition, referen
 
     from jaxsync.solve.full_system import simulate_full_system
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
-    from jaxsync.surrogate.replicas import init_replicas
+    from jaxsync.surrogate.models.replicas import init_replicas
 
     counts = (12, 12)
     arch = LSTMArchitecture(n_dof=12, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
@@ -179,7 +179,7 @@ def test_surrogates_of_another_partition_are_refused(problem, reference):
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
-    from jaxsync.surrogate.replicas import init_replicas
+    from jaxsync.surrogate.models.replicas import init_replicas
 
     other = jaxsync.partition(problem.mesh, 4)
     counts = tuple(3 * p.n_shared for p in other.parts)
@@ -529,7 +529,7 @@ def test_a_conditional_surrogate_takes_the_load_parameter_given_to_the_run(probl
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate
-    from jaxsync.surrogate.replicas import init_replicas
+    from jaxsync.surrogate.models.replicas import init_replicas
 
     n_dof, counts = shared_dof_layout(partition)
     arch = LSTMArchitecture(n_dof=n_dof, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=2)

@@ -117,7 +117,7 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     """The defaults of ``case`` (and, for the vessel, ``size``): the cantilever's are
     the library's (:class:`~jaxsync.surrogate.Sampling`,
     :class:`~jaxsync.surrogate.ArchitectureChoice`,
-    :class:`~jaxsync.surrogate.train.TrainConfig`, the paper's 1e5 steps), with error
+    :class:`~jaxsync.surrogate.training.train.TrainConfig`, the paper's 1e5 steps), with error
     control at 1 %;
     the vessel's follow the paper's section 5.2 (11 parts, n_s = 1000; 1e6 steps, 5 s, at
     the paper's size, 5e5 steps, about 3.9 s, at the small one), with error control at
@@ -126,9 +126,9 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     Raises:
         ConfigError: an unknown case or size.
     """
-    from ..surrogate.architecture import ArchitectureChoice as Arch
-    from ..surrogate.data import Sampling
-    from ..surrogate.train import TrainConfig as Train
+    from ..surrogate.models.architecture import ArchitectureChoice as Arch
+    from ..surrogate.training.data import Sampling
+    from ..surrogate.training.train import TrainConfig as Train
 
     _check_case(case)
     if case == "cantilever" and size != "small":
@@ -310,7 +310,7 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
     minutes, on the vessel a quarter of an hour): the parts (2 or more: one part has no
     shared nodes, nothing to predict), the steps, the training options (by building the
     :class:`~jaxsync.surrogate.Sampling`, :class:`~jaxsync.surrogate.ArchitectureChoice`
-    and :class:`~jaxsync.surrogate.train.TrainConfig` the run will use), the snapshot
+    and :class:`~jaxsync.surrogate.training.train.TrainConfig` the run will use), the snapshot
     strides, that the trained leading part of the run holds one window of n_p + n_f
     snapshots, and the error control's tolerance.
 
@@ -320,9 +320,9 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
     from ..errors import ConfigError
     from ..solve.strategies import SaveAt
     from ..solve.syncavoid import ResyncTolerance
-    from ..surrogate.architecture import ArchitectureChoice
-    from ..surrogate.data import Sampling, trained_rows
-    from ..surrogate.train import TrainConfig
+    from ..surrogate.models.architecture import ArchitectureChoice
+    from ..surrogate.training.data import Sampling, trained_rows
+    from ..surrogate.training.train import TrainConfig
 
     def integer(value) -> bool:
         return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
@@ -362,9 +362,9 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     from ..parallel.devices import device_summary
     from ..solve.syncavoid import describe_run, simulate_sync_avoiding
     from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from ..surrogate.data import last_trained_step
-    from ..surrogate.fit import train_surrogates
-    from ..surrogate.train import TrainConfig
+    from ..surrogate.training.data import last_trained_step
+    from ..surrogate.training.fit import train_surrogates
+    from ..surrogate.training.train import TrainConfig
     from .plots import write_report
 
     started = time.perf_counter()

@@ -561,7 +561,7 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
             (x, y, z) (nearest node) or a dict label -> either (see :func:`resolve_nodes`).
         extra: more entries for ``summary.json`` (timings...).
         train_until_step: the last step whose displacements fed the surrogates' training
-            (:func:`jaxsync.surrogate.data.last_trained_step`); the summary then holds
+            (:func:`jaxsync.surrogate.training.data.last_trained_step`); the summary then holds
             the errors over the snapshots after it (``out_of_sample``, see
             :func:`out_of_sample`).
 

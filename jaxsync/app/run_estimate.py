@@ -240,8 +240,8 @@ def time_training_epoch(parts, n_rows: int, row_stride: int, *, sampling, archit
 
     import jax
 
-    from ..surrogate.data import build_dataset, stack_replicas, trained_rows
-    from ..surrogate.protocol import FitSettings
+    from ..surrogate.models.protocol import FitSettings
+    from ..surrogate.training.data import build_dataset, stack_replicas, trained_rows
 
     rng = np.random.default_rng(sampling.seed)
     rows = trained_rows(n_rows, sampling.train_fraction)
@@ -289,7 +289,7 @@ def measure_demo_estimate(problem, parts, d, *, shared_every: int, mass_scaling=
     from ..fem.load_signals import load_inputs_of
     from ..parallel.devices import device_summary
     from ..surrogate import ArchitectureChoice, Sampling
-    from ..surrogate.train import TrainConfig
+    from ..surrogate.training.train import TrainConfig
 
     started = time.perf_counter()
     # each program in the form its run compiles (a short run's compact product)

@@ -165,7 +165,7 @@ def add_online_learning_option(parser) -> None:
         "--learn", action="store_true",
         help="with --resync-tolerance: after every rejected cycle, train the surrogates on the steps recomputed "
              "synchronized (and on windows replayed from the first synchronized stretch) before predicting "
-             "again: least squares for the linear model, Adam steps for the LSTM (jaxsync.surrogate.online)")
+             "again: least squares for the linear model, Adam steps for the LSTM (jaxsync.surrogate.training.online)")
     parser.add_argument(
         "--learn-budget", type=float, default=None, metavar="SECONDS",
         help="the most wall time all updates of the run may take together (default: 120)")
@@ -191,7 +191,7 @@ def online_learning_of(args):
     if args.resync_tolerance is None or str(args.resync_tolerance).lower() == "none":
         raise ConfigError("--learn learns from the steps that error control recomputes after a rejected cycle: "
                           "give --resync-tolerance too (e.g. --resync-tolerance 1%)")
-    from ..surrogate.online import OnlineLearning
+    from ..surrogate.training.online import OnlineLearning
 
     return OnlineLearning(**({} if budget is None else {"budget_seconds": budget}), save_to=save_to)
 

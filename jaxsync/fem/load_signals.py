@@ -5,8 +5,8 @@ A problem's loads are prescribed: each load (:class:`~jaxsync.fem.loads.BodyForc
 part times a scalar time function g_i(t), and a prescribed motion
 (:class:`jaxsync.Dirichlet` with ``time=``) follows its own g(t). Their values are known
 exactly at every step, past and future, so a surrogate that predicts the shared-node
-displacements may be given them (:mod:`jaxsync.surrogate.lstm`,
-:mod:`jaxsync.surrogate.linear`: the ``n_load`` inputs).
+displacements may be given them (:mod:`jaxsync.surrogate.models.lstm`,
+:mod:`jaxsync.surrogate.models.linear`: the ``n_load`` inputs).
 
 The signal vector u(t) (n_u,) holds, in this order, g_i(t) of every load of
 ``problem.loads`` and then g(t) of every Dirichlet condition of ``problem.dirichlet`` that

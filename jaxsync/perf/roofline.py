@@ -371,11 +371,11 @@ def _slots_per_row(cells, n_nodes: int) -> int:
 
 
 def _check_arch(arch, n_s, lstm_only: bool = False):
-    from ..surrogate.lstm import LSTMArchitecture
-    from ..surrogate.protocol import SurrogateArchitecture
+    from ..surrogate.models.lstm import LSTMArchitecture
+    from ..surrogate.models.protocol import SurrogateArchitecture
 
     if lstm_only and not isinstance(arch, LSTMArchitecture):
-        raise ProblemError(f"expected a jaxsync.surrogate.lstm.LSTMArchitecture, got {arch!r}")
+        raise ProblemError(f"expected a jaxsync.surrogate.models.lstm.LSTMArchitecture, got {arch!r}")
     if not isinstance(arch, SurrogateArchitecture):
         raise ProblemError(f"expected a surrogate model (jaxsync.surrogate.SurrogateArchitecture), got {arch!r}")
     return _count(n_s, "n_s", 1)
@@ -383,7 +383,7 @@ def _check_arch(arch, n_s, lstm_only: bool = False):
 
 def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
     """Flops of one LSTM refill prediction (n_s windows), by kind (formulas: module
-    docstring; :func:`jaxsync.surrogate.lstm.count_flops`).
+    docstring; :func:`jaxsync.surrogate.models.lstm.count_flops`).
 
     Returns:
         ``{"matmul": ..., "bias": ..., "cell": ..., "normalize": ..., "mask": ...}``:
@@ -391,7 +391,7 @@ def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
         the bias additions, ``"cell"`` the gate arithmetic (13 per hidden unit per
         step), ``"normalize"`` the input and output scaling, ``"mask"`` the padding mask.
     """
-    from ..surrogate.lstm import count_flops
+    from ..surrogate.models.lstm import count_flops
 
     return count_flops(arch, _check_arch(arch, n_s, lstm_only=True), masked)
 
@@ -402,7 +402,7 @@ def surrogate_costs(arch, n_s: int, masked: bool = True, io_bytes_per_value: int
     the LSTM's formulas are in the module docstring).
 
     Args:
-        arch: the surrogate model (e.g. a :class:`jaxsync.surrogate.lstm.LSTMArchitecture`).
+        arch: the surrogate model (e.g. a :class:`jaxsync.surrogate.models.lstm.LSTMArchitecture`).
         n_s: sampling stride: windows per prediction.
         masked: the padding mask is applied (the synchronization-avoiding solver does).
         io_bytes_per_value: bytes per value of the solver-side buffer, mean, std, mask

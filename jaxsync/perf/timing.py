@@ -61,7 +61,7 @@ from ..precision import require_float64
 from ..solve.distributed import DistributedParts, DistributedRunner
 from ..solve.exchanges import Halo, sync_strategy
 from ..solve.predicted import PredictedPhase
-from ..surrogate.histories import shared_dof_layout
+from ..surrogate.training.histories import shared_dof_layout
 from . import kernels
 from .measure import best_times, describe_devices, per_step_times
 from .reports import PartTiming, SpeedupReport, TimingReport

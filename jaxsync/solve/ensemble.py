@@ -142,7 +142,7 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
         labels: optional sequence of n_runs floats (the load magnitude, an
             initial-condition factor...), stored as ``parameters["load_parameter"]`` of
             each trajectory: the conditional surrogates' input
-            (:func:`jaxsync.surrogate.histories.read_shared_histories`).
+            (:func:`jaxsync.surrogate.training.histories.read_shared_histories`).
         dt: time step [s], one for all runs; default the smallest of the runs' default
             steps (runs of one material: run 0's ``dt``;
             :func:`jaxsync.solve.ensemble_stability.default_dt`). Checked against every run's

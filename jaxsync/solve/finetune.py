@@ -19,7 +19,7 @@ steps given (the span the surrogates were trained on), with Adam on the weights 
 clipped), and the weights with the lowest loss on a fixed set of validation windows are
 kept (the start's, when no step improved on it).
 
-Any surrogate model is tuned alike (:mod:`jaxsync.surrogate.protocol`): the gradient flows
+Any surrogate model is tuned alike (:mod:`jaxsync.surrogate.models.protocol`): the gradient flows
 through the model's own ``forward``, whatever the model and however it was first fitted
 (by gradient, or in closed form like the linear one).
 """

@@ -8,7 +8,7 @@ one), and the predictions are for steps step + 1 .. step + n_s n_f. Static sizes
 ``n_s``, ``n_past``, ``n_future``.
 
 :class:`jaxsync.surrogate.Surrogate` (trained replicas of any surrogate model: the LSTM, the
-linear one or a registered model, :mod:`jaxsync.surrogate.protocol`) and :class:`OraclePredictor`
+linear one or a registered model, :mod:`jaxsync.surrogate.models.protocol`) and :class:`OraclePredictor`
 (replays known displacements; pins the coupling independently of network error).
 """
 
@@ -58,9 +58,9 @@ def predictor_for(surrogates, partition, problem=None, dt=None):
     surrogate file (its shared node ids checked against the partition's). Raises
     :class:`~jaxsync.errors.ProblemError` for anything else (a path: with the fix) and
     :class:`~jaxsync.errors.CheckpointError` for surrogates of another partition."""
-    from ..surrogate.histories import shared_dof_layout
     from ..surrogate.model import Surrogate
     from ..surrogate.saved import SavedSurrogate, check_compatible
+    from ..surrogate.training.histories import shared_dof_layout
 
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
         raise ProblemError(f"surrogates={surrogates!r} is a path: load the surrogate file first, "

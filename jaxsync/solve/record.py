@@ -120,7 +120,7 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
     n_dof) or None) of every stretch from step 0: ``"synchronized"`` ones (the first holds
     the snapshot at t = 0) and ``"predicted"`` ones (their global field the mean over the
     parts that hold each node, and each part's own predictions at the saved steps)."""
-    from ..surrogate.histories import shared_dof_layout
+    from ..surrogate.training.histories import shared_dof_layout
     from ..trajectory import Trajectory
 
     n_dof, counts = shared_dof_layout(partition)

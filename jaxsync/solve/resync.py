@@ -52,7 +52,7 @@ class OnlineSettings:
         load_jumps: the steps where a load jumps that the run stays synchronized through
             (None: predicted through), for the statistics.
         all_load_jumps: every load jump of the run, for the trajectory's parameters.
-        learning: a :class:`~jaxsync.surrogate.online.OnlineLearning`: after every
+        learning: a :class:`~jaxsync.surrogate.training.online.OnlineLearning`: after every
             rejected cycle, the surrogates learn from the steps recomputed synchronized
             (None: they stay as given).
     """
@@ -93,7 +93,7 @@ class OnlineRun:
 
     def __init__(self, problem, runner: DistributedRunner, first: FirstPhase, online: OnlineSettings,
                  dt: float, save_every: int, executor, limit: float):
-        from ..surrogate.histories import shared_dof_layout
+        from ..surrogate.training.histories import shared_dof_layout
 
         self.problem, self.runner, self.first, self.online = problem, runner, first, online
         self.save_every, self.executor, self.limit = save_every, executor, limit
@@ -113,7 +113,7 @@ class OnlineRun:
         self.dt = dt
         self.learner = None
         if online.learning is not None and tolerance is not None:
-            from ..surrogate.online import OnlineLearner
+            from ..surrogate.training.online import OnlineLearner
 
             self.learner = OnlineLearner(online.learning, predictor, first.shared,
                                          shared_nodes=[part.shared_nodes for part in self.partition.parts])

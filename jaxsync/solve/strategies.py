@@ -253,7 +253,7 @@ class ResyncTolerance:
 
     ``learning``: learn while synchronized: after every rejected cycle the surrogates train
     on the steps recomputed synchronized (and on windows replayed from the first
-    synchronized stretch) before the run predicts again (:mod:`jaxsync.surrogate.online`).
+    synchronized stretch) before the run predicts again (:mod:`jaxsync.surrogate.training.online`).
     True: the defaults of :class:`jaxsync.surrogate.OnlineLearning`, or one of those (its
     ``budget_seconds`` bounds the update time of the run); None or False (default): the
     surrogates stay as given.

@@ -86,7 +86,7 @@ class SyncAvoiding(Coupling):
             ``"2%"`` (relative to the largest shared-node displacement seen in synchronized
             steps), or a :class:`jaxsync.ResyncTolerance` (stored as one); None: never. Its
             ``learning`` lets the surrogates learn from the steps recomputed after every
-            rejected cycle (:mod:`jaxsync.surrogate.online`).
+            rejected cycle (:mod:`jaxsync.surrogate.training.online`).
         load_jumps: ``"synchronize"`` (default) or ``"predict"``: what the run does at the
             steps where a load's time function jumps (see above).
 
@@ -246,10 +246,10 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
 
 
 def _online_learning(tolerance, surrogates):
-    """The run's :class:`~jaxsync.surrogate.online.OnlineLearning` (``tolerance.learning``), or None."""
+    """The run's :class:`~jaxsync.surrogate.training.online.OnlineLearning` (``tolerance.learning``), or None."""
     if tolerance is None or tolerance.learning is None or tolerance.learning is False:
         return None
-    from ..surrogate.online import OnlineLearning
+    from ..surrogate.training.online import OnlineLearning
 
     if isinstance(surrogates, OraclePredictor):
         raise ProblemError("resync_tolerance: learning updates trained surrogates; an OraclePredictor replays known "

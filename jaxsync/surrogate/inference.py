@@ -2,7 +2,7 @@
 
 :meth:`Surrogate.with_inference_dtype("bfloat16") <jaxsync.surrogate.Surrogate.with_inference_dtype>`
 runs the networks with bfloat16 weights and activations and float32 accumulation
-(:mod:`jaxsync.surrogate.lstm`). bfloat16 keeps 8 significant bits: every weight, input
+(:mod:`jaxsync.surrogate.models.lstm`). bfloat16 keeps 8 significant bits: every weight, input
 and hidden state is rounded by up to 2^-9 = 0.2 % of itself, so the predictions move.
 How far depends on the trained network, so it is measured here on windows of the
 network's own inputs, against the same network in full precision:
@@ -51,10 +51,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError, InferencePrecisionError
-from jaxsync.surrogate.architecture import forward
-from jaxsync.surrogate.data import make_windows, normalize, subsample
 from jaxsync.surrogate.model import Surrogate
-from jaxsync.surrogate.protocol import check_compute_dtype
+from jaxsync.surrogate.models.architecture import forward
+from jaxsync.surrogate.models.protocol import check_compute_dtype
+from jaxsync.surrogate.training.data import make_windows, normalize, subsample
 
 __all__ = ["DEFAULT_BOUND", "ReducedPrecisionWarning", "InferencePrecisionReport", "surrogate_windows",
            "surrogate_signal_windows",

@@ -1,9 +1,9 @@
 """The trained surrogates of a partition as one pytree: :class:`Surrogate`.
 
-One network per part -- an LSTM encoder-decoder (:mod:`jaxsync.surrogate.lstm`) or the
-linear autoregressive baseline (:mod:`jaxsync.surrogate.linear`), the same code for both
-(:mod:`jaxsync.surrogate.architecture`) -- padded to the largest part and stacked on a leading
-part axis (:mod:`jaxsync.surrogate.replicas`), with each part's normalization, padding
+One network per part -- an LSTM encoder-decoder (:mod:`jaxsync.surrogate.models.lstm`) or the
+linear autoregressive baseline (:mod:`jaxsync.surrogate.models.linear`), the same code for both
+(:mod:`jaxsync.surrogate.models.architecture`) -- padded to the largest part and stacked on a leading
+part axis (:mod:`jaxsync.surrogate.models.replicas`), with each part's normalization, padding
 mask and load parameter.  The solver places it on the devices like any other stacked
 pytree (each part's replica on the device of its part) and calls, for one part,
 
@@ -11,7 +11,7 @@ pytree (each part's replica on the device of its part) and calls, for one part,
   n_s n_p (paper Algorithm 3);
 * :meth:`Surrogate.rollout` -- refill cycles, each consuming the previous predictions:
   the one rollout of a surrogate, used by the offline evaluation
-  (:func:`jaxsync.surrogate.evaluate.e_mse`) and by full-system modeling.
+  (:func:`jaxsync.surrogate.training.evaluate.e_mse`) and by full-system modeling.
 
 Load input: replicas trained with the known load signals (``arch.n_load > 0``,
 :mod:`jaxsync.fem.load_signals`) read them at the refill's steps from the problem's own
@@ -38,12 +38,12 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadSignals, check_load_inputs
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.surrogate.architecture import Architecture
-from jaxsync.surrogate.data import padding_mask
-from jaxsync.surrogate.histories import shared_dof_layout
-from jaxsync.surrogate.protocol import check_compute_dtype
+from jaxsync.surrogate.models.architecture import Architecture
+from jaxsync.surrogate.models.protocol import check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
 from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
+from jaxsync.surrogate.training.data import padding_mask
+from jaxsync.surrogate.training.histories import shared_dof_layout
 
 __all__ = ["Surrogate"]
 
@@ -58,8 +58,8 @@ class Surrogate:
         dof_mask: (n_parts, n_dof) 1 on real dofs, 0 on padding (dtype of ``mean``).
         load_parameter: (n_parts,) float32 load parameter alpha_f fed to conditional
             networks (ignored by unconditional ones).
-        arch: the architecture (static): :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`
-            or :class:`~jaxsync.surrogate.linear.LinearArchitecture`; ``arch.n_dof`` is the
+        arch: the architecture (static): :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`
+            or :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`; ``arch.n_dof`` is the
             padded width.
         n_s: the sampling stride the replicas were trained with (static).
         smooth: :meth:`predict` returns the refill as one smooth curve from the last
@@ -70,7 +70,7 @@ class Surrogate:
             of the node's amplitude with it). False gives the paper's raw refill.
         inference_dtype: None (default: the networks compute in ``arch.dtype``) or
             ``"bfloat16"``: reduced-precision inference, bfloat16 weights and activations
-            with float32 accumulation (:mod:`jaxsync.surrogate.lstm`; static). Set it with
+            with float32 accumulation (:mod:`jaxsync.surrogate.models.lstm`; static). Set it with
             :meth:`with_inference_dtype`, and check what it costs in accuracy with
             :func:`jaxsync.surrogate.inference.check_inference_precision`. A runtime option:
             surrogate files keep the parameters as trained and do not record it.
@@ -280,11 +280,11 @@ class Surrogate:
         same architecture costs, and needs no training run.  Its predictions are
         meaningless.  The defaults are the paper's architecture (n_H = 100, 2 layers,
         n_p = n_f = 20). ``model="linear"``: the linear autoregressive map instead
-        (:mod:`jaxsync.surrogate.linear`, zero weights) of inner width ``rank`` (default
+        (:mod:`jaxsync.surrogate.models.linear`, zero weights) of inner width ``rank`` (default
         n_p n_dof, the widest a fit can give); ``n_hidden`` and ``n_layers`` are unused.
         ``highway_rank`` > 0: the LSTM with a linear highway of that inner width (zero
-        weights; :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`)."""
-        from jaxsync.surrogate.architecture import ArchitectureChoice
+        weights; :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`)."""
+        from jaxsync.surrogate.models.architecture import ArchitectureChoice
 
         choice = ArchitectureChoice(model=model, n_hidden=n_hidden, n_layers=n_layers, dtype=dtype)
         n_dof, counts = shared_dof_layout(partition)
@@ -316,7 +316,7 @@ class Surrogate:
 
     @classmethod
     def from_result(cls, result, n_s: int, load_parameter: float | None = None) -> "Surrogate":
-        """The surrogate of a :class:`~jaxsync.surrogate.train.TrainResult` trained at
+        """The surrogate of a :class:`~jaxsync.surrogate.training.train.TrainResult` trained at
         sampling stride ``n_s``."""
         return cls._build(result.arch, result.params, result.mean, result.std, result.dof_mask, n_s,
                           load_parameter, result.signal_scale, result.load_inputs)

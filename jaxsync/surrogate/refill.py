@@ -31,9 +31,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.architecture import Architecture, forward
-from jaxsync.surrogate.data import normalize
-from jaxsync.surrogate.lstm import Params
+from jaxsync.surrogate.models.architecture import Architecture, forward
+from jaxsync.surrogate.models.lstm import Params
+from jaxsync.surrogate.training.data import normalize
 
 __all__ = ["refill_input_steps", "refill_target_steps", "refill_index_sets", "refill_windows",
            "refill_scatter", "refill_predict", "smooth_refill", "refill_cycle", "refill_rollout"]
@@ -127,14 +127,14 @@ def refill_predict(
 
     Args:
         params: one replica's parameters.
-        arch: architecture (LSTM or linear: :mod:`jaxsync.surrogate.architecture`).
+        arch: architecture (LSTM or linear: :mod:`jaxsync.surrogate.models.architecture`).
         mean, std: (n_dof,) normalization, solver units.
         buffer: (n_s n_p, n_dof) displacements of steps n + 1 - n_s n_p .. n, solver units.
         n_s: sampling stride the network was trained with.
         load_parameter: scalar load parameter (conditional networks).
         dof_mask: optional (n_dof,) padding mask.
         compute_dtype: None or ``"bfloat16"``, the network's reduced-precision inference
-            (:func:`~jaxsync.surrogate.architecture.forward`); the normalization stays in
+            (:func:`~jaxsync.surrogate.models.architecture.forward`); the normalization stays in
             the dtypes of ``buffer`` and ``mean``.
         loads: a model with load input: (n_s (n_p + n_f), n_load) its normalized load
             signals at steps n + 1 - n_s n_p .. n + n_s n_f (the buffer's steps, then the

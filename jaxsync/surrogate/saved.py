@@ -2,7 +2,7 @@
 :class:`SavedSurrogate`, what such a file holds.
 
 (Not to be confused with the solver's resumable checkpoints, :mod:`jaxsync.solve.checkpoint`,
-or the training state of :mod:`jaxsync.surrogate.training_state`.)
+or the training state of :mod:`jaxsync.surrogate.training.training_state`.)
 
 Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`; the name is
 kept from before the linear surrogate, which the same format holds)::
@@ -47,10 +47,15 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadInput
 from jaxsync.io import array_checksum, atomic_h5
-from jaxsync.surrogate.architecture import Architecture, architecture_from_dict, architecture_to_dict, init_params
-from jaxsync.surrogate.data import padding_mask
-from jaxsync.surrogate.lstm import Params
-from jaxsync.surrogate.train import TrainResult
+from jaxsync.surrogate.models.architecture import (
+    Architecture,
+    architecture_from_dict,
+    architecture_to_dict,
+    init_params,
+)
+from jaxsync.surrogate.models.lstm import Params
+from jaxsync.surrogate.training.data import padding_mask
+from jaxsync.surrogate.training.train import TrainResult
 
 FORMAT_NAME = "jaxsync-lstm-surrogate"
 FORMAT_VERSION = 1
@@ -62,8 +67,8 @@ class SavedSurrogate:
     """Everything needed to run a set of trained replicas: what a surrogate file holds.
 
     Attributes:
-        arch: architecture (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture` or
-            :class:`~jaxsync.surrogate.linear.LinearArchitecture`); ``arch.n_dof`` is the
+        arch: architecture (:class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture` or
+            :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`); ``arch.n_dof`` is the
             padded width.
         params: stacked parameters (leading part axis), numpy arrays.
         mean, std: (n_parts, n_dof) normalization, solver units (padding: 0 and 1).
@@ -106,7 +111,7 @@ class SavedSurrogate:
         shared_nodes: Sequence[np.ndarray] | None = None,
         metadata: dict[str, Any] | None = None,
     ) -> "SavedSurrogate":
-        """The saved form of the replicas returned by :func:`~jaxsync.surrogate.train.train_replicas`."""
+        """The saved form of the replicas returned by :func:`~jaxsync.surrogate.training.train.train_replicas`."""
         return cls(
             arch=result.arch, params=result.params, mean=result.mean, std=result.std,
             dof_counts=result.dof_counts, n_s=int(n_s),

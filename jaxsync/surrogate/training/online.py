@@ -4,7 +4,7 @@ When error control rejects a refill cycle, the host executor recomputes the step
 its last synchronized point with the synchronized solver (:mod:`jaxsync.solve.host`).
 Those steps are exact shared-node values at the run's current state: the data the
 surrogates lacked. :class:`OnlineLearning` turns them into sample-refill windows (the
-windows of offline training, :mod:`jaxsync.surrogate.data`: n_p inputs n_s steps apart,
+windows of offline training, :mod:`jaxsync.surrogate.training.data`: n_p inputs n_s steps apart,
 the next n_f samples as targets, with the load signals at the same steps), mixes in
 windows replayed from the run's first synchronized stretch (the span the surrogates were
 trained on, so that an update does not unlearn it) and takes full-batch Adam steps on all
@@ -15,10 +15,10 @@ predictions, against the recomputed values (a lower error one window ahead can s
 cycle after cycle).
 
 Each model learns the way it is fitted (its ``online_update``,
-:mod:`jaxsync.surrogate.protocol`): a model trained by gradient (the LSTM encoder-decoder,
-or a user's :class:`~jaxsync.surrogate.protocol.GradientFitted`) takes the Adam steps above
+:mod:`jaxsync.surrogate.models.protocol`): a model trained by gradient (the LSTM encoder-decoder,
+or a user's :class:`~jaxsync.surrogate.models.protocol.GradientFitted`) takes the Adam steps above
 (:meth:`OnlineLearner.gradient_steps`); a model fitted in closed form (the linear
-autoregressive model, :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`) corrects
+autoregressive model, :class:`~jaxsync.surrogate.models.protocol.LeastSquaresFitted`) corrects
 its first fit: one solve on every window the run has synchronized -- each chained window
 of the first stretch (one per stride, so that the fit's rollouts run over them) and the
 recomputed ones, all weighed alike (its rank, the shape of its factors, stays as fitted).
@@ -42,8 +42,8 @@ import numpy as np
 import optax
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.data import normalize
-from jaxsync.surrogate.evaluate import rollout_parts
+from jaxsync.surrogate.training.data import normalize
+from jaxsync.surrogate.training.evaluate import rollout_parts
 
 __all__ = ["OnlineLearning", "OnlineLearner", "UpdateReport", "sample_refill_windows"]
 
@@ -322,7 +322,7 @@ class OnlineLearner:
     def gradient_steps(self, params, x, y, u, weight, q, mask, start: float):
         """Full-batch Adam steps on the stacked replicas ``params`` within the budget, the
         update started at ``start`` (``time.perf_counter()``): (params, steps taken). What
-        a :class:`~jaxsync.surrogate.protocol.GradientFitted` model's ``online_update`` runs.
+        a :class:`~jaxsync.surrogate.models.protocol.GradientFitted` model's ``online_update`` runs.
 
         Args:
             x, y, u: (n_parts, n_w, ...) normalized windows (``u`` None without load input).
@@ -362,7 +362,7 @@ class OnlineLearner:
         return np.square(predicted - truth).sum(axis=(1, 2)) / (predicted.shape[1] * counts)
 
     def every_window(self):
-        """What a closed-form refit fits (a :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`
+        """What a closed-form refit fits (a :class:`~jaxsync.surrogate.models.protocol.LeastSquaresFitted`
         model's ``online_update``, an LSTM's linear highway): the windows of the recomputed
         stretches kept so far and every chained window of the first synchronized stretch
         (one per stride, so that rollouts run over them; none with ``replay=0``), all

@@ -1,6 +1,6 @@
 """Linear autoregressive surrogate: the baseline beside the LSTM.
 
-The same protocol as :mod:`jaxsync.surrogate.lstm` (:mod:`jaxsync.surrogate.protocol`;
+The same protocol as :mod:`jaxsync.surrogate.models.lstm` (:mod:`jaxsync.surrogate.models.protocol`;
 fitted in closed form) -- an architecture, ``init_params`` and
 ``forward(params, arch, xs, load_parameter, dof_mask)`` mapping a normalized window
 of ``n_past`` snapshots (n_p, n_dof) to the next ``n_future`` (n_f, n_dof) -- so that
@@ -11,14 +11,14 @@ it unchanged.  The prediction is an affine map of the window::
 
 each future snapshot predicted directly from the inputs (no feedback of predictions
 inside a window), which is the affine predictor of least training MSE: the LSTM's loss,
-on the LSTM's windows (:func:`~jaxsync.surrogate.data.build_dataset`,
-:func:`~jaxsync.surrogate.data.stack_replicas`), minimized exactly.
+on the LSTM's windows (:func:`~jaxsync.surrogate.training.data.build_dataset`,
+:func:`~jaxsync.surrogate.training.data.stack_replicas`), minimized exactly.
 
 Structure: W is stored factored, ``W = w_in w_out`` through the ``rank`` directions of
 the training inputs that the fit uses (:func:`fit_linear`: the right singular vectors of
 the centered inputs).  This is the ridge least-squares solution itself -- it lies in the
 span of the training inputs -- less the directions its ridge suppresses below
-:data:`~jaxsync.surrogate.least_squares.FILTER_CUT` of their weight, and its size grows
+:data:`~jaxsync.surrogate.training.least_squares.FILTER_CUT` of their weight, and its size grows
 with the number of windows at most, not with n_dof^2: a full W of the 11-part vessel
 (n_dof = 2 310, n_p = n_f = 20) would hold 2.1e9 numbers per part.  Parameters, one
 replica::
@@ -57,17 +57,23 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.data import ReplicaData
-from jaxsync.surrogate.least_squares import (
+from jaxsync.surrogate.models.protocol import (
+    FitSettings,
+    LeastSquaresFitted,
+    PredictionCost,
+    check_compute_dtype,
+    check_loads,
+)
+from jaxsync.surrogate.training.data import ReplicaData
+from jaxsync.surrogate.training.least_squares import (
     DEFAULT_REGULARIZATION,
     rollout_error,
     select_regularization,
     solve_least_squares,
 )
-from jaxsync.surrogate.protocol import FitSettings, LeastSquaresFitted, PredictionCost, check_compute_dtype, check_loads
 
-if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.train imports optax
-    from jaxsync.surrogate.train import TrainResult
+if TYPE_CHECKING:  # fit_linear imports it: jaxsync.surrogate.training.train imports optax
+    from jaxsync.surrogate.training.train import TrainResult
 
 __all__ = ["LinearArchitecture", "LinearFitConfig", "init_params", "forward", "fit_linear", "fit_affine",
            "solve_least_squares", "param_shapes", "DEFAULT_REGULARIZATION"]
@@ -82,7 +88,7 @@ _DTYPES = ("float32", "float64")
 @dataclasses.dataclass(frozen=True)
 class LinearArchitecture(LeastSquaresFitted):
     """Shape of one linear autoregressive surrogate (static: it never carries arrays): a
-    surrogate model fitted in closed form (:mod:`jaxsync.surrogate.protocol`).
+    surrogate model fitted in closed form (:mod:`jaxsync.surrogate.models.protocol`).
 
     Attributes:
         n_dof: degrees of freedom per snapshot; for replicas the padded width.
@@ -173,17 +179,17 @@ class LinearArchitecture(LeastSquaresFitted):
 @dataclasses.dataclass(frozen=True)
 class LinearFitConfig:
     """Settings of the least-squares fit (the ``config`` of its
-    :class:`~jaxsync.surrogate.train.TrainResult`).
+    :class:`~jaxsync.surrogate.training.train.TrainResult`).
 
     Attributes:
         regularization: the smallest ridge parameter r the fit may use, relative:
             lambda = r s_max^2 with s_max the largest singular value of the centered
             training inputs, so r does not depend on the number of windows or dofs.  The
             fit minimizes ||X W - Y||^2 + lambda ||W_x||^2 (bias and load columns not
-            penalized; :func:`~jaxsync.surrogate.least_squares.solve_least_squares`), with
+            penalized; :func:`~jaxsync.surrogate.training.least_squares.solve_least_squares`), with
             r chosen from r, 1e-8 ... 1 by refill rollouts over the training and
             validation windows
-            (:func:`~jaxsync.surrogate.least_squares.select_regularization`); r = 0 is
+            (:func:`~jaxsync.surrogate.training.least_squares.select_regularization`); r = 0 is
             the exact least squares (no ridge, none chosen).  Default 1e-8: the
             windows are float32 (relative round-off ~6e-8), so the inputs have
             directions of singular value ~1e-7 s_max that are round-off only; unpenalized
@@ -230,7 +236,7 @@ def init_params(key: jax.Array, arch: LinearArchitecture) -> Params:
     """Zero parameters (the map that predicts the training mean; normalized 0).
 
     Args:
-        key: unused (the signature of :func:`jaxsync.surrogate.lstm.init_params`).
+        key: unused (the signature of :func:`jaxsync.surrogate.models.lstm.init_params`).
         arch: the architecture.
 
     Returns:
@@ -260,7 +266,7 @@ def forward(
         dof_mask: optional (n_dof,) padding mask; padded outputs are set to 0.
         compute_dtype: None (``arch.dtype`` throughout) or ``"bfloat16"``: parameters and
             window rounded to bfloat16, products accumulated in float32 (as the LSTM's,
-            :mod:`jaxsync.surrogate.lstm`).
+            :mod:`jaxsync.surrogate.models.lstm`).
         loads: (n_p + n_f, n_load) normalized load signals at the window's sample times
             (past, then future), required when ``arch.n_load > 0``, None otherwise.
 
@@ -350,7 +356,7 @@ def refit(params: Params, arch: "LinearArchitecture", x, y, signals, weight, dof
           regularization: float = DEFAULT_REGULARIZATION) -> Params:
     """The replicas fitted again by least squares on weighted windows, their rank (the
     shape of their factors) kept: a fit of higher rank is truncated to ``arch.rank``
-    input directions. What online learning (:mod:`jaxsync.surrogate.online`) does to a
+    input directions. What online learning (:mod:`jaxsync.surrogate.training.online`) does to a
     linear surrogate: one exact solve in place of gradient steps.
 
     Args:
@@ -401,7 +407,7 @@ def _unpacked(params: Params, dof_counts, arch: "LinearArchitecture") -> list:
 
 def _masked_mse(params: Params, arch: LinearArchitecture, x, y, dof_mask, u=None) -> np.ndarray:
     """(n_parts,) MSE of the stacked replicas over windows, steps and real dofs
-    (normalized units; the LSTM's :func:`~jaxsync.surrogate.train.masked_mse`); ``u``
+    (normalized units; the LSTM's :func:`~jaxsync.surrogate.training.train.masked_mse`); ``u``
     (n_parts, n_windows, n_p + n_f, n_load) the windows' load signals (load input only)."""
     if x.shape[1] == 0:  # no windows (e.g. no validation split)
         return np.full(x.shape[0], np.nan)
@@ -419,7 +425,7 @@ def fit_affine(data: ReplicaData, regularization: float = DEFAULT_REGULARIZATION
     """The least-squares affine map of every replica's training windows (ARX with the
     windows' load signals): ``(arch, stacked params)``, the rank the largest any part
     needs. What :func:`fit_linear` fits, and the LSTM's linear highway starts from
-    (:mod:`jaxsync.surrogate.lstm`).
+    (:mod:`jaxsync.surrogate.models.lstm`).
 
     Raises:
         ConfigError: no training windows."""
@@ -449,19 +455,19 @@ def fit_linear(data: ReplicaData, config: LinearFitConfig | None = None, dtype: 
 
     Args:
         data: the normalized windows of all parts
-            (:func:`~jaxsync.surrogate.data.stack_replicas`; float32 from
-            :func:`~jaxsync.surrogate.data.build_dataset`, or float64 for an exact fit).
+            (:func:`~jaxsync.surrogate.training.data.stack_replicas`; float32 from
+            :func:`~jaxsync.surrogate.training.data.build_dataset`, or float64 for an exact fit).
         config: the regularization (default :class:`LinearFitConfig`).
         dtype: dtype of the stored parameters and of prediction.
 
     Returns:
-        A :class:`~jaxsync.surrogate.train.TrainResult` of one "epoch" (the solve):
+        A :class:`~jaxsync.surrogate.training.train.TrainResult` of one "epoch" (the solve):
         ``train_loss`` and ``val_loss`` (1, n_parts) MSE in normalized units,
         ``initial_val_loss`` that of the zero map (the training mean), ``seconds_per_epoch``
         the solve's wall time, ``steps_per_epoch`` 0 (no gradient steps), ``config`` the
         :class:`LinearFitConfig`.
     """
-    from jaxsync.surrogate.train import TrainResult
+    from jaxsync.surrogate.training.train import TrainResult
 
     config = LinearFitConfig() if config is None else config
     if dtype not in _DTYPES:

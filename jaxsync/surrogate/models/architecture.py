@@ -1,9 +1,9 @@
 """The surrogate models, one interface: every call goes through the model's own methods.
 
-A surrogate model is a :class:`~jaxsync.surrogate.protocol.SurrogateArchitecture` (the
+A surrogate model is a :class:`~jaxsync.surrogate.models.protocol.SurrogateArchitecture` (the
 protocol: ``init``, ``forward``, ``fit``, ``online_update``, ``prediction_cost``,
-``to_dict``/``from_dict``; :mod:`jaxsync.surrogate.protocol`) registered under its
-``kind`` (:mod:`jaxsync.surrogate.registry`). ``forward(params, xs, load_parameter,
+``to_dict``/``from_dict``; :mod:`jaxsync.surrogate.models.protocol`) registered under its
+``kind`` (:mod:`jaxsync.surrogate.models.registry`). ``forward(params, xs, load_parameter,
 dof_mask, compute_dtype=None, loads=None)`` maps a normalized window (n_p, n_dof) to
 (n_f, n_dof) (``compute_dtype="bfloat16"``: reduced-precision inference; ``loads``
 (n_p + n_f, n_load): the known load signals of a model with load input, ``arch.n_load > 0``,
@@ -12,8 +12,8 @@ dof_mask, compute_dtype=None, loads=None)`` maps a normalized window (n_p, n_dof
 =========  =====================================================  ============================
 kind       architecture                                           module
 =========  =====================================================  ============================
-"lstm"     :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`      :mod:`jaxsync.surrogate.lstm`
-"linear"   :class:`~jaxsync.surrogate.linear.LinearArchitecture`  :mod:`jaxsync.surrogate.linear`
+"lstm"     :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`      :mod:`jaxsync.surrogate.models.lstm`
+"linear"   :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`  :mod:`jaxsync.surrogate.models.linear`
 =========  =====================================================  ============================
 
 The refill (:mod:`jaxsync.surrogate.refill`) and the surrogate files
@@ -38,10 +38,10 @@ from typing import Any
 import jax
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.linear import DEFAULT_REGULARIZATION, LinearFitConfig
-from jaxsync.surrogate.lstm import LSTMArchitecture
-from jaxsync.surrogate.protocol import SurrogateArchitecture
-from jaxsync.surrogate.registry import surrogate_class
+from jaxsync.surrogate.models.linear import DEFAULT_REGULARIZATION, LinearFitConfig
+from jaxsync.surrogate.models.lstm import LSTMArchitecture
+from jaxsync.surrogate.models.protocol import SurrogateArchitecture
+from jaxsync.surrogate.models.registry import surrogate_class
 
 __all__ = ["Architecture", "ArchitectureChoice", "model_module", "architecture_to_dict",
            "architecture_from_dict", "init_params", "forward"]
@@ -56,15 +56,15 @@ class ArchitectureChoice:
     ``architecture`` of :func:`jaxsync.surrogate.train_surrogates` and
     :func:`jaxsync.surrogate.grid_search`.
 
-    The window lengths n_p, n_f are the :class:`~jaxsync.surrogate.data.Sampling`'s; the
+    The window lengths n_p, n_f are the :class:`~jaxsync.surrogate.training.data.Sampling`'s; the
     padded width n_dof (and the linear model's rank) come from the data. The defaults are
-    those of :class:`~jaxsync.surrogate.lstm.LSTMArchitecture` and
-    :class:`~jaxsync.surrogate.linear.LinearFitConfig`, as ``jaxsync train`` uses them.
+    those of :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture` and
+    :class:`~jaxsync.surrogate.models.linear.LinearFitConfig`, as ``jaxsync train`` uses them.
 
     Attributes:
         model: ``"lstm"`` (default), the encoder-decoder trained with optax, or
             ``"linear"``, the affine autoregressive baseline fitted by least squares on
-            the same windows (:mod:`jaxsync.surrogate.linear`; unconditional), or the kind
+            the same windows (:mod:`jaxsync.surrogate.models.linear`; unconditional), or the kind
             of a model registered with :func:`~jaxsync.surrogate.register_surrogate`
             (which takes the fields below of the names of its own fields).
         n_hidden: n_H, hidden size of each encoder direction (default 50; the paper's
@@ -76,7 +76,7 @@ class ArchitectureChoice:
         dtype: ``"float32"`` (default) or ``"float64"``: parameters and computation, both
             models.
         regularization: relative ridge parameter r >= 0 of the linear fit (default 1e-8,
-            :class:`~jaxsync.surrogate.linear.LinearFitConfig`). Linear only.
+            :class:`~jaxsync.surrogate.models.linear.LinearFitConfig`). Linear only.
         load_input: feed the networks the known load signals (the time functions of the
             problem's loads and prescribed motions, past and future window,
             :mod:`jaxsync.fem.load_signals`): the LSTM reads them in its encoder and
@@ -88,7 +88,7 @@ class ArchitectureChoice:
         highway: give the LSTM a linear autoregressive highway: it predicts the
             least-squares affine map of the window (the linear model, ARX with the load
             input) plus what its decoder learns on top, trained from that fit
-            (:class:`~jaxsync.surrogate.lstm.LSTMArchitecture`). None (default): on for
+            (:class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`). None (default): on for
             the unconditional LSTM (out of sample it predicts as well as the linear
             model where the plain network misses; ``docs/guides/surrogates.md``), off
             for the conditional one (the map does not read the load parameter), not
@@ -138,7 +138,7 @@ class ArchitectureChoice:
 
     @property
     def model_class(self) -> type:
-        """The registered class of :attr:`model` (:func:`~jaxsync.surrogate.registry.surrogate_class`)."""
+        """The registered class of :attr:`model` (:func:`~jaxsync.surrogate.models.registry.surrogate_class`)."""
         return surrogate_class(self.model)
 
 
@@ -150,8 +150,8 @@ def _check_model(arch) -> SurrogateArchitecture:
 
 
 def model_module(arch: Architecture) -> ModuleType:
-    """The module that defines ``arch``'s class (:mod:`~jaxsync.surrogate.lstm`,
-    :mod:`~jaxsync.surrogate.linear`, or a user's)."""
+    """The module that defines ``arch``'s class (:mod:`~jaxsync.surrogate.models.lstm`,
+    :mod:`~jaxsync.surrogate.models.linear`, or a user's)."""
     return sys.modules[type(_check_model(arch)).__module__]
 
 

@@ -1,5 +1,5 @@
 """Training of one replica per part by gradient, all parts in one compiled program: the
-fit of every :class:`~jaxsync.surrogate.protocol.GradientFitted` model (the LSTM, or a
+fit of every :class:`~jaxsync.surrogate.models.protocol.GradientFitted` model (the LSTM, or a
 user's), which minimises the model's own ``loss`` (default: the masked MSE of its
 ``forward``, :func:`masked_mse`).
 
@@ -25,7 +25,7 @@ replica has improved for ``patience`` epochs (checked after every epoch inside t
 compiled loop, so the stop epoch does not depend on ``epochs_per_call``).
 
 Resumable training: with ``state=TrainingState(folder, every)``, :func:`train_replicas`
-writes its state (:mod:`jaxsync.surrogate.training_state`) into ``folder`` every ``every``
+writes its state (:mod:`jaxsync.surrogate.training.training_state`) into ``folder`` every ``every``
 epochs and at the end; called again with the same data, settings and key it continues
 from it and ends with the same parameters as an uninterrupted run (the compiled chunks
 end at the same epochs).
@@ -41,7 +41,7 @@ per-epoch function of one replica becomes a program over all parts through
 device training its own block of parts, no communication), and ``epochs_per_call``
 epochs run in one ``jax.lax.scan`` inside ``jax.jit``; Python only updates the progress
 bar, writes the training state and calls the optional ``callback``.  Padding and
-stacking replicas: :mod:`jaxsync.surrogate.replicas`.
+stacking replicas: :mod:`jaxsync.surrogate.models.replicas`.
 
 Reproducibility: the PRNG key is split into an initialization key (replica ``r`` uses
 ``fold_in(init_key, r)``) and a shuffling key (epoch ``e`` uses ``fold_in(shuffle_key, e)``,
@@ -67,10 +67,10 @@ from tqdm.auto import tqdm
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
-from jaxsync.surrogate.data import ReplicaData, padding_mask
-from jaxsync.surrogate.loss import masked_mse
-from jaxsync.surrogate.replicas import Params, init_replicas
-from jaxsync.surrogate.training_state import (
+from jaxsync.surrogate.models.replicas import Params, init_replicas
+from jaxsync.surrogate.training.data import ReplicaData, padding_mask
+from jaxsync.surrogate.training.loss import masked_mse
+from jaxsync.surrogate.training.training_state import (
     TrainingState,
     load_training_state,
     save_training_state,
@@ -166,9 +166,9 @@ class TrainResult:
     """Trained replicas and their loss history.
 
     The least-squares fit of the linear surrogate
-    (:func:`jaxsync.surrogate.linear.fit_linear`) returns one too: ``arch`` a
-    :class:`~jaxsync.surrogate.linear.LinearArchitecture`, ``config`` a
-    :class:`~jaxsync.surrogate.linear.LinearFitConfig`, one row of losses (the solve),
+    (:func:`jaxsync.surrogate.models.linear.fit_linear`) returns one too: ``arch`` a
+    :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`, ``config`` a
+    :class:`~jaxsync.surrogate.models.linear.LinearFitConfig`, one row of losses (the solve),
     ``seconds_per_epoch`` the solve's wall time and ``steps_per_epoch`` 0.
 
     Attributes:
@@ -196,7 +196,7 @@ class TrainResult:
     """
 
     params: Params
-    arch: Any  # LSTMArchitecture, or LinearArchitecture (jaxsync.surrogate.architecture)
+    arch: Any  # LSTMArchitecture, or LinearArchitecture (jaxsync.surrogate.models.architecture)
     config: Any  # TrainConfig, or LinearFitConfig
     dof_counts: tuple[int, ...]
     mean: np.ndarray
@@ -387,21 +387,21 @@ def train_replicas(
     """Train one replica per part, all together, by gradient on the model's ``loss``.
 
     Args:
-        data: stacked, padded windows (:func:`jaxsync.surrogate.data.stack_replicas`).
-        arch: the model (a :class:`~jaxsync.surrogate.protocol.GradientFitted`: the
-            :class:`~jaxsync.surrogate.lstm.LSTMArchitecture` or a user's);
+        data: stacked, padded windows (:func:`jaxsync.surrogate.training.data.stack_replicas`).
+        arch: the model (a :class:`~jaxsync.surrogate.models.protocol.GradientFitted`: the
+            :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture` or a user's);
             ``arch.n_dof`` must equal ``data.n_dof_max``.
         config: optimization settings.
         key: PRNG key (initialization and shuffling).
         init: optional initial stacked parameters (default
-            :func:`~jaxsync.surrogate.replicas.init_replicas`).
+            :func:`~jaxsync.surrogate.models.replicas.init_replicas`).
         progress: show a tqdm bar with the epoch and the largest train/val loss over parts.
         description: label of the progress bar.
         devices: local devices to spread the parts over (default: as many as divide the
             number of parts); 1 keeps everything on one device.  The result does not
             depend on it beyond float32 round-off.
         state: where and how often to write the resumable training state
-            (:class:`~jaxsync.surrogate.training_state.TrainingState`; None: none).  If
+            (:class:`~jaxsync.surrogate.training.training_state.TrainingState`; None: none).  If
             its file exists it must come from a run with the same data, architecture,
             config, key, init and ``state.every`` (else :class:`CheckpointError`), and
             training continues from it.  It is rewritten atomically every ``state.every``

@@ -29,11 +29,11 @@ import numpy as np
 
 from jaxsync.errors import ConfigError
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.surrogate.architecture import ArchitectureChoice
-from jaxsync.surrogate.data import Sampling, build_dataset, padding_mask, stack_replicas
 from jaxsync.surrogate.model import Surrogate
-from jaxsync.surrogate.protocol import GradientFitted
-from jaxsync.surrogate.train import TrainConfig, train_replicas
+from jaxsync.surrogate.models.architecture import ArchitectureChoice
+from jaxsync.surrogate.models.protocol import GradientFitted
+from jaxsync.surrogate.training.data import Sampling, build_dataset, padding_mask, stack_replicas
+from jaxsync.surrogate.training.train import TrainConfig, train_replicas
 
 __all__ = ["max_applications", "rollout_errors", "RolloutErrors", "RolloutWarning", "e_mse", "TrainingChecks",
            "GridPoint", "GridSearchResult", "grid_search"]
@@ -290,7 +290,7 @@ def grid_search(
         architecture: the LSTM's other settings (its ``n_hidden`` is replaced by the grid;
             n_dof is the largest part's); ``model`` must be trained by gradient and have
             an ``n_hidden`` (``"lstm"``, or a registered
-            :class:`~jaxsync.surrogate.protocol.GradientFitted` model).
+            :class:`~jaxsync.surrogate.models.protocol.GradientFitted` model).
         sampling: the windows (n_s, n_p, n_f, train/validation fractions, offsets, split)
             and the seed of the split, the mini-batch order and the initial weights;
             ``load_jump_windows`` does not apply (the histories record no load jumps).

@@ -3,13 +3,13 @@
 A surrogate file names the model it holds by its ``kind`` (``"lstm"``, ``"linear"``, or a
 model a user registered), and so do :class:`~jaxsync.surrogate.ArchitectureChoice`
 (``model=``) and ``jaxsync train --model``. This module maps that string to the model's
-class (a :class:`~jaxsync.surrogate.protocol.SurrogateArchitecture`):
+class (a :class:`~jaxsync.surrogate.models.protocol.SurrogateArchitecture`):
 
 =========  =====================================================
 kind       class
 =========  =====================================================
-"lstm"     :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`
-"linear"   :class:`~jaxsync.surrogate.linear.LinearArchitecture`
+"lstm"     :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`
+"linear"   :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`
 =========  =====================================================
 
 :func:`register_surrogate` adds a model (its class attribute ``kind`` is its name;
@@ -31,11 +31,11 @@ __all__ = ["register_surrogate", "unregister_surrogate", "surrogate_class", "sur
 
 #: kind -> (module, class name) of the built-in models, imported on first lookup
 BUILTIN_SURROGATES: dict[str, tuple[str, str]] = {
-    "lstm": ("jaxsync.surrogate.lstm", "LSTMArchitecture"),
-    "linear": ("jaxsync.surrogate.linear", "LinearArchitecture"),
+    "lstm": ("jaxsync.surrogate.models.lstm", "LSTMArchitecture"),
+    "linear": ("jaxsync.surrogate.models.linear", "LinearArchitecture"),
 }
 
-# the methods of the protocol (jaxsync.surrogate.protocol) every registered class has
+# the methods of the protocol (jaxsync.surrogate.models.protocol) every registered class has
 _PROTOCOL = ("init", "forward", "init_replicas", "loss", "fit", "online_update", "prediction_cost", "to_dict",
              "from_dict", "from_choice", "check_choice", "candidates_per_part", "summary_fields", "fit_description")
 
@@ -49,9 +49,9 @@ def register_surrogate(cls: type, *, replace: bool = False) -> type:
     ``ArchitectureChoice(model=cls.kind)`` and ``jaxsync train --model`` train it.
 
     Args:
-        cls: a subclass of :class:`~jaxsync.surrogate.protocol.SurrogateArchitecture`
-            (through :class:`~jaxsync.surrogate.protocol.GradientFitted` or
-            :class:`~jaxsync.surrogate.protocol.LeastSquaresFitted`) with a class attribute
+        cls: a subclass of :class:`~jaxsync.surrogate.models.protocol.SurrogateArchitecture`
+            (through :class:`~jaxsync.surrogate.models.protocol.GradientFitted` or
+            :class:`~jaxsync.surrogate.models.protocol.LeastSquaresFitted`) with a class attribute
             ``kind``, a non-empty string.
         replace: allow a kind already registered to name ``cls`` from now on (a built-in
             kind is never replaced).

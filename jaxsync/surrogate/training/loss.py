@@ -1,6 +1,6 @@
 """The training loss of the surrogate models: the masked, weighted mean squared error of
 a model's ``forward`` over windows (what
-:meth:`~jaxsync.surrogate.protocol.SurrogateArchitecture.loss` returns by default, and
+:meth:`~jaxsync.surrogate.models.protocol.SurrogateArchitecture.loss` returns by default, and
 gradient training and online learning minimise)."""
 
 from __future__ import annotations

@@ -44,7 +44,7 @@ input load unchanged).
 
 Linear highway (``highway=True``, after LSTNet, Lai et al. 2018): the prediction is
 the least-squares affine map of the window -- the linear model of
-:mod:`jaxsync.surrogate.linear`, ARX with the load signals -- plus the decoder's
+:mod:`jaxsync.surrogate.models.linear`, ARX with the load signals -- plus the decoder's
 output. Each decoder step adds the highway's prediction of its snapshot to its dense
 output and feeds the sum back. The map is fitted first, in closed form, on the training
 windows; the dense layer starts at zero, so training starts from the linear model's
@@ -53,7 +53,7 @@ predictions and the recurrent part learns what they miss. No gradient reaches th
 out-of-sample rollout); online learning refits it by least squares on the run's windows,
 as the linear model learns, and trains the recurrent part by gradient. Its parameters
 are ``"highway": {"w_in", "w_out", "b"[, "w_load"]}`` of
-:func:`jaxsync.surrogate.linear.param_shapes`, of rank ``highway_rank``.
+:func:`jaxsync.surrogate.models.linear.param_shapes`, of rank ``highway_rank``.
 
 Reduced-precision inference (``compute_dtype="bfloat16"`` in :func:`forward`):
 every matrix product takes bfloat16 operands -- the weights, the layer inputs, the hidden
@@ -77,14 +77,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.protocol import (  # noqa: F401 - the input checks, importable from here as before
+from jaxsync.surrogate.models.protocol import (  # noqa: F401 - the input checks, importable from here as before
     COMPUTE_DTYPES,
     GradientFitted,
     PredictionCost,
     check_compute_dtype,
     check_loads,
 )
-from jaxsync.surrogate.replicas import (
+from jaxsync.surrogate.models.replicas import (
     count_parameters,  # noqa: F401 - importable from here as before
     pad_params,
     stack_params,
@@ -98,7 +98,7 @@ _DTYPES = ("float32", "float64")
 @dataclasses.dataclass(frozen=True)
 class LSTMArchitecture(GradientFitted):
     """Shape of one encoder-decoder (static: it never carries arrays): a surrogate model
-    trained by gradient (:mod:`jaxsync.surrogate.protocol`).
+    trained by gradient (:mod:`jaxsync.surrogate.models.protocol`).
 
     Attributes:
         n_dof: degrees of freedom per snapshot (input and output width). For a set of
@@ -122,7 +122,7 @@ class LSTMArchitecture(GradientFitted):
         highway_rank: the highway's inner width (its least-squares rank, set by
             :meth:`fit`; 0 without a highway).
         kind: "lstm" (class attribute, not a field): the model a surrogate file holds
-            (:mod:`jaxsync.surrogate.architecture`).
+            (:mod:`jaxsync.surrogate.models.architecture`).
     """
 
     kind: ClassVar[str] = "lstm"
@@ -177,11 +177,11 @@ class LSTMArchitecture(GradientFitted):
 
     @property
     def highway_arch(self):
-        """The highway's :class:`~jaxsync.surrogate.linear.LinearArchitecture` (None
+        """The highway's :class:`~jaxsync.surrogate.models.linear.LinearArchitecture` (None
         without a highway, or before :meth:`fit` set its rank)."""
         if not self.highway_rank:
             return None
-        from jaxsync.surrogate.linear import LinearArchitecture
+        from jaxsync.surrogate.models.linear import LinearArchitecture
 
         return LinearArchitecture(n_dof=self.n_dof, rank=self.highway_rank, n_past=self.n_past,
                                   n_future=self.n_future, dtype=self.dtype, n_load=self.n_load)
@@ -205,7 +205,7 @@ class LSTMArchitecture(GradientFitted):
         gradient reaches it), then the recurrent part's full-batch Adam steps on the
         weighted sample ``x`` ... ``weight``."""
         if self.highway_rank:
-            from jaxsync.surrogate.linear import refit
+            from jaxsync.surrogate.models.linear import refit
 
             hx, hy, hu, hw = learner.every_window()
             highway = refit(params["highway"], self.highway_arch, hx, hy, hu, hw, dof_mask)
@@ -213,15 +213,15 @@ class LSTMArchitecture(GradientFitted):
         return learner.gradient_steps(params, x, y, signals, weight, load_parameter, dof_mask, started)
 
     def fit(self, data, settings):
-        """Gradient training (:func:`~jaxsync.surrogate.train.train_replicas`); with a
+        """Gradient training (:func:`~jaxsync.surrogate.training.train.train_replicas`); with a
         highway, from the least-squares affine map of the training windows
-        (:func:`~jaxsync.surrogate.linear.fit_affine`, the choice's ``regularization``) and
+        (:func:`~jaxsync.surrogate.models.linear.fit_affine`, the choice's ``regularization``) and
         a zero output layer, so that training starts from the linear model's predictions
         and the decoder learns what they miss."""
         if not self.highway:
             return super().fit(data, settings)
-        from jaxsync.surrogate.linear import fit_affine
-        from jaxsync.surrogate.train import train_replicas
+        from jaxsync.surrogate.models.linear import fit_affine
+        from jaxsync.surrogate.training.train import train_replicas
 
         linear, highway = fit_affine(data, settings.architecture.regularization, self.dtype)
         arch = dataclasses.replace(self, highway_rank=linear.rank)
@@ -235,7 +235,7 @@ class LSTMArchitecture(GradientFitted):
     def init_replicas(self, key: jax.Array, dof_counts) -> Params:
         """Replica r is ``init_params(fold_in(key, r))`` at its own dof count (so it equals a
         network initialized alone), zero-padded to ``n_dof``
-        (:func:`~jaxsync.surrogate.replicas.pad_params`)."""
+        (:func:`~jaxsync.surrogate.models.replicas.pad_params`)."""
         replicas = []
         for r, count in enumerate(dof_counts):
             own = dataclasses.replace(self, n_dof=int(count))
@@ -276,7 +276,7 @@ def _param_shapes(arch: LSTMArchitecture) -> Params:
         "dense": {"w": ((arch.n_dof, n_dec), dense_bound), "b": ((arch.n_dof,), dense_bound)},
     }
     if arch.highway_rank:  # zero: set by the least-squares fit (LSTMArchitecture.fit)
-        from jaxsync.surrogate.linear import param_shapes
+        from jaxsync.surrogate.models.linear import param_shapes
 
         shapes["highway"] = {name: (shape, 0.0) for name, shape in param_shapes(arch.highway_arch).items()}
     return shapes
@@ -509,7 +509,7 @@ def forward(
     xs = xs.astype(arch.dtype)
     offsets = None
     if arch.highway_rank:
-        from jaxsync.surrogate.linear import forward as affine
+        from jaxsync.surrogate.models.linear import forward as affine
 
         # the highway stays the least-squares fit: no gradient reaches it (measured: trained with
         # the decoder, it drifts from that fit and predicts worse out of sample)

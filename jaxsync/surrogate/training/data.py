@@ -26,7 +26,7 @@ for the conditional network) are combined by pooling their windows before the sp
 Training data come from distributed trajectories (:func:`read_shared_histories`, through
 :meth:`jaxsync.Trajectory.load`, the one trajectory reader); a partition's shared-dof
 layout, padded to its largest part, is :func:`shared_dof_layout` (both in
-:mod:`jaxsync.surrogate.histories`, re-exported here).  The refill index sets
+:mod:`jaxsync.surrogate.training.histories`, re-exported here).  The refill index sets
 that prediction uses are in :mod:`jaxsync.surrogate.refill`.
 
 :class:`Sampling` holds these settings (and the seed of a training) as
@@ -46,10 +46,10 @@ import numpy as np
 from jaxsync.errors import ConfigError
 from jaxsync.options import LoadJumpWindows, ValidationSplit, check_option, choices
 
-# re-exported: where they were defined before jaxsync.surrogate.histories
-from jaxsync.surrogate.histories import SharedHistories as SharedHistories
-from jaxsync.surrogate.histories import read_shared_histories as read_shared_histories
-from jaxsync.surrogate.histories import shared_dof_layout as shared_dof_layout
+# re-exported: where they were defined before jaxsync.surrogate.training.histories
+from jaxsync.surrogate.training.histories import SharedHistories as SharedHistories
+from jaxsync.surrogate.training.histories import read_shared_histories as read_shared_histories
+from jaxsync.surrogate.training.histories import shared_dof_layout as shared_dof_layout
 
 # ----------------------------------------------------------------------------- windows
 
@@ -220,9 +220,9 @@ class Sampling:
     def for_model(self, model) -> "Sampling":
         """These settings with ``load_jump_windows`` decided for ``model`` when it is None:
         the model's own ``load_jump_windows`` (``"exclude"`` for the linear model, ``"keep"``
-        for the LSTM; :mod:`jaxsync.surrogate.protocol`). ``model``: a surrogate model
-        (class or instance), or its kind (:mod:`jaxsync.surrogate.registry`)."""
-        from jaxsync.surrogate.registry import surrogate_class
+        for the LSTM; :mod:`jaxsync.surrogate.models.protocol`). ``model``: a surrogate model
+        (class or instance), or its kind (:mod:`jaxsync.surrogate.models.registry`)."""
+        from jaxsync.surrogate.models.registry import surrogate_class
 
         rule = getattr(model, "load_jump_windows", None)
         if rule is None:

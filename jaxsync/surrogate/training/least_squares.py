@@ -1,4 +1,4 @@
-"""Least squares of the linear surrogate and the linear highway (:mod:`jaxsync.surrogate.linear`).
+"""Least squares of the linear surrogate and the linear highway (:mod:`jaxsync.surrogate.models.linear`).
 
 An affine map ``y ~ x W + b`` of flattened windows, W factored through input directions
 (:func:`solve_least_squares`): the window's displacement columns ridge-penalized, the

@@ -2,12 +2,12 @@
 and ``jaxsync demo``.
 
 :func:`train_surrogates` reads the per-part shared-dof histories of one or more
-distributed runs of one partition (:func:`~jaxsync.surrogate.histories.read_shared_histories`),
+distributed runs of one partition (:func:`~jaxsync.surrogate.training.histories.read_shared_histories`),
 builds the sample-refill windows of every part, fits all replicas together the model's own
-way (its ``fit``, :mod:`jaxsync.surrogate.protocol`: the LSTM and other gradient-fitted
-models by :func:`~jaxsync.surrogate.train.train_replicas`; with
+way (its ``fit``, :mod:`jaxsync.surrogate.models.protocol`: the LSTM and other gradient-fitted
+models by :func:`~jaxsync.surrogate.training.train.train_replicas`; with
 ``ArchitectureChoice(model="linear")``, the linear autoregressive baseline by least
-squares on the same windows instead, :func:`~jaxsync.surrogate.linear.fit_linear`),
+squares on the same windows instead, :func:`~jaxsync.surrogate.models.linear.fit_linear`),
 measures sqrt(E_mse) and the offline rollout on the first run and returns a
 :class:`TrainedSurrogates`: the :class:`~jaxsync.surrogate.Surrogate` for the solver, its
 surrogate file's content (with the partition's shared node ids), the loss history and
@@ -20,15 +20,15 @@ least-squares fit has no state to resume).
 Its settings come in frozen dataclasses, each with the defaults of ``jaxsync train``:
 
 ==========================  ============================================================
-``architecture``            :class:`~jaxsync.surrogate.architecture.ArchitectureChoice`:
+``architecture``            :class:`~jaxsync.surrogate.models.architecture.ArchitectureChoice`:
                             model (LSTM or linear), n_H, k, q, dtype, ridge r
-``sampling``                :class:`~jaxsync.surrogate.data.Sampling`: n_s, n_p, n_f,
+``sampling``                :class:`~jaxsync.surrogate.training.data.Sampling`: n_s, n_p, n_f,
                             fractions, offsets, split, load-jump windows, seed
-``optimizer``               :class:`~jaxsync.surrogate.train.TrainConfig`: the schedule,
+``optimizer``               :class:`~jaxsync.surrogate.training.train.TrainConfig`: the schedule,
                             early stopping, candidates per part
-``checks``                  :class:`~jaxsync.surrogate.evaluate.TrainingChecks`: E_mse
+``checks``                  :class:`~jaxsync.surrogate.training.evaluate.TrainingChecks`: E_mse
                             cycles, offline rollout tolerance
-``state``                   :class:`~jaxsync.surrogate.training_state.TrainingState`, or
+``state``                   :class:`~jaxsync.surrogate.training.training_state.TrainingState`, or
                             None: where and how often the resumable state is written
 ==========================  ============================================================
 
@@ -56,9 +56,13 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import RecordedLoadSignals
 from jaxsync.io import atomic_json, atomic_path
-from jaxsync.surrogate.architecture import ArchitectureChoice, architecture_to_dict
-from jaxsync.surrogate.data import Sampling, build_dataset, stack_replicas
-from jaxsync.surrogate.evaluate import (
+from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate.models.architecture import ArchitectureChoice, architecture_to_dict
+from jaxsync.surrogate.models.protocol import FitSettings
+from jaxsync.surrogate.models.replicas import count_parameters
+from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
+from jaxsync.surrogate.training.data import Sampling, build_dataset, stack_replicas
+from jaxsync.surrogate.training.evaluate import (
     RolloutErrors,
     RolloutWarning,
     TrainingChecks,
@@ -66,13 +70,9 @@ from jaxsync.surrogate.evaluate import (
     max_applications,
     rollout_errors,
 )
-from jaxsync.surrogate.histories import SharedHistories, read_shared_histories
-from jaxsync.surrogate.model import Surrogate
-from jaxsync.surrogate.protocol import FitSettings
-from jaxsync.surrogate.replicas import count_parameters
-from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
-from jaxsync.surrogate.train import TrainConfig, TrainProgress, TrainResult
-from jaxsync.surrogate.training_state import STATE_NAME, TrainingState
+from jaxsync.surrogate.training.histories import SharedHistories, read_shared_histories
+from jaxsync.surrogate.training.train import TrainConfig, TrainProgress, TrainResult
+from jaxsync.surrogate.training.training_state import STATE_NAME, TrainingState
 from jaxsync.trajectory import Trajectory
 
 __all__ = ["train_surrogates", "TrainedSurrogates", "plot_loss_curves", "choose_candidates", "SURROGATE_NAME",
@@ -97,18 +97,18 @@ class TrainedSurrogates:
             the load parameter of the first trajectory).
         result: the optimization: losses per epoch and part, best epochs, early stop,
             seconds per epoch, compilation time (a linear surrogate's: the one
-            least-squares solve, :func:`~jaxsync.surrogate.linear.fit_linear`).
+            least-squares solve, :func:`~jaxsync.surrogate.models.linear.fit_linear`).
         shared_nodes: per part, the global ids of its shared nodes (the partition).
         trajectories: absolute path of each trajectory (None for one given in memory).
         load_parameters: the load parameter of each run fed to a conditional network, or
             None (unconditional).
         sampling: the sampling settings used, ``load_jump_windows`` decided for the model
-            (:meth:`~jaxsync.surrogate.data.Sampling.for_model`).
-        checks: the checks asked for (:class:`~jaxsync.surrogate.evaluate.TrainingChecks`).
+            (:meth:`~jaxsync.surrogate.training.data.Sampling.for_model`).
+        checks: the checks asked for (:class:`~jaxsync.surrogate.training.evaluate.TrainingChecks`).
         n_train_windows, n_val_windows: windows per part.
         n_excluded_windows: windows per part left out because they straddle a load jump.
         state: where the resumable training state was written
-            (:class:`~jaxsync.surrogate.training_state.TrainingState`); None when none was
+            (:class:`~jaxsync.surrogate.training.training_state.TrainingState`); None when none was
             (not asked for, or the linear model).
         train_seconds: wall time of the training call (compilation included) [s].
         e_mse_applications: refill cycles N of ``sqrt_e_mse`` (None: not measured).
@@ -116,7 +116,7 @@ class TrainedSurrogates:
         rollout: the offline accuracy check: every replica rolled out autonomously from
             step n_s n_p - 1 (where an online run starts predicting) to the end of the
             first trajectory, including the steps after ``train_fraction`` that no
-            window was taken from (:func:`~jaxsync.surrogate.evaluate.rollout_errors`);
+            window was taken from (:func:`~jaxsync.surrogate.training.evaluate.rollout_errors`);
             None when not measured (shared histories thinned, or too short a run).
         candidates: with several candidates per part, which one each part kept and every
             candidate's validation loss (:func:`choose_candidates`); None for one, and
@@ -157,7 +157,7 @@ class TrainedSurrogates:
     @property
     def rollout_tolerance(self) -> float | None:
         """The largest ``rollout.relative`` accepted without a
-        :class:`~jaxsync.surrogate.evaluate.RolloutWarning` (None: no check)."""
+        :class:`~jaxsync.surrogate.training.evaluate.RolloutWarning` (None: no check)."""
         return self.checks.rollout_tolerance
 
     @property
@@ -301,7 +301,7 @@ def _load_parameters(runs, given, n_cond_repeat: int) -> list[float] | None:
 
 def _load_signals(runs, load_input: bool | None) -> tuple[list[np.ndarray] | None, tuple]:
     """The per-run load signals the windows carry and their descriptions, decided by
-    ``load_input`` (:class:`~jaxsync.surrogate.architecture.ArchitectureChoice`): None:
+    ``load_input`` (:class:`~jaxsync.surrogate.models.architecture.ArchitectureChoice`): None:
     when every run records signals (and there is at least one); True: required; False:
     none."""
     recorded = [run.load_signal is not None and run.load_signal.shape[1] > 0 for run in runs]
@@ -341,7 +341,7 @@ def train_surrogates(
     """Train one LSTM surrogate per part on distributed trajectories of one partition
     (or fit the linear baseline: ``architecture=ArchitectureChoice(model="linear")``, or
     any registered model: ``ArchitectureChoice(model=kind)``, fitted by its own ``fit``,
-    :mod:`jaxsync.surrogate.protocol`).
+    :mod:`jaxsync.surrogate.models.protocol`).
 
     Computes only: write the results with :meth:`TrainedSurrogates.write`.
 
@@ -352,7 +352,7 @@ def train_surrogates(
             ``sampling.n_s`` (e.g. ``save_every=n_s``: what training reads, and all a long
             run needs to keep). Displacements in solver units (cm in the paper).
         architecture: the model and its size
-            (:class:`~jaxsync.surrogate.architecture.ArchitectureChoice`; default: the
+            (:class:`~jaxsync.surrogate.models.architecture.ArchitectureChoice`; default: the
             LSTM with n_H = 50, k = 2, unconditional, float32). ``n_cond_repeat`` > 0
             trains the conditional network. The linear model is fitted by least squares
             with ``architecture.regularization``. ``architecture.load_input`` (default
@@ -364,31 +364,31 @@ def train_surrogates(
             ``load_input=True`` refuses them. The LSTM-only settings (``n_hidden``,
             ``n_layers``, ``optimizer``, ``state``, ``devices``, ``progress``,
             ``callback``) do not apply to it.
-        sampling: the windows and the seed (:class:`~jaxsync.surrogate.data.Sampling`;
+        sampling: the windows and the seed (:class:`~jaxsync.surrogate.training.data.Sampling`;
             default n_s = 150, n_p = n_f = 20, the first half of each run, 25 %
             interleaved validation windows, seed 0). Its ``load_jump_windows`` None takes
             the model's rule: windows across a recorded load jump are left out for the
             linear model and kept for the LSTM.
         optimizer: the schedule and the candidates per part
-            (:class:`~jaxsync.surrogate.train.TrainConfig`; default the laptop schedule:
+            (:class:`~jaxsync.surrogate.training.train.TrainConfig`; default the laptop schedule:
             n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200, the
             better of 2 candidates per part). LSTM only.
         checks: the measures after training, on the first trajectory
-            (:class:`~jaxsync.surrogate.evaluate.TrainingChecks`; default sqrt(E_mse) over
+            (:class:`~jaxsync.surrogate.training.evaluate.TrainingChecks`; default sqrt(E_mse) over
             60 refill cycles and the offline rollout check at 2 % of each part's shared
             amplitude, warning with
-            :class:`~jaxsync.surrogate.evaluate.RolloutWarning` above it).
+            :class:`~jaxsync.surrogate.training.evaluate.RolloutWarning` above it).
         load_parameters: the load parameter of each trajectory (default: their problem
             parameter ``load_parameter``); used with ``architecture.n_cond_repeat`` > 0.
         allow_predicted: accept synchronization-avoiding trajectories (refused by default).
         state: where and how often to write the resumable training state
-            (:class:`~jaxsync.surrogate.training_state.TrainingState`; None, the default:
+            (:class:`~jaxsync.surrogate.training.training_state.TrainingState`; None, the default:
             none). The same call again resumes from it; :meth:`TrainedSurrogates.write`
             deletes it. LSTM only.
         devices: local devices to spread the parts over (default: as many as divide the
             part count).
         progress: show a progress bar.
-        callback: given a :class:`~jaxsync.surrogate.train.TrainProgress` after every
+        callback: given a :class:`~jaxsync.surrogate.training.train.TrainProgress` after every
             compiled chunk of epochs.
 
     Returns:
@@ -484,9 +484,9 @@ def train_surrogates(
 def training_amplitude(runs, train_fraction: float) -> float:
     """The largest |displacement| component at the shared nodes [cm] over the rows of
     every run and part that training may read: the first ``trained_rows(n_rows,
-    train_fraction)`` of each part's history (:func:`jaxsync.surrogate.data.trained_rows`,
-    the rule :func:`~jaxsync.surrogate.data.build_dataset` samples by). ``runs``:
-    :class:`~jaxsync.surrogate.histories.SharedHistories`."""
+    train_fraction)`` of each part's history (:func:`jaxsync.surrogate.training.data.trained_rows`,
+    the rule :func:`~jaxsync.surrogate.training.data.build_dataset` samples by). ``runs``:
+    :class:`~jaxsync.surrogate.training.histories.SharedHistories`."""
     from .data import trained_rows
 
     return max(float(np.abs(h[:trained_rows(h.shape[0], train_fraction)]).max(initial=0.0))

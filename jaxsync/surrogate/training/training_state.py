@@ -1,7 +1,7 @@
 """The resumable state of a training run (one HDF5 file, written atomically).
 
 :class:`TrainingState` says where (``<folder>/training_state.h5``) and how often (every
-``every`` epochs) a training writes it: :func:`~jaxsync.surrogate.train.train_replicas`
+``every`` epochs) a training writes it: :func:`~jaxsync.surrogate.training.train.train_replicas`
 and :func:`~jaxsync.surrogate.train_surrogates` take it as ``state=``.  The file holds the
 whole state -- the carry of the compiled chunks (parameters, Adam state, best parameters,
 best validation losses and epochs) as flat leaves, the loss history and the bookkeeping
@@ -30,7 +30,7 @@ import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum, atomic_h5
-from jaxsync.surrogate.data import ReplicaData
+from jaxsync.surrogate.training.data import ReplicaData
 
 Params = Any  # a pytree of parameter arrays
 
@@ -46,7 +46,7 @@ _STATE_VERSION = 1
 @dataclasses.dataclass(frozen=True)
 class TrainingState:
     """Where and how often a training writes its resumable state (the ``state`` of
-    :func:`~jaxsync.surrogate.train.train_replicas` and
+    :func:`~jaxsync.surrogate.training.train.train_replicas` and
     :func:`~jaxsync.surrogate.train_surrogates`).
 
     The file ``<folder>/training_state.h5`` (:attr:`path`) is rewritten atomically every
@@ -86,7 +86,7 @@ def _digest(arrays) -> str:
 def training_fingerprint(data: ReplicaData, arch, config, key: jax.Array,
                          init: Params | None = None, state_every: int | None = None) -> dict[str, Any]:
     """Everything that determines a training run, as a JSON-serializable dict
-    (``config``: the :class:`~jaxsync.surrogate.train.TrainConfig`).
+    (``config``: the :class:`~jaxsync.surrogate.training.train.TrainConfig`).
 
     A training state is resumed only by a run with the same fingerprint: same windows and
     normalization (hashed), architecture, configuration, key, initial parameters and

@@ -21,7 +21,7 @@ from jaxsync.errors import ConfigError
 
 Params = Any
 
-# the dof axis of each linear-highway parameter (jaxsync.surrogate.linear.param_shapes)
+# the dof axis of each linear-highway parameter (jaxsync.surrogate.models.linear.param_shapes)
 _HIGHWAY_DOF_AXIS = {"w_in": 1, "w_out": 2, "b": 1, "w_load": None}
 
 __all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init_replicas", "count_parameters"]
@@ -29,7 +29,7 @@ __all__ = ["pad_params", "unpad_params", "stack_params", "replica_params", "init
 
 def pad_params(params: Params, arch, n_dof: int) -> Params:
     """Zero-pad one LSTM replica's parameters (``arch`` its
-    :class:`~jaxsync.surrogate.lstm.LSTMArchitecture`) from ``arch.n_dof`` to ``n_dof`` dofs.
+    :class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture`) from ``arch.n_dof`` to ``n_dof`` dofs.
 
     Pads the first encoder layer's input columns, the decoder's input columns (the dof
     block, before the q load-parameter columns), the dense layer's output rows and the
@@ -89,7 +89,7 @@ def replica_params(stacked: Params, index: int) -> Params:
 
 def init_replicas(key: jax.Array, arch, dof_counts: tuple[int, ...]) -> Params:
     """Initial stacked parameters of one replica per part: the model's own
-    ``arch.init_replicas(key, dof_counts)`` (:mod:`jaxsync.surrogate.protocol`; for the
+    ``arch.init_replicas(key, dof_counts)`` (:mod:`jaxsync.surrogate.models.protocol`; for the
     LSTM, replica r is ``init_params(fold_in(key, r))`` at its own dof count, so it equals
     a replica initialized alone, zero-padded to ``arch.n_dof``)."""
     return arch.init_replicas(key, tuple(int(c) for c in dof_counts))

@@ -18,7 +18,7 @@ Fields every model has (the window geometry, set from the data by :meth:`Surroga
 
 Shapes, one replica, one window (callers ``jax.vmap`` over windows and replicas), all
 normalized (displacements by the part's per-dof mean and std, load signals by their
-scale; :mod:`jaxsync.surrogate.data`):
+scale; :mod:`jaxsync.surrogate.training.data`):
 
 ==================  =========================  =========================================
 ``xs``              (n_p, D)                   the past shared displacements
@@ -36,11 +36,11 @@ The methods (defaults in :class:`SurrogateArchitecture` where one exists):
 ``init(key)``                   initial parameters of one replica (required)
 ``forward(params, xs, ...)``    the prediction above (required)
 ``loss(params, x, y, ...)``     weighted masked MSE over windows (default
-                                :func:`~jaxsync.surrogate.loss.masked_mse`); what gradient
+                                :func:`~jaxsync.surrogate.training.loss.masked_mse`); what gradient
                                 training and online learning minimise
 ``fit(data, settings)``         train all replicas on windows (:class:`FitSettings`): by
                                 gradient (:class:`GradientFitted`, through
-                                :func:`~jaxsync.surrogate.train.train_replicas`) or in
+                                :func:`~jaxsync.surrogate.training.train.train_replicas`) or in
                                 closed form (:class:`LeastSquaresFitted`, the model's own
                                 solve)
 ``online_update(...)``          one update from the windows a run recomputes (gradient
@@ -66,7 +66,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.loss import masked_mse
+from jaxsync.surrogate.training.loss import masked_mse
 
 __all__ = ["SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
            "COMPUTE_DTYPES", "check_compute_dtype", "check_loads"]
@@ -96,7 +96,7 @@ class FitSettings:
         progress: show a progress bar.
         devices: local devices to spread the parts over (None: as many as divide them).
         state: the resumable :class:`~jaxsync.surrogate.TrainingState`, or None.
-        callback: called with a :class:`~jaxsync.surrogate.train.TrainProgress` after every
+        callback: called with a :class:`~jaxsync.surrogate.training.train.TrainProgress` after every
             compiled chunk of epochs, or None.
     """
 
@@ -164,7 +164,7 @@ class SurrogateArchitecture:
 
     def loss(self, params, x, y, load_parameter, weight, dof_mask, signals=None):
         """The training loss of one replica (default
-        :func:`~jaxsync.surrogate.loss.masked_mse`)."""
+        :func:`~jaxsync.surrogate.training.loss.masked_mse`)."""
         return masked_mse(params, self, x, y, load_parameter, weight, dof_mask, signals)
 
     def prediction_cost(self, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> PredictionCost:
@@ -188,7 +188,7 @@ class SurrogateArchitecture:
         kind = values.pop("kind", cls.kind)
         if kind != cls.kind:
             raise ConfigError(f"architecture of kind {kind!r} given to {cls.__name__}.from_dict; read it with "
-                              "jaxsync.surrogate.architecture.architecture_from_dict")
+                              "jaxsync.surrogate.models.architecture.architecture_from_dict")
         names = {f.name for f in dataclasses.fields(cls)}
         unknown = set(values) - names
         if unknown:
@@ -238,13 +238,13 @@ class SurrogateArchitecture:
 
     def fit(self, data, settings: FitSettings):
         """Fit one replica per part on ``data`` (a
-        :class:`~jaxsync.surrogate.data.ReplicaData`); returns a
+        :class:`~jaxsync.surrogate.training.data.ReplicaData`); returns a
         :class:`~jaxsync.surrogate.TrainResult` (its ``arch`` the fitted model)."""
         raise NotImplementedError(f"{type(self).__name__} must define fit(data, settings)")
 
     def online_update(self, learner, params, x, y, signals, weight, load_parameter, dof_mask, started: float):
         """Update the stacked replicas ``params`` on weighted windows of a run
-        (:class:`~jaxsync.surrogate.online.OnlineLearner`); returns ``(params, iterations)``."""
+        (:class:`~jaxsync.surrogate.training.online.OnlineLearner`); returns ``(params, iterations)``."""
         raise NotImplementedError(f"{type(self).__name__} must define online_update")
 
     def summary_fields(self, result, state_every: int) -> dict[str, Any]:
@@ -259,7 +259,7 @@ class SurrogateArchitecture:
 
 class GradientFitted(SurrogateArchitecture):
     """A model trained by gradient: optax Adam on :meth:`~SurrogateArchitecture.loss`
-    (:func:`~jaxsync.surrogate.train.train_replicas`: mini-batches, a decaying learning
+    (:func:`~jaxsync.surrogate.training.train.train_replicas`: mini-batches, a decaying learning
     rate, early stopping, resumable state, several candidates per part), learning online
     by full-batch Adam steps. Subclasses define ``init`` and ``forward``."""
 
@@ -272,8 +272,8 @@ class GradientFitted(SurrogateArchitecture):
         return int(optimizer.n_candidates)
 
     def fit(self, data, settings: FitSettings):
-        """:func:`~jaxsync.surrogate.train.train_replicas` with ``settings``."""
-        from jaxsync.surrogate.train import train_replicas
+        """:func:`~jaxsync.surrogate.training.train.train_replicas` with ``settings``."""
+        from jaxsync.surrogate.training.train import train_replicas
 
         return train_replicas(data, self, settings.optimizer, settings.key, progress=settings.progress,
                               devices=settings.devices, state=settings.state, callback=settings.callback)
