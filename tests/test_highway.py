@@ -20,11 +20,10 @@ from jaxsync.surrogate import (
     Surrogate,
     TrainConfig,
     TrainingChecks,
-    linear,
     load_surrogate,
-    lstm,
     train_surrogates,
 )
+from jaxsync.surrogate.models import linear, lstm
 from jaxsync.surrogate.models.replicas import pad_params, unpad_params
 from jaxsync.surrogate.training.evaluate import rollout_errors
 

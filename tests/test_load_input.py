@@ -27,12 +27,11 @@ from jaxsync.surrogate import (
     TrainingChecks,
     build_dataset,
     fit_linear,
-    linear,
     load_surrogate,
-    lstm,
     stack_replicas,
     train_surrogates,
 )
+from jaxsync.surrogate.models import linear, lstm
 from jaxsync.surrogate.training.evaluate import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode

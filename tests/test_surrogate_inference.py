@@ -19,7 +19,6 @@ from jaxsync.surrogate import (
     Surrogate,
     TrainConfig,
     build_dataset,
-    lstm,
     stack_replicas,
     train_replicas,
 )
@@ -31,6 +30,7 @@ from jaxsync.surrogate.inference import (
     reduced_precision,
     surrogate_windows,
 )
+from jaxsync.surrogate.models import lstm
 from jaxsync.surrogate.models.replicas import init_replicas
 
 N_P, N_F = 4, 3
