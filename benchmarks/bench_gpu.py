@@ -19,8 +19,8 @@ atomically, so that a run cut short keeps what it measured; ``--sections`` runs 
    checked to give the displacements of ``advance`` to round-off: the per-step floor of
    small meshes and its remedy measured in the same run.
 3. ``hyperelastic``: the total-Lagrangian internal force
-   (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.matvec` of
-   :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`), P1 neo-Hookean on beams of
+   (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.matvec` of
+   :class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian`), P1 neo-Hookean on beams of
    86 400 and 480 000 tetrahedra and P1 HGO (two helical fibre families) on 86 400, at a
    deformed state: elements per second against the bandwidth bound of the bytes an
    element moves (node ids, shape data, the gather of 4 x 3 displacements and the
@@ -236,9 +236,9 @@ def prepare_beam(divisions, stepper: bool, laws: tuple) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxsync
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
+    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.fem.total_lagrangian import TotalLagrangian
 
     start = time.perf_counter()
     problem = jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, tuple(divisions)))

@@ -55,7 +55,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.internal_force import Preassembled  # noqa: E402
+from jaxsync.fem.forces.internal_force import Preassembled  # noqa: E402
 from jaxsync.fem.stepper import advance, build_system, initial_state  # noqa: E402
 from jaxsync.perf.measure import copy_bandwidth, sample_times  # noqa: E402
 

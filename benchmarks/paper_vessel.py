@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.app.demo import demo_defaults, format_summary, run_demo, vessel_problem  # noqa: E402
-from jaxsync.fem.internal_force import Preassembled  # noqa: E402
+from jaxsync.fem.forces.internal_force import Preassembled  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
 
 

@@ -44,16 +44,17 @@ __getattr__, __dir__ = export_lazily(__name__, {
                 "SynchronizedRunWarning"),
     ".cases": ("DEFAULT_WAVEFORM", "cantilever", "coronary", "coronary_mesh", "coronary_waveform", "vessel_centerline",
                "vessel_mesh"),
-    ".fem.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean", "helical_fibres"),
+    ".fem.materials.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean",
+                                    "helical_fibres"),
     ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
-    ".fem.material": ("LinearElastic",),
+    ".fem.materials.linear_elastic": ("LinearElastic",),
     ".mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
-    ".fem.prestress": ("Prestressed",),
+    ".fem.materials.prestress": ("Prestressed",),
     ".fem.problem": ("Dirichlet", "LockingWarning", "Problem"),
     ".fem.rigid_body": ("RigidBodyWarning",),
-    ".fem.support": ("ElasticSupport",),
+    ".fem.forces.support": ("ElasticSupport",),
     ".fem.timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
-    ".fem.total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
+    ".fem.forces.total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
     ".parallel": ("devices",),
     ".parallel.partitioning": ("Partition", "partition"),
     ".run_stats": ("FullSystemStats", "RunStats", "SyncAvoidingStats", "SynchronizedStats"),
@@ -95,15 +96,20 @@ if TYPE_CHECKING:
         StabilityError,
         SynchronizedRunWarning,
     )
-    from .fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
+    from .fem.forces.support import ElasticSupport
+    from .fem.forces.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
     from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-    from .fem.material import LinearElastic
-    from .fem.prestress import Prestressed
+    from .fem.materials.hyperelastic import (
+        HolzapfelGasserOgden,
+        NearlyIncompressibleNeoHookean,
+        NeoHookean,
+        helical_fibres,
+    )
+    from .fem.materials.linear_elastic import LinearElastic
+    from .fem.materials.prestress import Prestressed
     from .fem.problem import Dirichlet, LockingWarning, Problem
     from .fem.rigid_body import RigidBodyWarning
-    from .fem.support import ElasticSupport
     from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
-    from .fem.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
     from .mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .parallel import devices
     from .parallel.partitioning import Partition, partition

@@ -318,8 +318,8 @@ def principal_strain_peaks(space, displacement, *, chunk_bytes: int = 2 ** 27):
     Returns:
         (tension (T,), element (T,) int, compression (T,)) [-].
     """
+    from .fem.forces.total_lagrangian import reference_geometry
     from .fem.space import function_space
-    from .fem.total_lagrangian import reference_geometry
 
     if not hasattr(space, "cells"):
         space = function_space(space, "P1")
@@ -351,7 +351,7 @@ def peak_strain(space, displacement, *, chunk_bytes: int = 2 ** 27) -> PeakStrai
     """The largest principal strains of ``displacement`` over elements and snapshots.
 
     At every quadrature point of the element rule of the total-Lagrangian force
-    (:func:`jaxsync.fem.total_lagrangian.reference_geometry`: one point on P1, four on
+    (:func:`jaxsync.fem.forces.total_lagrangian.reference_geometry`: one point on P1, four on
     P2), F = I + grad_X u and the Green-Lagrange strain E = (F^T F - I) / 2, whose
     eigenvalues are the principal strains. Kinematics only: the same for every law
     (for a small-strain law it measures how far its runs are from small strain).

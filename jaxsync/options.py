@@ -3,7 +3,7 @@
 Each option is a :data:`typing.Literal` type: functions annotate their parameters with it,
 the command line takes its ``choices=`` from it (:func:`choices`), and
 :func:`check_option` refuses any other value with a message that names the allowed ones.
-The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
+The tuples the modules expose (``jaxsync.fem.forces.element_force.MODES``,
 ``jaxsync.parallel.multiprocess.SYNC_METHODS``) are ``choices`` of these types.
 
 - :data:`Element`: the finite element of a problem (:class:`jaxsync.Problem`'s ``element``,
@@ -13,7 +13,7 @@ The tuples the modules expose (``jaxsync.fem.element_force.MODES``,
 - :data:`Mode`: the internal force of the explicit step (paper Remark 2): ``"preassembled"``
   (sparse K stored once) or ``"recompute"`` (element quantities formed every step), both
   for the linear law; or ``"total-lagrangian"`` (finite strain, a hyperelastic material:
-  :mod:`jaxsync.fem.total_lagrangian`, which a hyperelastic problem gets in any mode).
+  :mod:`jaxsync.fem.forces.total_lagrangian`, which a hyperelastic problem gets in any mode).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
   whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
   Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.halo`): parts grown by k

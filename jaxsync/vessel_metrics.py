@@ -32,7 +32,7 @@ Definitions (CGS units: barye, cm, s; 1 mmHg = :data:`MMHG` barye):
   differ by O(strain) relative, so a dead load's loop in V alone would not balance its
   work.
 - **Stress**: the Cauchy stress at the quadrature points of the total-Lagrangian rule
-  (:func:`jaxsync.fem.total_lagrangian.reference_geometry`): for a finite-strain law
+  (:func:`jaxsync.fem.forces.total_lagrangian.reference_geometry`): for a finite-strain law
   sigma = P F^T / J with P the law's ``first_piola(F, fibres)``; for the linear law
   sigma = lambda tr(eps) I + 2 mu eps, eps the small strain (:func:`cauchy_stress`). A
   law with internal variables reports its ``first_piola`` (the instantaneous,
@@ -100,7 +100,7 @@ def lumen_triangles(mesh, surface: str = "lumen") -> np.ndarray:
     Raises:
         MeshError or ProblemError: no such facet set (the message names the mesh's).
     """
-    from .fem.follower import facet_nodes
+    from .fem.forces.follower import facet_nodes
     from .fem.space import function_space
 
     return facet_nodes(function_space(mesh, "P1"), surface)[0]
@@ -365,7 +365,7 @@ def vessel_metrics(loop: PressureDiameterLoop) -> VesselMetrics:
 
 
 def _gradients(space):
-    from .fem.total_lagrangian import reference_geometry
+    from .fem.forces.total_lagrangian import reference_geometry
 
     return reference_geometry(space)[0]  # (m, q, k, 3)
 
@@ -451,7 +451,7 @@ def element_peaks(material, space, displacement, *, fibres=None, chunk_bytes: in
 def facet_regions(mesh) -> dict[str, np.ndarray]:
     """``{"wall": every element}`` and, per facet set of ``mesh``, the elements with a
     face on it (name -> sorted element ids)."""
-    from .fem.follower import facet_nodes
+    from .fem.forces.follower import facet_nodes
     from .fem.space import function_space
 
     space = function_space(mesh, "P1")

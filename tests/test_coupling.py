@@ -245,7 +245,7 @@ def test_steady_state_returns_one_type():
     satisfies K u = f at the free dofs (scipy's K of the problem) and has no residuals;
     the hyperelastic one's residuals are one converged Newton history per increment. The
     deprecated history=True gives the pair it gave before."""
-    from jaxsync.fem.support import stiffness_matrix
+    from jaxsync.fem.forces.support import stiffness_matrix
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 2, 2))
     linear = jaxsync.cantilever(mesh)

@@ -212,7 +212,7 @@ def test_a_short_ensemble_compiles_the_compact_product(mesh, static):
     COMPACT_SLOT_STEPS, fused above it and where the length is not given; both give every
     member's K u to round-off."""
     import jaxsync.solve.ensemble_members as em
-    from jaxsync.fem.internal_force import COMPACT_SLOT_STEPS
+    from jaxsync.fem.forces.internal_force import COMPACT_SLOT_STEPS
     from jaxsync.solve.ensemble_stability import default_dt
 
     base = jaxsync.cantilever(mesh)

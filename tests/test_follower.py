@@ -1,4 +1,4 @@
-"""Follower pressure (:mod:`jaxsync.fem.follower`), checked against ground truth: scikit-fem's
+"""Follower pressure (:mod:`jaxsync.fem.forces.follower`), checked against ground truth: scikit-fem's
 pressure load assembled on the deformed mesh (P1 and curved P2), the closed-form homogeneous
 compression of a neo-Hookean block under a pressure on its deformed faces (and under the dead
 load, which differs at finite strain), the energy budget of an undamped run (the pressure's
@@ -14,10 +14,10 @@ import scipy.optimize
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.follower import facet_nodes, follower_pressure, load_stiffness
+from jaxsync.fem.forces.follower import facet_nodes, follower_pressure, load_stiffness
+from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
 from jaxsync.fem.space import VTK_TETRA10_ORDER, function_space
 from jaxsync.fem.stepper import SolverState, advance, build_system
-from jaxsync.fem.total_lagrangian import TotalLagrangian
 from jaxsync.mesh import Mesh, validated_mesh
 
 E, NU, RHO = 1.0e6, 0.3, 1.0

@@ -19,7 +19,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.internal_force import Preassembled
+from jaxsync.fem.forces.internal_force import Preassembled
 
 SCALED = Preassembled(scale_min_nodes=0)  # E as the operator's scale whenever E is traced and nu fixed
 PARAMS = {"E": 1.0e6, "nu": 0.3, "rho": 1.0, "alpha": 0.5}

@@ -1,5 +1,5 @@
-"""Hyperelastic laws and the total-Lagrangian internal force (:mod:`jaxsync.fem.hyperelastic`,
-:mod:`jaxsync.fem.total_lagrangian`), checked against independent ground truth: the linear
+"""Hyperelastic laws and the total-Lagrangian internal force (:mod:`jaxsync.fem.materials.hyperelastic`,
+:mod:`jaxsync.fem.forces.total_lagrangian`), checked against independent ground truth: the linear
 solver's K u in the small-strain limit, closed-form stresses of homogeneous deformations
 written out here, rigid motions, felupe's assembled force and static solution, the energy
 budget of an undamped run, closed-form wave speeds, and finite differences."""
@@ -13,10 +13,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import MaterialError, ProblemError, StabilityError
-from jaxsync.fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
-from jaxsync.fem.internal_force import ElementRecompute, Preassembled, force_model
-from jaxsync.fem.stepper import SolverState, advance, build_system, initial_state
-from jaxsync.fem.total_lagrangian import (
+from jaxsync.fem.forces.internal_force import ElementRecompute, Preassembled, force_model
+from jaxsync.fem.forces.total_lagrangian import (
     HyperelasticForce,
     TotalLagrangian,
     check_stable_dt,
@@ -26,6 +24,13 @@ from jaxsync.fem.total_lagrangian import (
     stable_dt,
     strain_energy,
 )
+from jaxsync.fem.materials.hyperelastic import (
+    HolzapfelGasserOgden,
+    NearlyIncompressibleNeoHookean,
+    NeoHookean,
+    helical_fibres,
+)
+from jaxsync.fem.stepper import SolverState, advance, build_system, initial_state
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
 MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))

@@ -19,7 +19,7 @@ parameters (:class:`jaxsync.HolzapfelGasserOgden`).
 :func:`jaxsync.steady_state` runs Newton's method in numpy/scipy on the host, so it is not
 traced by JAX: the static solution's derivative is checked here by the implicit function
 theorem, du/dp = K_T^-1 (df/dp - d f_int/dp) with the tangent of
-:func:`jaxsync.fem.total_lagrangian.tangent_matrix`, against central differences of
+:func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`, against central differences of
 ``steady_state``.
 """
 
@@ -29,7 +29,12 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean, helical_fibres
+from jaxsync.fem.materials.hyperelastic import (
+    HolzapfelGasserOgden,
+    NearlyIncompressibleNeoHookean,
+    NeoHookean,
+    helical_fibres,
+)
 
 N_STEPS, SAVE_EVERY = 300, 10
 PRESSURE, T_RAMP, ALPHA = 3.0e4, 0.05, 5.0
@@ -160,7 +165,7 @@ def test_static_solution_gradient_by_the_implicit_function_theorem(beam):
 
     import scipy.sparse.linalg as spla
 
-    from jaxsync.fem.total_lagrangian import TotalLagrangian, tangent_matrix
+    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, tangent_matrix
 
     x0 = np.array([1.0e6, 0.3, PRESSURE])
     tip = int(np.argmax(beam.points[:, 0] + beam.points[:, 2]))  # the free end's top corner

@@ -20,10 +20,10 @@ import jaxsync
 from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError, ConvergenceError, StabilityError
-from jaxsync.fem.hyperelastic import HolzapfelGasserOgden, NeoHookean, helical_fibres
+from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, inverted_elements
+from jaxsync.fem.materials.hyperelastic import HolzapfelGasserOgden, NeoHookean, helical_fibres
 from jaxsync.fem.run_check import RunCheck
 from jaxsync.fem.stepper import SolverState, build_system
-from jaxsync.fem.total_lagrangian import TotalLagrangian, inverted_elements
 from jaxsync.solve.checkpoint import fingerprint
 
 E, NU, RHO = 1.0e6, 0.3, 1.0

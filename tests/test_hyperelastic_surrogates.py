@@ -140,7 +140,7 @@ def test_es_hat_catches_parts_that_disagree(problem, partition, reference):
 def test_the_propagator_is_the_tangent_of_the_law(problem, partition, reference):
     """At rest the neo-Hookean tangent is the linear law's stiffness (same E, nu); at a
     bent state it differs, and the propagator built there has other frequencies."""
-    from jaxsync.fem.support import stiffness_matrix
+    from jaxsync.fem.forces.support import stiffness_matrix
 
     linear = problem.replace(material=jaxsync.LinearElastic(1.0e6, 0.3, 1.0))
     K_rest = linearised_stiffness(problem)

@@ -18,8 +18,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ProblemError
-from jaxsync.fem.hyperelastic import is_hyperelastic
-from jaxsync.fem.material_law import FiniteStrainLaw, MaterialLaw
+from jaxsync.fem.materials.hyperelastic import is_hyperelastic
+from jaxsync.fem.materials.law import FiniteStrainLaw, MaterialLaw
 from jaxsync.perf.roofline import step_costs_for
 from jaxsync.pytree import pytree_dataclass
 from jaxsync.solve.checkpoint import fingerprint

@@ -59,7 +59,7 @@ def _worker_sync(out_path: str) -> None:
 def _visco_cantilever():
     """A small cantilever of a two-branch Prony series (the worker's and the test's)."""
     import jaxsync
-    from jaxsync.fem.viscoelastic import ViscoelasticNeoHookean
+    from jaxsync.fem.materials.viscoelastic import ViscoelasticNeoHookean
 
     law = ViscoelasticNeoHookean(1.0e6, 0.3, 1.0, betas=(1.0, 2.0), taus=(2.0e-3, 1.0e-2))
     return jaxsync.cantilever(jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1)), material=law,

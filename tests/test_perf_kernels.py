@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.fem.element_force import element_forces
-from jaxsync.fem.internal_force import Preassembled
+from jaxsync.fem.forces.element_force import element_forces
+from jaxsync.fem.forces.internal_force import Preassembled
 from jaxsync.fem.stepper import SolverState, build_system, initial_state
 from jaxsync.perf import kernels
 from jaxsync.solve.distributed import DistributedRunner

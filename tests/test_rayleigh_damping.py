@@ -226,7 +226,7 @@ def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device
 def test_every_linear_force_model_applies_beta(beam, partitions):
     """The matrix-free element kernel and the one-width ELL layout give the damped run of
     the default grouped stiffness, on one device and on two parts."""
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
 
     problem = _cantilever(beam)
     dt = float(problem.dt)
@@ -308,7 +308,7 @@ def test_the_viscous_stress_is_beta_times_the_tangent_applied_to_the_rate(beam, 
     """The element kernel's damping stress beta dP/dF[grad v] against central differences
     of the law's first_piola (for the standard linear solid: its instantaneous response),
     and the assembled damping force against central differences of f_int along v."""
-    from jaxsync.fem.total_lagrangian import TotalLagrangian
+    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
 
     problem = jaxsync.Problem(mesh=beam, material=law, dirichlet=(jaxsync.Dirichlet("x0"),))
     op = TotalLagrangian().operator(problem)
@@ -383,7 +383,7 @@ def test_without_beta_the_step_is_unchanged_and_a_force_model_without_the_dampin
     whose operator has no damped_matvec cannot run beta > 0 and says so."""
     import types
 
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
     from jaxsync.fem.stepper import build_system
 
     class MatvecOnly:  # a force model of one's own that knows no damping force

@@ -77,7 +77,7 @@ def problem():
 def test_matvec_bytes_are_the_arrays_of_a_real_block_ell(problem):
     # the model counts one block ELL as wide as the largest degree (Preassembled's "ell"
     # layout); the default degree-grouped layout streams fewer slots on unstructured meshes
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
 
     K = build_system(problem, problem.dt, Preassembled(layout="ell")).stiffness
     n, width = K.columns.shape
@@ -95,7 +95,7 @@ def test_matvec_slots_are_those_of_the_grouped_operator_on_an_unstructured_mesh(
     """On a vessel the default layout groups rows by degree: the model counts the slots the
     real operator stores (rounded up per row), fewer than one ELL as wide as the largest
     degree."""
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
     from jaxsync.fem.sparse import node_adjacency
 
     mesh = jaxsync.vessel_mesh(None, length=2.0, radius=0.5, wall=0.3, size=0.15)
@@ -132,7 +132,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
     gathered = np.asarray(K.points)[np.asarray(K.tets)]  # (m, 4, 3) coordinates per element
     assert costs["t_e"].bytes == K.tets.nbytes + gathered.nbytes + np.asarray(u)[np.asarray(K.tets)].nbytes
     assert costs["t_m"].bytes == K.weight.nbytes + np.zeros((m, 4, 3)).nbytes
-    from jaxsync.fem.element_force import element_forces
+    from jaxsync.fem.forces.element_force import element_forces
 
     per_element = written_flops(lambda x: element_forces(K.points, K.tets, x, K.lam, K.mu), u) / m
     assert costs["t_e"].flops / m == per_element == sum(ELEMENT_FLOPS.values()) == 264
@@ -140,7 +140,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
-    from jaxsync.fem.internal_force import Preassembled
+    from jaxsync.fem.forces.internal_force import Preassembled
     from jaxsync.parallel.layout import PartLayout, part_systems
 
     part_info = jaxsync.partition(problem.mesh, 2, seed=0)

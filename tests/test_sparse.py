@@ -16,7 +16,7 @@ import scipy.sparse.linalg as spla
 import fem_reference as ref
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.fem.internal_force import Preassembled
+from jaxsync.fem.forces.internal_force import Preassembled
 from jaxsync.fem.sparse import (
     BlockEll,
     GroupedEll,
@@ -355,7 +355,7 @@ def test_auto_product_is_chosen_by_the_run_length():
     """Preassembled(product="auto"): compact for runs of fewer slot-steps than
     COMPACT_SLOT_STEPS, fused for longer ones and where the run length is not known;
     a product given explicitly, and a finite-strain problem, stay as they are."""
-    from jaxsync.fem.internal_force import COMPACT_SLOT_STEPS, run_force_model
+    from jaxsync.fem.forces.internal_force import COMPACT_SLOT_STEPS, run_force_model
 
     problem = jaxsync.cantilever()
     slots = int(np.prod(problem.operators.block_ell[0].shape))

@@ -8,7 +8,7 @@ import pytest
 
 import jaxsync
 from jaxsync import CheckpointError, ProblemError
-from jaxsync.fem.internal_force import Preassembled
+from jaxsync.fem.forces.internal_force import Preassembled
 from jaxsync.perf.reports import SpeedupReport, TimingReport
 from jaxsync.perf.timing import speedup_breakdown, timing_breakdown
 

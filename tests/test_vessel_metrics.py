@@ -20,7 +20,7 @@ from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.app.vessel_report import vessel_section
 from jaxsync.cli import main
 from jaxsync.errors import MeshError, ProblemError
-from jaxsync.fem.follower import facet_nodes
+from jaxsync.fem.forces.follower import facet_nodes
 from jaxsync.fem.space import function_space
 from jaxsync.mesh.simvascular import write_folder
 

@@ -1,5 +1,5 @@
 """Prony series of Maxwell branches on the neo-Hookean and HGO laws
-(:mod:`jaxsync.fem.viscoelastic`).
+(:mod:`jaxsync.fem.materials.viscoelastic`).
 
 References, all independent of the code under test: the exact small-strain response of
 the split law with its bulk part (relaxation and creep of uniaxial stress, relaxation of
@@ -19,8 +19,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ConfigError, MaterialError
+from jaxsync.fem.materials.viscoelastic import ViscoelasticHGO, ViscoelasticNeoHookean
 from jaxsync.fem.stepper import Probe, advance, build_system, initial_state
-from jaxsync.fem.viscoelastic import ViscoelasticHGO, ViscoelasticNeoHookean
 
 E, NU, RHO = 1.0e6, 0.45, 1.0
 BETAS, TAUS = (1.0, 2.0), (1.0e-3, 1.0e-2)

@@ -391,7 +391,7 @@ def test_prestressed_force_is_the_gradient_of_its_energy_and_the_identity_prestr
                                                                                                    prestressed):
     import jax
 
-    from jaxsync.fem.total_lagrangian import TotalLagrangian, strain_energy
+    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, strain_energy
 
     problem = _vessel_problem(vessel, material=prestressed.material)
     op = TotalLagrangian().operator(problem)

@@ -13,7 +13,7 @@ Cross-references in docstrings (``:func:`simulate```, ``:class:`~jaxsync.solve.s
 that Sphinx cannot find under the name written -- an implementation module's path, or a
 re-exported name -- are resolved by identity: the object is imported and linked to the
 place where it is documented (``missing-reference`` handler). Module references to
-implementation modules (``:mod:`~jaxsync.fem.total_lagrangian```) link to the nearest documented
+implementation modules (``:mod:`~jaxsync.fem.forces.total_lagrangian```) link to the nearest documented
 package. What still does not resolve is left as plain code text, as Sphinx does by default.
 """
 

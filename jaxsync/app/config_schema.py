@@ -184,7 +184,7 @@ class MaterialModel:
 
 
 def _helical_fibres_of(table: Mapping[str, Any], mesh) -> dict:
-    from ..fem.hyperelastic import helical_fibres
+    from ..fem.materials.hyperelastic import helical_fibres
 
     centres = mesh.points[mesh.tets].mean(axis=1)
     return {"fibres": helical_fibres(centres, axis=tuple(float(x) for x in table["fibre_axis"]),
@@ -295,9 +295,9 @@ class ArrayTable:
 
 
 def _boundary_tables() -> dict[str, ArrayTable]:
+    from ..fem.forces.support import ElasticSupport
     from ..fem.loads import BodyForce, Pressure, Traction
     from ..fem.problem import Dirichlet
-    from ..fem.support import ElasticSupport
 
     return {"dirichlet": ArrayTable(Dirichlet, (DIRICHLET_NODES, HISTORY_KEYS)),
             "body_force": ArrayTable(BodyForce, (TIME_KEYS,), required=("vector",)),
@@ -346,9 +346,9 @@ def register_material_model(name: str, law: type, *, derived: DerivedKeys | None
 
 
 def _register_builtin_laws() -> None:
-    from ..fem.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean
-    from ..fem.material import LinearElastic
-    from ..fem.viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean
+    from ..fem.materials.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean
+    from ..fem.materials.linear_elastic import LinearElastic
+    from ..fem.materials.viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean
 
     register_material_model("linear-elastic", LinearElastic)
     register_material_model("neo-hookean", NeoHookean)

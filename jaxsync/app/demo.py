@@ -442,7 +442,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     log("  " + describe_run(online))
 
     log(f"[{next(stage)}/{n_stages}] timing (compiled programs, round-robin) and report")
-    from ..fem.internal_force import run_force_model
+    from ..fem.forces.internal_force import run_force_model
     from ..perf.timing import speedup_breakdown
 
     # the vessel's timed calls are long (one refill cycle, n_s n_f = 20 000 steps, about 10 s)

@@ -425,7 +425,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
 
 
 def _wants_strain(reference, strain: bool | None) -> bool:
-    from ..fem.hyperelastic import HYPERELASTIC
+    from ..fem.materials.hyperelastic import HYPERELASTIC
 
     if strain is not None:
         return bool(strain)

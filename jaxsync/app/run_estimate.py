@@ -186,8 +186,9 @@ def _zero_state(problem):
 
 
 def _run_form(problem, n_steps: int | None):
-    """The force model a run of ``n_steps`` steps compiles (:func:`jaxsync.fem.internal_force.run_force_model`)."""
-    from ..fem.internal_force import run_force_model
+    """The force model a run of ``n_steps`` steps compiles
+    (:func:`jaxsync.fem.forces.internal_force.run_force_model`)."""
+    from ..fem.forces.internal_force import run_force_model
 
     return "preassembled" if n_steps is None else run_force_model("preassembled", problem, n_steps)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..fem.loads import BodyForce, Ramp, StepOff
-from ..fem.material import LinearElastic
+from ..fem.materials.linear_elastic import LinearElastic
 from ..fem.problem import Dirichlet, Problem
 from ..mesh import Mesh, box_beam
 from ..options import Element

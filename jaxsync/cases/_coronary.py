@@ -25,7 +25,7 @@ import numpy as np
 
 from ..errors import MeshError, ProblemError
 from ..fem.loads import Periodic, Pressure, Ramp, TimeFunction
-from ..fem.material import LinearElastic
+from ..fem.materials.linear_elastic import LinearElastic
 from ..fem.problem import Dirichlet, Problem
 from ..mesh import Mesh
 

@@ -82,14 +82,14 @@ def add_mode_option(parser) -> None:
 
 def mode_of(args):
     """The force model of ``--mode`` and ``--float32-blocks``: the mode's name, or
-    :class:`jaxsync.fem.internal_force.Preassembled` with float32 blocks."""
+    :class:`jaxsync.fem.forces.internal_force.Preassembled` with float32 blocks."""
     from ..errors import ConfigError
 
     if not getattr(args, "float32_blocks", False):
         return args.mode
     if args.mode != "preassembled":
         raise ConfigError("--float32-blocks stores the preassembled K: use it with --mode preassembled")
-    from ..fem.internal_force import Preassembled
+    from ..fem.forces.internal_force import Preassembled
 
     return Preassembled(blocks_dtype="float32")
 

@@ -109,7 +109,7 @@ def imaging_problem(problem, pressure):
     import dataclasses
 
     from ..errors import ConfigError
-    from ..fem.follower import follower_loads
+    from ..fem.forces.follower import follower_loads
     from ..fem.loads import Constant
 
     followers = follower_loads(problem)

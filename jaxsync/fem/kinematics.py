@@ -1,6 +1,6 @@
 """Kinematics of 3 x 3 deformation gradients on batches: det F, cof F and the sums the
-hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`) and the total-Lagrangian force
-(:mod:`jaxsync.fem.total_lagrangian`) share, written for XLA:CPU's fusion."""
+hyperelastic laws (:mod:`jaxsync.fem.materials.hyperelastic`) and the total-Lagrangian force
+(:mod:`jaxsync.fem.forces.total_lagrangian`) share, written for XLA:CPU's fusion."""
 
 from __future__ import annotations
 

@@ -162,7 +162,7 @@ class Pressure:
 
     ``follower=False`` (default): a dead load, -p n dA on the reference surface (its nodal
     forces fixed). ``follower=True``: the pressure acts on the deformed surface, -p n da
-    with the current normal and area (:mod:`jaxsync.fem.follower`), as a fluid's pressure
+    with the current normal and area (:mod:`jaxsync.fem.forces.follower`), as a fluid's pressure
     does at finite strain; it needs a hyperelastic material (a small-strain law has no
     deformed surface to follow).
     """

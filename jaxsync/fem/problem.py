@@ -19,11 +19,11 @@ from ..mesh import Mesh
 from ..options import Element
 from ..pytree import is_traced
 from .assembly import UnitOperators, assemble_unit_operators, body_force_vectors, pressure_vector, traction_vectors
+from .forces.support import ElasticSupport
 from .loads import LOADS, BodyForce, Pressure, TimeFunction, Traction
-from .material import LinearElastic
-from .material_law import check_material_law
+from .materials.law import check_material_law
+from .materials.linear_elastic import LinearElastic
 from .parameter_checks import check_finite_array, check_number
-from .support import ElasticSupport
 
 __all__ = ["Dirichlet", "Problem", "LockingWarning", "LOCKING_NU"]
 
@@ -88,13 +88,13 @@ class Problem:
             (:class:`jaxsync.NeoHookean`, :class:`jaxsync.NearlyIncompressibleNeoHookean`,
             :class:`jaxsync.HolzapfelGasserOgden`): the problem is then one of finite
             strain, M d'' + C d' + f_int(d) = f(t), and every solver computes f_int by the
-            total-Lagrangian model (:mod:`jaxsync.fem.total_lagrangian`) whatever its
+            total-Lagrangian model (:mod:`jaxsync.fem.forces.total_lagrangian`) whatever its
             ``mode``: the linear modes have no stiffness of a nonlinear law to store. The
             default step (:attr:`dt`) is that of the law's tangent at rest (the initial
             displacement); a run checks its deformed states between chunks
             (:class:`jaxsync.fem.run_check.RunCheck`). Any law implementing
-            :class:`jaxsync.fem.material_law.MaterialLaw` (a finite-strain law of your own
-            deriving from :class:`jaxsync.fem.material_law.FiniteStrainLaw`) runs so too.
+            :class:`jaxsync.fem.materials.law.MaterialLaw` (a finite-strain law of your own
+            deriving from :class:`jaxsync.fem.materials.law.FiniteStrainLaw`) runs so too.
         element: ``"P1"`` (linear tetrahedra) or ``"P2"`` (quadratic: a node at every
             edge too, :mod:`jaxsync.fem.space`); default ``"P2"`` on a quadratic
             (``tetra10``) mesh, ``"P1"`` otherwise. Fields are (n_nodes, 3) on the
@@ -113,7 +113,7 @@ class Problem:
             sqrt((2 / omega_max)^2 + beta^2) - beta (:func:`jaxsync.fem.timestep.damped_bound`;
             the default :attr:`dt` follows it). May be a JAX tracer (differentiable).
         supports: :class:`jaxsync.ElasticSupport` terms (spring-dashpot supports on facet
-            sets: :mod:`jaxsync.fem.support`).
+            sets: :mod:`jaxsync.fem.forces.support`).
         initial_displacement: (n_nodes, 3) [cm] or None (zero), on :attr:`points`.
         initial_velocity: (n_nodes, 3) [cm/s] or None (zero).
         density_scale: (n_elements,) element density relative to ``material.rho`` (set
@@ -220,7 +220,7 @@ class Problem:
         :attr:`time_step` for which rule set it and :func:`jaxsync.fem.timestep.stable_step`.
         A hyperelastic law: its force model's step at rest, alpha_s times the smaller of
         the element eigenvalue rule and the exact bound of its tangent stiffness
-        (:func:`jaxsync.fem.total_lagrangian.default_step`: the HGO fibres included)."""
+        (:func:`jaxsync.fem.forces.total_lagrangian.default_step`: the HGO fibres included)."""
         return self.time_step.dt
 
     @property
@@ -241,11 +241,11 @@ class Problem:
 
     def element_steps(self) -> np.ndarray:
         """(n_elements,) each element's own stable step [s] (alpha_s = 1), as its material
-        law computes it (:meth:`jaxsync.fem.material_law.MaterialLaw.element_steps`) and
+        law computes it (:meth:`jaxsync.fem.materials.law.MaterialLaw.element_steps`) and
         :func:`jaxsync.mass_scaling` scales them: for a hyperelastic law at the initial
         displacement, 2 / omega_e, omega_e^2 the largest eigenvalue of the element's
         tangent stiffness over its lumped mass (density scaling included;
-        :func:`jaxsync.fem.total_lagrangian.element_frequencies`); for the linear law the
+        :func:`jaxsync.fem.forces.total_lagrangian.element_frequencies`); for the linear law the
         paper's CFL step h_e / c_e of each P1 element (:func:`jaxsync.fem.timestep.element_dt`).
 
         Raises:
@@ -319,7 +319,7 @@ class Problem:
         Returns ``(vectors, times)``: ``vectors[l]`` is the (n_nodes, 3) nodal load of
         load l at full magnitude (a JAX or NumPy array, traced if the magnitude is) and
         ``times[l]`` its time function. Follower pressures, whose forces depend on the
-        displacement, are not among them (:mod:`jaxsync.fem.follower`).
+        displacement, are not among them (:mod:`jaxsync.fem.forces.follower`).
         """
         loads = [load for load in self.loads if not (isinstance(load, Pressure) and load.follower)]
         return [self.load_vector(load) for load in loads], [load.time for load in loads]

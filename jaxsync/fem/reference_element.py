@@ -1,5 +1,5 @@
 """The reference elements of a function space, as the total-Lagrangian force uses them
-(:mod:`jaxsync.fem.total_lagrangian`): the shape-function gradients and quadrature weights
+(:mod:`jaxsync.fem.forces.total_lagrangian`): the shape-function gradients and quadrature weights
 at the quadrature points, the rule's size, and each element's lumped mass per unit
 density. Formed once, on the host (numpy), from scikit-fem's elements and rules."""
 

@@ -1,6 +1,6 @@
 """The run-time check of a hyperelastic run: inverted elements and the deformed state's
 stable step, applied by the host executor between compiled chunks
-(:class:`RunCheck`; the stable steps and Jacobians of :mod:`jaxsync.fem.total_lagrangian`)."""
+(:class:`RunCheck`; the stable steps and Jacobians of :mod:`jaxsync.fem.forces.total_lagrangian`)."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import StabilityError
+from .forces.total_lagrangian import HyperelasticForce, exact_stable_dt, inverted_elements, stable_dt
 from .timestep import ALPHA_S, damped_bound
-from .total_lagrangian import HyperelasticForce, exact_stable_dt, inverted_elements, stable_dt
 
 __all__ = ["RunCheck"]
 

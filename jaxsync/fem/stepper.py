@@ -7,7 +7,7 @@ With lumped mass M and C = alpha M the update is, per dof,
 
 with Dirichlet values imposed after every update (their values at t_(n+1): a
 prescribed displacement may follow a time function). Elastic supports
-(:mod:`jaxsync.fem.support`) add their springs to K d and their lumped dashpots B to the
+(:mod:`jaxsync.fem.forces.support`) add their springs to K d and their lumped dashpots B to the
 damping, C = alpha M + B; the update is then, node by node, the 3 x 3 solve
 
     (m (1 + alpha dt / 2) I + dt / 2 B) d(n+1)
@@ -22,7 +22,7 @@ and added to the internal force before any exchange, which keeps the update expl
 the same (K d(n) above becomes K d(n) + beta K v). For a linear law that is one product,
 K (d(n) + (beta / dt) (d(n) - d(n-1))); a hyperelastic law adds the viscous stress
 beta dP/dF[grad v] in its element kernel
-(:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.damped_matvec`), so no global
+(:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.damped_matvec`), so no global
 tangent is formed. The supports' springs count in K; the follower pressures (loads) do
 not. Partial forces of parts, deep halos and predicted shared values (the
 synchronization-avoiding phase, whose overwritten d(n) and d(n-1) give v there) all
@@ -45,8 +45,8 @@ import jax
 import jax.numpy as jnp
 
 from ..pytree import pytree_dataclass
+from .forces.support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 from .sparse import BlockEll, in_compact_form
-from .support import apply_dashpot, dashpot, dashpot_blocks, surface_spring
 
 __all__ = ["ExplicitSystem", "SolverState", "build_system", "initial_state", "start_levels", "step", "internal_forces",
            "internal_forces_and_variables", "backward_velocity",
@@ -60,7 +60,7 @@ class ExplicitSystem:
 
     Attributes:
         stiffness: the internal-force operator, ``stiffness.matvec(u)`` = f_int(u) [dyn]
-            (:mod:`jaxsync.fem.internal_force`: K in node-blocked ELL form, or formed
+            (:mod:`jaxsync.fem.forces.internal_force`: K in node-blocked ELL form, or formed
             element by element).
         mass: (n_nodes, 3) lumped mass per dof [g].
         damping: alpha [1/s].
@@ -73,12 +73,12 @@ class ExplicitSystem:
             time function [cm] (zero elsewhere), or None: the prescribed displacement at t
             is ``fixed_values + sum_k moving_times[k](t) moving[k]``.
         moving_times: tuple of their time functions.
-        spring: the elastic supports' springs (:class:`jaxsync.fem.support.SurfaceSpring`),
+        spring: the elastic supports' springs (:class:`jaxsync.fem.forces.support.SurfaceSpring`),
             or None.
         dashpot: the update with the supports' dashpots
-            (:class:`jaxsync.fem.support.Dashpot`), or None.
+            (:class:`jaxsync.fem.forces.support.Dashpot`), or None.
         follower: the follower pressures, loads that depend on the displacement
-            (:class:`jaxsync.fem.follower.FollowerPressure`), or None.
+            (:class:`jaxsync.fem.forces.follower.FollowerPressure`), or None.
         stiffness_damping: beta [s] of the stiffness-proportional damping beta K, or None
             (the problem has none: the step is that of C = alpha M alone).
     """
@@ -109,7 +109,7 @@ class SolverState:
         step: n (int); the time is n * dt.
         internal: the material law's internal variables, {name: (n_elements, n_points,
             ...) array} at the quadrature points
-            (:meth:`jaxsync.fem.material_law.MaterialLaw.internal_variables`), as the
+            (:meth:`jaxsync.fem.materials.law.MaterialLaw.internal_variables`), as the
             force of d(n-1) left them; {} (the default) for a law without state. A
             part's state holds those of its own elements (padded to the largest part);
             they are never exchanged.
@@ -124,7 +124,7 @@ class SolverState:
 def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     """Assemble the JAX-side system of ``problem`` for time step ``dt`` [s].
 
-    ``mode``: the internal force's model (:func:`jaxsync.fem.internal_force.force_model`:
+    ``mode``: the internal force's model (:func:`jaxsync.fem.forces.internal_force.force_model`:
     ``"preassembled"``, K stored in node-blocked ELL form, or ``"recompute"``, element
     quantities formed every step, paper Remark 2; or a force model itself).
     Traceable in the material, damping (alpha and beta), load magnitudes and dt
@@ -134,8 +134,8 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
         ProblemError: stiffness-proportional damping with a force model whose operator
             has no ``damped_matvec`` (the damping force beta K_T(u) v)."""
     from ..errors import ProblemError
-    from .follower import follower_pressure
-    from .internal_force import force_model
+    from .forces.follower import follower_pressure
+    from .forces.internal_force import force_model
 
     stiffness = force_model(mode).operator(problem)
     beta = None
@@ -224,7 +224,7 @@ def internal_forces_and_variables(system: ExplicitSystem, state: SolverState, t)
     """(K d(n) as :func:`internal_forces` computes it, with the damping force beta K v of
     the :func:`backward_velocity`, if any; the internal variables after it): a law with
     state updates its variables in the element kernel, with the force
-    (``stiffness.update(u, internal, dt)``, :class:`jaxsync.fem.total_lagrangian.HyperelasticForce`);
+    (``stiffness.update(u, internal, dt)``, :class:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce`);
     a law without any returns them (empty) as they are."""
     velocity = backward_velocity(system, state)
     if not jax.tree_util.tree_leaves(state.internal):  # no state: the elastic kernel

@@ -27,14 +27,14 @@ exact bound and the run diverges. The default step (:func:`stable_step`,
 step wherever it is at most alpha_s times the bound (every case of the paper), never
 above the bound.
 
-Hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`) ask their force model,
-:class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`, for the bound at rest (the initial
+Hyperelastic laws (:mod:`jaxsync.fem.materials.hyperelastic`) ask their force model,
+:class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian`, for the bound at rest (the initial
 displacement, zero if none): the exact bound 2 / omega_max of the TANGENT stiffness there
-(:func:`~jaxsync.fem.total_lagrangian.exact_stable_dt`; for the Holzapfel-Gasser-Ogden law
+(:func:`~jaxsync.fem.forces.total_lagrangian.exact_stable_dt`; for the Holzapfel-Gasser-Ogden law
 the fibres' stiffness included; the supports' springs too), which :func:`check_dt` refuses
 to exceed. The default step is ``alpha_s * min(element rule, 2 / omega_max)``, the element
 rule being 2 / max_e omega_e of the element tangent stiffnesses over their lumped masses
-(:func:`~jaxsync.fem.total_lagrangian.stable_dt`, ``rule="element"``: never above the exact
+(:func:`~jaxsync.fem.forces.total_lagrangian.stable_dt`, ``rule="element"``: never above the exact
 bound, Irons' element eigenvalue bound; 0.7-0.9 of it on P1 and P2 beams), the rule the
 run-time check screens deformed states with: a deformed state has another bound, which
 the host executor checks between chunks (:class:`~jaxsync.fem.run_check.RunCheck`).
@@ -181,7 +181,7 @@ def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
             "eigenvalue computed on the host, so it cannot follow a traced nu: pass dt= "
             "explicitly (for instance the problem.dt of the problem at a concrete nu)")
     nu = float(nu)
-    from .support import spring_matrix, spring_ratios
+    from .forces.support import spring_matrix, spring_ratios
 
     ratios = spring_ratios(problem)  # k_s / E: the springs at E = 1
     fixed, _ = problem.dirichlet_dofs()
@@ -228,9 +228,9 @@ def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
 def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):
     """Exact stability bound 2 / omega_max [s] of the central difference scheme at the
     problem's initial state, as its material law computes it
-    (:meth:`jaxsync.fem.material_law.MaterialLaw.max_stable_dt`): the linear law's
+    (:meth:`jaxsync.fem.materials.law.MaterialLaw.max_stable_dt`): the linear law's
     :func:`small_strain_max_stable_dt`; a hyperelastic law's bound of its tangent at rest
-    (module docstring, :meth:`jaxsync.fem.total_lagrangian.TotalLagrangian.max_stable_dt`),
+    (module docstring, :meth:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian.max_stable_dt`),
     memoised per law, fibres, initial displacement, density scaling, Dirichlet set and
     supports."""
     return problem.material.max_stable_dt(problem, tol=tol, max_iter=max_iter, seed=seed)
@@ -261,7 +261,7 @@ def hyperelastic_step(rule: float, exact: float, alpha_s: float = ALPHA_S, *, el
                       law: str) -> StableStep:
     """The default step of a hyperelastic law from its bounds at rest [s]: ``rule`` the
     element eigenvalue rule's (alpha_s = 1), ``exact`` 2 / omega_max: ``alpha_s * min(rule,
-    exact)`` (module docstring; :func:`jaxsync.fem.total_lagrangian.default_step`)."""
+    exact)`` (module docstring; :func:`jaxsync.fem.forces.total_lagrangian.default_step`)."""
     if rule <= exact:
         return StableStep(dt=alpha_s * rule, rule="element", cfl=alpha_s * rule, exact=exact, alpha_s=alpha_s,
                           element=element, law=law)
@@ -271,7 +271,7 @@ def hyperelastic_step(rule: float, exact: float, alpha_s: float = ALPHA_S, *, el
 
 def stable_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     """The default time step of ``problem`` and its rule, as its material law sets it
-    (:meth:`jaxsync.fem.material_law.MaterialLaw.stable_step`): the linear law's
+    (:meth:`jaxsync.fem.materials.law.MaterialLaw.stable_step`): the linear law's
     :func:`small_strain_step`; a hyperelastic law's ``alpha_s * min(element rule, exact
     bound)`` of its tangent at the initial displacement, P1 and P2 (module docstring; a
     concrete law only). With stiffness-proportional damping beta (``problem.stiffness_damping``)
@@ -387,10 +387,10 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
     """Artificial mass scaling (paper Algorithm 2).
 
     Every element whose own step (its law's
-    :meth:`~jaxsync.fem.material_law.MaterialLaw.element_steps`, times alpha_s) is below
+    :meth:`~jaxsync.fem.materials.law.MaterialLaw.element_steps`, times alpha_s) is below
     the target ``dt_hat = beta * problem.dt`` (or ``dt_target``) is made heavier, which
     raises its step to exactly dt_hat (the law's
-    :meth:`~jaxsync.fem.material_law.MaterialLaw.scaled_density`): for the linear law,
+    :meth:`~jaxsync.fem.materials.law.MaterialLaw.scaled_density`): for the linear law,
     whose element step is the paper's CFL step, density
     ``E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2))``. The scaled problem's ``dt`` (the default step of
     :func:`jaxsync.simulate`, :func:`stable_step`) is then dt_hat, or the unscaled CFL step
@@ -399,7 +399,7 @@ def mass_scaling(problem, beta: float | None = None, *, dt_target: float | None 
 
     A hyperelastic law (P1 or P2): an element's own step is alpha_s 2 / omega_e, omega_e^2
     the largest eigenvalue of its tangent stiffness at the initial displacement over its
-    lumped mass (the element rule of :func:`jaxsync.fem.total_lagrangian.stable_dt`, fibres
+    lumped mass (the element rule of :func:`jaxsync.fem.forces.total_lagrangian.stable_dt`, fibres
     included), and an element below dt_hat gets its density times (dt_hat / its step)^2,
     which raises its step to exactly dt_hat; the scaled problem's ``dt`` is then dt_hat
     unless alpha_s times its exact bound is smaller.

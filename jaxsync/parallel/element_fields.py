@@ -1,11 +1,11 @@
 """Per-element state (a material law's internal variables) on the parts of a partition.
 
 A law's internal variables live at the quadrature points of the elements
-(:meth:`jaxsync.fem.material_law.MaterialLaw.internal_variables`): a pytree of arrays
+(:meth:`jaxsync.fem.materials.law.MaterialLaw.internal_variables`): a pytree of arrays
 (n_elements, n_points, ...). They go with the elements: each part holds those of its own
 elements, in the order of ``part.elements`` and padded to the largest part as the part's
 force operators are (padding slots repeat the part's first element,
-:meth:`jaxsync.fem.total_lagrangian.TotalLagrangian.part_operators`), and they are never
+:meth:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian.part_operators`), and they are never
 exchanged between the parts of an element partition: an element belongs to one part. With
 deep halos parts share (and recompute) elements: each carries the state of all its
 elements, the halo exchange copies that of the shared ones from their owner

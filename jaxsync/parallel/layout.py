@@ -25,7 +25,7 @@ unchanged.
 Both are JAX functions: the traced executor calls them inside its program, the host
 executor on the fields it gathered from the devices. :func:`part_systems` splits a global
 :class:`~jaxsync.fem.stepper.ExplicitSystem` into the parts' systems (:class:`PartSystems`):
-the internal force through the physics seam (:mod:`jaxsync.fem.internal_force`), the rest
+the internal force through the physics seam (:mod:`jaxsync.fem.forces.internal_force`), the rest
 by gathers, so that traced material, damping, loads and dt flow through (differentiable).
 """
 
@@ -248,13 +248,13 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
     """The parts' systems of the global ``system`` of ``problem`` (JAX arrays, not placed).
 
     The internal force comes from the force model (``mode``,
-    :func:`jaxsync.fem.internal_force.force_model`) and the supports' springs on each
+    :func:`jaxsync.fem.forces.internal_force.force_model`) and the supports' springs on each
     part's own elements and facets; the mass, the dashpots, loads and Dirichlet values
     (their histories too) are gathered from ``system`` (padding: unit mass, no load, fixed
     at zero), damping (alpha and beta) and dt broadcast to every part; the follower pressures act on each
     part's own facets (those of its elements). Traced values of ``problem`` and
     ``system`` stay traced."""
-    from ..fem.internal_force import force_model
+    from ..fem.forces.internal_force import force_model
 
     partition = layout.partition
     if partition.mesh is not problem.mesh and not (
@@ -266,8 +266,8 @@ def part_systems(problem, system: ExplicitSystem, layout: PartLayout, mode="prea
     def broadcast(x):
         return jnp.broadcast_to(x, (n_parts,) + jnp.shape(x))
 
-    from ..fem.follower import part_follower_pressures
-    from ..fem.support import Dashpot, part_surface_springs
+    from ..fem.forces.follower import part_follower_pressures
+    from ..fem.forces.support import Dashpot, part_surface_springs
 
     def split_blocks(blocks):  # (n_nodes, 3, 3) -> (P, n_local, 3, 3)
         local = layout.split(blocks.reshape(blocks.shape[0], 9), 0.0)

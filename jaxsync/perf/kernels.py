@@ -90,7 +90,7 @@ def step_with_scaled_force(system, state: SolverState, scale, n_steps: int) -> S
 def scatter_only(system, state: SolverState, scale, n_steps: int, forces) -> SolverState:
     """Recompute mode: ``n_steps`` times d <- d + scale * (the (n_elements, 4, 3) element
     forces ``forces`` + scale d[0, 0], times the padding weight, summed into the nodes),
-    the sum as :meth:`jaxsync.fem.element_force.ElementStiffness.matvec` does it."""
+    the sum as :meth:`jaxsync.fem.forces.element_force.ElementStiffness.matvec` does it."""
     k = system.stiffness
 
     def body(s):

@@ -20,7 +20,7 @@ blocks (n, 3, w, 3) float64)::
 
 ``"t_e"`` is 0 in the preassembled mode (K is assembled once, before the run).
 
-``"t_e"``, recompute mode (:func:`jaxsync.fem.element_force.element_forces`), per element::
+``"t_e"``, recompute mode (:func:`jaxsync.fem.forces.element_force.element_forces`), per element::
 
     bytes = 4 * 4 (node ids) + 12 * 8 (coordinates gathered) + 12 * 8 (displacements
             gathered) = 208
@@ -29,7 +29,7 @@ blocks (n, 3, w, 3) float64)::
             eps 18, trace 2, sigma 28, volume 1, sigma grad 72, times volume 12
 
 ``"t_m"``, recompute mode (the weight and the scatter-add of the element forces into the
-nodes, :meth:`jaxsync.fem.element_force.ElementStiffness.matvec`), per element::
+nodes, :meth:`jaxsync.fem.forces.element_force.ElementStiffness.matvec`), per element::
 
     bytes = 8 (weight) + 12 * 8 (forces scatter-added) = 104
     flops = 12 (times weight) + 12 (scatter-add) = 24
@@ -38,7 +38,7 @@ The per-element gathers and scatters are counted every time an element touches a
 (each node has about 20 elements): an upper bound on the memory traffic when they hit
 cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
 
-``"t_e"``, total-Lagrangian mode (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.element_forces`,
+``"t_e"``, total-Lagrangian mode (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.element_forces`,
 a hyperelastic law), per element of k nodes and n_q quadrature points (P1: k = 4, n_q = 1;
 P2: k = 10, n_q = 4)::
 
@@ -118,7 +118,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import ProblemError
-from ..fem.hyperelastic import HYPERELASTIC
+from ..fem.materials.hyperelastic import HYPERELASTIC
 from ..options import Mode, check_option
 
 __all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "hyperelastic_element_cost",
@@ -130,7 +130,7 @@ STEP_STAGES = ("t_e", "t_m", "t_s", "t_o")  # the stages of a step that step_cos
 
 F64, I32, MASK = 8, 4, 1  # bytes per float64, int32, boolean
 
-# Flops per element of jaxsync.fem.element_force.element_forces, operation by operation as
+# Flops per element of jaxsync.fem.forces.element_force.element_forces, operation by operation as
 # written (the t_e of the recompute mode).
 ELEMENT_FLOPS = {
     "edge vectors r1, r2, r3": 9,
@@ -151,13 +151,13 @@ SCATTER_FLOPS = 24  # recompute t_m per element: 12 times the weight, 12 scatter
 HYPERELASTIC_POINT_FLOPS = {law.__name__: dict(law.point_flops) for law in HYPERELASTIC}
 """{law class name: {operation: flops}} per quadrature point (the t_e of the
 total-Lagrangian mode with the deformation gradient and the nodal forces): each built-in
-law's :attr:`~jaxsync.fem.material_law.FiniteStrainLaw.point_flops`, operation by
+law's :attr:`~jaxsync.fem.materials.law.FiniteStrainLaw.point_flops`, operation by
 operation of its formula (a transcendental function, a division, a comparison or a select
 counts as one flop, as in XLA's cost analysis)."""
 
 
 def _law_cost(law):
-    """The :class:`~jaxsync.fem.material_law.LawCost` of a law, or of a built-in law's class name."""
+    """The :class:`~jaxsync.fem.materials.law.LawCost` of a law, or of a built-in law's class name."""
     if isinstance(law, str):  # a name, as the cost model's callers have given it
         if law not in HYPERELASTIC_POINT_FLOPS:
             raise ProblemError(f"law must be one of {', '.join(HYPERELASTIC_POINT_FLOPS)}, got {law!r}")
@@ -171,11 +171,11 @@ def _law_cost(law):
 
 def hyperelastic_element_cost(law, nodes_per_element: int = 4, n_points: int = 1) -> dict:
     """Flops and compulsory bytes per element of the total-Lagrangian internal force
-    (:meth:`jaxsync.fem.total_lagrangian.HyperelasticForce.matvec`) of a law.
+    (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.matvec`) of a law.
 
     Args:
         law: a finite-strain material law (its
-            :meth:`~jaxsync.fem.material_law.MaterialLaw.cost`), or a built-in law's class
+            :meth:`~jaxsync.fem.materials.law.MaterialLaw.cost`), or a built-in law's class
             name (a key of :data:`HYPERELASTIC_POINT_FLOPS`).
         nodes_per_element: k (4: P1, 10: P2).
         n_points: n_q quadrature points per element (1: P1, 4: P2).
@@ -330,7 +330,7 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
-    from ..fem.internal_force import force_model
+    from ..fem.forces.internal_force import force_model
 
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError, ProblemError
-from ..fem.internal_force import ForceModel, force_model
+from ..fem.forces.internal_force import ForceModel, force_model
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..options import Mode
 from ..parallel.layout import PartLayout, part_systems
@@ -115,7 +115,7 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode | ForceModel = "preass
         partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2), or a force model
             (e.g. ``Preassembled(product="compact")``: the form a short run compiles,
-            :func:`jaxsync.fem.internal_force.run_force_model`); the report names its
+            :func:`jaxsync.fem.forces.internal_force.run_force_model`); the report names its
             ``name``.
         n_steps: steps per timed call; about 1 ms per call is a good choice (the per-call
             cost is measured and removed, so short calls lose no accuracy). Default

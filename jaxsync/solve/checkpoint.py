@@ -68,7 +68,7 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     h.update(values.tobytes())
     for v in problem.load_vectors()[0]:
         h.update(np.asarray(v, dtype=float).tobytes())
-    from ..fem.follower import follower_loads
+    from ..fem.forces.follower import follower_loads
 
     for load in follower_loads(problem):  # not among the load vectors (they follow the displacement)
         h.update(repr(("follower pressure", load.surface, float(load.magnitude), load.time)).encode())

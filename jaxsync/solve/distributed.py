@@ -25,7 +25,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ..errors import ConfigError
-from ..fem.internal_force import force_model
+from ..fem.forces.internal_force import force_model
 from ..fem.stepper import ExplicitSystem, SolverState
 from ..parallel.halo import check_save_every
 from ..parallel.layout import PartSystems, part_systems
@@ -72,7 +72,7 @@ class DistributedParts:
             :class:`~jaxsync.solve.exchanges.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
             :class:`~jaxsync.parallel.plan.ExchangeStrategy`, a registered name, or None
             for the default).
-        mode: the force model (:func:`jaxsync.fem.internal_force.force_model`).
+        mode: the force model (:func:`jaxsync.fem.forces.internal_force.force_model`).
         devices: the devices to run on (None: the exchange's own choice); passed to
             the exchange's ``plan``.
 

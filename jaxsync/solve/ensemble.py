@@ -132,7 +132,7 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
         problems: a sequence of n_runs problems, or with ``members`` the one problem.
         n_steps: time steps of every run (a multiple of the save stride). With the number
             of runs it chooses the stiffness product's form, as for one run of n_runs *
-            n_steps steps (:meth:`jaxsync.fem.internal_force.Preassembled.for_run`).
+            n_steps steps (:meth:`jaxsync.fem.forces.internal_force.Preassembled.for_run`).
         members: a :class:`jaxsync.Members`, or None (the runs are ``problems``).
         partitions: None; or an int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`:
             each trajectory then has the per-part shared-node histories of a distributed

@@ -18,7 +18,7 @@ a leading runs axis) are injected into one shared :class:`~jaxsync.fem.stepper.E
 inside the vmapped step (:func:`member_system`), in the cheapest form:
 
 * the linear law's stiffness K = lambda K_lambda + mu K_mu
-  (:meth:`jaxsync.fem.internal_force.Preassembled.unit_operators`, the two unit operators
+  (:meth:`jaxsync.fem.forces.internal_force.Preassembled.unit_operators`, the two unit operators
   built once): where only E differs (nu shared) one copy of K(E=1, nu) with a scale E
   per member (:attr:`jaxsync.fem.sparse.BlockEll.scale`); where nu differs per-member
   blocks lambda_r K_lambda + mu_r K_mu (n_runs copies of the blocks: memory grows with the
@@ -225,7 +225,7 @@ def _check_values(name: str, value) -> None:
 
 def law_fields(material) -> tuple:
     """The names of a material law's scalar parameters that members may vary."""
-    from ..fem.material import LinearElastic
+    from ..fem.materials.linear_elastic import LinearElastic
 
     if isinstance(material, LinearElastic):
         return ("E", "nu", "rho")
@@ -266,7 +266,7 @@ class RunData:
         stiffness_blocks: the stiffness operator's ``blocks`` with a leading runs axis
             (lambda_r K_lambda + mu_r K_mu).
         law: a hyperelastic law whose every leaf has the runs axis.
-        dashpot: the supports' :class:`jaxsync.fem.support.Dashpot` of each run (their
+        dashpot: the supports' :class:`jaxsync.fem.forces.support.Dashpot` of each run (their
             update depends on the mass and alpha).
     """
 
@@ -440,7 +440,7 @@ def setup_of_problems(problems: tuple) -> EnsembleSetup:
 
 def _difference(problem, reference) -> str | None:
     """What ``problem`` has that its ensemble's runs must share but differs from run 0's, or None."""
-    from ..fem.follower import follower_loads
+    from ..fem.forces.follower import follower_loads
 
     mesh, ref_mesh = problem.mesh, reference.mesh
     if mesh is not ref_mesh and not (np.array_equal(mesh.points, ref_mesh.points)
@@ -494,12 +494,12 @@ def batched_system(setup: EnsembleSetup, dt, n_steps: int | None = None) -> tupl
     :func:`~jaxsync.fem.stepper.build_system` of the base problem, then the per-run
     arrays in the forms of the module docstring (no assembly per run). ``n_steps``: the
     steps every run takes, which choose the stiffness product's form as for one run of
-    ``n_runs * n_steps`` steps (:func:`jaxsync.fem.internal_force.run_force_model`: the
+    ``n_runs * n_steps`` steps (:func:`jaxsync.fem.forces.internal_force.run_force_model`: the
     batched product streams every run's field); None: the fused form."""
     from ..fem.assembly import lumped_mass
-    from ..fem.internal_force import Preassembled, run_force_model
-    from ..fem.material import first_lame, shear_modulus
-    from ..fem.support import dashpot, dashpot_blocks
+    from ..fem.forces.internal_force import Preassembled, run_force_model
+    from ..fem.forces.support import dashpot, dashpot_blocks
+    from ..fem.materials.linear_elastic import first_lame, shear_modulus
 
     base, n = setup.base, setup.n_runs
     model = Preassembled() if n_steps is None else run_force_model(Preassembled(), base, n * n_steps)

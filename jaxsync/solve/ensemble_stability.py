@@ -22,7 +22,7 @@ def _basis_eigenvalues(problem) -> tuple[float, float, float]:
     free dofs (M_1 the lumped mass of unit density, density scaling included; S the
     supports' springs, 0 without), memoised on the problem's operators."""
     from ..fem.assembly import lumped_mass
-    from ..fem.support import spring_matrix
+    from ..fem.forces.support import spring_matrix
     from ..fem.timestep import DENSE_EIGEN_DOFS
 
     fixed, _ = problem.dirichlet_dofs()
@@ -73,8 +73,8 @@ def member_bounds(setup: EnsembleSetup) -> tuple[np.ndarray, bool]:
     M_1^-1 S (positive semidefinite: the largest eigenvalue of a sum is at most the sum of
     theirs), three eigenvalues for all members: a lower bound on each exact bound. Either
     passes through :func:`jaxsync.fem.timestep.damped_bound` with the member's beta."""
-    from ..fem.material import first_lame, shear_modulus
-    from ..fem.support import spring_ratios
+    from ..fem.forces.support import spring_ratios
+    from ..fem.materials.linear_elastic import first_lame, shear_modulus
     from ..fem.timestep import unit_bound
 
     base, values = setup.base, setup.law_values()

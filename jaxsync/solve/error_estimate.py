@@ -45,11 +45,11 @@ clamped shared nodes; under step-to-step jitter the estimate is about half the e
 the timing of the defects within a block for the static remainder, and elastic supports'
 dashpots (not in the modal damping).
 
-Hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`): the error of a finite-strain run obeys
+Hyperelastic laws (:mod:`jaxsync.fem.materials.hyperelastic`): the error of a finite-strain run obeys
 the same recursion to first order in the error, with A the propagator of the tangent
 stiffness K_T(u) = d f_int / d u of the state the run passes through. The propagator is
 linear, so it is built from the tangent at one state (``displacement`` of
-:meth:`ErrorPropagator.build`; :func:`jaxsync.fem.total_lagrangian.tangent_matrix`, plus
+:meth:`ErrorPropagator.build`; :func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`, plus
 the elastic supports' springs): by default the reference configuration (at rest, where
 every law's tangent is its small-strain stiffness of the same E and nu, for HGO with the
 fibres' stiffness as its tangent gives it), or, with ``ResyncTolerance(linearization=
@@ -269,10 +269,10 @@ class ErrorPropagator:
 def linearised_stiffness(problem, displacement=None):
     """The stiffness (scipy sparse, (n_dofs, n_dofs) [dyn/cm]) whose propagator A the
     estimate runs: the material law's tangent stiffness at ``displacement`` u (default
-    zero: at rest; :meth:`jaxsync.fem.material_law.MaterialLaw.tangent_stiffness`: a linear
-    law's K, a hyperelastic law's K_T(u), :func:`jaxsync.fem.total_lagrangian.tangent_matrix`,
+    zero: at rest; :meth:`jaxsync.fem.materials.law.MaterialLaw.tangent_stiffness`: a linear
+    law's K, a hyperelastic law's K_T(u), :func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`,
     symmetrised), the elastic supports' springs added."""
-    from ..fem.support import spring_matrix
+    from ..fem.forces.support import spring_matrix
 
     K = problem.material.tangent_stiffness(problem, displacement)
     springs = spring_matrix(problem)

@@ -211,7 +211,7 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
 
 def _run_check(problem, system: ExplicitSystem, dt: float, executor):
     """The between-chunks check of a run, as its material law sets it
-    (:meth:`jaxsync.fem.material_law.MaterialLaw.run_check`: a hyperelastic law's
+    (:meth:`jaxsync.fem.materials.law.MaterialLaw.run_check`: a hyperelastic law's
     :class:`jaxsync.fem.run_check.RunCheck`; None for a linear law, or with
     ``HostExecutor(check_stability=False)``)."""
     if not executor.check_stability:

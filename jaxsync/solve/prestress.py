@@ -71,9 +71,9 @@ def out_of_balance(problem, displacement=None) -> float:
     hyperelastic ``problem`` with every load at full magnitude (time factor 1), at
     ``displacement`` (n_nodes, 3) [cm] (default zero: the reference is in equilibrium when
     this is at round-off)."""
-    from ..fem.follower import full_follower_pressure
-    from ..fem.support import spring_matrix
-    from ..fem.total_lagrangian import TotalLagrangian
+    from ..fem.forces.follower import full_follower_pressure
+    from ..fem.forces.support import spring_matrix
+    from ..fem.forces.total_lagrangian import TotalLagrangian
 
     u = jnp.zeros((problem.n_nodes, 3)) if displacement is None else jnp.asarray(displacement, dtype=float)
     r = np.asarray(TotalLagrangian().operator(problem).matvec(u)).reshape(-1)
@@ -120,8 +120,8 @@ def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max
             do not converge in ``max_iter``.
         ProblemError: bad options; a law that :class:`jaxsync.Prestressed` does not take.
     """
-    from ..fem.prestress import Prestressed
-    from ..fem.total_lagrangian import TotalLagrangian
+    from ..fem.forces.total_lagrangian import TotalLagrangian
+    from ..fem.materials.prestress import Prestressed
 
     if method not in PRESTRESS_METHODS:
         raise ProblemError(f"method must be one of {', '.join(map(repr, PRESTRESS_METHODS))}, got {method!r}")
@@ -153,7 +153,7 @@ def prestress(problem, *, method: str = "zero-pressure", tol: float = 1e-12, max
 def _traced_prestress(problem, method, grad, tol, max_iter, load_steps) -> PrestressResult:
     """:func:`prestress` of a law with traced parameters (under ``jax.grad``): F0 as a JAX
     function of them (module docstring of :mod:`jaxsync.solve.static_adjoint`)."""
-    from ..fem.prestress import Prestressed
+    from ..fem.materials.prestress import Prestressed
 
     law = problem.material
     x = jnp.asarray(problem.space.points)
@@ -177,7 +177,7 @@ def _mulf_points(problem, grad, tol, max_iter, load_steps):
     static solve u_k(theta, F0(k)) by its adjoint (:func:`jaxsync.solve.static_adjoint.law_cotangent`)."""
     import jax
 
-    from ..fem.prestress import Prestressed
+    from ..fem.materials.prestress import Prestressed
     from .static_adjoint import law_cotangent
 
     leaves, treedef = jax.tree_util.tree_flatten(problem.material)
@@ -221,7 +221,7 @@ def _mulf_points(problem, grad, tol, max_iter, load_steps):
 def _mulf(problem, grad, tol, max_iter, load_steps):
     """The MULF iteration on the host (module docstring): (F0 before every static solve and
     the converged one, list of n + 1 arrays; the n static displacements)."""
-    from ..fem.prestress import Prestressed
+    from ..fem.materials.prestress import Prestressed
     from .solver import steady_state
 
     x = problem.space.points

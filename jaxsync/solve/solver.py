@@ -19,7 +19,7 @@ import jax
 import numpy as np
 
 from ..errors import ProblemError
-from ..fem.internal_force import run_force_model
+from ..fem.forces.internal_force import run_force_model
 from ..fem.stepper import build_system, initial_state
 from ..pytree import is_traced
 from .coupling import as_coupling, exchange_of
@@ -71,7 +71,7 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
     sparse solve (scipy; ``load_steps``, ``tol``, ``max_iter`` are not used).
 
     A hyperelastic law: f_int(u) + S u = f (S the supports' springs) by Newton's method
-    with the exact tangent (:func:`jaxsync.fem.total_lagrangian.tangent_matrix`: the
+    with the exact tangent (:func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`: the
     element Hessians of the stored energy by ``jax.jacfwd``, summed into a scipy sparse
     matrix) and scipy's sparse direct solver, in ``load_steps`` equal increments of the
     loads and of the Dirichlet values (default :data:`NEWTON_LOAD_STEPS`, 10). The first
@@ -107,7 +107,7 @@ def steady_state(problem, *, load_steps: int | None = None, tol: float = 1e-10, 
             "steady_state solves on the host (scipy's sparse direct solver), so it cannot take traced inputs "
             "(jax.grad, jit or vmap): call it with concrete values; for the derivative of the static solution "
             "in a parameter theta use the implicit function theorem, du/dtheta = -K_T^-1 dr/dtheta, with "
-            "K_T from jaxsync.fem.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
+            "K_T from jaxsync.fem.forces.total_lagrangian.tangent_matrix (a hyperelastic law) and dr/dtheta from "
             "jax.jacfwd of the residual (docs: Gradients)")
     if problem.material.finite_strain:  # a force nonlinear in u: Newton's method
         u = SteadyState(*_newton_steady_state(problem, NEWTON_LOAD_STEPS if load_steps is None else load_steps,
@@ -158,9 +158,9 @@ def _newton_steady_state(problem, load_steps, tol: float, max_iter: int, guess=N
     import scipy.sparse.linalg as spla
 
     from ..errors import ConvergenceError
-    from ..fem.follower import full_follower_pressure, load_stiffness
-    from ..fem.support import spring_matrix
-    from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
+    from ..fem.forces.follower import full_follower_pressure, load_stiffness
+    from ..fem.forces.support import spring_matrix
+    from ..fem.forces.total_lagrangian import TotalLagrangian, tangent_matrix
 
     for name, value in (("load_steps", load_steps), ("max_iter", max_iter)):
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -268,7 +268,7 @@ def _linear_steady_state(problem) -> np.ndarray:
     """K u = f by one direct sparse solve (:func:`steady_state`)."""
     import scipy.sparse.linalg as spla
 
-    from ..fem.support import stiffness_matrix
+    from ..fem.forces.support import stiffness_matrix
 
     K = stiffness_matrix(problem)
     vectors, _ = problem.load_vectors()
@@ -339,8 +339,8 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
         sync: another name for ``exchange`` (give one of them).
         mode: the internal force, ``"preassembled"`` (sparse K, stored once) or
             ``"recompute"`` (element quantities formed every step), paper Remark 2
-            (:mod:`jaxsync.fem.internal_force`), or a force model. The preassembled K's
-            product is chosen for the run's length (:attr:`jaxsync.fem.internal_force.Preassembled.product`:
+            (:mod:`jaxsync.fem.forces.internal_force`), or a force model. The preassembled K's
+            product is chosen for the run's length (:attr:`jaxsync.fem.forces.internal_force.Preassembled.product`:
             the form that compiles faster for short runs, the faster step for long ones).
         checkpoint: a :class:`jaxsync.SolverCheckpoint` or an HDF5 path for resumable runs
             (synchronized runs): the state is stored there as the run goes, and a run

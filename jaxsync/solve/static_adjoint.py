@@ -30,9 +30,9 @@ __all__ = ["static_displacement", "law_cotangent", "differentiable_in_law"]
 def _tangent(problem, u):
     """d r / d u (scipy CSR) of ``problem`` at u (n_nodes, 3): the law's tangent, the
     springs, the follower pressures' load stiffness (loads at full magnitude)."""
-    from ..fem.follower import full_follower_pressure, load_stiffness
-    from ..fem.support import spring_matrix
-    from ..fem.total_lagrangian import TotalLagrangian, tangent_matrix
+    from ..fem.forces.follower import full_follower_pressure, load_stiffness
+    from ..fem.forces.support import spring_matrix
+    from ..fem.forces.total_lagrangian import TotalLagrangian, tangent_matrix
 
     K = tangent_matrix(TotalLagrangian().operator(problem), u)
     springs = spring_matrix(problem)
@@ -50,7 +50,7 @@ def law_cotangent(problem, u, cotangent) -> list:
     ``problem`` (concrete) is ``cotangent`` (n_nodes, 3) (module docstring)."""
     import scipy.sparse.linalg as spla
 
-    from ..fem.total_lagrangian import TotalLagrangian
+    from ..fem.forces.total_lagrangian import TotalLagrangian
 
     u = np.asarray(u, dtype=float)
     fixed, _ = problem.dirichlet_dofs()

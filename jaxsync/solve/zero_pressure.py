@@ -7,10 +7,10 @@ reference X whose static solution under those loads is x, phi_X(X) = x. Two meth
 
 * ``"newton"``: Newton's method on the inverse problem (Govindjee & Mihalic 1996). The
   unknown is X, the residual R(X) = f_int(X; x) - f_p(x) the internal force at the deformed
-  configuration x computed with reference X (:mod:`jaxsync.fem.inverse`) minus the follower
+  configuration x computed with reference X (:mod:`jaxsync.fem.forces.inverse`) minus the follower
   pressure's force on x, which does not depend on X, plus the elastic supports' springs and
   minus the dead loads (body force, traction, dead pressure), integrals over the unknown
-  reference (:mod:`jaxsync.fem.inverse_loads`). Its tangent dR/dX is exact (JAX),
+  reference (:mod:`jaxsync.fem.forces.inverse_loads`). Its tangent dR/dX is exact (JAX),
   solved by scipy's sparse direct solver (``linear_solver="direct"``) or by GMRES on
   ``jax.jvp`` products with a node-block Jacobi preconditioner (``"krylov"``, for meshes
   whose factorisation does not fit). The loads are applied in ``load_steps`` increments
@@ -21,7 +21,7 @@ reference X whose static solution under those loads is x, phi_X(X) = x. Two meth
   It takes every load and support the forward problem takes.
 
 The imaged state is taken as at rest under the imaging loads: a viscoelastic law (a Prony
-series, :class:`jaxsync.fem.viscoelastic.PronySeries`) is unloaded with its long-term
+series, :class:`jaxsync.fem.materials.viscoelastic.PronySeries`) is unloaded with its long-term
 (relaxed) elastic law, its ``elastic_law()``, the response its branches relax to under a
 held pressure. Prescribed displacements g keep their dofs at X = x - g. :func:`zero_pressure_points` is
 the Newton solve as a differentiable function of the law's parameters: its reverse pass is
@@ -151,7 +151,7 @@ def _check(problem, method, tol, max_iter, load_steps, linear_solver):
                            "a small-strain law has no distinct deformed configuration to unload; use "
                            "jaxsync.NeoHookean, NearlyIncompressibleNeoHookean or HolzapfelGasserOgden")
     if method == "newton":
-        from ..fem.inverse_loads import inverse_loads
+        from ..fem.forces.inverse_loads import inverse_loads
 
         inverse_loads(problem)  # refuses a load it does not take, before any solve
 
@@ -206,9 +206,9 @@ class _Inverse:
     """The inverse problem's residual and its Newton updates."""
 
     def __init__(self, problem, linear_solver: str):
-        from ..fem.follower import full_follower_pressure
-        from ..fem.inverse import inverse_operator
-        from ..fem.inverse_loads import inverse_loads, inverse_loads_force
+        from ..fem.forces.follower import full_follower_pressure
+        from ..fem.forces.inverse import inverse_operator
+        from ..fem.forces.inverse_loads import inverse_loads, inverse_loads_force
 
         self.problem, self.linear_solver = problem, linear_solver
         self.op = inverse_operator(problem)
@@ -230,7 +230,7 @@ class _Inverse:
 
     def residual(self, X, fraction):
         """R(X) (n_dofs,) [dyn], or None where the reference or F is inverted or R not finite."""
-        from ..fem.inverse import inverse_force, inverse_jacobians
+        from ..fem.forces.inverse import inverse_force, inverse_jacobians
 
         Xn = jnp.asarray(X.reshape(-1, 3))
         J = np.asarray(inverse_jacobians(self.op, Xn))
@@ -238,7 +238,7 @@ class _Inverse:
             return None
         r = np.asarray(inverse_force(self.op, Xn)).reshape(-1) - fraction * self.pressure
         if not self.loads.empty:
-            from ..fem.inverse_loads import inverse_loads_force
+            from ..fem.forces.inverse_loads import inverse_loads_force
 
             r = r + np.asarray(inverse_loads_force(self.loads, Xn, fraction)).reshape(-1)
         return r if np.all(np.isfinite(r)) else None
@@ -253,8 +253,8 @@ class _Inverse:
         ``fraction`` of their magnitude."""
         import scipy.sparse.linalg as spla
 
-        from ..fem.inverse import tangent
-        from ..fem.inverse_loads import loads_tangent
+        from ..fem.forces.inverse import tangent
+        from ..fem.forces.inverse_loads import loads_tangent
 
         if self.linear_solver == "direct" or transpose:
             K = tangent(self.op, X.reshape(-1, 3))
@@ -271,8 +271,8 @@ class _Inverse:
     def _krylov(self, X, rhs, fraction):
         import scipy.sparse.linalg as spla
 
-        from ..fem.inverse import inverse_blocks, inverse_product
-        from ..fem.inverse_loads import inverse_loads_product
+        from ..fem.forces.inverse import inverse_blocks, inverse_product
+        from ..fem.forces.inverse_loads import inverse_loads_product
 
         n = X.size
         Xn = jnp.asarray(X.reshape(-1, 3))
@@ -395,7 +395,7 @@ def _fixed_point(problem, tol, max_iter, load_steps):
 @functools.partial(jax.jit, static_argnums=0)
 def _law_cotangent(treedef, op, X, values, adjoint):
     """The law's leaves' cotangents adjoint . d f_int(X) / d theta (a ``jax.vjp``, compiled)."""
-    from ..fem.inverse import split_fibres
+    from ..fem.forces.inverse import split_fibres
 
     def force(values):
         stripped, fibres = split_fibres(jax.tree_util.tree_unflatten(treedef, values))
@@ -425,7 +425,7 @@ def _points_cotangent(problem, X, X_bar) -> list:
     """The law's leaves' cotangents of a scalar whose cotangent in the unloaded points X
     (n_nodes, 3) of ``problem`` (concrete) is ``X_bar``: -(dR/dtheta)^T lambda with
     (dR/dX)^T lambda = X_bar at the free dofs."""
-    from ..fem.inverse import inverse_operator
+    from ..fem.forces.inverse import inverse_operator
 
     inverse = _Inverse(problem, "direct")
     X = np.asarray(X)

@@ -32,8 +32,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from ..pytree import pytree_dataclass
+from ...errors import ProblemError
+from ...pytree import pytree_dataclass
 
 __all__ = ["FollowerPressure", "follower_pressure", "full_follower_pressure",
            "part_follower_pressures", "follower_loads", "facet_nodes",
@@ -93,7 +93,7 @@ def _facet_force(x, tangents, shape, weights, pressure):
 
 def follower_loads(problem) -> list:
     """The problem's follower pressures (:class:`jaxsync.Pressure` with ``follower=True``)."""
-    from .loads import Pressure
+    from ..loads import Pressure
 
     return [load for load in problem.loads if isinstance(load, Pressure) and load.follower]
 
@@ -125,8 +125,8 @@ def facet_rule(element: str, intorder: int | None = None):
 def facet_nodes(space, surface: str) -> tuple[np.ndarray, np.ndarray]:
     """(nodes (n_f, k_f) of the facets of ``surface``, outward oriented (as
     :class:`FollowerPressure` holds them), element (n_f,) of each facet)."""
-    from ..mesh import to_skfem
-    from .assembly import boundary_facet_indices
+    from ...mesh import to_skfem
+    from ..assembly import boundary_facet_indices
 
     skmesh = to_skfem(space.mesh)
     index = boundary_facet_indices(space.mesh, skmesh, surface, what="a follower pressure")
@@ -182,7 +182,7 @@ def full_follower_pressure(problem) -> FollowerPressure | None:
     :func:`jaxsync.steady_state` applies the loads), or None without any."""
     import dataclasses
 
-    from .loads import Constant
+    from ..loads import Constant
 
     follower = follower_pressure(problem)
     if follower is None:

@@ -6,7 +6,7 @@ estimate and the cost model ask it:
 
 * which internal-force model runs it (:meth:`MaterialLaw.force_model`): the stored
   stiffness for :class:`jaxsync.LinearElastic` (whichever linear mode was asked for),
-  the total-Lagrangian model (:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`) for
+  the total-Lagrangian model (:class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian`) for
   a finite-strain law;
 * its default stable step and exact bound at the problem's initial state
   (:meth:`~MaterialLaw.stable_step`, :meth:`~MaterialLaw.max_stable_dt`), each element's
@@ -27,7 +27,7 @@ A finite-strain law needs only its stress: derive it from :class:`FiniteStrainLa
 the small-strain constants ``E``, ``nu``, ``rho``, ``lam``, ``mu``; the base class
 answers the rest through the total-Lagrangian machinery. A law that carries internal
 variables also overrides :meth:`FiniteStrainLaw.internal_variables` and
-:meth:`FiniteStrainLaw.stress_update` (:mod:`jaxsync.fem.viscoelastic` is one).
+:meth:`FiniteStrainLaw.stress_update` (:mod:`jaxsync.fem.materials.viscoelastic` is one).
 docs/guides/extending-materials.md walks through both.
 """
 
@@ -41,8 +41,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from .timestep import ALPHA_S, StableStep, hyperelastic_step
+from ...errors import ProblemError
+from ..timestep import ALPHA_S, StableStep, hyperelastic_step
 
 __all__ = ["MaterialLaw", "FiniteStrainLaw", "MaterialParameters", "LawCost", "check_material_law",
            "PROTOCOL_MEMBERS"]
@@ -105,7 +105,7 @@ class MaterialLaw(Protocol):
     state_dependent_tangent: bool
 
     def force_model(self, requested):
-        """The force model (:class:`jaxsync.fem.internal_force.ForceModel`) that runs this
+        """The force model (:class:`jaxsync.fem.forces.internal_force.ForceModel`) that runs this
         law when ``requested`` was asked for (``requested`` itself, or another one)."""
 
     def stable_step(self, problem, alpha_s: float = ALPHA_S) -> StableStep:
@@ -161,7 +161,7 @@ def check_material_law(material, where: str = "Problem.material") -> None:
         raise ProblemError(
             f"{where} must be a material law (jaxsync.LinearElastic, jaxsync.NeoHookean, "
             f"NearlyIncompressibleNeoHookean, HolzapfelGasserOgden, StandardLinearSolid, or a law of your own "
-            f"deriving from jaxsync.fem.material_law.FiniteStrainLaw); {type(material).__name__} lacks "
+            f"deriving from jaxsync.fem.materials.law.FiniteStrainLaw); {type(material).__name__} lacks "
             f"{', '.join(missing)}")
 
 
@@ -222,21 +222,21 @@ class FiniteStrainLaw:
         return self.first_piola(F, fibres), internal
 
     def force_model(self, requested):
-        """:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`, whatever was asked for (a
+        """:class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian`, whatever was asked for (a
         nonlinear law has no stiffness to store); a stored stiffness's own setting
         (float32 blocks) is refused."""
         if getattr(requested, "blocks_dtype", "float64") != "float64":
             raise ProblemError(f"float32 stiffness blocks store the K of a linear law; the {type(self).__name__} "
                                "law has none (every mode runs the total-Lagrangian force): leave out blocks_dtype / "
                                "--float32-blocks")
-        from .total_lagrangian import TotalLagrangian
+        from ..forces.total_lagrangian import TotalLagrangian
 
         return TotalLagrangian()
 
     def stable_step(self, problem, alpha_s: float = ALPHA_S) -> StableStep:
         """alpha_s min(element rule, exact bound) of the tangent at the initial displacement
-        (:func:`jaxsync.fem.total_lagrangian.default_step`)."""
-        from .total_lagrangian import default_step
+        (:func:`jaxsync.fem.forces.total_lagrangian.default_step`)."""
+        from ..forces.total_lagrangian import default_step
 
         step = default_step(problem)
         return step if alpha_s == step.alpha_s else hyperelastic_step(
@@ -249,13 +249,13 @@ class FiniteStrainLaw:
 
     def element_steps(self, problem) -> np.ndarray:
         """2 / omega_e of each element's tangent stiffness at the initial displacement over
-        its lumped mass (:func:`jaxsync.fem.total_lagrangian.element_frequencies`)."""
-        from ..pytree import is_traced
+        its lumped mass (:func:`jaxsync.fem.forces.total_lagrangian.element_frequencies`)."""
+        from ...pytree import is_traced
 
         if is_traced(self, problem.initial_displacement):
             raise ProblemError("the element steps are eigenvalues computed on the host: give concrete material "
                                "parameters and initial displacement")
-        from .total_lagrangian import TotalLagrangian, element_frequencies
+        from ..forces.total_lagrangian import TotalLagrangian, element_frequencies
 
         op = TotalLagrangian().operator(problem)
         u0 = problem.initial_displacement
@@ -273,9 +273,9 @@ class FiniteStrainLaw:
         return scale, small
 
     def tangent_stiffness(self, problem, displacement=None):
-        """K_T(u) (:func:`jaxsync.fem.total_lagrangian.tangent_matrix`), symmetrised (it is
+        """K_T(u) (:func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`), symmetrised (it is
         symmetric up to round-off)."""
-        from .total_lagrangian import tangent_matrix
+        from ..forces.total_lagrangian import tangent_matrix
 
         u = np.zeros((problem.n_nodes, 3)) if displacement is None else np.asarray(displacement, dtype=float)
         if u.shape != (problem.n_nodes, 3):
@@ -306,6 +306,6 @@ class FiniteStrainLaw:
 
     def run_check(self, problem, system, dt):
         """:class:`jaxsync.fem.run_check.RunCheck` (inversion and the deformed state's step)."""
-        from .run_check import RunCheck
+        from ..run_check import RunCheck
 
         return RunCheck(problem, system, dt)

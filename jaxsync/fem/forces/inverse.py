@@ -9,7 +9,7 @@ F = sum_a x_a (x) grad_X N_a, and the element's nodal forces are
 
     f_a(X) = sum_q w_q det(dX/dxi)_q P(F_q) grad_X N_a(xi_q)    [dyn],
 
-the total-Lagrangian force (:mod:`jaxsync.fem.total_lagrangian`) written as a function of
+the total-Lagrangian force (:mod:`jaxsync.fem.forces.total_lagrangian`) written as a function of
 X at fixed x. Every quantity is a JAX function of X and of the law's parameters, so the
 tangent dR/dX of the inverse problem is exact (``jax.jacfwd``, element by element) and its
 products are ``jax.jvp`` s. The quadrature rule is that of the reference geometry the
@@ -25,16 +25,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from ..pytree import pytree_dataclass
-from .kinematics import determinant
+from ...errors import ProblemError
+from ...pytree import pytree_dataclass
+from ..kinematics import determinant
 
 __all__ = ["InverseForce", "inverse_operator", "split_fibres"]
 
 
 def split_fibres(material) -> tuple:
     """(the law without its fibres, fibres (n_elements, 2, 3) or None): the fibres are handed
-    to the stress element by element, as :class:`jaxsync.fem.total_lagrangian.TotalLagrangian`
+    to the stress element by element, as :class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian`
     does. Works on traced laws."""
     if not hasattr(material, "fibres"):
         return material, None
@@ -103,7 +103,7 @@ def inverse_operator(problem, current=None) -> InverseForce:
     """The :class:`InverseForce` of ``problem`` (its hyperelastic law; P1, or P2 with the
     curved rule) with the deformed positions ``current`` (n_nodes, 3) [cm] (default: the
     problem's nodes, the imaged geometry)."""
-    from .reference_element import shape_derivatives
+    from ..reference_element import shape_derivatives
 
     if not problem.material.finite_strain:
         raise ProblemError("the zero-pressure geometry needs a hyperelastic law, got "

@@ -19,7 +19,7 @@ F0 is the law's internal variable (:meth:`Prestressed.internal_variables`, ``{"F
 constant in time: it rides in the solver state of every executor, is split with the
 elements of a partition and checkpointed, and the static solver, the stable step and the
 run checks see it through the total-Lagrangian operator
-(:attr:`jaxsync.fem.total_lagrangian.HyperelasticForce.state`).
+(:attr:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.state`).
 """
 
 from __future__ import annotations
@@ -32,10 +32,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import MaterialError, ProblemError
-from ..pytree import is_traced, pytree_dataclass
-from .kinematics import determinant
-from .material_law import FiniteStrainLaw, MaterialParameters
+from ...errors import MaterialError, ProblemError
+from ...pytree import is_traced, pytree_dataclass
+from ..kinematics import determinant
+from .law import FiniteStrainLaw, MaterialParameters
 
 __all__ = ["Prestressed"]
 
@@ -43,7 +43,7 @@ __all__ = ["Prestressed"]
 @pytree_dataclass
 class Prestressed(FiniteStrainLaw):
     """A hyperelastic ``law`` with a prestrain F0 at every quadrature point
-    (module docstring), a :class:`jaxsync.fem.material_law.MaterialLaw`.
+    (module docstring), a :class:`jaxsync.fem.materials.law.MaterialLaw`.
 
     Attributes:
         law: the stress-free law (:class:`jaxsync.NeoHookean`,

@@ -52,8 +52,8 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import MaterialError
-from ..pytree import concrete_scalar, pytree_dataclass
+from ...errors import MaterialError
+from ...pytree import concrete_scalar, pytree_dataclass
 from .hyperelastic import (
     HolzapfelGasserOgden,
     NearlyIncompressibleNeoHookean,
@@ -62,7 +62,7 @@ from .hyperelastic import (
     check_positive,
     check_young_poisson,
 )
-from .material_law import FiniteStrainLaw, MaterialParameters
+from .law import FiniteStrainLaw, MaterialParameters
 
 __all__ = ["PronySeries", "ViscoelasticNeoHookean", "ViscoelasticHGO", "StandardLinearSolid", "STATE_NAMES",
            "check_branches"]
@@ -349,7 +349,7 @@ class StandardLinearSolid(PronySeries, SmallStrain):
     @classmethod
     def cost(cls):
         """Its stress's flops, and its two 3 x 3 variables read and written per point."""
-        from .material_law import LawCost
+        from .law import LawCost
 
         return LawCost(dict(cls.point_flops), 0, 2 * 2 * 9 * 8)
 

@@ -23,9 +23,9 @@ from typing import Any
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from ..pytree import concrete_scalar, pytree_dataclass, static_field
-from .parameter_checks import check_number
+from ...errors import ProblemError
+from ...pytree import concrete_scalar, pytree_dataclass, static_field
+from ..parameter_checks import check_number
 
 __all__ = ["ElasticSupport", "SurfaceSpring", "Dashpot", "surface_spring", "part_surface_springs", "dashpot_blocks",
            "dashpot", "apply_dashpot", "spring_matrix", "spring_ratios", "stiffness_matrix"]
@@ -73,7 +73,7 @@ class SurfaceSpring:
 
     def matvec(self, u):
         """(n_nodes, 3) spring forces S u [dyn] of displacements ``u`` (n_nodes, 3)."""
-        from .sparse import BlockEll
+        from ..sparse import BlockEll
 
         local = BlockEll(self.columns, self.blocks).matvec(u)  # rows of S only: not square, not symmetric
         return jnp.zeros_like(u).at[self.rows].add(local, mode="drop")
@@ -104,8 +104,8 @@ def _unit_surface_blocks(space, support: ElasticSupport) -> tuple[np.ndarray, np
     from skfem import BilinearForm
     from skfem.helpers import dot
 
-    from ..mesh import to_skfem
-    from .assembly import boundary_facet_indices
+    from ...mesh import to_skfem
+    from ..assembly import boundary_facet_indices
 
     facets = boundary_facet_indices(space.mesh, to_skfem(space.mesh), support.surface, what="an elastic support")
     # integrand of degree 2 (P1) or 4 (P2): exact
@@ -247,7 +247,7 @@ def spring_ratios(problem) -> tuple:
     supports = _springs(problem)
     if not supports:
         return ()
-    from ..pytree import is_traced
+    from ...pytree import is_traced
 
     if is_traced(problem.material.E, [s.stiffness for s in supports]):
         raise ProblemError("with elastic supports the default time step depends on k_s / E through the exact "

@@ -14,8 +14,8 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from ..options import Mode, choices
-from ..pytree import pytree_dataclass
+from ...options import Mode, choices
+from ...pytree import pytree_dataclass
 
 __all__ = ["ElementStiffness", "element_forces", "MODES"]
 

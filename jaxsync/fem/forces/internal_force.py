@@ -15,15 +15,15 @@ model* turns a problem (mesh and material) into
 The runners, deep halos, the executors, gradients and surrogates work through these
 three only. Two models implement the linear elastic law (paper Remark 2):
 :class:`Preassembled` (K stored once, the fast path) and :class:`ElementRecompute`
-(element quantities formed every step); a third, :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`,
-the finite-strain hyperelastic laws (:mod:`jaxsync.fem.hyperelastic`). :func:`force_model`
+(element quantities formed every step); a third, :class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian`,
+the finite-strain hyperelastic laws (:mod:`jaxsync.fem.materials.hyperelastic`). :func:`force_model`
 maps the command line's names (``"preassembled"``, ``"recompute"``, ``"total-lagrangian"``)
 onto them.
 
 The material law says which model runs it
-(:meth:`jaxsync.fem.material_law.MaterialLaw.force_model`): a finite-strain law has no
+(:meth:`jaxsync.fem.materials.law.MaterialLaw.force_model`): a finite-strain law has no
 stiffness K to store, so the linear models hand its problem to
-:class:`~jaxsync.fem.total_lagrangian.TotalLagrangian` (the default ``mode="preassembled"``
+:class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian` (the default ``mode="preassembled"``
 of every solver runs the law the problem states, never its linearisation).
 """
 
@@ -35,8 +35,8 @@ from typing import NamedTuple, Protocol, Sequence
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from ..options import Mode, check_option
+from ...errors import ProblemError
+from ...options import Mode, check_option
 
 __all__ = ["InternalForce", "ForceModel", "Preassembled", "ElementRecompute", "force_model", "PartGeometry"]
 
@@ -76,15 +76,15 @@ class ForceModel(Protocol):
 
 
 def _max_stable_dt(problem):
-    from .timestep import max_stable_dt
+    from ..timestep import max_stable_dt
 
     return max_stable_dt(problem)
 
 
 def _finite_strain(problem, model):
     """The force model the problem's material law runs instead of ``model`` (a
-    finite-strain law: :class:`~jaxsync.fem.total_lagrangian.TotalLagrangian`), or None
-    when it runs ``model`` itself (:meth:`jaxsync.fem.material_law.MaterialLaw.force_model`;
+    finite-strain law: :class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian`), or None
+    when it runs ``model`` itself (:meth:`jaxsync.fem.materials.law.MaterialLaw.force_model`;
     a setting of ``model`` that only a stored stiffness has is refused there)."""
     runs = problem.material.force_model(model)
     return None if runs is model else runs
@@ -234,7 +234,7 @@ class Preassembled:
 
     def _mesh_stiffness(self, problem, material):
         """The operator of the whole mesh for ``material`` (anything with ``lam`` and ``mu``)."""
-        from .sparse import bandwidth_order, permuted_block_ell
+        from ..sparse import bandwidth_order, permuted_block_ell
 
         adjacency, K_lambda, K_mu, _ = problem.operators.block_ell
         if self.layout == "ell":
@@ -259,7 +259,7 @@ class Preassembled:
         """The operator of host unit blocks on ``columns`` (numbered in ``order``, if given:
         its rows go back to the caller's numbering, u is gathered into it). Stacked parts'
         ``columns`` (P, n, width) give a scale of shape (P,), if any."""
-        from .sparse import BlockEll, GroupedEll, grouped_layout, split_diagonal
+        from ..sparse import BlockEll, GroupedEll, grouped_layout, split_diagonal
 
         scale, lam, mu = self._moduli(material, int(np.shape(columns)[-2]))
         if scale is not None and np.ndim(columns) == 3:  # one per part (vmap / shard_map over the part axis)
@@ -293,7 +293,7 @@ class Preassembled:
         mu / E), the last two Python floats, when E is a traced scalar, nu a concrete
         number and ``n_rows >= scale_min_nodes`` (K = E K(E=1, nu): constant blocks under
         a traced scale); else (None, lambda, mu)."""
-        from ..pytree import concrete_scalar, is_traced
+        from ...pytree import concrete_scalar, is_traced
 
         E = getattr(material, "E", None)
         if (n_rows < self.scale_min_nodes or E is None or not is_traced(E) or jnp.ndim(E) != 0
@@ -313,12 +313,12 @@ class Preassembled:
 class ElementRecompute:
     """The paper's element-recompute mode (Remark 2): each step forms every element's
     geometry, strain and stress and sums the element forces at the nodes
-    (:class:`jaxsync.fem.element_force.ElementStiffness`); nothing but the mesh is stored."""
+    (:class:`jaxsync.fem.forces.element_force.ElementStiffness`); nothing but the mesh is stored."""
 
     name: str = dataclasses.field(default="recompute", init=False)
 
     def operator(self, problem):
-        """:class:`~jaxsync.fem.element_force.ElementStiffness` of the whole mesh."""
+        """:class:`~jaxsync.fem.forces.element_force.ElementStiffness` of the whole mesh."""
         from .element_force import ElementStiffness
 
         if (tl := _finite_strain(problem, self)) is not None:
@@ -329,7 +329,7 @@ class ElementRecompute:
                                 jnp.ones(mesh.n_elements), m.lam, m.mu)
 
     def part_operators(self, problem, parts, n_local: int):
-        """The parts' :class:`~jaxsync.fem.element_force.ElementStiffness` stacked on a
+        """The parts' :class:`~jaxsync.fem.forces.element_force.ElementStiffness` stacked on a
         leading part axis; padding elements repeat the part's element 0 with weight 0."""
         from .element_force import ElementStiffness
 
@@ -385,7 +385,7 @@ def run_force_model(mode, problem, n_steps: int):
 def force_model(mode: Mode | ForceModel = "preassembled") -> ForceModel:
     """The force model of ``mode``: ``"preassembled"`` (:class:`Preassembled`),
     ``"recompute"`` (:class:`ElementRecompute`), ``"total-lagrangian"``
-    (:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`), or a force model, returned as it is.
+    (:class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian`), or a force model, returned as it is.
 
     Raises:
         ProblemError: any other value, naming the allowed ones.
@@ -401,8 +401,8 @@ def _part_unit_blocks(space, parts, n_local: int) -> tuple[np.ndarray, np.ndarra
     part's numbering), material-independent (numpy)."""
     import scipy.sparse as sp
 
-    from .assembly import element_blocks
-    from .sparse import block_ell_values, node_adjacency, pad_block_ell
+    from ..assembly import element_blocks
+    from ..sparse import block_ell_values, node_adjacency, pad_block_ell
 
     k_lambda, k_mu = element_blocks(space)
     size = k_lambda.shape[1]  # 3 x the nodes of an element: 12 (P1) or 30 (P2)

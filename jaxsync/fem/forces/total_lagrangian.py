@@ -5,14 +5,14 @@ shape-function gradients grad N_a of the reference element and u the nodal displ
 
     F = I + sum_a u_a (x) grad N_a,    f_a = sum_q w_q P(F_q) grad N_a(x_q)    [dyn],
 
-P the first Piola-Kirchhoff stress of the law (:mod:`jaxsync.fem.hyperelastic`) and w_q the
+P the first Piola-Kirchhoff stress of the law (:mod:`jaxsync.fem.materials.hyperelastic`) and w_q the
 quadrature weights times the reference Jacobian [cm^3]: one point for P1 (F is constant in
 the element), the 4-point degree-2 rule for P2 (shape functions and the rule from
 scikit-fem). The reference gradients and weights are formed once, when the operator is
 built (TLED's precomputation); each step gathers u, forms F and P at every point and sums
 the element forces at the nodes (``segment_sum``). The same code serves the whole mesh
 and, padded, every part of a partition (:class:`TotalLagrangian`, the physics seam of
-:mod:`jaxsync.fem.internal_force`).
+:mod:`jaxsync.fem.forces.internal_force`).
 
 Stable step. The explicit step of a nonlinear law changes as the body deforms, so it is
 checked during a run on the current state (:func:`stable_dt`, :func:`check_stable_dt`):
@@ -44,11 +44,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError, StabilityError
-from ..pytree import pytree_dataclass
-from .kinematics import determinant
-from .reference_element import element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
-from .timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
+from ...errors import ProblemError, StabilityError
+from ...pytree import pytree_dataclass
+from ..kinematics import determinant
+from ..reference_element import element_unit_mass, n_quadrature_points, quadrature_order, reference_geometry
+from ..timestep import ALPHA_S, StableStep, element_size, hyperelastic_step
 
 __all__ = ["HyperelasticForce", "TotalLagrangian", "reference_geometry", "stable_dt", "check_stable_dt",
            "exact_stable_dt", "element_wave_speeds", "inverted_elements", "strain_energy",
@@ -69,7 +69,7 @@ class HyperelasticForce:
             quadrature points [1/cm].
         weights: (n_elements, n_q) quadrature weight times the reference Jacobian [cm^3]
             (0 on the padding elements of a part).
-        material: the law (:mod:`jaxsync.fem.hyperelastic`; fibres held here, not in it).
+        material: the law (:mod:`jaxsync.fem.materials.hyperelastic`; fibres held here, not in it).
         fibres: (n_elements, 2, 3) reference fibre directions, or None (isotropic laws).
         points: (n_nodes, 3) reference node coordinates [cm] (for the deformed element size).
         unit_mass: (n_elements, k) each element's lumped mass at its nodes per unit
@@ -155,7 +155,7 @@ class HyperelasticForce:
     def update(self, u, internal, dt, velocity=None, beta=None):
         """(f_int(u) (n_nodes, 3) [dyn], the law's internal variables after it) of a law
         with state: its ``stress_update`` at every quadrature point
-        (:meth:`jaxsync.fem.material_law.FiniteStrainLaw.stress_update`), ``internal``
+        (:meth:`jaxsync.fem.materials.law.FiniteStrainLaw.stress_update`), ``internal``
         {name: (n_elements, n_q, ...)} its variables before, dt [s] the step. With a
         ``velocity`` v (n_nodes, 3) [cm/s] and beta [s], the force includes the
         stiffness-proportional damping force (:meth:`viscous_stress`, from the law's
@@ -207,7 +207,7 @@ def _constant_state(problem, material):
 @dataclasses.dataclass(frozen=True)
 class TotalLagrangian:
     """The total-Lagrangian force model of a hyperelastic problem (module docstring), a
-    :class:`jaxsync.fem.internal_force.ForceModel`: ``mode=TotalLagrangian()`` (or
+    :class:`jaxsync.fem.forces.internal_force.ForceModel`: ``mode=TotalLagrangian()`` (or
     ``mode="total-lagrangian"``) in :func:`jaxsync.simulate` and every solver.
 
     A problem with a hyperelastic material needs no ``mode``: the linear modes
@@ -278,7 +278,7 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     Raises:
         ProblemError: traced material parameters or initial displacement (pass dt=).
     """
-    from ..pytree import is_traced
+    from ...pytree import is_traced
 
     m, u0 = problem.material, problem.initial_displacement
     if is_traced(m, u0):

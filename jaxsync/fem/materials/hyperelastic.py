@@ -2,7 +2,7 @@
 
 Each law is a frozen pytree dataclass (fields may be JAX tracers, so ``jax.grad`` with
 respect to its parameters works) deriving from
-:class:`jaxsync.fem.material_law.FiniteStrainLaw` (which answers the material-law protocol
+:class:`jaxsync.fem.materials.law.FiniteStrainLaw` (which answers the material-law protocol
 through the total-Lagrangian force model), with
 
 * ``energy(F, fibres=None)``: the strain energy density psi(F) per unit reference volume,
@@ -39,12 +39,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import MaterialError
-from ..pytree import concrete_scalar, pytree_dataclass
-from .kinematics import cofactor, det_from_cofactor, determinant, sum3, sum_squares
-from .material import first_lame, shear_modulus
-from .material_law import FiniteStrainLaw
-from .parameter_checks import check_number
+from ...errors import MaterialError
+from ...pytree import concrete_scalar, pytree_dataclass
+from ..kinematics import cofactor, det_from_cofactor, determinant, sum3, sum_squares
+from ..parameter_checks import check_number
+from .law import FiniteStrainLaw
+from .linear_elastic import first_lame, shear_modulus
 
 __all__ = ["NeoHookean", "NearlyIncompressibleNeoHookean", "HolzapfelGasserOgden", "HYPERELASTIC",
            "is_hyperelastic", "helical_fibres", "determinant", "cofactor", "material_parameters",
@@ -65,7 +65,7 @@ def split_neo_hookean_stresses(F, mu, bulk) -> dict:
     """The second Piola-Kirchhoff stresses of mu/2 (J^-2/3 I1 - 3) + K/4 (J^2 - 1 - 2 ln J)
     split into {"volumetric": K/2 (J^2 - 1) C^-1, "isochoric": mu J^-2/3 (I - I1/3 C^-1)},
     each (..., 3, 3) [dyn/cm^2], of F (..., 3, 3) (the parts viscoelastic branches act on,
-    :mod:`jaxsync.fem.viscoelastic`)."""
+    :mod:`jaxsync.fem.materials.viscoelastic`)."""
     cof = cofactor(F)
     J = determinant(F)
     c_inv = jnp.einsum("...iJ,...iK->...JK", cof, cof) / (J * J)[..., None, None]
@@ -262,7 +262,7 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
 
     The fibre directions a_i are per element: ``fibres`` (n_elements, 2, 3) unit vectors of
     the reference configuration (:func:`helical_fibres` makes the usual +/- helix), which
-    :class:`jaxsync.fem.total_lagrangian.TotalLagrangian` hands element by element to
+    :class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian` hands element by element to
     :meth:`energy` and :meth:`first_piola`.
 
     Attributes:
@@ -413,20 +413,20 @@ class HolzapfelGasserOgden(FiniteStrainLaw):
 
 HYPERELASTIC = (NeoHookean, NearlyIncompressibleNeoHookean, HolzapfelGasserOgden)
 """The hyperelastic laws a :class:`jaxsync.Problem` takes (with
-:class:`jaxsync.fem.total_lagrangian.TotalLagrangian`)."""
+:class:`jaxsync.fem.forces.total_lagrangian.TotalLagrangian`)."""
 
 
 def is_hyperelastic(material) -> bool:
-    """True for a finite-strain law (its :attr:`~jaxsync.fem.material_law.MaterialLaw.finite_strain`):
+    """True for a finite-strain law (its :attr:`~jaxsync.fem.materials.law.MaterialLaw.finite_strain`):
     a thin alias kept for existing code; jaxsync itself asks the law
-    (:mod:`jaxsync.fem.material_law`)."""
+    (:mod:`jaxsync.fem.materials.law`)."""
     return bool(getattr(material, "finite_strain", False))
 
 
 def material_parameters(material) -> tuple[str, dict, str | None]:
     """(the law's class name, {parameter: float} of its scalar fields, sha256 hex of its fibre
     directions or None) of a concrete law: its
-    :meth:`~jaxsync.fem.material_law.MaterialLaw.parameters` as a tuple (an alias kept for
+    :meth:`~jaxsync.fem.materials.law.MaterialLaw.parameters` as a tuple (an alias kept for
     existing code)."""
     p = material.parameters()
     return p.name, dict(p.values), p.fibres

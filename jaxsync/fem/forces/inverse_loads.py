@@ -1,7 +1,7 @@
 """The supports and dead loads of the inverse (zero-pressure) problem, as functions of the
 unknown reference positions X at the known imaged positions x.
 
-In the forward problem the elastic supports' springs (:mod:`jaxsync.fem.support`) and the
+In the forward problem the elastic supports' springs (:mod:`jaxsync.fem.forces.support`) and the
 dead loads (body force per unit reference volume, traction and non-follower pressure on the
 reference surface, :mod:`jaxsync.fem.loads`) are integrals over the reference geometry. When
 the reference is the unknown, they are functions of X (x fixed), with the isoparametric map
@@ -31,8 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError
-from ..pytree import pytree_dataclass, static_field
+from ...errors import ProblemError
+from ...pytree import pytree_dataclass, static_field
 
 __all__ = ["SpringTerm", "SurfaceLoadTerm", "VolumeLoadTerm", "InverseLoads", "inverse_loads", "loads_tangent",
            "inverse_loads_force", "inverse_loads_product"]
@@ -178,9 +178,9 @@ def inverse_loads(problem) -> InverseLoads:
     from skfem.quadrature import get_quadrature
     from skfem.refdom import RefTet
 
+    from ..loads import BodyForce, Pressure, Traction
+    from ..reference_element import shape_derivatives
     from .follower import facet_nodes, facet_rule
-    from .loads import BodyForce, Pressure, Traction
-    from .reference_element import shape_derivatives
 
     space, element = problem.space, problem.element
     springs = []

@@ -1,4 +1,4 @@
-"""Isotropic linear elastic material (small strain), a :class:`jaxsync.fem.material_law.MaterialLaw`."""
+"""Isotropic linear elastic material (small strain), a :class:`jaxsync.fem.materials.law.MaterialLaw`."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ from typing import ClassVar
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import MaterialError
-from ..pytree import pytree_dataclass
-from .parameter_checks import check_number
-from .timestep import ALPHA_S
+from ...errors import MaterialError
+from ...pytree import pytree_dataclass
+from ..parameter_checks import check_number
+from ..timestep import ALPHA_S
 
 __all__ = ["LinearElastic", "shear_modulus", "first_lame"]
 
@@ -38,7 +38,7 @@ class LinearElastic:
     The fields may be JAX tracers (for ``jax.grad`` with respect to them); range checks
     run on concrete scalar values.
 
-    As a :class:`jaxsync.fem.material_law.MaterialLaw`: it runs on the force model asked
+    As a :class:`jaxsync.fem.materials.law.MaterialLaw`: it runs on the force model asked
     for (its stiffness K = lambda K_lambda + mu K_mu stored, or formed element by
     element), its step is the paper's CFL rule capped by the exact bound
     (:func:`jaxsync.fem.timestep.small_strain_step`), its tangent is K, and it carries no
@@ -79,14 +79,14 @@ class LinearElastic:
 
     def stable_step(self, problem, alpha_s: float = ALPHA_S):
         """:func:`jaxsync.fem.timestep.small_strain_step`: min(paper CFL step, alpha_s 2 / omega_max)."""
-        from .timestep import small_strain_step
+        from ..timestep import small_strain_step
 
         return small_strain_step(problem, alpha_s)
 
     def max_stable_dt(self, problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):
         """2 / omega_max of M^-1 K (:func:`jaxsync.fem.timestep.small_strain_max_stable_dt`;
         traced when E or rho are)."""
-        from .timestep import small_strain_max_stable_dt
+        from ..timestep import small_strain_max_stable_dt
 
         return small_strain_max_stable_dt(problem, tol=tol, max_iter=max_iter, seed=seed)
 
@@ -97,8 +97,8 @@ class LinearElastic:
         Raises:
             ProblemError: P2 elements (the paper's rule is for P1; run them at their own step).
         """
-        from ..errors import ProblemError
-        from .timestep import element_dt
+        from ...errors import ProblemError
+        from ..timestep import element_dt
 
         if problem.element != "P1":
             raise ProblemError("the paper's element step (and artificial mass scaling, its Algorithm 2) is the P1 "
@@ -110,8 +110,8 @@ class LinearElastic:
         """Every P1 element whose CFL step alpha_s h_e / c_e is below dt_hat gets density
         E dt_hat^2 / (alpha_s^2 h_e^2 (1 - nu^2)) (paper Algorithm 2), which raises its
         step to dt_hat; returns (density_scale, scaled) as
-        :meth:`jaxsync.fem.material_law.MaterialLaw.scaled_density` says."""
-        from .timestep import element_size
+        :meth:`jaxsync.fem.materials.law.MaterialLaw.scaled_density` says."""
+        from ..timestep import element_size
 
         self.element_steps(problem)  # refuses P2
         E, nu, rho = float(self.E), float(self.nu), float(self.rho)
@@ -130,7 +130,7 @@ class LinearElastic:
 
     def parameters(self):
         """(its class name, {E, nu, rho}, no fibres)."""
-        from .material_law import MaterialParameters
+        from .law import MaterialParameters
 
         return MaterialParameters(type(self).__name__, {"E": float(self.E), "nu": float(self.nu),
                                                     "rho": float(self.rho)})
