@@ -156,7 +156,7 @@ def baseline_input(problem, partition, path) -> dict:
 
 
 def run_baseline(divisions, n_steps, log, repeats=3, jax_repeats=5) -> dict:
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     problem = cantilever(divisions)
     partition = jaxsync.partition(problem.mesh, 2)

@@ -29,7 +29,7 @@ atomically, so that a run cut short keeps what it measured; ``--sections`` runs 
 4. ``vessel``: the paper-size coronary tree (:func:`jaxsync.coronary_mesh` at the demo's
    ``"paper"`` target, 335 000 tetrahedra, about 273 576 dofs; the demo's mass scaling to
    2.5 times the CFL step): the synchronized step on one device, and as 11 parts sharing
-   the device (the distributed SPMD program, :class:`jaxsync.solve.distributed.DistributedRunner`)
+   the device (the distributed SPMD program, :class:`jaxsync.solve.executors.DistributedRunner`)
    with the psum of the interface forces and without any exchange; the 11-part run is
    checked against the one-device run.
 5. ``training``: LSTM training (:func:`jaxsync.surrogate.train_replicas`, seconds per
@@ -657,7 +657,7 @@ def section_vessel(run: Run, device, prepared: Prepared):
 
     import jaxsync
     from jaxsync.fem.stepper import SolverState, advance
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     name = f"vessel-{run.sizes.vessel_target}"
     if not run.may_start(name):

@@ -8,7 +8,7 @@ autoregressive surrogate, the generated vessel (3 500 tets, 4 parts) -- the scri
 (:func:`jaxsync.surrogate.train_surrogates`), and runs the synchronization-avoiding solver
 
 * with a tolerance of 1e9 cm (nothing triggers) to see how the error estimate
-  (:mod:`jaxsync.solve.error_estimate`) tracks the true error over the whole run:
+  (:mod:`jaxsync.solve.coupling.error_estimate`) tracks the true error over the whole run:
   quantiles of estimate / error over the predicted snapshots where the error is above
   5 % of its largest value;
 * for each tolerance (a fraction of the reference's largest |displacement| at the shared
@@ -45,7 +45,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -175,10 +175,9 @@ def probe_cost(name: str, steps: int, save_every: int, repeats: int = 5) -> dict
     and of the host's estimate update per probe, on the cantilever or the vessel
     (20 000 tets), 2 parts on 2 emulated devices."""
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.error_estimate import ErrorPropagator
-    from jaxsync.solve.predicted import PredictedPhase
-    from jaxsync.solve.predictors import OraclePredictor
+    from jaxsync.solve.coupling.error_estimate import ErrorPropagator
+    from jaxsync.solve.coupling.predictors import OraclePredictor
+    from jaxsync.solve.executors import DistributedRunner, PredictedPhase
     from jaxsync.surrogate.training.histories import shared_dof_layout
 
     if name == "vessel":

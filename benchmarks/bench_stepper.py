@@ -128,7 +128,7 @@ def jax_single(problem, dt, n_steps, mode=None):
 
 
 def jax_two_devices(problem, dt, n_steps, mode=None):
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     mode = MODES[""] if mode is None else mode
     system = build_system(problem, dt, mode)

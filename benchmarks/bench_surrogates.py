@@ -74,8 +74,7 @@ from jaxsync.parallel.partitioning import Partition  # noqa: E402
 from jaxsync.perf import kernels  # noqa: E402
 from jaxsync.perf.costmodel import INTERCONNECTS, communication_pattern, sync_time  # noqa: E402
 from jaxsync.perf.measure import best_times, per_step_times  # noqa: E402
-from jaxsync.solve.distributed import DistributedRunner  # noqa: E402
-from jaxsync.solve.predicted import PredictedPhase  # noqa: E402
+from jaxsync.solve.executors import DistributedRunner, PredictedPhase  # noqa: E402
 from jaxsync.surrogate import Surrogate, TrainingChecks  # noqa: E402
 from jaxsync.surrogate.inference import (  # noqa: E402
     DEFAULT_BOUND,

@@ -27,7 +27,7 @@ step is the wall time of the whole scan divided by the steps (best and median of
 
 Then the real thing: the coarse cantilever (paper Table 1, 2 METIS parts, one per
 process, interface of 4 nodes = 12 doubles) advanced by the distributed solver with each
-synchronization (``jaxsync.solve.distributed.DistributedRunner(sync=...)``), time per step of a
+synchronization (``jaxsync.solve.executors.DistributedRunner(sync=...)``), time per step of a
 compiled chunk of ``--solver-steps`` steps, and the cost of one exchange: that step minus
 the same chunk without synchronization (``nosync`` below). The interface sizes: 12 doubles
 is that cantilever's interface; 1002 doubles (334 nodes) stands for a refined mesh. The
@@ -180,7 +180,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     from mpi4py import MPI
 
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
@@ -222,8 +222,7 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     from mpi4py import MPI
 
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
-    from jaxsync.solve.predicted import PredictedPhase
+    from jaxsync.solve.executors import DistributedRunner, PredictedPhase
     from jaxsync.surrogate import Surrogate
     from jaxsync.surrogate.models.architecture import architecture_to_dict
     from jaxsync.surrogate.training.histories import shared_dof_layout
@@ -405,7 +404,7 @@ def bench_cpu_mpi(args, argv) -> dict:
 
     from jaxsync.fem.stepper import build_system, initial_state
     from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     jax.config.update("jax_cpu_collectives_implementation", "mpi")
     jax.config.update("jax_num_cpu_devices", 1)

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 import jaxsync  # noqa: E402
 from jaxsync.app.plots import tip_node, write_report  # noqa: E402
 from jaxsync.metrics import l2_error, node_error  # noqa: E402
-from jaxsync.solve.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding  # noqa: E402
 from jaxsync.surrogate import (  # noqa: E402
     LSTMArchitecture,
     SavedSurrogate,

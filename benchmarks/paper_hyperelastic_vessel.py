@@ -82,7 +82,7 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
                   timing_kw, dt):
     from jaxsync.app.plots import compare, out_of_sample
     from jaxsync.perf.timing import speedup_breakdown
-    from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
+    from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
     from jaxsync.surrogate import Surrogate
 
     fixed = np.unique(problem.dirichlet_dofs()[0] // 3)

@@ -67,7 +67,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
     ".solve.prestress": ("PrestressResult", "prestress"),
     ".solve.static_adjoint": ("static_displacement",),
-    ".solve.syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
+    ".solve.coupling.syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
     ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
     ".trajectory": ("PartHistory", "Result", "Trajectory"),
 })
@@ -115,6 +115,7 @@ if TYPE_CHECKING:
     from .parallel.partitioning import Partition, partition
     from .run_stats import FullSystemStats, RunStats, SyncAvoidingStats, SynchronizedStats
     from .solve.coupling import Synchronized
+    from .solve.coupling.syncavoid import SyncAvoiding, simulate_sync_avoiding
     from .solve.ensemble import ensemble
     from .solve.ensemble_members import Members
     from .solve.full_system import simulate_full_system
@@ -134,6 +135,5 @@ if TYPE_CHECKING:
         StoreAll,
         TracedExecutor,
     )
-    from .solve.syncavoid import SyncAvoiding, simulate_sync_avoiding
     from .solve.zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
     from .trajectory import PartHistory, Result, Trajectory

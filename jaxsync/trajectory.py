@@ -100,7 +100,7 @@ class Trajectory:
             P2: the mesh's vertices, then one node per edge).
         error_estimate: synchronization-avoiding runs with error control
             (``ResyncTolerance(indicator="estimate")``): (n_saved,) the estimated largest
-            nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.error_estimate`),
+            nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.coupling.error_estimate`),
             NaN at synchronized ones; None otherwise.
         load_signal: (n_rows, n_u) the problem's known load signals (the time functions
             of its loads and prescribed motions, :mod:`jaxsync.fem.load_signals`) at the

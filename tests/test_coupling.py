@@ -19,7 +19,7 @@ import pytest
 import jaxsync
 from jaxsync import ProblemError
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.solve.predictors import OraclePredictor
+from jaxsync.solve.coupling.predictors import OraclePredictor
 from jaxsync.surrogate.training.histories import shared_dof_layout
 
 N_S, N_P, N_F = 5, 3, 4

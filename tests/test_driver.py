@@ -1,11 +1,11 @@
-"""The host loop (jaxsync.solve.driver.run_chunks) with a toy runner whose values name
+"""The host loop (jaxsync.solve.executors.run_chunks) with a toy runner whose values name
 their step: chunks, the recorded shared histories (all of them, or a bounded tail), and
 the segment kept before a divergence."""
 
 import numpy as np
 import pytest
 
-from jaxsync.solve.driver import Chunk, Diverged, run_chunks
+from jaxsync.solve.executors import Chunk, Diverged, run_chunks
 
 
 class StepRunner:
@@ -58,7 +58,7 @@ def test_divergence_keeps_the_steps_before_the_bad_snapshot(keep):
 
 
 def test_the_progress_bar_never_moves_backwards_and_counts_the_recomputed_steps():
-    from jaxsync.solve.driver import Progress
+    from jaxsync.solve.executors import Progress
 
     with Progress(100, show=True) as bar:
         shown = []

@@ -1,5 +1,5 @@
 """Error control that sees the errors every part makes alike: the force-balance defect
-probed in the predicted phase and its modal propagation (jaxsync.solve.error_estimate)."""
+probed in the predicted phase and its modal propagation (jaxsync.solve.coupling.error_estimate)."""
 
 import re
 import warnings
@@ -9,9 +9,9 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.solve.error_estimate import ErrorPropagator
-from jaxsync.solve.predicted import PredictedPhase
-from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling.error_estimate import ErrorPropagator
+from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.executors import PredictedPhase
 from jaxsync.surrogate.training.histories import shared_dof_layout
 from test_syncavoid import N_CRI, N_F, N_P, N_S, drifting_oracle
 
@@ -143,7 +143,7 @@ def test_the_probe_is_one_collective(problem, partition, reference):
     """The monitored cycle's steps with the probe hold exactly one all-reduce (the partial
     forces summed at the saved step), and none without it."""
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
     runner = DistributedRunner(problem, system, partition, save_every=5)
@@ -190,7 +190,7 @@ def test_the_sparse_eigensolvers_modes_track_a_shared_drift(problem, partition, 
     about 0), here forced on: they are the dense eigensolver's lowest modes, and a drift
     that the parts share is tracked with them within the bounds of the dense modes'
     test_the_default_modes_track_a_shared_drift."""
-    import jaxsync.solve.error_estimate as module
+    import jaxsync.solve.coupling.error_estimate as module
 
     dense = ErrorPropagator.build(problem, partition, problem.dt)
     monkeypatch.setattr(module, "_DENSE_LIMIT", 0)
@@ -299,7 +299,7 @@ def test_the_static_remainder_made_once_or_solved_per_probe(problem, partition, 
     estimates agree within 5 % on rough random defects (measured 1.3 %; the made-once
     version omits the remainder away from the interface, which with 10 modes would
     matter: 19 %)."""
-    import jaxsync.solve.error_estimate as module
+    import jaxsync.solve.coupling.error_estimate as module
 
     once = ErrorPropagator.build(problem, partition, problem.dt)
     monkeypatch.setattr(module, "FLEXIBILITY_LIMIT", 0)

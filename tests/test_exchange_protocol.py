@@ -15,7 +15,7 @@ import pytest
 import jaxsync
 from jaxsync.parallel import AXIS, xla_devices, xla_plan
 from jaxsync.solve import register_exchange, sync_strategy, unregister_exchange
-from jaxsync.solve.predictors import OraclePredictor
+from jaxsync.solve.coupling.predictors import OraclePredictor
 from jaxsync.surrogate.training.histories import shared_dof_layout
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -111,7 +111,7 @@ def test_the_compiled_step_runs_the_user_exchange(problem, partition):
     """The step holds the exchange's all-gather (and the psum run's does not): the run
     above went through GatherSum.plan, not a built-in default."""
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
     texts = {}

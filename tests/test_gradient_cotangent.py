@@ -203,7 +203,7 @@ def test_loop_carries_no_cotangent_of_the_blocks(problem, partitions):
     if partitions is None:
         blocks = _operator(problem, SCALED, 1.0e6).blocks
     else:
-        from jaxsync.solve.distributed import DistributedParts
+        from jaxsync.solve.executors import DistributedParts
 
         layout = DistributedParts(problem, partitions).layout
         blocks = SCALED.part_operators(problem, layout.parts, layout.n_local).blocks

@@ -17,7 +17,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.solve.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
 from jaxsync.surrogate import Surrogate
 
 N_S, N_P, N_F = 5, 3, 4

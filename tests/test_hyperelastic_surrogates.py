@@ -9,8 +9,8 @@ import pytest
 
 import jaxsync
 from jaxsync.metrics import peak_strain
-from jaxsync.solve.error_estimate import ErrorPropagator, linearised_stiffness
-from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling.error_estimate import ErrorPropagator, linearised_stiffness
+from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from test_syncavoid import N_CRI, N_F, N_P, N_S, N_STEPS, drifting_oracle, oracle
 
 N_LONG = 400

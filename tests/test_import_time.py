@@ -28,8 +28,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 # imported by none of: import jaxsync, building the parser, --help, --version
 NUMERICAL = ("jax", "jaxlib", "numpy", "scipy", "skfem", "meshio", "h5py", "optax", "matplotlib", "gmsh",
              "pymetis", "tqdm", "mpi4py")
-LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.cli", "jaxsync.solve", "jaxsync.surrogate",
-                 "jaxsync.parallel", "jaxsync.perf")
+LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.cli", "jaxsync.solve", "jaxsync.solve.coupling",
+                 "jaxsync.solve.executors", "jaxsync.surrogate", "jaxsync.parallel", "jaxsync.perf")
 
 
 def imported_after(code: str, *args: str, cwd=None) -> set[str]:
@@ -101,7 +101,7 @@ def test_report_imports_neither_optax_nor_gmsh():
     """Every module that ``jaxsync report`` and the report's writer (plots, figures) name,
     imported together; and the command itself, up to its first input."""
     modules = written_imports("jaxsync/cli/report.py", "jaxsync/app/plots.py", "jaxsync/app/figures.py")
-    assert "jaxsync.solve.syncavoid" in modules and "jaxsync.trajectory" in modules
+    assert "jaxsync.solve.coupling.syncavoid" in modules and "jaxsync.trajectory" in modules
     loaded = imported_after("\n".join(f"import {m}" for m in sorted(modules)))
     assert not loaded & {"optax", "gmsh"}, sorted(loaded & {"optax", "gmsh"})
 

@@ -211,8 +211,8 @@ def test_a_predicted_phase_carries_the_state(beam, prony):
     predicted steps update its elements' branch stresses as the synchronized steps do
     (the standard linear solid, and a two-branch Prony series)."""
     from jaxsync.fem.materials.viscoelastic import ViscoelasticNeoHookean
-    from jaxsync.solve.predictors import OraclePredictor
-    from jaxsync.solve.syncavoid import simulate_sync_avoiding
+    from jaxsync.solve.coupling.predictors import OraclePredictor
+    from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
     from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = _cantilever(beam)

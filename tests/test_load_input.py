@@ -16,7 +16,7 @@ import jaxsync
 from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadSignals, load_inputs_of
-from jaxsync.solve.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
 from jaxsync.surrogate import (
     ArchitectureChoice,
     LinearArchitecture,

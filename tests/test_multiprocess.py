@@ -37,7 +37,7 @@ def _worker_sync(out_path: str) -> None:
         jax.config.update("jax_enable_x64", True)
         import jaxsync
         from jaxsync.fem.stepper import build_system
-        from jaxsync.solve.distributed import DistributedRunner
+        from jaxsync.solve.executors import DistributedRunner
 
         problem = jaxsync.cantilever()
         system = build_system(problem, problem.dt)
@@ -424,7 +424,7 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     import jax
 
     from jaxsync.fem.stepper import build_system
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)

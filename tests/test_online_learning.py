@@ -11,8 +11,8 @@ import pytest
 import jaxsync
 from jaxsync import ProblemError
 from jaxsync.errors import ConfigError
-from jaxsync.solve.predictors import OraclePredictor
-from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling.predictors import OraclePredictor
+from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainConfig, TrainingChecks, train_surrogates
 from jaxsync.surrogate.models.linear import fit_linear, solve_least_squares
 from jaxsync.surrogate.refill import refill_input_steps, refill_target_steps
@@ -231,7 +231,7 @@ def test_a_run_learns_after_every_rejected_cycle_and_stays_within_the_tolerance(
     assert st.surrogate_updated_at[0] >= ends[0] and st.seconds_updating > 0
     error = np.linalg.norm(traj.displacement - reference.displacement, axis=2).max()
     assert error <= 1.2 * tol
-    assert "surrogate update" in jaxsync.solve.syncavoid.describe_run(traj)
+    assert "surrogate update" in jaxsync.solve.coupling.syncavoid.describe_run(traj)
 
 
 def test_learning_needs_weights_and_is_said_in_the_tolerance(problem, partition, linear):

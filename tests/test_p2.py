@@ -248,7 +248,7 @@ def test_p2_partitioned_gradient_equals_the_single_device_one(p2_gradient_case):
 def test_p2_predicted_phase_with_an_oracle_reproduces_the_synchronized_run(tmp_path):
     """The predicted phase overwrites the shared nodes, edge nodes among them, with an
     oracle's values: it must give back the synchronized run."""
-    from jaxsync.solve.predictors import OraclePredictor
+    from jaxsync.solve.coupling.predictors import OraclePredictor
     from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = jaxsync.cantilever(beam((8, 2, 1), 8.0)).replace(element="P2")

@@ -15,7 +15,7 @@ from jaxsync.fem.forces.element_force import element_forces
 from jaxsync.fem.forces.internal_force import Preassembled
 from jaxsync.fem.stepper import SolverState, build_system, initial_state
 from jaxsync.perf import kernels
-from jaxsync.solve.distributed import DistributedRunner
+from jaxsync.solve.executors import DistributedRunner
 
 N_STEPS = 12
 FUSED = Preassembled(product="fused")  # the product the timing kernels time (long runs)
@@ -133,7 +133,7 @@ def test_distributed_programs_are_the_runners(problem, start):
 
 
 def test_prediction_programs_match_each_parts_predictor(problem, start):
-    from jaxsync.solve.predicted import PredictedPhase
+    from jaxsync.solve.executors import PredictedPhase
     from jaxsync.surrogate import Surrogate
     from jaxsync.surrogate.training.histories import shared_dof_layout
 

@@ -183,8 +183,8 @@ def test_the_damped_bound_formula():
 # --- every path: partitions, halos, traced, predicted, ensembles, checkpoints, gradients ----------
 
 def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device_run(beam):
-    from jaxsync.solve.predictors import OraclePredictor
-    from jaxsync.solve.syncavoid import simulate_sync_avoiding
+    from jaxsync.solve.coupling.predictors import OraclePredictor
+    from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
     from jaxsync.surrogate.training.histories import shared_dof_layout
 
     problem = _cantilever(beam)
@@ -348,7 +348,7 @@ def test_a_hyperelastic_partitioned_run_equals_the_single_device_run(beam):
 def test_the_error_propagator_rings_down_as_the_run(beam):
     """Each mode of the propagator is the run's scalar recursion: the modal coordinates of a
     free run (with alpha and beta) follow its 2 x 2 transition step by step."""
-    from jaxsync.solve.error_estimate import ErrorPropagator
+    from jaxsync.solve.coupling.error_estimate import ErrorPropagator
 
     d0 = 1e-3 * np.random.default_rng(4).standard_normal((beam.n_nodes, 3))
     problem = _clamped(beam, initial_displacement=d0)

@@ -11,7 +11,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ConfigError, InferencePrecisionError
-from jaxsync.solve.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
 from jaxsync.surrogate import (
     LinearArchitecture,
     LSTMArchitecture,

@@ -23,7 +23,7 @@ from jaxpr_counts import dot_flops
 from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.perf.roofline import surrogate_costs
-from jaxsync.solve.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from jaxsync.surrogate import (
     ArchitectureChoice,
     FitSettings,

@@ -8,9 +8,9 @@ import pytest
 import jaxsync
 from jaxsync import CheckpointError, ProblemError, StabilityError
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.solve.predicted import PredictedPhase
-from jaxsync.solve.predictors import OraclePredictor
-from jaxsync.solve.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling.predictors import OraclePredictor
+from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.executors import PredictedPhase
 from jaxsync.surrogate.training.histories import shared_dof_layout
 
 N_S, N_P, N_F = 5, 4, 4
@@ -83,7 +83,7 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
     from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.distributed import DistributedRunner
+    from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
     runner = DistributedRunner(problem, system, partition, save_every=1)
@@ -370,7 +370,7 @@ def test_untrained_networks_fall_back_to_the_synchronized_run(problem, partition
 def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference):
     """'2%' is 2 % of the largest shared-node |displacement| seen in the synchronized steps
     so far (the load ramps up, so the tolerance grows as the run goes on)."""
-    from jaxsync.solve.syncavoid import ResyncTolerance
+    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
 
     net = drifting_oracle(long_reference, partition, drift=(+1e-6, -1e-6))
     with pytest.warns(RuntimeWarning):
@@ -395,7 +395,7 @@ def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference)
 def test_tolerance_relative_to_a_given_amplitude(problem, partition, long_reference):
     """ResyncTolerance(relative=, amplitude=A): the tolerance is that fraction of A at every
     check, whatever the run has seen (a ramped load's early amplitude is small)."""
-    from jaxsync.solve.syncavoid import ResyncTolerance
+    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
 
     amplitude = max(np.abs(part.shared_displacement[:1001]).max() for part in long_reference.parts)
     tolerance = ResyncTolerance(relative=0.02, amplitude=float(amplitude))
@@ -418,7 +418,7 @@ def test_resync_tolerance_is_checked(problem, partition, reference):
         with pytest.raises(ProblemError, match="resync_tolerance"):
             simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
                                    n_cri=N_CRI, resync_tolerance=bad)
-    from jaxsync.solve.syncavoid import ResyncTolerance
+    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
 
     with pytest.raises(ProblemError, match="OraclePredictor"):  # es_hat of an oracle is zero
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=oracle(reference, partition),
@@ -583,7 +583,7 @@ def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jum
     np.testing.assert_array_equal(traj.synchronized, np.arange(0, N_STEPS + 1, save_every) <= expected_n_cri)
     np.testing.assert_allclose(traj.displacement, ref.displacement[::save_every], rtol=0,
                                atol=1e-13 * np.abs(ref.displacement).max())
-    assert "synchronized through the load jump at step" in jaxsync.solve.syncavoid.describe_run(traj)
+    assert "synchronized through the load jump at step" in jaxsync.solve.coupling.syncavoid.describe_run(traj)
     # the paper's way: predicted from N_CRI on, straight through the jump
     through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save=save_every,
                                      surrogates=oracle(ref, partition), n_cri=N_CRI, load_jumps="predict")

@@ -318,8 +318,8 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
         ConfigError, ProblemError: the first option that cannot be used, named with its fix.
     """
     from ..errors import ConfigError
+    from ..solve.coupling.syncavoid import ResyncTolerance
     from ..solve.strategies import SaveAt
-    from ..solve.syncavoid import ResyncTolerance
     from ..surrogate.models.architecture import ArchitectureChoice
     from ..surrogate.training.data import Sampling, trained_rows
     from ..surrogate.training.train import TrainConfig
@@ -360,7 +360,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     from .. import HostExecutor, SaveAt, cantilever, partition, simulate
     from ..io import atomic_json
     from ..parallel.devices import device_summary
-    from ..solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..solve.coupling.syncavoid import describe_run, simulate_sync_avoiding
     from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
     from ..surrogate.training.data import last_trained_step
     from ..surrogate.training.fit import train_surrogates
@@ -498,13 +498,13 @@ def _shared_amplitude(reference) -> float:
 
 
 def _tolerance(tolerance, amplitude: float):
-    """The demo's error control, a :class:`~jaxsync.solve.syncavoid.ResyncTolerance`
+    """The demo's error control, a :class:`~jaxsync.solve.coupling.syncavoid.ResyncTolerance`
     (None: none): a percentage is of ``amplitude`` [cm], the largest shared-node
     displacement in the steps the surrogates were trained on (as ``jaxsync predict``
     takes it: under the vessel's pressure ramp the amplitude the online run has seen by
     n_cri is a small fraction of the final one, and a tolerance of it would reject
     well-trained cycles)."""
-    from ..solve.syncavoid import ResyncTolerance
+    from ..solve.coupling.syncavoid import ResyncTolerance
 
     if tolerance is None:
         return None

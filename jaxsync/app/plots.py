@@ -370,7 +370,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
         ConfigError: a bad node in ``nodes``, or a component other than 0, 1, 2, or a
             ``train_until_step`` that leaves no snapshot after it.
     """
-    from ..solve.syncavoid import step_counts
+    from ..solve.coupling.syncavoid import step_counts
 
     ref = np.asarray(reference.displacement)
     pred = np.asarray(online.displacement)

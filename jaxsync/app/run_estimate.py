@@ -5,7 +5,7 @@ paper`` on a laptop). Before its first long stage it times short compiled pieces
 actual work and prints what the whole run will take (:func:`measure_demo_estimate`):
 
 - the synchronized step: the distributed program of the actual problem, partition and
-  devices (the run's own SPMD program, :class:`jaxsync.solve.distributed.DistributedRunner`,
+  devices (the run's own SPMD program, :class:`jaxsync.solve.executors.DistributedRunner`,
   chunks of :data:`CHUNK_STEPS` steps), called after its compilation until about
   ``target_seconds`` [s] have passed; the mean wall time per step [us];
 - the single-device step of the mass-scaling check (the same, one device, whole mesh);
@@ -196,14 +196,14 @@ def _run_form(problem, n_steps: int | None):
 def time_distributed_step(problem, parts, *, n_steps: int | None = None, target_seconds: float = 1.0,
                           max_steps: int = 10_000) -> tuple[float, int]:
     """(wall time of one synchronized distributed step [us], steps timed): the run's own
-    SPMD program (:class:`jaxsync.solve.distributed.DistributedRunner`, the default
+    SPMD program (:class:`jaxsync.solve.executors.DistributedRunner`, the default
     exchange and devices of :func:`jaxsync.simulate`) on ``problem`` split as ``parts``,
     :data:`CHUNK_STEPS` steps per call, compilation excluded. ``n_steps``: the run's
     length, which chooses the product's form as :func:`jaxsync.simulate` does (None: the
     fused form of a run of unknown length)."""
     from ..fem.stepper import build_system
     from ..perf.kernels import distributed_step
-    from ..solve.distributed import DistributedRunner
+    from ..solve.executors._distributed import DistributedRunner
 
     mode = _run_form(problem, n_steps)
     runner = DistributedRunner(problem, build_system(problem, problem.dt, mode), parts, save_every=CHUNK_STEPS,
@@ -220,7 +220,7 @@ def time_single_device_step(problem, *, n_steps: int | None = None, target_secon
     import jax
 
     from ..fem.stepper import build_system
-    from ..solve.phases import synchronized_steps
+    from ..solve.executors._phases import synchronized_steps
 
     system = jax.device_put(build_system(problem, problem.dt, _run_form(problem, n_steps)))
     program = jax.jit(lambda system, state: synchronized_steps(system, state, 1, CHUNK_STEPS)[0])

@@ -73,7 +73,7 @@ def trained_amplitude(saved, reference) -> float | None:
 
 
 def run(args) -> int:
-    from ..solve.syncavoid import describe_run, simulate_sync_avoiding
+    from ..solve.coupling.syncavoid import describe_run, simulate_sync_avoiding
 
     learned = getattr(args, "learn_save", None)
     common.check_outputs((args.output, "output trajectory", "-o"),

@@ -178,7 +178,7 @@ def run(args) -> int:
         print(f"note: {line}")
     print_vessel(entry)
     if online.stats.to_dict():
-        from ..solve.syncavoid import describe_run
+        from ..solve.coupling.syncavoid import describe_run
 
         print(describe_run(online))
     if "peak_strain" in summary:  # a hyperelastic run's

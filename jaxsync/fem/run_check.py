@@ -34,7 +34,7 @@ def _replay_jacobians(op, displacements):
 class RunCheck:
     """The stable-step and inversion check of a hyperelastic run, applied by the host
     executor to the run's state after every compiled chunk (``HostExecutor.chunk_steps``
-    steps, default 5000; :mod:`jaxsync.solve.host`), so that its cost is that of one
+    steps, default 5000; :mod:`jaxsync.solve.executors`), so that its cost is that of one
     :func:`stable_dt` and one :func:`inverted_elements` per chunk, not per step.
 
     :meth:`check` refuses a state with an inverted element (J <= 0) or whose exact stable

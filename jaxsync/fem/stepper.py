@@ -32,7 +32,7 @@ follow. The stable step drops to sqrt((2 / omega_max)^2 + beta^2) - beta
 State is explicit (:class:`SolverState`); :func:`step` is a pure function and
 :func:`advance` runs it in a ``lax.scan``. The host drivers that call them, for one
 device (:mod:`jaxsync.solve.solver`) and for parts under ``shard_map``
-(:mod:`jaxsync.solve.distributed`), both build on this module.
+(:mod:`jaxsync.solve.executors`), both build on this module.
 """
 
 from __future__ import annotations
@@ -259,7 +259,7 @@ def step(system: ExplicitSystem, state: SolverState, synchronize=None, overwrite
     ``probe``, when given, is called as ``probe(state, internal, updated, new_state)``
     with the internal force the step used and the update before the overwrite; the step
     then returns ``(new_state, probe's value)`` (the synchronization-avoiding solver's
-    force-balance defect, :func:`jaxsync.solve.phases.overwritten_steps`)."""
+    force-balance defect, :func:`jaxsync.solve.executors.overwritten_steps`)."""
     t = jnp.asarray(state.step, dtype=system.dt.dtype) * system.dt
     internal, variables = internal_forces_and_variables(system, state, t)
     if synchronize is not None:

@@ -119,7 +119,7 @@ LOCAL_VARIANTS = {"full": local_step, "other": step_without_force, "force": step
 
 
 def distributed_step(runner, n_steps: int, synchronize: bool):
-    """The padded SPMD program of a :class:`jaxsync.solve.distributed.DistributedRunner`,
+    """The padded SPMD program of a :class:`jaxsync.solve.executors.DistributedRunner`,
     ``(parts, state) -> (state, saved)``, advancing ``n_steps`` steps in one chunk with
     or without the force synchronization: the runner's own program."""
     return runner.program(1, save_every=n_steps, synchronize=synchronize)
@@ -136,7 +136,7 @@ def distributed_no_step(runner):
 
 def prediction_program(device_mesh):
     """One refill prediction of every part at once, ``(predictor, buffer) -> predictions``:
-    ``predictor`` stacked on the part axis (as :class:`jaxsync.solve.predicted.PredictedPhase`
+    ``predictor`` stacked on the part axis (as :class:`jaxsync.solve.executors.PredictedPhase`
     places it), ``buffer`` (n_parts, n_s n_p, n_dof), predictions (n_parts, n_s n_f, n_dof)."""
     return spmd_program(lambda pred, buf: pred.predict(buf, 0), device_mesh, n_in=2, n_out=1)
 

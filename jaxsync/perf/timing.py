@@ -20,7 +20,7 @@ On a shared machine, short calls (about 1 ms: small ``n_steps``) and many repeat
 best: the best repeat is then a call that the OS did not interrupt.
 
 The synchronization cannot be timed on one device: the padded SPMD program of all parts
-(exactly the :class:`jaxsync.solve.distributed.DistributedRunner`'s) is timed with and
+(exactly the :class:`jaxsync.solve.executors.DistributedRunner`'s) is timed with and
 without synchronization, and t_s = T_dist(sync) - T_dist(no sync) is given to every part
 (the collective makes every part wait for it). With one part there is nothing to
 synchronize and t_s = 0 without measuring. Both distributed timings are in the report
@@ -58,9 +58,9 @@ from ..options import Mode
 from ..parallel.layout import PartLayout, part_systems
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
-from ..solve.distributed import DistributedParts, DistributedRunner
 from ..solve.exchanges import Halo, sync_strategy
-from ..solve.predicted import PredictedPhase
+from ..solve.executors._distributed import DistributedParts, DistributedRunner
+from ..solve.executors._predicted import PredictedPhase
 from ..surrogate.training.histories import shared_dof_layout
 from . import kernels
 from .measure import best_times, describe_devices, per_step_times
@@ -243,7 +243,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | Force
         problem: a :class:`jaxsync.Problem`.
         partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         predictor: a :class:`jaxsync.surrogate.Surrogate` (trained or not) or
-            :class:`~jaxsync.solve.predictors.OraclePredictor`; default: untrained replicas of the
+            :class:`~jaxsync.solve.coupling.predictors.OraclePredictor`; default: untrained replicas of the
             paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at the paper's stride
             n_s = 80 (:meth:`jaxsync.surrogate.Surrogate.initialized`; another stride:
             ``Surrogate.initialized(partition, n_s)``): the cost does not depend on the

@@ -319,8 +319,8 @@ class _Watched:
 
 
 def watch_chunks(runner) -> _Watched:
-    """``runner`` (a :class:`jaxsync.solve.driver.Runner`) wrapped so that the hook of
-    :func:`jaxsync.solve.driver.run_chunks` finds the chunk just advanced and its state
+    """``runner`` (a :class:`jaxsync.solve.executors.Runner`) wrapped so that the hook of
+    :func:`jaxsync.solve.executors.run_chunks` finds the chunk just advanced and its state
     in ``.last``, instead of building the whole segment so far (whose cost grows with
     the run)."""
     return _Watched(runner)

@@ -3,8 +3,8 @@
 Surrogate training sets are ensembles of runs that differ only in their load magnitudes,
 Dirichlet values or initial conditions (say 10 cantilever runs with f_z ~ U(0.3, 0.7)).
 :func:`ensemble` advances all of them together: ``jax.vmap`` over a leading runs axis of
-the synchronized phase (:func:`jaxsync.solve.phases.synchronized_steps`), compiled once,
-driven by the one host loop (:func:`jaxsync.solve.driver.run_chunks`) with progress and
+the synchronized phase (:func:`jaxsync.solve.executors.synchronized_steps`), compiled once,
+driven by the one host loop (:func:`jaxsync.solve.executors.run_chunks`) with progress and
 divergence checks -- or, for traced inputs, as one traced program (differentiable).
 """
 
@@ -23,7 +23,6 @@ from ..fem.stepper import ExplicitSystem
 from ..fem.timestep import divergence_advice
 from ..pytree import is_traced
 from ..trajectory import Result
-from .driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
 from .ensemble_members import (
     EnsembleSetup,
     Members,
@@ -35,8 +34,9 @@ from .ensemble_members import (
     setup_of_problems,
 )
 from .ensemble_stability import check_members_dt, default_dt
-from .phases import synchronized_steps
-from .record import part_histories, run_parameters, synchronized_trajectory
+from .executors._driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
+from .executors._phases import synchronized_steps
+from .executors._record import part_histories, run_parameters, synchronized_trajectory
 from .strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
 
 __all__ = ["ensemble", "Members"]
@@ -48,7 +48,7 @@ def _advance_runs(system: ExplicitSystem, runs: RunData, states, n_saves: int, s
     runs axis), ``states`` with a leading runs axis. Returns (states, saved (n_saves, n_runs,
     n_nodes, 3)), or with ``interface`` (node ids) the pair (saved, recorded (n_saves *
     save_every, n_runs, n_interface, 3)) after every step. ``adjoint``: as for
-    :func:`jaxsync.solve.phases.synchronized_steps`."""
+    :func:`jaxsync.solve.executors.synchronized_steps`."""
     record = None if interface is None else (lambda s: s.displacement[interface])
 
     def one_run(run, state):
@@ -64,7 +64,7 @@ _advance_runs_jit = jax.jit(_advance_runs, static_argnums=(3, 4))
 
 class _EnsembleRunner:
     """Advances the stacked states of all runs on one device (a
-    :class:`jaxsync.solve.driver.Runner`). Each chunk shows the runs side by side as one
+    :class:`jaxsync.solve.executors.Runner`). Each chunk shows the runs side by side as one
     field (n_saves, n_runs * n_nodes, 3), so the host loop's divergence check covers every
     run; the shared-node record is one array (steps, n_runs, n_interface, 3)."""
 

@@ -5,7 +5,7 @@ run's shared-node history: each network learns to predict its boundary from the 
 Online, each refill reads the network's own earlier predictions, and the solver's response
 to them; small errors then compound cycle after cycle. Fine-tuning in the loop trains every
 part's network on what the online run actually does: the loss is the error of the coupled
-synchronization-avoiding run (the traced executor, :func:`jaxsync.solve.traced.run_traced`, all
+synchronization-avoiding run (the traced executor, :func:`jaxsync.solve.executors.run_traced`, all
 parts, their networks and the unsynchronized solver together) over a window of refill
 cycles, against the synchronized run from the same state, and its gradient flows through
 the solver steps into the weights of every network.
@@ -35,11 +35,11 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..fem.stepper import SolverState, advance, build_system, initial_state
-from .distributed import DistributedParts
-from .phases import PredictedSteps, SynchronizedSteps
-from .predictors import predictor_for
+from .coupling.predictors import predictor_for
+from .executors._distributed import DistributedParts
+from .executors._phases import PredictedSteps, SynchronizedSteps
+from .executors._traced import run_traced
 from .strategies import Recompute
-from .traced import run_traced
 
 __all__ = ["FineTuneConfig", "FineTuneResult", "fine_tune_in_the_loop"]
 

@@ -34,7 +34,7 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
             :class:`jaxsync.surrogate.Surrogate` (a conditional one with its load parameter,
             ``Surrogate.with_load_parameter``), the record of its surrogate file
             (:func:`jaxsync.surrogate.load_surrogate`), or an
-            :class:`~jaxsync.solve.predictors.OraclePredictor` (one part).
+            :class:`~jaxsync.solve.coupling.predictors.OraclePredictor` (one part).
         n_cri: last step taken from the reference (>= n_p n_s + 1).
         n_steps: total steps (default: the reference's length).
 

@@ -1,6 +1,6 @@
 """Reverse mode through long explicit runs in bounded memory (recomputation).
 
-The loops of the traced executor (:mod:`jaxsync.solve.traced`): the same steps as the
+The loops of the traced executor (:mod:`jaxsync.solve.executors`): the same steps as the
 host's (:func:`jaxsync.fem.stepper.advance`), with a reverse pass chosen by the run's
 adjoint (:class:`jaxsync.solve.strategies.Recompute` or ``StoreAll``).
 

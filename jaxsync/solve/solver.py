@@ -6,8 +6,8 @@ the pure stepper of :mod:`jaxsync.fem.stepper`. :func:`simulate` checks its inpu
 its coupling (:mod:`jaxsync.solve.coupling`: synchronized, or synchronization-avoiding)
 into the run's plan -- the schedule of phases and the coupling's own policy -- builds the
 global system and the start, and hands the plan to an executor: the host executor
-(:mod:`jaxsync.solve.host`: compiled chunks, progress, divergence checks, checkpoints) for
-concrete inputs, the traced executor (:mod:`jaxsync.solve.traced`: one JAX program,
+(:mod:`jaxsync.solve.executors`: compiled chunks, progress, divergence checks, checkpoints) for
+concrete inputs, the traced executor (:mod:`jaxsync.solve.executors`: one JAX program,
 differentiable) for traced ones.
 """
 
@@ -22,7 +22,7 @@ from ..errors import ProblemError
 from ..fem.forces.internal_force import run_force_model
 from ..fem.stepper import build_system, initial_state
 from ..pytree import is_traced
-from .coupling import as_coupling, exchange_of
+from .coupling.base import as_coupling, exchange_of
 from .strategies import SaveAt, SolverCheckpoint, TracedExecutor, choose_executor
 
 __all__ = ["simulate", "steady_state", "SteadyState"]
@@ -405,7 +405,7 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
         from ..fem.timestep import check_dt
 
         check_dt(problem, dt)
-    from .host import run_on_host
+    from .executors._host import run_on_host
 
     system = build_system(problem, float(dt), mode)
     return run_on_host(problem, system, initial_state(problem, system), plan, save=save, executor=executor,
@@ -414,7 +414,7 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
 
 def _traced_run(problem, dt, mode, plan, save, executor):
     """:func:`simulate` through the traced executor: a :class:`jaxsync.Trajectory` of JAX arrays."""
-    from .traced import run_traced
+    from .executors._traced import run_traced
 
     system = build_system(problem, dt, mode)
     state = initial_state(problem, system)

@@ -135,7 +135,7 @@ class HostExecutor:
 
     Attributes:
         progress: a tqdm bar (True/False; None: for runs of 20 000 steps or more), or a
-            :class:`jaxsync.solve.driver.Progress` to report to (shared by several runs).
+            :class:`jaxsync.solve.executors.Progress` to report to (shared by several runs).
         chunk_steps: steps per compiled chunk of synchronized steps, between checks.
         cycles_per_chunk: refill cycles per compiled call of an unmonitored predicted
             phase (default: about 20 000 steps).
@@ -239,7 +239,7 @@ class ResyncTolerance:
     ``indicator``: what is held to the tolerance. ``"estimate"`` (default): es_hat of
     every cycle's predictions before it runs (paper eq. 26, the parts' disagreement), and
     the estimated largest nodal error since the last synchronized state after it runs
-    (:mod:`jaxsync.solve.error_estimate`: the force-balance defect probed at the saved
+    (:mod:`jaxsync.solve.coupling.error_estimate`: the force-balance defect probed at the saved
     steps, one exchange of partial forces each, propagated through the ``modes`` lowest
     vibration modes), which also sees the errors that all parts make alike. ``"es_hat"``:
     es_hat alone (no exchange in the predicted phase; blind to shared errors).

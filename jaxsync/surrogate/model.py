@@ -16,7 +16,7 @@ pytree (each part's replica on the device of its part) and calls, for one part,
 Load input: replicas trained with the known load signals (``arch.n_load > 0``,
 :mod:`jaxsync.fem.load_signals`) read them at the refill's steps from the problem's own
 time functions: bind them to the problem first, :meth:`Surrogate.for_problem` (the
-solver does it: :func:`jaxsync.solve.predictors.predictor_for`), which refuses a problem
+solver does it: :func:`jaxsync.solve.coupling.predictors.predictor_for`), which refuses a problem
 with other loads (another count, kind or time-function form) and accepts other
 parameters of the same form (another waveform, another step-off time).
 

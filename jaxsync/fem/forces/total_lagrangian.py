@@ -30,7 +30,7 @@ checked during a run on the current state (:func:`stable_dt`, :func:`check_stabl
 
 :func:`inverted_elements` lists the elements with J = det F <= 0 at a quadrature point.
 :class:`RunCheck` applies both checks to the state of a run between its chunks (the host
-executor, :mod:`jaxsync.solve.host`). :func:`tangent_matrix` assembles the exact tangent
+executor, :mod:`jaxsync.solve.executors`). :func:`tangent_matrix` assembles the exact tangent
 stiffness (the element Hessians of the stored energy) for Newton's method
 (:func:`jaxsync.steady_state`).
 """

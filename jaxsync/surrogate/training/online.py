@@ -1,7 +1,7 @@
 """Learning while synchronized: surrogate updates from the steps a run recomputes.
 
 When error control rejects a refill cycle, the host executor recomputes the steps from
-its last synchronized point with the synchronized solver (:mod:`jaxsync.solve.host`).
+its last synchronized point with the synchronized solver (:mod:`jaxsync.solve.executors`).
 Those steps are exact shared-node values at the run's current state: the data the
 surrogates lacked. :class:`OnlineLearning` turns them into sample-refill windows (the
 windows of offline training, :mod:`jaxsync.surrogate.training.data`: n_p inputs n_s steps apart,

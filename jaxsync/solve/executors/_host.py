@@ -1,17 +1,17 @@
 """The host executor: a run's schedule as compiled chunks driven from Python.
 
 Used for concrete inputs (no JAX tracers). It runs the first phase of the schedule
-(:mod:`jaxsync.solve.phases`: synchronized steps, on one device with
+(:mod:`jaxsync.solve.executors`: synchronized steps, on one device with
 :class:`SingleDeviceRunner` or over parts with
-:class:`jaxsync.solve.distributed.DistributedRunner`) through the one host loop
-(:func:`jaxsync.solve.driver.run_chunks`), and between chunks shows progress, checks for
+:class:`jaxsync.solve.executors.DistributedRunner`) through the one host loop
+(:func:`jaxsync.solve.executors.run_chunks`), and between chunks shows progress, checks for
 divergence and writes solver checkpoints. What follows is the coupling's: its plan
 (:meth:`jaxsync.solve.coupling.Coupling.plan`) finishes the run from the first phase
 (:meth:`~jaxsync.solve.coupling.RunPlan.finish_on_host`) -- a synchronized run builds its
 trajectory; a synchronization-avoiding run runs its predicted phase with its
-re-synchronization policy (:mod:`jaxsync.solve.resync`). The executor itself has no
+re-synchronization policy (:mod:`jaxsync.solve.coupling.resync`). The executor itself has no
 branch on the kind of run. The trajectory is built once, at the end
-(:mod:`jaxsync.solve.record`).
+(:mod:`jaxsync.solve.executors`).
 """
 
 from __future__ import annotations
@@ -25,14 +25,14 @@ import time
 import jax
 import numpy as np
 
-from ..errors import StabilityError
-from ..fem.stepper import ExplicitSystem, SolverState, advance
-from ..fem.timestep import divergence_advice
-from ..trajectory import Result
-from .checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
-from .distributed import DistributedRunner
-from .driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
-from .record import synchronized_trajectory
+from ...errors import StabilityError
+from ...fem.stepper import ExplicitSystem, SolverState, advance
+from ...fem.timestep import divergence_advice
+from ...trajectory import Result
+from ..checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
+from ._distributed import DistributedRunner
+from ._driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
+from ._record import synchronized_trajectory
 
 __all__ = ["run_on_host", "SingleDeviceRunner", "FirstPhase", "run_summary", "HostRun"]
 
@@ -40,7 +40,7 @@ _advance_jit = jax.jit(advance, static_argnums=(2, 3))
 
 
 class SingleDeviceRunner:
-    """Advances a global :class:`SolverState` on one device (a :class:`jaxsync.solve.driver.Runner`)."""
+    """Advances a global :class:`SolverState` on one device (a :class:`jaxsync.solve.executors.Runner`)."""
 
     def __init__(self, system: ExplicitSystem, save_every: int):
         self.system, self.save_every = system, save_every
@@ -90,7 +90,7 @@ class FirstPhase:
 def run_summary(segment: Segment, runner) -> dict:
     """The statistics every run records (:class:`jaxsync.RunStats`'s fields): the
     compilation time of ``segment`` and ``runner``'s devices."""
-    from ..parallel.devices import device_summary
+    from ...parallel.devices import device_summary
 
     # a runner reaching the other processes through MPI holds one device of each of them
     processes = jax.process_count() if getattr(runner, "transport", None) == "mpi" else None
@@ -105,13 +105,13 @@ class HostRun:
     Attributes:
         problem: the problem.
         runner: the runner of the first phase (a :class:`SingleDeviceRunner` or a
-            :class:`~jaxsync.solve.distributed.DistributedRunner`).
+            :class:`~jaxsync.solve.executors.DistributedRunner`).
         first: the first synchronized phase (:class:`FirstPhase`).
         dt: the time step [s].
         save: :class:`~jaxsync.solve.strategies.SaveAt`.
         executor: :class:`~jaxsync.solve.strategies.HostExecutor`.
         limit: the displacement above which a run has diverged [cm].
-        progress: the run's :class:`~jaxsync.solve.driver.Progress`.
+        progress: the run's :class:`~jaxsync.solve.executors.Progress`.
     """
 
     problem: object

@@ -9,8 +9,8 @@ exchange), and the force model. Its :meth:`~DistributedParts.systems` are JAX fu
 the problem's global system, so traced material, damping, loads and dt flow through.
 
 :class:`DistributedRunner` is the host executor's runner of synchronized steps
-(:mod:`jaxsync.solve.driver`): the parts placed on their devices, the SPMD program of
-:func:`jaxsync.solve.phases.part_synchronized_steps` per chunk length, and the way
+(:mod:`jaxsync.solve.executors`): the parts placed on their devices, the SPMD program of
+:func:`jaxsync.solve.executors.part_synchronized_steps` per chunk length, and the way
 between per-part states and the global one.
 """
 
@@ -24,17 +24,17 @@ from jax.sharding import Mesh as DeviceMesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from ..errors import ConfigError
-from ..fem.forces.internal_force import force_model
-from ..fem.stepper import ExplicitSystem, SolverState
-from ..parallel.halo import check_save_every
-from ..parallel.layout import PartSystems, part_systems
-from ..parallel.partitioning import Partition, partition_from_elements
-from ..parallel.partitioning import partition as make_partition
-from ..parallel.spmd import AXIS, spmd_program
-from .driver import Chunk, chunk_of_saves
-from .exchanges import sync_strategy
-from .phases import check_recordable, part_synchronized_steps, synchronized_steps
+from ...errors import ConfigError
+from ...fem.forces.internal_force import force_model
+from ...fem.stepper import ExplicitSystem, SolverState
+from ...parallel.halo import check_save_every
+from ...parallel.layout import PartSystems, part_systems
+from ...parallel.partitioning import Partition, partition_from_elements
+from ...parallel.partitioning import partition as make_partition
+from ...parallel.spmd import AXIS, spmd_program
+from ..exchanges import sync_strategy
+from ._driver import Chunk, chunk_of_saves
+from ._phases import check_recordable, part_synchronized_steps, synchronized_steps
 
 __all__ = ["DistributedParts", "DistributedRunner", "to_host"]
 
@@ -150,7 +150,7 @@ class DistributedParts:
 
 class DistributedRunner:
     """Advances per-part states of synchronized steps under ``shard_map`` (a
-    :class:`jaxsync.solve.driver.Runner`).
+    :class:`jaxsync.solve.executors.Runner`).
 
     Args:
         problem, system: the problem and its global :class:`ExplicitSystem`.
@@ -245,7 +245,7 @@ class DistributedRunner:
 
     def to_global(self, state) -> SolverState:
         """The global state of the parts' ``state`` (host numpy)."""
-        from ..parallel.element_fields import merge_element_fields
+        from ...parallel.element_fields import merge_element_fields
 
         return SolverState(self.merge(to_host(state.displacement)), self.merge(to_host(state.previous)),
                            int(to_host(state.step)[0]),

@@ -4,8 +4,8 @@ executors run.
 A run is a schedule of phases: :class:`SynchronizedSteps` (paper Algorithm 1: every step
 completes the parts' shared-node forces, or with deep halos their displacements every k
 steps) and :class:`PredictedSteps` (paper Algorithm 3: refill cycles of the surrogates,
-no exchange). The host executor (:mod:`jaxsync.solve.host`) compiles these functions into
-chunks it drives from Python; the traced executor (:mod:`jaxsync.solve.traced`) composes
+no exchange). The host executor (:mod:`jaxsync.solve.executors`) compiles these functions into
+chunks it drives from Python; the traced executor (:mod:`jaxsync.solve.executors`) composes
 them into one JAX program. Both call the functions below, so the numerics of a phase are
 written once:
 
@@ -31,13 +31,13 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from ..errors import ConfigError, ProblemError
-from ..fem.stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
-from ..parallel.exchange import Exchange
-from ..parallel.halo import advance_halo
-from ..parallel.layout import PartSystems
-from ..surrogate.refill import refill_cycle
-from .remat import advance_traced, recomputing_scan, segment_steps, state_bytes
+from ...errors import ConfigError, ProblemError
+from ...fem.stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
+from ...parallel.exchange import Exchange
+from ...parallel.halo import advance_halo
+from ...parallel.layout import PartSystems
+from ...surrogate.refill import refill_cycle
+from ..remat import advance_traced, recomputing_scan, segment_steps, state_bytes
 
 __all__ = ["SynchronizedSteps", "PredictedSteps", "synchronized_steps", "part_synchronized_steps", "check_recordable",
            "predict_cycle",
@@ -130,7 +130,7 @@ def overwritten_steps(part: PartSystems, state: SolverState, pred, modal=None, *
     ``probe``: None, or the run's exchange: then each part also measures its
     force-balance defect at its shared nodes, summed over each ``save_every`` steps, with
     one exchange of partial forces at every saved step (:func:`defect_probe`;
-    :mod:`jaxsync.solve.error_estimate`), and, with ``modal`` (its tables, see
+    :mod:`jaxsync.solve.coupling.error_estimate`), and, with ``modal`` (its tables, see
     :func:`defect_probe`), its share of the modal error's response to every step's defect.
 
     Returns (state, saved displacement (steps // save_every, n_local, 3)), with ``probe``
@@ -173,13 +173,13 @@ def defect_probe(part: PartSystems, exchange: Exchange, modal=None):
     injection phi^T M at its shared slots, (n_shared_max, 3, n_modes), 1 / c at each slot
     (c the parts that hold its node; 0 in padding), (n_shared_max,), and the response of every
     mode's (q(n), q(n-1)) a block's end to a unit injection ``save_every - 1 - j`` steps
-    before it, (save_every, n_modes, 2) (:meth:`~jaxsync.solve.error_estimate.ErrorPropagator.device_tables`).
+    before it, (save_every, n_modes, 2) (:meth:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator.device_tables`).
     Then the probe also returns, per block, this part's share of the modal error's
     response to each of its steps' defects, at the step it happened: the mean defect over
     the parts that hold a shared node is a sum over the parts of (kept - u) / c - (1 -
     1 / c) L f_p (c the parts that hold it), each term the part's own, so every part
     drives the modes with its share every step and no exchange is needed; the host adds
-    the parts' shares (:meth:`~jaxsync.solve.error_estimate.ErrorPropagator.propagate`).
+    the parts' shares (:meth:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator.propagate`).
     Returns then (block sums, (n_modes, 2) modal responses)."""
     system, total = part.system, exchange.force_sum(part)
     zero = jnp.zeros_like(system.mass)

@@ -1,10 +1,10 @@
 """The host executor's runners of the predicted phase (paper Algorithm 3).
 
 :class:`PredictedPhase` compiles the phase's per-part functions
-(:mod:`jaxsync.solve.phases`: :func:`~jaxsync.solve.phases.predicted_cycles`, and for
-the monitored run its two halves :func:`~jaxsync.solve.phases.predict_cycle` and
-:func:`~jaxsync.solve.phases.overwritten_steps`) as SPMD programs on the run's devices;
-no collective runs in them. Two runners of the host loop (:mod:`jaxsync.solve.driver`)
+(:mod:`jaxsync.solve.executors`: :func:`~jaxsync.solve.executors.predicted_cycles`, and for
+the monitored run its two halves :func:`~jaxsync.solve.executors.predict_cycle` and
+:func:`~jaxsync.solve.executors.overwritten_steps`) as SPMD programs on the run's devices;
+no collective runs in them. Two runners of the host loop (:mod:`jaxsync.solve.executors`)
 drive them: :class:`PredictedRunner` (the fused program, predictions made inside the
 loop, several cycles per call) and :class:`MonitoredRunner` (each cycle predicted first,
 its es_hat checked, then applied; a rejected cycle raises :class:`CycleRejected`).
@@ -18,9 +18,9 @@ import time
 import jax
 import numpy as np
 
-from .distributed import DistributedRunner, to_host
-from .driver import Chunk, Stopped
-from .phases import overwritten_steps, predict_cycle, predicted_cycles
+from ._distributed import DistributedRunner, to_host
+from ._driver import Chunk, Stopped
+from ._phases import overwritten_steps, predict_cycle, predicted_cycles
 
 __all__ = ["PredictedPhase", "PredictedRunner", "MonitoredRunner", "CycleRejected", "DisagreementMonitor"]
 
@@ -130,7 +130,7 @@ class PredictedPhase:
         return self._apply_program(state, lambda: pred, steps, probe, modal)(self.runner.parts, state, pred, *extra)
 
     def modal_tables(self, propagator, monitor):
-        """:func:`~jaxsync.solve.phases.defect_probe`'s modal tables of ``propagator``,
+        """:func:`~jaxsync.solve.executors.defect_probe`'s modal tables of ``propagator``,
         placed on the devices like the parts (made once per propagator)."""
         key = ("modal", id(propagator))
         if key not in self._compiled:
@@ -213,7 +213,7 @@ class MonitoredRunner(_PredictedRunnerBase):
     """The monitored predicted phase: one refill cycle per call, predicted ahead, its
     es_hat (paper eq. 26) checked at the saved steps against ``tolerance`` [cm] before the
     solver uses it; then, with a ``propagator``
-    (:class:`~jaxsync.solve.error_estimate.ErrorPropagator`), run with the force-balance
+    (:class:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator`), run with the force-balance
     defect probed at the saved steps and the estimated error accumulated since the last
     synchronized state checked against the same tolerance. :class:`CycleRejected` when
     either is above it (or not finite). ``estimates`` holds the accepted cycles'
@@ -263,7 +263,7 @@ class DisagreementMonitor:
     """es_hat (paper eq. 26) of the parts' own predictions, for the live error control."""
 
     def __init__(self, partition):
-        from ..metrics import shared_node_errors
+        from ...metrics import shared_node_errors
 
         self._errors = shared_node_errors
         index = {int(node): k for k, node in enumerate(partition.shared_nodes)}

@@ -2,7 +2,7 @@
 
 Used when any input is a JAX tracer (inside ``jax.grad``, ``jit`` or ``vmap``), or on
 request (:class:`~jaxsync.solve.strategies.TracedExecutor`). It composes the same phase
-functions as the host executor (:mod:`jaxsync.solve.phases`) into one program: the
+functions as the host executor (:mod:`jaxsync.solve.executors`) into one program: the
 synchronized steps (on one device, or every part under ``shard_map`` with its exchange),
 then, in a synchronization-avoiding run, the refill cycles, written with the run's
 reverse-pass policy (:mod:`jaxsync.solve.remat`: memory about sqrt(n_steps) under
@@ -17,10 +17,10 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ..errors import ProblemError
-from ..fem.stepper import ExplicitSystem, SolverState
-from ..trajectory import Result
-from .phases import PredictedSteps, SynchronizedSteps, part_synchronized_steps, predicted_cycles, synchronized_steps
+from ...errors import ProblemError
+from ...fem.stepper import ExplicitSystem, SolverState
+from ...trajectory import Result
+from ._phases import PredictedSteps, SynchronizedSteps, part_synchronized_steps, predicted_cycles, synchronized_steps
 
 __all__ = ["run_traced", "TracedRun"]
 
@@ -50,7 +50,7 @@ def _result(*fields):
 
 def run_traced(problem, system: ExplicitSystem, state: SolverState, schedule, *, save_every: int, adjoint,
                distributed=None, predictor=None, record: bool = False) -> TracedRun:
-    """Run ``schedule`` (phases, :mod:`jaxsync.solve.phases`) from ``state`` as one traced
+    """Run ``schedule`` (phases, :mod:`jaxsync.solve.executors`) from ``state`` as one traced
     program.
 
     Args:
@@ -62,7 +62,7 @@ def run_traced(problem, system: ExplicitSystem, state: SolverState, schedule, *,
         save_every: the snapshot stride; divides every phase's steps and a refill cycle.
         adjoint: the reverse-pass policy (:class:`~jaxsync.solve.strategies.Recompute`,
             ``StoreAll``).
-        distributed: the run's :class:`jaxsync.solve.distributed.DistributedParts`, or
+        distributed: the run's :class:`jaxsync.solve.executors.DistributedParts`, or
             None for one device.
         predictor: the surrogates (stacked on the part axis) of a schedule with a
             predicted phase (``n_s``, ``n_past``, ``n_future``, ``predict``).

@@ -18,8 +18,8 @@ from typing import Any
 
 import jax
 
-from ..errors import CheckpointError, ProblemError
-from ..pytree import pytree_dataclass, static_field
+from ...errors import CheckpointError, ProblemError
+from ...pytree import pytree_dataclass, static_field
 
 __all__ = ["OraclePredictor", "predictor_for"]
 
@@ -58,9 +58,9 @@ def predictor_for(surrogates, partition, problem=None, dt=None):
     surrogate file (its shared node ids checked against the partition's). Raises
     :class:`~jaxsync.errors.ProblemError` for anything else (a path: with the fix) and
     :class:`~jaxsync.errors.CheckpointError` for surrogates of another partition."""
-    from ..surrogate.model import Surrogate
-    from ..surrogate.saved import SavedSurrogate, check_compatible
-    from ..surrogate.training.histories import shared_dof_layout
+    from ...surrogate.model import Surrogate
+    from ...surrogate.saved import SavedSurrogate, check_compatible
+    from ...surrogate.training.histories import shared_dof_layout
 
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):
         raise ProblemError(f"surrogates={surrogates!r} is a path: load the surrogate file first, "

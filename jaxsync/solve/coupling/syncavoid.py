@@ -12,9 +12,9 @@ collective in it.
 :meth:`SyncAvoiding.plan` checks the run, finds the steps where loads jump, and gives the
 executors the schedule -- ``SynchronizedSteps(n_cri)`` then ``PredictedSteps(n_steps -
 n_cri)`` -- with the coupling's host-side policy: on the host, the predicted phase with
-error control (:mod:`jaxsync.solve.resync`, where a rejected cycle re-synchronizes); the
-traced executor (:mod:`jaxsync.solve.traced`, inside ``jax.grad`` or ``jit``) runs the
-schedule as one program. Both run the phase functions of :mod:`jaxsync.solve.phases`.
+error control (:mod:`jaxsync.solve.coupling.resync`, where a rejected cycle re-synchronizes); the
+traced executor (:mod:`jaxsync.solve.executors`, inside ``jax.grad`` or ``jit``) runs the
+schedule as one program. Both run the phase functions of :mod:`jaxsync.solve.executors`.
 :func:`simulate_sync_avoiding` is the same run under its earlier name.
 
 A shared node is held, and predicted, by every part that touches it, so after the
@@ -33,14 +33,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ProblemError, SynchronizedRunWarning
-from ..fem.loads import load_jumps as find_load_jumps
-from ..options import LoadJumps, choices
-from ..pytree import pytree_dataclass, static_field
-from .coupling import Coupling, RunPlan
-from .phases import PredictedSteps, SynchronizedSteps
+from ...errors import ProblemError, SynchronizedRunWarning
+from ...fem.loads import load_jumps as find_load_jumps
+from ...options import LoadJumps, choices
+from ...pytree import pytree_dataclass, static_field
+from ..executors._phases import PredictedSteps, SynchronizedSteps
+from ..strategies import ResyncTolerance, TracedExecutor
+from .base import Coupling, RunPlan
 from .predictors import OraclePredictor, predictor_for
-from .strategies import ResyncTolerance, TracedExecutor
 
 __all__ = ["SyncAvoiding", "ResyncTolerance", "simulate_sync_avoiding", "step_counts", "describe_run"]
 
@@ -56,7 +56,7 @@ class SyncAvoiding(Coupling):
     mean disagreement of the parts at the shared nodes, which needs no reference solution)
     is checked at the saved steps. Below the tolerance the cycle runs with the predictions.
     Above it the run returns to its last synchronized state and recomputes the steps up to
-    the end of the rejected cycle synchronized (:mod:`jaxsync.solve.resync`), so after
+    the end of the rejected cycle synchronized (:mod:`jaxsync.solve.coupling.resync`), so after
     every re-synchronization it equals the synchronized solver to round-off. Predicted
     steps that a re-synchronization recomputes are counted as discarded.
 
@@ -76,7 +76,7 @@ class SyncAvoiding(Coupling):
         surrogates: the predictor of every part's shared nodes: a
             :class:`jaxsync.surrogate.Surrogate` (with its load parameter:
             ``Surrogate.with_load_parameter``), an
-            :class:`~jaxsync.solve.predictors.OraclePredictor`, or the record of a surrogate
+            :class:`~jaxsync.solve.coupling.predictors.OraclePredictor`, or the record of a surrogate
             file (:func:`jaxsync.surrogate.load_surrogate`), whose shared node ids are
             checked against the partition. Its arrays are the coupling's pytree leaves.
         n_cri: last synchronized step; at least n_p n_s (the networks read steps
@@ -138,7 +138,7 @@ class SyncAvoiding(Coupling):
             object.__setattr__(self, "tolerance", ResyncTolerance.parse(self.tolerance))
 
     def plan(self, problem, n_steps: int, *, dt, save, partitions, exchange, mode: str, executor) -> RunPlan:
-        from .distributed import DistributedParts
+        from ..executors._distributed import DistributedParts
         from .resync import OnlineSettings
 
         if save.records_every_step:
@@ -180,7 +180,7 @@ class SyncAvoiding(Coupling):
 @dataclasses.dataclass(frozen=True)
 class _SyncAvoidingPlan(RunPlan):
     """The plan of a :class:`SyncAvoiding` run; ``online``: the predicted phase's
-    settings (:class:`~jaxsync.solve.resync.OnlineSettings`)."""
+    settings (:class:`~jaxsync.solve.coupling.resync.OnlineSettings`)."""
 
     online: Any = None
 
@@ -191,8 +191,8 @@ class _SyncAvoidingPlan(RunPlan):
                          run.limit).run(self.schedule[1].n_steps, run.progress)
 
     def traced_trajectory(self, problem, dt, system, state, run, save):
-        from ..trajectory import Trajectory
-        from .record import part_histories, run_parameters
+        from ...trajectory import Trajectory
+        from ..executors._record import part_histories, run_parameters
 
         displacement = jnp.concatenate([state.displacement[None], run.saved])
         n_saved = displacement.shape[0]
@@ -238,7 +238,7 @@ def simulate_sync_avoiding(problem, n_steps: int, *, surrogates, partitions, n_c
     Returns:
         :class:`jaxsync.Trajectory`, its ``stats`` a :class:`jaxsync.SyncAvoidingStats`.
     """
-    from .solver import simulate
+    from ..solver import simulate
 
     coupling = SyncAvoiding(surrogates, n_cri, tolerance=resync_tolerance, load_jumps=load_jumps)
     return simulate(problem, n_steps, dt=dt, save=save, partitions=partitions, coupling=coupling, exchange=sync,
@@ -249,7 +249,7 @@ def _online_learning(tolerance, surrogates):
     """The run's :class:`~jaxsync.surrogate.training.online.OnlineLearning` (``tolerance.learning``), or None."""
     if tolerance is None or tolerance.learning is None or tolerance.learning is False:
         return None
-    from ..surrogate.training.online import OnlineLearning
+    from ...surrogate.training.online import OnlineLearning
 
     if isinstance(surrogates, OraclePredictor):
         raise ProblemError("resync_tolerance: learning updates trained surrogates; an OraclePredictor replays known "

@@ -14,7 +14,7 @@ the synchronized run with a displacement injected at the shared dofs every step,
 
 A the synchronized one-step propagator (stable), B the injection at the shared dofs. Summed
 over the steps between two saved steps, the defect costs one exchange of the parts'
-summed partial forces (:func:`jaxsync.solve.phases.defect_probe`: one collective per
+summed partial forces (:func:`jaxsync.solve.executors.defect_probe`: one collective per
 saved step, every step's defect counted).
 
 :class:`ErrorPropagator` runs that recursion in the lowest ``n_modes`` vibration modes of
@@ -23,7 +23,7 @@ scalar central-difference oscillator with the run's Rayleigh damping (damping ra
 alpha / (2 omega) + beta omega / 2, the beta K term from the backward velocity as the
 stepper takes it), driven by phi^T M B delta at every step. The drive is exact and needs
 no exchange beyond the probe's: the mean defect over the parts that hold a shared node is
-a sum of terms each part knows (:func:`jaxsync.solve.phases.defect_probe`), so every part
+a sum of terms each part knows (:func:`jaxsync.solve.executors.defect_probe`), so every part
 drives the modes with its own share at the step it happened (the response at the next
 probe, T^m e_1 for a defect m steps before it, from :meth:`ErrorPropagator.device_tables`)
 and the host adds the parts' shares at each probe. (Spreading each block's summed defect
@@ -65,7 +65,7 @@ import dataclasses
 
 import numpy as np
 
-from ..errors import ProblemError
+from ...errors import ProblemError
 
 __all__ = ["ErrorPropagator", "DEFAULT_MODES", "FLEXIBILITY_LIMIT", "linearised_stiffness"]
 
@@ -190,7 +190,7 @@ class ErrorPropagator:
 
     def device_tables(self, columns, share, stride: int, width: int):
         """The tables with which every part drives the modes with its share of each step's
-        defect (:func:`jaxsync.solve.phases.defect_probe`), stacked on the part axis.
+        defect (:func:`jaxsync.solve.executors.defect_probe`), stacked on the part axis.
 
         Args:
             columns: per part, the interface positions of its shared nodes (its slots).
@@ -272,7 +272,7 @@ def linearised_stiffness(problem, displacement=None):
     zero: at rest; :meth:`jaxsync.fem.materials.law.MaterialLaw.tangent_stiffness`: a linear
     law's K, a hyperelastic law's K_T(u), :func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`,
     symmetrised), the elastic supports' springs added."""
-    from ..fem.forces.support import spring_matrix
+    from ...fem.forces.support import spring_matrix
 
     K = problem.material.tangent_stiffness(problem, displacement)
     springs = spring_matrix(problem)

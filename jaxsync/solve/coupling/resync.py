@@ -17,8 +17,8 @@ round-off, and between them only predictions whose es_hat stayed below the toler
 used. When the cycle right after an anchor is rejected, the synchronized stretch doubles
 (1, 2, 4 ... cycles) before the next try.
 
-The steps run through the host executor's loop (:func:`jaxsync.solve.driver.run_chunks`)
-with the runners of :mod:`jaxsync.solve.predicted`; the statistics are a
+The steps run through the host executor's loop (:func:`jaxsync.solve.executors.run_chunks`)
+with the runners of :mod:`jaxsync.solve.executors`; the statistics are a
 :class:`jaxsync.SyncAvoidingStats`.
 """
 
@@ -29,15 +29,15 @@ import warnings
 
 import numpy as np
 
-from ..errors import StabilityError, SynchronizedRunWarning
-from ..fem.timestep import divergence_advice
-from ..run_stats import SyncAvoidingStats
-from ..trajectory import Result
-from .distributed import DistributedRunner
-from .driver import Diverged, Progress, Segment, run_chunks
-from .host import FirstPhase, run_summary
-from .predicted import CycleRejected, DisagreementMonitor, MonitoredRunner, PredictedPhase, PredictedRunner
-from .record import online_trajectory, run_parameters
+from ...errors import StabilityError, SynchronizedRunWarning
+from ...fem.timestep import divergence_advice
+from ...run_stats import SyncAvoidingStats
+from ...trajectory import Result
+from ..executors._distributed import DistributedRunner
+from ..executors._driver import Diverged, Progress, Segment, run_chunks
+from ..executors._host import FirstPhase, run_summary
+from ..executors._predicted import CycleRejected, DisagreementMonitor, MonitoredRunner, PredictedPhase, PredictedRunner
+from ..executors._record import online_trajectory, run_parameters
 
 __all__ = ["OnlineSettings", "OnlineRun"]
 
@@ -93,7 +93,7 @@ class OnlineRun:
 
     def __init__(self, problem, runner: DistributedRunner, first: FirstPhase, online: OnlineSettings,
                  dt: float, save_every: int, executor, limit: float):
-        from ..surrogate.training.histories import shared_dof_layout
+        from ...surrogate.training.histories import shared_dof_layout
 
         self.problem, self.runner, self.first, self.online = problem, runner, first, online
         self.save_every, self.executor, self.limit = save_every, executor, limit
@@ -113,7 +113,7 @@ class OnlineRun:
         self.dt = dt
         self.learner = None
         if online.learning is not None and tolerance is not None:
-            from ..surrogate.training.online import OnlineLearner
+            from ...surrogate.training.online import OnlineLearner
 
             self.learner = OnlineLearner(online.learning, predictor, first.shared,
                                          shared_nodes=[part.shared_nodes for part in self.partition.parts])

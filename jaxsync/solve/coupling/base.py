@@ -5,12 +5,12 @@ run their own policy.
 
 * :class:`Synchronized` (the default): every step completes the parts' shared-node forces
   through the run's exchange (paper Algorithm 1; one device needs none);
-* :class:`jaxsync.SyncAvoiding` (:mod:`jaxsync.solve.syncavoid`): synchronized up to
+* :class:`jaxsync.SyncAvoiding` (:mod:`jaxsync.solve.coupling.syncavoid`): synchronized up to
   n_cri, then surrogates predict the shared-node displacements and the parts do not
   exchange (paper Algorithm 3), with its error control and load-jump policy.
 
 A coupling is lowered once per run by :meth:`Coupling.plan` into a :class:`RunPlan`: the
-schedule of phases (:mod:`jaxsync.solve.phases`), the run's parts, the predictor, and the
+schedule of phases (:mod:`jaxsync.solve.executors`), the run's parts, the predictor, and the
 two things the executors ask of it -- :meth:`RunPlan.finish_on_host` (what follows the first
 synchronized phase on the host: a synchronized run's trajectory, or the predicted phase
 with re-synchronization) and :meth:`RunPlan.traced_trajectory` (the trajectory of a traced
@@ -23,11 +23,11 @@ import dataclasses
 
 import numpy as np
 
-from ..errors import ProblemError
-from ..pytree import pytree_dataclass
-from ..run_stats import SynchronizedStats
-from ..trajectory import Result
-from .phases import SynchronizedSteps
+from ...errors import ProblemError
+from ...pytree import pytree_dataclass
+from ...run_stats import SynchronizedStats
+from ...trajectory import Result
+from ..executors._phases import SynchronizedSteps
 
 __all__ = ["Coupling", "RunPlan", "Synchronized", "as_coupling", "exchange_of"]
 
@@ -50,8 +50,8 @@ class RunPlan:
 
     Attributes:
         schedule: the phases, ``(SynchronizedSteps(n),)`` or ``(SynchronizedSteps(n_cri),
-            PredictedSteps(m))`` (:mod:`jaxsync.solve.phases`).
-        distributed: the run's :class:`~jaxsync.solve.distributed.DistributedParts`, or
+            PredictedSteps(m))`` (:mod:`jaxsync.solve.executors`).
+        distributed: the run's :class:`~jaxsync.solve.executors.DistributedParts`, or
             None for one device.
         predictor: the surrogates of a predicted phase (stacked on the part axis), or None.
         records_shared: the first phase records every part's shared-node values after every
@@ -67,12 +67,12 @@ class RunPlan:
 
     def finish_on_host(self, run) -> object:
         """The :class:`jaxsync.Trajectory` of a host run from its first synchronized phase
-        (``run``: a :class:`jaxsync.solve.host.HostRun`)."""
+        (``run``: a :class:`jaxsync.solve.executors.HostRun`)."""
         raise NotImplementedError(f"{type(self).__name__} must implement finish_on_host(run)")
 
     def traced_trajectory(self, problem, dt, system, state, run, save) -> object:
         """The :class:`jaxsync.Trajectory` of a traced run at time step ``dt`` (``run``: the
-        :class:`~jaxsync.solve.traced.TracedRun` of :attr:`schedule` from ``state``, with
+        :class:`~jaxsync.solve.executors.TracedRun` of :attr:`schedule` from ``state``, with
         ``system`` the global system)."""
         raise NotImplementedError(f"{type(self).__name__} must implement traced_trajectory(...)")
 
@@ -83,8 +83,8 @@ class _SynchronizedPlan(RunPlan):
     its shared-node histories and a :class:`jaxsync.SynchronizedStats`."""
 
     def finish_on_host(self, run):
-        from .host import run_summary
-        from .record import synchronized_trajectory
+        from ..executors._host import run_summary
+        from ..executors._record import synchronized_trajectory
 
         first = run.first
         segment = first.segment
@@ -97,7 +97,7 @@ class _SynchronizedPlan(RunPlan):
     def traced_trajectory(self, problem, dt, system, state, run, save):
         import jax.numpy as jnp
 
-        from .record import synchronized_trajectory
+        from ..executors._record import synchronized_trajectory
 
         recorded = None
         if run.recorded is not None:  # per part, rows from step 0
@@ -125,7 +125,7 @@ class Synchronized(Coupling):
             raise ProblemError(f"exchange={exchange!r} needs a distributed run: pass partitions=n_parts")
         distributed = None
         if partitions is not None:
-            from .distributed import DistributedParts
+            from ..executors._distributed import DistributedParts
 
             distributed = DistributedParts(problem, partitions, exchange, mode=mode)
             if save.records_every_step:
