@@ -11,7 +11,7 @@ t_s, t_d, t_o and the max-average rows (paper Table 2) come with it. The surroga
 untrained replicas of the chosen architecture (a network's cost does not depend on its
 weights; accuracy is what `jaxsync demo` and `paper_cantilever.py` measure).
 
-Deep halos (:mod:`jaxsync.parallel.halo`), the exact communication-avoiding scheme, are
+Deep halos (:mod:`jaxsync.parallel.exchange.halo`), the exact communication-avoiding scheme, are
 timed in the same round-robin for depths k = 1, 2, 4, 8 (``t_step_halo_us``, ``zeta_halo``).
 
 Scenarios (the paper's):

@@ -37,7 +37,7 @@ result also names the default of this install (``default_allreduce``, ``transpor
 Then the speed-up with real processes (``kind: speedup``): on the same cantilever, one part
 per process, the same compiled chunks without synchronization (``nosync``), with deep
 halos (``halo-k``: parts grown by k layers exchange both displacement levels every k
-steps, through MPI as ``sync="mpi"`` does; :mod:`jaxsync.parallel.halo`) and the
+steps, through MPI as ``sync="mpi"`` does; :mod:`jaxsync.parallel.exchange.halo`) and the
 synchronization-avoiding program (``avoid-*``: n_s n_f unsynchronized steps and one batched
 refill prediction per cycle, no collective; untrained surrogates of the paper's LSTM,
 n_H = 100 at n_s = 80, of ``jaxsync train``'s default, n_H = 50 at n_s = 150, and of the

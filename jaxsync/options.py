@@ -16,7 +16,7 @@ The tuples the modules expose (``jaxsync.fem.forces.element_force.MODES``,
   :mod:`jaxsync.fem.forces.total_lagrangian`, which a hyperelastic problem gets in any mode).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
   whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
-  Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.halo`): parts grown by k
+  Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.exchange.halo`): parts grown by k
   layers exchange displacements every k steps, exactly. There is no fixed default: ``sync=None`` everywhere means
   :func:`jaxsync.parallel.multiprocess.default_sync` (``"psum"`` in one process,
   ``"mpi"`` across CPU processes).

@@ -272,7 +272,7 @@ def test_installed_packages_name_exchanges_through_entry_points(monkeypatch):
 
     from jaxsync.solve import exchanges
 
-    points = [EntryPoint("psum-from-a-package", "jaxsync.solve.exchanges:Psum", exchanges.ENTRY_POINT_GROUP),
+    points = [EntryPoint("psum-from-a-package", "jaxsync.parallel.exchange.builtin:Psum", exchanges.ENTRY_POINT_GROUP),
               EntryPoint("broken-package", "no_such_module_for_jaxsync:Thing", exchanges.ENTRY_POINT_GROUP)]
     monkeypatch.setattr("importlib.metadata.entry_points",
                         lambda group: [p for p in points if p.group == group])

@@ -29,7 +29,8 @@ ROOT = pathlib.Path(__file__).resolve().parents[1]
 NUMERICAL = ("jax", "jaxlib", "numpy", "scipy", "skfem", "meshio", "h5py", "optax", "matplotlib", "gmsh",
              "pymetis", "tqdm", "mpi4py")
 LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.cli", "jaxsync.solve", "jaxsync.solve.coupling",
-                 "jaxsync.solve.executors", "jaxsync.surrogate", "jaxsync.parallel", "jaxsync.perf")
+                 "jaxsync.solve.executors", "jaxsync.surrogate", "jaxsync.parallel", "jaxsync.parallel.exchange",
+                 "jaxsync.perf")
 
 
 def imported_after(code: str, *args: str, cwd=None) -> set[str]:

@@ -208,7 +208,7 @@ def test_parts_local_nodes_in_reverse_cuthill_mckee_order(tree):
     for p, part in enumerate(layout.parts):
         np.testing.assert_array_equal(local[p, :part.n_local], field[part.nodes])
     np.testing.assert_array_equal(np.asarray(layout.merge(local)), field)
-    halo = jaxsync.parallel.halo.halo_partition(part_info, 2)
+    halo = jaxsync.parallel.exchange.halo.halo_partition(part_info, 2)
     halo_layout = PartLayout.of(halo)
     for p, part in enumerate(halo_layout.parts):
         owned = part.nodes[halo_layout.partition.owned_local[p]]

@@ -47,7 +47,7 @@ API_MODULES = (
     "jaxsync.metrics",
     "jaxsync.io",
     "jaxsync.options",
-    "jaxsync.parallel.halo",
+    "jaxsync.parallel.exchange.halo",
     "jaxsync.solve.finetune",
     "jaxsync.surrogate.refill",
 )

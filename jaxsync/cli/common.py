@@ -98,7 +98,7 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
     """``--sync``: how the parts sum shared-node forces; left None unless given, so that
     the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`).
     ``deep_halos``: also offer ``--sync halo`` and ``--halo-depth`` (synchronized runs only)."""
-    from ..solve.exchanges import exchange_names, sync_strategy
+    from ..parallel.exchange.builtin import exchange_names, sync_strategy
 
     # every registered exchange (jaxsync.solve.register_exchange); without deep halos only
     # those that synchronize every step

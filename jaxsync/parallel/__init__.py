@@ -3,9 +3,9 @@ SPMD builder, devices and processes.
 
 Modules: :mod:`~jaxsync.parallel.partitioning` (METIS parts, owned/shared nodes),
 :mod:`~jaxsync.parallel.layout` (padded local numbering, per-part systems, split and merge of
-fields), :mod:`~jaxsync.parallel.exchange` (``scatter_reverse`` / ``scatter_forward`` of
-shared-node values), :mod:`~jaxsync.parallel.halo` (deep halos), :mod:`~jaxsync.parallel.plan` (the exchange protocol:
-what an exchange gives a run), :mod:`~jaxsync.parallel.spmd`
+fields), :mod:`~jaxsync.parallel.exchange` (the exchange between the parts: index maps and
+``scatter_reverse`` / ``scatter_forward`` of shared-node values, the exchange protocol, the
+built-in exchanges and their registry, deep halos), :mod:`~jaxsync.parallel.spmd`
 (:func:`spmd_program`, the builder of every SPMD program), :mod:`~jaxsync.parallel.devices`
 (emulated CPU devices), :mod:`~jaxsync.parallel.multiprocess` (``mpiexec`` runs).
 """
@@ -24,11 +24,11 @@ __all__ = ["Partition", "Part", "partition", "partition_from_elements", "partiti
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
     ".": ("devices", "multiprocess"),
-    ".exchange": ("Exchange", "NeighbourExchange", "neighbour_exchange", "scatter_forward", "scatter_reverse",
-                  "synchronize_forces"),
+    ".exchange": ("Exchange", "ExchangeCost", "ExchangePlan", "ExchangeStrategy", "NeighbourExchange",
+                  "neighbour_exchange", "scatter_forward", "scatter_reverse", "synchronize_forces", "xla_devices",
+                  "xla_plan"),
     ".layout": ("PartLayout", "PartSystems", "part_systems"),
     ".partitioning": ("Part", "Partition", "partition", "partition_from_elements", "partition_of"),
-    ".plan": ("ExchangeCost", "ExchangePlan", "ExchangeStrategy", "xla_devices", "xla_plan"),
     ".spmd": ("AXIS", "LOCAL_AXIS", "spmd_program"),
 })
 
@@ -36,13 +36,17 @@ if TYPE_CHECKING:
     from . import devices, multiprocess
     from .exchange import (
         Exchange,
+        ExchangeCost,
+        ExchangePlan,
+        ExchangeStrategy,
         NeighbourExchange,
         neighbour_exchange,
         scatter_forward,
         scatter_reverse,
         synchronize_forces,
+        xla_devices,
+        xla_plan,
     )
     from .layout import PartLayout, PartSystems, part_systems
     from .partitioning import Part, Partition, partition, partition_from_elements, partition_of
-    from .plan import ExchangeCost, ExchangePlan, ExchangeStrategy, xla_devices, xla_plan
     from .spmd import AXIS, LOCAL_AXIS, spmd_program

@@ -9,7 +9,7 @@ force operators are (padding slots repeat the part's first element,
 exchanged between the parts of an element partition: an element belongs to one part. With
 deep halos parts share (and recompute) elements: each carries the state of all its
 elements, the halo exchange copies that of the shared ones from their owner
-(:mod:`jaxsync.parallel.halo`), and the global state is merged from the owners.
+(:mod:`jaxsync.parallel.exchange.halo`), and the global state is merged from the owners.
 """
 
 from __future__ import annotations

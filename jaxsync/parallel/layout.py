@@ -5,7 +5,7 @@ Parts have different sizes, so every part's local nodes are padded to the larges
 (``n_local``): padding nodes have unit mass, zero stiffness and are fixed at zero, and
 they are never read back. A :class:`PartLayout` holds the index maps of a
 :class:`~jaxsync.parallel.partitioning.Partition` (or of the grown parts of a
-:class:`~jaxsync.parallel.halo.HaloPartition`) in that padded form, and moves fields:
+:class:`~jaxsync.parallel.exchange.halo.HaloPartition`) in that padded form, and moves fields:
 
 * :meth:`PartLayout.split`: a global field (..., n_nodes, c) -> (P, ..., n_local, c),
   each part's local nodes gathered, padding filled;
@@ -55,9 +55,9 @@ class PartSystems:
             n_local, out of range, so that scatters drop it).
         shared_interface: (n_parts, n_shared_max) interface index (padding: n_interface).
         owned: (n_parts, n_local) bool, the nodes each part owns, for deep halos
-            (:mod:`jaxsync.parallel.halo`); None for an element partition.
+            (:mod:`jaxsync.parallel.exchange.halo`); None for an element partition.
         element_exchange: deep halos' element tables
-            (:meth:`jaxsync.parallel.halo.HaloPartition.element_tables`: owned element
+            (:meth:`jaxsync.parallel.exchange.halo.HaloPartition.element_tables`: owned element
             slots, element-interface slots and indices), or None.
     """
 
@@ -88,7 +88,7 @@ class PartLayout:
 
     Attributes:
         partition: the :class:`~jaxsync.parallel.partitioning.Partition` or
-            :class:`~jaxsync.parallel.halo.HaloPartition` laid out (``mesh``, ``parts``,
+            :class:`~jaxsync.parallel.exchange.halo.HaloPartition` laid out (``mesh``, ``parts``,
             ``n_interface``; a halo's ``owned_local``), with each part's local nodes in
             reverse Cuthill-McKee order (:func:`ordered_parts`).
         n_local: local nodes per part after padding (the largest part's).

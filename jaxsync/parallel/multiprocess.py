@@ -53,7 +53,7 @@ SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi", "halo"), defined in 
 """Per-step synchronization across devices and processes: XLA ``psum`` of the whole
 interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of only the
 nodes two devices share, MPI Allreduce, or deep halos (an exchange of displacements every
-k steps, :mod:`jaxsync.parallel.halo`)."""
+k steps, :mod:`jaxsync.parallel.exchange.halo`)."""
 
 ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "ctypes", "callback")
 """How the MPI Allreduce is called from the compiled step: ``mpi4jax`` (an XLA FFI custom

@@ -55,10 +55,10 @@ from ..errors import ConfigError, ProblemError
 from ..fem.forces.internal_force import ForceModel, force_model
 from ..fem.stepper import SolverState, build_system, initial_state
 from ..options import Mode
+from ..parallel.exchange.builtin import Halo, sync_strategy
 from ..parallel.layout import PartLayout, part_systems
 from ..parallel.partitioning import Partition, partition
 from ..precision import require_float64
-from ..solve.exchanges import Halo, sync_strategy
 from ..solve.executors._distributed import DistributedParts, DistributedRunner
 from ..solve.executors._predicted import PredictedPhase
 from ..surrogate.training.histories import shared_dof_layout
@@ -258,7 +258,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | Force
         stage_repeats: ``repeats`` of the per-part stage timing.
         prediction_repeats: timed calls of each part's prediction alone (default
             max(repeats, 20); a refill of the vessel's n_s = 1000 takes about a second).
-        halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.halo`, the exact
+        halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.exchange.halo`, the exact
             communication-avoiding scheme) to time in the same round-robin, each a divisor
             of the timed steps n_cycles n_s n_f (``t_step_halo`` of the report).
 

@@ -45,7 +45,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".executors": ("Chunk", "DistributedParts", "DistributedRunner", "PredictedSteps", "Progress", "Runner", "Segment",
                    "SingleDeviceRunner", "SynchronizedSteps", "run_chunks"),
     ".ensemble": ("ensemble",),
-    ".exchanges": ("exchange_names", "register_exchange", "sync_strategy", "unregister_exchange"),
+    "..parallel.exchange": ("exchange_names", "register_exchange", "sync_strategy", "unregister_exchange"),
     ".full_system": ("simulate_full_system",),
     ".coupling.predictors": ("OraclePredictor",),
     ".prestress": ("PrestressResult", "prestress"),
@@ -58,11 +58,11 @@ __getattr__, __dir__ = export_lazily(__name__, {
 })
 
 if TYPE_CHECKING:
+    from ..parallel.exchange import exchange_names, register_exchange, sync_strategy, unregister_exchange
     from .coupling import Coupling, Synchronized
     from .coupling.predictors import OraclePredictor
     from .coupling.syncavoid import SyncAvoiding, describe_run, simulate_sync_avoiding, step_counts
     from .ensemble import ensemble
-    from .exchanges import exchange_names, register_exchange, sync_strategy, unregister_exchange
     from .executors import (
         Chunk,
         DistributedParts,

@@ -332,7 +332,7 @@ def simulate(problem, n_steps: int, *, dt=None, save=1, partitions=None, couplin
         exchange: distributed runs: how the parts exchange, :class:`jaxsync.Psum`,
             :class:`jaxsync.Ppermute`, :class:`jaxsync.Mpi` or :class:`jaxsync.Halo` (deep
             halos, exact; ``save`` and the depth must divide one another), any
-            :class:`jaxsync.parallel.plan.ExchangeStrategy`, or a registered name
+            :class:`jaxsync.parallel.exchange.protocol.ExchangeStrategy`, or a registered name
             (:func:`jaxsync.solve.register_exchange`); default
             :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process, MPI
             across CPU processes). The exchanges carry the devices to run on.

@@ -6,7 +6,7 @@ the solvers take them as arguments, and the command line's strings map onto them
 (:func:`sync_strategy`, :meth:`SaveAt.of`, :meth:`SolverCheckpoint.of`).
 
 * How the parts exchange (``sync=``): :class:`Psum`, :class:`Ppermute`, :class:`Mpi`,
-  :class:`Halo`, defined in :mod:`jaxsync.solve.exchanges` (with the registry of their
+  :class:`Halo`, defined in :mod:`jaxsync.parallel.exchange.builtin` (with the registry of their
   names) and importable from here too.
 * What a run keeps (``save=``): :class:`SaveAt`.
 * Where a run can resume from (``checkpoint=``): :class:`SolverCheckpoint`.
@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ProblemError
-from .exchanges import Halo, Mpi, Ppermute, Psum, sync_strategy, transport
+from ..parallel.exchange.builtin import Halo, Mpi, Ppermute, Psum, sync_strategy, transport
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "SaveAt", "SolverCheckpoint",
            "HostExecutor", "TracedExecutor", "Recompute", "StoreAll", "ResyncTolerance", "choose_executor",

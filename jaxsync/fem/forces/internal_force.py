@@ -53,7 +53,7 @@ class InternalForce(Protocol):
 
 class PartGeometry(Protocol):
     """What a force model reads of one part (:class:`jaxsync.parallel.partitioning.Part`
-    and the parts of a :class:`jaxsync.parallel.halo.HaloPartition` have it)."""
+    and the parts of a :class:`jaxsync.parallel.exchange.halo.HaloPartition` have it)."""
 
     elements: np.ndarray  # (n_elements_p,) global element ids
     nodes: np.ndarray  # (n_local_p,) global node ids

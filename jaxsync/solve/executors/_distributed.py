@@ -4,7 +4,7 @@ them in compiled chunks.
 :class:`DistributedParts` is what both executors need of a distributed run, built once
 on the host from the problem's mesh and the partition: the padded layout
 (:class:`~jaxsync.parallel.layout.PartLayout`), the devices and how the parts exchange
-across them (the :class:`~jaxsync.parallel.plan.ExchangePlan` of the run's ``sync``
+across them (the :class:`~jaxsync.parallel.exchange.protocol.ExchangePlan` of the run's ``sync``
 exchange), and the force model. Its :meth:`~DistributedParts.systems` are JAX functions of
 the problem's global system, so traced material, damping, loads and dt flow through.
 
@@ -27,12 +27,12 @@ from jax.sharding import PartitionSpec as P
 from ...errors import ConfigError
 from ...fem.forces.internal_force import force_model
 from ...fem.stepper import ExplicitSystem, SolverState
-from ...parallel.halo import check_save_every
+from ...parallel.exchange.builtin import sync_strategy
+from ...parallel.exchange.halo import check_save_every
 from ...parallel.layout import PartSystems, part_systems
 from ...parallel.partitioning import Partition, partition_from_elements
 from ...parallel.partitioning import partition as make_partition
 from ...parallel.spmd import AXIS, spmd_program
-from ..exchanges import sync_strategy
 from ._driver import Chunk, chunk_of_saves
 from ._phases import check_recordable, part_synchronized_steps, synchronized_steps
 
@@ -68,9 +68,9 @@ class DistributedParts:
         problem: the problem (its mesh is partitioned).
         partitions: an int n_parts (METIS, seed 0; ``jaxsync.partition(mesh, n, seed=s)``
             for another seed) or a :class:`jaxsync.Partition`.
-        sync: the exchange (:func:`jaxsync.solve.exchanges.sync_strategy`: a
-            :class:`~jaxsync.solve.exchanges.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
-            :class:`~jaxsync.parallel.plan.ExchangeStrategy`, a registered name, or None
+        sync: the exchange (:func:`jaxsync.parallel.exchange.builtin.sync_strategy`: a
+            :class:`~jaxsync.parallel.exchange.builtin.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
+            :class:`~jaxsync.parallel.exchange.protocol.ExchangeStrategy`, a registered name, or None
             for the default).
         mode: the force model (:func:`jaxsync.fem.forces.internal_force.force_model`).
         devices: the devices to run on (None: the exchange's own choice); passed to
@@ -79,7 +79,7 @@ class DistributedParts:
     Attributes:
         partition: the element :class:`Partition`.
         sync: the exchange.
-        plan: its :class:`~jaxsync.parallel.plan.ExchangePlan` for this partition, which
+        plan: its :class:`~jaxsync.parallel.exchange.protocol.ExchangePlan` for this partition, which
             the attributes below unpack.
         layout: :class:`PartLayout` of the parts as the programs hold them (the grown
             parts of deep halos).

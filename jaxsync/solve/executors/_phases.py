@@ -33,8 +33,8 @@ import jax.numpy as jnp
 
 from ...errors import ConfigError, ProblemError
 from ...fem.stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
-from ...parallel.exchange import Exchange
-from ...parallel.halo import advance_halo
+from ...parallel.exchange.halo import advance_halo
+from ...parallel.exchange.index_maps import Exchange
 from ...parallel.layout import PartSystems
 from ...surrogate.refill import refill_cycle
 from ..remat import advance_traced, recomputing_scan, segment_steps, state_bytes

@@ -49,11 +49,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 
-from ..errors import PartitionError
-from ..fem.stepper import SolverState, advance
-from ..options import check_halo_depth
-from .exchange import AXIS, LOCAL_AXIS, scatter_forward
-from .partitioning import Part, Partition
+from ...errors import PartitionError
+from ...fem.stepper import SolverState, advance
+from ...options import check_halo_depth
+from ..partitioning import Part, Partition
+from .index_maps import AXIS, LOCAL_AXIS, scatter_forward
 
 __all__ = ["HaloPartition", "halo_partition", "check_halo_depth", "refresh_halo", "advance_halo",
            "check_save_every"]

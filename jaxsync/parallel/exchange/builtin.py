@@ -1,8 +1,8 @@
 """The built-in exchanges of a distributed run (``sync=``) and the registry of their names.
 
-Every exchange implements :class:`jaxsync.parallel.plan.ExchangeStrategy`: its
+Every exchange implements :class:`jaxsync.parallel.exchange.protocol.ExchangeStrategy`: its
 :meth:`plan` gives the part layout on the devices, the exchange the compiled step calls
-and its cost (:class:`jaxsync.parallel.plan.ExchangePlan`), and :meth:`transport` one
+and its cost (:class:`jaxsync.parallel.exchange.protocol.ExchangePlan`), and :meth:`transport` one
 printable line. The solvers, the timings and the cost model read the plan and never ask
 which exchange it is, so a new exchange is one class (``docs/guides/extending-exchanges.md``).
 
@@ -23,10 +23,10 @@ import dataclasses
 import warnings
 from typing import TYPE_CHECKING, Any, Callable
 
-from ..errors import ConfigError
+from ...errors import ConfigError
 
 if TYPE_CHECKING:  # the command line builds its --sync choices from this module without JAX
-    from ..parallel.plan import ExchangePlan, ExchangeStrategy
+    from .protocol import ExchangePlan, ExchangeStrategy
 
 __all__ = ["Psum", "Ppermute", "Mpi", "Halo", "sync_strategy", "transport", "register_exchange",
            "unregister_exchange", "exchange_names", "ENTRY_POINT_GROUP", "EntryPointWarning"]
@@ -39,7 +39,7 @@ def _devices(value):
 def _cost_algorithm() -> str:
     """How the cost model prices an XLA psum: one collective through shared memory in one
     process, an allreduce between processes."""
-    from ..parallel.multiprocess import process_count
+    from ..multiprocess import process_count
 
     return "collective" if process_count() == 1 else "allreduce"
 
@@ -64,15 +64,15 @@ class Psum:
 
     def plan(self, partition, devices=None) -> ExchangePlan:
         """All parts in one SPMD program; ``psum`` over the device axis
-        (:class:`~jaxsync.parallel.plan.ExchangePlan`)."""
-        from ..parallel.plan import xla_devices, xla_plan
+        (:class:`~jaxsync.parallel.exchange.protocol.ExchangePlan`)."""
+        from .protocol import xla_devices, xla_plan
 
         devices = xla_devices(partition.n_parts, self.devices if devices is None else devices)
         return xla_plan(partition, devices, None, algorithm=_cost_algorithm())
 
     def transport(self, n_parts: int | None = None) -> str:
         """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
-        from ..parallel.multiprocess import collective_text
+        from ..multiprocess import collective_text
 
         return collective_text("psum", self.devices, n_parts)
 
@@ -98,8 +98,8 @@ class Ppermute:
     def plan(self, partition, devices=None) -> ExchangePlan:
         """All parts in one SPMD program; the neighbour exchange of ``partition`` over the
         devices (:func:`jaxsync.parallel.exchange.neighbour_exchange`)."""
-        from ..parallel.exchange import neighbour_exchange
-        from ..parallel.plan import xla_devices, xla_plan
+        from .index_maps import neighbour_exchange
+        from .protocol import xla_devices, xla_plan
 
         devices = xla_devices(partition.n_parts, self.devices if devices is None else devices)
         return xla_plan(partition, devices, neighbour_exchange(partition, len(devices)),
@@ -107,7 +107,7 @@ class Ppermute:
 
     def transport(self, n_parts: int | None = None) -> str:
         """One line: how a run of ``n_parts`` parts exchanges (:func:`transport`)."""
-        from ..parallel.multiprocess import collective_text
+        from ..multiprocess import collective_text
 
         return collective_text("ppermute (neighbouring devices only)", self.devices, n_parts)
 
@@ -135,7 +135,7 @@ class Mpi:
 
     def __post_init__(self):
         object.__setattr__(self, "devices", _devices(self.devices))
-        from ..parallel.multiprocess import ALLREDUCE_BACKENDS
+        from ..multiprocess import ALLREDUCE_BACKENDS
 
         if self.allreduce not in ALLREDUCE_BACKENDS:
             raise ConfigError(f"Mpi(allreduce=...) must be one of {ALLREDUCE_BACKENDS}, got {self.allreduce!r}")
@@ -148,9 +148,9 @@ class Mpi:
         one device; the interface summed by the MPI Allreduce of ``allreduce``."""
         import jax
 
-        from ..errors import PartitionError
-        from ..parallel import multiprocess
-        from ..parallel.plan import ExchangePlan
+        from ...errors import PartitionError
+        from .. import multiprocess
+        from .protocol import ExchangePlan
 
         chosen = self.devices if devices is None else devices
         local = list(jax.local_devices() if chosen is None else chosen)
@@ -177,14 +177,14 @@ class Mpi:
 
     def transport(self, n_parts: int | None = None) -> str:
         """One line: how the processes sum (:func:`transport`)."""
-        from ..parallel.multiprocess import allreduce_text
+        from ..multiprocess import allreduce_text
 
         return allreduce_text(self.allreduce)
 
 
 @dataclasses.dataclass(frozen=True)
 class Halo:
-    """Deep halos (:mod:`jaxsync.parallel.halo`), the exact communication-avoiding scheme:
+    """Deep halos (:mod:`jaxsync.parallel.exchange.halo`), the exact communication-avoiding scheme:
     every part grown by ``depth`` layers of its neighbours' elements steps alone and
     exchanges both displacement levels of its halo every ``depth`` steps (through a psum
     in one process and across GPUs, through MPI across CPU processes). The same trajectory
@@ -200,7 +200,7 @@ class Halo:
     devices: tuple | None = None
 
     def __post_init__(self):
-        from ..options import check_halo_depth
+        from ...options import check_halo_depth
 
         object.__setattr__(self, "depth", check_halo_depth(self.depth))
         object.__setattr__(self, "devices", _devices(self.devices))
@@ -215,10 +215,10 @@ class Halo:
         return dataclasses.replace(sync_strategy(None), devices=self.devices)
 
     def plan(self, partition, devices=None) -> ExchangePlan:
-        """The parts grown by ``depth`` layers (:func:`jaxsync.parallel.halo.halo_partition`)
+        """The parts grown by ``depth`` layers (:func:`jaxsync.parallel.exchange.halo.halo_partition`)
         laid out by :meth:`carrier`, exchanging both displacement levels every ``depth``
         steps."""
-        from ..parallel.halo import halo_partition
+        from .halo import halo_partition
 
         return self.carrier().plan(halo_partition(partition, self.depth), devices).with_halo_depth(self.depth)
 
@@ -315,7 +315,7 @@ def exchange_names() -> tuple:
 
 def sync_strategy(value=None) -> ExchangeStrategy:
     """The exchange of a distributed run: an exchange object as it is (anything with
-    :class:`~jaxsync.parallel.plan.ExchangeStrategy`'s methods), a registered name
+    :class:`~jaxsync.parallel.exchange.protocol.ExchangeStrategy`'s methods), a registered name
     (``"psum"``, ``"ppermute"``, ``"mpi"``, ``"halo"``, ``"halo:k"``, or a name given to
     :func:`register_exchange`: the exchange with its defaults), or None:
     :func:`jaxsync.parallel.multiprocess.default_sync` (psum in one process, MPI across
@@ -324,16 +324,16 @@ def sync_strategy(value=None) -> ExchangeStrategy:
     Raises:
         ConfigError: an unknown name (the message lists the registered ones), or an
             object that is not an exchange."""
-    from ..parallel.multiprocess import default_sync
+    from ..multiprocess import default_sync
 
     if value is None:
         value = default_sync()
     if not isinstance(value, str):
-        from ..parallel.plan import ExchangeStrategy
+        from .protocol import ExchangeStrategy
 
         if not isinstance(value, ExchangeStrategy):
             raise ConfigError(f"sync={value!r} is not an exchange: give one of {', '.join(map(repr, _REGISTRY))} "
-                              "or an object with the methods of jaxsync.parallel.plan.ExchangeStrategy "
+                              "or an object with the methods of jaxsync.parallel.exchange.protocol.ExchangeStrategy "
                               "(name, synchronizes_every_step, plan, transport)")
         return value
     name, colon, argument = value.partition(":")

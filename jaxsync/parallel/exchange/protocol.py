@@ -30,10 +30,10 @@ from typing import Any, Callable, Protocol, runtime_checkable
 
 import jax
 
-from ..errors import ConfigError, PartitionError
-from ..perf.costmodel import ALGORITHMS, CommunicationPattern, communication_pattern, sync_time
-from .exchange import Exchange
-from .layout import PartLayout
+from ...errors import ConfigError, PartitionError
+from ...perf.costmodel import ALGORITHMS, CommunicationPattern, communication_pattern, sync_time
+from ..layout import PartLayout
+from .index_maps import Exchange
 
 __all__ = ["ExchangeStrategy", "ExchangePlan", "ExchangeCost", "xla_plan", "xla_devices"]
 
@@ -96,7 +96,7 @@ class ExchangePlan:
     Attributes:
         parts: the part geometry the programs hold: the element
             :class:`~jaxsync.parallel.partitioning.Partition`, or a
-            :class:`~jaxsync.parallel.halo.HaloPartition` (parts grown by deep halos).
+            :class:`~jaxsync.parallel.exchange.halo.HaloPartition` (parts grown by deep halos).
         layout: the padded :class:`~jaxsync.parallel.layout.PartLayout` of ``parts``.
         exchange: the :class:`~jaxsync.parallel.exchange.Exchange` the compiled step calls.
         devices: the devices of the run's mesh, in order (device d holds parts
@@ -136,7 +136,7 @@ class ExchangePlan:
     def with_halo_depth(self, depth: int) -> "ExchangePlan":
         """The same plan exchanging both displacement levels (6 values per node) every
         ``depth`` steps instead of forces every step: deep halos
-        (:mod:`jaxsync.parallel.halo`; ``parts`` the grown parts of that depth)."""
+        (:mod:`jaxsync.parallel.exchange.halo`; ``parts`` the grown parts of that depth)."""
         pattern = dataclasses.replace(self.cost.pattern, dofs_per_node=6)
         exchange = dataclasses.replace(self.exchange, halo_depth=depth,
                                        n_element_interface=getattr(self.parts, "n_element_interface", 0))

@@ -31,10 +31,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import PartitionError
-from ..pytree import pytree_dataclass, static_field
-from .partitioning import Partition
-from .spmd import AXIS, LOCAL_AXIS
+from ...errors import PartitionError
+from ...pytree import pytree_dataclass, static_field
+from ..partitioning import Partition
+from ..spmd import AXIS, LOCAL_AXIS
 
 __all__ = ["Exchange", "synchronize_forces", "scatter_reverse", "scatter_forward", "NeighbourExchange",
            "neighbour_exchange", "AXIS", "LOCAL_AXIS"]
@@ -51,7 +51,7 @@ class Exchange:
             :class:`NeighbourExchange`, or an MPI Allreduce
             (:func:`jaxsync.parallel.multiprocess.make_allreduce`).
         halo_depth: None (the parts sum their forces every step) or k, deep halos
-            (:mod:`jaxsync.parallel.halo`: both displacement levels every k steps).
+            (:mod:`jaxsync.parallel.exchange.halo`: both displacement levels every k steps).
         n_element_interface: elements whose internal variables deep halos exchange (0:
             none).
     """
