@@ -11,7 +11,7 @@
 - :mod:`.halo`: deep halos, the exact communication-avoiding scheme for central differences.
 
 An exchange of your own is one module implementing :class:`ExchangeStrategy` and one
-:func:`register_exchange` (docs: Extending: an exchange).
+:func:`register_exchange` (the guide Adding an exchange).
 """
 
 from typing import TYPE_CHECKING
