@@ -270,7 +270,7 @@ def test_installed_packages_name_exchanges_through_entry_points(monkeypatch):
     be imported is left out with a warning, and the other names keep working."""
     from importlib.metadata import EntryPoint
 
-    from jaxsync.solve import exchanges
+    from jaxsync.parallel.exchange import builtin as exchanges
 
     points = [EntryPoint("psum-from-a-package", "jaxsync.parallel.exchange.builtin:Psum", exchanges.ENTRY_POINT_GROUP),
               EntryPoint("broken-package", "no_such_module_for_jaxsync:Thing", exchanges.ENTRY_POINT_GROUP)]

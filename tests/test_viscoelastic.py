@@ -502,7 +502,7 @@ def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch,
     shared elements from their owners. Without that copy (patched out) depth 3 drifts:
     the outer halo elements' state went through displacements that were wrong there."""
     from jaxsync.fem.stepper import SolverState
-    from jaxsync.parallel import halo
+    from jaxsync.parallel.exchange import halo
 
     problem, dt, one = halo_beam_run
     mesh = problem.mesh
