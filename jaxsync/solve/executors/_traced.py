@@ -28,13 +28,14 @@ __all__ = ["run_traced", "TracedRun"]
 class TracedRun(tuple):
     """What :func:`run_traced` returns: ``(saved, recorded, predictions, result)``.
 
-    saved: (n_saves, n_nodes, 3) global displacement at steps save_every, 2 save_every, ...
-        of the schedule (the start is not included) [cm].
-    recorded: per part, (n_steps, n_shared_max, 3) shared-node displacements after every
-        step of a synchronized-only schedule when asked for, else None.
-    predictions: (n_parts, n_predicted_saves, n_dof) each part's own predictions at the
-        saved predicted steps, or None.
-    result: int32 :class:`jaxsync.trajectory.Result` code.
+    Attributes:
+        saved: (n_saves, n_nodes, 3) global displacement at steps save_every, 2 save_every,
+            ... of the schedule (the start is not included) [cm].
+        recorded: per part, (n_steps, n_shared_max, 3) shared-node displacements after every
+            step of a synchronized-only schedule when asked for, else None.
+        predictions: (n_parts, n_predicted_saves, n_dof) each part's own predictions at the
+            saved predicted steps, or None.
+        result: int32 :class:`jaxsync.trajectory.Result` code.
     """
 
     saved = property(lambda self: self[0])
