@@ -129,7 +129,14 @@ from ..errors import ConfigError, JaxsyncError
 from ..fem.problem import Problem
 from ..mesh import Mesh, box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
-from .config_schema import BOUNDARY_TABLES, DEFAULT_MATERIAL_MODEL, MATERIAL_MODELS, TomlPath, dataclass_schema
+from .config_schema import (
+    BOUNDARY_TABLES,
+    DEFAULT_MATERIAL_MODEL,
+    MATERIAL_MODELS,
+    TomlPath,
+    dataclass_schema,
+    from_table,
+)
 
 __all__ = ["RunConfig", "load_config", "check_config", "default_config_path", "problem_from_config"]
 
@@ -283,11 +290,8 @@ def _material_schema(material: dict, origin: str) -> dict:
 def _check_material(material: dict, origin: str) -> None:
     """The keys that the [material] model needs (the others are checked by its schema)."""
     model = material.get("model", DEFAULT_MATERIAL_MODEL)
-    schema = MATERIAL_MODELS[model].schema
-    missing = [k for k in schema.required if k not in material]
-    if missing:
-        raise ConfigError(f"{origin}: [material] model = \"{model}\" needs {', '.join(missing)}; its keys: model, "
-                          f"{', '.join(schema.keys)} ({', '.join(schema.required)} required)")
+    _check_required(material, MATERIAL_MODELS[model].schema, f"[material] model = \"{model}\"", origin,
+                    leading=("model",))
 
 
 def _material(material: dict, mesh):
@@ -295,11 +299,13 @@ def _material(material: dict, mesh):
     return MATERIAL_MODELS[material.get("model", DEFAULT_MATERIAL_MODEL)].build(material, mesh)
 
 
-def _check_required(entry: dict, schema, where: str, origin: str) -> None:
+def _check_required(entry: dict, schema, where: str, origin: str, leading=()) -> None:
+    """ConfigError naming the required keys of ``schema`` that ``entry`` lacks (``leading``:
+    keys of the table listed before the schema's, as ``model`` of [material])."""
     missing = [key for key in schema.required if key not in entry]
     if missing:
-        raise ConfigError(f"{origin}: {where} needs {', '.join(missing)}; its keys: {', '.join(schema.keys)} "
-                          f"({', '.join(schema.required)} required)")
+        raise ConfigError(f"{origin}: {where} needs {', '.join(missing)}; its keys: "
+                          f"{', '.join((*leading, *schema.keys))} ({', '.join(schema.required)} required)")
 
 
 def _check_table(entry: dict, schema: dict, where: str, origin: str) -> None:
@@ -500,16 +506,12 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
         problem, percent = mass_scaling(
             problem, None if scaling_beta is None else float(scaling_beta),
             dt_target=None if scaling_dt is None else float(scaling_dt))
-    checkpoint_every = run.get("checkpoint_every")
-    run_config = RunConfig(
-        n_steps=int(run.get("n_steps", 20000)), save_every=int(run.get("save_every", 100)),
-        dt=None if run.get("dt") is None else float(run["dt"]),
-        output=str(run.get("output", "trajectory.h5")), xdmf=run.get("xdmf"), vtu=run.get("vtu"),
-        checkpoint=run.get("checkpoint"),
-        checkpoint_every=None if checkpoint_every is None else int(checkpoint_every),
-        mass_scaling_dt=None if scaling_dt is None else float(scaling_dt),
-        mass_scaling_beta=None if scaling_beta is None else float(scaling_beta),
-        added_mass_percent=percent)
+    # the [run] keys given, coerced as RunConfig's fields take them (the others keep its defaults), and
+    # the mass scaling applied (the options' override of the file's)
+    run_config = from_table(RunConfig, run, _RUN, extra={
+        "mass_scaling_dt": None if scaling_dt is None else float(scaling_dt),
+        "mass_scaling_beta": None if scaling_beta is None else float(scaling_beta),
+        "added_mass_percent": percent})
     return problem, run_config
 
 
