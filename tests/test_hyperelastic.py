@@ -117,19 +117,10 @@ def _piola(material, F, fibres=None):
     return np.asarray(material.first_piola(jnp.asarray(F), None if fibres is None else jnp.asarray(fibres)))
 
 
-def _matvec(op, u):
-    """op.matvec(u) as one compiled program (op by op, a hyperelastic force compiles dozens
-    of small programs)."""
-    return _compiled_matvec(op, u)
-
-
-def _energy(op, u):
-    """op.energy(u) as one compiled program."""
-    return _compiled_energy(op, u)
-
-
-_compiled_matvec = jax.jit(lambda op, u: op.matvec(u))
-_compiled_energy = jax.jit(lambda op, u: op.energy(u))
+# op.matvec(u) and op.energy(u) each as one compiled program (op by op, a hyperelastic
+# force compiles dozens of small programs)
+_matvec = jax.jit(lambda op, u: op.matvec(u))
+_energy = jax.jit(lambda op, u: op.energy(u))
 
 
 # --- the laws ---------------------------------------------------------------------------
