@@ -21,6 +21,13 @@ os.environ["XLA_FLAGS"] = (
 # 283 s -> 181 s). A level given in XLA_FLAGS by the caller is kept.
 if "--xla_backend_optimization_level" not in os.environ["XLA_FLAGS"]:
     os.environ["XLA_FLAGS"] += " --xla_backend_optimization_level=0"
+# For the same reason the fusions are emitted by XLA:CPU's elemental emitters rather than its
+# MLIR fusion emitters, which take longer to compile what these small programs run:
+# test_halo + test_follower 70 s -> 46 s, test_vessel_demo 96 s -> 65 s (one process, at
+# level 0 both). The arithmetic is the same HLO; the tests' tolerances are the round-off ones
+# above. A setting given in XLA_FLAGS by the caller is kept.
+if "--xla_cpu_use_fusion_emitters" not in os.environ["XLA_FLAGS"]:
+    os.environ["XLA_FLAGS"] += " --xla_cpu_use_fusion_emitters=false"
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 
 # One XLA compilation cache for the test session: most of the suite's time is compiling, and
