@@ -108,7 +108,9 @@ class TrainConfig:
         eta_min: final learning rate of the paper's epoch rule (used when n_epochs is None).
         n_epochs: largest number of epochs; None applies the paper's
             :func:`n_epoch_rule` floor(log_gamma(eta_min / eta0)).
-        epochs_per_call: epochs run inside one compiled call (between progress updates).
+        epochs_per_call: epochs run inside one compiled call (between progress updates);
+            one program of this many epochs is compiled per data shape, and runs the
+            shorter chunks too (the last one, those that end at a training state's save).
         patience: stop when no replica's validation loss has improved for this many
             epochs; None never stops early.  The best parameters are returned either way.
         n_candidates: networks :func:`jaxsync.surrogate.train_surrogates` trains per part
@@ -301,7 +303,7 @@ def _epoch_runner(arch, config: TrainConfig, n_train: int, mesh: Mesh):
     # the shuffling key (argument 11) is the same for all parts.
     all_replicas = spmd_program(replica_epoch, mesh, n_in=12, n_out=4, replicated_in=(11,), jit=False)
 
-    def run_chunk(state, data, shuffle_key, epochs, patience):
+    def run_chunk(state, data, shuffle_key, epochs, end, patience):
         def run_epoch(carry, epoch):
             params, opt_state, best_params, best_val, best_epoch = carry
             params, opt_state, train, val = all_replicas(
@@ -322,7 +324,9 @@ def _epoch_runner(arch, config: TrainConfig, n_train: int, mesh: Mesh):
             return carry, (nan, nan, jnp.bool_(False))
 
         def body(carry, epoch):
-            stop = (patience > 0) & jnp.all(epoch - carry[4] >= patience)
+            # epochs from ``end`` on belong to the next chunk: one program runs chunks of
+            # any length up to its own
+            stop = (epoch >= end) | ((patience > 0) & jnp.all(epoch - carry[4] >= patience))
             return jax.lax.cond(stop, skip_epoch, run_epoch, carry, epoch)
 
         state, (train, val, ran) = jax.lax.scan(body, state, epochs)
@@ -405,9 +409,9 @@ def train_replicas(
             its file exists it must come from a run with the same data, architecture,
             config, key, init and ``state.every`` (else :class:`CheckpointError`), and
             training continues from it.  It is rewritten atomically every ``state.every``
-            epochs and at the end; delete it once the results are saved.  Compiled
-            chunks also end at the multiples of ``state.every``, so a multiple of
-            ``config.epochs_per_call`` avoids compiling a second chunk length.
+            epochs and at the end; delete it once the results are saved.  Chunks
+            also end at the multiples of ``state.every`` (the same compiled program
+            runs chunks of every length).
         callback: called with a :class:`TrainProgress` after every compiled chunk (for
             logging; an exception raised there ends the training, and a state written
             before it can be resumed).
@@ -467,13 +471,18 @@ def train_replicas(
         initial_val = np.asarray(val_loss_fn(carry[0], *arrays[3:7], arrays[8]))
     patience = jnp.int32(config.patience or 0)
 
-    def executable(chunk):
+    # Every chunk runs in one program of epochs_per_call epochs (a shorter chunk skips the
+    # epochs after its end): one compilation per data shape, whatever the chunk lengths.
+    length = config.epochs_per_call
+
+    def executable():
         # Compiled ahead of time (and kept with the cached runner) so that compilation is
-        # timed apart from training; one executable per chunk length and data shape.
-        signature = (chunk,) + tuple(a.shape for a in arrays)
+        # timed apart from training.
+        signature = (length,) + tuple(a.shape for a in arrays)
         if signature not in executables:
-            epochs = jax.ShapeDtypeStruct((chunk,), jnp.int32)
-            executables[signature] = run_chunk.lower(carry, arrays, shuffle_key, epochs, patience).compile()
+            epochs = jax.ShapeDtypeStruct((length,), jnp.int32)
+            executables[signature] = run_chunk.lower(carry, arrays, shuffle_key, epochs, jnp.int32(0),
+                                                     patience).compile()
         return executables[signature]
 
     def next_boundary(done, step):
@@ -490,9 +499,10 @@ def train_replicas(
                 end = min(end, next_boundary(done, every))
             chunk = end - done
             start = time.perf_counter()
-            run = executable(chunk)
+            run = executable()
             compiled = time.perf_counter()
-            carry, train, val, ran = run(carry, arrays, shuffle_key, jnp.arange(done, end, dtype=jnp.int32), patience)
+            carry, train, val, ran = run(carry, arrays, shuffle_key, jnp.arange(done, done + length, dtype=jnp.int32),
+                                         jnp.int32(end), patience)
             train, val, ran = np.asarray(train), np.asarray(val), np.asarray(ran)  # waits for the chunk
             compile_seconds += compiled - start
             n_ran = int(ran.sum())
