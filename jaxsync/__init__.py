@@ -69,7 +69,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".solve.static_adjoint": ("static_displacement",),
     ".solve.coupling.syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
     ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
-    ".trajectory": ("PartHistory", "Result", "Trajectory"),
+    ".io.trajectory": ("PartHistory", "Result", "Trajectory"),
 })
 
 if TYPE_CHECKING:
@@ -110,6 +110,7 @@ if TYPE_CHECKING:
     from .fem.problem import Dirichlet, LockingWarning, Problem
     from .fem.rigid_body import RigidBodyWarning
     from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .io.trajectory import PartHistory, Result, Trajectory
     from .mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .parallel import devices
     from .parallel.partitioning import Partition, partition
@@ -136,4 +137,3 @@ if TYPE_CHECKING:
         TracedExecutor,
     )
     from .solve.zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
-    from .trajectory import PartHistory, Result, Trajectory

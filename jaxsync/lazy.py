@@ -7,7 +7,7 @@ back the module ``__getattr__`` and ``__dir__`` of PEP 562. A name's module, and
 module imports, is imported the first time the name is used (``jaxsync.cantilever()``,
 ``from jaxsync import simulate``); the name is then an ordinary attribute of the package.
 ``__all__``, ``dir()`` and ``from package import *`` see every name before it is imported,
-and a submodule (``jaxsync.trajectory``) is imported on first access as if the package had
+and a submodule (``jaxsync.io.trajectory``) is imported on first access as if the package had
 imported it. Each ``__init__`` also imports its names under ``typing.TYPE_CHECKING``, so
 that type checkers, IDEs and linters see them.
 

@@ -405,8 +405,8 @@ def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
                                atol=1e-12 * np.abs(reference.displacement).max())
     # --learn-save: the surrogates as learned, a surrogate file that predicts the last stretch it
     # learned from (the synchronized run: the truth) better than the trained one
+    from jaxsync.io.surrogate_file import load_surrogate
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.saved import load_surrogate
     from jaxsync.surrogate.training.evaluate import rollout_errors
 
     saved = load_surrogate(learned)
@@ -484,7 +484,7 @@ def test_finetune_writes_a_checkpoint_that_predict_runs(demo, tmp_path):
     """``jaxsync finetune`` on the demo's files: windows within the training half, the best
     validated weights written with the partition and a record of the fine-tuning; refuses
     to overwrite; ``jaxsync predict`` runs the new checkpoint."""
-    from jaxsync.surrogate.saved import load_surrogate
+    from jaxsync.io.surrogate_file import load_surrogate
 
     _, out, _ = demo
     trained = out / "surrogate" / "surrogate.h5"

@@ -234,7 +234,7 @@ def test_follower_needs_a_hyperelastic_law_and_a_boolean():
 
 
 def test_checkpoint_fingerprint_sees_the_follower_pressure():
-    from jaxsync.solve.checkpoint import fingerprint
+    from jaxsync.io.checkpoint import fingerprint
 
     mesh = _block()
     a = _symmetric(mesh, 1.0e5)

@@ -24,7 +24,7 @@ from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, inverted_elemen
 from jaxsync.fem.materials.hyperelastic import HolzapfelGasserOgden, NeoHookean, helical_fibres
 from jaxsync.fem.run_check import RunCheck
 from jaxsync.fem.stepper import SolverState, build_system
-from jaxsync.solve.checkpoint import fingerprint
+from jaxsync.io.checkpoint import fingerprint
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
 MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))

@@ -30,7 +30,7 @@ NUMERICAL = ("jax", "jaxlib", "numpy", "scipy", "skfem", "meshio", "h5py", "opta
              "pymetis", "tqdm", "mpi4py")
 LAZY_PACKAGES = ("jaxsync", "jaxsync.fem", "jaxsync.cases", "jaxsync.cli", "jaxsync.solve", "jaxsync.solve.coupling",
                  "jaxsync.solve.executors", "jaxsync.surrogate", "jaxsync.parallel", "jaxsync.parallel.exchange",
-                 "jaxsync.perf")
+                 "jaxsync.perf", "jaxsync.io")
 
 
 def imported_after(code: str, *args: str, cwd=None) -> set[str]:
@@ -102,7 +102,7 @@ def test_report_imports_neither_optax_nor_gmsh():
     """Every module that ``jaxsync report`` and the report's writer (plots, figures) name,
     imported together; and the command itself, up to its first input."""
     modules = written_imports("jaxsync/cli/report.py", "jaxsync/app/plots.py", "jaxsync/app/figures.py")
-    assert "jaxsync.solve.coupling.syncavoid" in modules and "jaxsync.trajectory" in modules
+    assert "jaxsync.solve.coupling.syncavoid" in modules and "jaxsync.io.trajectory" in modules
     loaded = imported_after("\n".join(f"import {m}" for m in sorted(modules)))
     assert not loaded & {"optax", "gmsh"}, sorted(loaded & {"optax", "gmsh"})
 
@@ -178,7 +178,7 @@ print("ok")"""
 def test_submodules_are_attributes_and_unknown_names_are_not():
     import jaxsync
 
-    assert jaxsync.trajectory.Trajectory is jaxsync.Trajectory
+    assert jaxsync.io.trajectory.Trajectory is jaxsync.Trajectory
     assert isinstance(jaxsync.parallel.devices, types.ModuleType) and jaxsync.devices is jaxsync.parallel.devices
     assert isinstance(jaxsync.parallel.multiprocess, types.ModuleType)
     with pytest.raises(AttributeError, match="has no attribute 'no_such_name'"):

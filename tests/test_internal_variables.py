@@ -20,7 +20,7 @@ import jaxsync
 from jaxsync.errors import MaterialError
 from jaxsync.fem.materials.viscoelastic import StandardLinearSolid
 from jaxsync.fem.stepper import Probe, advance, build_system, initial_state
-from jaxsync.solve.checkpoint import load_checkpoint
+from jaxsync.io.checkpoint import load_checkpoint
 
 E, NU, RHO, BETA, TAU = 1.0e6, 0.3, 1.0, 1.5, 2.0e-3
 
@@ -145,7 +145,7 @@ def test_a_partitioned_run_and_its_state_equal_the_single_device_run(beam, tmp_p
     scale = float(np.max(np.abs(one.displacement)))
     np.testing.assert_allclose(two.displacement, one.displacement, rtol=0, atol=1e-12 * scale)
     # the merged state of the parts is the single-device state, element by element
-    from jaxsync.solve.checkpoint import fingerprint
+    from jaxsync.io.checkpoint import fingerprint
 
     key = fingerprint(problem, dt, 50)
     state_one, _, _ = load_checkpoint(str(tmp_path / "one.h5"), key, 300)
@@ -172,7 +172,7 @@ def test_a_resumed_run_is_bit_identical_to_the_uninterrupted_one(beam, tmp_path)
     resumed = jaxsync.simulate(problem, 400, dt=dt, save=50, executor=executor, checkpoint=str(path))
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     # the same resume with the branch's state dropped would not be: the state matters
-    from jaxsync.solve.checkpoint import fingerprint
+    from jaxsync.io.checkpoint import fingerprint
 
     state, _, _ = load_checkpoint(str(path), fingerprint(problem, dt, 50), 400)
     assert np.max(np.abs(np.asarray(state.internal["Q"]))) > 0

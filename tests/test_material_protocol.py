@@ -20,9 +20,9 @@ import jaxsync
 from jaxsync.errors import CheckpointError, ProblemError
 from jaxsync.fem.materials.hyperelastic import is_hyperelastic
 from jaxsync.fem.materials.law import FiniteStrainLaw, MaterialLaw
+from jaxsync.io.checkpoint import fingerprint
 from jaxsync.perf.roofline import step_costs_for
 from jaxsync.pytree import pytree_dataclass
-from jaxsync.solve.checkpoint import fingerprint
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
 

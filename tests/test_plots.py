@@ -11,7 +11,7 @@ import jaxsync
 from jaxsync.app import figures, plots
 from jaxsync.cli import main
 from jaxsync.errors import ConfigError, ProblemError
-from jaxsync.trajectory import PartHistory
+from jaxsync.io.trajectory import PartHistory
 
 N_STEPS, SAVE_EVERY = 4000, 10  # 1 s of physical time: the beam bends, the load is ramped
 

@@ -256,7 +256,7 @@ def test_an_ensemble_of_several_betas_equals_separate_runs_and_names_an_unstable
 
 
 def test_a_resumed_run_is_bit_identical_and_the_records_carry_beta(beam, tmp_path):
-    from jaxsync.solve.checkpoint import fingerprint
+    from jaxsync.io.checkpoint import fingerprint
 
     problem = _cantilever(beam)
     dt = float(problem.dt)

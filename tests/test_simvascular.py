@@ -388,7 +388,7 @@ def test_vtu_series_reads_back_with_meshio(tmp_path):
 
 def test_the_cell_writer_takes_any_cell_type(tmp_path):
     """tetra10 goes through the same writer (quadratic elements, later)."""
-    from jaxsync.trajectory import write_vtu
+    from jaxsync.io.trajectory import write_vtu
 
     points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
     mid = np.array([(points[a] + points[b]) / 2 for a, b in [(0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)]])
@@ -399,7 +399,7 @@ def test_the_cell_writer_takes_any_cell_type(tmp_path):
 
 
 def test_a_failed_vtu_write_leaves_the_earlier_series(tmp_path, monkeypatch):
-    import jaxsync.trajectory as trajectory_module
+    import jaxsync.io.trajectory as trajectory_module
 
     traj = jaxsync.simulate(_problem(jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))), 40, save=20)
     pvd = traj.to_vtu(tmp_path / "run")

@@ -10,8 +10,8 @@ import scipy.sparse.linalg as spla
 import fem_reference as ref
 import jaxsync
 from jaxsync import CheckpointError, ProblemError, StabilityError
+from jaxsync.io.checkpoint import committed_step
 from jaxsync.solve import Progress
-from jaxsync.solve.checkpoint import committed_step
 
 
 @pytest.fixture(scope="module")
@@ -250,7 +250,7 @@ def test_checkpoints_come_by_wall_time_unless_an_interval_is_given(problem, tmp_
     """Without checkpoint_every a run checkpoints once CHECKPOINT_SECONDS have passed since
     its last checkpoint (here: after every chunk, or never before its end); an interval
     in steps is kept to whatever the clock says."""
-    import jaxsync.solve.checkpoint as checkpoint
+    import jaxsync.io.checkpoint as checkpoint
 
     monkeypatch.setattr(checkpoint, "CHECKPOINT_SECONDS", seconds)
     by_clock, by_steps = tmp_path / "clock.ckpt.h5", tmp_path / "steps.ckpt.h5"
@@ -338,7 +338,7 @@ def _layout1_checkpoint(path, source, problem, dt, save_every, *, checksum=True)
     import h5py
 
     from jaxsync.io import array_checksum
-    from jaxsync.solve.checkpoint import fingerprint, load_checkpoint
+    from jaxsync.io.checkpoint import fingerprint, load_checkpoint
 
     key = fingerprint(problem, dt, save_every)
     state, snapshots, _ = load_checkpoint(source, key, 10**9)
@@ -373,7 +373,7 @@ def test_checkpoints_append_only_their_new_rows(problem, tmp_path, monkeypatch):
     rewrites the snapshots before it (that made checkpointed runs 1.8x slower)."""
     import h5py
 
-    import jaxsync.solve.checkpoint as checkpoint
+    import jaxsync.io.checkpoint as checkpoint
 
     whole = []
     atomic_h5 = checkpoint.atomic_h5
@@ -409,7 +409,7 @@ def _storage(path):
 def _toy_writer(path, n_steps=30):
     """A CheckpointWriter of a made-up run (5 nodes, one part recorded), and its blocks."""
     from jaxsync.fem.stepper import SolverState
-    from jaxsync.solve.checkpoint import CheckpointWriter
+    from jaxsync.io.checkpoint import CheckpointWriter
 
     def state(step):
         return SolverState(np.full((5, 3), step + 0.5), np.full((5, 3), step - 0.5), np.int32(step))
@@ -470,7 +470,7 @@ def test_a_process_killed_at_any_write_of_a_checkpoint_leaves_a_correct_one(tmp_
     import subprocess
     import sys
 
-    from jaxsync.solve.checkpoint import committed_step, load_checkpoint
+    from jaxsync.io.checkpoint import committed_step, load_checkpoint
 
     writes = 7  # snapshots, shared rows, 2 state slots, commit, its checksum, step hint
     here = os.path.dirname(os.path.abspath(__file__))
@@ -506,7 +506,7 @@ def test_a_damaged_last_commit_resumes_from_the_one_before(problem, tmp_path):
         last = int(np.argmax(f["commit"][:, 0]))
         assert int(f["commit"][last, 1]) == 600
         f["commit_checksum"][last] = b"0" * 64
-    from jaxsync.solve.checkpoint import fingerprint, load_checkpoint
+    from jaxsync.io.checkpoint import fingerprint, load_checkpoint
 
     state, _, _ = load_checkpoint(ckpt, fingerprint(problem, float(problem.dt), 20), 1000)
     assert int(state.step) == 400

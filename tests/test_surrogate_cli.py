@@ -9,6 +9,7 @@ import pytest
 
 from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.io.surrogate_file import check_compatible, load_surrogate
 from jaxsync.surrogate import (
     ArchitectureChoice,
     Sampling,
@@ -17,7 +18,6 @@ from jaxsync.surrogate import (
     TrainingState,
     train_surrogates,
 )
-from jaxsync.surrogate.saved import check_compatible, load_surrogate
 from test_surrogate_fit import NODES, write_trajectory
 
 

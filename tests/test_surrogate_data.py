@@ -9,6 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.io.trajectory import PartHistory, Trajectory
 from jaxsync.surrogate.refill import (
     refill_index_sets,
     refill_input_steps,
@@ -25,7 +26,6 @@ from jaxsync.surrogate.training.data import (
     subsample,
 )
 from jaxsync.surrogate.training.histories import read_shared_histories
-from jaxsync.trajectory import PartHistory, Trajectory
 
 REFILL_CASES = [(1599, 80, 20, 20), (9, 1, 10, 10), (47, 4, 6, 3), (100, 7, 3, 5), (29, 3, 5, 9), (5, 2, 3, 1)]
 

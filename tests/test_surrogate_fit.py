@@ -9,6 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
+from jaxsync.io.trajectory import PartHistory, Trajectory
 from jaxsync.surrogate import (
     ArchitectureChoice,
     Sampling,
@@ -23,7 +24,6 @@ from jaxsync.surrogate import (
 from jaxsync.surrogate.models.protocol import FitSettings
 from jaxsync.surrogate.training.data import build_dataset, stack_replicas
 from jaxsync.surrogate.training.evaluate import e_mse
-from jaxsync.trajectory import PartHistory, Trajectory
 
 NODES = (np.array([3, 8], np.int64), np.array([3, 8, 11], np.int64))
 

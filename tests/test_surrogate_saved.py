@@ -8,15 +8,15 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import CheckpointError
-from jaxsync.surrogate.models.lstm import LSTMArchitecture
-from jaxsync.surrogate.models.replicas import init_replicas
-from jaxsync.surrogate.saved import (
+from jaxsync.io.surrogate_file import (
     FORMAT_VERSION,
     SavedSurrogate,
     check_compatible,
     load_surrogate,
     save_surrogate,
 )
+from jaxsync.surrogate.models.lstm import LSTMArchitecture
+from jaxsync.surrogate.models.replicas import init_replicas
 
 NODES = (np.array([4, 9, 17], np.int64), np.array([2, 4, 9, 30], np.int64))
 

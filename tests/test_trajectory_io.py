@@ -7,7 +7,7 @@ import pytest
 import jaxsync
 from jaxsync import CheckpointError
 from jaxsync.io import atomic_path
-from jaxsync.trajectory import PartHistory
+from jaxsync.io.trajectory import PartHistory
 
 
 @pytest.fixture(scope="module")
@@ -156,8 +156,8 @@ def test_a_folder_given_as_a_file_to_read_is_one_clear_line(tmp_path, capsys):
     a surrogate file, a training state or a solver checkpoint: one line that says so, not
     h5py's two-line reason."""
     from jaxsync.cli import main
-    from jaxsync.solve.checkpoint import load_checkpoint
-    from jaxsync.surrogate.saved import load_surrogate
+    from jaxsync.io.checkpoint import load_checkpoint
+    from jaxsync.io.surrogate_file import load_surrogate
     from jaxsync.surrogate.training.training_state import load_training_state
 
     folder = tmp_path / "adir"

@@ -367,7 +367,7 @@ def test_a_partitioned_run_and_its_state_equal_the_single_device_run(beam, tmp_p
     """Two parts, host executor, the state merged into a checkpoint: the single device's
     displacements and, element by element, its branch stresses; the branches change the
     run (against the long-term elastic law)."""
-    from jaxsync.solve.checkpoint import fingerprint, load_checkpoint
+    from jaxsync.io.checkpoint import fingerprint, load_checkpoint
 
     problem = _cantilever(beam)
     dt = float(problem.dt)
@@ -416,7 +416,7 @@ def test_a_resumed_run_is_bit_identical(beam, tmp_path):
     resumed = jaxsync.simulate(problem, 400, dt=dt, save=50, executor=executor, checkpoint=str(path))
     np.testing.assert_array_equal(resumed.displacement, full.displacement)
     # another Prony series does not resume from it
-    from jaxsync.solve.checkpoint import fingerprint
+    from jaxsync.io.checkpoint import fingerprint
 
     assert fingerprint(problem, dt, 50) != fingerprint(_cantilever(beam, betas=(1.0, 2.5)), dt, 50)
 

@@ -1,4 +1,4 @@
-"""Output writers: the registry (jaxsync.writers), the staged multi-file writes every writer
+"""Output writers: the registry (jaxsync.io.writers), the staged multi-file writes every writer
 gets (jaxsync.io.staged_outputs), XDMF without os.chdir, the guide's worked example, and
 jaxsync simulate writing its formats through the registry."""
 
@@ -20,7 +20,7 @@ import jaxsync
 from jaxsync.cli import main
 from jaxsync.errors import OutputError
 from jaxsync.io import OutputFile, claim_output, claimed_outputs, host_tag
-from jaxsync.writers import (
+from jaxsync.io.writers import (
     Hdf5Writer,
     OutputWriter,
     VtuWriter,
@@ -174,7 +174,7 @@ def test_several_files_appear_together_or_not_at_all(trajectory, tmp_path):
 
 def test_a_failed_commit_puts_back_what_it_replaced(trajectory, tmp_path, monkeypatch):
     """The data file is in place when the index cannot be renamed: the earlier data come back."""
-    import jaxsync.io as io_module
+    import jaxsync.io.atomic as io_module
 
     index = tmp_path / "run.idx"
     index.write_text("earlier index")
@@ -323,10 +323,10 @@ def test_the_xdmf_names_its_data_relative_so_the_pair_moves_together(trajectory,
 def test_a_failed_xdmf_write_leaves_the_earlier_pair(trajectory, tmp_path, monkeypatch):
     import sys
 
-    import jaxsync.writers
+    import jaxsync.io.writers
 
     # the module that holds the XDMF writer (white box: its series writer fails half-way)
-    xdmf_module = sys.modules[jaxsync.writers.XdmfWriter.__module__]
+    xdmf_module = sys.modules[jaxsync.io.writers.XdmfWriter.__module__]
     trajectory.to_xdmf(tmp_path / "run.xdmf")
     before = {n: (tmp_path / n).read_bytes() for n in ("run.xdmf", "run.xdmf.h5")}
 

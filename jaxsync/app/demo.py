@@ -295,7 +295,7 @@ def run_demo(out: str, settings: DemoSettings | None = None, *, case: str = "can
     except BaseException as exc:
         shutil.rmtree(staging, ignore_errors=True)
         if isinstance(exc, OSError):
-            from ..io import OutputError, os_reason
+            from ..io.atomic import OutputError, os_reason
 
             kept = (f"{final} is left as it was" if os.path.exists(final) else f"{final} was not created")
             reason = str(exc) if isinstance(exc, OutputError) else f"could not write {final}: {os_reason(exc)}"
@@ -358,7 +358,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     """The stages of :func:`run_demo`, writing into the folder ``out``; every path that
     is printed or stored names ``final``, where the folder is moved at the end."""
     from .. import HostExecutor, SaveAt, cantilever, partition, simulate
-    from ..io import atomic_json
+    from ..io.atomic import atomic_json
     from ..parallel.devices import device_summary
     from ..solve.coupling.syncavoid import describe_run, simulate_sync_avoiding
     from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState

@@ -21,7 +21,7 @@ def check_demo_output(out: str, *, force: bool = False) -> None:
     cannot be written (:class:`jaxsync.io.OutputError`: the run is staged beside it, so
     the folder above must be writable too)."""
     from ..errors import ConfigError
-    from ..io import check_writable
+    from ..io.atomic import check_writable
 
     out = os.path.abspath(os.fspath(out))
     if os.path.isdir(out) and not force:
@@ -31,7 +31,7 @@ def check_demo_output(out: str, *, force: bool = False) -> None:
                               "replace them, or choose another folder with -o/--out")
     check_writable(out, what="demo folder", folder=True, option="-o/--out")
     check_writable(os.path.dirname(out), what="folder of the demo folder", folder=True, option="-o/--out")
-    from ..io import claim_output, claiming
+    from ..io.atomic import claim_output, claiming
 
     if claiming():  # the command line: a second demo writing the same folder stops at once
         claim_output(out, replace=force, folder=True)
@@ -66,7 +66,7 @@ def staging_folder(final: str) -> str:
 def _new_folder_beside(final: str, marker: str, *, clean: bool = False) -> str:
     import re
 
-    from ..io import host_tag, process_alive
+    from ..io.atomic import host_tag, process_alive
 
     parent, name = os.path.split(final)
     os.makedirs(parent, exist_ok=True)
@@ -88,7 +88,7 @@ def retarget_paths(staging: str, final: str) -> None:
     ``staging`` (``surrogate/train_summary.json`` names its trajectory and files)."""
     import json
 
-    from ..io import atomic_json
+    from ..io.atomic import atomic_json
 
     def retarget(value):
         if isinstance(value, str) and (value == staging or value.startswith(staging + os.sep)):

@@ -42,7 +42,7 @@ def new_figure(width=7.0, height=4.2):
 
 def save_figure(fig, path) -> None:
     """Write ``fig`` as PNG to ``path``, atomically (:func:`jaxsync.io.atomic_path`)."""
-    from ..io import atomic_path
+    from ..io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")

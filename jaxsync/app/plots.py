@@ -581,7 +581,7 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
         ProblemError: trajectories of different shapes, or no node to show;
         ConfigError: a bad node in ``nodes``.
     """
-    from ..io import atomic_json
+    from ..io.atomic import atomic_json
 
     comparison = compare(reference, online, partition, component=component, fixed_nodes=fixed_nodes,
                          nodes=nodes, train_until_step=train_until_step)

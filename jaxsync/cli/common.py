@@ -45,9 +45,9 @@ def load_trained_run(args):
 
     from ..app.config import load_config, problem_from_config
     from ..errors import PartitionError
+    from ..io.surrogate_file import load_surrogate
+    from ..io.trajectory import Trajectory
     from ..parallel.partitioning import partition_of
-    from ..surrogate.saved import load_surrogate
-    from ..trajectory import Trajectory
 
     reference = Trajectory.load(args.trajectory)
     part = partition_of(reference)
@@ -305,7 +305,7 @@ def refuse_to_overwrite(paths: list[str], *, force: bool, checkpoint: str | None
     process writing the same file stops at once, and a file that appears while this one
     runs is never replaced."""
     from ..errors import ConfigError
-    from ..io import claim_output, claiming
+    from ..io.atomic import claim_output, claiming
 
     def key(path):
         return os.path.normcase(os.path.realpath(path))
@@ -360,7 +360,7 @@ def check_outputs(*outputs) -> None:
     for a folder the command fills; None paths are skipped
     (:func:`jaxsync.io.check_writable`; :class:`jaxsync.io.OutputError` naming the path,
     why, and the option that chooses another location)."""
-    from ..io import check_writable
+    from ..io.atomic import check_writable
 
     for path, what, option, *folder in outputs:
         if path:
@@ -381,7 +381,7 @@ def writing(*paths):
     :class:`jaxsync.io.OutputError` naming them, and each of them the block did replace
     or create counts as written (:func:`jaxsync.io.note_written`), also on failure; the
     files written before are kept."""
-    from ..io import OutputError, note_written, os_reason
+    from ..io.atomic import OutputError, note_written, os_reason
 
     paths = [os.fspath(p) for p in paths]
     before = {p: _stat(p) for p in paths}

@@ -147,7 +147,7 @@ def parts_of(args) -> int:
 def _run(args) -> int:
     """Run the chosen command: the package's warnings as one line each, and a failed
     write (:class:`jaxsync.io.OutputError`) told with the files written before it."""
-    from ..io import OutputError, claimed_outputs, recording_writes
+    from ..io.atomic import OutputError, claimed_outputs, recording_writes
     from .common import package_warnings, written_and_kept
 
     with recording_writes() as written, package_warnings(), claimed_outputs():

@@ -139,9 +139,9 @@ def print_vessel(entry: dict) -> None:
 def run(args) -> int:
     from ..app.plots import constrained_nodes, write_report
     from ..errors import ConfigError
-    from ..io import atomic_json
+    from ..io.atomic import atomic_json
+    from ..io.trajectory import Trajectory
     from ..parallel.partitioning import partition_of
-    from ..trajectory import Trajectory
     from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))

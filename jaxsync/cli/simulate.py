@@ -91,7 +91,7 @@ def add_parser(subparsers) -> None:
 
 FORMAT_OPTIONS = (("xdmf", "--xdmf"), ("vtu", "--vtu"))
 """The output formats ``jaxsync simulate`` writes besides the trajectory: (the name of the
-writer in :mod:`jaxsync.writers`, its command-line option); the ``[run]`` key of each is
+writer in :mod:`jaxsync.io.writers`, its command-line option); the ``[run]`` key of each is
 the writer's name."""
 
 
@@ -112,7 +112,7 @@ def format_outputs(args, config: dict) -> list[tuple[str, object, str, tuple]]:
     the (path-resolved) config. An output that the file asks for is named after ``-o``
     when that is given (``-o out/b.h5``: ``out/b.xdmf``, ``out/b.pvd``), so that two runs of
     one file with different ``-o`` keep their own."""
-    from ..writers import writer_for
+    from ..io.writers import writer_for
 
     run_table = config.get("run", {})
     found = []
@@ -163,7 +163,7 @@ def checkpoint_step(checkpoint: str | None) -> int:
     there is none, or it is not one: the solver then refuses it with the reason)."""
     if not checkpoint or not os.path.exists(checkpoint):
         return 0
-    from ..solve.checkpoint import committed_step
+    from ..io.checkpoint import committed_step
 
     return committed_step(checkpoint) or 0
 
@@ -330,7 +330,7 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     steps = (f"resumed from step {first_step} of {n_steps} (checkpoint {checkpoint}): {ran} steps"
              if first_step else f"{ran} steps")
     print(f"{steps} in {elapsed:.2f} s ({speed}; {devices_text(st, parts)}); wrote {output}")
-    from ..writers import write_output
+    from ..io.writers import write_output
 
     for _, writer, path, files in formats:
         with common.writing(*(f.path for f in files)):

@@ -42,7 +42,7 @@ def write_mesh(mesh, path: str | os.PathLike, *, replace: bool = False) -> str:
     import meshio
 
     from ..errors import OutputError
-    from ..io import atomic_path
+    from ..io.atomic import atomic_path
 
     path = os.fspath(path)
     ext = os.path.splitext(path)[1].lower()

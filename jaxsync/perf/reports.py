@@ -137,7 +137,7 @@ class _JsonReport:
 
     def save_json(self, path: str | os.PathLike) -> None:
         """Write ``to_dict()`` as JSON; the file appears only when complete."""
-        from ..io import atomic_json
+        from ..io.atomic import atomic_json
 
         atomic_json(path, self.to_dict())
 

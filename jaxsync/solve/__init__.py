@@ -16,7 +16,7 @@ Entry points: :func:`simulate` (:mod:`~jaxsync.solve.solver`), :func:`simulate_s
 :func:`simulate_full_system` (one surrogate for every dof), :func:`steady_state`. The parts
 of a distributed run and the predicted phase's runners: :mod:`~jaxsync.solve.executors`;
 predictors: :mod:`~jaxsync.solve.coupling.predictors`; resumable checkpoints:
-:mod:`~jaxsync.solve.checkpoint`. The geometry of an imaged structure before its loads:
+:mod:`~jaxsync.io.checkpoint`. The geometry of an imaged structure before its loads:
 :func:`zero_pressure_geometry` (:mod:`~jaxsync.solve.zero_pressure`) and its alternative,
 the prestress of the imaged geometry, :func:`prestress` (:mod:`~jaxsync.solve.prestress`); the
 static solution as a differentiable function of the law, :func:`static_displacement`

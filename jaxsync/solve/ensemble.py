@@ -21,8 +21,8 @@ import numpy as np
 from ..errors import PartitionError, ProblemError, StabilityError
 from ..fem.stepper import ExplicitSystem
 from ..fem.timestep import divergence_advice
+from ..io.trajectory import Result
 from ..pytree import is_traced
-from ..trajectory import Result
 from .ensemble_members import (
     EnsembleSetup,
     Members,

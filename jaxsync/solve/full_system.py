@@ -43,10 +43,10 @@ def simulate_full_system(problem, reference, surrogates, *, n_cri: int, n_steps:
         ``stats.dirichlet_max_abs_predicted``, the largest |predicted value| on the
         Dirichlet dofs, whose prescribed values the network does not enforce.
     """
+    from ..io.surrogate_file import SavedSurrogate
+    from ..io.trajectory import Trajectory
     from ..precision import require_float64
     from ..run_stats import FullSystemStats
-    from ..surrogate.saved import SavedSurrogate
-    from ..trajectory import Trajectory
 
     require_float64("simulate_full_system")
     if reference.save_every != 1:

@@ -93,7 +93,7 @@ class SaveAt:
 
 @dataclasses.dataclass(frozen=True)
 class SolverCheckpoint:
-    """The resumable state of a synchronized run (:mod:`jaxsync.solve.checkpoint`).
+    """The resumable state of a synchronized run (:mod:`jaxsync.io.checkpoint`).
 
     A run given a checkpoint stores its state there as it goes, and a run started again
     with the same problem continues from the last one, giving the same trajectory.
@@ -101,7 +101,7 @@ class SolverCheckpoint:
     Attributes:
         path: the HDF5 file.
         every: checkpoint every this many steps (rounded up to whole chunks); None: at
-            most once per :data:`jaxsync.solve.checkpoint.CHECKPOINT_SECONDS` of wall
+            most once per :data:`jaxsync.io.checkpoint.CHECKPOINT_SECONDS` of wall
             time, and at the end.
     """
 

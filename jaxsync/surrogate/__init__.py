@@ -13,7 +13,7 @@ files use of a trained set is beside them:
 :mod:`.inference`                    reduced-precision (bfloat16) inference: the check that it
                                      keeps accuracy (:func:`check_inference_precision`,
                                      :func:`reduced_precision`)
-:mod:`.saved`                        surrogate files of trained replicas (:class:`SavedSurrogate`)
+:mod:`jaxsync.io.surrogate_file`      surrogate files of trained replicas (:class:`SavedSurrogate`)
 :mod:`.models.lstm`                  the network, written by hand (:class:`LSTMArchitecture`)
 :mod:`.models.linear`                the linear autoregressive baseline, fitted by least squares
                                      (:class:`LinearArchitecture`, :func:`fit_linear`)
@@ -72,7 +72,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
                                           "SurrogateArchitecture"),
     "jaxsync.surrogate.models.registry": ("register_surrogate", "surrogate_class", "surrogate_kinds",
                                           "unregister_surrogate"),
-    "jaxsync.surrogate.saved": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
+    "jaxsync.io.surrogate_file": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
     "jaxsync.surrogate.training.data": ("Sampling", "build_dataset", "stack_replicas"),
     "jaxsync.surrogate.training.evaluate": ("GridSearchResult", "RolloutWarning", "TrainingChecks", "e_mse",
                                             "grid_search", "rollout_errors"),
@@ -83,6 +83,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
 })
 
 if TYPE_CHECKING:
+    from jaxsync.io.surrogate_file import SavedSurrogate, load_surrogate, save_surrogate
     from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
     from jaxsync.surrogate.model import Surrogate
     from jaxsync.surrogate.models.architecture import ArchitectureChoice
@@ -101,7 +102,6 @@ if TYPE_CHECKING:
         surrogate_kinds,
         unregister_surrogate,
     )
-    from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
     from jaxsync.surrogate.training.data import Sampling, build_dataset, stack_replicas
     from jaxsync.surrogate.training.evaluate import (
         GridSearchResult,

@@ -21,7 +21,7 @@ with other loads (another count, kind or time-function form) and accepts other
 parameters of the same form (another waveform, another step-off time).
 
 Files: :meth:`Surrogate.save` / :meth:`Surrogate.load` go through
-:mod:`jaxsync.surrogate.saved` (a :class:`~jaxsync.surrogate.saved.SavedSurrogate`
+:mod:`jaxsync.io.surrogate_file` (a :class:`~jaxsync.io.surrogate_file.SavedSurrogate`
 also keeps the shared node ids and training metadata).
 """
 
@@ -37,11 +37,11 @@ import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import LoadSignals, check_load_inputs
+from jaxsync.io.surrogate_file import SavedSurrogate, load_surrogate, save_surrogate
 from jaxsync.pytree import pytree_dataclass, static_field
 from jaxsync.surrogate.models.architecture import Architecture
 from jaxsync.surrogate.models.protocol import check_compute_dtype
 from jaxsync.surrogate.refill import refill_predict, refill_rollout, smooth_refill
-from jaxsync.surrogate.saved import SavedSurrogate, load_surrogate, save_surrogate
 from jaxsync.surrogate.training.data import padding_mask
 from jaxsync.surrogate.training.histories import shared_dof_layout
 
@@ -307,7 +307,7 @@ class Surrogate:
 
     @classmethod
     def from_saved(cls, saved, load_parameter: float | None = None) -> "Surrogate":
-        """The surrogate of a :class:`~jaxsync.surrogate.saved.SavedSurrogate`
+        """The surrogate of a :class:`~jaxsync.io.surrogate_file.SavedSurrogate`
         or of its file; ``load_parameter`` is required by conditional networks."""
         if not isinstance(saved, SavedSurrogate):
             saved = load_surrogate(saved)
@@ -324,7 +324,7 @@ class Surrogate:
     # ------------------------------------------------------------------ files
 
     def to_saved(self, shared_nodes=None, metadata: dict | None = None) -> SavedSurrogate:
-        """A :class:`~jaxsync.surrogate.saved.SavedSurrogate` of these replicas,
+        """A :class:`~jaxsync.io.surrogate_file.SavedSurrogate` of these replicas,
         with the partition's shared node ids (per part; needed to check a partition
         against it) and JSON-serializable ``metadata``."""
         return SavedSurrogate(
@@ -338,10 +338,10 @@ class Surrogate:
         )
 
     def save(self, path: str | os.PathLike, *, shared_nodes=None, metadata: dict | None = None) -> None:
-        """Write a surrogate file atomically (:func:`~jaxsync.surrogate.saved.save_surrogate`)."""
+        """Write a surrogate file atomically (:func:`~jaxsync.io.surrogate_file.save_surrogate`)."""
         save_surrogate(path, self.to_saved(shared_nodes, metadata))
 
     @classmethod
     def load(cls, path: str | os.PathLike, load_parameter: float | None = None) -> "Surrogate":
-        """Read a surrogate file (:func:`~jaxsync.surrogate.saved.load_surrogate`)."""
+        """Read a surrogate file (:func:`~jaxsync.io.surrogate_file.load_surrogate`)."""
         return cls.from_saved(load_surrogate(path), load_parameter)

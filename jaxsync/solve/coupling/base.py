@@ -24,9 +24,9 @@ import dataclasses
 import numpy as np
 
 from ...errors import ProblemError
+from ...io.trajectory import Result
 from ...pytree import pytree_dataclass
 from ...run_stats import SynchronizedStats
-from ...trajectory import Result
 from ..executors._phases import SynchronizedSteps
 
 __all__ = ["Coupling", "RunPlan", "Synchronized", "as_coupling", "exchange_of"]

@@ -58,8 +58,8 @@ def predictor_for(surrogates, partition, problem=None, dt=None):
     surrogate file (its shared node ids checked against the partition's). Raises
     :class:`~jaxsync.errors.ProblemError` for anything else (a path: with the fix) and
     :class:`~jaxsync.errors.CheckpointError` for surrogates of another partition."""
+    from ...io.surrogate_file import SavedSurrogate, check_compatible
     from ...surrogate.model import Surrogate
-    from ...surrogate.saved import SavedSurrogate, check_compatible
     from ...surrogate.training.histories import shared_dof_layout
 
     if isinstance(surrogates, (str, bytes)) or hasattr(surrogates, "__fspath__"):

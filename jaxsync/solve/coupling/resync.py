@@ -31,8 +31,8 @@ import numpy as np
 
 from ...errors import StabilityError, SynchronizedRunWarning
 from ...fem.timestep import divergence_advice
+from ...io.trajectory import Result
 from ...run_stats import SyncAvoidingStats
-from ...trajectory import Result
 from ..executors._distributed import DistributedRunner
 from ..executors._driver import Diverged, Progress, Segment, run_chunks
 from ..executors._host import FirstPhase, run_summary

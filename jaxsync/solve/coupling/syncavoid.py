@@ -191,7 +191,7 @@ class _SyncAvoidingPlan(RunPlan):
                          run.limit).run(self.schedule[1].n_steps, run.progress)
 
     def traced_trajectory(self, problem, dt, system, state, run, save):
-        from ...trajectory import Trajectory
+        from ...io.trajectory import Trajectory
         from ..executors._record import part_histories, run_parameters
 
         displacement = jnp.concatenate([state.displacement[None], run.saved])

@@ -28,8 +28,8 @@ import numpy as np
 from ...errors import StabilityError
 from ...fem.stepper import ExplicitSystem, SolverState, advance
 from ...fem.timestep import divergence_advice
-from ...trajectory import Result
-from ..checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
+from ...io.checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
+from ...io.trajectory import Result
 from ._distributed import DistributedRunner
 from ._driver import Chunk, Diverged, Progress, Segment, chunk_of_saves, divergence_limit, run_chunks
 from ._record import synchronized_trajectory

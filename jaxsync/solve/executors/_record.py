@@ -66,7 +66,7 @@ def load_signal_fields(problem, dt, n_rows: int, stride: int) -> dict:
 def part_histories(partition, shared, predicted=None) -> tuple:
     """One :class:`jaxsync.PartHistory` per part of ``partition``: its shared nodes and
     elements, ``shared[p]`` (n, 3 n_shared_p) and, when given, ``predicted[p]``."""
-    from ...trajectory import PartHistory
+    from ...io.trajectory import PartHistory
 
     return tuple(PartHistory(part.shared_nodes, part.elements, shared[p],
                              None if predicted is None else predicted[p])
@@ -89,7 +89,7 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
             histories are read from the snapshots.
         stats: :class:`jaxsync.RunStats` of the run; result: its result code.
     """
-    from ...trajectory import Trajectory
+    from ...io.trajectory import Trajectory
 
     n_saved = len(displacement)
     times = np.arange(n_saved, dtype=np.float64) * save.every * dt
@@ -120,8 +120,8 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
     n_dof) or None) of every stretch from step 0: ``"synchronized"`` ones (the first holds
     the snapshot at t = 0) and ``"predicted"`` ones (their global field the mean over the
     parts that hold each node, and each part's own predictions at the saved steps)."""
+    from ...io.trajectory import Trajectory
     from ...surrogate.training.histories import shared_dof_layout
-    from ...trajectory import Trajectory
 
     n_dof, counts = shared_dof_layout(partition)
     displacement = np.concatenate([d for _, d, _ in pieces])

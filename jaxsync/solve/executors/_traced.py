@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from ...errors import ProblemError
 from ...fem.stepper import ExplicitSystem, SolverState
-from ...trajectory import Result
+from ...io.trajectory import Result
 from ._phases import PredictedSteps, SynchronizedSteps, part_synchronized_steps, predicted_cycles, synchronized_steps
 
 __all__ = ["run_traced", "TracedRun"]
@@ -35,7 +35,7 @@ class TracedRun(tuple):
             step of a synchronized-only schedule when asked for, else None.
         predictions: (n_parts, n_predicted_saves, n_dof) each part's own predictions at the
             saved predicted steps, or None.
-        result: int32 :class:`jaxsync.trajectory.Result` code.
+        result: int32 :class:`jaxsync.io.trajectory.Result` code.
     """
 
     saved = property(lambda self: self[0])

@@ -17,7 +17,7 @@ kind       architecture                                           module
 =========  =====================================================  ============================
 
 The refill (:mod:`jaxsync.surrogate.refill`) and the surrogate files
-(:mod:`jaxsync.surrogate.saved`) go through :func:`forward`, :func:`init_params`,
+(:mod:`jaxsync.io.surrogate_file`) go through :func:`forward`, :func:`init_params`,
 :func:`architecture_to_dict` and :func:`architecture_from_dict` (thin functions over the
 model's methods and the registry), so :class:`~jaxsync.surrogate.Surrogate` and the solver
 hold any model alike.

@@ -56,11 +56,12 @@ import numpy as np
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem.load_signals import RecordedLoadSignals
 from jaxsync.io import atomic_json, atomic_path
+from jaxsync.io.surrogate_file import SavedSurrogate, save_surrogate
+from jaxsync.io.trajectory import Trajectory
 from jaxsync.surrogate.model import Surrogate
 from jaxsync.surrogate.models.architecture import ArchitectureChoice, architecture_to_dict
 from jaxsync.surrogate.models.protocol import FitSettings
 from jaxsync.surrogate.models.replicas import count_parameters
-from jaxsync.surrogate.saved import SavedSurrogate, save_surrogate
 from jaxsync.surrogate.training.data import Sampling, build_dataset, stack_replicas
 from jaxsync.surrogate.training.evaluate import (
     RolloutErrors,
@@ -73,7 +74,6 @@ from jaxsync.surrogate.training.evaluate import (
 from jaxsync.surrogate.training.histories import SharedHistories, read_shared_histories
 from jaxsync.surrogate.training.train import TrainConfig, TrainProgress, TrainResult
 from jaxsync.surrogate.training.training_state import STATE_NAME, TrainingState
-from jaxsync.trajectory import Trajectory
 
 __all__ = ["train_surrogates", "TrainedSurrogates", "plot_loss_curves", "choose_candidates", "SURROGATE_NAME",
            "STATE_NAME", "SUMMARY_NAME", "LOSS_CURVES_NAME"]

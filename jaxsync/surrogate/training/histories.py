@@ -9,7 +9,7 @@ import os
 import numpy as np
 
 from jaxsync.errors import CheckpointError
-from jaxsync.trajectory import Trajectory
+from jaxsync.io.trajectory import Trajectory
 
 __all__ = ["shared_dof_layout", "SharedHistories", "read_shared_histories"]
 

@@ -11,7 +11,7 @@ parameters, state interval) resumes from it; anything else is refused with
 :class:`~jaxsync.errors.CheckpointError` naming the difference.  A SHA-256 checksum over
 arrays and attributes detects damaged files.
 
-This is not the surrogate file of a trained surrogate (:mod:`jaxsync.surrogate.saved`)
+This is not the surrogate file of a trained surrogate (:mod:`jaxsync.io.surrogate_file`)
 nor the solver's checkpoint: it holds optimizer state, and it is deleted once the
 results are written (:meth:`jaxsync.surrogate.TrainedSurrogates.write`).
 """

@@ -1,7 +1,7 @@
 """Surrogate files: a set of trained replicas as one HDF5 file (``surrogate.h5``), and
 :class:`SavedSurrogate`, what such a file holds.
 
-(Not to be confused with the solver's resumable checkpoints, :mod:`jaxsync.solve.checkpoint`,
+(Not to be confused with the solver's resumable checkpoints, :mod:`jaxsync.io.checkpoint`,
 or the training state of :mod:`jaxsync.surrogate.training.training_state`.)
 
 Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`; the name is

@@ -6,8 +6,8 @@ import dataclasses
 import os
 from typing import ClassVar
 
-from ..errors import OutputError
-from ..io import OutputFile
+from ...errors import OutputError
+from ..atomic import OutputFile
 
 __all__ = ["VtuWriter", "vtu_series_paths", "check_vtu_location", "is_vtu_series", "write_pvd"]
 

@@ -5,7 +5,7 @@ Every file jaxsync writes goes through :func:`atomic_path`: it is written under 
 temporary name in the target folder and renamed over the target only when complete, so
 a failed or interrupted write never replaces a good file. Outputs of several files that
 belong together (an XDMF file and its data, a VTU series; any writer of
-:mod:`jaxsync.writers`) go through :func:`staged_outputs`: written in a staging folder
+:mod:`jaxsync.io.writers`) go through :func:`staged_outputs`: written in a staging folder
 beside them, and moved into place only when all are complete.
 
 Writing can fail after a long computation (a full disk, a folder that became read-only):
@@ -29,7 +29,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from .errors import OutputError
+from ..errors import OutputError
 
 __all__ = ["host_tag", "process_alive", "atomic_path", "atomic_h5", "atomic_json", "array_checksum", "json_value",
            "STALE_TEMP_AGE_S", "OutputError", "check_writable", "recording_writes", "note_written",

@@ -6,7 +6,7 @@ import dataclasses
 import os
 from typing import ClassVar
 
-from ..io import OutputFile
+from ..atomic import OutputFile
 
 __all__ = ["Hdf5Writer"]
 

@@ -33,8 +33,8 @@ from __future__ import annotations
 import os
 from typing import Any, Protocol, runtime_checkable
 
-from ..errors import OutputError
-from ..io import OutputFile, StagedOutputs, staged_outputs
+from ...errors import OutputError
+from ..atomic import OutputFile, StagedOutputs, staged_outputs
 from ._hdf5 import Hdf5Writer
 from ._vtu import VtuWriter, check_vtu_location, vtu_series_paths
 from ._xdmf import XdmfWriter, xdmf_paths
@@ -97,7 +97,7 @@ def register_writer(name: str, writer, *, replace: bool = False) -> None:
             isinstance(s, str) and s.startswith(".") for s in writer.suffixes):
         raise OutputError(f"register_writer({name!r}, ...): {writer!r} is not a writer: it needs suffixes (a tuple "
                           "of '.ext' strings), description, outputs(path) and write(trajectory, path, staged) "
-                          "(jaxsync.writers.OutputWriter supplies outputs)")
+                          "(jaxsync.io.writers.OutputWriter supplies outputs)")
     if name in _WRITERS and not replace:
         raise OutputError(f"an output writer named {name!r} is registered already ({_WRITERS[name].description}); "
                           "choose another name, or pass replace=True")

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..errors import CheckpointError, OutputError
 from ..fem.stepper import SolverState
-from ..io import array_checksum, atomic_h5
+from .atomic import array_checksum, atomic_h5
 
 __all__ = ["fingerprint", "save_checkpoint", "load_checkpoint", "committed_step", "CheckpointWriter",
            "CheckpointSchedule", "watch_chunks", "LAYOUT", "CHECKPOINT_SECONDS"]

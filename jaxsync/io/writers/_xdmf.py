@@ -8,8 +8,8 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..errors import OutputError
-from ..io import OutputFile
+from ...errors import OutputError
+from ..atomic import OutputFile
 
 __all__ = ["XdmfWriter", "xdmf_paths", "write_xdmf_series"]
 

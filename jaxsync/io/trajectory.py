@@ -4,7 +4,7 @@ a VTU series with its .pvd collection).
 
 Files are written atomically (:mod:`jaxsync.io`): a failed or interrupted write never
 replaces a good file. These formats are the writers ``"hdf5"``, ``"xdmf"`` and ``"vtu"`` of
-the registry :mod:`jaxsync.writers`, where other formats are added.
+the registry :mod:`jaxsync.io.writers`, where other formats are added.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from typing import Any
 import jax
 import numpy as np
 
-from .errors import CheckpointError, OutputError
-from .io import atomic_h5
-from .mesh import Mesh
-from .run_stats import RunStats
+from ..errors import CheckpointError, OutputError
+from ..mesh import Mesh
+from ..run_stats import RunStats
+from .atomic import atomic_h5
 from .writers._vtu import check_vtu_location, vtu_series_paths, write_pvd
 
 __all__ = ["Trajectory", "RunStats", "PartHistory", "Result", "vtu_series_paths", "check_vtu_location",
@@ -142,7 +142,7 @@ class Trajectory:
     @property
     def space(self):
         """The :class:`~jaxsync.fem.space.FunctionSpace` of the displacement's nodes."""
-        from .fem.space import function_space
+        from ..fem.space import function_space
 
         return function_space(self.mesh, self.element)
 
@@ -154,7 +154,7 @@ class Trajectory:
     def output_cells(self) -> tuple[np.ndarray, str, np.ndarray]:
         """(points, meshio cell type, cells) of the nodes for ParaView: ``"tetra"``, or
         ``"tetra10"`` in VTK's node order for P2."""
-        from .fem.space import vtk_cells
+        from ..fem.space import vtk_cells
 
         kind, cells = vtk_cells(self.space)
         return self.points, kind, cells
@@ -198,7 +198,7 @@ class Trajectory:
         if compression not in ("gzip", "lzf", None):
             raise CheckpointError(f"compression must be 'gzip', 'lzf' or None, got {compression!r}")
         if not overwrite and os.path.lexists(path):
-            from .io import OutputError
+            from .atomic import OutputError
 
             raise OutputError(f"{os.fspath(path)} exists and overwrite=False: choose another path, or pass "
                               "overwrite=True to replace it")
@@ -286,7 +286,7 @@ class Trajectory:
                 result = f.attrs.get("result")
                 load_signal, load_inputs = None, ()
                 if "load_signal" in f:
-                    from .fem.load_signals import LoadInput
+                    from ..fem.load_signals import LoadInput
 
                     load_signal = f["load_signal"][...]
                     load_inputs = tuple(LoadInput.from_dict(d) for d in json.loads(f.attrs["load_inputs"]))
@@ -319,7 +319,7 @@ class Trajectory:
                 the way, a folder that is not writable), or a failed write (an
                 :class:`OSError`); it names ``path``, and earlier files are left as they were.
         """
-        from .io import OutputFile, check_writable, staged_outputs
+        from .atomic import OutputFile, check_writable, staged_outputs
         from .writers._xdmf import write_xdmf_series, xdmf_paths
 
         path, data = xdmf_paths(path)
@@ -356,7 +356,7 @@ class Trajectory:
         """
         if isinstance(every, bool) or not isinstance(every, (int, np.integer)) or every < 1:
             raise OutputError(f"to_vtu: every must be a positive integer, got {every!r}")
-        from .io import OutputFile, staged_outputs
+        from .atomic import OutputFile, staged_outputs
 
         pvd, folder = check_vtu_location(path)
         stem = os.path.basename(folder)
