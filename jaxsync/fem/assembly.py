@@ -17,7 +17,7 @@ Zienkiewicz 1976): the consistent mass's diagonal, scaled element by element so 
 element's total is its own (rho V per component). Every HRZ mass is positive (for a
 straight tetrahedron 1/36 of the element's mass at each vertex, 4/27 at each edge node);
 the lumped scheme converges at second order in the frequencies of smooth modes (measured
-in ``tests/test_p2.py``).
+in ``tests/fem/test_p2.py``).
 """
 
 from __future__ import annotations

@@ -332,7 +332,7 @@ def _grouped_symmetric_bwd(n_rows, compact, residuals, y_bar):
     w = _grouped_matvec(rows, columns, blocks, diagonal, perm, y_bar, None, n_rows, compact)  # K_1^T y_bar = K_1 y_bar
     u_bar, scale_bar, y_bar = _unscaled_cotangents(w, u, y_bar, scale)
     # under a scale the blocks are constants: their cotangents below are unused, and the
-    # compiled program drops them (no loop carries them: tests/test_gradient_cotangent.py)
+    # compiled program drops them (no loop carries them: tests/solve/test_gradient_cotangent.py)
     if perm is not None:
         u = u[perm]
     blocks_bar, diagonal_bar = [], []

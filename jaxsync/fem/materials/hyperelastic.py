@@ -27,7 +27,7 @@ Hand-written P or ``jax.grad`` of the energy: each law uses the faster, measured
 with other jobs, so +/- 15 %): NeoHookean hand 10.7 / 9.7 ms vs autodiff 9.2 / 8.6 ms (so
 its P is the autodiff one); NearlyIncompressibleNeoHookean hand 16.1 / 16.6 ms vs autodiff
 19.4 / 20.2 ms; HolzapfelGasserOgden (two fibre families) hand 62 / 64 ms vs autodiff
-75 / 76 ms (both hand-written). ``tests/test_hyperelastic.py`` checks every P against the
+75 / 76 ms (both hand-written). ``tests/fem/test_hyperelastic.py`` checks every P against the
 autodiff of its energy and against closed-form stresses.
 """
 

@@ -18,7 +18,7 @@ from jaxsync.solve import register_exchange, sync_strategy, unregister_exchange
 from jaxsync.solve.coupling.predictors import OraclePredictor
 from jaxsync.surrogate.training.histories import shared_dof_layout
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+ROOT = pathlib.Path(__file__).resolve().parents[2]
 GUIDE = ROOT / "docs" / "guides" / "extending-exchanges.md"
 
 # ---- the guide's first code block, verbatim (test_the_guide_shows_this_exchange) ----

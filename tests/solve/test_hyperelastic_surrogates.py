@@ -6,12 +6,12 @@ import warnings
 
 import numpy as np
 import pytest
+from test_syncavoid import N_CRI, N_F, N_P, N_S, N_STEPS, drifting_oracle, oracle
 
 import jaxsync
 from jaxsync.metrics import peak_strain
 from jaxsync.solve.coupling.error_estimate import ErrorPropagator, linearised_stiffness
 from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
-from test_syncavoid import N_CRI, N_F, N_P, N_S, N_STEPS, drifting_oracle, oracle
 
 N_LONG = 400
 

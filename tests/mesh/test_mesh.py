@@ -9,7 +9,7 @@ import jaxsync
 from jaxsync import MeshError, MeshWarning
 from jaxsync.mesh import tet_volumes, validated_mesh
 
-REFERENCE = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "reference", "beam_coarse.vtk")
+REFERENCE = os.path.join(os.path.dirname(__file__), "..", "..", "..", "shared", "reference", "beam_coarse.vtk")
 
 
 def unit_cube_tets():

@@ -253,7 +253,7 @@ def _stopped_early(data, arch, result, per_call):
 def test_best_parameters_are_kept_and_early_stopping_is_exact():
     """One compiled chunk length (8 epochs) for both runs; chunks of 5 and the frozen run
     are the slow test's (the frozen run's early stop is also checked in the default run by
-    tests/test_surrogate_cli.py::test_train_stops_early_and_reports_it)."""
+    tests/surrogate/test_surrogate_cli.py::test_train_stops_early_and_reports_it)."""
     data, arch = _small_problem()
     result = train_replicas(data, arch, NOISY, jax.random.key(0), progress=False)
     assert result.stopped_epoch is None and result.n_epochs_run == 40

@@ -177,7 +177,7 @@ def test_bad_arguments_are_refused():
 
 
 def test_the_online_solver_runs_with_bfloat16_inference():
-    """tests/test_syncavoid.py's sizes and tiny trained replicas: the bfloat16 surrogate
+    """tests/solve/test_syncavoid.py's sizes and tiny trained replicas: the bfloat16 surrogate
     drives simulate_sync_avoiding unchanged; its shared values are its own offline rollout
     (as for any surrogate), and the run stays within a few bfloat16 roundings' worth of
     the float32 online run (1 % of the amplitude), while differing from it."""

@@ -32,7 +32,7 @@ from jaxsync.io.writers import (
     writer_for,
 )
 
-GUIDE = Path(__file__).resolve().parents[1] / "docs" / "guides" / "extending-output.md"
+GUIDE = Path(__file__).resolve().parents[2] / "docs" / "guides" / "extending-output.md"
 
 
 @pytest.fixture(scope="module")

@@ -227,7 +227,7 @@ def test_vessel_example_script_runs(tmp_path, capsys):
     import importlib.util
     from pathlib import Path
 
-    script = Path(__file__).resolve().parents[1] / "notebooks" / "vessel_example.py"
+    script = Path(__file__).resolve().parents[2] / "notebooks" / "vessel_example.py"
     spec = importlib.util.spec_from_file_location("vessel_example", script)
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)

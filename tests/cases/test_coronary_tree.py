@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 import pytest
+from test_geometry import outward_normals
 
 import jaxsync
 from jaxsync.cases import coronary_mesh, coronary_tree, estimated_tree_elements
 from jaxsync.errors import MeshError
-from test_geometry import outward_normals
 
 WALL, SIZE = 0.05, 0.1
 OUTLETS = [f"outlet_{k}" for k in range(1, 7)]

@@ -1,8 +1,8 @@
 """The ``jaxsync`` parser: every option documented, choices read from
 :mod:`jaxsync.options`, one name for a count of parts, the console script.
 
-The commands themselves: ``tests/test_cli_simulate.py`` (simulate) and
-``tests/test_cli_pipeline.py`` (demo, predict, report)."""
+The commands themselves: ``tests/cli/test_cli_simulate.py`` (simulate) and
+``tests/cli/test_cli_pipeline.py`` (demo, predict, report)."""
 
 import argparse
 import subprocess
@@ -56,7 +56,7 @@ def test_the_declared_console_script_and_its_former_target_are_the_command_line(
 
     from jaxsync.app.cli import main as former
 
-    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    project = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
     assert project["project"]["scripts"]["jaxsync"] == "jaxsync.cli:main"
     assert former is main
     out = subprocess.run([sys.executable, "-c", "import sys; from jaxsync.app.cli import main; sys.exit(main())",

@@ -18,7 +18,7 @@ from jaxsync.surrogate import (
     TrainingState,
     train_surrogates,
 )
-from test_surrogate_fit import NODES, write_trajectory
+from oscillator_trajectories import NODES, write_trajectory
 
 
 def _parser():

@@ -1,7 +1,7 @@
 """Multi-process runs under ``mpiexec -n 2`` (loopback only, every run under a timeout).
 
 The runs start real processes: this file doubles as their worker script
-(``mpiexec -n 2 python tests/test_multiprocess.py WORKER ...``). Each process gets one CPU
+(``mpiexec -n 2 python tests/parallel/test_multiprocess.py WORKER ...``). Each process gets one CPU
 device; the coordinator of ``jax.distributed`` listens on 127.0.0.1 and hydra starts the
 ranks with its ``fork`` launcher on localhost, so nothing leaves the machine.
 """
@@ -253,7 +253,7 @@ def test_a_viscoelastic_law_runs_across_processes_as_in_one(tmp_path):
 @pytest.mark.mpi
 @needs_mpiexec
 def test_bench_sync_measures_zeta_and_checks_the_cost_model_with_real_processes(tmp_path):
-    bench = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks",
+    bench = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks",
                          "bench_sync.py")
     path = tmp_path / "sync.json"
     out = _mpiexec(sys.executable, bench, "--sizes", "12", "1200", "--steps", "50", "--solver-steps", "64",

@@ -8,13 +8,13 @@ import json
 
 import numpy as np
 import pytest
+from test_cli_pipeline import run_cli
 
 import jaxsync
 from jaxsync.app.demo import SUMMARY_KEYS, VESSEL_KEYS, demo_defaults
 from jaxsync.app.run_estimate import NOT_INCLUDED, format_duration
 from jaxsync.cli import build_parser, parts_of
 from jaxsync.errors import ConfigError
-from test_cli_pipeline import run_cli
 
 N_STEPS, N_S, N_P, N_PARTS, SIZE = 1000, 10, 5, 3, 3500
 # the shared histories hold a row every N_S steps (rows 0 .. N_STEPS / N_S); training reads
@@ -208,7 +208,7 @@ def test_vessel_bad_sizes_are_refused(tmp_path):
 
 
 # The run-time estimate printed before the first stage (jaxsync.app.run_estimate; its
-# arithmetic and text: tests/test_demo_estimate.py), on this fixture's run.
+# arithmetic and text: tests/app/test_demo_estimate.py), on this fixture's run.
 def test_the_estimate_comes_before_the_first_stage(vessel):
     run, summary = vessel[1], vessel[2]
     text = summary["estimate"]["text"]

@@ -443,7 +443,7 @@ def test_a_checkpoint_after_the_first_changes_only_rows_and_its_commit(tmp_path)
 _CRASH_CHILD = """
 import os, signal, sys
 import h5py
-sys.path.insert(0, sys.argv[3])
+sys.path[:0] = [sys.argv[3], os.path.dirname(sys.argv[3])]  # the test file and the helpers beside tests/
 from test_solver import _toy_writer
 writer, state, rows = _toy_writer(sys.argv[1])
 writer.commit(state(10), *rows(1))

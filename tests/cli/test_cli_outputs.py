@@ -104,7 +104,7 @@ def test_missing_folders_count_as_writable(tmp_path):
 
 def test_train_refuses_an_unwritable_output_folder(tmp_path, afile, capsys, monkeypatch):
     import jaxsync.cli.train
-    from test_surrogate_fit import write_trajectory
+    from oscillator_trajectories import write_trajectory
 
     monkeypatch.setattr(jaxsync.cli.train, "train_surrogates", must_not_run)
     traj = write_trajectory(tmp_path / "run.h5", n_steps=60)
@@ -393,7 +393,7 @@ def test_devices_are_counted_over_all_processes(stats, parts, text):
 
 
 def test_train_shows_the_rollout_warning_as_one_line(tmp_path, capsys):
-    from test_surrogate_fit import write_trajectory
+    from oscillator_trajectories import write_trajectory
 
     traj = write_trajectory(tmp_path / "run.h5", n_steps=120)
     assert main(["train", str(traj), "-o", str(tmp_path / "out"), "--n-s", "2", "--n-past", "4", "--n-future", "3",
@@ -460,7 +460,7 @@ def test_a_diverging_run_keeps_its_snapshots_in_a_partial_file(tmp_path, capsys,
 
 
 def test_train_and_report_refuse_earlier_results_without_force(tmp_path, capsys):
-    from test_surrogate_fit import write_trajectory
+    from oscillator_trajectories import write_trajectory
 
     traj = write_trajectory(tmp_path / "run.h5", n_steps=120)
     train = ["train", str(traj), "-o", str(tmp_path / "out"), "--model", "linear", "--n-s", "2", "--n-past", "4",

@@ -45,7 +45,7 @@ from jaxsync.surrogate import (
 )
 from jaxsync.surrogate.training.online import OnlineLearner
 
-GUIDE = pathlib.Path(__file__).resolve().parents[1] / "docs" / "guides" / "extending-surrogates.md"
+GUIDE = pathlib.Path(__file__).resolve().parents[2] / "docs" / "guides" / "extending-surrogates.md"
 N_STEPS = 4000
 N_S, N_P, N_F = 20, 10, 10
 SAMPLING = Sampling(n_s=N_S, n_past=N_P, n_future=N_F)

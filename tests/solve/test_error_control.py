@@ -6,6 +6,7 @@ import warnings
 
 import numpy as np
 import pytest
+from test_syncavoid import N_CRI, N_F, N_P, N_S, drifting_oracle
 
 import jaxsync
 from jaxsync import ProblemError
@@ -13,7 +14,6 @@ from jaxsync.solve.coupling.error_estimate import ErrorPropagator
 from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
 from jaxsync.solve.executors import PredictedPhase
 from jaxsync.surrogate.training.histories import shared_dof_layout
-from test_syncavoid import N_CRI, N_F, N_P, N_S, drifting_oracle
 
 
 @pytest.fixture(scope="module")
@@ -256,7 +256,7 @@ def test_the_report_summarizes_how_the_estimate_tracks(problem, partition, refer
 
 
 # the default run holds a trained linear surrogate to its tolerance by the estimate in
-# tests/test_hyperelastic_surrogates.py::test_a_trained_linear_surrogate_runs_online_under_error_control, and
+# tests/solve/test_hyperelastic_surrogates.py::test_a_trained_linear_surrogate_runs_online_under_error_control, and
 # checks that es_hat alone misses an error both parts make alike while the estimate bounds it in
 # test_shared_drift_is_caught_and_bounded
 @pytest.mark.slow

@@ -1,6 +1,6 @@
 """The run-time estimate ``jaxsync demo --case vessel`` prints before its first stage
 (jaxsync.app.run_estimate): its formatting and arithmetic as pure functions, and one run
-of the reduced vessel demo (the arguments of tests/test_vessel_demo.py), where it must
+of the reduced vessel demo (the arguments of tests/cli/test_vessel_demo.py), where it must
 come before the first stage and be recorded in summary.json as the product of the
 numbers it measured."""
 

@@ -37,7 +37,7 @@ from jaxsync.surrogate.models.linear import forward
 from jaxsync.surrogate.models.replicas import init_replicas
 from jaxsync.surrogate.training.data import ReplicaData, make_windows, padding_mask, subsample
 from jaxsync.surrogate.training.evaluate import RolloutWarning
-from test_surrogate_fit import NODES, write_trajectory
+from oscillator_trajectories import NODES, write_trajectory
 
 N_S, N_P, N_F = 3, 4, 5
 COUNTS = (3, 5)  # part 0 is padded to part 1's width
@@ -187,7 +187,7 @@ def test_a_linear_surrogate_runs_online_and_its_shared_values_are_its_offline_ro
     alone: equal to float32 round-off (1e-6 of the amplitude). That error is the
     surrogate's; on this run it is 2.7 % (3.6 % at regularization 1e-6, 4.5 % at 1e-10,
     and the run blows up without regularization), checked here at 4 %."""
-    n_s, n_p, n_f, n_cri, n_steps = 5, 4, 4, 40, 400  # tests/test_syncavoid.py's sizes
+    n_s, n_p, n_f, n_cri, n_steps = 5, 4, 4, 40, 400  # tests/solve/test_syncavoid.py's sizes
     problem = jaxsync.cantilever()
     partition = jaxsync.partition(problem.mesh, 2)
     reference = jaxsync.simulate(problem, n_steps, partitions=partition)
