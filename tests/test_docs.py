@@ -66,7 +66,6 @@ import builtins
 import json
 import os
 import re
-import socket
 import subprocess
 import sys
 import textwrap
@@ -74,6 +73,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from subprocess_env import free_port, without_emulated_devices
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -391,21 +392,9 @@ for line, source in blocks:
 """
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def user_environment() -> dict[str, str]:
     """This process's environment without the test session's emulated devices."""
-    env = dict(os.environ)
-    flags = re.sub(r"--xla_force_host_platform_device_count=\d+", "", env.get("XLA_FLAGS", "")).strip()
-    if flags:
-        env["XLA_FLAGS"] = flags
-    else:
-        env.pop("XLA_FLAGS", None)
-    env.setdefault("JAX_PLATFORMS", "cpu")
+    env = without_emulated_devices()
     env["PYTHONUNBUFFERED"] = "1"
     env["MPLBACKEND"] = "Agg"
     # A snippet that calls jaxsync.parallel.multiprocess.initialize() runs as a single rank; give

@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import os
-import re
 import shutil
-import socket
 import subprocess
 import sys
 
@@ -124,31 +122,17 @@ import pytest  # noqa: E402
 import jaxsync  # noqa: E402
 from jaxsync.parallel import multiprocess  # noqa: E402
 from jaxsync.solve import strategies  # noqa: E402
+from subprocess_env import free_port, without_emulated_devices  # noqa: E402
 
 MPIEXEC = shutil.which("mpiexec")
 needs_mpiexec = pytest.mark.skipif(MPIEXEC is None,
                                    reason="mpiexec not found on PATH (pip install mpich)")
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _one_device_per_process() -> dict[str, str]:
-    """This process's environment without the session's emulated devices (the ranks' other
-    compiler flags, set in conftest, are kept): one CPU device in each process."""
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = re.sub(r"--xla_force_host_platform_device_count=\d+", "", env.get("XLA_FLAGS", "")).strip()
-    env["JAX_PLATFORMS"] = "cpu"
-    return env
-
-
 def _mpiexec(*command, n: int = 2, cwd=None) -> subprocess.CompletedProcess:
     """``mpiexec -n n ...`` on localhost only, with one CPU device per rank."""
-    env = _one_device_per_process()
-    env["JAX_COORDINATOR_ADDRESS"] = f"127.0.0.1:{_free_port()}"
+    env = {**without_emulated_devices(), "JAX_PLATFORMS": "cpu"}  # one CPU device per rank
+    env["JAX_COORDINATOR_ADDRESS"] = f"127.0.0.1:{free_port()}"
     version = subprocess.run([MPIEXEC, "--version"], capture_output=True, text=True, timeout=30)
     if "HYDRA" in version.stdout:  # MPICH / Intel MPI: no ssh, ranks on this host
         launcher = [MPIEXEC, "-launcher", "fork", "-hosts", "localhost"]
@@ -413,7 +397,7 @@ def test_plain_install_defaults_to_an_allreduce_inside_the_step():
             "from jaxsync.solve import strategies\n"
             "print(multiprocess.default_allreduce())\n"
             "print(strategies.transport('mpi', 2))\n")
-    env = _one_device_per_process()
+    env = {**without_emulated_devices(), "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=TIMEOUT_S, env=env)
     assert out.returncode == 0, out.stderr
     backend, line = out.stdout.splitlines()[-2:]

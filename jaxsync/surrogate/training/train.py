@@ -268,8 +268,9 @@ def _epoch_runner(arch, config: TrainConfig, n_train: int, mesh: Mesh):
     """Compiled function running a chunk of epochs for all replicas (split over ``mesh``).
 
     The chunk carries ``(params, opt_state, best_params, best_val, best_epoch)``; an epoch
-    whose index ``e`` (epochs done before it) has ``e - best_epoch >= patience`` for every
-    replica is skipped (early stop, ``patience > 0``) and reported as not run.
+    whose index ``e`` (epochs done before it) is at or past the chunk's ``end``, or has
+    ``e - best_epoch >= patience`` for every replica (early stop, ``patience > 0``), is
+    skipped and reported as not run.
     """
     batch = config.batch_size
     steps = -(-n_train // batch)
