@@ -82,8 +82,8 @@ def nodal_pressure_operators(problem):
     K_nodal = (G.T @ A.T @ sp.diags(1.0 / nodal_volumes) @ A @ G).tocsr()
     # sanity: the element-wise volumetric operator G^T V^-1 G is P1's K_lambda
     assert abs(G.T @ sp.diags(1.0 / volumes) @ G - ops.K_lambda).max() <= 1e-9 * abs(ops.K_lambda).max()
-    return dataclasses.replace(ops, K_lambda=K_nodal, K_mu=(ops.K_mu + (2.0 / 3.0) * (K_nodal - ops.K_lambda)).tocsr(),
-                               stable_step_memo={})
+    # (a replaced operators object starts with no bounds: they are of the new K)
+    return dataclasses.replace(ops, K_lambda=K_nodal, K_mu=(ops.K_mu + (2.0 / 3.0) * (K_nodal - ops.K_lambda)).tocsr())
 
 
 def with_element(problem, element: str):

@@ -52,12 +52,15 @@ class UnitOperators:
         K_mu: (n_dofs, n_dofs) stiffness for lambda = 0, mu = 1 [cm].
         M_1: (n_dofs, n_dofs) consistent mass for unit density [cm^3].
         volumes: (n_elements,) element volumes [cm^3].
-        stable_step_memo: exact stability bounds already computed on this mesh, by
-            (nu, density scaling, Dirichlet dofs), for E = rho = 1
-            (:func:`jaxsync.fem.timestep.max_stable_dt`): a pure function's memo, so that
-            problems derived with ``replace`` (new E, damping, loads) do not solve again;
-            also other material-independent arrays of the space (surface loads, supports).
         space: the :class:`~jaxsync.fem.space.FunctionSpace` (P1 or P2 nodes).
+
+    Problems on the same mesh share one ``UnitOperators`` (:meth:`Problem.replace
+    <jaxsync.fem.problem.Problem.replace>` carries it), and so share what is derived from
+    the space alone, each computed on first use by :meth:`derived` (the unit surface
+    loads, the supports' unit blocks, the follower facets), and the stability bounds that
+    do not depend on E and rho (:meth:`stability_bound`: an eigenvalue solve that a
+    problem with another E, damping or loads does not repeat). Both are pure functions of
+    the space and their key.
     """
 
     mesh: Mesh
@@ -65,8 +68,30 @@ class UnitOperators:
     K_mu: sp.csr_matrix
     M_1: sp.csr_matrix
     volumes: np.ndarray
-    stable_step_memo: dict = dataclasses.field(default_factory=dict, repr=False)
     space: object = None
+    # {(kind, key): value} of derived() and stability_bound(): values of pure functions
+    _derived: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derived(self, kind: str, key, compute):
+        """A material-independent array (or tuple of arrays) of this space: ``compute()``
+        the first time ``(kind, key)`` is asked for, the same object after.
+
+        Args:
+            kind: what it is (``"pressure"``, ``"support blocks"``, ...).
+            key: what it depends on besides the space (hashable: a surface name, ...).
+            compute: the pure function of the space that makes it.
+        """
+        if (kind, key) not in self._derived:
+            self._derived[kind, key] = compute()
+        return self._derived[kind, key]
+
+    def stability_bound(self, kind: str, key, compute):
+        """A stability bound of problems on this space that does not depend on E and rho
+        (they scale it by sqrt(rho / E)): ``compute()`` the first time ``(kind, key)`` is
+        asked for. ``key`` holds everything else the bound depends on (Poisson's ratio or
+        the law's parameters, density scaling, Dirichlet dofs, supports, initial
+        displacement), as hashable values."""
+        return self.derived(f"stability: {kind}", key, compute)
 
     @functools.cached_property
     def block_ell(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

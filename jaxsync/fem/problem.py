@@ -4,11 +4,14 @@ A :class:`Problem` is immutable; derive variants with :meth:`Problem.replace`. T
 material-independent FE operators are assembled once per mesh and carried along by
 ``replace`` as long as the mesh is the same object, so that changing the material,
 loads or damping (for instance with JAX tracers, to differentiate) costs no reassembly.
+What a run reads of a problem (lumped mass, nodal loads, prescribed values, damping) is
+lowered once per problem, on first use, into :attr:`Problem.discrete`.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 from typing import Any, Callable, Sequence
 
@@ -182,7 +185,7 @@ class Problem:
         if (self.operators is None or self.operators.mesh is not self.mesh
                 or self.operators.space is not self.space):
             object.__setattr__(self, "operators", assemble_unit_operators(self.space))
-        self.dirichlet_dofs()  # validate eagerly
+        self.dirichlet_owner()  # validate eagerly
         from .rigid_body import warn_about_free_motion
 
         warn_about_free_motion(self, stacklevel=4)
@@ -254,44 +257,39 @@ class Problem:
         """
         return self.material.element_steps(self)
 
+    @functools.cached_property
+    def discrete(self):
+        """The problem lowered to the arrays the solver reads
+        (:class:`~jaxsync.fem._discrete.DiscreteProblem`: lumped mass, nodal loads,
+        prescribed dofs and values, damping), computed on first use and kept: every
+        consumer (the explicit system, the parts' systems, the error estimate, the
+        stability bounds, a checkpoint's fingerprint and the accessors below) reads it."""
+        from ._discrete import lower
+
+        return lower(self)
+
     def dirichlet_dofs(self) -> tuple[np.ndarray, np.ndarray]:
         """(dofs (k,) int64 sorted, values (k,) float64) of all prescribed dofs (a
         condition with a time function at its full ``value``, time factor 1)."""
-        owner = self._dirichlet_owner()
-        dofs = np.flatnonzero(owner >= 0)
-        values = np.zeros(len(dofs))
-        for k, bc in enumerate(self.dirichlet):
-            mine = owner[dofs] == k
-            if mine.any():
-                value = bc.value if bc.time is None or not is_traced(bc.value) else np.zeros(3)
-                values[mine] = np.broadcast_to(np.asarray(value, dtype=float), (3,))[dofs[mine] % 3]
-        return dofs, values
+        return self.discrete.dirichlet_dofs()
 
     def prescribed(self) -> tuple[np.ndarray, np.ndarray, list]:
         """The prescribed displacements as the stepper applies them: (mask (n_nodes, 3)
         bool, constant values (n_nodes, 3) [cm], and per condition with a time function a
         pair (its values (n_nodes, 3) on the dofs it prescribes [cm], a JAX array when
         traced; its time function))."""
-        import jax.numpy as jnp
+        d = self.discrete
+        moving = [] if d.moving is None else list(zip(d.moving, d.moving_times))
+        return d.fixed, d.fixed_values, moving
 
-        owner = self._dirichlet_owner().reshape(-1, 3)
-        mask = owner >= 0
-        constant = np.zeros(owner.shape)
-        moving = []
-        for k, bc in enumerate(self.dirichlet):
-            mine = owner == k
-            if not mine.any():
-                continue
-            if bc.time is None:
-                constant[mine] = np.broadcast_to(np.asarray(bc.value, dtype=float), (3,))[np.nonzero(mine)[1]]
-            else:
-                value = jnp.broadcast_to(jnp.asarray(bc.value, dtype=float), (3,))
-                moving.append((jnp.where(jnp.asarray(mine), value[None, :], 0.0), bc.time))
-        return mask, constant, moving
-
-    def _dirichlet_owner(self) -> np.ndarray:
+    def dirichlet_owner(self) -> np.ndarray:
         """(n_dofs,) index of the condition that prescribes each dof (the last one that
-        names it), -1 for free dofs."""
+        names it), -1 for free dofs; checks each condition (its nodes, components, time
+        function).
+
+        Raises:
+            ProblemError: a condition that selects no node, or with a bad component or
+                time function."""
         owner = np.full(self.n_dofs, -1, dtype=np.int64)
         for k, bc in enumerate(self.dirichlet):
             if not isinstance(bc, Dirichlet):
@@ -321,35 +319,34 @@ class Problem:
         ``times[l]`` its time function. Follower pressures, whose forces depend on the
         displacement, are not among them (:mod:`jaxsync.fem.forces.follower`).
         """
-        loads = [load for load in self.loads if not (isinstance(load, Pressure) and load.follower)]
-        return [self.load_vector(load) for load in loads], [load.time for load in loads]
+        d = self.discrete
+        return list(d.load_vectors), list(d.load_times)
 
     def load_vector(self, load):
         """(n_nodes, 3) nodal force of one load of this problem's kind at full magnitude,
-        on the reference configuration (for a follower pressure: its forces at rest)."""
+        on the reference configuration (for a follower pressure: its forces at rest): a
+        NumPy array, or a JAX array where the load's vector or magnitude is traced."""
         import jax.numpy as jnp
 
+        derived = self.operators.derived
         if isinstance(load, BodyForce):
-            unit = self._memo("body force", lambda: body_force_vectors(self.space))
+            unit = derived("body force", None, lambda: body_force_vectors(self.space))
+        elif isinstance(load, Traction):
+            unit = derived("traction", load.surface, lambda s=load.surface: traction_vectors(self.space, s))
+        else:
+            unit = derived("pressure", load.surface, lambda s=load.surface: pressure_vector(self.space, s))
+            return load.magnitude * (jnp.asarray(unit) if is_traced(load.magnitude) else unit)
+        if is_traced(load.vector):
             return jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
-        if isinstance(load, Traction):
-            unit = self._memo(("traction", load.surface), lambda s=load.surface: traction_vectors(self.space, s))
-            return jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float))
-        unit = self._memo(("pressure", load.surface), lambda s=load.surface: pressure_vector(self.space, s))
-        return load.magnitude * jnp.asarray(unit)
+        import jax
 
-    def _memo(self, key, compute):
-        """A material-independent array of this mesh, computed once (the operators' memo)."""
-        memo = self.operators.stable_step_memo
-        if key not in memo:
-            memo[key] = compute()
-        return memo[key]
+        with jax.ensure_compile_time_eval():  # a concrete load stays concrete inside a traced function
+            return np.asarray(jnp.einsum("dnc,d->nc", unit, jnp.asarray(load.vector, dtype=float)))
 
     def lumped_mass(self):
-        """(n_nodes,) lumped nodal mass [g] (rho times the unit lumped mass)."""
-        from .assembly import lumped_mass
-
-        return self.material.rho * lumped_mass(self.space, self.density_scale)
+        """(n_nodes,) lumped nodal mass [g] (rho times the unit lumped mass, density
+        scaling included)."""
+        return self.discrete.mass
 
     def summary(self, dt=None) -> str:
         """A few lines describing the problem; ``dt``: the step a run uses instead of the

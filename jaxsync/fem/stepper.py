@@ -138,27 +138,26 @@ def build_system(problem, dt, mode="preassembled") -> ExplicitSystem:
     from .forces.internal_force import force_model
 
     stiffness = force_model(mode).operator(problem)
+    lowered = problem.discrete  # the mass, loads, prescribed values and damping, lowered once per problem
     beta = None
     if problem.stiffness_damped:
         if not hasattr(stiffness, "damped_matvec"):
             raise ProblemError(f"stiffness_damping={problem.stiffness_damping} needs the damping force beta K v, "
                                f"but the force model {mode!r} gives an operator ({type(stiffness).__name__}) without "
                                "damped_matvec(u, velocity, beta): add that method, or set stiffness_damping=0")
-        beta = jnp.asarray(problem.stiffness_damping, dtype=float)
-    mass = jnp.repeat(jnp.asarray(problem.lumped_mass())[:, None], 3, axis=1)
-    vectors, times = problem.load_vectors()
-    n = problem.n_nodes
-    load_vectors = jnp.stack(vectors) if vectors else jnp.zeros((0, n, 3))
-    fixed, fixed_values, moving = problem.prescribed()
-    damping, dt = jnp.asarray(problem.damping, dtype=float), jnp.asarray(dt, dtype=float)
+        beta = jnp.asarray(lowered.stiffness_damping, dtype=float)
+    mass = jnp.repeat(jnp.asarray(lowered.mass, dtype=float)[:, None], 3, axis=1)
+    damping, dt = jnp.asarray(lowered.damping, dtype=float), jnp.asarray(dt, dtype=float)
+    fixed = jnp.asarray(lowered.fixed)
     blocks = dashpot_blocks(problem)
     return ExplicitSystem(
         stiffness=stiffness, mass=mass, damping=damping, dt=dt,
-        load_vectors=load_vectors, load_times=tuple(times),
-        fixed=jnp.asarray(fixed), fixed_values=jnp.asarray(fixed_values),
-        moving=jnp.stack([v for v, _ in moving]) if moving else None, moving_times=tuple(g for _, g in moving),
+        load_vectors=jnp.asarray(lowered.load_vectors, dtype=float), load_times=lowered.load_times,
+        fixed=fixed, fixed_values=jnp.asarray(lowered.fixed_values),
+        moving=None if lowered.moving is None else jnp.asarray(lowered.moving, dtype=float),
+        moving_times=lowered.moving_times,
         spring=surface_spring(problem),
-        dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, jnp.asarray(fixed)),
+        dashpot=None if blocks is None else dashpot(mass, damping, dt, blocks, fixed),
         follower=follower_pressure(problem), stiffness_damping=beta)
 
 

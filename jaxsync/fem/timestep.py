@@ -170,7 +170,8 @@ def cfl_dt(problem, alpha_s: float = ALPHA_S):
 
 def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
     """2 / omega_max [s] of ``problem`` with E = 1 and rho = 1 (its nu, density scaling and
-    Dirichlet set), memoised on the problem's operators: the bound of any E and rho is
+    Dirichlet set), computed once per key on the problem's operators
+    (:meth:`~jaxsync.fem.assembly.UnitOperators.stability_bound`): the bound of any E and rho is
     this times sqrt(rho / E), so traced E or rho (inside ``jax.grad``) need no solve."""
     nu = problem.material.nu
     from ..pytree import is_traced
@@ -181,16 +182,22 @@ def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
             "eigenvalue computed on the host, so it cannot follow a traced nu: pass dt= "
             "explicitly (for instance the problem.dt of the problem at a concrete nu)")
     nu = float(nu)
-    from .forces.support import spring_matrix, spring_ratios
+    from .forces.support import spring_ratios
 
     ratios = spring_ratios(problem)  # k_s / E: the springs at E = 1
     fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
     key = (nu, None if scale is None else np.asarray(scale, dtype=float).tobytes(), fixed.tobytes(), ratios)
-    memo = problem.operators.stable_step_memo
-    if key in memo:
-        return memo[key]
+    return problem.operators.stability_bound(
+        "small strain, E = rho = 1", key, lambda: _unit_bound(problem, nu, ratios, fixed, tol, max_iter, seed))
+
+
+def _unit_bound(problem, nu: float, ratios, fixed, tol: float, max_iter: int, seed: int) -> float:
+    """:func:`unit_bound`, computed: the largest eigenvalue of M^-1 K at E = rho = 1."""
     from .assembly import lumped_mass
+    from .forces.support import spring_matrix
+
+    scale = problem.density_scale
 
     lam, mu = nu / ((1.0 + nu) * (1.0 - 2.0 * nu)), 1.0 / (2.0 * (1.0 + nu))
     K = problem.operators.stiffness(lam, mu)
@@ -221,8 +228,7 @@ def unit_bound(problem, tol: float, max_iter: int, seed: int) -> float:
                     f"converge in {max_iter} iterations: pass dt= explicitly, or raise "
                     "max_iter") from None
             largest = float(np.max(exc.eigenvalues))
-    memo[key] = bound = float(2.0 / np.sqrt(largest))
-    return bound
+    return float(2.0 / np.sqrt(largest))
 
 
 def max_stable_dt(problem, *, tol: float = 1e-10, max_iter: int = 20000, seed: int = 0):

@@ -61,12 +61,13 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     for arr in (mesh.points, mesh.tets):
         h.update(np.ascontiguousarray(arr).tobytes())
     m = problem.material
-    dofs, values = problem.dirichlet_dofs()
-    h.update(np.asarray([float(m.E), float(m.nu), float(m.rho), float(problem.damping), dt,
+    lowered = problem.discrete
+    dofs, values = lowered.dirichlet_dofs()
+    h.update(np.asarray([float(m.E), float(m.nu), float(m.rho), float(lowered.damping), dt,
                          save_every], dtype=float).tobytes())
     h.update(dofs.tobytes())
     h.update(values.tobytes())
-    for v in problem.load_vectors()[0]:
+    for v in lowered.load_vectors:
         h.update(np.asarray(v, dtype=float).tobytes())
     from ..fem.forces.follower import follower_loads
 

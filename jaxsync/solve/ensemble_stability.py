@@ -20,19 +20,22 @@ __all__ = ["member_bounds", "default_dt", "check_members_dt"]
 def _basis_eigenvalues(problem) -> tuple[float, float, float]:
     """(a, b, s): the largest eigenvalues of M_1^-1 K_lambda, M_1^-1 K_mu and M_1^-1 S on the
     free dofs (M_1 the lumped mass of unit density, density scaling included; S the
-    supports' springs, 0 without), memoised on the problem's operators."""
+    supports' springs, 0 without), computed once per key on the problem's operators."""
+    fixed, _ = problem.dirichlet_dofs()
+    scale = problem.density_scale
+    key = (fixed.tobytes(), None if scale is None else np.asarray(scale, dtype=float).tobytes(),
+           tuple((s.surface, float(s.stiffness), s.normal_only) for s in problem.supports))
+    return problem.operators.stability_bound("ensemble basis eigenvalues", key,
+                                             lambda: _largest_basis_eigenvalues(problem, fixed))
+
+
+def _largest_basis_eigenvalues(problem, fixed) -> tuple[float, float, float]:
+    """:func:`_basis_eigenvalues`, computed."""
     from ..fem.assembly import lumped_mass
     from ..fem.forces.support import spring_matrix
     from ..fem.timestep import DENSE_EIGEN_DOFS
 
-    fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
-    key = ("ensemble basis eigenvalues", fixed.tobytes(),
-           None if scale is None else np.asarray(scale, dtype=float).tobytes(),
-           tuple((s.surface, float(s.stiffness), s.normal_only) for s in problem.supports))
-    memo = problem.operators.stable_step_memo
-    if key in memo:
-        return memo[key]
     mass = np.repeat(np.asarray(lumped_mass(problem.space, scale), dtype=float), 3)
     free = np.setdiff1d(np.arange(problem.n_dofs), fixed)
     if len(free) == 0:
@@ -57,8 +60,7 @@ def _basis_eigenvalues(problem) -> tuple[float, float, float]:
             value = float(sla.eigsh(A, k=1, which="LA", tol=1e-8, maxiter=20000, v0=v0,
                                     return_eigenvectors=False)[0])
             out.append(value * (1.0 + 1e-7))
-    memo[key] = tuple(out)
-    return memo[key]
+    return tuple(out)
 
 
 def member_bounds(setup: EnsembleSetup) -> tuple[np.ndarray, bool]:

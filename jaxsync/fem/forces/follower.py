@@ -147,15 +147,15 @@ def facet_nodes(space, surface: str) -> tuple[np.ndarray, np.ndarray]:
 
 def _facets(problem):
     """(nodes (n_f, k_f), element (n_f,), load index (n_f,)) of every follower facet,
-    memoised on the problem's operators."""
+    computed once per space and set of surfaces."""
     loads = follower_loads(problem)
-    key = ("follower facets", tuple(load.surface for load in loads))
-    memo = problem.operators.stable_step_memo
-    if key not in memo:
+
+    def compute():
         found = [facet_nodes(problem.space, load.surface) for load in loads]
-        memo[key] = (np.concatenate([f for f, _ in found]), np.concatenate([e for _, e in found]),
-                     np.concatenate([np.full(len(e), k, dtype=np.int64) for k, (_, e) in enumerate(found)]))
-    return memo[key]
+        return (np.concatenate([f for f, _ in found]), np.concatenate([e for _, e in found]),
+                np.concatenate([np.full(len(e), k, dtype=np.int64) for k, (_, e) in enumerate(found)]))
+
+    return problem.operators.derived("follower facets", tuple(load.surface for load in loads), compute)
 
 
 def _operator(problem, facets, load, weights, points) -> FollowerPressure:

@@ -125,12 +125,9 @@ def _unit_surface_blocks(space, support: ElasticSupport) -> tuple[np.ndarray, np
 
 
 def _support_blocks(problem, support):
-    """Memoised unit blocks of ``support`` on the problem's mesh (the operators' cache)."""
-    memo = problem.operators.stable_step_memo
-    key = ("support", support.surface, support.normal_only)
-    if key not in memo:
-        memo[key] = _unit_surface_blocks(problem.space, support)
-    return memo[key]
+    """The unit blocks of ``support`` on the problem's mesh, computed once per space."""
+    return problem.operators.derived("support blocks", (support.surface, support.normal_only),
+                                     lambda: _unit_surface_blocks(problem.space, support))
 
 
 def _springs(problem) -> list:

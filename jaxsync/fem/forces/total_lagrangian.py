@@ -289,15 +289,14 @@ def default_step(problem, alpha_s: float = ALPHA_S) -> StableStep:
     law = m.parameters()
     fixed, _ = problem.dirichlet_dofs()
     scale = problem.density_scale
-    key = ("hyperelastic stable step", *law.key(), fixed.tobytes(),
+    key = (*law.key(), fixed.tobytes(),
            None if scale is None else np.asarray(scale, dtype=float).tobytes(),
            None if u0 is None else np.asarray(u0, dtype=float).tobytes(),
            tuple((s.surface, float(s.stiffness), s.normal_only) for s in problem.supports))
-    memo = problem.operators.stable_step_memo
-    if key not in memo:
-        u = None if u0 is None else np.asarray(u0, dtype=float)
-        memo[key] = (stable_dt(problem, u, alpha_s=1.0, rule="element"), exact_stable_dt(problem, u))
-    rule, exact = memo[key]
+    u = None if u0 is None else np.asarray(u0, dtype=float)
+    rule, exact = problem.operators.stability_bound(
+        "finite strain at rest", key,
+        lambda: (stable_dt(problem, u, alpha_s=1.0, rule="element"), exact_stable_dt(problem, u)))
     return hyperelastic_step(rule, exact, alpha_s, element=problem.element, law=law.name)
 
 

@@ -131,13 +131,14 @@ class ErrorPropagator:
         n_modes = DEFAULT_MODES if n_modes is None else n_modes
         if isinstance(n_modes, bool) or not isinstance(n_modes, (int, np.integer)) or n_modes < 1:
             raise ProblemError(f"resync_tolerance: modes={n_modes!r} must be a whole number >= 1")
-        fixed = np.asarray(problem.prescribed()[0]).reshape(-1)
+        lowered = problem.discrete
+        fixed = np.asarray(lowered.fixed).reshape(-1)
         free = np.flatnonzero(~fixed)
         if not len(free):
             raise ProblemError("every dof is prescribed: there is no error to estimate")
         K = linearised_stiffness(problem, displacement).tocsr()[free][:, free].tocsc()
         solve = splu(K).solve  # once: the static remainder, and the eigensolver's shift-invert
-        mass = np.repeat(np.asarray(problem.lumped_mass(), dtype=float), 3)[free]
+        mass = np.repeat(np.asarray(lowered.mass, dtype=float), 3)[free]
         n_modes = int(min(n_modes, len(free) - 1 if len(free) > _DENSE_LIMIT else len(free)))
         scale = 1.0 / np.sqrt(mass)
         if len(free) <= _DENSE_LIMIT:
@@ -156,13 +157,13 @@ class ErrorPropagator:
         modes = np.zeros((3 * problem.n_nodes, n_modes))
         modes[free] = phi
         modes = modes.reshape(problem.n_nodes, 3, n_modes)
-        mass_full = np.repeat(np.asarray(problem.lumped_mass(), dtype=float)[:, None], 3, axis=1)
+        mass_full = np.repeat(np.asarray(lowered.mass, dtype=float)[:, None], 3, axis=1)
         shared = np.asarray(partition.shared_nodes)
         injection = modes[shared] * mass_full[shared][..., None]
-        a = 0.5 * float(problem.damping) * float(dt)
+        a = 0.5 * float(lowered.damping) * float(dt)
         omega2 = np.maximum(omega2, 0.0)
         # the stiffness-proportional damping beta omega^2 (q(n) - q(n-1)) / dt of the stepper
-        b = float(problem.stiffness_damping) * float(dt) * omega2
+        b = float(lowered.stiffness_damping) * float(dt) * omega2
         c = (2.0 - float(dt) ** 2 * omega2 - b) / (1.0 + a)
         d = -(1.0 - a - b) / (1.0 + a)
         transition = np.stack([np.stack([c, d], -1), np.stack([np.ones_like(c), np.zeros_like(c)], -1)], -2)
