@@ -924,8 +924,26 @@ def r_ensemble() -> Rendered:
     return Rendered(tables, ["ensemble/ensemble.json"], recorded(d.get("machine")))
 
 
+def r_ensemble_inverse() -> Rendered:
+    d = load("ensemble_inverse.json")
+    s, p = d["settings"], d["problem"]
+    rows = [[str(r), num(m["E_true"]), num(m["E_fit"]), num(m["relative_error"], 2),
+             num(m["cramer_rao_relative_std"], 2), f"{m['z']:+.2f}"] for r, m in enumerate(d["members"])]
+    t = Table(["member", "E true [dyn/cm^2]", "E fitted", "relative error", "Cramer-Rao std", "z"], rows,
+              f"{s['members']} coronary trees ({num(p['tets'])} tets, {num(p['dofs'])} dofs) fitted at once: "
+              f"{s['steps']} steps, {s['observed']} wall nodes observed every {s['save']} steps, noise "
+              f"{100 * s['noise']:g} % of the RMS signal")
+    t.notes.append(f"Gauss-Newton from E_0 = {num(p['E0'])} for every member: {len(d['gauss_newton_steps'])} "
+                   "iterations, largest steps in log E " + ", ".join(num(x, 2) for x in d["gauss_newton_steps"])
+                   + f"; max |z| {num(d['max_abs_z'], 3)}. One batched run {num(d['seconds']['forward'], 3)} s, "
+                   f"its gradient {num(d['seconds']['gradient'], 3)} s; gradient against central differences: "
+                   + ", ".join(num(c["relative_difference"], 2) for c in d["gradient_check"]) + ".")
+    return Rendered([t], ["ensemble_inverse.json"], recorded(d.get("machine")))
+
+
 RENDERERS = {
     "product": r_product,
+    "ensemble-inverse": r_ensemble_inverse,
     "ensemble": r_ensemble,
     "float32": r_float32,
     "predicted-step": r_predicted_step,
