@@ -55,7 +55,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.stepper import advance  # noqa: E402
+from jaxsync.fem import advance  # noqa: E402
 from jaxsync.io import atomic_path  # noqa: E402
 from jaxsync.perf.measure import best_time  # noqa: E402
 from jaxsync.perf.reports import STAGES  # noqa: E402
@@ -124,9 +124,7 @@ HEADER = (f"{'scenario':<8} {'mode':<12} {'mesh':>9} {'nodes':>6} {'n_c':>3} {'N
 def baseline_input(problem, partition, path) -> dict:
     """Write the per-part arrays ``paper_baseline.py`` reads; returns the global initial
     state and system used (for running jaxsync from the same start)."""
-    from jaxsync.fem.assembly import element_blocks
-    from jaxsync.fem.loads import Ramp
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import Ramp, build_system, element_blocks, initial_state
 
     if len(problem.loads) != 1 or not isinstance(problem.loads[0].time, Ramp):
         raise ValueError("the baseline handles one ramped load (the cantilever)")

@@ -84,8 +84,7 @@ def setup_seconds(call, n_steps: int) -> tuple[float, tuple]:
 
 def own_systems_per_member(mesh, params: dict, n: int, dt: float) -> float:
     """Seconds per member of setting each member up on its own (module docstring), over n members."""
-    from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.fem.timestep import check_dt
+    from jaxsync.fem import build_system, check_dt, initial_state
 
     start = time.perf_counter()
     for r in range(n):

@@ -35,8 +35,8 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 from jaxsync.metrics import estimate_quality, l2_error, predictions_by_node, shared_node_errors  # noqa: E402
-from jaxsync.parallel.partitioning import partition_of  # noqa: E402
-from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
+from jaxsync.parallel import partition_of  # noqa: E402
+from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
 from jaxsync.surrogate import load_surrogate  # noqa: E402
 
 DEFAULT_TOLERANCES = ["none", "1e-2", "1e-3", "3e-4", "1e-4", "3e-5", "1e-5", "10%", "1%", "0.1%"]

@@ -4,7 +4,7 @@ For the demo case (coarse cantilever, 2 parts, n_s 150, n_p = n_f 20, 1e5 steps,
 the first half) and the skewed load (body force (0, -0.5, -0.5)), the paper-experiment
 pipeline: the synchronized reference, ``train_surrogates`` with the library's defaults, the
 synchronization-avoiding run over all 1e5 steps; then
-:func:`jaxsync.solve.finetune.fine_tune_in_the_loop` on windows inside the training half
+:func:`jaxsync.solve.fine_tune_in_the_loop` on windows inside the training half
 (n_s n_p synchronized steps, then ``--window-cycles`` refill cycles, against the
 synchronized run), and the same online run with the fine-tuned networks. The errors are
 those of the experiment matrix (``experiments.run_metrics``: free-end max and final error,
@@ -34,7 +34,7 @@ import experiments  # noqa: E402  (the settings, cases and metrics of the experi
 
 import jaxsync  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
-from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop  # noqa: E402
+from jaxsync.solve import FineTuneConfig, fine_tune_in_the_loop  # noqa: E402
 from jaxsync.surrogate import Surrogate  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "finetune.json")

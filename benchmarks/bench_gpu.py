@@ -8,19 +8,19 @@ atomically, so that a run cut short keeps what it measured; ``--sections`` runs 
 
 1. ``copy``: the device's copy bandwidth (read + write bytes per second of ``x <- s x``
    over a 1 GiB float64 array, many passes in one call): the 100 % of the other rows.
-2. ``stepper``: the linear explicit step (:func:`jaxsync.fem.stepper.build_system` and
-   :func:`~jaxsync.fem.stepper.advance`, the node-blocked ELL mat-vec in ``lax.scan``) on
+2. ``stepper``: the linear explicit step (:func:`jaxsync.fem.build_system` and
+   :func:`~jaxsync.fem.advance`, the node-blocked ELL mat-vec in ``lax.scan``) on
    cantilever beams of 14 823, 51 207, 265 923, 867 783 and 1 114 047 dofs, float64 blocks
    and float32 blocks (``Preassembled(blocks_dtype="float32")``): us per step, GB/s of the
    compulsory traffic (the operator's arrays and the state vectors once per step) and %
    of the copy bandwidth. On the smallest and the largest beam also the same steps as a
-   ``lax.scan`` of the package's own :func:`~jaxsync.fem.stepper.step` with ``unroll=k``,
+   ``lax.scan`` of the package's own :func:`~jaxsync.fem.step` with ``unroll=k``,
    k = 1, 4, 8 (``advance`` itself runs ``STEP_UNROLL`` = 2 steps per iteration), each
    checked to give the displacements of ``advance`` to round-off: the per-step floor of
    small meshes and its remedy measured in the same run.
 3. ``hyperelastic``: the total-Lagrangian internal force
-   (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.matvec` of
-   :class:`~jaxsync.fem.forces.total_lagrangian.TotalLagrangian`), P1 neo-Hookean on beams of
+   (:meth:`jaxsync.fem.forces.HyperelasticForce.matvec` of
+   :class:`~jaxsync.fem.forces.TotalLagrangian`), P1 neo-Hookean on beams of
    86 400 and 480 000 tetrahedra and P1 HGO (two helical fibre families) on 86 400, at a
    deformed state: elements per second against the bandwidth bound of the bytes an
    element moves (node ids, shape data, the gather of 4 x 3 displacements and the
@@ -236,9 +236,8 @@ def prepare_beam(divisions, stepper: bool, laws: tuple) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxsync
-    from jaxsync.fem.forces.internal_force import Preassembled
-    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
+    from jaxsync.fem.forces import Preassembled, TotalLagrangian
 
     start = time.perf_counter()
     problem = jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, tuple(divisions)))
@@ -288,7 +287,7 @@ def prepare_vessel(target: int, n_parts: int, path: str | None = None) -> dict:
 
     jax.config.update("jax_enable_x64", True)
     import jaxsync
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
 
     start = time.perf_counter()
     mesh, source = vessel_mesh(target, path)
@@ -537,7 +536,7 @@ def _copy_rate(run: Run, device) -> float:
 def section_stepper(run: Run, device, prepared: Prepared):
     import jax
 
-    from jaxsync.fem.stepper import STEP_UNROLL, advance, step
+    from jaxsync.fem import STEP_UNROLL, advance, step
 
     advance_jit = jax.jit(advance, static_argnums=(2, 3))
 
@@ -656,7 +655,7 @@ def section_vessel(run: Run, device, prepared: Prepared):
     import jax
 
     import jaxsync
-    from jaxsync.fem.stepper import SolverState, advance
+    from jaxsync.fem import SolverState, advance
     from jaxsync.solve.executors import DistributedRunner
 
     name = f"vessel-{run.sizes.vessel_target}"
@@ -782,7 +781,7 @@ def section_ensemble(run: Run, device):
     import numpy as np
 
     import jaxsync
-    from jaxsync.fem.stepper import ExplicitSystem, advance, build_system, initial_state
+    from jaxsync.fem import ExplicitSystem, advance, build_system, initial_state
 
     name = f"ensemble-{run.sizes.members}"
     if not run.may_start(name):

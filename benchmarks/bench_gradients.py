@@ -44,7 +44,7 @@ two timed calls each).
 
 **E's cotangent.** With nu fixed (every row but the last), the preassembled stiffness
 of a mesh of 1 500 nodes or more is E K(E=1, nu), its blocks constants and E a traced
-scale (:class:`jaxsync.fem.forces.internal_force.Preassembled`): the reverse pass sums one
+scale (:class:`jaxsync.fem.forces.Preassembled`): the reverse pass sums one
 scalar per step, <K_1 y_bar, u>. With nu traced too (the (E, nu, alpha) row), the blocks
 are lambda K_lambda + mu K_mu, traced, and the reverse pass carries their cotangent, an
 array as large as K, across the time loop, as every row did before (issue 29). The

@@ -8,14 +8,14 @@ autoregressive surrogate, the generated vessel (3 500 tets, 4 parts) -- the scri
 (:func:`jaxsync.surrogate.train_surrogates`), and runs the synchronization-avoiding solver
 
 * with a tolerance of 1e9 cm (nothing triggers) to see how the error estimate
-  (:mod:`jaxsync.solve.coupling.error_estimate`) tracks the true error over the whole run:
+  (:mod:`jaxsync.solve.coupling`) tracks the true error over the whole run:
   quantiles of estimate / error over the predicted snapshots where the error is above
   5 % of its largest value;
 * for each tolerance (a fraction of the reference's largest |displacement| at the shared
   nodes, fixed in cm), with ``indicator="estimate"`` (the default: es_hat and the
   estimate) and ``indicator="es_hat"`` (es_hat only), and with the estimate and online
   learning (``ResyncTolerance(learning=True)``: the surrogates learn from every re-synchronized
-  stretch, :mod:`jaxsync.surrogate.training.online`): the largest nodal error against the
+  stretch, :mod:`jaxsync.surrogate.training`): the largest nodal error against the
   synchronized run over every saved step, as a multiple of the tolerance, and the steps
   predicted.
 
@@ -45,7 +45,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 
-from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding  # noqa: E402
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,8 +89,7 @@ CASES = {
 def train(case: Case, problem, folder: str):
     """(reference, partition, saved surrogate) of ``case``, trained on the first half."""
     from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from jaxsync.surrogate.training.fit import train_surrogates
-    from jaxsync.surrogate.training.train import TrainConfig
+    from jaxsync.surrogate.training import TrainConfig, train_surrogates
 
     os.makedirs(folder, exist_ok=True)
     parts = jaxsync.partition(problem.mesh, case.n_parts, seed=0)
@@ -174,11 +173,10 @@ def probe_cost(name: str, steps: int, save_every: int, repeats: int = 5) -> dict
     compiled second half of a monitored cycle, best of ``repeats`` calls, alternating),
     and of the host's estimate update per probe, on the cantilever or the vessel
     (20 000 tets), 2 parts on 2 emulated devices."""
-    from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.coupling.error_estimate import ErrorPropagator
-    from jaxsync.solve.coupling.predictors import OraclePredictor
+    from jaxsync.fem import build_system, initial_state
+    from jaxsync.solve.coupling import ErrorPropagator, OraclePredictor
     from jaxsync.solve.executors import DistributedRunner, PredictedPhase
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.surrogate.training import shared_dof_layout
 
     if name == "vessel":
         from jaxsync.app.demo import vessel_problem

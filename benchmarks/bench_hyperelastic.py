@@ -8,11 +8,11 @@ vessel's E, nu; :class:`jaxsync.HolzapfelGasserOgden` with the same ground matri
 helical fibre families, :func:`jaxsync.helical_fibres` at +/- 40 degrees):
 
 - ``matvec``: the internal force f_int(u)
-  (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.matvec`) at a deformed state
+  (:meth:`jaxsync.fem.forces.HyperelasticForce.matvec`) at a deformed state
   (a homogeneous 1-2 % stretch and compression plus a small random field, so that both
   fibre families are partly in tension), and elements per second; timed as a chain of
   products in one compiled call (the cost of a call left out, as in a time loop);
-- ``step``: one full explicit step through :func:`jaxsync.fem.stepper.advance`
+- ``step``: one full explicit step through :func:`jaxsync.fem.advance`
   (``mode=TotalLagrangian()``), per step of a call of several steps;
 - the same two for the linear law of the same E, nu pre-assembled
   (``Preassembled()``, :class:`jaxsync.LinearElastic`): ``x lin`` is the hyperelastic time
@@ -65,9 +65,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.forces.internal_force import Preassembled  # noqa: E402
-from jaxsync.fem.forces.total_lagrangian import TotalLagrangian  # noqa: E402
-from jaxsync.fem.stepper import advance, build_system, initial_state  # noqa: E402
+from jaxsync.fem import advance, build_system, initial_state  # noqa: E402
+from jaxsync.fem.forces import Preassembled, TotalLagrangian  # noqa: E402
 from jaxsync.perf.measure import copy_bandwidth, matmul_flop_rate, sample_times  # noqa: E402
 from jaxsync.perf.roofline import hyperelastic_element_cost  # noqa: E402
 

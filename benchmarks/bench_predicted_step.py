@@ -56,7 +56,7 @@ import experiments  # noqa: E402  (machine())
 
 from jaxsync.io import atomic_json  # noqa: E402
 from jaxsync.perf.timing import speedup_breakdown  # noqa: E402
-from jaxsync.surrogate.model import Surrogate  # noqa: E402
+from jaxsync.surrogate import Surrogate  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "predicted_step.json")
 SURROGATES = ("lstm", "lstm-bare", "linear")

@@ -48,7 +48,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.forces.internal_force import COMPACT_SLOT_STEPS, Preassembled  # noqa: E402
+from jaxsync.fem.forces import COMPACT_SLOT_STEPS, Preassembled  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "product", "product.json")

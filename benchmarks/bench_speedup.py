@@ -11,7 +11,7 @@ t_s, t_d, t_o and the max-average rows (paper Table 2) come with it. The surroga
 untrained replicas of the chosen architecture (a network's cost does not depend on its
 weights; accuracy is what `jaxsync demo` and `paper_cantilever.py` measure).
 
-Deep halos (:mod:`jaxsync.parallel.exchange.halo`), the exact communication-avoiding scheme, are
+Deep halos (:mod:`jaxsync.parallel.exchange`), the exact communication-avoiding scheme, are
 timed in the same round-robin for depths k = 1, 2, 4, 8 (``t_step_halo_us``, ``zeta_halo``).
 
 Scenarios (the paper's):
@@ -65,8 +65,11 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.parallel.partitioning import partition_from_elements  # noqa: E402
-from jaxsync.parallel.spmd import AXIS, spmd_program  # noqa: E402
+from jaxsync.parallel import (  # noqa: E402
+    AXIS,
+    partition_from_elements,  # noqa: E402
+    spmd_program,
+)
 from jaxsync.perf import costmodel, measure, roofline  # noqa: E402
 from jaxsync.perf.timing import speedup_breakdown  # noqa: E402
 from jaxsync.surrogate import Surrogate  # noqa: E402

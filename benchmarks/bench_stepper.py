@@ -10,7 +10,7 @@ keeps the cantilever, the 15k- and 93k-dof beams and the 91k-dof vessel. Side by
 - ``scipy-csr``: a SciPy CSR loop doing the same full update (K d, the loads with their
   time functions, damping, Dirichlet values);
 - ``jax-1dev``: jaxsync's compiled stepper on one device with the default stiffness
-  (``Preassembled()``: rows grouped by node degree, :class:`jaxsync.fem.sparse.GroupedEll`);
+  (``Preassembled()``: rows grouped by node degree, :class:`jaxsync.fem.GroupedEll`);
 - ``jax-1dev-f32``: the same with the float32 blocks option
   (``Preassembled(blocks_dtype="float32")``);
 - ``jax-1dev-ell``: the previous layout, one block ELL as wide as the largest degree
@@ -55,8 +55,8 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.forces.internal_force import Preassembled  # noqa: E402
-from jaxsync.fem.stepper import advance, build_system, initial_state  # noqa: E402
+from jaxsync.fem import advance, build_system, initial_state  # noqa: E402
+from jaxsync.fem.forces import Preassembled  # noqa: E402
 from jaxsync.perf.measure import copy_bandwidth, sample_times  # noqa: E402
 
 # the single-device solver's compiled chunk: (system, state, n_saves, save_every)

@@ -12,7 +12,7 @@ with each surrogate:
                defaults (about 6 minutes per case on 2 cores)
 ``lstm_bf16``  the same networks with bfloat16 weights and activations, float32
                accumulation (``Surrogate.with_inference_dtype("bfloat16")``), after the
-               check of ``jaxsync.surrogate.inference`` (recorded; a deviation above the
+               check of ``jaxsync.surrogate.check_inference_precision`` (recorded; a deviation above the
                bound is flagged, and the run still made, so that the table shows what it costs)
 ``linear``     the linear autoregressive baseline, fitted here on the same windows (seconds)
 =============  ================================================================================
@@ -68,16 +68,17 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import experiments  # noqa: E402  (the settings, cases, metrics and training of the experiment matrix)
 
 import jaxsync  # noqa: E402
-from jaxsync.fem.stepper import SolverState, build_system, initial_state  # noqa: E402
+from jaxsync.fem import SolverState, build_system, initial_state  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
-from jaxsync.parallel.partitioning import Partition  # noqa: E402
+from jaxsync.parallel import Partition  # noqa: E402
 from jaxsync.perf import kernels  # noqa: E402
 from jaxsync.perf.costmodel import INTERCONNECTS, communication_pattern, sync_time  # noqa: E402
 from jaxsync.perf.measure import best_times, per_step_times  # noqa: E402
 from jaxsync.solve.executors import DistributedRunner, PredictedPhase  # noqa: E402
-from jaxsync.surrogate import Surrogate, TrainingChecks  # noqa: E402
-from jaxsync.surrogate.inference import (  # noqa: E402
+from jaxsync.surrogate import (  # noqa: E402  # noqa: E402
     DEFAULT_BOUND,
+    Surrogate,
+    TrainingChecks,
     check_inference_precision,
     surrogate_signal_windows,
     surrogate_windows,

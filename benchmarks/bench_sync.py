@@ -37,7 +37,7 @@ result also names the default of this install (``default_allreduce``, ``transpor
 Then the speed-up with real processes (``kind: speedup``): on the same cantilever, one part
 per process, the same compiled chunks without synchronization (``nosync``), with deep
 halos (``halo-k``: parts grown by k layers exchange both displacement levels every k
-steps, through MPI as ``sync="mpi"`` does; :mod:`jaxsync.parallel.exchange.halo`) and the
+steps, through MPI as ``sync="mpi"`` does; :mod:`jaxsync.parallel.exchange`) and the
 synchronization-avoiding program (``avoid-*``: n_s n_f unsynchronized steps and one batched
 refill prediction per cycle, no collective; untrained surrogates of the paper's LSTM,
 n_H = 100 at n_s = 80, of ``jaxsync train``'s default, n_H = 50 at n_s = 150, and of the
@@ -77,7 +77,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import jaxsync
 from jaxsync.parallel import multiprocess  # noqa: E402  (imports no JAX state)
-from jaxsync.solve import strategies  # noqa: E402
+from jaxsync.solve import transport  # noqa: E402
 
 
 def _timed(fn, repeats: int) -> list[float]:
@@ -109,7 +109,7 @@ def bench_collectives(sizes, steps: int, repeats: int, comm) -> list[dict]:
     import numpy as np
     from jax.sharding import Mesh, NamedSharding
 
-    from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
+    from jaxsync.parallel import AXIS, part_spec, spmd_program
 
     n_proc = jax.process_count()
     global_mesh = Mesh(np.array(jax.devices()), (AXIS,))
@@ -179,7 +179,7 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     import numpy as np
     from mpi4py import MPI
 
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner
 
     problem = jaxsync.cantilever()
@@ -221,11 +221,11 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     import numpy as np
     from mpi4py import MPI
 
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner, PredictedPhase
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.models.architecture import architecture_to_dict
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.surrogate.models import architecture_to_dict
+    from jaxsync.surrogate.training import shared_dof_layout
 
     problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
@@ -371,7 +371,7 @@ def main(argv=None) -> dict:
             "mpi4jax": (__import__("mpi4jax").__version__ if multiprocess.mpi4jax_available() else None),
             "cpu_collectives": args.cpu_collectives,
             "default_allreduce": multiprocess.default_allreduce(),
-            "transport": strategies.transport(None, n_proc),
+            "transport": transport(None, n_proc),
             "mpi_library": MPI.Get_library_version().splitlines()[0].strip(),
             "cpu_count": os.cpu_count(), "load_average": list(os.getloadavg()),
             "python": platform.python_version(),
@@ -402,8 +402,8 @@ def bench_cpu_mpi(args, argv) -> dict:
     from jax.experimental import multihost_utils
     from jax.sharding import Mesh, NamedSharding
 
-    from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.parallel.spmd import AXIS, part_spec, spmd_program
+    from jaxsync.fem import build_system, initial_state
+    from jaxsync.parallel import AXIS, part_spec, spmd_program
     from jaxsync.solve.executors import DistributedRunner
 
     jax.config.update("jax_cpu_collectives_implementation", "mpi")

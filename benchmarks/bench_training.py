@@ -39,7 +39,7 @@ from jaxsync.surrogate import (  # noqa: E402
     stack_replicas,
     train_replicas,
 )
-from jaxsync.surrogate.models.lstm import count_parameters  # noqa: E402
+from jaxsync.surrogate.models import count_parameters  # noqa: E402
 
 
 def synthetic_history(n_steps: int, n_dof: int, dt: float, seed: int) -> np.ndarray:

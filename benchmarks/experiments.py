@@ -26,7 +26,7 @@ import jaxsync
 from jaxsync.app.plots import tip_node
 from jaxsync.metrics import l2_error, node_error
 from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainConfig, TrainingChecks, TrainingState, train_surrogates
-from jaxsync.surrogate.training.evaluate import RolloutWarning
+from jaxsync.surrogate.training import RolloutWarning
 
 # ----------------------------------------------------------------------------- cases
 

@@ -74,7 +74,7 @@ Model, per step, on the GPU that carries the most work (alpha-beta,
 * learned: t' = t_c + t_d (:func:`~jaxsync.perf.costmodel.project`); zeta = t_sync / t';
   the break-even against the synchronized step is t_d = t_s, against the best exact
   method t_d = t_best - t_c;
-* deep halos of depth k (:mod:`jaxsync.parallel.exchange.halo`): t'' = t_0 + r_k (t_c - t_0) +
+* deep halos of depth k (:mod:`jaxsync.parallel.exchange`): t'' = t_0 + r_k (t_c - t_0) +
   t_s,halo / k, r_k the redundancy (elements held by all parts over the mesh's), one
   exchange of the halo interface (6 float64 per node: two displacement levels) every k
   steps; zeta = t_sync / t'';
@@ -88,7 +88,7 @@ Halo redundancy and interface sizes of the vessel. Building the paper-size mesh 
 about a minute, so the partitions are computed on a stand-in: the same generator
 (:func:`jaxsync.coronary_mesh`) at ``--stand-in-elements`` tetrahedra (80 000 target:
 73 392 tets), partitioned by METIS into each scenario's p parts
-(:func:`jaxsync.partition`), grown by :func:`jaxsync.parallel.exchange.halo.halo_partition`. Its
+(:func:`jaxsync.partition`), grown by :func:`jaxsync.parallel.exchange.halo_partition`. Its
 interfaces are scaled to the vessel by c = 2 823 / N_a(stand-in, 11 parts) (the
 vessel's recorded 11-part interface over the stand-in's; surfaces of the same
 partition): N_a(p) = c N_a'(p) (the recorded 2 823 at 11 parts), the busiest part's
@@ -123,7 +123,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jaxsync  # noqa: E402
 from jaxsync.errors import PartitionError  # noqa: E402
 from jaxsync.io import atomic_path  # noqa: E402
-from jaxsync.parallel.exchange.halo import halo_partition  # noqa: E402
+from jaxsync.parallel.exchange import halo_partition  # noqa: E402
 from jaxsync.perf.costmodel import (  # noqa: E402
     INTERCONNECTS,
     Interconnect,
@@ -132,7 +132,7 @@ from jaxsync.perf.costmodel import (  # noqa: E402
     sync_time,
 )
 from jaxsync.perf.roofline import surrogate_flop_breakdown  # noqa: E402
-from jaxsync.surrogate.models.lstm import LSTMArchitecture  # noqa: E402
+from jaxsync.surrogate.models import LSTMArchitecture  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 DEFAULT_OUT_DIR = os.path.join(HERE, "results")

@@ -33,7 +33,7 @@ import numpy as np  # noqa: E402
 import jaxsync  # noqa: E402
 from jaxsync.app.plots import tip_node, write_report  # noqa: E402
 from jaxsync.metrics import l2_error, node_error  # noqa: E402
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding  # noqa: E402
+from jaxsync.solve.coupling import simulate_sync_avoiding  # noqa: E402
 from jaxsync.surrogate import (  # noqa: E402
     LSTMArchitecture,
     SavedSurrogate,
@@ -43,7 +43,7 @@ from jaxsync.surrogate import (  # noqa: E402
     stack_replicas,
     train_replicas,
 )
-from jaxsync.surrogate.training.train import n_epoch_rule  # noqa: E402
+from jaxsync.surrogate.training import n_epoch_rule  # noqa: E402
 
 
 def main(argv=None):

@@ -115,7 +115,7 @@ from jaxsync.surrogate import (  # noqa: E402
     stack_replicas,
     train_replicas,
 )
-from jaxsync.surrogate.training.evaluate import rollout_errors  # noqa: E402
+from jaxsync.surrogate.training import rollout_errors  # noqa: E402
 
 CASES = ("default", "sequence_length", "training_size", "refined_6_parts", "skewed", "step_off",
          "initial_conditions", "loads", "full_system")

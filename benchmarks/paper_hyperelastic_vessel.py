@@ -82,7 +82,7 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
                   timing_kw, dt):
     from jaxsync.app.plots import compare, out_of_sample
     from jaxsync.perf.timing import speedup_breakdown
-    from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
+    from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding
     from jaxsync.surrogate import Surrogate
 
     fixed = np.unique(problem.dirichlet_dofs()[0] // 3)
@@ -141,9 +141,7 @@ def run_surrogate(name, problem, parts, saved, reference, n_steps, n_cri, save_e
 def run_material(material, problem, parts, args, dt, work):
     from jaxsync.metrics import peak_strain
     from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from jaxsync.surrogate.training.data import last_trained_step
-    from jaxsync.surrogate.training.fit import train_surrogates
-    from jaxsync.surrogate.training.train import TrainConfig
+    from jaxsync.surrogate.training import TrainConfig, last_trained_step, train_surrogates
 
     folder = os.path.join(work, material)
     os.makedirs(folder, exist_ok=True)

@@ -49,7 +49,7 @@ import numpy as np  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.app.demo import demo_defaults, format_summary, run_demo, vessel_problem  # noqa: E402
-from jaxsync.fem.forces.internal_force import Preassembled  # noqa: E402
+from jaxsync.fem.forces import Preassembled  # noqa: E402
 from jaxsync.io import atomic_json  # noqa: E402
 
 
@@ -119,7 +119,7 @@ def measure(args) -> dict:
     """The paper-size costs, measured, and the whole run projected from them."""
     from jaxsync.perf.timing import speedup_breakdown
     from jaxsync.surrogate import Surrogate, TrainConfig, build_dataset, stack_replicas, train_replicas
-    from jaxsync.surrogate.models.lstm import LSTMArchitecture
+    from jaxsync.surrogate.models import LSTMArchitecture
 
     d = demo_defaults("vessel", args.size)
     record: dict = {"experiment": "paper coronary (section 5.2), generated tree", "mode": "measure",

@@ -12,7 +12,7 @@ Model, per explicit step and per part (:mod:`jaxsync.perf.costmodel`, alpha-beta
 * surrogate:     t_t'  = t_c + t_d,  t_d the measured surrogate cost per step (one batched
   refill prediction per n_s n_f steps, amortized); zeta = t_t / t_t'. zeta = 1 where
   t_d = t_s(L), independent of t_c: the surrogate break-even lines are vertical;
-* deep halos of depth k (:mod:`jaxsync.parallel.exchange.halo`): t_t'' = r_k t_c + t_s,halo / k,
+* deep halos of depth k (:mod:`jaxsync.parallel.exchange`): t_t'' = r_k t_c + t_s,halo / k,
   r_k = ``halo_partition(partition, k).redundancy()`` (elements held by all parts over the
   mesh's elements: the redundant work), t_s,halo = ``sync_time`` of the halo interface's
   pattern (its nodes carry 6 values: 2 displacement levels x 3 components; the pattern is
@@ -79,7 +79,7 @@ from matplotlib.colors import LogNorm  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.io import atomic_path  # noqa: E402
-from jaxsync.parallel.exchange.halo import halo_partition  # noqa: E402
+from jaxsync.parallel.exchange import halo_partition  # noqa: E402
 from jaxsync.perf.costmodel import (  # noqa: E402
     INTERCONNECTS,
     CommunicationPattern,

@@ -64,7 +64,7 @@ def held_tolerance_cm(tolerance: str, surrogate_path: str, reference, stats) -> 
     import dataclasses
 
     from jaxsync.cli.predict import trained_amplitude
-    from jaxsync.solve.strategies import ResyncTolerance
+    from jaxsync.solve import ResyncTolerance
     from jaxsync.surrogate import load_surrogate
 
     held = ResyncTolerance.parse(tolerance)

@@ -44,31 +44,31 @@ __getattr__, __dir__ = export_lazily(__name__, {
                 "SynchronizedRunWarning"),
     ".cases": ("DEFAULT_WAVEFORM", "cantilever", "coronary", "coronary_mesh", "coronary_waveform", "vessel_centerline",
                "vessel_mesh"),
-    ".fem.materials.hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean",
+    ".fem.materials._hyperelastic": ("HolzapfelGasserOgden", "NearlyIncompressibleNeoHookean", "NeoHookean",
                                     "helical_fibres"),
-    ".fem.loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
-    ".fem.materials.linear_elastic": ("LinearElastic",),
+    ".fem._loads": ("BodyForce", "Constant", "Periodic", "Pressure", "Ramp", "StepOff", "Traction"),
+    ".fem.materials._linear_elastic": ("LinearElastic",),
     ".mesh": ("Mesh", "MeshWarning", "box_beam", "merge_coincident_nodes", "read_mesh"),
-    ".fem.materials.prestress": ("Prestressed",),
-    ".fem.problem": ("Dirichlet", "LockingWarning", "Problem"),
-    ".fem.rigid_body": ("RigidBodyWarning",),
-    ".fem.forces.support": ("ElasticSupport",),
-    ".fem.timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
-    ".fem.forces.total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
+    ".fem.materials._prestress": ("Prestressed",),
+    ".fem._problem": ("Dirichlet", "LockingWarning", "Problem"),
+    ".fem._rigid_body": ("RigidBodyWarning",),
+    ".fem.forces._support": ("ElasticSupport",),
+    ".fem._timestep": ("MassScalingWarning", "StableStep", "cfl_dt", "mass_scaling", "max_stable_dt", "stable_step"),
+    ".fem.forces._total_lagrangian": ("TotalLagrangian", "check_stable_dt", "inverted_elements", "stable_dt"),
     ".parallel": ("devices",),
-    ".parallel.partitioning": ("Partition", "partition"),
+    ".parallel._partitioning": ("Partition", "partition"),
     ".run_stats": ("FullSystemStats", "RunStats", "SyncAvoidingStats", "SynchronizedStats"),
     ".solve.coupling": ("Synchronized",),
-    ".solve.ensemble": ("ensemble",),
-    ".solve.ensemble_members": ("Members",),
-    ".solve.full_system": ("simulate_full_system",),
-    ".solve.solver": ("SteadyState", "simulate", "steady_state"),
-    ".solve.strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
+    ".solve._ensemble": ("ensemble",),
+    ".solve._ensemble_members": ("Members",),
+    ".solve._full_system": ("simulate_full_system",),
+    ".solve._solver": ("SteadyState", "simulate", "steady_state"),
+    ".solve._strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
                           "SaveAt", "SolverCheckpoint", "StoreAll", "TracedExecutor"),
-    ".solve.prestress": ("PrestressResult", "prestress"),
-    ".solve.static_adjoint": ("static_displacement",),
-    ".solve.coupling.syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
-    ".solve.zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
+    ".solve._prestress": ("PrestressResult", "prestress"),
+    ".solve._static_adjoint": ("static_displacement",),
+    ".solve.coupling._syncavoid": ("SyncAvoiding", "simulate_sync_avoiding"),
+    ".solve._zero_pressure": ("ZeroPressureGeometry", "zero_pressure_geometry", "zero_pressure_points"),
     ".io.trajectory": ("PartHistory", "Result", "Trajectory"),
 })
 
@@ -96,34 +96,32 @@ if TYPE_CHECKING:
         StabilityError,
         SynchronizedRunWarning,
     )
-    from .fem.forces.support import ElasticSupport
-    from .fem.forces.total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
-    from .fem.loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
-    from .fem.materials.hyperelastic import (
+    from .fem._loads import BodyForce, Constant, Periodic, Pressure, Ramp, StepOff, Traction
+    from .fem._problem import Dirichlet, LockingWarning, Problem
+    from .fem._rigid_body import RigidBodyWarning
+    from .fem._timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .fem.forces._support import ElasticSupport
+    from .fem.forces._total_lagrangian import TotalLagrangian, check_stable_dt, inverted_elements, stable_dt
+    from .fem.materials._hyperelastic import (
         HolzapfelGasserOgden,
         NearlyIncompressibleNeoHookean,
         NeoHookean,
         helical_fibres,
     )
-    from .fem.materials.linear_elastic import LinearElastic
-    from .fem.materials.prestress import Prestressed
-    from .fem.problem import Dirichlet, LockingWarning, Problem
-    from .fem.rigid_body import RigidBodyWarning
-    from .fem.timestep import MassScalingWarning, StableStep, cfl_dt, mass_scaling, max_stable_dt, stable_step
+    from .fem.materials._linear_elastic import LinearElastic
+    from .fem.materials._prestress import Prestressed
     from .io.trajectory import PartHistory, Result, Trajectory
     from .mesh import Mesh, MeshWarning, box_beam, merge_coincident_nodes, read_mesh
     from .parallel import devices
-    from .parallel.partitioning import Partition, partition
+    from .parallel._partitioning import Partition, partition
     from .run_stats import FullSystemStats, RunStats, SyncAvoidingStats, SynchronizedStats
-    from .solve.coupling import Synchronized
-    from .solve.coupling.syncavoid import SyncAvoiding, simulate_sync_avoiding
-    from .solve.ensemble import ensemble
-    from .solve.ensemble_members import Members
-    from .solve.full_system import simulate_full_system
-    from .solve.prestress import PrestressResult, prestress
-    from .solve.solver import SteadyState, simulate, steady_state
-    from .solve.static_adjoint import static_displacement
-    from .solve.strategies import (
+    from .solve._ensemble import ensemble
+    from .solve._ensemble_members import Members
+    from .solve._full_system import simulate_full_system
+    from .solve._prestress import PrestressResult, prestress
+    from .solve._solver import SteadyState, simulate, steady_state
+    from .solve._static_adjoint import static_displacement
+    from .solve._strategies import (
         Halo,
         HostExecutor,
         Mpi,
@@ -136,4 +134,6 @@ if TYPE_CHECKING:
         StoreAll,
         TracedExecutor,
     )
-    from .solve.zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
+    from .solve._zero_pressure import ZeroPressureGeometry, zero_pressure_geometry, zero_pressure_points
+    from .solve.coupling import Synchronized
+    from .solve.coupling._syncavoid import SyncAvoiding, simulate_sync_avoiding

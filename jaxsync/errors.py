@@ -78,7 +78,7 @@ class PartitionError(JaxsyncError, ValueError):
 
 class InferencePrecisionError(JaxsyncError, ValueError):
     """Reduced-precision surrogate inference that strays from the full-precision one by
-    more than the stated bound (:func:`jaxsync.surrogate.inference.check_inference_precision`)."""
+    more than the stated bound (:func:`jaxsync.surrogate.check_inference_precision`)."""
 
 
 class OutputError(JaxsyncError, OSError):

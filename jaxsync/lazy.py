@@ -11,10 +11,10 @@ and a submodule (``jaxsync.io.trajectory``) is imported on first access as if th
 imported it. Each ``__init__`` also imports its names under ``typing.TYPE_CHECKING``, so
 that type checkers, IDEs and linters see them.
 
-An export named like a submodule of its package (the function ``jaxsync.solve.ensemble`` of
-the module ``jaxsync.solve.ensemble``) stays the export when that submodule is imported,
-as after ``from .ensemble import ensemble``: the import system's binding of the submodule
-on the package is not kept (:class:`LazyPackage`).
+An export named like a submodule of its package (the function ``jaxsync.cli.main`` of the
+module ``jaxsync.cli.main``) stays the export when that submodule is imported, as after
+``from .main import main``: the import system's binding of the submodule on the package is
+not kept (:class:`LazyPackage`).
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ def lazy_exports(package: str) -> dict[str, str]:
 class LazyPackage(types.ModuleType):
     """The type of a package with lazy exports: a submodule bound on the package under the
     name of an export that is not that submodule is not kept (the export is imported on
-    first use instead), so that ``jaxsync.solve.ensemble`` stays the function after
-    ``import jaxsync.solve.ensemble``, as with eager imports."""
+    first use instead), so that ``jaxsync.cli.main`` stays the function after
+    ``import jaxsync.cli.main``, as with eager imports."""
 
     def __setattr__(self, name: str, value) -> None:
         origin = _ORIGINS.get(self.__name__, {}).get(name)

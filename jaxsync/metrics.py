@@ -318,8 +318,8 @@ def principal_strain_peaks(space, displacement, *, chunk_bytes: int = 2 ** 27):
     Returns:
         (tension (T,), element (T,) int, compression (T,)) [-].
     """
-    from .fem.forces.total_lagrangian import reference_geometry
-    from .fem.space import function_space
+    from .fem._space import function_space
+    from .fem.forces._total_lagrangian import reference_geometry
 
     if not hasattr(space, "cells"):
         space = function_space(space, "P1")
@@ -351,13 +351,13 @@ def peak_strain(space, displacement, *, chunk_bytes: int = 2 ** 27) -> PeakStrai
     """The largest principal strains of ``displacement`` over elements and snapshots.
 
     At every quadrature point of the element rule of the total-Lagrangian force
-    (:func:`jaxsync.fem.forces.total_lagrangian.reference_geometry`: one point on P1, four on
+    (:func:`jaxsync.fem.forces._total_lagrangian.reference_geometry`: one point on P1, four on
     P2), F = I + grad_X u and the Green-Lagrange strain E = (F^T F - I) / 2, whose
     eigenvalues are the principal strains. Kinematics only: the same for every law
     (for a small-strain law it measures how far its runs are from small strain).
 
     Args:
-        space: a :class:`jaxsync.fem.space.FunctionSpace` (``Trajectory.space``) or a
+        space: a :class:`jaxsync.fem.FunctionSpace` (``Trajectory.space``) or a
             :class:`jaxsync.Mesh` (its P1 space).
         displacement: (T, n_nodes, 3) or (n_nodes, 3) displacements [cm] of its nodes.
         chunk_bytes: working memory per block of snapshots (the strains are formed a block

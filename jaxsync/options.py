@@ -3,7 +3,7 @@
 Each option is a :data:`typing.Literal` type: functions annotate their parameters with it,
 the command line takes its ``choices=`` from it (:func:`choices`), and
 :func:`check_option` refuses any other value with a message that names the allowed ones.
-The tuples the modules expose (``jaxsync.fem.forces.element_force.MODES``,
+The tuples the modules expose (``jaxsync.fem.forces.MODES``,
 ``jaxsync.parallel.multiprocess.SYNC_METHODS``) are ``choices`` of these types.
 
 - :data:`Element`: the finite element of a problem (:class:`jaxsync.Problem`'s ``element``,
@@ -13,10 +13,10 @@ The tuples the modules expose (``jaxsync.fem.forces.element_force.MODES``,
 - :data:`Mode`: the internal force of the explicit step (paper Remark 2): ``"preassembled"``
   (sparse K stored once) or ``"recompute"`` (element quantities formed every step), both
   for the linear law; or ``"total-lagrangian"`` (finite strain, a hyperelastic material:
-  :mod:`jaxsync.fem.forces.total_lagrangian`, which a hyperelastic problem gets in any mode).
+  :mod:`jaxsync.fem.forces`, which a hyperelastic problem gets in any mode).
 - :data:`Sync`: how the parts sum their shared-node forces every step: XLA ``psum`` of the
   whole interface, XLA ``ppermute`` exchange between neighbouring devices, or an MPI
-  Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.exchange.halo`): parts grown by k
+  Allreduce; or ``"halo"``, deep halos (:mod:`jaxsync.parallel.exchange`): parts grown by k
   layers exchange displacements every k steps, exactly. There is no fixed default: ``sync=None`` everywhere means
   :func:`jaxsync.parallel.multiprocess.default_sync` (``"psum"`` in one process,
   ``"mpi"`` across CPU processes).
@@ -32,10 +32,10 @@ The tuples the modules expose (``jaxsync.fem.forces.element_force.MODES``,
 - :data:`MeshGenerator`: ``[mesh] generate`` of a TOML problem file: the ``"box_beam"``
   (default) or the ``"coronary_tree"`` of :func:`jaxsync.coronary_mesh`.
 - :data:`ValidationSplit`: which training windows are held out for validation
-  (:func:`jaxsync.surrogate.training.data.split_indices`): evenly ``"interleaved"`` (default) or the
+  (:func:`jaxsync.surrogate.training.split_indices`): evenly ``"interleaved"`` (default) or the
   paper's seeded ``"random"`` subset.
 - :data:`SurrogateModel`: the surrogate ``jaxsync train --model`` fits
-  (:mod:`jaxsync.surrogate.models.architecture`): the ``"lstm"`` encoder-decoder (default) or the
+  (:mod:`jaxsync.surrogate.models`): the ``"lstm"`` encoder-decoder (default) or the
   ``"linear"`` autoregressive baseline, fitted by least squares.
 - :data:`LoadJumpWindows`: whether training takes the windows that straddle a recorded load
   jump (``jaxsync train --load-jump-windows``): ``"exclude"`` or ``"keep"``; by default

@@ -32,7 +32,7 @@ Definitions (CGS units: barye, cm, s; 1 mmHg = :data:`MMHG` barye):
   differ by O(strain) relative, so a dead load's loop in V alone would not balance its
   work.
 - **Stress**: the Cauchy stress at the quadrature points of the total-Lagrangian rule
-  (:func:`jaxsync.fem.forces.total_lagrangian.reference_geometry`): for a finite-strain law
+  (:func:`jaxsync.fem.forces._total_lagrangian.reference_geometry`): for a finite-strain law
   sigma = P F^T / J with P the law's ``first_piola(F, fibres)``; for the linear law
   sigma = lambda tr(eps) I + 2 mu eps, eps the small strain (:func:`cauchy_stress`). A
   law with internal variables reports its ``first_piola`` (the instantaneous,
@@ -100,8 +100,8 @@ def lumen_triangles(mesh, surface: str = "lumen") -> np.ndarray:
     Raises:
         MeshError or ProblemError: no such facet set (the message names the mesh's).
     """
-    from .fem.forces.follower import facet_nodes
-    from .fem.space import function_space
+    from .fem._space import function_space
+    from .fem.forces._follower import facet_nodes
 
     return facet_nodes(function_space(mesh, "P1"), surface)[0]
 
@@ -168,7 +168,7 @@ def linearized_volume(points, triangles, displacement) -> np.ndarray:
 
 
 def _pressure_loads(problem) -> list:
-    from .fem.loads import Pressure
+    from .fem._loads import Pressure
 
     return [load for load in problem.loads if isinstance(load, Pressure)]
 
@@ -365,7 +365,7 @@ def vessel_metrics(loop: PressureDiameterLoop) -> VesselMetrics:
 
 
 def _gradients(space):
-    from .fem.forces.total_lagrangian import reference_geometry
+    from .fem.forces._total_lagrangian import reference_geometry
 
     return reference_geometry(space)[0]  # (m, q, k, 3)
 
@@ -376,7 +376,7 @@ def cauchy_stress(material, space, displacement, fibres=None) -> np.ndarray:
     Args:
         material: the problem's law: one with ``first_piola(F, fibres)`` (finite strain),
             or the linear law (``lam``, ``mu``).
-        space: a :class:`jaxsync.fem.space.FunctionSpace` (``Trajectory.space``) or a
+        space: a :class:`jaxsync.fem.FunctionSpace` (``Trajectory.space``) or a
             :class:`jaxsync.Mesh` (its P1 space).
         displacement: (T, n_nodes, 3) or (n_nodes, 3) [cm].
         fibres: (n_elements, 2, 3) fibre directions of an anisotropic law (default: the
@@ -385,7 +385,7 @@ def cauchy_stress(material, space, displacement, fibres=None) -> np.ndarray:
     Returns:
         (T, n_elements, n_q, 3, 3).
     """
-    from .fem.space import function_space
+    from .fem._space import function_space
 
     space = space if hasattr(space, "cells") else function_space(space, "P1")
     d = _snapshots(space, displacement)
@@ -427,7 +427,7 @@ def element_peaks(material, space, displacement, *, fibres=None, chunk_bytes: in
     Returns:
         (von_mises, max_principal_stress, max_principal_strain), each (T, n_elements).
     """
-    from .fem.space import function_space
+    from .fem._space import function_space
 
     space = space if hasattr(space, "cells") else function_space(space, "P1")
     d = _snapshots(space, displacement)
@@ -451,8 +451,8 @@ def element_peaks(material, space, displacement, *, fibres=None, chunk_bytes: in
 def facet_regions(mesh) -> dict[str, np.ndarray]:
     """``{"wall": every element}`` and, per facet set of ``mesh``, the elements with a
     face on it (name -> sorted element ids)."""
-    from .fem.forces.follower import facet_nodes
-    from .fem.space import function_space
+    from .fem._space import function_space
+    from .fem.forces._follower import facet_nodes
 
     space = function_space(mesh, "P1")
     regions = {"wall": np.arange(mesh.n_elements)}

@@ -1,6 +1,8 @@
 """The shape of the code, checked on its syntax tree: options grouped into settings
 objects (no public function with more than 12 parameters), no defaults read back from
-signatures, no JAX internals, and no module reaching into another's private names."""
+signatures, no JAX internals, no module reaching into another's private names, and
+implementation modules private behind their packages' exports (what the tests,
+benchmarks, notebooks and documentation import is public)."""
 
 import ast
 import pathlib
@@ -104,16 +106,28 @@ def _notebook_sources():
         code = "\n".join("".join(c["source"]) for c in cells if c["cell_type"] == "code")
         # IPython magics and shell lines are not Python
         code = "\n".join("" if line.lstrip().startswith(("%", "!")) else line for line in code.splitlines())
-        yield path, ast.parse(code, filename=str(path))
+        yield path.relative_to(ROOT), ast.parse(code, filename=str(path))
 
 
-def test_tests_benchmarks_and_notebooks_import_only_public_modules():
+def _docs_sources():
+    """The ```python blocks of README.md and the documentation pages, as tests/test_docs.py
+    runs them (file:line of each block)."""
+    from test_docs import documents, python_blocks, relative
+
+    for page in documents():
+        for block in python_blocks(page.read_text(), relative(page)):
+            yield block.label, ast.parse(block.source, filename=block.label)
+
+
+def test_tests_benchmarks_notebooks_and_docs_import_only_public_modules():
     """Implementation modules (a ``_`` in the dotted path: ``jaxsync.mesh._read``) sit
     behind their package's re-exports, so that files can move without breaking a user's
-    code: what the tests, benchmarks and notebooks import is what a user may import."""
-    trees = [(path, _tree(path)) for path in _modules("tests", "benchmarks")] + list(_notebook_sources())
+    code: what the tests, benchmarks, notebooks and the documentation's code import is what
+    a user may import."""
+    trees = ([(path.relative_to(ROOT), _tree(path)) for path in _modules("tests", "benchmarks")]
+             + list(_notebook_sources()) + list(_docs_sources()))
     found = []
-    for path, tree in trees:
+    for where, tree in trees:
         for node in ast.walk(tree):
             if isinstance(node, ast.ImportFrom) and node.level == 0:
                 names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
@@ -121,9 +135,35 @@ def test_tests_benchmarks_and_notebooks_import_only_public_modules():
                 names = [a.name for a in node.names]
             else:
                 continue
-            found += [f"{path.relative_to(ROOT)}:{node.lineno} {n}" for n in names
+            found += [f"{where}:{node.lineno} {n}" for n in names
                       if n and n.startswith("jaxsync") and _private_module(n)]
     assert not found, "import the public package that re-exports it: " + ", ".join(found)
+
+
+# Packages whose implementation modules are private, behind the package's exports (its
+# __init__: __all__, the lazy export map, the imports under TYPE_CHECKING); their
+# subpackages are public packages that export their own names.
+PRIVATE_IMPLEMENTATION = ("jaxsync/fem", "jaxsync/solve", "jaxsync/surrogate", "jaxsync/parallel")
+# public modules there, and why
+PUBLIC_MODULES = {
+    "jaxsync/fem/mesh.py": "compatibility: the old import path of jaxsync.mesh",
+    "jaxsync/fem/simvascular.py": "compatibility: the old import path of jaxsync.mesh.simvascular",
+    "jaxsync/parallel/devices.py": "a namespace exported as a module (jaxsync.devices)",
+    "jaxsync/parallel/multiprocess.py": "a namespace exported as a module (jaxsync.parallel.multiprocess)",
+}
+
+
+def test_implementation_modules_are_private():
+    """Every module of jaxsync.fem, jaxsync.solve, jaxsync.surrogate and jaxsync.parallel
+    (subpackages included) but the packages' ``__init__``/``__main__`` has a private name
+    (``_stepper.py``): users import the packages, which export the names."""
+    public = [name for path in _modules(*PRIVATE_IMPLEMENTATION)
+              if path.name not in ("__init__.py", "__main__.py") and not path.name.startswith("_")
+              and (name := path.relative_to(ROOT).as_posix()) not in PUBLIC_MODULES]
+    assert not public, ("give these modules a private name (_module.py) and export their names from the package: "
+                        + ", ".join(public))
+    missing = [name for name in PUBLIC_MODULES if not (ROOT / name).exists()]
+    assert not missing, "no longer there: " + ", ".join(missing)
 
 
 MAX_MODULE_LINES = 600

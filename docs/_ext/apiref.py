@@ -9,11 +9,11 @@ a module (``jaxsync.parallel.devices``) is documented on the page of the package
 it. So the reference follows ``__all__`` as it is: a name added to, or removed from, a
 module's ``__all__`` appears or disappears without an edit here.
 
-Cross-references in docstrings (``:func:`simulate```, ``:class:`~jaxsync.solve.solver.Runner```)
+Cross-references in docstrings (``:func:`simulate```, ``:class:`~jaxsync.fem._stepper.SolverState```)
 that Sphinx cannot find under the name written -- an implementation module's path, or a
 re-exported name -- are resolved by identity: the object is imported and linked to the
 place where it is documented (``missing-reference`` handler). Module references to
-implementation modules (``:mod:`~jaxsync.fem.forces.total_lagrangian```) link to the nearest documented
+implementation modules (``:mod:`~jaxsync.fem.forces._total_lagrangian```) link to the nearest documented
 package. What still does not resolve is left as plain code text, as Sphinx does by default.
 """
 
@@ -47,9 +47,13 @@ API_MODULES = (
     "jaxsync.metrics",
     "jaxsync.io",
     "jaxsync.options",
-    "jaxsync.parallel.exchange.halo",
-    "jaxsync.solve.finetune",
-    "jaxsync.surrogate.refill",
+    "jaxsync.parallel.exchange",
+    "jaxsync.solve.coupling",
+    "jaxsync.solve.executors",
+    "jaxsync.fem.materials",
+    "jaxsync.fem.forces",
+    "jaxsync.surrogate.models",
+    "jaxsync.surrogate.training",
 )
 
 

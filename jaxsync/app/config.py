@@ -126,7 +126,7 @@ from typing import Any
 
 from ..cases import cantilever
 from ..errors import ConfigError, JaxsyncError
-from ..fem.problem import Problem
+from ..fem._problem import Problem
 from ..mesh import Mesh, box_beam, read_mesh
 from ..options import Element, MeshGenerator, ProblemKind, check_option
 from .config_schema import (
@@ -501,7 +501,7 @@ def _problem_from_config(config: dict, mesh_file: str | None, scaling_dt, scalin
         scaling_dt, scaling_beta = run.get("mass_scaling_dt"), run.get("mass_scaling_beta")
     percent = None
     if scaling_dt is not None or scaling_beta is not None:
-        from ..fem.timestep import mass_scaling
+        from ..fem._timestep import mass_scaling
 
         problem, percent = mass_scaling(
             problem, None if scaling_beta is None else float(scaling_beta),

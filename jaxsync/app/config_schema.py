@@ -184,7 +184,7 @@ class MaterialModel:
 
 
 def _helical_fibres_of(table: Mapping[str, Any], mesh) -> dict:
-    from ..fem.materials.hyperelastic import helical_fibres
+    from ..fem.materials._hyperelastic import helical_fibres
 
     centres = mesh.points[mesh.tets].mean(axis=1)
     return {"fibres": helical_fibres(centres, axis=tuple(float(x) for x in table["fibre_axis"]),
@@ -213,7 +213,7 @@ def time_function_of(table: Mapping[str, Any]):
         ConfigError: ``times``/``values`` without ``period`` (the waveform would be ignored),
             or ``period`` without both.
     """
-    from ..fem.loads import Constant, Periodic, Ramp, StepOff
+    from ..fem._loads import Constant, Periodic, Ramp, StepOff
 
     t_ramp, t_off = table.get("t_ramp"), table.get("t_off")
     g = Ramp(float(t_ramp)) if t_ramp else Constant()
@@ -295,9 +295,9 @@ class ArrayTable:
 
 
 def _boundary_tables() -> dict[str, ArrayTable]:
-    from ..fem.forces.support import ElasticSupport
-    from ..fem.loads import BodyForce, Pressure, Traction
-    from ..fem.problem import Dirichlet
+    from ..fem._loads import BodyForce, Pressure, Traction
+    from ..fem._problem import Dirichlet
+    from ..fem.forces._support import ElasticSupport
 
     return {"dirichlet": ArrayTable(Dirichlet, (DIRICHLET_NODES, HISTORY_KEYS)),
             "body_force": ArrayTable(BodyForce, (TIME_KEYS,), required=("vector",)),
@@ -346,9 +346,9 @@ def register_material_model(name: str, law: type, *, derived: DerivedKeys | None
 
 
 def _register_builtin_laws() -> None:
-    from ..fem.materials.hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean
-    from ..fem.materials.linear_elastic import LinearElastic
-    from ..fem.materials.viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean
+    from ..fem.materials._hyperelastic import HolzapfelGasserOgden, NearlyIncompressibleNeoHookean, NeoHookean
+    from ..fem.materials._linear_elastic import LinearElastic
+    from ..fem.materials._viscoelastic import StandardLinearSolid, ViscoelasticHGO, ViscoelasticNeoHookean
 
     register_material_model("linear-elastic", LinearElastic)
     register_material_model("neo-hookean", NeoHookean)

@@ -117,7 +117,7 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     """The defaults of ``case`` (and, for the vessel, ``size``): the cantilever's are
     the library's (:class:`~jaxsync.surrogate.Sampling`,
     :class:`~jaxsync.surrogate.ArchitectureChoice`,
-    :class:`~jaxsync.surrogate.training.train.TrainConfig`, the paper's 1e5 steps), with error
+    :class:`~jaxsync.surrogate.training.TrainConfig`, the paper's 1e5 steps), with error
     control at 1 %;
     the vessel's follow the paper's section 5.2 (11 parts, n_s = 1000; 1e6 steps, 5 s, at
     the paper's size, 5e5 steps, about 3.9 s, at the small one), with error control at
@@ -126,9 +126,9 @@ def demo_defaults(case: str = "cantilever", size: str | int = "small") -> DemoDe
     Raises:
         ConfigError: an unknown case or size.
     """
-    from ..surrogate.models.architecture import ArchitectureChoice as Arch
-    from ..surrogate.training.data import Sampling
-    from ..surrogate.training.train import TrainConfig as Train
+    from ..surrogate.models._architecture import ArchitectureChoice as Arch
+    from ..surrogate.training._data import Sampling
+    from ..surrogate.training._train import TrainConfig as Train
 
     _check_case(case)
     if case == "cantilever" and size != "small":
@@ -310,7 +310,7 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
     minutes, on the vessel a quarter of an hour): the parts (2 or more: one part has no
     shared nodes, nothing to predict), the steps, the training options (by building the
     :class:`~jaxsync.surrogate.Sampling`, :class:`~jaxsync.surrogate.ArchitectureChoice`
-    and :class:`~jaxsync.surrogate.training.train.TrainConfig` the run will use), the snapshot
+    and :class:`~jaxsync.surrogate.training.TrainConfig` the run will use), the snapshot
     strides, that the trained leading part of the run holds one window of n_p + n_f
     snapshots, and the error control's tolerance.
 
@@ -318,11 +318,11 @@ def check_demo_settings(d: DemoDefaults, save_every: int | None = None, *, seed:
         ConfigError, ProblemError: the first option that cannot be used, named with its fix.
     """
     from ..errors import ConfigError
-    from ..solve.coupling.syncavoid import ResyncTolerance
-    from ..solve.strategies import SaveAt
-    from ..surrogate.models.architecture import ArchitectureChoice
-    from ..surrogate.training.data import Sampling, trained_rows
-    from ..surrogate.training.train import TrainConfig
+    from ..solve._strategies import SaveAt
+    from ..solve.coupling._syncavoid import ResyncTolerance
+    from ..surrogate.models._architecture import ArchitectureChoice
+    from ..surrogate.training._data import Sampling, trained_rows
+    from ..surrogate.training._train import TrainConfig
 
     def integer(value) -> bool:
         return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
@@ -360,11 +360,11 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     from .. import HostExecutor, SaveAt, cantilever, partition, simulate
     from ..io.atomic import atomic_json
     from ..parallel.devices import device_summary
-    from ..solve.coupling.syncavoid import describe_run, simulate_sync_avoiding
+    from ..solve.coupling._syncavoid import describe_run, simulate_sync_avoiding
     from ..surrogate import ArchitectureChoice, Sampling, TrainingChecks, TrainingState
-    from ..surrogate.training.data import last_trained_step
-    from ..surrogate.training.fit import train_surrogates
-    from ..surrogate.training.train import TrainConfig
+    from ..surrogate.training._data import last_trained_step
+    from ..surrogate.training._fit import train_surrogates
+    from ..surrogate.training._train import TrainConfig
     from .plots import write_report
 
     started = time.perf_counter()
@@ -442,7 +442,7 @@ def _pipeline(out: str, final: str, d: DemoDefaults, *, case, size, seed, save_e
     log("  " + describe_run(online))
 
     log(f"[{next(stage)}/{n_stages}] timing (compiled programs, round-robin) and report")
-    from ..fem.forces.internal_force import run_force_model
+    from ..fem.forces._internal_force import run_force_model
     from ..perf.timing import speedup_breakdown
 
     # the vessel's timed calls are long (one refill cycle, n_s n_f = 20 000 steps, about 10 s)
@@ -498,13 +498,13 @@ def _shared_amplitude(reference) -> float:
 
 
 def _tolerance(tolerance, amplitude: float):
-    """The demo's error control, a :class:`~jaxsync.solve.coupling.syncavoid.ResyncTolerance`
+    """The demo's error control, a :class:`~jaxsync.solve.ResyncTolerance`
     (None: none): a percentage is of ``amplitude`` [cm], the largest shared-node
     displacement in the steps the surrogates were trained on (as ``jaxsync predict``
     takes it: under the vessel's pressure ramp the amplitude the online run has seen by
     n_cri is a small fraction of the final one, and a tolerance of it would reject
     well-trained cycles)."""
-    from ..solve.coupling.syncavoid import ResyncTolerance
+    from ..solve.coupling._syncavoid import ResyncTolerance
 
     if tolerance is None:
         return None

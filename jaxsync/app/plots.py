@@ -252,7 +252,7 @@ def constrained_nodes(config_path, space, displacement) -> np.ndarray:
     from .config import load_config, problem_from_config
 
     if not hasattr(space, "element"):  # a mesh: its vertices
-        from ..fem.space import function_space
+        from ..fem._space import function_space
 
         space = function_space(space, "P1")
     mesh = space.mesh
@@ -370,7 +370,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
         ConfigError: a bad node in ``nodes``, or a component other than 0, 1, 2, or a
             ``train_until_step`` that leaves no snapshot after it.
     """
-    from ..solve.coupling.syncavoid import step_counts
+    from ..solve.coupling._syncavoid import step_counts
 
     ref = np.asarray(reference.displacement)
     pred = np.asarray(online.displacement)
@@ -425,7 +425,7 @@ def compare(reference, online, partition, *, component: Component | None = DEFAU
 
 
 def _wants_strain(reference, strain: bool | None) -> bool:
-    from ..fem.materials.hyperelastic import HYPERELASTIC
+    from ..fem.materials._hyperelastic import HYPERELASTIC
 
     if strain is not None:
         return bool(strain)
@@ -561,7 +561,7 @@ def write_report(reference, online, partition, out_dir, *, component: Component 
             (x, y, z) (nearest node) or a dict label -> either (see :func:`resolve_nodes`).
         extra: more entries for ``summary.json`` (timings...).
         train_until_step: the last step whose displacements fed the surrogates' training
-            (:func:`jaxsync.surrogate.training.data.last_trained_step`); the summary then holds
+            (:func:`jaxsync.surrogate.training.last_trained_step`); the summary then holds
             the errors over the snapshots after it (``out_of_sample``, see
             :func:`out_of_sample`).
 

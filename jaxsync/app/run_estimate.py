@@ -179,7 +179,7 @@ def _zero_state(problem):
     """A start of zero displacement: the speed of a step does not depend on the values."""
     import jax.numpy as jnp
 
-    from ..fem.stepper import SolverState
+    from ..fem._stepper import SolverState
 
     zeros = np.zeros((problem.n_nodes, 3))
     return SolverState(zeros, zeros.copy(), jnp.asarray(0, dtype=jnp.int32))
@@ -187,8 +187,8 @@ def _zero_state(problem):
 
 def _run_form(problem, n_steps: int | None):
     """The force model a run of ``n_steps`` steps compiles
-    (:func:`jaxsync.fem.forces.internal_force.run_force_model`)."""
-    from ..fem.forces.internal_force import run_force_model
+    (:func:`jaxsync.fem.forces.run_force_model`)."""
+    from ..fem.forces._internal_force import run_force_model
 
     return "preassembled" if n_steps is None else run_force_model("preassembled", problem, n_steps)
 
@@ -201,7 +201,7 @@ def time_distributed_step(problem, parts, *, n_steps: int | None = None, target_
     :data:`CHUNK_STEPS` steps per call, compilation excluded. ``n_steps``: the run's
     length, which chooses the product's form as :func:`jaxsync.simulate` does (None: the
     fused form of a run of unknown length)."""
-    from ..fem.stepper import build_system
+    from ..fem._stepper import build_system
     from ..perf.kernels import distributed_step
     from ..solve.executors._distributed import DistributedRunner
 
@@ -219,7 +219,7 @@ def time_single_device_step(problem, *, n_steps: int | None = None, target_secon
     excluded (the mass-scaling check's runs); ``n_steps`` as :func:`time_distributed_step`."""
     import jax
 
-    from ..fem.stepper import build_system
+    from ..fem._stepper import build_system
     from ..solve.executors._phases import synchronized_steps
 
     system = jax.device_put(build_system(problem, problem.dt, _run_form(problem, n_steps)))
@@ -236,13 +236,13 @@ def time_training_epoch(parts, n_rows: int, row_stride: int, *, sampling, archit
     shapes a run gives: per part of ``parts`` 3 x its shared nodes dofs, ``n_rows`` rows of
     shared history, ``row_stride`` rows per n_s (:class:`~jaxsync.surrogate.Sampling`
     ``sampling``), a load signal per entry of ``load_inputs``
-    (:func:`jaxsync.fem.load_signals.load_inputs_of` the problem; () without load input)."""
+    (:func:`jaxsync.fem.load_inputs_of` the problem; () without load input)."""
     import dataclasses
 
     import jax
 
-    from ..surrogate.models.protocol import FitSettings
-    from ..surrogate.training.data import build_dataset, stack_replicas, trained_rows
+    from ..surrogate.models._protocol import FitSettings
+    from ..surrogate.training._data import build_dataset, stack_replicas, trained_rows
 
     rng = np.random.default_rng(sampling.seed)
     rows = trained_rows(n_rows, sampling.train_fraction)
@@ -287,10 +287,10 @@ def measure_demo_estimate(problem, parts, d, *, shared_every: int, mass_scaling=
         ``measure_seconds`` (what measuring took, compilations included),
         ``not_included`` (:data:`NOT_INCLUDED`) and ``text`` (:func:`format_estimate`).
     """
-    from ..fem.load_signals import load_inputs_of
+    from ..fem._load_signals import load_inputs_of
     from ..parallel.devices import device_summary
     from ..surrogate import ArchitectureChoice, Sampling
-    from ..surrogate.training.train import TrainConfig
+    from ..surrogate.training._train import TrainConfig
 
     started = time.perf_counter()
     # each program in the form its run compiles (a short run's compact product)

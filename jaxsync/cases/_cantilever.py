@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fem.loads import BodyForce, Ramp, StepOff
-from ..fem.materials.linear_elastic import LinearElastic
-from ..fem.problem import Dirichlet, Problem
+from ..fem._loads import BodyForce, Ramp, StepOff
+from ..fem._problem import Dirichlet, Problem
+from ..fem.materials._linear_elastic import LinearElastic
 from ..mesh import Mesh, box_beam
 from ..options import Element
 

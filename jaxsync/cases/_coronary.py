@@ -24,9 +24,9 @@ from typing import Sequence
 import numpy as np
 
 from ..errors import MeshError, ProblemError
-from ..fem.loads import Periodic, Pressure, Ramp, TimeFunction
-from ..fem.materials.linear_elastic import LinearElastic
-from ..fem.problem import Dirichlet, Problem
+from ..fem._loads import Periodic, Pressure, Ramp, TimeFunction
+from ..fem._problem import Dirichlet, Problem
+from ..fem.materials._linear_elastic import LinearElastic
 from ..mesh import Mesh
 
 __all__ = ["MMHG", "CORONARY_PERIOD", "DEFAULT_WAVEFORM", "coronary_material", "coronary_waveform",
@@ -125,7 +125,7 @@ def coronary(mesh: Mesh | None = None, *, waveform=None, period: float = CORONAR
             :func:`jaxsync.cases.coronary_mesh`.
         waveform: ``(times, pressures)`` samples of one period (see
             :func:`coronary_waveform`; None: :data:`DEFAULT_WAVEFORM`), or a ready
-            :class:`jaxsync.fem.loads.TimeFunction` giving p(t) [barye] (then ``period``
+            :class:`jaxsync.fem.TimeFunction` giving p(t) [barye] (then ``period``
             and ``t_ramp`` are not used).
         period: of the pulse [s].
         t_ramp: of the initial ramp [s].

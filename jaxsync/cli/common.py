@@ -47,7 +47,7 @@ def load_trained_run(args):
     from ..errors import PartitionError
     from ..io.surrogate_file import load_surrogate
     from ..io.trajectory import Trajectory
-    from ..parallel.partitioning import partition_of
+    from ..parallel._partitioning import partition_of
 
     reference = Trajectory.load(args.trajectory)
     part = partition_of(reference)
@@ -82,14 +82,14 @@ def add_mode_option(parser) -> None:
 
 def mode_of(args):
     """The force model of ``--mode`` and ``--float32-blocks``: the mode's name, or
-    :class:`jaxsync.fem.forces.internal_force.Preassembled` with float32 blocks."""
+    :class:`jaxsync.fem.forces.Preassembled` with float32 blocks."""
     from ..errors import ConfigError
 
     if not getattr(args, "float32_blocks", False):
         return args.mode
     if args.mode != "preassembled":
         raise ConfigError("--float32-blocks stores the preassembled K: use it with --mode preassembled")
-    from ..fem.forces.internal_force import Preassembled
+    from ..fem.forces._internal_force import Preassembled
 
     return Preassembled(blocks_dtype="float32")
 
@@ -98,7 +98,7 @@ def add_sync_option(parser, deep_halos: bool = False) -> None:
     """``--sync``: how the parts sum shared-node forces; left None unless given, so that
     the library's one default applies (:func:`jaxsync.parallel.multiprocess.default_sync`).
     ``deep_halos``: also offer ``--sync halo`` and ``--halo-depth`` (synchronized runs only)."""
-    from ..parallel.exchange.builtin import exchange_names, sync_strategy
+    from ..parallel.exchange._builtin import exchange_names, sync_strategy
 
     # every registered exchange (jaxsync.solve.register_exchange); without deep halos only
     # those that synchronize every step
@@ -124,7 +124,7 @@ def sync_of(args) -> dict:
     """``{"sync": strategy}`` when ``--sync`` was given (``--sync halo`` with its
     ``--halo-depth``: :class:`jaxsync.Halo`), else ``{}`` (the library's default)."""
     from ..errors import ConfigError
-    from ..solve.strategies import Halo
+    from ..solve._strategies import Halo
 
     depth = getattr(args, "halo_depth", None)
     if depth is not None and args.sync != "halo":
@@ -165,7 +165,7 @@ def add_online_learning_option(parser) -> None:
         "--learn", action="store_true",
         help="with --resync-tolerance: after every rejected cycle, train the surrogates on the steps recomputed "
              "synchronized (and on windows replayed from the first synchronized stretch) before predicting "
-             "again: least squares for the linear model, Adam steps for the LSTM (jaxsync.surrogate.training.online)")
+             "again: least squares for the linear model, Adam steps for the LSTM (jaxsync.surrogate.training)")
     parser.add_argument(
         "--learn-budget", type=float, default=None, metavar="SECONDS",
         help="the most wall time all updates of the run may take together (default: 120)")
@@ -191,7 +191,7 @@ def online_learning_of(args):
     if args.resync_tolerance is None or str(args.resync_tolerance).lower() == "none":
         raise ConfigError("--learn learns from the steps that error control recomputes after a rejected cycle: "
                           "give --resync-tolerance too (e.g. --resync-tolerance 1%)")
-    from ..surrogate.training.online import OnlineLearning
+    from ..surrogate.training._online import OnlineLearning
 
     return OnlineLearning(**({} if budget is None else {"budget_seconds": budget}), save_to=save_to)
 
@@ -200,7 +200,7 @@ def resync_tolerance_of(args, value=None):
     """The :class:`jaxsync.ResyncTolerance` of ``--resync-tolerance`` (or ``value``),
     ``--error-indicator`` and (where the command has them) ``--learn``,
     ``--learn-budget``; None without a tolerance."""
-    from ..solve.strategies import ResyncTolerance
+    from ..solve._strategies import ResyncTolerance
 
     value = args.resync_tolerance if value is None else value
     learning = online_learning_of(args)

@@ -1,5 +1,5 @@
 """``jaxsync finetune``: solver-in-the-loop fine-tuning of trained surrogates
-(:func:`jaxsync.solve.finetune.fine_tune_in_the_loop`) on the partition of a synchronized
+(:func:`jaxsync.solve.fine_tune_in_the_loop`) on the partition of a synchronized
 trajectory; writes a new surrogate file that ``jaxsync predict`` reads."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from . import common
 
 
 def add_parser(subparsers) -> None:
-    # defaults: jaxsync.solve.finetune.FineTuneConfig's (read in run: building the parser
+    # defaults: jaxsync.solve.FineTuneConfig's (read in run: building the parser
     # imports no solver)
     p = subparsers.add_parser(
         "finetune", help="fine-tune trained surrogates on the error of the coupled online run",
@@ -42,7 +42,7 @@ def run(args) -> int:
     import dataclasses
 
     from ..errors import ConfigError
-    from ..solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+    from ..solve._finetune import FineTuneConfig, fine_tune_in_the_loop
     from ..surrogate import Surrogate
 
     common.check_outputs((args.output, "fine-tuned surrogate file", "-o"))

@@ -39,7 +39,7 @@ def add_parser(subparsers) -> None:
     p.add_argument("--raw-refill", action="store_true",
                    help="write the paper's raw refill into the solver (n_s interleaved network "
                         "applications, which jitter from step to step) instead of the default smooth "
-                        "curve through their block means (jaxsync.surrogate.refill.smooth_refill)")
+                        "curve through their block means (jaxsync.surrogate.smooth_refill)")
     p.add_argument("--inference-dtype", choices=("float32", "bfloat16"), default=None,
                    help="compute the networks in bfloat16 (float32 accumulation; jaxsync.surrogate."
                         "inference): checked first on the synchronized run's shared histories and "
@@ -73,7 +73,7 @@ def trained_amplitude(saved, reference) -> float | None:
 
 
 def run(args) -> int:
-    from ..solve.coupling.syncavoid import describe_run, simulate_sync_avoiding
+    from ..solve.coupling._syncavoid import describe_run, simulate_sync_avoiding
 
     learned = getattr(args, "learn_save", None)
     common.check_outputs((args.output, "output trajectory", "-o"),
@@ -88,7 +88,7 @@ def run(args) -> int:
     n_steps = args.steps or int(round(float(reference.times[-1]) / reference.dt))
     import dataclasses
 
-    from ..solve.strategies import HostExecutor
+    from ..solve._strategies import HostExecutor
     from ..surrogate import Surrogate
 
     # the surrogate file's shared nodes were checked against the partition when it was loaded
@@ -114,10 +114,10 @@ def run(args) -> int:
 
 def _reduced_precision(surrogate, reference, name):
     """``surrogate`` computing in bfloat16, after the check on ``reference``'s shared
-    histories (:func:`jaxsync.surrogate.inference.reduced_precision`: refused above the
+    histories (:func:`jaxsync.surrogate.reduced_precision`: refused above the
     default bound, with the deviation in the message)."""
     from ..errors import ConfigError
-    from ..surrogate.inference import DEFAULT_BOUND, reduced_precision, surrogate_signal_windows, surrogate_windows
+    from ..surrogate._inference import DEFAULT_BOUND, reduced_precision, surrogate_signal_windows, surrogate_windows
 
     if reference.shared_stride != 1:
         raise ConfigError(f"--inference-dtype bfloat16 checks the reduced precision on the shared "

@@ -141,7 +141,7 @@ def run(args) -> int:
     from ..errors import ConfigError
     from ..io.atomic import atomic_json
     from ..io.trajectory import Trajectory
-    from ..parallel.partitioning import partition_of
+    from ..parallel._partitioning import partition_of
     from .common import check_outputs, refuse_to_overwrite
 
     check_outputs((args.out, "report folder", "-o", True))
@@ -178,7 +178,7 @@ def run(args) -> int:
         print(f"note: {line}")
     print_vessel(entry)
     if online.stats.to_dict():
-        from ..solve.coupling.syncavoid import describe_run
+        from ..solve.coupling._syncavoid import describe_run
 
         print(describe_run(online))
     if "peak_strain" in summary:  # a hyperelastic run's

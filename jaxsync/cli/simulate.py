@@ -250,7 +250,7 @@ def run(args) -> int:
 def _partitions(problem, n_parts: int, seed: int):
     """``n_parts`` (METIS with seed 0, rank 0's parts on every rank), or the partition of
     another ``--seed``."""
-    from ..parallel.partitioning import partition
+    from ..parallel._partitioning import partition
 
     return n_parts if not seed else partition(problem.mesh, n_parts, seed=seed)
 
@@ -266,8 +266,8 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
     import json
 
     from ..errors import StabilityError
-    from ..solve import solver
-    from ..solve.strategies import HostExecutor, SaveAt, SolverCheckpoint
+    from ..solve._solver import simulate
+    from ..solve._strategies import HostExecutor, SaveAt, SolverCheckpoint
 
     n_steps = args.steps if args.steps is not None else run_config.n_steps
     save_every = args.save_every if args.save_every is not None else run_config.save_every
@@ -289,14 +289,14 @@ def _simulate(args, problem, run_config, *, dt, sync, output, formats, checkpoin
         if n_processes > 1:
             print(f"{n_processes} processes, {parts} parts")
         if parts is not None:  # how the parts exchange: the transport of this run
-            from ..solve.strategies import transport
+            from ..solve._strategies import transport
 
             print(f"exchange: {transport(sync.get('sync'), parts)}")
     first_step = checkpoint_step(checkpoint)  # where a resumed run starts
     start = time.perf_counter()
     try:
         every = args.checkpoint_every if args.checkpoint_every is not None else run_config.checkpoint_every
-        trajectory = solver.simulate(
+        trajectory = simulate(
             problem, n_steps, dt=dt, save=SaveAt(save_every, args.shared_every),
             partitions=None if parts is None else _partitions(problem, parts, args.seed), mode=common.mode_of(args),
             checkpoint=None if checkpoint is None else SolverCheckpoint(checkpoint, every),

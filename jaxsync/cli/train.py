@@ -18,14 +18,14 @@ Every default is the library's, read from its settings dataclasses
 (:class:`~jaxsync.surrogate.ArchitectureChoice`, :class:`~jaxsync.surrogate.Sampling`,
 :class:`~jaxsync.surrogate.TrainConfig`, :class:`~jaxsync.surrogate.TrainingChecks`,
 :class:`~jaxsync.surrogate.TrainingState`): the laptop schedule of
-:class:`~jaxsync.surrogate.training.train.TrainConfig`
+:class:`~jaxsync.surrogate.training.TrainConfig`
 (n_H = 50, n_B = 10, eta0 = 2e-3, gamma = 0.995, 800 epochs, early stop after 200 epochs
 without a better validation loss); the paper's is ``--n-hidden 100 --batch-size 5 --eta0 5e-4 --gamma
 0.9995 --epochs paper`` (13 812 epochs).  ``--model linear`` fits the affine map of least
-squares on the same windows (:mod:`jaxsync.surrogate.models.linear`, ridge ``--regularization``);
+squares on the same windows (:mod:`jaxsync.surrogate.models`, ridge ``--regularization``);
 it writes the same files, and the optimization options do not apply to it. ``--model``
 also names any model registered with :func:`jaxsync.surrogate.register_surrogate` before
-the parser is built (:mod:`jaxsync.surrogate.models.registry`): it takes the options of the names
+the parser is built (:mod:`jaxsync.surrogate.models`): it takes the options of the names
 of its hyperparameters (``--n-hidden``, ``--n-layers``, ``--cond-repeat``).
 """
 
@@ -35,13 +35,13 @@ import argparse
 import os
 
 from jaxsync.options import EpochRule, LoadJumpWindows, ValidationSplit, choices
-from jaxsync.surrogate.models.architecture import ArchitectureChoice
-from jaxsync.surrogate.models.registry import surrogate_kinds
-from jaxsync.surrogate.training.data import Sampling
-from jaxsync.surrogate.training.evaluate import TrainingChecks
-from jaxsync.surrogate.training.fit import LOSS_CURVES_NAME, SUMMARY_NAME, SURROGATE_NAME, train_surrogates
-from jaxsync.surrogate.training.train import TrainConfig
-from jaxsync.surrogate.training.training_state import STATE_NAME, TrainingState
+from jaxsync.surrogate.models._architecture import ArchitectureChoice
+from jaxsync.surrogate.models._registry import surrogate_kinds
+from jaxsync.surrogate.training._data import Sampling
+from jaxsync.surrogate.training._evaluate import TrainingChecks
+from jaxsync.surrogate.training._fit import LOSS_CURVES_NAME, SUMMARY_NAME, SURROGATE_NAME, train_surrogates
+from jaxsync.surrogate.training._train import TrainConfig
+from jaxsync.surrogate.training._training_state import STATE_NAME, TrainingState
 
 # the defaults are those of the library's settings
 ARCHITECTURE, SAMPLING, DEFAULTS, CHECKS = ArchitectureChoice(), Sampling(), TrainConfig(), TrainingChecks()

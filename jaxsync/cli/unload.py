@@ -86,14 +86,14 @@ def start_problem(problem, config: dict) -> tuple[object, str | None]:
     imaging = imaging_problem(problem, found["pressure"])
     options = dict(tol=found["tol"], max_iter=found["max_iter"], load_steps=found["load_steps"])
     if found["start"] == "unloaded":
-        from ..solve.zero_pressure import zero_pressure_geometry
+        from ..solve._zero_pressure import zero_pressure_geometry
 
         result = zero_pressure_geometry(imaging, method=found["method"], **options)
         moved = float(np.abs(result.points - problem.points).max())
         return result.problem(problem), (f"start: the unloaded geometry ({result.method}, {result.iterations} "
                                          f"iterations, final residual {result.residuals[-1]:.3e}; largest node "
                                          f"move {moved:.4g} cm)")
-    from ..solve.prestress import prestress
+    from ..solve._prestress import prestress
 
     result = prestress(imaging, method=found["prestress"], **options)
     scale = result.density_scale if problem.density_scale is None else (
@@ -109,8 +109,8 @@ def imaging_problem(problem, pressure):
     import dataclasses
 
     from ..errors import ConfigError
-    from ..fem.forces.follower import follower_loads
-    from ..fem.loads import Constant
+    from ..fem._loads import Constant
+    from ..fem.forces._follower import follower_loads
 
     followers = follower_loads(problem)
     if not followers:
@@ -130,7 +130,7 @@ def run(args) -> int:
 
     from ..app.config import load_config, problem_from_config
     from ..mesh import write_mesh
-    from ..solve.zero_pressure import zero_pressure_geometry
+    from ..solve._zero_pressure import zero_pressure_geometry
 
     config = load_config(args.config)
     found = settings(args, config)

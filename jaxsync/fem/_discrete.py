@@ -1,13 +1,13 @@
 """A problem lowered to the arrays the solver reads, once per problem.
 
-A :class:`~jaxsync.fem.problem.Problem` describes the physics (mesh, material, conditions,
+A :class:`~jaxsync.fem.Problem` describes the physics (mesh, material, conditions,
 loads); every consumer that runs or checks it needs the same arrays on the problem's
 nodes: the lumped mass, the nodal loads and their time functions, the prescribed dofs and
 their values, the damping. :func:`lower` computes them, and :attr:`Problem.discrete
-<jaxsync.fem.problem.Problem.discrete>` keeps the result, so that the explicit system
-(:func:`~jaxsync.fem.stepper.build_system`), the parts' systems, the error estimate, the
+<jaxsync.fem.Problem.discrete>` keeps the result, so that the explicit system
+(:func:`~jaxsync.fem.build_system`), the parts' systems, the error estimate, the
 stability bounds, a checkpoint's fingerprint and the problem's own accessors
-(:meth:`~jaxsync.fem.problem.Problem.lumped_mass`, ``load_vectors``, ``prescribed``,
+(:meth:`~jaxsync.fem.Problem.lumped_mass`, ``load_vectors``, ``prescribed``,
 ``dirichlet_dofs``) all read one object instead of lowering the problem again.
 
 Concrete values are lowered with NumPy, traced ones (a material, load magnitude or
@@ -29,7 +29,7 @@ __all__ = ["DiscreteProblem", "lower"]
 
 @pytree_dataclass
 class DiscreteProblem:
-    """A :class:`~jaxsync.fem.problem.Problem` as arrays on its nodes (a pytree).
+    """A :class:`~jaxsync.fem.Problem` as arrays on its nodes (a pytree).
 
     Attributes:
         mass: (n_nodes,) lumped nodal mass [g]: rho times the unit lumped mass (density
@@ -74,9 +74,9 @@ class DiscreteProblem:
 
 def lower(problem) -> DiscreteProblem:
     """The :class:`DiscreteProblem` of ``problem`` (use :attr:`Problem.discrete
-    <jaxsync.fem.problem.Problem.discrete>`, which lowers once)."""
-    from .assembly import lumped_mass
-    from .loads import Pressure
+    <jaxsync.fem.Problem.discrete>`, which lowers once)."""
+    from ._assembly import lumped_mass
+    from ._loads import Pressure
 
     n = problem.n_nodes
     rho = problem.material.rho

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import CheckpointError, OutputError
-from ..fem.stepper import SolverState
+from ..fem._stepper import SolverState
 from .atomic import array_checksum, atomic_h5
 
 __all__ = ["fingerprint", "save_checkpoint", "load_checkpoint", "committed_step", "CheckpointWriter",
@@ -69,7 +69,7 @@ def fingerprint(problem, dt: float, save_every: int) -> str:
     h.update(values.tobytes())
     for v in lowered.load_vectors:
         h.update(np.asarray(v, dtype=float).tobytes())
-    from ..fem.forces.follower import follower_loads
+    from ..fem.forces._follower import follower_loads
 
     for load in follower_loads(problem):  # not among the load vectors (they follow the displacement)
         h.update(repr(("follower pressure", load.surface, float(load.magnitude), load.time)).encode())

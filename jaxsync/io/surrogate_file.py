@@ -2,7 +2,7 @@
 :class:`SavedSurrogate`, what such a file holds.
 
 (Not to be confused with the solver's resumable checkpoints, :mod:`jaxsync.io.checkpoint`,
-or the training state of :mod:`jaxsync.surrogate.training.training_state`.)
+or the training state of :mod:`jaxsync.surrogate.training`.)
 
 Layout (format ``jaxsync-lstm-surrogate``, version :data:`FORMAT_VERSION`; the name is
 kept from before the linear surrogate, which the same format holds)::
@@ -20,7 +20,7 @@ kept from before the linear surrogate, which the same format holds)::
            "linear", and ``n_load`` when > 0; a file without ``kind`` holds an LSTM), n_s,
            metadata (JSON), load_inputs (JSON list, load input only: per signal its
            ``source`` "loads[i]"/"dirichlet[i]", ``kind``, time-function ``form`` and
-           ``function`` in words, :class:`~jaxsync.fem.load_signals.LoadInput`),
+           ``function`` in words, :class:`~jaxsync.fem.LoadInput`),
            checksum_sha256
 
 A surrogate without load input writes exactly the file it wrote before the load input
@@ -45,17 +45,17 @@ import jax
 import numpy as np
 
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.fem.load_signals import LoadInput
+from jaxsync.fem._load_signals import LoadInput
 from jaxsync.io import array_checksum, atomic_h5
-from jaxsync.surrogate.models.architecture import (
+from jaxsync.surrogate.models._architecture import (
     Architecture,
     architecture_from_dict,
     architecture_to_dict,
     init_params,
 )
-from jaxsync.surrogate.models.lstm import Params
-from jaxsync.surrogate.training.data import padding_mask
-from jaxsync.surrogate.training.train import TrainResult
+from jaxsync.surrogate.models._lstm import Params
+from jaxsync.surrogate.training._data import padding_mask
+from jaxsync.surrogate.training._train import TrainResult
 
 FORMAT_NAME = "jaxsync-lstm-surrogate"
 FORMAT_VERSION = 1
@@ -67,8 +67,8 @@ class SavedSurrogate:
     """Everything needed to run a set of trained replicas: what a surrogate file holds.
 
     Attributes:
-        arch: architecture (:class:`~jaxsync.surrogate.models.lstm.LSTMArchitecture` or
-            :class:`~jaxsync.surrogate.models.linear.LinearArchitecture`); ``arch.n_dof`` is the
+        arch: architecture (:class:`~jaxsync.surrogate.models.LSTMArchitecture` or
+            :class:`~jaxsync.surrogate.models.LinearArchitecture`); ``arch.n_dof`` is the
             padded width.
         params: stacked parameters (leading part axis), numpy arrays.
         mean, std: (n_parts, n_dof) normalization, solver units (padding: 0 and 1).
@@ -79,7 +79,7 @@ class SavedSurrogate:
         metadata: JSON-serializable extras (training configuration, losses...).
         signal_scale: (n_parts, n_load) float64 scale of the known load signals (load
             input), or None.
-        load_inputs: (n_load,) :class:`~jaxsync.fem.load_signals.LoadInput`: which load
+        load_inputs: (n_load,) :class:`~jaxsync.fem.LoadInput`: which load
             signals the replicas read (empty without load input).
     """
 
@@ -111,7 +111,7 @@ class SavedSurrogate:
         shared_nodes: Sequence[np.ndarray] | None = None,
         metadata: dict[str, Any] | None = None,
     ) -> "SavedSurrogate":
-        """The saved form of the replicas returned by :func:`~jaxsync.surrogate.training.train.train_replicas`."""
+        """The saved form of the replicas returned by :func:`~jaxsync.surrogate.training.train_replicas`."""
         return cls(
             arch=result.arch, params=result.params, mean=result.mean, std=result.std,
             dof_counts=result.dof_counts, n_s=int(n_s),

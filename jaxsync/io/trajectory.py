@@ -100,14 +100,14 @@ class Trajectory:
             P2: the mesh's vertices, then one node per edge).
         error_estimate: synchronization-avoiding runs with error control
             (``ResyncTolerance(indicator="estimate")``): (n_saved,) the estimated largest
-            nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.coupling.error_estimate`),
+            nodal error at each predicted snapshot [cm] (:mod:`jaxsync.solve.coupling`),
             NaN at synchronized ones; None otherwise.
         load_signal: (n_rows, n_u) the problem's known load signals (the time functions
-            of its loads and prescribed motions, :mod:`jaxsync.fem.load_signals`) at the
+            of its loads and prescribed motions, :mod:`jaxsync.fem`) at the
             steps of the parts' shared rows (every :attr:`shared_stride` steps from step
             0), dimensionless: what a load-aware surrogate is trained with. None: not
             recorded (files of an older jaxsync, traced time functions).
-        load_inputs: the (n_u,) :class:`~jaxsync.fem.load_signals.LoadInput` descriptions
+        load_inputs: the (n_u,) :class:`~jaxsync.fem.LoadInput` descriptions
             of the columns of ``load_signal`` (empty without it).
 
     A pytree (the arrays, ``dt``, the parts and ``result`` are its leaves), so a traced run
@@ -141,8 +141,8 @@ class Trajectory:
 
     @property
     def space(self):
-        """The :class:`~jaxsync.fem.space.FunctionSpace` of the displacement's nodes."""
-        from ..fem.space import function_space
+        """The :class:`~jaxsync.fem.FunctionSpace` of the displacement's nodes."""
+        from ..fem._space import function_space
 
         return function_space(self.mesh, self.element)
 
@@ -154,7 +154,7 @@ class Trajectory:
     def output_cells(self) -> tuple[np.ndarray, str, np.ndarray]:
         """(points, meshio cell type, cells) of the nodes for ParaView: ``"tetra"``, or
         ``"tetra10"`` in VTK's node order for P2."""
-        from ..fem.space import vtk_cells
+        from ..fem._space import vtk_cells
 
         kind, cells = vtk_cells(self.space)
         return self.points, kind, cells
@@ -286,7 +286,7 @@ class Trajectory:
                 result = f.attrs.get("result")
                 load_signal, load_inputs = None, ()
                 if "load_signal" in f:
-                    from ..fem.load_signals import LoadInput
+                    from ..fem._load_signals import LoadInput
 
                     load_signal = f["load_signal"][...]
                     load_inputs = tuple(LoadInput.from_dict(d) for d in json.loads(f.attrs["load_inputs"]))

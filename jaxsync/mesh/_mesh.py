@@ -45,7 +45,7 @@ class Mesh:
             (n_elements, 6, 3) coordinates, per element in VTK's edge order (vertex pairs
             (0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3)); None for a linear mesh. A
             problem on such a mesh uses quadratic elements by default
-            (:mod:`jaxsync.fem.space`).
+            (:mod:`jaxsync.fem`).
     """
 
     points: np.ndarray

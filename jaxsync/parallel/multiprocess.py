@@ -26,7 +26,7 @@ collective: :func:`abort_on_error` prints the error with its rank and calls
 
 The only global state is what ``jax.distributed`` itself keeps (its client and the JAX
 config options it needs, set once in :func:`initialize`) and the FFI targets of the
-``ctypes`` MPI sum (:mod:`jaxsync.parallel.mpi_ffi`).
+``ctypes`` MPI sum (:mod:`jaxsync.parallel`).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from collections.abc import Callable, Mapping
 
 from ..errors import ConfigError, JaxsyncError
 from ..options import Sync, choices
-from .mpi_ffi import ctypes_allreduce, ctypes_problem
+from ._mpi_ffi import ctypes_allreduce, ctypes_problem
 
 __all__ = ["SYNC_METHODS", "ALLREDUCE_BACKENDS", "TransportWarning", "launched_size", "launched_by_mpi",
            "launched_rank",
@@ -53,7 +53,7 @@ SYNC_METHODS = choices(Sync)  # ("psum", "ppermute", "mpi", "halo"), defined in 
 """Per-step synchronization across devices and processes: XLA ``psum`` of the whole
 interface (gloo/NCCL across processes), XLA ``ppermute`` neighbour exchange of only the
 nodes two devices share, MPI Allreduce, or deep halos (an exchange of displacements every
-k steps, :mod:`jaxsync.parallel.exchange.halo`)."""
+k steps, :mod:`jaxsync.parallel.exchange`)."""
 
 ALLREDUCE_BACKENDS = ("auto", "mpi4jax", "ctypes", "callback")
 """How the MPI Allreduce is called from the compiled step: ``mpi4jax`` (an XLA FFI custom

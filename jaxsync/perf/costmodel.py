@@ -62,7 +62,7 @@ Assumptions (each makes the model optimistic or simple, none is measured here):
   the max-average part of :mod:`jaxsync.perf.reports`).
 
 Inputs and their sources: the partition's interface (:func:`communication_pattern`,
-from :class:`jaxsync.parallel.partitioning.Partition`); an :class:`Interconnect`, either one of the
+from :class:`jaxsync.parallel.Partition`); an :class:`Interconnect`, either one of the
 typical published figures in :data:`INTERCONNECTS` (vendor spec sheets and OSU
 micro-benchmark results, not measured here), or one fitted to measured message times on
 this machine with :func:`fit_interconnect`; t_compute and t_d measured by the benchmarks.
@@ -246,7 +246,7 @@ class CommunicationPattern:
 
 
 def communication_pattern(partition, dofs_per_node: int = 3, bytes_per_value: int = 8) -> CommunicationPattern:
-    """The :class:`CommunicationPattern` of a :class:`jaxsync.parallel.partitioning.Partition`.
+    """The :class:`CommunicationPattern` of a :class:`jaxsync.parallel.Partition`.
 
     Nodes shared by parts p and q are the interface nodes whose ``sharing_parts`` hold
     both; with B the (N_a, p) boolean incidence of interface nodes and parts, the counts

@@ -4,10 +4,10 @@ the whole SPMD programs.
 Inside one compiled step there is nowhere to put a timer between stages, so each stage
 is timed as a separately compiled *variant* of the stepper with the solver's own loop
 structure (``lax.scan`` over ``n_steps`` steps, ``unroll=STEP_UNROLL``, the same
-:class:`~jaxsync.fem.stepper.SolverState` carry), built from the stepper's public pieces
-(:func:`~jaxsync.fem.stepper.step`, ``central_difference``, ``apply_dirichlet``). Every
+:class:`~jaxsync.fem.SolverState` carry), built from the stepper's public pieces
+(:func:`~jaxsync.fem.step`, ``central_difference``, ``apply_dirichlet``). Every
 local variant has the signature ``(system, state, scale, n_steps) -> state``: ``system``
-an :class:`~jaxsync.fem.stepper.ExplicitSystem` of n nodes, ``state`` d(n), d(n-1) of
+an :class:`~jaxsync.fem.ExplicitSystem` of n nodes, ``state`` d(n), d(n-1) of
 shape (n, 3) and the step counter, ``scale`` a float64 scalar passed at run time (the
 timing passes 0; XLA cannot fold a run-time 0 away), ``n_steps`` static.
 
@@ -31,7 +31,7 @@ update into one loop, and there the mat-vec costs 10-15 % more than as a kernel 
 own (measured on this machine: the mat-vec alone plus the update alone came to 0.90-0.92
 of the real step at 234 to 4949 nodes).
 
-The SPMD programs (all built by :func:`jaxsync.parallel.spmd.spmd_program`, the parts of
+The SPMD programs (all built by :func:`jaxsync.parallel.spmd_program`, the parts of
 a device vmapped, the parts sharded over the devices): the distributed runner's own
 chunk with and without synchronization (:func:`distributed_step`), the same shape doing
 no step (:func:`distributed_no_step`), and one refill prediction of every part
@@ -43,8 +43,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..fem.stepper import STEP_UNROLL, SolverState, apply_dirichlet, backward_velocity, central_difference, step
-from ..parallel.spmd import spmd_program
+from ..fem._stepper import STEP_UNROLL, SolverState, apply_dirichlet, backward_velocity, central_difference, step
+from ..parallel._spmd import spmd_program
 
 __all__ = ["local_step", "step_without_force", "step_with_scaled_force", "scatter_only",
            "scaled_carry", "no_step", "LOCAL_VARIANTS", "distributed_step",
@@ -53,13 +53,13 @@ __all__ = ["local_step", "step_without_force", "step_with_scaled_force", "scatte
 
 def _scan(body, state: SolverState, n_steps: int) -> SolverState:
     """``n_steps`` applications of ``body`` in the solver's loop structure
-    (:func:`jaxsync.fem.stepper.advance`), so that every variant pays its loop costs."""
+    (:func:`jaxsync.fem.advance`), so that every variant pays its loop costs."""
     return jax.lax.scan(lambda s, _: (body(s), None), state, None, length=n_steps,
                         unroll=STEP_UNROLL)[0]
 
 
 def local_step(system, state: SolverState, scale, n_steps: int) -> SolverState:
-    """``n_steps`` real steps (:func:`jaxsync.fem.stepper.step`) without synchronization;
+    """``n_steps`` real steps (:func:`jaxsync.fem.step`) without synchronization;
     ``scale`` is unused."""
     return _scan(lambda s: step(system, s), state, n_steps)
 
@@ -90,7 +90,7 @@ def step_with_scaled_force(system, state: SolverState, scale, n_steps: int) -> S
 def scatter_only(system, state: SolverState, scale, n_steps: int, forces) -> SolverState:
     """Recompute mode: ``n_steps`` times d <- d + scale * (the (n_elements, 4, 3) element
     forces ``forces`` + scale d[0, 0], times the padding weight, summed into the nodes),
-    the sum as :meth:`jaxsync.fem.forces.element_force.ElementStiffness.matvec` does it."""
+    the sum as :meth:`jaxsync.fem.forces.ElementStiffness.matvec` does it."""
     k = system.stiffness
 
     def body(s):

@@ -274,7 +274,7 @@ class SpeedupReport(_JsonReport):
         architecture: the surrogate's architecture (dict), or {} for another predictor.
         n_steps: steps per timed call of the whole programs; repeats: timed calls (best kept).
         t_step_halo: {halo depth k: measured per-step time of the deep-halo SPMD program
-            (:mod:`jaxsync.parallel.exchange.halo`: exact, one exchange every k steps) [s]}; empty
+            (:mod:`jaxsync.parallel.exchange`: exact, one exchange every k steps) [s]}; empty
             when none was timed.
     """
 

@@ -10,7 +10,7 @@ length k as 2 k flops, multiply and add, as for matrix products). Each stage is 
 as if it ran alone, as :mod:`jaxsync.perf.timing` times it: the fused real step reads d(n)
 once and never stores K d, so its traffic is the sum below minus 2 * 24 n bytes.
 
-``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.fem.sparse`, columns (n, w) int32,
+``"t_m"``, preassembled (node-blocked ELL of :mod:`jaxsync.fem`, columns (n, w) int32,
 blocks (n, 3, w, 3) float64)::
 
     bytes = n w (9 * 8 + 4)      the blocks and column indices, streamed once
@@ -20,7 +20,7 @@ blocks (n, 3, w, 3) float64)::
 
 ``"t_e"`` is 0 in the preassembled mode (K is assembled once, before the run).
 
-``"t_e"``, recompute mode (:func:`jaxsync.fem.forces.element_force.element_forces`), per element::
+``"t_e"``, recompute mode (:func:`jaxsync.fem.forces.element_forces`), per element::
 
     bytes = 4 * 4 (node ids) + 12 * 8 (coordinates gathered) + 12 * 8 (displacements
             gathered) = 208
@@ -29,7 +29,7 @@ blocks (n, 3, w, 3) float64)::
             eps 18, trace 2, sigma 28, volume 1, sigma grad 72, times volume 12
 
 ``"t_m"``, recompute mode (the weight and the scatter-add of the element forces into the
-nodes, :meth:`jaxsync.fem.forces.element_force.ElementStiffness.matvec`), per element::
+nodes, :meth:`jaxsync.fem.forces.ElementStiffness.matvec`), per element::
 
     bytes = 8 (weight) + 12 * 8 (forces scatter-added) = 104
     flops = 12 (times weight) + 12 (scatter-add) = 24
@@ -38,7 +38,7 @@ The per-element gathers and scatters are counted every time an element touches a
 (each node has about 20 elements): an upper bound on the memory traffic when they hit
 cache, so a recompute "fraction of bandwidth" above 1 means cache reuse.
 
-``"t_e"``, total-Lagrangian mode (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.element_forces`,
+``"t_e"``, total-Lagrangian mode (:meth:`jaxsync.fem.forces.HyperelasticForce.element_forces`,
 a hyperelastic law), per element of k nodes and n_q quadrature points (P1: k = 4, n_q = 1;
 P2: k = 10, n_q = 4)::
 
@@ -58,7 +58,7 @@ As for the recompute mode, the gathers and scatters are counted per element; the
 compulsory traffic of the whole force (:func:`hyperelastic_element_cost`) reads u and
 writes f once per node instead.
 
-``"t_o"``, the update (:func:`jaxsync.fem.stepper.external_force`, ``central_difference``,
+``"t_o"``, the update (:func:`jaxsync.fem._stepper.external_force`, ``central_difference``,
 ``apply_dirichlet``), per dof (3 per node)::
 
     bytes = 8 * (3 + L + 1 + 1) + 1   read d(n), d(n-1), lumped mass, L load vectors,
@@ -78,7 +78,7 @@ the bytes on the network are :mod:`jaxsync.perf.costmodel`'s)::
     flops = 3 n_sh + 3 N_a            scatter-adds; one reduction add per interface dof
 
 ``"t_d"``, the surrogate: one refill prediction of n_s windows
-(:func:`jaxsync.surrogate.refill.refill_predict`; :func:`surrogate_costs`), with
+(:func:`jaxsync.surrogate.refill_predict`; :func:`surrogate_costs`), with
 H = n_H, H_d = 2 n_H, D = n_dof, q = n_cond_repeat, T = n_p, F = n_f, n_in of encoder
 layer l (D for the first, 2 H after). A cell step given its input projection costs
 8 H^2 (w_h h) + 4 H (add the projection) + 4 H (gate products and sum) + 5 H (3 sigmoid,
@@ -118,7 +118,7 @@ from typing import Mapping
 import numpy as np
 
 from ..errors import ProblemError
-from ..fem.materials.hyperelastic import HYPERELASTIC
+from ..fem.materials._hyperelastic import HYPERELASTIC
 from ..options import Mode, check_option
 
 __all__ = ["StageCost", "STEP_STAGES", "ELEMENT_FLOPS", "HYPERELASTIC_POINT_FLOPS", "hyperelastic_element_cost",
@@ -130,7 +130,7 @@ STEP_STAGES = ("t_e", "t_m", "t_s", "t_o")  # the stages of a step that step_cos
 
 F64, I32, MASK = 8, 4, 1  # bytes per float64, int32, boolean
 
-# Flops per element of jaxsync.fem.forces.element_force.element_forces, operation by operation as
+# Flops per element of jaxsync.fem.forces.element_forces, operation by operation as
 # written (the t_e of the recompute mode).
 ELEMENT_FLOPS = {
     "edge vectors r1, r2, r3": 9,
@@ -151,13 +151,13 @@ SCATTER_FLOPS = 24  # recompute t_m per element: 12 times the weight, 12 scatter
 HYPERELASTIC_POINT_FLOPS = {law.__name__: dict(law.point_flops) for law in HYPERELASTIC}
 """{law class name: {operation: flops}} per quadrature point (the t_e of the
 total-Lagrangian mode with the deformation gradient and the nodal forces): each built-in
-law's :attr:`~jaxsync.fem.materials.law.FiniteStrainLaw.point_flops`, operation by
+law's :attr:`~jaxsync.fem.materials.FiniteStrainLaw.point_flops`, operation by
 operation of its formula (a transcendental function, a division, a comparison or a select
 counts as one flop, as in XLA's cost analysis)."""
 
 
 def _law_cost(law):
-    """The :class:`~jaxsync.fem.materials.law.LawCost` of a law, or of a built-in law's class name."""
+    """The :class:`~jaxsync.fem.materials.LawCost` of a law, or of a built-in law's class name."""
     if isinstance(law, str):  # a name, as the cost model's callers have given it
         if law not in HYPERELASTIC_POINT_FLOPS:
             raise ProblemError(f"law must be one of {', '.join(HYPERELASTIC_POINT_FLOPS)}, got {law!r}")
@@ -171,11 +171,11 @@ def _law_cost(law):
 
 def hyperelastic_element_cost(law, nodes_per_element: int = 4, n_points: int = 1) -> dict:
     """Flops and compulsory bytes per element of the total-Lagrangian internal force
-    (:meth:`jaxsync.fem.forces.total_lagrangian.HyperelasticForce.matvec`) of a law.
+    (:meth:`jaxsync.fem.forces.HyperelasticForce.matvec`) of a law.
 
     Args:
         law: a finite-strain material law (its
-            :meth:`~jaxsync.fem.materials.law.MaterialLaw.cost`), or a built-in law's class
+            :meth:`~jaxsync.fem.materials.MaterialLaw.cost`), or a built-in law's class
             name (a key of :data:`HYPERELASTIC_POINT_FLOPS`).
         nodes_per_element: k (4: P1, 10: P2).
         n_points: n_q quadrature points per element (1: P1, 4: P2).
@@ -258,7 +258,7 @@ def step_costs(n_nodes: int, width: int | None = None, n_elements: int | None = 
     Args:
         n_nodes: n, nodes of the part (or mesh).
         width: w, ELL slots per node row (``"preassembled"``; the second dimension of
-            :func:`jaxsync.fem.sparse.node_adjacency`).
+            :func:`jaxsync.fem.node_adjacency`).
         n_elements: m, elements of the part (``"recompute"``, ``"total-lagrangian"``).
         n_load_vectors: L, load vectors of the problem.
         mode: ``"preassembled"``, ``"recompute"`` or ``"total-lagrangian"``.
@@ -314,7 +314,7 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     """:func:`step_costs` of a :class:`jaxsync.Problem`, whole or per part.
 
     The preassembled product's slots per row are those of the default layout
-    (:class:`jaxsync.fem.sparse.GroupedEll`: rows grouped by degree, each group padded to
+    (:class:`jaxsync.fem.GroupedEll`: rows grouped by degree, each group padded to
     its own width), averaged over the rows and rounded up.
 
     Args:
@@ -330,14 +330,14 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
     Returns:
         One dict of stage costs, or for a partition a tuple of them (one per part).
     """
-    from ..fem.forces.internal_force import force_model
+    from ..fem.forces._internal_force import force_model
 
     n_loads = len(problem.load_vectors()[0])
     mesh = problem.mesh
     law = {}
     mode = problem.material.force_model(force_model(mode)).name  # the model the law runs on
     if mode == "total-lagrangian":
-        from ..fem.reference_element import n_quadrature_points
+        from ..fem._reference_element import n_quadrature_points
 
         space = problem.space
         law = {"law": problem.material, "nodes_per_element": space.nodes_per_cell,
@@ -357,7 +357,7 @@ def step_costs_for(problem, partition=None, mode: Mode = "preassembled"):
 
 def _slots_per_row(cells, n_nodes: int) -> int:
     """Stored block slots per row of the default grouped layout, rounded up."""
-    from ..fem.sparse import degree_widths, node_adjacency, row_degrees
+    from ..fem._sparse import degree_widths, node_adjacency, row_degrees
 
     degree = row_degrees(node_adjacency(cells, n_nodes))
     low, slots = 0, 0
@@ -371,11 +371,11 @@ def _slots_per_row(cells, n_nodes: int) -> int:
 
 
 def _check_arch(arch, n_s, lstm_only: bool = False):
-    from ..surrogate.models.lstm import LSTMArchitecture
-    from ..surrogate.models.protocol import SurrogateArchitecture
+    from ..surrogate.models._lstm import LSTMArchitecture
+    from ..surrogate.models._protocol import SurrogateArchitecture
 
     if lstm_only and not isinstance(arch, LSTMArchitecture):
-        raise ProblemError(f"expected a jaxsync.surrogate.models.lstm.LSTMArchitecture, got {arch!r}")
+        raise ProblemError(f"expected a jaxsync.surrogate.models.LSTMArchitecture, got {arch!r}")
     if not isinstance(arch, SurrogateArchitecture):
         raise ProblemError(f"expected a surrogate model (jaxsync.surrogate.SurrogateArchitecture), got {arch!r}")
     return _count(n_s, "n_s", 1)
@@ -383,7 +383,7 @@ def _check_arch(arch, n_s, lstm_only: bool = False):
 
 def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
     """Flops of one LSTM refill prediction (n_s windows), by kind (formulas: module
-    docstring; :func:`jaxsync.surrogate.models.lstm.count_flops`).
+    docstring; :func:`jaxsync.surrogate.models.count_flops`).
 
     Returns:
         ``{"matmul": ..., "bias": ..., "cell": ..., "normalize": ..., "mask": ...}``:
@@ -391,7 +391,7 @@ def surrogate_flop_breakdown(arch, n_s: int, masked: bool = True) -> dict:
         the bias additions, ``"cell"`` the gate arithmetic (13 per hidden unit per
         step), ``"normalize"`` the input and output scaling, ``"mask"`` the padding mask.
     """
-    from ..surrogate.models.lstm import count_flops
+    from ..surrogate.models._lstm import count_flops
 
     return count_flops(arch, _check_arch(arch, n_s, lstm_only=True), masked)
 
@@ -402,7 +402,7 @@ def surrogate_costs(arch, n_s: int, masked: bool = True, io_bytes_per_value: int
     the LSTM's formulas are in the module docstring).
 
     Args:
-        arch: the surrogate model (e.g. a :class:`jaxsync.surrogate.models.lstm.LSTMArchitecture`).
+        arch: the surrogate model (e.g. a :class:`jaxsync.surrogate.models.LSTMArchitecture`).
         n_s: sampling stride: windows per prediction.
         masked: the padding mask is applied (the synchronization-avoiding solver does).
         io_bytes_per_value: bytes per value of the solver-side buffer, mean, std, mask

@@ -52,16 +52,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError, ProblemError
-from ..fem.forces.internal_force import ForceModel, force_model
-from ..fem.stepper import SolverState, build_system, initial_state
+from ..fem._stepper import SolverState, build_system, initial_state
+from ..fem.forces._internal_force import ForceModel, force_model
 from ..options import Mode
-from ..parallel.exchange.builtin import Halo, sync_strategy
-from ..parallel.layout import PartLayout, part_systems
-from ..parallel.partitioning import Partition, partition
+from ..parallel._layout import PartLayout, part_systems
+from ..parallel._partitioning import Partition, partition
+from ..parallel.exchange._builtin import Halo, sync_strategy
 from ..precision import require_float64
 from ..solve.executors._distributed import DistributedParts, DistributedRunner
 from ..solve.executors._predicted import PredictedPhase
-from ..surrogate.training.histories import shared_dof_layout
+from ..surrogate.training._histories import shared_dof_layout
 from . import kernels
 from .measure import best_times, describe_devices, per_step_times
 from .reports import PartTiming, SpeedupReport, TimingReport
@@ -115,7 +115,7 @@ def timing_breakdown(problem, partitions=1, *, mode: Mode | ForceModel = "preass
         partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         mode: ``"preassembled"`` or ``"recompute"`` (paper Remark 2), or a force model
             (e.g. ``Preassembled(product="compact")``: the form a short run compiles,
-            :func:`jaxsync.fem.forces.internal_force.run_force_model`); the report names its
+            :func:`jaxsync.fem.forces.run_force_model`); the report names its
             ``name``.
         n_steps: steps per timed call; about 1 ms per call is a good choice (the per-call
             cost is measured and removed, so short calls lose no accuracy). Default
@@ -243,7 +243,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | Force
         problem: a :class:`jaxsync.Problem`.
         partitions: int n_parts (METIS, seed 0) or a :class:`jaxsync.Partition`.
         predictor: a :class:`jaxsync.surrogate.Surrogate` (trained or not) or
-            :class:`~jaxsync.solve.coupling.predictors.OraclePredictor`; default: untrained replicas of the
+            :class:`~jaxsync.solve.coupling.OraclePredictor`; default: untrained replicas of the
             paper's architecture (n_H = 100, 2 layers, n_p = n_f = 20) at the paper's stride
             n_s = 80 (:meth:`jaxsync.surrogate.Surrogate.initialized`; another stride:
             ``Surrogate.initialized(partition, n_s)``): the cost does not depend on the
@@ -258,7 +258,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | Force
         stage_repeats: ``repeats`` of the per-part stage timing.
         prediction_repeats: timed calls of each part's prediction alone (default
             max(repeats, 20); a refill of the vessel's n_s = 1000 takes about a second).
-        halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.exchange.halo`, the exact
+        halo_depths: depths k of deep halos (:mod:`jaxsync.parallel.exchange`, the exact
             communication-avoiding scheme) to time in the same round-robin, each a divisor
             of the timed steps n_cycles n_s n_f (``t_step_halo`` of the report).
 
@@ -273,7 +273,7 @@ def speedup_breakdown(problem, partitions, predictor=None, *, mode: Mode | Force
     if part_info.n_parts < 2:
         raise ProblemError("the synchronization-avoiding solver needs at least 2 parts")
     if predictor is None:
-        from ..surrogate.model import Surrogate
+        from ..surrogate._model import Surrogate
 
         predictor = Surrogate.initialized(part_info, 80)
     n_s, n_p, n_f = predictor.n_s, predictor.n_past, predictor.n_future

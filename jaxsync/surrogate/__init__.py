@@ -1,117 +1,109 @@
 """LSTM encoder-decoder surrogates of the partition-shared displacements (paper section 3),
 and the linear autoregressive baseline beside them.
 
-The names a user needs are here; everything else stays importable from its module. The
-models are in :mod:`.models`, their training in :mod:`.training`; what the solver and the
-files use of a trained set is beside them:
+The names a user needs are here; the modules are private. The models are
+:mod:`jaxsync.surrogate.models`, their training :mod:`jaxsync.surrogate.training` (each
+exports its names; the main ones are re-exported here); what the solver and the files use
+of a trained set is beside them:
 
-===================================  ==========================================================
-:mod:`.model`                        :class:`Surrogate`: the trained replicas of a partition as
-                                     one pytree, with ``predict`` (one refill) and ``rollout``
-                                     (refill cycles); what the solver runs
-:mod:`.refill`                       Algorithm 3's refill index sets and ``refill_predict``
-:mod:`.inference`                    reduced-precision (bfloat16) inference: the check that it
-                                     keeps accuracy (:func:`check_inference_precision`,
-                                     :func:`reduced_precision`)
-:mod:`jaxsync.io.surrogate_file`      surrogate files of trained replicas (:class:`SavedSurrogate`)
-:mod:`.models.lstm`                  the network, written by hand (:class:`LSTMArchitecture`)
-:mod:`.models.linear`                the linear autoregressive baseline, fitted by least squares
-                                     (:class:`LinearArchitecture`, :func:`fit_linear`)
-:mod:`.models.protocol`              the surrogate-model protocol every model implements
-                                     (:class:`SurrogateArchitecture`, :class:`GradientFitted`,
-                                     :class:`LeastSquaresFitted`): init, forward, fit, cost, files
-:mod:`.models.registry`              model kinds by name (:func:`register_surrogate`): what
-                                     surrogate files and ``jaxsync train --model`` name
-:mod:`.models.architecture`          one code path for every model through its methods;
-                                     :class:`ArchitectureChoice`, the model and size to train
-:mod:`.models.replicas`              padding and stacking one network per part
-:mod:`.training.fit`                 :func:`train_surrogates`: trajectories in, trained
-                                     surrogates out (``jaxsync train`` and the demo call it);
-                                     :meth:`TrainedSurrogates.write` writes their files
-:mod:`.training.data`                sample-refill windows (:class:`Sampling`, their settings),
-                                     normalization, padded replica datasets
-:mod:`.training.histories`           the shared histories read from distributed trajectories
-:mod:`.training.train`               optax training of all replicas in one program
-                                     (:func:`train_replicas`, :class:`TrainConfig`,
-                                     :class:`TrainResult`)
-:mod:`.training.loss`                the training loss of every gradient-fitted model
-:mod:`.training.least_squares`       the linear model's and the highway's least squares
-:mod:`.training.training_state`      the resumable state of a training run
-                                     (:class:`TrainingState`: where and how often it is written)
-:mod:`.training.evaluate`            the offline rollout check, E_mse (:class:`TrainingChecks`)
-                                     and the grid search
-:mod:`.training.online`              learning while synchronized (:class:`OnlineLearning`):
-                                     updates from the steps error control recomputes
-===================================  ==========================================================
+- :class:`Surrogate`: the trained replicas of a partition as one pytree, with ``predict``
+  (one refill) and ``rollout`` (refill cycles); what the solver runs;
+- Algorithm 3's refill: its index sets (:func:`refill_input_steps`,
+  :func:`refill_target_steps`, :func:`refill_index_sets`), its windows
+  (:func:`refill_windows`, :func:`refill_scatter`) and its predictions
+  (:func:`refill_predict`, :func:`smooth_refill`, :func:`refill_cycle`,
+  :func:`refill_rollout`);
+- reduced-precision (bfloat16) inference and the check that it keeps accuracy
+  (:func:`check_inference_precision`, :func:`reduced_precision`,
+  :class:`ReducedPrecisionWarning`, :data:`DEFAULT_BOUND`, :func:`inference_deviation`,
+  on the windows that :func:`surrogate_windows` and :func:`surrogate_signal_windows`
+  make);
+- surrogate files of trained replicas (:class:`SavedSurrogate`, :func:`save_surrogate`,
+  :func:`load_surrogate`, of :mod:`jaxsync.io.surrogate_file`).
+
+From :mod:`jaxsync.surrogate.models`: the models (:class:`LSTMArchitecture`,
+:class:`LinearArchitecture` with :class:`LinearFitConfig` and :func:`fit_linear`), the
+protocol every model implements (:class:`SurrogateArchitecture`, :class:`GradientFitted`,
+:class:`LeastSquaresFitted`, :class:`FitSettings`, :class:`PredictionCost`), the registry
+of model kinds (:func:`register_surrogate`, :func:`unregister_surrogate`,
+:func:`surrogate_class`, :func:`surrogate_kinds`) and :class:`ArchitectureChoice`, the
+model and size to train. From :mod:`jaxsync.surrogate.training`: :func:`train_surrogates`
+(:class:`TrainedSurrogates`), the windows (:class:`Sampling`, :func:`build_dataset`,
+:func:`stack_replicas`), gradient training (:func:`train_replicas`, :class:`TrainConfig`,
+:class:`TrainResult`, :class:`TrainingState`), the offline checks (:class:`TrainingChecks`,
+:func:`e_mse`, :func:`rollout_errors`, :class:`RolloutWarning`, :func:`grid_search`,
+:class:`GridSearchResult`) and learning while synchronized (:class:`OnlineLearning`).
 """
-
 
 from typing import TYPE_CHECKING
 
-from jaxsync.lazy import export_lazily
+from ..lazy import export_lazily
 
-__all__ = [
-    "Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConfig", "fit_linear",
-    "train_surrogates", "TrainedSurrogates", "ArchitectureChoice", "Sampling", "TrainingChecks", "TrainingState",
-    "TrainConfig", "TrainResult", "train_replicas", "build_dataset", "stack_replicas",
-    "SavedSurrogate", "save_surrogate", "load_surrogate",
-    "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
-    "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning", "OnlineLearning",
-    "SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
-    "register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds",
-]
+__all__ = ["Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConfig", "fit_linear", "train_surrogates",
+           "TrainedSurrogates", "ArchitectureChoice", "Sampling", "TrainingChecks", "TrainingState", "TrainConfig",
+           "TrainResult", "train_replicas", "build_dataset", "stack_replicas", "SavedSurrogate", "save_surrogate",
+           "load_surrogate", "e_mse", "rollout_errors", "RolloutWarning", "grid_search", "GridSearchResult",
+           "check_inference_precision", "reduced_precision", "ReducedPrecisionWarning", "OnlineLearning",
+           "SurrogateArchitecture", "GradientFitted", "LeastSquaresFitted", "FitSettings", "PredictionCost",
+           "register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds", "DEFAULT_BOUND",
+           "inference_deviation", "surrogate_windows", "surrogate_signal_windows", "refill_input_steps",
+           "refill_target_steps", "refill_index_sets", "refill_windows", "refill_scatter", "refill_predict",
+           "smooth_refill", "refill_cycle", "refill_rollout"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
-    "jaxsync.surrogate.inference": ("ReducedPrecisionWarning", "check_inference_precision", "reduced_precision"),
-    "jaxsync.surrogate.model": ("Surrogate",),
-    "jaxsync.surrogate.models.architecture": ("ArchitectureChoice",),
-    "jaxsync.surrogate.models.linear": ("LinearArchitecture", "LinearFitConfig", "fit_linear"),
-    "jaxsync.surrogate.models.lstm": ("LSTMArchitecture",),
-    "jaxsync.surrogate.models.protocol": ("FitSettings", "GradientFitted", "LeastSquaresFitted", "PredictionCost",
-                                          "SurrogateArchitecture"),
-    "jaxsync.surrogate.models.registry": ("register_surrogate", "surrogate_class", "surrogate_kinds",
-                                          "unregister_surrogate"),
-    "jaxsync.io.surrogate_file": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
-    "jaxsync.surrogate.training.data": ("Sampling", "build_dataset", "stack_replicas"),
-    "jaxsync.surrogate.training.evaluate": ("GridSearchResult", "RolloutWarning", "TrainingChecks", "e_mse",
-                                            "grid_search", "rollout_errors"),
-    "jaxsync.surrogate.training.fit": ("TrainedSurrogates", "train_surrogates"),
-    "jaxsync.surrogate.training.online": ("OnlineLearning",),
-    "jaxsync.surrogate.training.train": ("TrainConfig", "TrainResult", "train_replicas"),
-    "jaxsync.surrogate.training.training_state": ("TrainingState",),
+    "._inference": ("DEFAULT_BOUND", "ReducedPrecisionWarning", "check_inference_precision", "inference_deviation",
+                    "reduced_precision", "surrogate_signal_windows", "surrogate_windows"),
+    "._model": ("Surrogate",),
+    ".models._architecture": ("ArchitectureChoice",),
+    ".models._linear": ("LinearArchitecture", "LinearFitConfig", "fit_linear"),
+    ".models._lstm": ("LSTMArchitecture",),
+    ".models._protocol": ("FitSettings", "GradientFitted", "LeastSquaresFitted", "PredictionCost",
+                          "SurrogateArchitecture"),
+    ".models._registry": ("register_surrogate", "surrogate_class", "surrogate_kinds", "unregister_surrogate"),
+    "..io.surrogate_file": ("SavedSurrogate", "load_surrogate", "save_surrogate"),
+    ".training._data": ("Sampling", "build_dataset", "stack_replicas"),
+    ".training._evaluate": ("GridSearchResult", "RolloutWarning", "TrainingChecks", "e_mse", "grid_search",
+                            "rollout_errors"),
+    ".training._fit": ("TrainedSurrogates", "train_surrogates"),
+    ".training._online": ("OnlineLearning",),
+    ".training._train": ("TrainConfig", "TrainResult", "train_replicas"),
+    ".training._training_state": ("TrainingState",),
+    "._refill": ("refill_cycle", "refill_index_sets", "refill_input_steps", "refill_predict", "refill_rollout",
+                 "refill_scatter", "refill_target_steps", "refill_windows", "smooth_refill"),
 })
 
 if TYPE_CHECKING:
-    from jaxsync.io.surrogate_file import SavedSurrogate, load_surrogate, save_surrogate
-    from jaxsync.surrogate.inference import ReducedPrecisionWarning, check_inference_precision, reduced_precision
-    from jaxsync.surrogate.model import Surrogate
-    from jaxsync.surrogate.models.architecture import ArchitectureChoice
-    from jaxsync.surrogate.models.linear import LinearArchitecture, LinearFitConfig, fit_linear
-    from jaxsync.surrogate.models.lstm import LSTMArchitecture
-    from jaxsync.surrogate.models.protocol import (
-        FitSettings,
-        GradientFitted,
-        LeastSquaresFitted,
-        PredictionCost,
-        SurrogateArchitecture,
+    from ..io.surrogate_file import SavedSurrogate, load_surrogate, save_surrogate
+    from ._inference import (
+        DEFAULT_BOUND,
+        ReducedPrecisionWarning,
+        check_inference_precision,
+        inference_deviation,
+        reduced_precision,
+        surrogate_signal_windows,
+        surrogate_windows,
     )
-    from jaxsync.surrogate.models.registry import (
-        register_surrogate,
-        surrogate_class,
-        surrogate_kinds,
-        unregister_surrogate,
+    from ._model import Surrogate
+    from ._refill import (
+        refill_cycle,
+        refill_index_sets,
+        refill_input_steps,
+        refill_predict,
+        refill_rollout,
+        refill_scatter,
+        refill_target_steps,
+        refill_windows,
+        smooth_refill,
     )
-    from jaxsync.surrogate.training.data import Sampling, build_dataset, stack_replicas
-    from jaxsync.surrogate.training.evaluate import (
-        GridSearchResult,
-        RolloutWarning,
-        TrainingChecks,
-        e_mse,
-        grid_search,
-        rollout_errors,
-    )
-    from jaxsync.surrogate.training.fit import TrainedSurrogates, train_surrogates
-    from jaxsync.surrogate.training.online import OnlineLearning
-    from jaxsync.surrogate.training.train import TrainConfig, TrainResult, train_replicas
-    from jaxsync.surrogate.training.training_state import TrainingState
+    from .models._architecture import ArchitectureChoice
+    from .models._linear import LinearArchitecture, LinearFitConfig, fit_linear
+    from .models._lstm import LSTMArchitecture
+    from .models._protocol import FitSettings, GradientFitted, LeastSquaresFitted, PredictionCost, SurrogateArchitecture
+    from .models._registry import register_surrogate, surrogate_class, surrogate_kinds, unregister_surrogate
+    from .training._data import Sampling, build_dataset, stack_replicas
+    from .training._evaluate import GridSearchResult, RolloutWarning, TrainingChecks, e_mse, grid_search, rollout_errors
+    from .training._fit import TrainedSurrogates, train_surrogates
+    from .training._online import OnlineLearning
+    from .training._train import TrainConfig, TrainResult, train_replicas
+    from .training._training_state import TrainingState

@@ -20,8 +20,8 @@ from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.app.vessel_report import vessel_section
 from jaxsync.cli import main
 from jaxsync.errors import MeshError, ProblemError
-from jaxsync.fem.forces.follower import facet_nodes
-from jaxsync.fem.space import function_space
+from jaxsync.fem import function_space
+from jaxsync.fem.forces import facet_nodes
 from jaxsync.mesh.simvascular import write_folder
 
 E, NU, A, B = 1.0e6, 0.3, 0.2, 0.25  # wall modulus [dyn/cm^2], Poisson ratio, lumen and outer radius [cm]

@@ -9,7 +9,7 @@ import pytest
 import jaxsync
 from benchmark_scripts import load_benchmark
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.model import Surrogate
+from jaxsync.surrogate import Surrogate
 
 
 def test_bench_predicted_step_quick(tmp_path):

@@ -12,7 +12,7 @@ import jaxsync
 from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.cases import DEFAULT_WAVEFORM, MMHG, coronary, coronary_waveform
 from jaxsync.errors import MeshError, ProblemError
-from jaxsync.fem.timestep import max_stable_dt
+from jaxsync.fem import max_stable_dt
 
 PERIOD, T_RAMP = 0.833, 1.0
 E, NU = 6.26e6, 0.4
@@ -186,7 +186,7 @@ def test_stiffness_damping_of_the_coronary_problem_from_python_and_toml(vessel, 
     omega = 2.0 / max_stable_dt(undamped, tol=1e-10)
     xi = beta * omega / 2
     assert xi > 0.05  # the damping matters to the step
-    from jaxsync.fem.timestep import stable_step
+    from jaxsync.fem import stable_step
 
     assert stable_step(damped).exact == pytest.approx(2.0 / omega * (np.sqrt(1 + xi * xi) - xi), rel=1e-7)
     with pytest.raises(ProblemError, match="stiffness_damping"):

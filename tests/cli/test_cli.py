@@ -81,7 +81,7 @@ def test_predict_offers_every_synchronization_but_deep_halos():
 
 
 def test_option_tuples_of_the_library_are_the_option_types():
-    from jaxsync.fem.forces.element_force import MODES
+    from jaxsync.fem.forces import MODES
     from jaxsync.parallel.multiprocess import SYNC_METHODS
 
     assert MODES == choices(Mode) and SYNC_METHODS == choices(Sync)

@@ -59,9 +59,8 @@ def assert_one_error_line(err, *needles):
                                           ("--checkpoint", "ck.h5"), ("--timings", "t.json")])
 def test_simulate_refuses_an_unwritable_output_before_running(tmp_path, afile, capsys, monkeypatch, option, name):
     import jaxsync.perf.timing
-    import jaxsync.solve.solver
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     monkeypatch.setattr(jaxsync.perf.timing, "timing_breakdown", must_not_run)
     cfg = small_case(tmp_path)
     target = afile / name
@@ -75,17 +74,13 @@ def test_simulate_refuses_an_unwritable_output_before_running(tmp_path, afile, c
 
 
 def test_simulate_refuses_a_folder_it_cannot_write_in(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     assert main(["simulate", str(small_case(tmp_path)), "-o", "/proc/jaxsync-test/out.h5", "--no-progress"]) == 2
     assert_one_error_line(capsys.readouterr().err, "/proc/jaxsync-test/out.h5", "-o")
 
 
 def test_simulate_refuses_a_folder_as_output_file(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     (tmp_path / "folder.h5").mkdir()
     assert main(["simulate", str(small_case(tmp_path)), "-o", str(tmp_path / "folder.h5"), "--force",
                  "--no-progress"]) == 2
@@ -240,7 +235,6 @@ def test_demo_into_a_folder_of_other_files_keeps_them(tmp_path, capsys, monkeypa
 def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeypatch):
     """A real run (100 steps) interrupted once the synchronized run is written: the old
     demo is untouched, the new files are gone with their staging folder."""
-    import jaxsync.surrogate.training.fit
     from jaxsync.app.demo import DemoSettings, run_demo
 
     out = tmp_path / "demo"
@@ -255,7 +249,7 @@ def test_interrupted_demo_leaves_the_old_folder_and_no_staging(tmp_path, monkeyp
         seen["written"] = jaxsync.Trajectory.load(reference_path).n_saved
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(jaxsync.surrogate.training.fit, "train_surrogates", interrupt)
+    monkeypatch.setattr("jaxsync.surrogate.training._fit.train_surrogates", interrupt)
     with pytest.raises(KeyboardInterrupt):
         run_demo(str(out), DemoSettings(n_steps=100, n_s=5, n_past=2, n_future=2, epochs=1, n_hidden=4),
                  progress=False, log=lambda *a: None, force=True)
@@ -410,10 +404,10 @@ def test_every_warning_is_one_line(capsys):
 
     from jaxsync.cli.common import is_package_warning, package_warnings
     from jaxsync.errors import SynchronizedRunWarning
-    from jaxsync.fem.timestep import MassScalingWarning
+    from jaxsync.fem import MassScalingWarning
     from jaxsync.mesh import MeshWarning
-    from jaxsync.surrogate.inference import ReducedPrecisionWarning
-    from jaxsync.surrogate.training.evaluate import RolloutWarning
+    from jaxsync.surrogate import ReducedPrecisionWarning
+    from jaxsync.surrogate.training import RolloutWarning
 
     for category in (MeshWarning, MassScalingWarning, RolloutWarning, ReducedPrecisionWarning):
         assert is_package_warning(category)
@@ -507,8 +501,6 @@ def test_a_second_process_writing_the_same_output_stops_at_once(tmp_path, capsys
     import subprocess
     import sys
 
-    import jaxsync.solve.solver
-
     cfg = small_case(tmp_path)
     out = tmp_path / "same.h5"
     owner = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -516,7 +508,7 @@ def test_a_second_process_writing_the_same_output_stops_at_once(tmp_path, capsys
         from jaxsync.io import host_tag
 
         (tmp_path / ".same.h5.lock").write_text(f"{owner.pid}@{host_tag()}")
-        monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+        monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
         assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 2
         assert_one_error_line(capsys.readouterr().err, "same.h5 is being written by another jaxsync process",
                               f"pid {owner.pid}")
@@ -531,17 +523,15 @@ def test_a_second_process_writing_the_same_output_stops_at_once(tmp_path, capsys
 
 
 def test_a_file_that_appears_while_the_command_runs_is_never_replaced(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
     cfg = small_case(tmp_path)
     out = tmp_path / "r.h5"
-    simulate = jaxsync.solve.solver.simulate
+    simulate = jaxsync.solve.simulate
 
     def another_writer_meanwhile(*args, **kwargs):
         out.write_text("another program's result")
         return simulate(*args, **kwargs)
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", another_writer_meanwhile)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", another_writer_meanwhile)
     assert main(["simulate", str(cfg), "-o", str(out), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert_one_error_line(err, f"{out} appeared while this command ran", "r.conflict-1.h5")
@@ -574,9 +564,7 @@ def test_the_header_shows_the_step_the_run_uses(tmp_path, capsys):
 
 
 def test_options_that_would_be_ignored_are_refused(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     cfg = small_case(tmp_path)
     assert main(["simulate", str(cfg), "-o", str(tmp_path / "a.h5"), "--checkpoint-every", "100"]) == 2
     assert_one_error_line(capsys.readouterr().err, "--checkpoint-every 100 needs a checkpoint file")

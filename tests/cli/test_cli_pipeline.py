@@ -267,8 +267,7 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
     """--raw-refill writes the n_s interleaved network applications as they are; the
     default writes their smooth curve from the last known value. Checked on the first
     predicted cycle against the network applied to the synchronized history."""
-    from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.refill import smooth_refill
+    from jaxsync.surrogate import Surrogate, smooth_refill
 
     path = demo[0] / "raw.h5"
     run = run_cli(predict_args(demo, path, "--raw-refill", "--resync-tolerance", "none", "--steps", SHORT))
@@ -407,7 +406,7 @@ def test_predict_learns_after_every_rejected_cycle(demo, reference, tmp_path):
     # learned from (the synchronized run: the truth) better than the trained one
     from jaxsync.io.surrogate_file import load_surrogate
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.training.evaluate import rollout_errors
+    from jaxsync.surrogate.training import rollout_errors
 
     saved = load_surrogate(learned)
     updates = saved.metadata["online_learning"]["updated_at"]

@@ -2,7 +2,7 @@
 accident, diverged and interrupted runs, mass scaling, distributed runs and timings.
 
 Where a run must fail or must not start, the test replaces the public
-``jaxsync.solve.solver.simulate`` (what the command calls) and checks what the command
+``jaxsync.solve.simulate`` (what the command calls) and checks what the command
 does around it."""
 
 import json
@@ -102,14 +102,12 @@ def test_simulate_distributed(tmp_path):
 
 def test_cli_keeps_snapshots_of_a_diverged_run(tmp_path, monkeypatch, capsys):
     """When a run diverges, the snapshots before are written next to the output."""
-    import jaxsync.solve.solver
-
     def diverging(problem, n_steps, **kwargs):
         err = jaxsync.StabilityError("the run diverged by step 7")
         err.trajectory = jaxsync.simulate(problem, 10, save=5)
         raise err
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", diverging)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", diverging)
     out = tmp_path / "run.h5"
     assert main(["simulate", "--steps", "100", "--save-every", "5", "-o", str(out),
                  "--no-progress"]) == 2
@@ -175,8 +173,6 @@ def test_xdmf_requested_by_the_config_follows_dash_o(tmp_path, capsys):
 @pytest.mark.parametrize("existing", ["run.h5", "run.xdmf", "run.xdmf.h5"])
 def test_existing_outputs_are_refused_before_running_unless_forced(tmp_path, capsys, monkeypatch,
                                                                    existing):
-    import jaxsync.solve.solver
-
     cfg = small_case(tmp_path)
     (tmp_path / existing).write_bytes(b"another run's result")
     args = ["simulate", str(cfg), "-o", str(tmp_path / "run.h5"), "--xdmf",
@@ -185,7 +181,7 @@ def test_existing_outputs_are_refused_before_running_unless_forced(tmp_path, cap
     def must_not_run(*a, **k):
         raise AssertionError("simulate ran although an output exists")
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     assert main(args) == 2
     err = capsys.readouterr().err
     assert err.startswith("error:") and existing in err and "--force" in err
@@ -286,12 +282,10 @@ def test_mass_scaling_from_toml(tmp_path, capsys):
 
 
 def test_ctrl_c_prints_one_line_and_exits_130(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
     def interrupted(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", interrupted)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", interrupted)
     out = tmp_path / "k.h5"
     try:
         code = main(["simulate", str(small_case(tmp_path)), "-o", str(out), "--no-progress"])

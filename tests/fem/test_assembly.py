@@ -5,15 +5,17 @@ import scipy.sparse
 
 import fem_reference as ref
 import jaxsync
-from jaxsync.fem.assembly import (
+from jaxsync.fem import (
+    BlockEll,
     assemble_unit_operators,
+    block_ell_values,
     body_force_vectors,
     consistent_mass,
     element_blocks,
     lumped_mass,
+    node_adjacency,
     pressure_vector,
 )
-from jaxsync.fem.sparse import BlockEll, block_ell_values, node_adjacency
 
 
 @pytest.fixture(scope="module")

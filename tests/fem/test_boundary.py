@@ -9,7 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ElasticSupport, ProblemError, Traction
-from jaxsync.fem.loads import TimeFunction
+from jaxsync.fem import TimeFunction
 from jaxsync.pytree import pytree_dataclass
 
 

@@ -69,11 +69,12 @@ def test_lowered_arrays_are_read_only():
 def test_a_run_lowers_its_problem_once(monkeypatch):
     """The explicit system, the parts' systems, the default step, the error estimate and
     the checkpoint's fingerprint of one run all read the one lowering."""
-    import jaxsync.fem._discrete as discrete
+    import sys
 
     calls = []
-    lower = discrete.lower
-    monkeypatch.setattr(discrete, "lower", lambda problem: calls.append(problem) or lower(problem))
+    lower = sys.modules[jaxsync.fem.DiscreteProblem.__module__].lower  # what Problem.discrete calls
+    monkeypatch.setattr(f"{jaxsync.fem.DiscreteProblem.__module__}.lower",
+                        lambda problem: calls.append(problem) or lower(problem))
     problem = _problem()
     jaxsync.simulate(problem, 20, save=10)
     jaxsync.simulate(problem, 20, save=10, partitions=2)
@@ -85,6 +86,7 @@ def test_a_concrete_problem_lowered_inside_a_traced_function_stays_concrete():
     system = jax.jit(lambda scale: jnp.sum(jaxsync.fem.build_system(problem, 1e-4).load_vectors) * scale)
     assert np.isfinite(float(system(2.0)))
     lowered = problem.discrete  # lowered during the trace above, kept
+    assert isinstance(lowered, jaxsync.fem.DiscreteProblem)
     for leaf in jax.tree_util.tree_leaves(lowered):
         assert not isinstance(leaf, jax.core.Tracer)
     np.testing.assert_allclose(np.sum(lowered.load_vectors) * 2.0, float(system(2.0)), rtol=1e-12)

@@ -1,4 +1,4 @@
-"""Follower pressure (:mod:`jaxsync.fem.forces.follower`), checked against ground truth: scikit-fem's
+"""Follower pressure (:mod:`jaxsync.fem.forces`), checked against ground truth: scikit-fem's
 pressure load assembled on the deformed mesh (P1 and curved P2), the closed-form homogeneous
 compression of a neo-Hookean block under a pressure on its deformed faces (and under the dead
 load, which differs at finite strain), the energy budget of an undamped run (the pressure's
@@ -14,10 +14,8 @@ import scipy.optimize
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.forces.follower import facet_nodes, follower_pressure, load_stiffness
-from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
-from jaxsync.fem.space import VTK_TETRA10_ORDER, function_space
-from jaxsync.fem.stepper import SolverState, advance, build_system
+from jaxsync.fem import VTK_TETRA10_ORDER, SolverState, advance, build_system, function_space
+from jaxsync.fem.forces import TotalLagrangian, facet_nodes, follower_pressure, load_stiffness
 from jaxsync.mesh import Mesh, validated_mesh
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
@@ -53,7 +51,7 @@ def _deformed_pressure_load(problem, u, intorder):
     from skfem import LinearForm, asm
     from skfem.helpers import dot
 
-    from jaxsync.fem.assembly import boundary_facet_indices
+    from jaxsync.fem import boundary_facet_indices
     from jaxsync.mesh import to_skfem
 
     mesh, space = problem.mesh, problem.space

@@ -1,5 +1,5 @@
-"""Hyperelastic laws and the total-Lagrangian internal force (:mod:`jaxsync.fem.materials.hyperelastic`,
-:mod:`jaxsync.fem.forces.total_lagrangian`), checked against independent ground truth: the linear
+"""Hyperelastic laws and the total-Lagrangian internal force (:mod:`jaxsync.fem.materials`,
+:mod:`jaxsync.fem.forces`), checked against independent ground truth: the linear
 solver's K u in the small-strain limit, closed-form stresses of homogeneous deformations
 written out here, rigid motions, felupe's assembled force and static solution, the energy
 budget of an undamped run, closed-form wave speeds, and finite differences."""
@@ -13,24 +13,26 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import MaterialError, ProblemError, StabilityError
-from jaxsync.fem.forces.internal_force import ElementRecompute, Preassembled, force_model
-from jaxsync.fem.forces.total_lagrangian import (
+from jaxsync.fem import SolverState, advance, build_system, initial_state
+from jaxsync.fem.forces import (
+    ElementRecompute,
     HyperelasticForce,
+    Preassembled,
     TotalLagrangian,
     check_stable_dt,
     element_wave_speeds,
     exact_stable_dt,
+    force_model,
     inverted_elements,
     stable_dt,
     strain_energy,
 )
-from jaxsync.fem.materials.hyperelastic import (
+from jaxsync.fem.materials import (
     HolzapfelGasserOgden,
     NearlyIncompressibleNeoHookean,
     NeoHookean,
     helical_fibres,
 )
-from jaxsync.fem.stepper import SolverState, advance, build_system, initial_state
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
 MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))
@@ -285,7 +287,7 @@ def test_internal_force_matches_felupe(beam, element):
     """The assembled internal force of felupe's NeoHookeCompressible (same mu, lambda, same
     mesh and quadrature) for a nonlinear displacement field."""
     fem = pytest.importorskip("felupe")
-    from jaxsync.fem.space import vtk_cells
+    from jaxsync.fem import vtk_cells
 
     problem = _problem(beam, NeoHookean(E, NU, RHO), element)
     X = problem.points
@@ -334,7 +336,7 @@ def test_static_uniaxial_solution_of_felupe_is_in_equilibrium(cube):
 def test_part_operators_sum_to_the_whole_mesh_force(beam, element):
     """Each part's force on its own elements (padded, stacked), summed at the nodes: the
     whole mesh's force."""
-    from jaxsync.parallel.layout import PartLayout
+    from jaxsync.parallel import PartLayout
 
     problem = _problem(beam, _laws(beam)["hgo"], element)
     layout = PartLayout.of(jaxsync.partition(problem, 2, seed=0))
@@ -451,7 +453,7 @@ def test_undamped_run_conserves_energy_to_second_order(element):
 def test_stable_step_of_the_reference_state_is_the_linear_rule(beam):
     """At u = 0: the CFL rule with c = sqrt((lam + 2 mu) / rho) (HGO: plus 8 k1 along the
     two aligned fibre families), and the exact bound of the linear solver's K."""
-    h = jaxsync.fem.timestep.element_size(beam.points, beam.tets)
+    h = jaxsync.fem.element_size(beam.points, beam.tets)
     problem = _problem(beam, NeoHookean(E, NU, RHO))
     assert stable_dt(problem) == pytest.approx(0.9 * h.min() / np.sqrt((LAM + 2 * MU) / RHO), rel=1e-12)
     hgo = HolzapfelGasserOgden(**HGO, fibres=_axial_fibres(beam))
@@ -475,7 +477,7 @@ def test_stable_step_follows_the_tangent_under_dilation(beam, s):
     of the deformed state's tangent."""
     problem = _problem(beam, NeoHookean(E, NU, RHO))
     u = (s - 1.0) * problem.points
-    h = jaxsync.fem.timestep.element_size(beam.points, beam.tets)
+    h = jaxsync.fem.element_size(beam.points, beam.tets)
     c = np.sqrt((MU * s**2 + MU + LAM - 3 * LAM * np.log(s)) / RHO)
     np.testing.assert_allclose(element_wave_speeds(problem, u), c, rtol=1e-10)
     assert stable_dt(problem, u) == pytest.approx(0.9 * s * h.min() / c, rel=1e-10)

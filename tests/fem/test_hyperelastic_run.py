@@ -20,10 +20,9 @@ import jaxsync
 from jaxsync.app.config import load_config, problem_from_config
 from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError, ConvergenceError, StabilityError
-from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, inverted_elements
-from jaxsync.fem.materials.hyperelastic import HolzapfelGasserOgden, NeoHookean, helical_fibres
-from jaxsync.fem.run_check import RunCheck
-from jaxsync.fem.stepper import SolverState, build_system
+from jaxsync.fem import RunCheck, SolverState, build_system
+from jaxsync.fem.forces import TotalLagrangian, inverted_elements
+from jaxsync.fem.materials import HolzapfelGasserOgden, NeoHookean, helical_fibres
 from jaxsync.io.checkpoint import fingerprint
 
 E, NU, RHO = 1.0e6, 0.3, 1.0
@@ -115,7 +114,7 @@ def test_default_step_of_hgo_includes_the_fibres(beam):
     assert jaxsync.max_stable_dt(problem) == pytest.approx(true, rel=1e-9)
     ground = jaxsync.cantilever(beam, material=jaxsync.LinearElastic(float(m.E), float(m.nu), HGO["rho"]))
     assert ground.dt > true  # the small-strain step would be unstable
-    from jaxsync.fem.timestep import check_dt
+    from jaxsync.fem import check_dt
 
     check_dt(problem, 0.99 * true)
     with pytest.raises(StabilityError, match="HolzapfelGasserOgden tangent stiffness at rest"):

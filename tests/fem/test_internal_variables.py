@@ -1,5 +1,5 @@
 """State that a material carries: the internal variables of the finite-strain standard
-linear solid (:class:`jaxsync.fem.materials.viscoelastic.StandardLinearSolid`) through the element
+linear solid (:class:`jaxsync.fem.materials.StandardLinearSolid`) through the element
 kernel, the solver state, partitioned runs, checkpoints and gradients.
 
 References: the relaxation of a held stretch against the closed form of the model,
@@ -18,8 +18,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import MaterialError
-from jaxsync.fem.materials.viscoelastic import StandardLinearSolid
-from jaxsync.fem.stepper import Probe, advance, build_system, initial_state
+from jaxsync.fem import Probe, advance, build_system, initial_state
+from jaxsync.fem.materials import StandardLinearSolid
 from jaxsync.io.checkpoint import load_checkpoint
 
 E, NU, RHO, BETA, TAU = 1.0e6, 0.3, 1.0, 1.5, 2.0e-3
@@ -210,10 +210,9 @@ def test_a_predicted_phase_carries_the_state(beam, prony):
     shared displacements (an oracle) reproduces that run to round-off: each part's
     predicted steps update its elements' branch stresses as the synchronized steps do
     (the standard linear solid, and a two-branch Prony series)."""
-    from jaxsync.fem.materials.viscoelastic import ViscoelasticNeoHookean
-    from jaxsync.solve.coupling.predictors import OraclePredictor
-    from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.fem.materials import ViscoelasticNeoHookean
+    from jaxsync.solve.coupling import OraclePredictor, simulate_sync_avoiding
+    from jaxsync.surrogate.training import shared_dof_layout
 
     problem = _cantilever(beam)
     if prony:

@@ -99,7 +99,7 @@ def test_pressure_resultant_on_a_mesh_of_thousands_of_nodes(face, normal):
 def test_load_jumps_against_a_loop():
     """The jump steps of a step-off, a ramp shorter than a step, a smooth periodic load and
     a constant one, each checked against a plain loop over the steps."""
-    from jaxsync.fem.loads import TimeFunction, load_jumps
+    from jaxsync.fem import TimeFunction, load_jumps
 
     dt, n_steps = 1e-3, 400
     t_off = 0.2505  # between steps 250 and 251
@@ -192,7 +192,7 @@ def test_checks_let_jax_rebuild_the_objects():
 
 
 def test_free_rigid_motions_are_counted_against_a_rank_computed_here():
-    from jaxsync.fem.rigid_body import free_rigid_motions
+    from jaxsync.fem import free_rigid_motions
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
     corner = lambda p: np.all(np.isclose(p, 0.0), axis=1)  # noqa: E731
@@ -220,7 +220,7 @@ def test_free_rigid_motions_are_counted_against_a_rank_computed_here():
 def test_a_load_that_drives_a_free_motion_warns_and_a_balanced_one_does_not():
     import warnings
 
-    from jaxsync.fem.rigid_body import RigidBodyWarning
+    from jaxsync.fem import RigidBodyWarning
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 1, 1))
     free = r"the loads drive .*\(translation along z; 6 of the 6 .*Dirichlet conditions: none"

@@ -18,8 +18,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ProblemError
-from jaxsync.fem.materials.hyperelastic import is_hyperelastic
-from jaxsync.fem.materials.law import FiniteStrainLaw, MaterialLaw
+from jaxsync.fem.materials import FiniteStrainLaw, MaterialLaw, is_hyperelastic
 from jaxsync.io.checkpoint import fingerprint
 from jaxsync.perf.roofline import step_costs_for
 from jaxsync.pytree import pytree_dataclass

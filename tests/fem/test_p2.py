@@ -8,8 +8,7 @@ import pytest
 
 import jaxsync
 from jaxsync import Traction
-from jaxsync.fem.assembly import consistent_mass, lumped_mass
-from jaxsync.fem.space import function_space, vtk_cells
+from jaxsync.fem import consistent_mass, function_space, lumped_mass, vtk_cells
 
 E, NU = 1.0e6, 0.3
 
@@ -248,8 +247,8 @@ def test_p2_partitioned_gradient_equals_the_single_device_one(p2_gradient_case):
 def test_p2_predicted_phase_with_an_oracle_reproduces_the_synchronized_run(tmp_path):
     """The predicted phase overwrites the shared nodes, edge nodes among them, with an
     oracle's values: it must give back the synchronized run."""
-    from jaxsync.solve.coupling.predictors import OraclePredictor
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.solve.coupling import OraclePredictor
+    from jaxsync.surrogate.training import shared_dof_layout
 
     problem = jaxsync.cantilever(beam((8, 2, 1), 8.0)).replace(element="P2")
     part = jaxsync.partition(problem, 2)

@@ -167,7 +167,7 @@ def test_the_stable_step_is_the_damped_bound_and_it_is_tight(beam, modes):
 
 
 def test_the_damped_bound_formula():
-    from jaxsync.fem.timestep import damped_bound
+    from jaxsync.fem import damped_bound
 
     assert damped_bound(1e-3, 0.0) == 1e-3
     omega = 2.0 / 1e-3
@@ -183,9 +183,8 @@ def test_the_damped_bound_formula():
 # --- every path: partitions, halos, traced, predicted, ensembles, checkpoints, gradients ----------
 
 def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device_run(beam):
-    from jaxsync.solve.coupling.predictors import OraclePredictor
-    from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.solve.coupling import OraclePredictor, simulate_sync_avoiding
+    from jaxsync.surrogate.training import shared_dof_layout
 
     problem = _cantilever(beam)
     dt, n_steps = float(problem.dt), 300
@@ -226,7 +225,7 @@ def test_partitioned_deep_halo_traced_and_predicted_runs_equal_the_single_device
 def test_every_linear_force_model_applies_beta(beam, partitions):
     """The matrix-free element kernel and the one-width ELL layout give the damped run of
     the default grouped stiffness, on one device and on two parts."""
-    from jaxsync.fem.forces.internal_force import Preassembled
+    from jaxsync.fem.forces import Preassembled
 
     problem = _cantilever(beam)
     dt = float(problem.dt)
@@ -308,7 +307,7 @@ def test_the_viscous_stress_is_beta_times_the_tangent_applied_to_the_rate(beam, 
     """The element kernel's damping stress beta dP/dF[grad v] against central differences
     of the law's first_piola (for the standard linear solid: its instantaneous response),
     and the assembled damping force against central differences of f_int along v."""
-    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
+    from jaxsync.fem.forces import TotalLagrangian
 
     problem = jaxsync.Problem(mesh=beam, material=law, dirichlet=(jaxsync.Dirichlet("x0"),))
     op = TotalLagrangian().operator(problem)
@@ -348,7 +347,7 @@ def test_a_hyperelastic_partitioned_run_equals_the_single_device_run(beam):
 def test_the_error_propagator_rings_down_as_the_run(beam):
     """Each mode of the propagator is the run's scalar recursion: the modal coordinates of a
     free run (with alpha and beta) follow its 2 x 2 transition step by step."""
-    from jaxsync.solve.coupling.error_estimate import ErrorPropagator
+    from jaxsync.solve.coupling import ErrorPropagator
 
     d0 = 1e-3 * np.random.default_rng(4).standard_normal((beam.n_nodes, 3))
     problem = _clamped(beam, initial_displacement=d0)
@@ -383,8 +382,8 @@ def test_without_beta_the_step_is_unchanged_and_a_force_model_without_the_dampin
     whose operator has no damped_matvec cannot run beta > 0 and says so."""
     import types
 
-    from jaxsync.fem.forces.internal_force import Preassembled
-    from jaxsync.fem.stepper import build_system
+    from jaxsync.fem import build_system
+    from jaxsync.fem.forces import Preassembled
 
     class MatvecOnly:  # a force model of one's own that knows no damping force
         name = "matvec-only"

@@ -1,5 +1,5 @@
-"""The degree-grouped stiffness layout (jaxsync.fem.sparse.GroupedEll), the parts' reverse
-Cuthill-McKee local order (jaxsync.parallel.layout) and the float32 blocks option of
+"""The degree-grouped stiffness layout (jaxsync.fem.GroupedEll), the parts' reverse
+Cuthill-McKee local order (jaxsync.parallel.local_order) and the float32 blocks option of
 Preassembled: products against SciPy's CSR product on a mesh whose node degree varies (a
 small generated coronary tree), reverse passes against SciPy's transpose product and
 autodiff, trajectories (one device, 2 parts with psum and with deep halos) against a
@@ -16,8 +16,7 @@ import scipy.sparse.linalg as spla
 import fem_reference as ref
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.fem.forces.internal_force import Preassembled
-from jaxsync.fem.sparse import (
+from jaxsync.fem import (
     BlockEll,
     GroupedEll,
     block_ell_values,
@@ -28,7 +27,8 @@ from jaxsync.fem.sparse import (
     row_degrees,
     split_diagonal,
 )
-from jaxsync.parallel.layout import PartLayout, local_order, ordered_parts
+from jaxsync.fem.forces import Preassembled
+from jaxsync.parallel import PartLayout, local_order, ordered_parts
 
 MATERIAL = jaxsync.LinearElastic(6.26e6, 0.4, 1.0)
 BODY_FORCE = np.array([2.0e3, -1.0e3, 5.0e2])
@@ -208,7 +208,7 @@ def test_parts_local_nodes_in_reverse_cuthill_mckee_order(tree):
     for p, part in enumerate(layout.parts):
         np.testing.assert_array_equal(local[p, :part.n_local], field[part.nodes])
     np.testing.assert_array_equal(np.asarray(layout.merge(local)), field)
-    halo = jaxsync.parallel.exchange.halo.halo_partition(part_info, 2)
+    halo = jaxsync.parallel.exchange.halo_partition(part_info, 2)
     halo_layout = PartLayout.of(halo)
     for p, part in enumerate(halo_layout.parts):
         owned = part.nodes[halo_layout.partition.owned_local[p]]
@@ -298,7 +298,7 @@ def test_float32_blocks_gradient_follows_float64(vessel_problem, which):
     float32 blocks and with float64 ones: within the documented accuracy (the blocks'
     cotangents are float32 and summed over the steps in float32: measured 2e-6 on the
     vessel, 6.5e-4 on the cantilever's smooth bending over 2 000 steps)."""
-    from jaxsync.fem.stepper import advance, build_system, initial_state
+    from jaxsync.fem import advance, build_system, initial_state
 
     problem = vessel_problem if which == "rough vessel" else jaxsync.cantilever()
     n_steps, bound = (200, 1e-5) if which == "rough vessel" else (2000, 2e-3)
@@ -334,7 +334,7 @@ def test_block_ell_compact_product_and_its_reverse_pass_equal_scipy(tree, stiffn
 
 
 def test_in_compact_form_keeps_the_product_and_leaves_other_operators(tree, stiffness):
-    """The start's operators (jaxsync.fem.stepper.start_levels): a fused BlockEll and
+    """The start's operators (jaxsync.fem.start_levels): a fused BlockEll and
     GroupedEll turned compact still compute SciPy's K u; an operator without stored blocks
     is returned as it is."""
     adjacency = node_adjacency(tree.tets, tree.n_nodes)
@@ -355,7 +355,7 @@ def test_auto_product_is_chosen_by_the_run_length():
     """Preassembled(product="auto"): compact for runs of fewer slot-steps than
     COMPACT_SLOT_STEPS, fused for longer ones and where the run length is not known;
     a product given explicitly, and a finite-strain problem, stay as they are."""
-    from jaxsync.fem.forces.internal_force import COMPACT_SLOT_STEPS, run_force_model
+    from jaxsync.fem.forces import COMPACT_SLOT_STEPS, run_force_model
 
     problem = jaxsync.cantilever()
     slots = int(np.prod(problem.operators.block_ell[0].shape))

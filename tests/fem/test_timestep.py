@@ -5,7 +5,7 @@ import scipy.linalg
 import fem_reference as ref
 import jaxsync
 from jaxsync import StabilityError
-from jaxsync.fem.timestep import check_dt, element_size
+from jaxsync.fem import check_dt, element_size
 
 
 def test_cfl_dt_of_one_known_tetrahedron():
@@ -162,11 +162,11 @@ def test_exact_bound_against_a_dense_generalized_eigenproblem_at_high_nu():
 
 def test_sparse_exact_bound_equals_the_dense_one():
     # above the dense size the bound comes from Lanczos: the same number
-    from jaxsync.fem import timestep
+    from jaxsync.fem import DENSE_EIGEN_DOFS
 
     problem = _with_nu(jaxsync.cantilever(jaxsync.box_beam(25.0, 1.0, 1.0, (25, 2, 2))), 0.45)
     sparse = jaxsync.max_stable_dt(problem)
-    assert 3 * problem.mesh.n_nodes > timestep.DENSE_EIGEN_DOFS
+    assert 3 * problem.mesh.n_nodes > DENSE_EIGEN_DOFS
     K = problem.operators.stiffness(problem.material.lam, problem.material.mu)
     m = np.repeat(np.asarray(problem.lumped_mass()), 3)
     fixed, _ = problem.dirichlet_dofs()

@@ -1,5 +1,5 @@
 """Prony series of Maxwell branches on the neo-Hookean and HGO laws
-(:mod:`jaxsync.fem.materials.viscoelastic`).
+(:mod:`jaxsync.fem.materials`).
 
 References, all independent of the code under test: the exact small-strain response of
 the split law with its bulk part (relaxation and creep of uniaxial stress, relaxation of
@@ -19,8 +19,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ConfigError, MaterialError
-from jaxsync.fem.materials.viscoelastic import ViscoelasticHGO, ViscoelasticNeoHookean
-from jaxsync.fem.stepper import Probe, advance, build_system, initial_state
+from jaxsync.fem import Probe, advance, build_system, initial_state
+from jaxsync.fem.materials import ViscoelasticHGO, ViscoelasticNeoHookean
 
 E, NU, RHO = 1.0e6, 0.45, 1.0
 BETAS, TAUS = (1.0, 2.0), (1.0e-3, 1.0e-2)
@@ -501,26 +501,26 @@ def test_deep_halos_carry_the_state_and_equal_the_single_device_run(monkeypatch,
     part carries the state of its halo elements too, and the exchange copies that of the
     shared elements from their owners. Without that copy (patched out) depth 3 drifts:
     the outer halo elements' state went through displacements that were wrong there."""
-    from jaxsync.fem.stepper import SolverState
-    from jaxsync.parallel.exchange import halo
+    from jaxsync.fem import SolverState
+    from jaxsync.parallel.exchange import halo_partition, refresh_halo
 
     problem, dt, one = halo_beam_run
     mesh = problem.mesh
     scale = float(np.max(np.abs(one.displacement)))
-    grown = halo.halo_partition(jaxsync.partition(mesh, 2), 3)
+    grown = halo_partition(jaxsync.partition(mesh, 2), 3)
     assert grown.n_element_interface > 0 and all(len(p.elements) < mesh.n_elements for p in grown.parts)
     executor = jaxsync.TracedExecutor() if traced else jaxsync.HostExecutor(chunk_steps=60)
     run = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(depth), executor=executor)
     np.testing.assert_allclose(run.displacement, one.displacement, rtol=0, atol=1e-12 * scale)
     if traced:
         return
-    refresh = halo.refresh_halo
+    refresh = refresh_halo
 
     def without_the_state(part, state, n_interface, across=None, n_element_interface=0):
         s = refresh(part, SolverState(state.displacement, state.previous, state.step), n_interface, across)
         return SolverState(s.displacement, s.previous, s.step, state.internal)
 
-    monkeypatch.setattr(halo, "refresh_halo", without_the_state)
+    monkeypatch.setattr("jaxsync.parallel.exchange._halo.refresh_halo", without_the_state)
     drifted = jaxsync.simulate(problem, 120, dt=dt, save=12, partitions=2, sync=jaxsync.Halo(3))
     assert float(np.max(np.abs(drifted.displacement - one.displacement))) > 1e-6 * scale
 

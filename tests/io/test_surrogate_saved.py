@@ -15,8 +15,7 @@ from jaxsync.io.surrogate_file import (
     load_surrogate,
     save_surrogate,
 )
-from jaxsync.surrogate.models.lstm import LSTMArchitecture
-from jaxsync.surrogate.models.replicas import init_replicas
+from jaxsync.surrogate.models import LSTMArchitecture, init_replicas
 
 NODES = (np.array([4, 9, 17], np.int64), np.array([2, 4, 9, 30], np.int64))
 

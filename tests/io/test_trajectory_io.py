@@ -158,7 +158,7 @@ def test_a_folder_given_as_a_file_to_read_is_one_clear_line(tmp_path, capsys):
     from jaxsync.cli import main
     from jaxsync.io.checkpoint import load_checkpoint
     from jaxsync.io.surrogate_file import load_surrogate
-    from jaxsync.surrogate.training.training_state import load_training_state
+    from jaxsync.surrogate.training import load_training_state
 
     folder = tmp_path / "adir"
     folder.mkdir()

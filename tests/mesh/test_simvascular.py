@@ -493,8 +493,6 @@ def test_the_toml_file_names_the_folder_and_the_series(folder, tmp_path):
 
 
 def test_a_vtu_prefix_taken_by_other_files_is_refused_before_running(tmp_path, capsys, monkeypatch):
-    import jaxsync.solve.solver
-
     beam = "[mesh]\nlength = 4.0\ndivisions = [4, 1, 1]\n[material]"
     (tmp_path / "case.toml").write_text(CASE.replace("[material]", beam))
     (tmp_path / "run").mkdir()
@@ -503,7 +501,7 @@ def test_a_vtu_prefix_taken_by_other_files_is_refused_before_running(tmp_path, c
     def must_not_run(*a, **k):
         raise AssertionError("simulate ran although the output cannot be written")
 
-    monkeypatch.setattr(jaxsync.solve.solver, "simulate", must_not_run)
+    monkeypatch.setattr("jaxsync.solve._solver.simulate", must_not_run)
     assert main(["simulate", str(tmp_path / "case.toml"), "-o", str(tmp_path / "run.h5"), "--vtu",
                  str(tmp_path / "run"), "--force", "--no-progress"]) == 2
     err = capsys.readouterr().err

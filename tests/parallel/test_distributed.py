@@ -4,7 +4,7 @@ import pytest
 
 import jaxsync
 from jaxsync import PartitionError
-from jaxsync.parallel.partitioning import partition_from_elements
+from jaxsync.parallel import partition_from_elements
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +100,7 @@ def test_unknown_mode_is_refused(problem):
 def test_element_forces_equal_stiffness_times_u():
     import jax.numpy as jnp
 
-    from jaxsync.fem.forces.element_force import ElementStiffness
+    from jaxsync.fem.forces import ElementStiffness
 
     mesh = jaxsync.box_beam(3.0, 1.0, 1.0, (3, 2, 1))
     mat = jaxsync.LinearElastic(2.0e5, 0.35, 1.0)

@@ -15,8 +15,8 @@ import pytest
 import jaxsync
 from jaxsync.parallel import AXIS, xla_devices, xla_plan
 from jaxsync.solve import register_exchange, sync_strategy, unregister_exchange
-from jaxsync.solve.coupling.predictors import OraclePredictor
-from jaxsync.surrogate.training.histories import shared_dof_layout
+from jaxsync.solve.coupling import OraclePredictor
+from jaxsync.surrogate.training import shared_dof_layout
 
 ROOT = pathlib.Path(__file__).resolve().parents[2]
 GUIDE = ROOT / "docs" / "guides" / "extending-exchanges.md"
@@ -110,7 +110,7 @@ def test_a_user_exchange_equals_psum_and_the_single_device_run(problem, partitio
 def test_the_compiled_step_runs_the_user_exchange(problem, partition):
     """The step holds the exchange's all-gather (and the psum run's does not): the run
     above went through GatherSum.plan, not a built-in default."""
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
@@ -270,15 +270,15 @@ def test_installed_packages_name_exchanges_through_entry_points(monkeypatch):
     be imported is left out with a warning, and the other names keep working."""
     from importlib.metadata import EntryPoint
 
-    from jaxsync.parallel.exchange import builtin as exchanges
+    from jaxsync.parallel.exchange import ENTRY_POINT_GROUP, EntryPointWarning
 
-    points = [EntryPoint("psum-from-a-package", "jaxsync.parallel.exchange.builtin:Psum", exchanges.ENTRY_POINT_GROUP),
-              EntryPoint("broken-package", "no_such_module_for_jaxsync:Thing", exchanges.ENTRY_POINT_GROUP)]
+    points = [EntryPoint("psum-from-a-package", "jaxsync.parallel.exchange:Psum", ENTRY_POINT_GROUP),
+              EntryPoint("broken-package", "no_such_module_for_jaxsync:Thing", ENTRY_POINT_GROUP)]
     monkeypatch.setattr("importlib.metadata.entry_points",
                         lambda group: [p for p in points if p.group == group])
-    monkeypatch.setattr(exchanges, "_ENTRY_POINTS_READ", [])  # read the entry points again
+    monkeypatch.setattr("jaxsync.parallel.exchange._builtin._ENTRY_POINTS_READ", [])  # read the entry points again
     try:
-        with pytest.warns(exchanges.EntryPointWarning, match="broken-package.*no_such_module_for_jaxsync"):
+        with pytest.warns(EntryPointWarning, match="broken-package.*no_such_module_for_jaxsync"):
             assert sync_strategy("psum-from-a-package") == jaxsync.Psum()
         assert "broken-package" not in jaxsync.solve.exchange_names()
         assert sync_strategy("halo:2") == jaxsync.Halo(2)

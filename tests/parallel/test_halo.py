@@ -1,4 +1,4 @@
-"""Deep halos (jaxsync.parallel.exchange.halo): the tables checked against a breadth-first search
+"""Deep halos (jaxsync.parallel.exchange): the tables checked against a breadth-first search
 written here, the algorithm replayed in NumPy on those tables against a global SciPy
 run, and the SPMD runs equal to the psum-synchronized solver to round-off."""
 
@@ -11,7 +11,7 @@ import fem_reference as ref
 import jaxsync
 from jaxsync import ConfigError, PartitionError, ProblemError
 from jaxsync.parallel import partition_from_elements
-from jaxsync.parallel.exchange.halo import halo_partition
+from jaxsync.parallel.exchange import halo_partition
 
 MATERIAL = jaxsync.LinearElastic(1.0e6, 0.3, 1.0)
 BODY_FORCE = np.array([0.1, -0.2, -0.5])

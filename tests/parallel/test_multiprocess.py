@@ -35,7 +35,7 @@ def _worker_sync(out_path: str) -> None:
 
         jax.config.update("jax_enable_x64", True)
         import jaxsync
-        from jaxsync.fem.stepper import build_system
+        from jaxsync.fem import build_system
         from jaxsync.solve.executors import DistributedRunner
 
         problem = jaxsync.cantilever()
@@ -58,7 +58,7 @@ def _worker_sync(out_path: str) -> None:
 def _visco_cantilever():
     """A small cantilever of a two-branch Prony series (the worker's and the test's)."""
     import jaxsync
-    from jaxsync.fem.materials.viscoelastic import ViscoelasticNeoHookean
+    from jaxsync.fem.materials import ViscoelasticNeoHookean
 
     law = ViscoelasticNeoHookean(1.0e6, 0.3, 1.0, betas=(1.0, 2.0), taus=(2.0e-3, 1.0e-2))
     return jaxsync.cantilever(jaxsync.box_beam(4.0, 1.0, 1.0, (8, 1, 1)), material=law,
@@ -121,7 +121,7 @@ import pytest  # noqa: E402
 
 import jaxsync  # noqa: E402
 from jaxsync.parallel import multiprocess  # noqa: E402
-from jaxsync.solve import strategies  # noqa: E402
+from jaxsync.solve import transport  # noqa: E402
 from subprocess_env import free_port, without_emulated_devices  # noqa: E402
 
 MPIEXEC = shutil.which("mpiexec")
@@ -347,21 +347,21 @@ def test_transport_names_each_synchronization():
     """The header line of a partitioned run, in this process (2 emulated CPU devices)."""
     import jax
 
-    assert strategies.transport(None, 2) == "XLA psum over 2 emulated CPU devices in one process"
-    assert strategies.transport("psum", 2) == strategies.transport(None, 2)
-    assert strategies.transport("ppermute", 4) == ("XLA ppermute (neighbouring devices only) over 2 emulated "
+    assert transport(None, 2) == "XLA psum over 2 emulated CPU devices in one process"
+    assert transport("psum", 2) == transport(None, 2)
+    assert transport("ppermute", 4) == ("XLA ppermute (neighbouring devices only) over 2 emulated "
                                                      "CPU devices in one process")
-    assert strategies.transport(None, 3) == "one device (the parts' sums stay on it: no exchange between devices)"
-    assert strategies.transport(jaxsync.Halo(4), 2) == (
+    assert transport(None, 3) == "one device (the parts' sums stay on it: no exchange between devices)"
+    assert transport(jaxsync.Halo(4), 2) == (
         "deep halos of depth 4, both displacement levels exchanged every 4 steps by XLA psum over 2 emulated "
         "CPU devices in one process")
-    assert strategies.transport(jaxsync.Psum(devices=jax.devices()[:1]), 2).startswith("one device")
+    assert transport(jaxsync.Psum(devices=jax.devices()[:1]), 2).startswith("one device")
     pytest.importorskip("mpi4py")
-    assert strategies.transport(jaxsync.Mpi(allreduce="ctypes"), 2) == (
+    assert transport(jaxsync.Mpi(allreduce="ctypes"), 2) == (
         "MPI Allreduce inside the compiled step (jaxsync's ctypes FFI handler) in one process")
     if multiprocess.mpi4jax_available():
-        assert strategies.transport("mpi", 2) == "MPI Allreduce inside the compiled step (mpi4jax) in one process"
-    callback = strategies.transport(jaxsync.Mpi(allreduce="callback"), 2)
+        assert transport("mpi", 2) == "MPI Allreduce inside the compiled step (mpi4jax) in one process"
+    callback = transport(jaxsync.Mpi(allreduce="callback"), 2)
     assert callback.startswith("MPI Allreduce through an mpi4py host callback in one process (slow")
 
 
@@ -382,7 +382,7 @@ def test_fallback_to_the_callback_warns_with_the_fix(monkeypatch):
     assert multiprocess.default_allreduce() == "callback"
     with pytest.warns(multiprocess.TransportWarning, match=r"host callback \(slow\).*jax.ffi is broken.*\[mpi\]"):
         multiprocess.make_allreduce(TwoRanks(), "auto")
-    assert "slow" in strategies.transport("mpi", 2) and "pip install -e '.[mpi]'" in strategies.transport("mpi", 2)
+    assert "slow" in transport("mpi", 2) and "pip install -e '.[mpi]'" in transport("mpi", 2)
     with pytest.raises(jaxsync.ConfigError, match="ctypes MPI sum cannot run here"):
         multiprocess.make_allreduce(TwoRanks(), "ctypes")
 
@@ -394,9 +394,9 @@ def test_plain_install_defaults_to_an_allreduce_inside_the_step():
     code = ("import sys; sys.modules['mpi4jax'] = None\n"  # as if mpi4jax were not installed
             "import jaxsync\n"
             "from jaxsync.parallel import multiprocess\n"
-            "from jaxsync.solve import strategies\n"
+            "from jaxsync.solve import transport\n"
             "print(multiprocess.default_allreduce())\n"
-            "print(strategies.transport('mpi', 2))\n")
+            "print(transport('mpi', 2))\n")
     env = {**without_emulated_devices(), "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=TIMEOUT_S, env=env)
     assert out.returncode == 0, out.stderr
@@ -415,7 +415,7 @@ def test_mpi_sync_in_one_process_equals_psum(reference):
     pytest.importorskip("mpi4py")
     import jax
 
-    from jaxsync.fem.stepper import build_system
+    from jaxsync.fem import build_system
     from jaxsync.solve.executors import DistributedRunner
 
     problem = jaxsync.cantilever()

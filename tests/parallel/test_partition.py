@@ -3,8 +3,8 @@ import pytest
 
 import jaxsync
 from jaxsync import PartitionError
-from jaxsync.fem.assembly import lumped_mass
-from jaxsync.parallel.partitioning import partition_from_elements
+from jaxsync.fem import lumped_mass
+from jaxsync.parallel import partition_from_elements
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ConfigError, ProblemError
-from jaxsync.parallel.partitioning import partition_from_elements
+from jaxsync.parallel import partition_from_elements
 from jaxsync.perf.costmodel import (
     ALGORITHMS,
     INTERCONNECTS,

@@ -9,7 +9,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.forces.total_lagrangian import TotalLagrangian
+from jaxsync.fem.forces import TotalLagrangian
 from jaxsync.perf.roofline import (
     ELEMENT_FLOPS,
     HYPERELASTIC_POINT_FLOPS,

@@ -11,9 +11,8 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.fem.forces.element_force import element_forces
-from jaxsync.fem.forces.internal_force import Preassembled
-from jaxsync.fem.stepper import SolverState, build_system, initial_state
+from jaxsync.fem import SolverState, build_system, initial_state
+from jaxsync.fem.forces import Preassembled, element_forces
 from jaxsync.perf import kernels
 from jaxsync.solve.executors import DistributedRunner
 
@@ -135,7 +134,7 @@ def test_distributed_programs_are_the_runners(problem, start):
 def test_prediction_programs_match_each_parts_predictor(problem, start):
     from jaxsync.solve.executors import PredictedPhase
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.surrogate.training import shared_dof_layout
 
     system, _ = start
     part = jaxsync.partition(problem.mesh, 2, seed=0)

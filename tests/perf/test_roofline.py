@@ -13,7 +13,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.fem.stepper import SolverState, apply_dirichlet, build_system, central_difference
+from jaxsync.fem import SolverState, apply_dirichlet, build_system, central_difference
 from jaxsync.perf.roofline import (
     ELEMENT_FLOPS,
     StageCost,
@@ -26,8 +26,8 @@ from jaxsync.perf.roofline import (
     surrogate_flop_breakdown,
     surrogate_step_cost,
 )
-from jaxsync.surrogate.models.lstm import LSTMArchitecture, init_params
-from jaxsync.surrogate.refill import refill_predict
+from jaxsync.surrogate import refill_predict
+from jaxsync.surrogate.models import LSTMArchitecture, init_params
 
 ELEMENTWISE = {"add", "sub", "mul", "div", "neg", "logistic", "tanh", "exp", "max", "min"}
 
@@ -77,7 +77,7 @@ def problem():
 def test_matvec_bytes_are_the_arrays_of_a_real_block_ell(problem):
     # the model counts one block ELL as wide as the largest degree (Preassembled's "ell"
     # layout); the default degree-grouped layout streams fewer slots on unstructured meshes
-    from jaxsync.fem.forces.internal_force import Preassembled
+    from jaxsync.fem.forces import Preassembled
 
     K = build_system(problem, problem.dt, Preassembled(layout="ell")).stiffness
     n, width = K.columns.shape
@@ -95,8 +95,8 @@ def test_matvec_slots_are_those_of_the_grouped_operator_on_an_unstructured_mesh(
     """On a vessel the default layout groups rows by degree: the model counts the slots the
     real operator stores (rounded up per row), fewer than one ELL as wide as the largest
     degree."""
-    from jaxsync.fem.forces.internal_force import Preassembled
-    from jaxsync.fem.sparse import node_adjacency
+    from jaxsync.fem import node_adjacency
+    from jaxsync.fem.forces import Preassembled
 
     mesh = jaxsync.vessel_mesh(None, length=2.0, radius=0.5, wall=0.3, size=0.15)
     problem = jaxsync.Problem(mesh, dirichlet=[jaxsync.Dirichlet("inlet")])
@@ -132,7 +132,7 @@ def test_recompute_counts_against_the_element_force_code(problem):
     gathered = np.asarray(K.points)[np.asarray(K.tets)]  # (m, 4, 3) coordinates per element
     assert costs["t_e"].bytes == K.tets.nbytes + gathered.nbytes + np.asarray(u)[np.asarray(K.tets)].nbytes
     assert costs["t_m"].bytes == K.weight.nbytes + np.zeros((m, 4, 3)).nbytes
-    from jaxsync.fem.forces.element_force import element_forces
+    from jaxsync.fem.forces import element_forces
 
     per_element = written_flops(lambda x: element_forces(K.points, K.tets, x, K.lam, K.mu), u) / m
     assert costs["t_e"].flops / m == per_element == sum(ELEMENT_FLOPS.values()) == 264
@@ -140,8 +140,8 @@ def test_recompute_counts_against_the_element_force_code(problem):
 
 
 def test_per_part_costs_match_the_part_systems(problem):
-    from jaxsync.fem.forces.internal_force import Preassembled
-    from jaxsync.parallel.layout import PartLayout, part_systems
+    from jaxsync.fem.forces import Preassembled
+    from jaxsync.parallel import PartLayout, part_systems
 
     part_info = jaxsync.partition(problem.mesh, 2, seed=0)
     system = build_system(problem, problem.dt)

@@ -8,7 +8,7 @@ import pytest
 
 import jaxsync
 from jaxsync import CheckpointError, ProblemError
-from jaxsync.fem.forces.internal_force import Preassembled
+from jaxsync.fem.forces import Preassembled
 from jaxsync.perf.reports import SpeedupReport, TimingReport
 from jaxsync.perf.timing import speedup_breakdown, timing_breakdown
 
@@ -65,7 +65,7 @@ def test_bad_arguments_are_refused(problem):
 
 
 def test_breakdown_of_deep_halos_times_the_grown_parts(problem, partition):
-    from jaxsync.parallel.exchange.halo import halo_partition
+    from jaxsync.parallel.exchange import halo_partition
 
     report = timing_breakdown(problem, partition, n_steps=5, repeats=2, sync=jaxsync.Halo(2))
     grown = halo_partition(partition, 2)

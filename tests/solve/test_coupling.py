@@ -19,8 +19,8 @@ import pytest
 import jaxsync
 from jaxsync import ProblemError
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.solve.coupling.predictors import OraclePredictor
-from jaxsync.surrogate.training.histories import shared_dof_layout
+from jaxsync.solve.coupling import OraclePredictor
+from jaxsync.surrogate.training import shared_dof_layout
 
 N_S, N_P, N_F = 5, 3, 4
 N_CRI = 40  # the networks' history: n_s n_p = 15 steps
@@ -245,7 +245,7 @@ def test_steady_state_returns_one_type():
     satisfies K u = f at the free dofs (scipy's K of the problem) and has no residuals;
     the hyperelastic one's residuals are one converged Newton history per increment. The
     deprecated history=True gives the pair it gave before."""
-    from jaxsync.fem.forces.support import stiffness_matrix
+    from jaxsync.fem.forces import stiffness_matrix
 
     mesh = jaxsync.box_beam(4.0, 1.0, 1.0, (4, 2, 2))
     linear = jaxsync.cantilever(mesh)

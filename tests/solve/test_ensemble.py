@@ -8,7 +8,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError, StabilityError
-from jaxsync.surrogate.training.histories import read_shared_histories
+from jaxsync.surrogate.training import read_shared_histories
 
 FZ = (0.3, 0.5, 0.7)
 
@@ -211,21 +211,20 @@ def test_a_short_ensemble_compiles_the_compact_product(mesh, static):
     """The stiffness product's form as for one run of n_runs * n_steps steps: compact below
     COMPACT_SLOT_STEPS, fused above it and where the length is not given; both give every
     member's K u to round-off."""
-    import jaxsync.solve.ensemble_members as em
-    from jaxsync.fem.forces.internal_force import COMPACT_SLOT_STEPS
-    from jaxsync.solve.ensemble_stability import default_dt
+    from jaxsync.fem.forces import COMPACT_SLOT_STEPS
+    from jaxsync.solve import batched_system, default_dt, member_system, setup_of_members
 
     base = jaxsync.cantilever(mesh)
     slots = int(np.prod(base.operators.block_ell[0].shape))
     short, long = int(COMPACT_SLOT_STEPS // (3 * slots)) - 1, int(COMPACT_SLOT_STEPS // (3 * slots)) + 1
     u = np.random.default_rng(1).standard_normal((base.n_nodes, 3))
     for case in ("E", "E, nu"):
-        setup = em.setup_of_members(base, _members(case, static))
+        setup = setup_of_members(base, _members(case, static))
         dt = default_dt(setup)
-        forms = {n: em.batched_system(setup, dt, n) for n in (short, long, None)}
+        forms = {n: batched_system(setup, dt, n) for n in (short, long, None)}
         assert [forms[n][0].stiffness.compact for n in (short, long, None)] == [True, False, False], case
         for r in range(3):
-            products = [em.member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs)).stiffness.matvec(u)
+            products = [member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs)).stiffness.matvec(u)
                         for system, runs in forms.values()]
             assert relative_error(products[0], products[1]) <= 1e-14, case
 
@@ -235,20 +234,19 @@ def test_vectorised_setup_equals_each_members_own_system(mesh, static, case):
     """The batched system's member r (stiffness, lumped mass, damping, beta, loads,
     prescribed values, the supports' springs and dashpots) and its start equal
     build_system and initial_state of member r's own Problem."""
-    import jaxsync.solve.ensemble_members as em
-    from jaxsync.fem.stepper import build_system, initial_state
-    from jaxsync.solve.ensemble_stability import default_dt
+    from jaxsync.fem import build_system, initial_state
+    from jaxsync.solve import batched_system, default_dt, initial_states, member_system, setup_of_members
 
     base = jaxsync.cantilever(mesh).replace(supports=(jaxsync.ElasticSupport(2.0e3, 50.0, surface="z0"),))
     members = _members(case, static)
     members = dataclasses.replace(members, damping=np.array([0.5, 0.1, 2.0]))  # with the supports' dashpots
-    setup = em.setup_of_members(base, members)
+    setup = setup_of_members(base, members)
     dt = default_dt(setup)
-    system, runs = em.batched_system(setup, dt)
-    states = em.initial_states(setup, system, runs)
+    system, runs = batched_system(setup, dt)
+    states = initial_states(setup, system, runs)
     u = np.random.default_rng(0).standard_normal((3, base.n_nodes, 3))
     for r in range(3):
-        mine = em.member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs))
+        mine = member_system(system, jax.tree_util.tree_map(lambda x, r=r: x[r], runs))
         problem = members.problem(base, r)
         own = build_system(problem, dt)
         for v in u:
@@ -299,8 +297,7 @@ def test_gradient_in_each_members_E_matches_finite_differences(mesh):
 
 
 def test_a_member_above_its_stability_bound_is_named(mesh):
-    from jaxsync.solve.ensemble_members import setup_of_members
-    from jaxsync.solve.ensemble_stability import member_bounds
+    from jaxsync.solve import member_bounds, setup_of_members
 
     base = jaxsync.cantilever(mesh)
     dt = float(base.dt)

@@ -1,5 +1,5 @@
 """Error control that sees the errors every part makes alike: the force-balance defect
-probed in the predicted phase and its modal propagation (jaxsync.solve.coupling.error_estimate)."""
+probed in the predicted phase and its modal propagation (jaxsync.solve.coupling.ErrorPropagator)."""
 
 import re
 import warnings
@@ -10,10 +10,10 @@ from test_syncavoid import N_CRI, N_F, N_P, N_S, drifting_oracle
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.solve.coupling.error_estimate import ErrorPropagator
-from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling import DEFAULT_MODES, ErrorPropagator
 from jaxsync.solve.executors import PredictedPhase
-from jaxsync.surrogate.training.histories import shared_dof_layout
+from jaxsync.surrogate.training import shared_dof_layout
 
 
 @pytest.fixture(scope="module")
@@ -142,7 +142,7 @@ def test_shared_drift_is_caught_and_bounded(problem, partition, reference):
 def test_the_probe_is_one_collective(problem, partition, reference):
     """The monitored cycle's steps with the probe hold exactly one all-reduce (the partial
     forces summed at the saved step), and none without it."""
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
@@ -190,12 +190,10 @@ def test_the_sparse_eigensolvers_modes_track_a_shared_drift(problem, partition, 
     about 0), here forced on: they are the dense eigensolver's lowest modes, and a drift
     that the parts share is tracked with them within the bounds of the dense modes'
     test_the_default_modes_track_a_shared_drift."""
-    import jaxsync.solve.coupling.error_estimate as module
-
     dense = ErrorPropagator.build(problem, partition, problem.dt)
-    monkeypatch.setattr(module, "_DENSE_LIMIT", 0)
+    monkeypatch.setattr("jaxsync.solve.coupling._error_estimate._DENSE_LIMIT", 0)
     sparse = ErrorPropagator.build(problem, partition, problem.dt)
-    assert sparse.n_modes == dense.n_modes == module.DEFAULT_MODES
+    assert sparse.n_modes == dense.n_modes == DEFAULT_MODES
     np.testing.assert_allclose(sparse.omega, dense.omega, rtol=1e-8)
     net = drifting_oracle(reference, partition, drift=(1e-6, 1e-6))
     traj = run(problem, partition, net, 1000, ResyncTolerance(absolute=1e9), save=10)
@@ -299,10 +297,8 @@ def test_the_static_remainder_made_once_or_solved_per_probe(problem, partition, 
     estimates agree within 5 % on rough random defects (measured 1.3 %; the made-once
     version omits the remainder away from the interface, which with 10 modes would
     matter: 19 %)."""
-    import jaxsync.solve.coupling.error_estimate as module
-
     once = ErrorPropagator.build(problem, partition, problem.dt)
-    monkeypatch.setattr(module, "FLEXIBILITY_LIMIT", 0)
+    monkeypatch.setattr("jaxsync.solve.coupling._error_estimate.FLEXIBILITY_LIMIT", 0)
     per_probe = ErrorPropagator.build(problem, partition, problem.dt)
     assert once.flexibility is not None and per_probe.flexibility is None
     defects = np.random.default_rng(1).normal(size=(6, len(partition.shared_nodes), 3)) * 1e-7

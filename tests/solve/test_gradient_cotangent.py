@@ -2,7 +2,7 @@
 
 Under a traced Young's modulus E with the Poisson ratio fixed, :class:`Preassembled`
 holds the constant blocks of K(E=1, nu) and carries E as the operator's scale
-(:attr:`jaxsync.fem.sparse.BlockEll.scale`): reverse mode then sums one scalar per step
+(:attr:`jaxsync.fem.BlockEll.scale`): reverse mode then sums one scalar per step
 instead of carrying a cotangent as large as K across the time loop. These tests force
 that form on the small cantilever (``scale_min_nodes=0``; by default it starts at 1 500
 nodes) and compare it with the previous formulation (traced Lame parameters in the
@@ -19,7 +19,7 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.forces.internal_force import Preassembled
+from jaxsync.fem.forces import Preassembled
 
 SCALED = Preassembled(scale_min_nodes=0)  # E as the operator's scale whenever E is traced and nu fixed
 PARAMS = {"E": 1.0e6, "nu": 0.3, "rho": 1.0, "alpha": 0.5}

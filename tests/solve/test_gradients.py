@@ -9,8 +9,8 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ProblemError
-from jaxsync.fem.stepper import advance, build_system, initial_state
-from jaxsync.solve.remat import advance_recomputing, segment_steps_for_budget, step_residual_bytes
+from jaxsync.fem import advance, build_system, initial_state
+from jaxsync.solve import advance_recomputing, segment_steps_for_budget, step_residual_bytes
 
 
 @pytest.fixture(scope="module")

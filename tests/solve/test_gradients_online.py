@@ -17,7 +17,7 @@ import pytest
 
 import jaxsync
 from jaxsync import ProblemError
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling import simulate_sync_avoiding
 from jaxsync.surrogate import Surrogate
 
 N_S, N_P, N_F = 5, 3, 4
@@ -178,10 +178,10 @@ def test_resync_tolerance_refused_in_a_traced_run(problem, partition, surrogate)
 
 
 def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, surrogate):
-    """Solver-in-the-loop fine-tuning (jaxsync.solve.finetune): its window loss is the
+    """Solver-in-the-loop fine-tuning (jaxsync.solve.fine_tune_in_the_loop): its window loss is the
     relative error of the host-driven online run against the synchronized one, and Adam on
     the networks' weights lowers it."""
-    from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+    from jaxsync.solve import FineTuneConfig, fine_tune_in_the_loop
 
     base = with_parameters(problem, E0, ALPHA0)
     config = FineTuneConfig(n_iterations=6, window_cycles=2, learning_rate=3e-3, n_starts=1, n_validation=1,
@@ -210,7 +210,7 @@ def test_fine_tuning_in_the_loop_lowers_the_window_error(problem, partition, sur
 
 def test_fine_tuning_refuses_surrogates_of_another_partition(problem, surrogate):
     from jaxsync import CheckpointError
-    from jaxsync.solve.finetune import FineTuneConfig, fine_tune_in_the_loop
+    from jaxsync.solve import FineTuneConfig, fine_tune_in_the_loop
 
     with pytest.raises(CheckpointError, match="partition they were trained on"):
         fine_tune_in_the_loop(problem, surrogate, jaxsync.partition(problem.mesh, 4), n_steps=N_STEPS,

@@ -19,7 +19,7 @@ parameters (:class:`jaxsync.HolzapfelGasserOgden`).
 :func:`jaxsync.steady_state` runs Newton's method in numpy/scipy on the host, so it is not
 traced by JAX: the static solution's derivative is checked here by the implicit function
 theorem, du/dp = K_T^-1 (df/dp - d f_int/dp) with the tangent of
-:func:`jaxsync.fem.forces.total_lagrangian.tangent_matrix`, against central differences of
+:func:`jaxsync.fem.forces.tangent_matrix`, against central differences of
 ``steady_state``.
 """
 
@@ -29,7 +29,7 @@ import numpy as np
 import pytest
 
 import jaxsync
-from jaxsync.fem.materials.hyperelastic import (
+from jaxsync.fem.materials import (
     HolzapfelGasserOgden,
     NearlyIncompressibleNeoHookean,
     NeoHookean,
@@ -136,14 +136,14 @@ def check_gradient(gradients, law, partitions):
 
 # the default run checks the gradient of a run with neo-hookean (the same test); the gradients of the other laws'
 # forces in their parameters in test_hyperelastic.py::test_gradient_of_the_internal_force_wrt_parameters
-@pytest.mark.filterwarnings("ignore::jaxsync.fem.problem.LockingWarning")
+@pytest.mark.filterwarnings("ignore::jaxsync.fem.LockingWarning")
 @pytest.mark.parametrize("law", ["neo-hookean", pytest.param("nearly-incompressible", marks=pytest.mark.slow),
                                  pytest.param("hgo", marks=pytest.mark.slow)])
 def test_material_gradient_equals_central_differences(gradients, law):
     check_gradient(gradients, law, None)
 
 
-@pytest.mark.filterwarnings("ignore::jaxsync.fem.problem.LockingWarning")
+@pytest.mark.filterwarnings("ignore::jaxsync.fem.LockingWarning")
 # the default run checks the partitioned gradient with neo-hookean (the same test); the hgo gradient
 # on one device in test_material_gradient_equals_central_differences[hgo]
 @pytest.mark.parametrize("law", [
@@ -165,7 +165,7 @@ def test_static_solution_gradient_by_the_implicit_function_theorem(beam):
 
     import scipy.sparse.linalg as spla
 
-    from jaxsync.fem.forces.total_lagrangian import TotalLagrangian, tangent_matrix
+    from jaxsync.fem.forces import TotalLagrangian, tangent_matrix
 
     x0 = np.array([1.0e6, 0.3, PRESSURE])
     tip = int(np.argmax(beam.points[:, 0] + beam.points[:, 2]))  # the free end's top corner

@@ -408,7 +408,7 @@ def _storage(path):
 
 def _toy_writer(path, n_steps=30):
     """A CheckpointWriter of a made-up run (5 nodes, one part recorded), and its blocks."""
-    from jaxsync.fem.stepper import SolverState
+    from jaxsync.fem import SolverState
     from jaxsync.io.checkpoint import CheckpointWriter
 
     def state(step):

@@ -8,10 +8,9 @@ import pytest
 import jaxsync
 from jaxsync import CheckpointError, ProblemError, StabilityError
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.solve.coupling.predictors import OraclePredictor
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling import OraclePredictor, simulate_sync_avoiding
 from jaxsync.solve.executors import PredictedPhase
-from jaxsync.surrogate.training.histories import shared_dof_layout
+from jaxsync.surrogate.training import shared_dof_layout
 
 N_S, N_P, N_F = 5, 4, 4
 N_CRI = N_S * N_P + 1 + 19  # 40
@@ -82,7 +81,7 @@ def test_oracle_with_save_every_and_four_parts(problem, reference):
 
 
 def test_predicted_phase_has_no_collective(problem, partition, reference):
-    from jaxsync.fem.stepper import build_system, initial_state
+    from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner
 
     system = build_system(problem, problem.dt)
@@ -142,7 +141,7 @@ def test_predicted_blow_up_stops_like_a_synchronized_divergence(problem, partiti
 
 
 def test_full_system_oracle_reproduces_the_reference(problem):
-    from jaxsync.solve.full_system import simulate_full_system
+    from jaxsync.solve import simulate_full_system
 
     reference = jaxsync.simulate(problem, N_STEPS)
     n_dof = problem.mesh.n_dofs
@@ -162,9 +161,9 @@ def test_full_system_oracle_reproduces_the_reference(problem):
 def test_full_system_needs_one_replica_over_all_dofs(problem, partition, reference, tmp_path):
     import jax
 
-    from jaxsync.solve.full_system import simulate_full_system
+    from jaxsync.solve import simulate_full_system
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
-    from jaxsync.surrogate.models.replicas import init_replicas
+    from jaxsync.surrogate.models import init_replicas
 
     counts = (12, 12)
     arch = LSTMArchitecture(n_dof=12, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F)
@@ -179,7 +178,7 @@ def test_surrogates_of_another_partition_are_refused(problem, reference):
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate
-    from jaxsync.surrogate.models.replicas import init_replicas
+    from jaxsync.surrogate.models import init_replicas
 
     other = jaxsync.partition(problem.mesh, 4)
     counts = tuple(3 * p.n_shared for p in other.parts)
@@ -370,7 +369,7 @@ def test_untrained_networks_fall_back_to_the_synchronized_run(problem, partition
 def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference):
     """'2%' is 2 % of the largest shared-node |displacement| seen in the synchronized steps
     so far (the load ramps up, so the tolerance grows as the run goes on)."""
-    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
+    from jaxsync.solve import ResyncTolerance
 
     net = drifting_oracle(long_reference, partition, drift=(+1e-6, -1e-6))
     with pytest.warns(RuntimeWarning):
@@ -395,7 +394,7 @@ def test_tolerance_relative_to_the_amplitude(problem, partition, long_reference)
 def test_tolerance_relative_to_a_given_amplitude(problem, partition, long_reference):
     """ResyncTolerance(relative=, amplitude=A): the tolerance is that fraction of A at every
     check, whatever the run has seen (a ramped load's early amplitude is small)."""
-    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
+    from jaxsync.solve import ResyncTolerance
 
     amplitude = max(np.abs(part.shared_displacement[:1001]).max() for part in long_reference.parts)
     tolerance = ResyncTolerance(relative=0.02, amplitude=float(amplitude))
@@ -418,7 +417,7 @@ def test_resync_tolerance_is_checked(problem, partition, reference):
         with pytest.raises(ProblemError, match="resync_tolerance"):
             simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=untrained(partition),
                                    n_cri=N_CRI, resync_tolerance=bad)
-    from jaxsync.solve.coupling.syncavoid import ResyncTolerance
+    from jaxsync.solve import ResyncTolerance
 
     with pytest.raises(ProblemError, match="OraclePredictor"):  # es_hat of an oracle is zero
         simulate_sync_avoiding(problem, N_STEPS, partitions=partition, surrogates=oracle(reference, partition),
@@ -529,7 +528,7 @@ def test_a_conditional_surrogate_takes_the_load_parameter_given_to_the_run(probl
     import jax
 
     from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate
-    from jaxsync.surrogate.models.replicas import init_replicas
+    from jaxsync.surrogate.models import init_replicas
 
     n_dof, counts = shared_dof_layout(partition)
     arch = LSTMArchitecture(n_dof=n_dof, n_hidden=4, n_layers=1, n_past=N_P, n_future=N_F, n_cond_repeat=2)
@@ -583,7 +582,7 @@ def test_load_jump_keeps_the_run_synchronized_through_it(problem, partition, jum
     np.testing.assert_array_equal(traj.synchronized, np.arange(0, N_STEPS + 1, save_every) <= expected_n_cri)
     np.testing.assert_allclose(traj.displacement, ref.displacement[::save_every], rtol=0,
                                atol=1e-13 * np.abs(ref.displacement).max())
-    assert "synchronized through the load jump at step" in jaxsync.solve.coupling.syncavoid.describe_run(traj)
+    assert "synchronized through the load jump at step" in jaxsync.solve.coupling.describe_run(traj)
     # the paper's way: predicted from N_CRI on, straight through the jump
     through = simulate_sync_avoiding(stepped, N_STEPS, partitions=partition, save=save_every,
                                      surrogates=oracle(ref, partition), n_cri=N_CRI, load_jumps="predict")

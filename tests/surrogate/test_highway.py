@@ -23,9 +23,8 @@ from jaxsync.surrogate import (
     load_surrogate,
     train_surrogates,
 )
-from jaxsync.surrogate.models import linear, lstm
-from jaxsync.surrogate.models.replicas import pad_params, unpad_params
-from jaxsync.surrogate.training.evaluate import rollout_errors
+from jaxsync.surrogate.models import count_flops, forward, init_params, pad_params, param_shapes, unpad_params
+from jaxsync.surrogate.training import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode
 SAMPLING = Sampling(n_s=5, n_past=8, n_future=8, train_fraction=0.5)
@@ -39,14 +38,14 @@ def _network(n_dof=6, n_load=2, rank=7):
 
 def _random_highway(arch, key):
     """Random (normal) highway parameters of ``arch``."""
-    shapes = linear.param_shapes(arch.highway_arch)
+    shapes = param_shapes(arch.highway_arch)
     keys = jax.random.split(key, len(shapes))
     return {name: jax.random.normal(k, shape, jnp.float64) for k, (name, shape) in zip(keys, sorted(shapes.items()))}
 
 
 def test_with_a_zero_output_layer_the_network_is_its_linear_model():
     arch = _network()
-    params = lstm.init_params(jax.random.key(0), arch)
+    params = init_params(jax.random.key(0), arch)
     assert set(params["highway"]) == {"w_in", "w_out", "b", "w_load"}
     assert all(not np.any(w) for w in params["highway"].values())  # set by the fit, zero before
     params["highway"] = _random_highway(arch, jax.random.key(1))
@@ -54,13 +53,13 @@ def test_with_a_zero_output_layer_the_network_is_its_linear_model():
     xs = jax.random.normal(jax.random.key(2), (4, 6), jnp.float64)
     loads = jax.random.normal(jax.random.key(3), (7, 2), jnp.float64)
     mask = jnp.array([1.0, 1, 1, 1, 0, 0])
-    expected = linear.forward(params["highway"], arch.highway_arch, xs, dof_mask=mask, loads=loads)
-    np.testing.assert_array_equal(lstm.forward(params, arch, xs, dof_mask=mask, loads=loads), expected)
+    expected = forward(params["highway"], arch.highway_arch, xs, dof_mask=mask, loads=loads)
+    np.testing.assert_array_equal(forward(params, arch, xs, dof_mask=mask, loads=loads), expected)
     # the decoder's output adds to it, and only the recurrent part gets gradients
     params["dense"] = jax.tree_util.tree_map(lambda w: w + 0.1, params["dense"])
-    assert not np.allclose(lstm.forward(params, arch, xs, loads=loads),
-                           linear.forward(params["highway"], arch.highway_arch, xs, loads=loads))
-    grads = jax.grad(lambda p: jnp.sum(lstm.forward(p, arch, xs, loads=loads) ** 2))(params)
+    assert not np.allclose(forward(params, arch, xs, loads=loads),
+                           forward(params["highway"], arch.highway_arch, xs, loads=loads))
+    grads = jax.grad(lambda p: jnp.sum(forward(p, arch, xs, loads=loads) ** 2))(params)
     assert all(not np.any(g) for g in jax.tree_util.tree_leaves(grads["highway"]))
     assert np.any(grads["dense"]["w"]) and np.any(grads["decoder"]["w_h"])
 
@@ -68,16 +67,16 @@ def test_with_a_zero_output_layer_the_network_is_its_linear_model():
 def test_padding_keeps_a_replica_alone():
     """A replica of 4 dofs padded to 6 predicts on its 4 dofs what it predicts alone."""
     small = _network(n_dof=4)
-    params = lstm.init_params(jax.random.key(0), small)
+    params = init_params(jax.random.key(0), small)
     params["highway"] = _random_highway(small, jax.random.key(1))
     padded = pad_params(params, small, 6)
     wide = dataclasses.replace(small, n_dof=6)
-    assert jax.tree_util.tree_structure(padded) == jax.tree_util.tree_structure(lstm.init_params(
+    assert jax.tree_util.tree_structure(padded) == jax.tree_util.tree_structure(init_params(
         jax.random.key(0), wide))
     xs = jax.random.normal(jax.random.key(2), (4, 4), jnp.float64)
     loads = jax.random.normal(jax.random.key(3), (7, 2), jnp.float64)
-    alone = lstm.forward(params, small, xs, loads=loads)
-    within = lstm.forward(padded, wide, jnp.pad(xs, ((0, 0), (0, 2))), dof_mask=jnp.array([1.0, 1, 1, 1, 0, 0]),
+    alone = forward(params, small, xs, loads=loads)
+    within = forward(padded, wide, jnp.pad(xs, ((0, 0), (0, 2))), dof_mask=jnp.array([1.0, 1, 1, 1, 0, 0]),
                           loads=loads)
     np.testing.assert_allclose(within[:, :4], alone, rtol=1e-12, atol=1e-12)
     assert not np.any(within[:, 4:])
@@ -98,7 +97,7 @@ def test_online_learning_refits_the_highway_by_least_squares():
     u = rng.normal(size=(1, 40, 5, 1))
     weight, mask = np.ones(40), np.array([[1.0, 1.0, 0.0]])
     x[..., 2], y[..., 2] = 0.0, 0.0  # the padded dof
-    params = jax.tree_util.tree_map(lambda a: a[None], lstm.init_params(jax.random.key(0), arch))
+    params = jax.tree_util.tree_map(lambda a: a[None], init_params(jax.random.key(0), arch))
 
     class Steps:  # the learner: every window for the refit; its gradient steps record what they get
         def every_window(self):
@@ -116,7 +115,7 @@ def test_online_learning_refits_the_highway_by_least_squares():
     one = jax.tree_util.tree_map(lambda a: a[0], updated["highway"])
     design = np.concatenate([x[0, :, :, :2].reshape(40, -1), u[0].reshape(40, -1), np.ones((40, 1))], axis=1)
     coeffs, *_ = np.linalg.lstsq(design, y[0, :, :, :2].reshape(40, -1), rcond=None)
-    got = np.stack([np.asarray(linear.forward(one, arch.highway_arch, x[0, w], loads=u[0, w]))[:, :2]
+    got = np.stack([np.asarray(forward(one, arch.highway_arch, x[0, w], loads=u[0, w]))[:, :2]
                     for w in range(40)])
     np.testing.assert_allclose(got.reshape(40, -1), design @ coeffs, rtol=0, atol=1e-6 * np.abs(y).max())
     for name in ("encoder", "decoder", "dense"):  # the recurrent part is the gradient steps' to change
@@ -130,11 +129,11 @@ def test_the_counted_cost_adds_the_highway_products_and_parameters():
     additions (its bias and the sum with the decoder's output), and its parameters."""
     arch, n_s = _network(), 7
     plain = dataclasses.replace(arch, highway=False, highway_rank=0)
-    params = {a: lstm.init_params(jax.random.key(0), a) for a in (arch, plain)}
+    params = {a: init_params(jax.random.key(0), a) for a in (arch, plain)}
     xs, loads = jnp.zeros((4, 6)), jnp.zeros((7, 2))
-    dots = {a: dot_flops(jax.make_jaxpr(lambda p, a=a: lstm.forward(p, a, xs, loads=loads))(params[a]).jaxpr)
+    dots = {a: dot_flops(jax.make_jaxpr(lambda p, a=a: forward(p, a, xs, loads=loads))(params[a]).jaxpr)
             for a in (arch, plain)}
-    flops = {a: lstm.count_flops(a, n_s) for a in (arch, plain)}
+    flops = {a: count_flops(a, n_s) for a in (arch, plain)}
     assert flops[arch]["matmul"] - flops[plain]["matmul"] == n_s * (dots[arch] - dots[plain]) > 0
     assert flops[arch]["bias"] - flops[plain]["bias"] == n_s * 2 * 3 * 6
     n_highway = sum(np.size(w) for w in params[arch]["highway"].values())

@@ -1,11 +1,11 @@
-"""The ridge selection's rollout error (:func:`jaxsync.surrogate.training.least_squares.rollout_error`,
+"""The ridge selection's rollout error (:func:`jaxsync.surrogate.training.rollout_error`,
 computed in the fit's rank-R coordinates) equals refill rollouts of the full windows,
 written here directly: every chained window fed the previous cycle's prediction."""
 
 import numpy as np
 import pytest
 
-from jaxsync.surrogate.training.least_squares import rollout_error, select_regularization
+from jaxsync.surrogate.training import rollout_error, select_regularization
 
 N_PAST, N_FUTURE, N_DOF = 4, 6, 5
 

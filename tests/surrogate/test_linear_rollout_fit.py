@@ -1,4 +1,4 @@
-"""The linear surrogate's fit for the rollout (jaxsync.surrogate.training.least_squares): load
+"""The linear surrogate's fit for the rollout (jaxsync.surrogate.training.select_regularization): load
 columns fitted first, the ridge of the displacement columns chosen by refill rollouts.
 
 The case is the pulsatile vessel's, reduced to what decides it: many shared dofs and few
@@ -10,9 +10,14 @@ ridge 1e-8) is computed here with numpy.linalg.lstsq."""
 
 import numpy as np
 
-from jaxsync.surrogate.models.linear import fit_linear
-from jaxsync.surrogate.training.data import build_dataset, stack_replicas
-from jaxsync.surrogate.training.least_squares import rollout_error, select_regularization, solve_least_squares
+from jaxsync.surrogate.models import fit_linear
+from jaxsync.surrogate.training import (
+    build_dataset,
+    rollout_error,
+    select_regularization,
+    solve_least_squares,
+    stack_replicas,
+)
 
 N_ROWS, N_DOF, N_P, N_MODES = 400, 90, 10, 300
 
@@ -126,7 +131,7 @@ def test_directions_the_ridge_suppresses_are_dropped_and_move_the_fit_by_at_most
     FILTER_CUT, its fitted values are within FILTER_CUT of the targets' norm of the full
     ridge's, and the directions it keeps are exactly those; without a ridge nothing is
     dropped (numpy lstsq)."""
-    from jaxsync.surrogate.training.least_squares import FILTER_CUT
+    from jaxsync.surrogate.training import FILTER_CUT
 
     rng = np.random.default_rng(3)
     n, n_in, n_out = 120, 60, 7

@@ -15,8 +15,8 @@ import pytest
 import jaxsync
 from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.fem.load_signals import LoadSignals, load_inputs_of
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.fem import LoadSignals, load_inputs_of
+from jaxsync.solve.coupling import simulate_sync_avoiding
 from jaxsync.surrogate import (
     ArchitectureChoice,
     LinearArchitecture,
@@ -31,8 +31,8 @@ from jaxsync.surrogate import (
     stack_replicas,
     train_surrogates,
 )
-from jaxsync.surrogate.models import linear, lstm
-from jaxsync.surrogate.training.evaluate import rollout_errors
+from jaxsync.surrogate.models import forward, init_params
+from jaxsync.surrogate.training import rollout_errors
 
 N_STEPS = 2400  # about four periods of the short beam's first bending mode
 SAMPLING = Sampling(n_s=5, n_past=8, n_future=8, train_fraction=0.5)
@@ -102,38 +102,36 @@ def test_a_zero_load_path_reproduces_the_load_blind_model_bit_for_bit(model):
     n_dof, n_p, n_f, n_load = 6, 4, 3, 2
     if model == "lstm":
         blind = LSTMArchitecture(n_dof=n_dof, n_hidden=5, n_layers=2, n_past=n_p, n_future=n_f)
-        module = lstm
     else:
         blind = LinearArchitecture(n_dof=n_dof, rank=7, n_past=n_p, n_future=n_f)
-        module = linear
     aware = dataclasses.replace(blind, n_load=n_load)
     key = jax.random.key(3)
     if model == "lstm":
-        params_blind = module.init_params(key, blind)
+        params_blind = init_params(key, blind)
     else:  # zero-initialized: give the map random weights
-        shapes = jax.eval_shape(module.init_params, key, blind)
+        shapes = jax.eval_shape(init_params, key, blind)
         keys = jax.random.split(key, len(jax.tree_util.tree_leaves(shapes)))
         params_blind = jax.tree_util.tree_unflatten(jax.tree_util.tree_structure(shapes), [
             jax.random.normal(k, s.shape, s.dtype) for k, s in zip(keys, jax.tree_util.tree_leaves(shapes))])
-    params_aware = module.init_params(jax.random.key(4), aware)
+    params_aware = init_params(jax.random.key(4), aware)
     xs = jax.random.normal(jax.random.key(5), (n_p, n_dof), np.float32)
     loads = jax.random.normal(jax.random.key(6), (n_p + n_f, n_load), np.float32)
-    out = module.forward(params_aware, aware, xs, loads=loads)
+    out = forward(params_aware, aware, xs, loads=loads)
     assert out.shape == (n_f, n_dof) and out.dtype == np.float32
     zeroed = _zero_load_path(params_aware, params_blind)
-    np.testing.assert_array_equal(np.asarray(module.forward(zeroed, aware, xs, loads=loads)),
-                                  np.asarray(module.forward(params_blind, blind, xs)))
+    np.testing.assert_array_equal(np.asarray(forward(zeroed, aware, xs, loads=loads)),
+                                  np.asarray(forward(params_blind, blind, xs)))
     # the load path is read: other loads, other predictions (with the trained weights)
     if model == "linear":
         params_aware = dict(zeroed, w_load=np.ones_like(zeroed["w_load"]))
-    assert not np.allclose(module.forward(params_aware, aware, xs, loads=loads),
-                           module.forward(params_aware, aware, xs, loads=2 * loads))
+    assert not np.allclose(forward(params_aware, aware, xs, loads=loads),
+                           forward(params_aware, aware, xs, loads=2 * loads))
     with pytest.raises(ConfigError, match="takes 2 known load signal"):
-        module.forward(params_aware, aware, xs)
+        forward(params_aware, aware, xs)
     with pytest.raises(ConfigError, match=r"shape \(n_past \+ n_future, n_load\) = \(7, 2\)"):
-        module.forward(params_aware, aware, xs, loads=loads[:n_p])
+        forward(params_aware, aware, xs, loads=loads[:n_p])
     with pytest.raises(ConfigError, match="trained without load input"):
-        module.forward(params_blind, blind, xs, loads=loads)
+        forward(params_blind, blind, xs, loads=loads)
 
 
 def test_the_arx_fit_is_the_least_squares_solution_of_numpy():
@@ -162,7 +160,7 @@ def test_the_arx_fit_is_the_least_squares_solution_of_numpy():
     coeffs, *_ = np.linalg.lstsq(design, y.reshape(len(y), -1), rcond=None)
     expected = (design @ coeffs).reshape(y.shape)
     params = jax.tree_util.tree_map(lambda a: a[0], result.params)
-    got = np.stack([np.asarray(linear.forward(params, result.arch, x[w], loads=u[w])) for w in range(len(x))])
+    got = np.stack([np.asarray(forward(params, result.arch, x[w], loads=u[w])) for w in range(len(x))])
     np.testing.assert_allclose(got, expected, rtol=0, atol=1e-9 * np.abs(expected).max())
     # the load columns matter here: the fit without them is worse
     blind = fit_linear(dataclasses.replace(data, signal_train=None, signal_val=None, signal_scale=None,
@@ -346,7 +344,7 @@ def test_an_lstm_with_load_input_trains_saves_and_runs_online(tmp_path, step_off
 
 
 def test_the_reduced_precision_check_reads_the_windows_load_signals(step_off_run):
-    from jaxsync.surrogate.inference import reduced_precision, surrogate_signal_windows, surrogate_windows
+    from jaxsync.surrogate import reduced_precision, surrogate_signal_windows, surrogate_windows
 
     problem, reference = step_off_run
     trained = train_surrogates(reference, architecture=ArchitectureChoice(model="linear"), sampling=SAMPLING,

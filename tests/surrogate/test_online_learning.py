@@ -1,4 +1,4 @@
-"""Learning while synchronized (jaxsync.surrogate.training.online): the windows cut from recomputed
+"""Learning while synchronized (jaxsync.surrogate.training.OnlineLearning): the windows cut from recomputed
 steps, the least-squares refit of the linear model, the gradient update of the LSTM, and
 the synchronization-avoiding run that learns after every rejected cycle."""
 
@@ -11,12 +11,25 @@ import pytest
 import jaxsync
 from jaxsync import ProblemError
 from jaxsync.errors import ConfigError
-from jaxsync.solve.coupling.predictors import OraclePredictor
-from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
-from jaxsync.surrogate import ArchitectureChoice, Sampling, TrainConfig, TrainingChecks, train_surrogates
-from jaxsync.surrogate.models.linear import fit_linear, solve_least_squares
-from jaxsync.surrogate.refill import refill_input_steps, refill_target_steps
-from jaxsync.surrogate.training.online import OnlineLearner, OnlineLearning, sample_refill_windows, window_starts
+from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve.coupling import OraclePredictor
+from jaxsync.surrogate import (
+    ArchitectureChoice,
+    Sampling,
+    TrainConfig,
+    TrainingChecks,
+    refill_input_steps,
+    refill_target_steps,
+    train_surrogates,
+)
+from jaxsync.surrogate.models import fit_linear
+from jaxsync.surrogate.training import (
+    OnlineLearner,
+    OnlineLearning,
+    sample_refill_windows,
+    solve_least_squares,
+    window_starts,
+)
 
 N_STEPS = 4000
 N_S, N_P, N_F = 20, 10, 10
@@ -164,7 +177,7 @@ def test_the_linear_refit_is_the_least_squares_fit_of_every_window_seen(linear, 
     # fit_linear on the union, normalized like the surrogate's windows, gives the same predictions
     x, y, u, _ = learner.every_window()
     assert x.shape[1] == added + n_replay
-    from jaxsync.surrogate.training.data import ReplicaData
+    from jaxsync.surrogate.training import ReplicaData
 
     stacked = ReplicaData(x_train=x, y_train=y, load_parameter_train=np.zeros(x.shape[:2]),
                           x_val=x[:, :0], y_val=y[:, :0], load_parameter_val=np.zeros((x.shape[0], 0)),
@@ -175,7 +188,7 @@ def test_the_linear_refit_is_the_least_squares_fit_of_every_window_seen(linear, 
                           load_inputs=linear.load_inputs)
     direct = fit_linear(stacked, dtype=linear.arch.dtype)
     assert direct.arch.rank <= linear.arch.rank  # no direction truncated: the same map
-    from jaxsync.surrogate.models.architecture import forward
+    from jaxsync.surrogate.models import forward
 
     for p in range(linear.n_parts):
         one = jax.tree_util.tree_map(lambda a: a[p], updated.params)
@@ -231,7 +244,7 @@ def test_a_run_learns_after_every_rejected_cycle_and_stays_within_the_tolerance(
     assert st.surrogate_updated_at[0] >= ends[0] and st.seconds_updating > 0
     error = np.linalg.norm(traj.displacement - reference.displacement, axis=2).max()
     assert error <= 1.2 * tol
-    assert "surrogate update" in jaxsync.solve.coupling.syncavoid.describe_run(traj)
+    assert "surrogate update" in jaxsync.solve.coupling.describe_run(traj)
 
 
 def test_learning_needs_weights_and_is_said_in_the_tolerance(problem, partition, linear):

@@ -10,22 +10,22 @@ import pytest
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io.trajectory import PartHistory, Trajectory
-from jaxsync.surrogate.refill import (
+from jaxsync.surrogate import (
     refill_index_sets,
     refill_input_steps,
     refill_scatter,
     refill_target_steps,
     refill_windows,
 )
-from jaxsync.surrogate.training.data import (
+from jaxsync.surrogate.training import (
     Normalization,
     build_dataset,
     make_windows,
+    read_shared_histories,
     split_indices,
     stack_replicas,
     subsample,
 )
-from jaxsync.surrogate.training.histories import read_shared_histories
 
 REFILL_CASES = [(1599, 80, 20, 20), (9, 1, 10, 10), (47, 4, 6, 3), (100, 7, 3, 5), (29, 3, 5, 9), (5, 2, 3, 1)]
 
@@ -140,7 +140,7 @@ def test_normalization_fit_apply_invert_and_constant_dof():
     # JAX arrays (the refill's path) normalize the same way
     import jax.numpy as jnp
 
-    from jaxsync.surrogate.training.data import normalize
+    from jaxsync.surrogate.training import normalize
     np.testing.assert_allclose(np.asarray(normalize(jnp.asarray(data), jnp.asarray(norm.mean)[None],
                                                     jnp.asarray(norm.std)[None])),
                                z, rtol=1e-12, atol=1e-12)
@@ -348,7 +348,7 @@ def test_a_one_part_run_is_refused_for_training_with_the_fix(tmp_path, capsys):
     """``jaxsync simulate --parts 1 --shared-every 1`` then ``jaxsync train``: a clear error
     (no shared nodes, nothing to predict: use 2 parts or more), not a numpy reshape error."""
     from jaxsync.cli import main
-    from jaxsync.surrogate.training.fit import train_surrogates
+    from jaxsync.surrogate.training import train_surrogates
 
     problem = jaxsync.cantilever()
     run = jaxsync.simulate(problem, 100, partitions=jaxsync.partition(problem.mesh, 1), save=jaxsync.SaveAt(50, 1))

@@ -21,9 +21,8 @@ from jaxsync.surrogate import (
     load_surrogate,
     train_surrogates,
 )
-from jaxsync.surrogate.models.protocol import FitSettings
-from jaxsync.surrogate.training.data import build_dataset, stack_replicas
-from jaxsync.surrogate.training.evaluate import e_mse
+from jaxsync.surrogate.models import FitSettings
+from jaxsync.surrogate.training import build_dataset, e_mse, stack_replicas
 from oscillator_trajectories import NODES, oscillator_trajectory, write_trajectory
 
 ARCH = ArchitectureChoice(n_hidden=6, n_layers=1)
@@ -134,7 +133,7 @@ def test_one_candidate_is_the_first_of_several_and_the_choice_is_by_validation_l
     round-off; the part keeps the candidate of lower validation loss. Two candidates, the
     default (the program test_in_memory_training_equals_the_library_steps_and_writes_nothing
     compiled for the same data and settings)."""
-    from jaxsync.surrogate.training.fit import choose_candidates
+    from jaxsync.surrogate.training import choose_candidates
 
     traj = oscillator_trajectory(n_steps=300)
     unchecked = TrainingChecks(emse_applications=0, rollout_tolerance=None)
@@ -170,7 +169,7 @@ def test_offline_check_starts_after_the_last_load_jump(tmp_path):
     writes it, and through a file): the check rolls out from step 100 + n_s n_p - 1, where
     an online run, synchronized through the jump, starts predicting; its error there
     equals the rollout_errors of that start."""
-    from jaxsync.surrogate.training.evaluate import rollout_errors
+    from jaxsync.surrogate.training import rollout_errors
 
     traj = oscillator_trajectory(n_steps=300)
     traj = Trajectory(times=traj.times, displacement=traj.displacement, mesh=traj.mesh, dt=traj.dt, save_every=1,
@@ -202,7 +201,7 @@ def test_simulate_records_the_last_load_jump(tmp_path):
                             100, partitions=2, labels=[0.5, 0.3], save=jaxsync.SaveAt(10, 1))
     assert [r.parameters["last_load_jump"] for r in runs] == [jump, jump]
     runs[0].save(tmp_path / "r.h5")
-    from jaxsync.surrogate.training.histories import read_shared_histories
+    from jaxsync.surrogate.training import read_shared_histories
     assert read_shared_histories(str(tmp_path / "r.h5")).last_load_jump == jump
     assert "last_load_jump" not in jaxsync.simulate(jaxsync.cantilever(), 100, save=10).parameters
     # only jumps within the run count
@@ -212,7 +211,7 @@ def test_simulate_records_the_last_load_jump(tmp_path):
 def test_offline_rollout_check_measures_the_autonomous_rollout_and_warns_above_its_tolerance():
     """The rollout check against a rollout written here: one predict per refill cycle, each
     fed the predictions before it, never the truth after step n_s n_p - 1."""
-    from jaxsync.surrogate.training.evaluate import RolloutWarning
+    from jaxsync.surrogate.training import RolloutWarning
 
     traj = oscillator_trajectory(n_steps=300)
     with pytest.warns(RolloutWarning, match="offline check"):  # 12 epochs of a tiny network: far off

@@ -11,27 +11,24 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import ConfigError, InferencePrecisionError
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling import simulate_sync_avoiding
 from jaxsync.surrogate import (
+    DEFAULT_BOUND,
     LinearArchitecture,
     LSTMArchitecture,
+    ReducedPrecisionWarning,
     SavedSurrogate,
     Surrogate,
     TrainConfig,
     build_dataset,
-    stack_replicas,
-    train_replicas,
-)
-from jaxsync.surrogate.inference import (
-    DEFAULT_BOUND,
-    ReducedPrecisionWarning,
     check_inference_precision,
     inference_deviation,
     reduced_precision,
+    stack_replicas,
     surrogate_windows,
+    train_replicas,
 )
-from jaxsync.surrogate.models import lstm
-from jaxsync.surrogate.models.replicas import init_replicas
+from jaxsync.surrogate.models import forward, init_replicas
 
 N_P, N_F = 4, 3
 
@@ -59,8 +56,8 @@ def test_bfloat16_products_accumulate_in_float32():
     s = _lstm_surrogate()
     params = jax.tree_util.tree_map(lambda x: x[0], s.params)
     x = jnp.ones((N_P, 3), jnp.float32)
-    low = jax.make_jaxpr(lambda p, w: lstm.forward(p, s.arch, w, compute_dtype="bfloat16"))(params, x)
-    full = jax.make_jaxpr(lambda p, w: lstm.forward(p, s.arch, w))(params, x)
+    low = jax.make_jaxpr(lambda p, w: forward(p, s.arch, w, compute_dtype="bfloat16"))(params, x)
+    full = jax.make_jaxpr(lambda p, w: forward(p, s.arch, w))(params, x)
 
     def dots(jaxpr):
         """(operand dtypes, result dtype) of every dot_general, nested jaxprs included."""
@@ -80,7 +77,7 @@ def test_bfloat16_products_accumulate_in_float32():
     for operands, out in low_dots:
         assert operands == [jnp.bfloat16, jnp.bfloat16] and out == jnp.float32
     assert all(jnp.bfloat16 not in operands for operands, _ in full_dots)
-    assert lstm.forward(params, s.arch, x, compute_dtype="bfloat16").dtype == jnp.float32
+    assert forward(params, s.arch, x, compute_dtype="bfloat16").dtype == jnp.float32
 
 
 # the default run checks the float32 network; a float64 one goes through the same rounding

@@ -15,7 +15,7 @@ import jaxsync
 from jaxsync.cli.train import add_train_parser
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.io import array_checksum
-from jaxsync.solve.coupling.syncavoid import simulate_sync_avoiding
+from jaxsync.solve.coupling import simulate_sync_avoiding
 from jaxsync.surrogate import (
     ArchitectureChoice,
     LinearArchitecture,
@@ -32,11 +32,8 @@ from jaxsync.surrogate import (
     stack_replicas,
     train_surrogates,
 )
-from jaxsync.surrogate.models.architecture import architecture_from_dict, architecture_to_dict
-from jaxsync.surrogate.models.linear import forward
-from jaxsync.surrogate.models.replicas import init_replicas
-from jaxsync.surrogate.training.data import ReplicaData, make_windows, padding_mask, subsample
-from jaxsync.surrogate.training.evaluate import RolloutWarning
+from jaxsync.surrogate.models import architecture_from_dict, architecture_to_dict, forward, init_replicas
+from jaxsync.surrogate.training import ReplicaData, RolloutWarning, make_windows, padding_mask, subsample
 from oscillator_trajectories import NODES, write_trajectory
 
 N_S, N_P, N_F = 3, 4, 5
@@ -264,7 +261,7 @@ def test_a_bad_model_is_refused(tmp_path, capsys):
 
 def test_initialized_linear_replicas_for_timing_have_the_widest_rank_and_predict_the_mean():
     from jaxsync.surrogate import Surrogate
-    from jaxsync.surrogate.training.histories import shared_dof_layout
+    from jaxsync.surrogate.training import shared_dof_layout
 
     part = jaxsync.partition(jaxsync.cantilever().mesh, 2)
     n_dof, _ = shared_dof_layout(part)
@@ -287,7 +284,7 @@ def test_training_leaves_out_the_windows_across_a_recorded_load_jump(tmp_path):
     """A run whose load switches off records its jumps; training takes no window across
     them (counted in the summary) and the fit equals a fit on the kept windows alone."""
     from jaxsync.surrogate import train_surrogates
-    from jaxsync.surrogate.training.histories import read_shared_histories
+    from jaxsync.surrogate.training import read_shared_histories
 
     problem = jaxsync.cantilever()
     t_off = 150.5 * float(problem.dt)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxsync.errors import ConfigError
-from jaxsync.surrogate.models.lstm import (
+from jaxsync.surrogate.models import (
     LSTMArchitecture,
     count_parameters,
     encode,

@@ -10,11 +10,17 @@ import pytest
 
 import jaxsync
 from jaxsync.errors import CheckpointError, ConfigError
-from jaxsync.surrogate import LSTMArchitecture, SavedSurrogate, Surrogate, load_surrogate
-from jaxsync.surrogate.models.lstm import forward
-from jaxsync.surrogate.models.replicas import init_replicas, replica_params
-from jaxsync.surrogate.refill import refill_cycle, refill_index_sets, refill_rollout
-from jaxsync.surrogate.training.histories import shared_dof_layout
+from jaxsync.surrogate import (
+    LSTMArchitecture,
+    SavedSurrogate,
+    Surrogate,
+    load_surrogate,
+    refill_cycle,
+    refill_index_sets,
+    refill_rollout,
+)
+from jaxsync.surrogate.models import forward, init_replicas, replica_params
+from jaxsync.surrogate.training import shared_dof_layout
 
 N_S, N_P, N_F = 3, 4, 2
 
@@ -114,7 +120,7 @@ def test_smooth_refill_removes_the_jitter_between_applications_and_keeps_lines()
     second difference vanishes inside each segment, a linear signal comes back exactly,
     the curve starts from the last known value), and the mean of the e_i is all that is
     left of them."""
-    from jaxsync.surrogate.refill import smooth_refill
+    from jaxsync.surrogate import smooth_refill
 
     n_s, n_f = 6, 5
     t = np.arange(1, n_s * n_f + 1, dtype=float)

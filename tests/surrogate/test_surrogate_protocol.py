@@ -1,4 +1,4 @@
-"""The surrogate-model protocol (jaxsync.surrogate.models.protocol): models defined outside the
+"""The surrogate-model protocol (jaxsync.surrogate.models.SurrogateArchitecture): models defined outside the
 package -- the MLP of the guide docs/guides/extending-surrogates.md (its code block is
 executed here) and a ridge-regularised linear model fitted in closed form, defined below --
 are trained through the public entry point, saved and loaded, named on the command line,
@@ -23,7 +23,7 @@ from jaxpr_counts import dot_flops
 from jaxsync.cli import main
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.perf.roofline import surrogate_costs
-from jaxsync.solve.coupling.syncavoid import ResyncTolerance, simulate_sync_avoiding
+from jaxsync.solve import ResyncTolerance, simulate_sync_avoiding
 from jaxsync.surrogate import (
     ArchitectureChoice,
     FitSettings,
@@ -43,7 +43,7 @@ from jaxsync.surrogate import (
     train_surrogates,
     unregister_surrogate,
 )
-from jaxsync.surrogate.training.online import OnlineLearner
+from jaxsync.surrogate.training import OnlineLearner
 
 GUIDE = pathlib.Path(__file__).resolve().parents[2] / "docs" / "guides" / "extending-surrogates.md"
 N_STEPS = 4000

@@ -14,15 +14,24 @@ import pytest
 
 from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.surrogate import ArchitectureChoice, Sampling, Surrogate, TrainingState
-from jaxsync.surrogate.models.lstm import LSTMArchitecture, init_params
-from jaxsync.surrogate.models.replicas import init_replicas, replica_params, stack_params, unpad_params
-from jaxsync.surrogate.training.data import build_dataset, stack_replicas
-from jaxsync.surrogate.training.evaluate import e_mse, grid_search, max_applications
-from jaxsync.surrogate.training.train import (
+from jaxsync.surrogate.models import (
+    LSTMArchitecture,
+    init_params,
+    init_replicas,
+    replica_params,
+    stack_params,
+    unpad_params,
+)
+from jaxsync.surrogate.training import (
     TrainConfig,
+    build_dataset,
+    e_mse,
+    grid_search,
     learning_rate_schedule,
     masked_mse,
+    max_applications,
     n_epoch_rule,
+    stack_replicas,
     train_replicas,
 )
 

@@ -1,14 +1,22 @@
-"""The exchange between the parts of a distributed run.
+"""The exchange between the parts of a distributed run. The modules are private; these
+names are the package's interface:
 
-- :mod:`.index_maps`: the owned/shared index maps of the parts and the exchange of
-  shared-node values (:class:`Exchange`, ``scatter_reverse`` / ``scatter_forward``, the
-  neighbour exchange);
-- :mod:`.protocol`: the exchange protocol (:class:`ExchangeStrategy`: ``plan(partition,
-  devices)`` gives the layout and the exchange, :class:`ExchangePlan`, and its cost);
-- :mod:`.builtin`: the built-in exchanges (:class:`Psum`, :class:`Ppermute`, :class:`Mpi`,
-  :class:`Halo`) and the registry of exchanges by name (:func:`register_exchange`, entry
-  points);
-- :mod:`.halo`: deep halos, the exact communication-avoiding scheme for central differences.
+- the owned/shared index maps of the parts and the exchange of shared-node values:
+  :class:`Exchange`, :func:`scatter_reverse` / :func:`scatter_forward`,
+  :func:`synchronize_forces`, the neighbour exchange (:class:`NeighbourExchange`,
+  :func:`neighbour_exchange`) and the axes of the parts (:data:`AXIS`,
+  :data:`LOCAL_AXIS`);
+- the exchange protocol: :class:`ExchangeStrategy` (``plan(partition, devices)`` gives the
+  layout and the exchange, :class:`ExchangePlan`, and its cost, :class:`ExchangeCost`;
+  :func:`xla_plan`, :func:`xla_devices`);
+- the built-in exchanges (:class:`Psum`, :class:`Ppermute`, :class:`Mpi`, :class:`Halo`;
+  :func:`transport` describes one) and the registry of exchanges by name
+  (:func:`sync_strategy`, :func:`register_exchange`, :func:`unregister_exchange`,
+  :func:`exchange_names`; installed packages name theirs through the entry points of
+  :data:`ENTRY_POINT_GROUP`, :class:`EntryPointWarning`);
+- deep halos, the exact communication-avoiding scheme for central differences:
+  :class:`HaloPartition`, :func:`halo_partition`, :func:`check_halo_depth`,
+  :func:`refresh_halo`, :func:`advance_halo`, :func:`check_save_every`.
 
 An exchange of your own is one module implementing :class:`ExchangeStrategy` and one
 :func:`register_exchange` (the guide Adding an exchange).
@@ -28,17 +36,17 @@ __all__ = [
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
-    ".index_maps": ("AXIS", "Exchange", "LOCAL_AXIS", "NeighbourExchange", "neighbour_exchange", "scatter_forward",
+    "._index_maps": ("AXIS", "Exchange", "LOCAL_AXIS", "NeighbourExchange", "neighbour_exchange", "scatter_forward",
                     "scatter_reverse", "synchronize_forces"),
-    ".protocol": ("ExchangeCost", "ExchangePlan", "ExchangeStrategy", "xla_devices", "xla_plan"),
-    ".builtin": ("ENTRY_POINT_GROUP", "EntryPointWarning", "Halo", "Mpi", "Ppermute", "Psum", "exchange_names",
+    "._protocol": ("ExchangeCost", "ExchangePlan", "ExchangeStrategy", "xla_devices", "xla_plan"),
+    "._builtin": ("ENTRY_POINT_GROUP", "EntryPointWarning", "Halo", "Mpi", "Ppermute", "Psum", "exchange_names",
                  "register_exchange", "sync_strategy", "transport", "unregister_exchange"),
-    ".halo": ("HaloPartition", "advance_halo", "check_halo_depth", "check_save_every", "halo_partition",
+    "._halo": ("HaloPartition", "advance_halo", "check_halo_depth", "check_save_every", "halo_partition",
               "refresh_halo"),
 })
 
 if TYPE_CHECKING:
-    from .builtin import (
+    from ._builtin import (
         ENTRY_POINT_GROUP,
         EntryPointWarning,
         Halo,
@@ -51,8 +59,8 @@ if TYPE_CHECKING:
         transport,
         unregister_exchange,
     )
-    from .halo import HaloPartition, advance_halo, check_halo_depth, check_save_every, halo_partition, refresh_halo
-    from .index_maps import (
+    from ._halo import HaloPartition, advance_halo, check_halo_depth, check_save_every, halo_partition, refresh_halo
+    from ._index_maps import (
         AXIS,
         LOCAL_AXIS,
         Exchange,
@@ -62,4 +70,4 @@ if TYPE_CHECKING:
         scatter_reverse,
         synchronize_forces,
     )
-    from .protocol import ExchangeCost, ExchangePlan, ExchangeStrategy, xla_devices, xla_plan
+    from ._protocol import ExchangeCost, ExchangePlan, ExchangeStrategy, xla_devices, xla_plan

@@ -3,8 +3,8 @@ them in compiled chunks.
 
 :class:`DistributedParts` is what both executors need of a distributed run, built once
 on the host from the problem's mesh and the partition: the padded layout
-(:class:`~jaxsync.parallel.layout.PartLayout`), the devices and how the parts exchange
-across them (the :class:`~jaxsync.parallel.exchange.protocol.ExchangePlan` of the run's ``sync``
+(:class:`~jaxsync.parallel.PartLayout`), the devices and how the parts exchange
+across them (the :class:`~jaxsync.parallel.exchange.ExchangePlan` of the run's ``sync``
 exchange), and the force model. Its :meth:`~DistributedParts.systems` are JAX functions of
 the problem's global system, so traced material, damping, loads and dt flow through.
 
@@ -25,14 +25,14 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from ...errors import ConfigError
-from ...fem.forces.internal_force import force_model
-from ...fem.stepper import ExplicitSystem, SolverState
-from ...parallel.exchange.builtin import sync_strategy
-from ...parallel.exchange.halo import check_save_every
-from ...parallel.layout import PartSystems, part_systems
-from ...parallel.partitioning import Partition, partition_from_elements
-from ...parallel.partitioning import partition as make_partition
-from ...parallel.spmd import AXIS, spmd_program
+from ...fem._stepper import ExplicitSystem, SolverState
+from ...fem.forces._internal_force import force_model
+from ...parallel._layout import PartSystems, part_systems
+from ...parallel._partitioning import Partition, partition_from_elements
+from ...parallel._partitioning import partition as make_partition
+from ...parallel._spmd import AXIS, spmd_program
+from ...parallel.exchange._builtin import sync_strategy
+from ...parallel.exchange._halo import check_save_every
 from ._driver import Chunk, chunk_of_saves
 from ._phases import check_recordable, part_synchronized_steps, synchronized_steps
 
@@ -68,18 +68,18 @@ class DistributedParts:
         problem: the problem (its mesh is partitioned).
         partitions: an int n_parts (METIS, seed 0; ``jaxsync.partition(mesh, n, seed=s)``
             for another seed) or a :class:`jaxsync.Partition`.
-        sync: the exchange (:func:`jaxsync.parallel.exchange.builtin.sync_strategy`: a
-            :class:`~jaxsync.parallel.exchange.builtin.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
-            :class:`~jaxsync.parallel.exchange.protocol.ExchangeStrategy`, a registered name, or None
+        sync: the exchange (:func:`jaxsync.parallel.exchange.sync_strategy`: a
+            :class:`~jaxsync.parallel.exchange.Psum`, ``Ppermute``, ``Mpi``, ``Halo`` or any
+            :class:`~jaxsync.parallel.exchange.ExchangeStrategy`, a registered name, or None
             for the default).
-        mode: the force model (:func:`jaxsync.fem.forces.internal_force.force_model`).
+        mode: the force model (:func:`jaxsync.fem.forces.force_model`).
         devices: the devices to run on (None: the exchange's own choice); passed to
             the exchange's ``plan``.
 
     Attributes:
         partition: the element :class:`Partition`.
         sync: the exchange.
-        plan: its :class:`~jaxsync.parallel.exchange.protocol.ExchangePlan` for this partition, which
+        plan: its :class:`~jaxsync.parallel.exchange.ExchangePlan` for this partition, which
             the attributes below unpack.
         layout: :class:`PartLayout` of the parts as the programs hold them (the grown
             parts of deep halos).
@@ -110,7 +110,7 @@ class DistributedParts:
         return self.exchange.halo_depth
 
     def systems(self, problem, system: ExplicitSystem) -> PartSystems:
-        """The parts' systems of ``system`` (:func:`jaxsync.parallel.layout.part_systems`;
+        """The parts' systems of ``system`` (:func:`jaxsync.parallel.part_systems`;
         JAX, not placed)."""
         return part_systems(problem, system, self.layout, self.force_model)
 
@@ -127,7 +127,7 @@ class DistributedParts:
 
     def spmd(self, per_part, *, n_in: int, n_out: int, jit: bool = True):
         """``per_part`` over all parts on this run's devices
-        (:func:`jaxsync.parallel.spmd.spmd_program`)."""
+        (:func:`jaxsync.parallel.spmd_program`)."""
         return spmd_program(per_part, self.device_mesh, n_in=n_in, n_out=n_out, jit=jit)
 
     def check_recordable(self) -> None:
@@ -245,7 +245,7 @@ class DistributedRunner:
 
     def to_global(self, state) -> SolverState:
         """The global state of the parts' ``state`` (host numpy)."""
-        from ...parallel.element_fields import merge_element_fields
+        from ...parallel._element_fields import merge_element_fields
 
         return SolverState(self.merge(to_host(state.displacement)), self.merge(to_host(state.previous)),
                            int(to_host(state.step)[0]),

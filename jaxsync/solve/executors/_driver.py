@@ -10,7 +10,7 @@ The runner protocol (:class:`Runner`): attributes ``save_every`` and ``n_nodes``
 mesh), and methods ``chunk_steps(steps_left, preferred)`` (how many steps the next call
 advances), ``compile(state, steps) -> seconds`` (ahead, untimed) and
 ``advance(state, steps) -> (state, Chunk)``. Runners of synchronized runs also offer
-``to_global`` / ``from_global`` (a :class:`~jaxsync.fem.stepper.SolverState` of the whole
+``to_global`` / ``from_global`` (a :class:`~jaxsync.fem.SolverState` of the whole
 mesh, for checkpoints and restarts).
 """
 

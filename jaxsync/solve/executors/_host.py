@@ -9,7 +9,7 @@ divergence and writes solver checkpoints. What follows is the coupling's: its pl
 (:meth:`jaxsync.solve.coupling.Coupling.plan`) finishes the run from the first phase
 (:meth:`~jaxsync.solve.coupling.RunPlan.finish_on_host`) -- a synchronized run builds its
 trajectory; a synchronization-avoiding run runs its predicted phase with its
-re-synchronization policy (:mod:`jaxsync.solve.coupling.resync`). The executor itself has no
+re-synchronization policy (:mod:`jaxsync.solve.coupling`). The executor itself has no
 branch on the kind of run. The trajectory is built once, at the end
 (:mod:`jaxsync.solve.executors`).
 """
@@ -26,8 +26,8 @@ import jax
 import numpy as np
 
 from ...errors import StabilityError
-from ...fem.stepper import ExplicitSystem, SolverState, advance
-from ...fem.timestep import divergence_advice
+from ...fem._stepper import ExplicitSystem, SolverState, advance
+from ...fem._timestep import divergence_advice
 from ...io.checkpoint import CheckpointSchedule, CheckpointWriter, fingerprint, load_checkpoint, watch_chunks
 from ...io.trajectory import Result
 from ._distributed import DistributedRunner
@@ -108,8 +108,8 @@ class HostRun:
             :class:`~jaxsync.solve.executors.DistributedRunner`).
         first: the first synchronized phase (:class:`FirstPhase`).
         dt: the time step [s].
-        save: :class:`~jaxsync.solve.strategies.SaveAt`.
-        executor: :class:`~jaxsync.solve.strategies.HostExecutor`.
+        save: :class:`~jaxsync.solve.SaveAt`.
+        executor: :class:`~jaxsync.solve.HostExecutor`.
         limit: the displacement above which a run has diverged [cm].
         progress: the run's :class:`~jaxsync.solve.executors.Progress`.
     """
@@ -130,7 +130,7 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
     with resumable checkpoints; a divergence raises :class:`StabilityError` with the
     snapshots saved before.
 
-    ``check``: a hyperelastic run's :class:`~jaxsync.fem.run_check.RunCheck`, applied
+    ``check``: a hyperelastic run's :class:`~jaxsync.fem.RunCheck`, applied
     to the global state after every chunk (before its checkpoint): an inverted element or
     dt above the deformed state's stable step stops the run with :class:`StabilityError`
     (the snapshots saved so far in ``error.trajectory``); a divergence inside a chunk is
@@ -211,8 +211,8 @@ def _synchronized_phase(problem, runner, state: SolverState, n_steps: int, save,
 
 def _run_check(problem, system: ExplicitSystem, dt: float, executor):
     """The between-chunks check of a run, as its material law sets it
-    (:meth:`jaxsync.fem.materials.law.MaterialLaw.run_check`: a hyperelastic law's
-    :class:`jaxsync.fem.run_check.RunCheck`; None for a linear law, or with
+    (:meth:`jaxsync.fem.materials.MaterialLaw.run_check`: a hyperelastic law's
+    :class:`jaxsync.fem.RunCheck`; None for a linear law, or with
     ``HostExecutor(check_stability=False)``)."""
     if not executor.check_stability:
         return None
@@ -234,9 +234,9 @@ def run_on_host(problem, system: ExplicitSystem, state: SolverState, plan, *, sa
     Args:
         problem, system, state: the problem, its global system and the start (step 0).
         plan: the run's plan (:meth:`jaxsync.solve.coupling.Coupling.plan`).
-        save: :class:`~jaxsync.solve.strategies.SaveAt`.
-        executor: :class:`~jaxsync.solve.strategies.HostExecutor`.
-        checkpoint: a :class:`~jaxsync.solve.strategies.SolverCheckpoint` of the first
+        save: :class:`~jaxsync.solve.SaveAt`.
+        executor: :class:`~jaxsync.solve.HostExecutor`.
+        checkpoint: a :class:`~jaxsync.solve.SolverCheckpoint` of the first
             synchronized phase, or None.
 
     Raises:

@@ -13,15 +13,15 @@ written once:
   synchronized steps, saving every ``save_every`` steps and optionally recording the
   shared-node displacements after every step;
 * :func:`predict_cycle` -- one refill: the part's shared-node displacements for the next
-  n_s n_f steps from the last n_s n_p (:func:`jaxsync.surrogate.refill.refill_cycle`);
+  n_s n_f steps from the last n_s n_p (:func:`jaxsync.surrogate.refill_cycle`);
 * :func:`overwritten_steps` -- steps without exchange, each followed by writing the
   predictions into the part's shared nodes;
 * :func:`refill_steps` -- one refill cycle, the two above in sequence, and
   :func:`predicted_cycles` -- a loop of them.
 
 ``adjoint`` (None: the plain loops of the host's compiled chunks; a
-:class:`~jaxsync.solve.strategies.Recompute` or ``StoreAll``: the traced executor's
-reverse-pass policy) only chooses how the same loop is written (:mod:`jaxsync.solve.remat`).
+:class:`~jaxsync.solve.Recompute` or ``StoreAll``: the traced executor's
+reverse-pass policy) only chooses how the same loop is written (:mod:`jaxsync.solve`).
 """
 
 from __future__ import annotations
@@ -32,12 +32,12 @@ import jax
 import jax.numpy as jnp
 
 from ...errors import ConfigError, ProblemError
-from ...fem.stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
-from ...parallel.exchange.halo import advance_halo
-from ...parallel.exchange.index_maps import Exchange
-from ...parallel.layout import PartSystems
-from ...surrogate.refill import refill_cycle
-from ..remat import advance_traced, recomputing_scan, segment_steps, state_bytes
+from ...fem._stepper import ExplicitSystem, Probe, SolverState, advance, central_difference
+from ...parallel._layout import PartSystems
+from ...parallel.exchange._halo import advance_halo
+from ...parallel.exchange._index_maps import Exchange
+from ...surrogate._refill import refill_cycle
+from .._remat import advance_traced, recomputing_scan, segment_steps, state_bytes
 
 __all__ = ["SynchronizedSteps", "PredictedSteps", "synchronized_steps", "part_synchronized_steps", "check_recordable",
            "predict_cycle",
@@ -68,9 +68,9 @@ class PredictedSteps(SynchronizedSteps):
 def synchronized_steps(system: ExplicitSystem, state: SolverState, n_saves: int, save_every: int, *,
                        synchronize=None, record=None, adjoint=None):
     """``n_saves * save_every`` steps of ``system`` (the whole mesh, or one part whose
-    forces ``synchronize`` completes): :func:`jaxsync.fem.stepper.advance`'s outputs,
+    forces ``synchronize`` completes): :func:`jaxsync.fem.advance`'s outputs,
     written as a plain loop (``adjoint`` None) or with ``adjoint``'s reverse pass
-    (:func:`jaxsync.solve.remat.advance_traced`)."""
+    (:func:`jaxsync.solve._remat.advance_traced`)."""
     if adjoint is None:
         return advance(system, state, n_saves, save_every, synchronize=synchronize, record=record)
     return advance_traced(system, state, n_saves, save_every, adjoint, synchronize=synchronize, record=record)
@@ -125,12 +125,12 @@ def overwritten_steps(part: PartSystems, state: SolverState, pred, modal=None, *
                       probe: Exchange | None = None):
     """One part: ``steps`` solver steps without synchronization, each followed by writing
     the predicted shared-node displacements ``pred[j]`` into the part's state (the
-    stepper's loop, :func:`jaxsync.fem.stepper.advance`, with an overwrite).
+    stepper's loop, :func:`jaxsync.fem.advance`, with an overwrite).
 
     ``probe``: None, or the run's exchange: then each part also measures its
     force-balance defect at its shared nodes, summed over each ``save_every`` steps, with
     one exchange of partial forces at every saved step (:func:`defect_probe`;
-    :mod:`jaxsync.solve.coupling.error_estimate`), and, with ``modal`` (its tables, see
+    :mod:`jaxsync.solve.coupling`), and, with ``modal`` (its tables, see
     :func:`defect_probe`), its share of the modal error's response to every step's defect.
 
     Returns (state, saved displacement (steps // save_every, n_local, 3)), with ``probe``
@@ -156,7 +156,7 @@ def overwritten_steps(part: PartSystems, state: SolverState, pred, modal=None, *
 
 def defect_probe(part: PartSystems, exchange: Exchange, modal=None):
     """The force-balance defect of one part, summed over each ``save_every`` steps, as a
-    :class:`~jaxsync.fem.stepper.Probe`.
+    :class:`~jaxsync.fem.Probe`.
 
     A step's defect at the part's shared dofs is delta = kept - balanced: what the part
     kept there (its prediction, the Dirichlet values) minus the synchronized update of
@@ -173,13 +173,13 @@ def defect_probe(part: PartSystems, exchange: Exchange, modal=None):
     injection phi^T M at its shared slots, (n_shared_max, 3, n_modes), 1 / c at each slot
     (c the parts that hold its node; 0 in padding), (n_shared_max,), and the response of every
     mode's (q(n), q(n-1)) a block's end to a unit injection ``save_every - 1 - j`` steps
-    before it, (save_every, n_modes, 2) (:meth:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator.device_tables`).
+    before it, (save_every, n_modes, 2) (:meth:`~jaxsync.solve.coupling.ErrorPropagator.device_tables`).
     Then the probe also returns, per block, this part's share of the modal error's
     response to each of its steps' defects, at the step it happened: the mean defect over
     the parts that hold a shared node is a sum over the parts of (kept - u) / c - (1 -
     1 / c) L f_p (c the parts that hold it), each term the part's own, so every part
     drives the modes with its share every step and no exchange is needed; the host adds
-    the parts' shares (:meth:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator.propagate`).
+    the parts' shares (:meth:`~jaxsync.solve.coupling.ErrorPropagator.propagate`).
     Returns then (block sums, (n_modes, 2) modal responses)."""
     system, total = part.system, exchange.force_sum(part)
     zero = jnp.zeros_like(system.mass)

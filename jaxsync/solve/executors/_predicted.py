@@ -213,7 +213,7 @@ class MonitoredRunner(_PredictedRunnerBase):
     """The monitored predicted phase: one refill cycle per call, predicted ahead, its
     es_hat (paper eq. 26) checked at the saved steps against ``tolerance`` [cm] before the
     solver uses it; then, with a ``propagator``
-    (:class:`~jaxsync.solve.coupling.error_estimate.ErrorPropagator`), run with the force-balance
+    (:class:`~jaxsync.solve.coupling.ErrorPropagator`), run with the force-balance
     defect probed at the saved steps and the estimated error accumulated since the last
     synchronized state checked against the same tolerance. :class:`CycleRejected` when
     either is above it (or not finite). ``estimates`` holds the accepted cycles'

@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...fem.load_signals import record_load_signal
-from ...fem.loads import load_jumps
+from ...fem._load_signals import record_load_signal
+from ...fem._loads import load_jumps
 from ...pytree import is_traced
 
 __all__ = ["synchronized_trajectory", "online_trajectory", "run_parameters", "part_histories", "known_load_jumps",
@@ -24,7 +24,7 @@ def run_parameters(problem, jumps=None) -> dict:
     (the law's class name, e.g. ``"LinearElastic"``, ``"NeoHookean"``), its small-strain
     E, nu, rho, the damping alpha and the stiffness-proportional damping beta
     (``"stiffness_damping"``; a record without it had none); given the run's
-    load jumps (:func:`jaxsync.fem.loads.load_jumps`), also ``last_load_jump``, the last of
+    load jumps (:func:`jaxsync.fem.load_jumps`), also ``last_load_jump``, the last of
     them (absent when there is none), which the offline check of
     :func:`jaxsync.surrogate.train_surrogates` starts after, as an online run does, and
     ``load_jumps``, all of them, across which training takes no window."""
@@ -41,7 +41,7 @@ def run_parameters(problem, jumps=None) -> dict:
 
 
 def known_load_jumps(loads, n_steps: int, dt):
-    """The run's load jumps (:func:`jaxsync.fem.loads.load_jumps`), found on concrete
+    """The run's load jumps (:func:`jaxsync.fem.load_jumps`), found on concrete
     values even inside ``jit``; None when the time functions or dt are traced."""
     import jax
 
@@ -55,7 +55,7 @@ def known_load_jumps(loads, n_steps: int, dt):
 def load_signal_fields(problem, dt, n_rows: int, stride: int) -> dict:
     """``load_signal`` and ``load_inputs`` of a trajectory whose shared rows are every
     ``stride`` steps from step 0 (``n_rows`` of them): the problem's load signals there
-    (:func:`jaxsync.fem.load_signals.record_load_signal`); empty when traced."""
+    (:func:`jaxsync.fem.record_load_signal`); empty when traced."""
     recorded = record_load_signal(problem, dt, np.arange(int(n_rows)) * int(stride))
     if recorded is None:
         return {}
@@ -82,7 +82,7 @@ def synchronized_trajectory(problem, displacement, dt, save, partition=None, rec
         displacement: (n_saved, n_nodes, 3) snapshots from step 0, every ``save.every``
             steps [cm] (numpy, or JAX arrays of a traced run).
         dt: the time step [s].
-        save: the run's :class:`~jaxsync.solve.strategies.SaveAt`.
+        save: the run's :class:`~jaxsync.solve.SaveAt`.
         partition: the run's :class:`jaxsync.Partition` (distributed runs), or None.
         recorded: per part, (n_steps + 1, 3 n_shared_p) shared-node rows after every step
             from step 0 (thinned here to ``save.shared_every``), or None: the shared
@@ -121,7 +121,7 @@ def online_trajectory(problem, partition, pieces, dt, save_every: int, *, parame
     the snapshot at t = 0) and ``"predicted"`` ones (their global field the mean over the
     parts that hold each node, and each part's own predictions at the saved steps)."""
     from ...io.trajectory import Trajectory
-    from ...surrogate.training.histories import shared_dof_layout
+    from ...surrogate.training._histories import shared_dof_layout
 
     n_dof, counts = shared_dof_layout(partition)
     displacement = np.concatenate([d for _, d, _ in pieces])

@@ -1,13 +1,13 @@
 """The traced executor: a run's schedule as one JAX program.
 
 Used when any input is a JAX tracer (inside ``jax.grad``, ``jit`` or ``vmap``), or on
-request (:class:`~jaxsync.solve.strategies.TracedExecutor`). It composes the same phase
+request (:class:`~jaxsync.solve.TracedExecutor`). It composes the same phase
 functions as the host executor (:mod:`jaxsync.solve.executors`) into one program: the
 synchronized steps (on one device, or every part under ``shard_map`` with its exchange),
 then, in a synchronization-avoiding run, the refill cycles, written with the run's
-reverse-pass policy (:mod:`jaxsync.solve.remat`: memory about sqrt(n_steps) under
-:class:`~jaxsync.solve.strategies.Recompute`). The parts' saved fields are merged into
-the global one by :meth:`jaxsync.parallel.layout.PartLayout.merge` (from the owner in
+reverse-pass policy (:mod:`jaxsync.solve`: memory about sqrt(n_steps) under
+:class:`~jaxsync.solve.Recompute`). The parts' saved fields are merged into
+the global one by :meth:`jaxsync.parallel.PartLayout.merge` (from the owner in
 synchronized stretches, the mean over the parts after predicted ones). No host decision
 runs inside: no progress, divergence check, checkpoint or re-synchronization; the
 trajectory's ``result`` says whether every saved value is finite.
@@ -18,7 +18,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from ...errors import ProblemError
-from ...fem.stepper import ExplicitSystem, SolverState
+from ...fem._stepper import ExplicitSystem, SolverState
 from ...io.trajectory import Result
 from ._phases import PredictedSteps, SynchronizedSteps, part_synchronized_steps, predicted_cycles, synchronized_steps
 
@@ -61,7 +61,7 @@ def run_traced(problem, system: ExplicitSystem, state: SolverState, schedule, *,
             time functions).
         schedule: ``(SynchronizedSteps(n),)`` or ``(SynchronizedSteps(n_cri), PredictedSteps(n))``.
         save_every: the snapshot stride; divides every phase's steps and a refill cycle.
-        adjoint: the reverse-pass policy (:class:`~jaxsync.solve.strategies.Recompute`,
+        adjoint: the reverse-pass policy (:class:`~jaxsync.solve.Recompute`,
             ``StoreAll``).
         distributed: the run's :class:`jaxsync.solve.executors.DistributedParts`, or
             None for one device.
