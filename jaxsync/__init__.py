@@ -60,7 +60,7 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".run_stats": ("FullSystemStats", "RunStats", "SyncAvoidingStats", "SynchronizedStats"),
     ".solve.coupling": ("Synchronized",),
     ".solve._ensemble": ("ensemble",),
-    ".solve._ensemble_members": ("Members",),
+    ".solve._members": ("Members",),
     ".solve._full_system": ("simulate_full_system",),
     ".solve._solver": ("SteadyState", "simulate", "steady_state"),
     ".solve._strategies": ("Halo", "HostExecutor", "Mpi", "Ppermute", "Psum", "Recompute", "ResyncTolerance",
@@ -116,8 +116,8 @@ if TYPE_CHECKING:
     from .parallel._partitioning import Partition, partition
     from .run_stats import FullSystemStats, RunStats, SyncAvoidingStats, SynchronizedStats
     from .solve._ensemble import ensemble
-    from .solve._ensemble_members import Members
     from .solve._full_system import simulate_full_system
+    from .solve._members import Members
     from .solve._prestress import PrestressResult, prestress
     from .solve._solver import SteadyState, simulate, steady_state
     from .solve._static_adjoint import static_displacement

@@ -25,7 +25,6 @@ from ..io.trajectory import Result
 from ..pytree import is_traced
 from ._ensemble_members import (
     EnsembleSetup,
-    Members,
     RunData,
     batched_system,
     initial_states,
@@ -34,6 +33,7 @@ from ._ensemble_members import (
     setup_of_problems,
 )
 from ._ensemble_stability import check_members_dt, default_dt
+from ._members import Members
 from ._strategies import HostExecutor, SaveAt, TracedExecutor, choose_executor
 from .executors._driver import Chunk, Diverged, Progress, chunk_of_saves, divergence_limit, run_chunks
 from .executors._phases import synchronized_steps
@@ -121,8 +121,8 @@ def ensemble(problems, n_steps: int, *, members: Members | None = None, partitio
     * ``ensemble(problem, n_steps, members=jaxsync.Members(...))``: one problem and per-run
       arrays (:class:`jaxsync.Members`: ``material={"E": (n_runs,)...}``, ``damping``,
       ``stiffness_damping``, ``load_scale``, ``initial_displacement``,
-      ``initial_velocity``), set up in one vectorised pass without a Problem per run (the
-      fast way to thousands of runs; differentiable in every array).
+      ``initial_velocity``, ``dirichlet``), set up in one vectorised pass without a
+      Problem per run (the fast way to thousands of runs; differentiable in every array).
 
     Either way nothing is assembled per run: :func:`jaxsync.solve.batched_system` (the
     stiffness of each run's E and nu from the two unit operators, E alone as one scale per

@@ -9,8 +9,8 @@ under ``jax.vmap``. Each run (member) may have its own
   :class:`jaxsync.LinearElastic` and :class:`jaxsync.NeoHookean`; k1, k2... of a law of
   more parameters), mass-proportional damping alpha and stiffness-proportional damping
   beta;
-* load magnitudes (a factor per load, or whole load vectors and Dirichlet values when the
-  members are given as problems);
+* load magnitudes (a factor per load, or whole load vectors when the members are given
+  as problems) and the values of the Dirichlet conditions (the prescribed dofs shared);
 * initial displacement and velocity.
 
 Nothing is assembled per member. The per-member data (:class:`RunData`, every leaf with
@@ -45,209 +45,11 @@ import numpy as np
 
 from ..errors import ProblemError
 from ..fem._stepper import ExplicitSystem, SolverState, build_system
-from ..pytree import concrete_scalar, is_traced, pytree_dataclass
+from ..pytree import is_traced, pytree_dataclass
+from ._members import Members, check_law_fields, law_fields, load_factors, prescribed_values
 
-__all__ = ["Members", "RunData", "EnsembleSetup", "setup_of_members", "setup_of_problems", "member_system",
+__all__ = ["RunData", "EnsembleSetup", "setup_of_members", "setup_of_problems", "member_system",
            "batched_system", "initial_states"]
-
-
-@pytree_dataclass
-class Members:
-    """The runs of an ensemble of one problem, as arrays over the runs (no Problem per run).
-
-    ``jaxsync.ensemble(problem, n_steps, members=Members(...))``: run r is ``problem`` with
-    the r-th entry of every array given here; a field left None is the problem's own for
-    every run. At least one field is needed (it sets n_runs). A pytree: the arrays may be
-    JAX tracers (``jax.grad`` of a loss over the runs with respect to them).
-
-    Attributes:
-        material: {field: (n_runs,) array} of the problem's material law's scalar fields:
-            ``"E"`` Young's modulus [dyn/cm^2] (> 0), ``"nu"`` Poisson ratio
-            (-1 < nu < 0.5), ``"rho"`` density [g/cm^3] (> 0) of
-            :class:`jaxsync.LinearElastic` and of the hyperelastic laws given by E and nu
-            (:class:`jaxsync.NeoHookean`...); a law of other parameters by their names
-            (``"k1"`` of :class:`jaxsync.HolzapfelGasserOgden`...). Laws with internal
-            variables or a prestress are refused.
-        damping: (n_runs,) mass-proportional damping alpha [1/s] (>= 0).
-        stiffness_damping: (n_runs,) stiffness-proportional damping beta [s] (>= 0).
-        load_scale: (n_runs, n_loads) factor of each of the problem's loads (in the order of
-            ``problem.loads``; its magnitude, vector or pressure times the factor), or
-            (n_runs,) one factor for all of them. Not with follower pressures (their one
-            copy is shared).
-        initial_displacement: (n_runs, n_nodes, 3) [cm].
-        initial_velocity: (n_runs, n_nodes, 3) [cm/s].
-    """
-
-    material: Any = None
-    damping: Any = None
-    stiffness_damping: Any = None
-    load_scale: Any = None
-    initial_displacement: Any = None
-    initial_velocity: Any = None
-
-    def __post_init__(self):
-        if self.material is not None and not isinstance(self.material, dict):
-            raise ProblemError(f"Members.material must be a dict {{field: (n_runs,) array}} of the material law's "
-                               f"fields (e.g. {{'E': E, 'nu': nu}}), got {type(self.material).__name__}")
-
-    def _arrays(self) -> dict:
-        """{name: array} of the fields given, the material's as ``material['E']``..."""
-        out = {f"material[{k!r}]": v for k, v in (self.material or {}).items()}
-        for name in ("damping", "stiffness_damping", "load_scale", "initial_displacement", "initial_velocity"):
-            if getattr(self, name) is not None:
-                out[name] = getattr(self, name)
-        return out
-
-    @property
-    def n_runs(self) -> int:
-        """The runs: the leading length of the arrays (0 when none is given)."""
-        arrays = self._arrays()
-        return int(np.shape(next(iter(arrays.values())))[0]) if arrays and np.ndim(
-            next(iter(arrays.values()))) else 0
-
-    def check(self, problem) -> int:
-        """n_runs, after checking every array against ``problem`` (shapes; ranges where
-        concrete).
-
-        Raises:
-            ProblemError: no array, arrays of different run counts or wrong shapes, a field
-                the material law does not have, values out of range (E or rho <= 0, nu
-                outside (-1, 0.5), negative damping), load factors with follower pressures,
-                a law with internal variables.
-        """
-        arrays = self._arrays()
-        if not arrays:
-            raise ProblemError("Members needs at least one per-run array (material, damping, stiffness_damping, "
-                               "load_scale, initial_displacement or initial_velocity): it sets the number of runs")
-        name0, first = next(iter(arrays.items()))
-        if np.ndim(first) == 0:
-            raise ProblemError(f"Members.{name0} must have a leading runs axis, got a scalar: give one value per run")
-        n_runs = int(np.shape(first)[0])
-        if n_runs == 0:
-            raise ProblemError(f"Members.{name0} has no runs (length 0): give at least one run")
-        n = problem.n_nodes
-        n_loads = len(problem.loads)
-        expected = {"damping": (n_runs,), "stiffness_damping": (n_runs,),
-                    "initial_displacement": (n_runs, n, 3), "initial_velocity": (n_runs, n, 3),
-                    "load_scale": (n_runs, n_loads)}
-        for name, value in arrays.items():
-            shape = np.shape(value)
-            want = expected.get(name, (n_runs,))
-            if name == "load_scale" and shape == (n_runs,):
-                continue
-            if shape != want:
-                raise ProblemError(f"Members.{name} has shape {shape}; with {n_runs} runs (Members.{name0} has "
-                                   f"{np.shape(first)}) it must be {want}: one entry per run"
-                                   + (" (or (n_runs,), one factor for every load)" if name == "load_scale" else ""))
-        _check_law_fields(problem, self.material or {})
-        for name, value in arrays.items():
-            _check_values(name, value)
-        if self.load_scale is not None and any(getattr(load, "follower", False) for load in problem.loads):
-            raise ProblemError("Members.load_scale scales every load of a run, but the problem has follower "
-                               "pressures, whose one copy all runs share: give the runs as problems "
-                               "(jaxsync.ensemble([...])) with the same follower pressures, or drop load_scale")
-        return n_runs
-
-    def problem(self, problem, run: int):
-        """Run ``run``'s own :class:`jaxsync.Problem`: ``problem`` with the run's entries
-        (what :func:`jaxsync.simulate` of that run alone takes)."""
-        changes = {}
-        if self.material:
-            changes["material"] = dataclasses.replace(problem.material,
-                                                      **{k: _entry(v, run) for k, v in self.material.items()})
-        for name in ("damping", "stiffness_damping", "initial_displacement", "initial_velocity"):
-            if getattr(self, name) is not None:
-                changes[name] = _entry(getattr(self, name), run)
-        if self.load_scale is not None:
-            factors = _load_scale(self.load_scale, len(problem.loads))[run]
-            changes["loads"] = tuple(_scaled_load(load, factors[k]) for k, load in enumerate(problem.loads))
-        return problem.replace(**changes)
-
-
-def _entry(value, run: int):
-    """Run ``run``'s entry of a per-run array (a Python float for a concrete scalar)."""
-    x = value[run]
-    scalar = concrete_scalar(x) if np.ndim(x) == 0 else None
-    return scalar if scalar is not None else x
-
-
-def _load_scale(scale, n_loads: int):
-    """(n_runs, n_loads) of a load_scale given as (n_runs,) or (n_runs, n_loads)."""
-    xp = jnp if is_traced(scale) or isinstance(scale, jax.Array) else np
-    scale = xp.asarray(scale, dtype=float)
-    return xp.broadcast_to(scale[:, None], (scale.shape[0], n_loads)) if scale.ndim == 1 else scale
-
-
-def _scaled_load(load, factor):
-    """``load`` with its magnitude (a pressure's) or vector (a body force's, a traction's) times ``factor``."""
-    from ..fem._loads import Pressure
-
-    if isinstance(load, Pressure):
-        return dataclasses.replace(load, magnitude=factor * load.magnitude)
-    return dataclasses.replace(load, vector=factor * jnp.asarray(load.vector, dtype=float)
-                               if is_traced(factor, load.vector) else factor * np.asarray(load.vector, dtype=float))
-
-
-_RANGES = {"material['E']": ("Young's modulus [dyn/cm^2]", 0.0, None, "give E > 0"),
-           "material['rho']": ("density [g/cm^3]", 0.0, None, "give rho > 0"),
-           "material['nu']": ("Poisson ratio", -1.0, 0.5, "give -1 < nu < 0.5 (nu = 0.5 is incompressible)"),
-           "damping": ("mass-proportional damping alpha [1/s]", None, None, "give alpha >= 0"),
-           "stiffness_damping": ("stiffness-proportional damping beta [s]", None, None, "give beta >= 0")}
-
-
-def _check_values(name: str, value) -> None:
-    """Range checks of a concrete per-run array (tracers pass)."""
-    if is_traced(value):
-        return
-    try:
-        x = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise ProblemError(f"Members.{name} must hold numbers, got {value!r}") from None
-    if not np.all(np.isfinite(x)):
-        bad = np.argwhere(~np.isfinite(x))[0]
-        raise ProblemError(f"Members.{name} must be finite; run {int(bad[0])} has {x[tuple(bad)]}")
-    what, above, below, hint = _RANGES.get(name, (None, None, None, ""))
-    if name in ("damping", "stiffness_damping"):
-        above = None
-        bad = np.flatnonzero(x < 0)
-    elif above is not None:
-        bad = np.flatnonzero((x <= above) | ((x >= below) if below is not None else False))
-    elif name.startswith("material["):  # another law parameter: positive, as the laws require theirs
-        bad = np.flatnonzero(x <= 0)
-        what, hint = "law parameter", "give positive values (the law's own range)"
-    else:
-        return
-    if len(bad):
-        r = int(bad[0])
-        raise ProblemError(f"Members.{name} ({what}) of run {r} is {x[r]:g}: {hint}"
-                           + (f" (also runs {[int(b) for b in bad[1:6]]}...)" if len(bad) > 1 else ""))
-
-
-def law_fields(material) -> tuple:
-    """The names of a material law's scalar parameters that members may vary."""
-    from ..fem.materials._linear_elastic import LinearElastic
-
-    if isinstance(material, LinearElastic):
-        return ("E", "nu", "rho")
-    return tuple(f.name for f in dataclasses.fields(material) if f.name != "fibres"
-                 and (is_traced(getattr(material, f.name)) or concrete_scalar(getattr(material, f.name)) is not None))
-
-
-def _check_law_fields(problem, material: dict) -> None:
-    """The member material fields are the law's, and a law that members vary has no state."""
-    if not material:
-        return
-    law = problem.material
-    allowed = law_fields(law)
-    unknown = [k for k in material if k not in allowed]
-    if unknown:
-        raise ProblemError(f"Members.material has {unknown}, which {type(law).__name__} does not have as a scalar "
-                           f"parameter: give some of {list(allowed)}")
-    if law.finite_strain and (getattr(law, "constant_state", False)
-                              or law.internal_variables(1, 1)):
-        raise ProblemError(f"the {type(law).__name__} law carries internal variables or a prestress, which an "
-                           "ensemble's members cannot vary: run each parameter set separately with jaxsync.simulate, "
-                           "or vary only loads and initial conditions")
 
 
 @pytree_dataclass
@@ -378,11 +180,13 @@ def setup_of_members(problem, members: Members) -> EnsembleSetup:
     def floats(x):
         return None if x is None else (x if is_traced(x) or isinstance(x, jax.Array) else np.asarray(x, float))
 
+    fixed_values, moving = (None, None) if members.dirichlet is None else prescribed_values(problem, members.dirichlet)
+
     return EnsembleSetup(
         base=problem, n_runs=n_runs, law={k: floats(v) for k, v in (members.material or {}).items()},
         damping=floats(members.damping), stiffness_damping=floats(members.stiffness_damping), load_vectors=None,
-        load_scale=None if members.load_scale is None else _load_scale(members.load_scale, len(problem.loads)),
-        fixed_values=None, moving=None, initial_displacement=floats(members.initial_displacement),
+        load_scale=None if members.load_scale is None else load_factors(members.load_scale, len(problem.loads)),
+        fixed_values=fixed_values, moving=moving, initial_displacement=floats(members.initial_displacement),
         initial_velocity=floats(members.initial_velocity), member=lambda r: members.problem(problem, r))
 
 
@@ -415,7 +219,7 @@ def setup_of_problems(problems: tuple) -> EnsembleSetup:
         if values is not None:
             law[name] = values
     if law:
-        _check_law_fields(first, law)
+        check_law_fields(first, law)
     vectors, fixed_values, moving = [], [], []
     for problem in problems:
         loads, _ = problem.load_vectors()
