@@ -115,8 +115,9 @@ class Members:
             if name == "load_scale" and shape == (n_runs,):
                 continue
             if shape != want:
-                raise ProblemError(f"Members.{name} has shape {shape}; with {n_runs} runs (Members.{name0} has "
-                                   f"{np.shape(first)}) it must be {want}: one entry per run"
+                which = "" if name == name0 else f" (Members.{name0} has {np.shape(first)})"
+                raise ProblemError(f"Members.{name} has shape {shape}; with {n_runs} runs{which} it must be {want}: "
+                                   "one entry per run"
                                    + (" (or (n_runs,), one factor for every load)" if name == "load_scale" else "")
                                    + (" (a value (x, y, z) [cm] per run and Dirichlet condition, in the order of "
                                       "problem.dirichlet)" if name == "dirichlet" else ""))
