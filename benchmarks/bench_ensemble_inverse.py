@@ -30,9 +30,9 @@ Reported per member: the recovered and true E, the relative error, and the error
 of the Cramer-Rao standard deviation of the estimate, sigma / |J_r| (at the estimate);
 for a correct estimator and model these are standard normal, so the table's ``max |z|``
 should be a few units at most. Beside it, the reverse-mode gradient of the summed
-least-squares loss (``jax.grad`` through the ensemble, in E) against central finite
-differences of the loss (relative step 1e-5) for two members, at the start (E = E_0 for
-every member, where the gradient is far from zero), and the times of one
+least-squares loss (``jax.grad`` through the ensemble, in log E: the program the fit
+uses) against central finite differences of the loss (step 1e-5 in log E) for two
+members, at the start (E = E_0 for every member, where the gradient is far from zero), and the times of one
 forward run, one forward-mode derivative and one gradient (each compiled first, then
 timed once; the batched run advances all members in one program,
 ``stats``-free :class:`jaxsync.TracedExecutor`).
@@ -94,15 +94,22 @@ def make_predict(problem, n_steps: int, save: int, nodes: np.ndarray, dt: float)
     return predict
 
 
-def gauss_newton(predict, data, E0: float, n_members: int, iterations: int,
-                 epsilon: float = 1e-4) -> tuple[np.ndarray, list, np.ndarray]:
-    """(theta (n,), history of the largest |step|, J_r . J_r (n,) at the estimate) of the
-    per-member Gauss-Newton fit of log(E_r / E0) (module docstring)."""
+def misfit(predict, data, E0: float, n_members: int):
+    """(residuals(theta) (n, m), loss(theta) = 1/2 sum |r|^2, its compiled gradient) in
+    theta = log(E / E0): one reverse-mode program, for the fit and for its check."""
     def residuals(theta):
         return (predict(E0 * jnp.exp(theta)) - data).reshape(n_members, -1)
 
-    gradient = jax.jit(jax.grad(lambda theta: 0.5 * jnp.sum(residuals(theta) ** 2)))
+    def loss(theta):
+        return 0.5 * jnp.sum(residuals(theta) ** 2)
 
+    return residuals, jax.jit(loss), jax.jit(jax.grad(loss))
+
+
+def gauss_newton(residuals, gradient, n_members: int, iterations: int,
+                 epsilon: float = 1e-4) -> tuple[np.ndarray, list, np.ndarray]:
+    """(theta (n,), history of the largest |step|, J_r . J_r (n,) at the estimate) of the
+    per-member Gauss-Newton fit of log(E_r / E0) (module docstring)."""
     def information(theta):  # J_r . J_r by central differences, all members at once
         J = (residuals(theta + epsilon) - residuals(theta - epsilon)) / (2.0 * epsilon)
         return jnp.sum(J * J, axis=1)
@@ -118,26 +125,17 @@ def gauss_newton(predict, data, E0: float, n_members: int, iterations: int,
     return np.asarray(theta), steps, np.asarray(information(theta))
 
 
-def gradient_check(predict, data, E: np.ndarray, members=(0, 1), relative_step: float = 1e-5) -> tuple[list, object]:
-    """(per member, jax.grad of the summed squared misfit in E against central differences
-    of it; the compiled gradient)."""
-    scale = 1.0 / float(jnp.sum(data ** 2))
-
-    @jax.jit
-    def loss(E):
-        return scale * jnp.sum((predict(E) - data) ** 2)
-
-    compiled = jax.jit(jax.grad(loss))
-    gradient = np.asarray(compiled(jnp.asarray(E)))
+def gradient_check(loss, gradient, theta: np.ndarray, members=(0, 1), step: float = 1e-5) -> list[dict]:
+    """jax.grad of the loss in theta = log E against central differences of it, per member."""
+    g = np.asarray(gradient(jnp.asarray(theta)))
     out = []
     for r in members:
-        h = relative_step * E[r]
-        step = np.zeros_like(E)
-        step[r] = h
-        fd = (float(loss(jnp.asarray(E + step))) - float(loss(jnp.asarray(E - step)))) / (2 * h)
-        out.append({"member": int(r), "grad": float(gradient[r]), "central_difference": fd,
-                    "relative_difference": abs(float(gradient[r]) - fd) / abs(fd)})
-    return out, compiled
+        e = np.zeros_like(theta)
+        e[r] = step
+        fd = (float(loss(jnp.asarray(theta + e))) - float(loss(jnp.asarray(theta - e)))) / (2 * step)
+        out.append({"member": int(r), "grad": float(g[r]), "central_difference": fd,
+                    "relative_difference": abs(float(g[r]) - fd) / abs(fd)})
+    return out
 
 
 def timed(call, *args) -> float:
@@ -159,14 +157,14 @@ def run(*, members: int, steps: int, save: int, observed: int, noise: float, siz
     sigma = noise * float(jnp.sqrt(jnp.mean(clean ** 2)))
     data = clean + sigma * jnp.asarray(np.random.default_rng(seed + 1).standard_normal(clean.shape))
     E0 = float(problem.material.E)
+    residuals, loss, gradient = misfit(predict, data, E0, members)
     start = time.perf_counter()
-    theta, history, information = gauss_newton(predict, data, E0, members, iterations)
+    theta, history, information = gauss_newton(residuals, gradient, members, iterations)
     fit_seconds = time.perf_counter() - start
     estimate = E0 * np.exp(theta)
     std = sigma / np.sqrt(information)  # Cramer-Rao, in theta = log E
     z = (theta - np.log(truth / E0)) / std
-    checks, gradient = gradient_check(predict, data, np.full(members, E0))  # at the start, away from g = 0
-    E = jnp.asarray(estimate)
+    checks = gradient_check(loss, gradient, np.zeros(members))  # at the start, away from g = 0
     return {
         "settings": {"members": members, "steps": steps, "save": save, "observed": int(len(nodes)),
                      "noise": noise, "size": size, "iterations": iterations, "seed": seed},
@@ -180,7 +178,7 @@ def run(*, members: int, steps: int, save: int, observed: int, noise: float, siz
         "gauss_newton_steps": history,
         "fit_seconds": fit_seconds,
         "gradient_check": checks,
-            "seconds": {"forward": timed(predict, E), "gradient": timed(gradient, E)},
+        "seconds": {"forward": timed(predict, jnp.asarray(estimate)), "gradient": timed(gradient, jnp.asarray(theta))},
         "device": jax.devices()[0].device_kind,
         "machine": experiments.machine(),
     }
