@@ -19,10 +19,13 @@ time over the n_s n_f steps it serves). The table gives:
 - ``zeta`` = t_sync / t_avoid on these devices.
 
 Surrogates (untrained replicas: a network's cost does not depend on its weights,
-:meth:`jaxsync.surrogate.Surrogate.initialized`): ``lstm``, the vessel demo's network
-(n_H 32, 2 layers) with a linear highway of ``--highway-rank`` directions; ``lstm-bare``,
-the same without the highway; ``linear``, the linear map of ``--linear-rank``
-directions. The ranks stand for what a fit keeps (the ridge drops the directions it
+:meth:`jaxsync.surrogate.Surrogate.initialized`), each with the default smooth refill
+(:data:`jaxsync.surrogate.DEFAULT_REFILL_SAMPLES` network applications per refill,
+column ``calls``): ``lstm``, the vessel demo's network (n_H 32, 2 layers) with a linear
+highway of ``--highway-rank`` directions; ``lstm-all``, the same network evaluating all
+n_s applications per refill (``refill_samples=None``, the exact block means);
+``lstm-bare``, the LSTM without the highway; ``linear``, the linear map of
+``--linear-rank`` directions. The ranks stand for what a fit keeps (the ridge drops the directions it
 suppresses; a trained surrogate file says its own rank).
 
 Devices are emulated: two XLA host devices on two cores, so a psum is a meeting of
@@ -30,7 +33,7 @@ threads, not a message; the share t_d / t_sync is what a machine like this one p
 the cost model (:mod:`jaxsync.perf.costmodel`, ``gpu_projection.py``) carries t_d to
 other interconnects.
 
-Usage: python benchmarks/bench_predicted_step.py [--quick] [--surrogates lstm lstm-bare linear]
+Usage: python benchmarks/bench_predicted_step.py [--quick] [--surrogates lstm lstm-all lstm-bare linear]
        [--highway-rank 80] [--linear-rank 80] [--repeats 5]
        [--out benchmarks/results/predicted_step.json]
 ``--quick``: the coarse cantilever on 2 parts, n_s = 10, one repeat (what the tests run).
@@ -59,7 +62,7 @@ from jaxsync.perf.timing import speedup_breakdown  # noqa: E402
 from jaxsync.surrogate import Surrogate  # noqa: E402
 
 DEFAULT_OUT = os.path.join(HERE, "results", "predicted_step.json")
-SURROGATES = ("lstm", "lstm-bare", "linear")
+SURROGATES = ("lstm", "lstm-all", "lstm-bare", "linear")
 
 
 def case(quick: bool):
@@ -76,8 +79,9 @@ def case(quick: bool):
 def surrogate(kind: str, partition, n_s: int, highway_rank: int, linear_rank: int) -> Surrogate:
     if kind == "linear":
         return Surrogate.initialized(partition, n_s, model="linear", rank=linear_rank)
-    return Surrogate.initialized(partition, n_s, n_hidden=32, n_layers=2,
-                                 highway_rank=highway_rank if kind == "lstm" else 0)
+    lstm = Surrogate.initialized(partition, n_s, n_hidden=32, n_layers=2,
+                                 highway_rank=0 if kind == "lstm-bare" else highway_rank)
+    return lstm.with_refill_samples(None) if kind == "lstm-all" else lstm
 
 
 def measure(problem, partition, predictor, repeats: int) -> dict:
@@ -92,10 +96,11 @@ def measure(problem, partition, predictor, repeats: int) -> dict:
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| surrogate | rank | t_sync | t_nosync | t_avoid | t_d | t_d / t_sync | rest | zeta |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| surrogate | rank | calls | t_sync | t_nosync | t_avoid | t_d | t_d / t_sync | rest | zeta |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        lines.append(f"| {r['surrogate']} | {r['rank']} | {r['t_sync_us']:.1f} | {r['t_nosync_us']:.1f} | "
+        lines.append(f"| {r['surrogate']} | {r['rank']} | {r['refill_calls']} | {r['t_sync_us']:.1f} | "
+                     f"{r['t_nosync_us']:.1f} | "
                      f"{r['t_avoid_us']:.1f} | {r['t_d_us']:.1f} | {100 * r['t_d_over_t_sync']:.0f} % | "
                      f"{r['rest_us']:.1f} | {r['zeta']:.2f} |")
     return "\n".join(lines)
@@ -114,10 +119,10 @@ def main(argv=None) -> int:
     name, problem, partition, n_s = case(args.quick)
     rows = []
     for kind in args.surrogates:
-        rank = {"lstm": args.highway_rank, "linear": args.linear_rank}.get(kind, 0)
-        row = {"surrogate": kind, "rank": rank, **measure(problem, partition,
-                                                           surrogate(kind, partition, n_s, args.highway_rank,
-                                                                     args.linear_rank), repeats)}
+        rank = {"lstm-bare": 0, "linear": args.linear_rank}.get(kind, args.highway_rank)
+        predictor = surrogate(kind, partition, n_s, args.highway_rank, args.linear_rank)
+        row = {"surrogate": kind, "rank": rank, "refill_calls": predictor.refill_calls,
+               **measure(problem, partition, predictor, repeats)}
         rows.append(row)
         print(f"{kind}: t_d {row['t_d_us']:.1f} us = {100 * row['t_d_over_t_sync']:.0f} % of the synchronized "
               f"step, zeta {row['zeta']:.2f}", flush=True)

@@ -3,6 +3,7 @@ surrogates, on the partition of a synchronized trajectory."""
 
 from __future__ import annotations
 
+import argparse
 import os
 
 from . import common
@@ -40,6 +41,11 @@ def add_parser(subparsers) -> None:
                    help="write the paper's raw refill into the solver (n_s interleaved network "
                         "applications, which jitter from step to step) instead of the default smooth "
                         "curve through their block means (jaxsync.surrogate.smooth_refill)")
+    p.add_argument("--refill-samples", type=_refill_samples, default=None, metavar="N|all",
+                   help="network applications per smooth refill: the block means the curve goes through are "
+                        "estimated from N applications evenly spaced over the n_s (jaxsync.surrogate."
+                        "refill_block_means; default: jaxsync.surrogate.DEFAULT_REFILL_SAMPLES, 16; 'all': every "
+                        "one, n_s network calls per refill)")
     p.add_argument("--inference-dtype", choices=("float32", "bfloat16"), default=None,
                    help="compute the networks in bfloat16 (float32 accumulation; jaxsync.surrogate."
                         "inference): checked first on the synchronized run's shared histories and "
@@ -92,8 +98,9 @@ def run(args) -> int:
     from ..surrogate import Surrogate
 
     # the surrogate file's shared nodes were checked against the partition when it was loaded
-    surrogates = dataclasses.replace(Surrogate.from_saved(saved, args.load_parameter),
-                                     smooth=not args.raw_refill)
+    surrogates = dataclasses.replace(Surrogate.from_saved(saved, args.load_parameter), smooth=not args.raw_refill)
+    if args.refill_samples is not None:
+        surrogates = surrogates.with_refill_samples(None if args.refill_samples == "all" else args.refill_samples)
     if args.inference_dtype == "bfloat16":
         # bound to the problem's load signals first (surrogates with load input read them)
         surrogates = _reduced_precision(surrogates.for_problem(problem, reference.dt), reference, args.trajectory)
@@ -131,3 +138,16 @@ def _reduced_precision(surrogate, reference, name):
     print(f"bfloat16 inference: deviates from {surrogate.arch.dtype} by at most {100 * report.worst:.3g} % "
           f"(RMS over {report.n_windows} windows of {name}; bound {100 * DEFAULT_BOUND:.3g} %)")
     return reduced
+
+
+def _refill_samples(text: str) -> int | str:
+    """``--refill-samples``: an integer >= 1, or ``"all"``."""
+    if text.strip().lower() == "all":
+        return "all"
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1 or 'all', got {text!r}")
+    return value

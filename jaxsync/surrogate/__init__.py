@@ -12,7 +12,9 @@ of a trained set is beside them:
   :func:`refill_target_steps`, :func:`refill_index_sets`), its windows
   (:func:`refill_windows`, :func:`refill_scatter`) and its predictions
   (:func:`refill_predict`, :func:`smooth_refill`, :func:`refill_cycle`,
-  :func:`refill_rollout`);
+  :func:`refill_rollout`), and the smooth refill from a few applications
+  (:func:`refill_applications`, :func:`refill_block_means`, :func:`smooth_curve`,
+  :data:`DEFAULT_REFILL_SAMPLES`);
 - reduced-precision (bfloat16) inference and the check that it keeps accuracy
   (:func:`check_inference_precision`, :func:`reduced_precision`,
   :class:`ReducedPrecisionWarning`, :data:`DEFAULT_BOUND`, :func:`inference_deviation`,
@@ -48,7 +50,8 @@ __all__ = ["Surrogate", "LSTMArchitecture", "LinearArchitecture", "LinearFitConf
            "register_surrogate", "unregister_surrogate", "surrogate_class", "surrogate_kinds", "DEFAULT_BOUND",
            "inference_deviation", "surrogate_windows", "surrogate_signal_windows", "refill_input_steps",
            "refill_target_steps", "refill_index_sets", "refill_windows", "refill_scatter", "refill_predict",
-           "smooth_refill", "refill_cycle", "refill_rollout"]
+           "refill_applications", "refill_block_means", "smooth_refill", "smooth_curve", "refill_cycle",
+           "refill_rollout", "DEFAULT_REFILL_SAMPLES"]
 
 # where each name of __all__ is imported from on first use (jaxsync.lazy): the imports of TYPE_CHECKING below
 __getattr__, __dir__ = export_lazily(__name__, {
@@ -69,8 +72,9 @@ __getattr__, __dir__ = export_lazily(__name__, {
     ".training._online": ("OnlineLearning",),
     ".training._train": ("TrainConfig", "TrainResult", "train_replicas"),
     ".training._training_state": ("TrainingState",),
-    "._refill": ("refill_cycle", "refill_index_sets", "refill_input_steps", "refill_predict", "refill_rollout",
-                 "refill_scatter", "refill_target_steps", "refill_windows", "smooth_refill"),
+    "._refill": ("DEFAULT_REFILL_SAMPLES", "refill_applications", "refill_block_means", "refill_cycle",
+                 "refill_index_sets", "refill_input_steps", "refill_predict", "refill_rollout", "refill_scatter",
+                 "refill_target_steps", "refill_windows", "smooth_curve", "smooth_refill"),
 })
 
 if TYPE_CHECKING:
@@ -86,6 +90,9 @@ if TYPE_CHECKING:
     )
     from ._model import Surrogate
     from ._refill import (
+        DEFAULT_REFILL_SAMPLES,
+        refill_applications,
+        refill_block_means,
         refill_cycle,
         refill_index_sets,
         refill_input_steps,
@@ -94,6 +101,7 @@ if TYPE_CHECKING:
         refill_scatter,
         refill_target_steps,
         refill_windows,
+        smooth_curve,
         smooth_refill,
     )
     from .models._architecture import ArchitectureChoice

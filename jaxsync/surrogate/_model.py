@@ -39,7 +39,14 @@ from jaxsync.errors import CheckpointError, ConfigError
 from jaxsync.fem._load_signals import LoadSignals, check_load_inputs
 from jaxsync.io.surrogate_file import SavedSurrogate, load_surrogate, save_surrogate
 from jaxsync.pytree import pytree_dataclass, static_field
-from jaxsync.surrogate._refill import refill_predict, refill_rollout, smooth_refill
+from jaxsync.surrogate._refill import (
+    DEFAULT_REFILL_SAMPLES,
+    refill_applications,
+    refill_block_means,
+    refill_predict,
+    refill_rollout,
+    smooth_curve,
+)
 from jaxsync.surrogate.models._architecture import Architecture
 from jaxsync.surrogate.models._protocol import check_compute_dtype
 from jaxsync.surrogate.training._data import padding_mask
@@ -68,6 +75,13 @@ class Surrogate:
             step-to-step jitter it writes into the solver excites high-frequency noise
             (on the 11-part vessel demo, the worst interior error fell from 12 % to 7 %
             of the node's amplitude with it). False gives the paper's raw refill.
+        refill_samples: the network applications a smooth refill evaluates (static;
+            :func:`~jaxsync.surrogate.refill_block_means`): the curve goes through the
+            block means of the n_s applications, estimated from this many evenly spaced
+            ones (default 16; None: all n_s). A refill then costs ``refill_samples``
+            network calls instead of n_s (the vessel demo's n_s = 1 000). Unused by the
+            raw refill, which writes every application. A runtime option: surrogate files
+            do not record it; set it with :meth:`with_refill_samples`.
         inference_dtype: None (default: the networks compute in ``arch.dtype``) or
             ``"bfloat16"``: reduced-precision inference, bfloat16 weights and activations
             with float32 accumulation (:mod:`jaxsync.surrogate.models`; static). Set it with
@@ -97,6 +111,7 @@ class Surrogate:
     arch: Architecture = static_field()
     n_s: int = static_field()
     smooth: bool = static_field(default=True)
+    refill_samples: int | None = static_field(default=DEFAULT_REFILL_SAMPLES)
     inference_dtype: str | None = static_field(default=None)
     signal_scale: Any = None
     load_inputs: tuple = static_field(default=())
@@ -152,17 +167,36 @@ class Surrogate:
         """One refill of ONE part: the (n_s n_f, n_dof) predictions of steps step + 1 ..
         step + n_s n_f from ``buffer`` (n_s n_p, n_dof), the displacements of steps
         step + 1 - n_s n_p .. step [cm].  The network reads only ``buffer``; ``step`` is
-        the predictor interface of the solver.  With ``smooth``, the refill as one smooth
-        curve from ``buffer[-1]`` (:func:`~jaxsync.surrogate.smooth_refill`).
+        the predictor interface of the solver.  With ``smooth``, one smooth curve from
+        ``buffer[-1]`` through the block means of ``refill_samples`` applications
+        (:func:`~jaxsync.surrogate.refill_block_means`,
+        :func:`~jaxsync.surrogate.smooth_curve`); without, the paper's raw refill.
         Padded dofs are 0.  A surrogate with load input also reads the load signals at
         steps step + 1 - n_s n_p .. step + n_s n_f from ``load_signals`` (bind it with
         :meth:`for_problem`)."""
         load = self.load_parameter if self.arch.conditional else None
-        out = refill_predict(self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask,
-                             self.inference_dtype, self._signal_window(step))
+        args = (self.params, self.arch, self.mean, self.std, buffer, self.n_s, load, self.dof_mask,
+                self.inference_dtype, self._signal_window(step))
         if self.smooth:
-            out = smooth_refill(out, buffer[-1], self.n_s)
+            out = smooth_curve(refill_block_means(*args, samples=self.refill_samples), buffer[-1], self.n_s)
+        else:
+            out = refill_predict(*args)
         return out * self.dof_mask[None]
+
+    @property
+    def refill_calls(self) -> int:
+        """Network applications per refill: ``refill_samples`` (at most n_s) for the
+        smooth refill, n_s for the raw one."""
+        return len(refill_applications(self.n_s, self.refill_samples)) if self.smooth else self.n_s
+
+    def with_refill_samples(self, samples: int | None) -> "Surrogate":
+        """These replicas with a smooth refill of ``samples`` network applications per
+        refill (None: all n_s).
+
+        Raises:
+            ConfigError: ``samples`` is not None or an integer >= 1."""
+        refill_applications(self.n_s, samples)  # refuses a bad value, naming it
+        return dataclasses.replace(self, refill_samples=samples)
 
     def rollout(self, buffer, step0, n_cycles: int):
         """``n_cycles`` refill cycles of ONE part, each consuming the predictions of the

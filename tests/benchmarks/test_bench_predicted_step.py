@@ -18,8 +18,11 @@ def test_bench_predicted_step_quick(tmp_path):
     assert bench.main(["--quick", "--highway-rank", "6", "--linear-rank", "5", "--out", str(out)]) == 0
     result = json.loads(out.read_text())
     rows = {r["surrogate"]: r for r in result["rows"]}
-    assert set(rows) == {"lstm", "lstm-bare", "linear"} and result["case"] == "cantilever"
-    assert (rows["lstm"]["rank"], rows["lstm-bare"]["rank"], rows["linear"]["rank"]) == (6, 0, 5)
+    assert set(rows) == {"lstm", "lstm-all", "lstm-bare", "linear"} and result["case"] == "cantilever"
+    assert (rows["lstm"]["rank"], rows["lstm-all"]["rank"], rows["lstm-bare"]["rank"], rows["linear"]["rank"]) == \
+        (6, 6, 0, 5)
+    # n_s = 10 <= the default 16 samples: every refill calls the network on all 10 applications
+    assert {r["refill_calls"] for r in rows.values()} == {10}
     for r in rows.values():
         assert min(r["t_sync_us"], r["t_nosync_us"], r["t_avoid_us"]) > 0
         # the refill's per-step time is its program's time less that of a call without a
@@ -29,7 +32,7 @@ def test_bench_predicted_step_quick(tmp_path):
         assert r["rest_us"] == pytest.approx(r["t_avoid_us"] - r["t_nosync_us"] - r["t_d_us"])
         assert r["zeta"] == pytest.approx(r["t_sync_us"] / r["t_avoid_us"])
         assert r["t_d_over_t_sync"] == pytest.approx(r["t_d_us"] / r["t_sync_us"])
-    assert result["table"].count("\n") == 4
+    assert result["table"].count("\n") == 5
 
 
 def test_an_untrained_lstm_with_a_highway_has_its_shape_and_cost():

@@ -265,14 +265,24 @@ def test_predict_repeats_the_demo_online_run(predicted, online):
 
 def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, online):
     """--raw-refill writes the n_s interleaved network applications as they are; the
-    default writes their smooth curve from the last known value. Checked on the first
-    predicted cycle against the network applied to the synchronized history."""
+    default writes their smooth curve from the last known value; --refill-samples 2 the
+    curve through the means of two applications. Checked on the first predicted cycle
+    against the network applied to the synchronized history."""
     from jaxsync.surrogate import Surrogate, smooth_refill
 
     path = demo[0] / "raw.h5"
     run = run_cli(predict_args(demo, path, "--raw-refill", "--resync-tolerance", "none", "--steps", SHORT))
     assert run.code == 0, run.err
     raw = jaxsync.Trajectory.load(path)
+    run = run_cli(predict_args(demo, demo[0] / "sampled.h5", "--refill-samples", "2", "--resync-tolerance", "none",
+                               "--steps", SHORT))
+    assert run.code == 0, run.err
+    sampled = jaxsync.Trajectory.load(demo[0] / "sampled.h5")
+    for bad in ("0", "x"):  # refused by the parser
+        with pytest.raises(SystemExit) as refused:
+            run_cli(predict_args(demo, demo[0] / "bad.h5", "--refill-samples", bad))
+        assert refused.value.code == 2
+    assert not (demo[0] / "bad.h5").exists()
     # the demo's surrogates read the load signals (its default): bound to its problem, the cantilever
     surrogate = Surrogate.load(demo[1] / "surrogate" / "surrogate.h5").for_problem(jaxsync.cantilever(), reference.dt)
     n_cri, history, every = N_S * 5, N_S * 5, online.save_every
@@ -291,6 +301,13 @@ def test_predict_raw_refill_writes_the_networks_own_values(demo, reference, onli
         np.testing.assert_allclose(online.parts[p].predicted_shared_displacement[:n], smooth[saved, :width],
                                    rtol=1e-5, atol=1e-6 * scale)
         assert np.abs(network[saved, :width] - smooth[saved, :width]).max() > 1e-3 * scale
+        # --refill-samples 2: the curve through the block means of applications 1 and 3 of the 5
+        means = network.reshape(-1, N_S, network.shape[1])[:, [1, 3]].mean(axis=1)
+        few = np.asarray(smooth_refill(np.repeat(means, N_S, axis=0), buffer[-1], N_S))
+        # (two windows compile a program of their own: float32 round-off of the normalized values, up to 2e-6)
+        np.testing.assert_allclose(sampled.parts[p].predicted_shared_displacement[:n], few[saved, :width],
+                                   rtol=1e-5, atol=1e-5 * scale)
+        assert np.abs(few[saved, :width] - smooth[saved, :width]).max() > 1e-3 * scale
 
 
 def test_predict_stays_synchronized_through_a_load_jump(demo, reference, tmp_path):

@@ -138,6 +138,59 @@ def test_smooth_refill_removes_the_jitter_between_applications_and_keeps_lines()
         smooth_refill(jnp.asarray(raw), jnp.array([0.2]), 7)
 
 
+def test_smooth_refill_from_a_few_applications_averages_those_applications_only():
+    """refill_samples m < n_s: the smooth curve goes through the block means of the m
+    evenly spaced applications floor((k + 1/2) n_s / m), computed here one application at
+    a time on the refill index sets; buffer rows that only the other applications read do
+    not change the prediction (they are never computed); None gives the exact block means
+    of the raw refill."""
+    from jaxsync.surrogate import DEFAULT_REFILL_SAMPLES, refill_applications, smooth_refill
+
+    n_s, samples = 12, 4
+    np.testing.assert_array_equal(refill_applications(n_s, samples), [1, 4, 7, 10])
+    np.testing.assert_array_equal(refill_applications(n_s, None), np.arange(n_s))
+    np.testing.assert_array_equal(refill_applications(n_s, 20), np.arange(n_s))
+    for bad in (0, -3, 2.5, True, "4"):
+        with pytest.raises(ConfigError, match="refill samples must be an integer >= 1"):
+            refill_applications(n_s, bad)
+    base = dataclasses.replace(_surrogate(), n_s=n_s, smooth=True)
+    assert base.refill_samples == DEFAULT_REFILL_SAMPLES and base.refill_calls == n_s  # 16 >= 12: all of them
+    surrogate = base.with_refill_samples(samples)
+    assert surrogate.refill_calls == samples and dataclasses.replace(surrogate, smooth=False).refill_calls == n_s
+    with pytest.raises(ConfigError, match="refill samples"):
+        base.with_refill_samples(0)
+    history = _history(80)
+    n0 = n_s * N_P + 10
+    buffer = history[1, n0 + 1 - n_s * N_P:n0 + 1]
+    one = surrogate.part(1)
+    out = np.asarray(one.predict(buffer, n0))
+    # reference: each chosen application alone, on its own index set, in float64 around the network
+    params, mean, std = replica_params(surrogate.params, 1), surrogate.mean[1], surrogate.std[1]
+    inputs, _ = refill_index_sets(n0, n_s, N_P, N_F)
+    apps = refill_applications(n_s, samples)
+    outputs = []
+    for i in apps:
+        z = jnp.asarray((history[1, inputs[i]] - mean) / std, jnp.float32)
+        outputs.append(np.asarray(forward(params, surrogate.arch, z, None, jnp.float32(surrogate.dof_mask[1])),
+                                  np.float64) * std + mean)
+    block_means = np.mean(outputs, axis=0)  # (n_f, n_dof)
+    expected = _smoothed(np.repeat(block_means, n_s, axis=0), history[1, n0], n_s)
+    np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
+    # rows read only by an application that is not chosen (application 0: rows 0, n_s, 2 n_s, ...)
+    other = buffer.copy()
+    other[0::n_s] += 5.0
+    np.testing.assert_array_equal(np.asarray(one.predict(other, n0)), out)
+    chosen = buffer.copy()
+    chosen[apps[0]::n_s] += 5.0
+    assert np.abs(np.asarray(one.predict(chosen, n0)) - out).max() > 1e-3
+    # all applications: the block means of the raw refill, smoothed
+    every = base.with_refill_samples(None).part(1)
+    raw = np.asarray(dataclasses.replace(every, smooth=False).predict(buffer, n0))
+    np.testing.assert_allclose(np.asarray(every.predict(buffer, n0)),
+                               np.asarray(smooth_refill(jnp.asarray(raw), jnp.asarray(buffer[-1]), n_s)),
+                               rtol=1e-12, atol=1e-14)
+
+
 def test_rollout_sizes_and_a_wrong_buffer():
     surrogate, history = _surrogate(), _history()
     buffer = history[0, :N_S * N_P]
