@@ -7,6 +7,7 @@ Run under MPI, one CPU device per process (loopback on one machine, or across no
     mpiexec -n 2 python benchmarks/bench_sync.py [--sizes 12 1002] [--steps 2000]
                                                  [--repeats 5] [--json PATH]
                                                  [--cpu-collectives gloo|mpi]
+                                                 [--case cantilever|vessel]
 
 Every method runs a compiled ``lax.scan`` of ``--steps`` steps whose body sums an
 interface vector of n doubles over the processes and feeds it back (x <- sum / n_processes,
@@ -44,6 +45,16 @@ n_H = 100 at n_s = 80, of ``jaxsync train``'s default, n_H = 50 at n_s = 150, an
 linear model at n_s = 150: the cost of a network does not depend on its weights). zeta is
 the best synchronized solver row (the fastest transport) over each row. Every rank times
 its own calls after a barrier; the slowest rank's time is kept.
+
+``--case vessel``: the solver and speed-up rows on the vessel of ``jaxsync demo --case
+vessel`` instead (:func:`jaxsync.app.demo.vessel_problem`, the small generated coronary
+tree, mass-scaled; one METIS part per process), with the demo's surrogates at its
+n_s = 1 000: the LSTM (n_H 32, 2 layers) with a linear highway of 108 directions (what the
+demo's fit keeps) and the linear map of 108 directions, both with the default smooth
+refill (:data:`jaxsync.surrogate.DEFAULT_REFILL_SAMPLES` network calls per refill), and
+the LSTM evaluating every application (``avoid-lstm-all``); ``--solver-steps`` defaults
+to one refill cycle, 20 000 steps, and the halo depths to 1, 2, 4, 8. Default output
+``benchmarks/results/sync_vessel.json``.
 
 Cost model check (``model_check``): latency and bandwidth of each transport fitted to its
 ``collective`` rows (``jaxsync.perf.costmodel.fit_interconnect``), the solver's t_s predicted
@@ -174,7 +185,29 @@ def bench_collectives(sizes, steps: int, repeats: int, comm) -> list[dict]:
     return rows
 
 
-def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
+def case_problem(case: str):
+    """The problem of ``--case``: the coarse cantilever or the vessel demo's tree."""
+    if case == "vessel":
+        from jaxsync.app.demo import vessel_problem
+
+        return vessel_problem("small")[1]
+    return jaxsync.cantilever()
+
+
+def case_surrogates(case: str, partition) -> dict:
+    """The untrained surrogates timed on ``case`` (module docstring), by row name."""
+    from jaxsync.surrogate import Surrogate
+
+    if case == "vessel":
+        lstm = Surrogate.initialized(partition, 1000, n_hidden=32, n_layers=2, highway_rank=108)
+        return {"avoid-lstm-vessel-demo": lstm, "avoid-lstm-all": lstm.with_refill_samples(None),
+                "avoid-linear": Surrogate.initialized(partition, 1000, model="linear", rank=108)}
+    return {"avoid-lstm-paper": Surrogate.initialized(partition, 80, n_hidden=100),
+            "avoid-lstm-default": Surrogate.initialized(partition, 150, n_hidden=50),
+            "avoid-linear": Surrogate.initialized(partition, 150, model="linear")}
+
+
+def bench_solver(steps: int, repeats: int, comm, problem) -> list[dict]:
     import jax
     import numpy as np
     from mpi4py import MPI
@@ -182,7 +215,6 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner
 
-    problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
     state = initial_state(problem, system)
     n_parts = jax.process_count()
@@ -214,20 +246,19 @@ def bench_solver(steps: int, repeats: int, comm) -> list[dict]:
     return rows
 
 
-def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> list[dict]:
+def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows, case: str, problem) -> list[dict]:
     """The ``nosync``, ``halo-k`` and ``avoid-*`` rows (module docstring), each with zeta
     against the best synchronized solver row of ``solver_rows``."""
     import jax
     import numpy as np
     from mpi4py import MPI
 
+    from jaxsync.errors import PartitionError
     from jaxsync.fem import build_system, initial_state
     from jaxsync.solve.executors import DistributedRunner, PredictedPhase
-    from jaxsync.surrogate import Surrogate
     from jaxsync.surrogate.models import architecture_to_dict
     from jaxsync.surrogate.training import shared_dof_layout
 
-    problem = jaxsync.cantilever()
     system = build_system(problem, problem.dt)
     state = initial_state(problem, system)
     n_parts = jax.process_count()
@@ -244,7 +275,12 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
     start = local.from_global(state)
     programs = {"nosync": (local, local.program(1, synchronize=False), start)}
     for k in halo_depths:
-        halo = DistributedRunner(problem, system, local.partition, save_every=steps, sync=jaxsync.Halo(k))
+        try:
+            halo = DistributedRunner(problem, system, local.partition, save_every=steps, sync=jaxsync.Halo(k))
+        except PartitionError as exc:  # a halo that would hold a whole part: left out, and said
+            if multiprocess.is_main_process():
+                print(f"halo-{k} left out: {exc}")
+            continue
         programs[f"halo-{k}"] = (halo, halo.program(1), halo.from_global(state))
     for name, (runner, program, begin) in programs.items():
         best, median = time_per_step(lambda p=program, b=begin, r=runner: jax.block_until_ready(p(r.parts, b)),
@@ -253,10 +289,7 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
         rows.append({"kind": "speedup", "method": name, "steps": steps, "us_per_step_best": best,
                      "us_per_step_median": median, "transport": runner.transport})
     n_dof, _ = shared_dof_layout(local.partition)
-    surrogates = {"avoid-lstm-paper": Surrogate.initialized(local.partition, 80, n_hidden=100),
-                  "avoid-lstm-default": Surrogate.initialized(local.partition, 150, n_hidden=50),
-                  "avoid-linear": Surrogate.initialized(local.partition, 150, model="linear")}
-    for name, predictor in surrogates.items():
+    for name, predictor in case_surrogates(case, local.partition).items():
         cycle = predictor.n_s * predictor.n_future
         n_cycles = max(1, round(steps / cycle))
         online = PredictedPhase(local, predictor, save_every=cycle)
@@ -265,7 +298,7 @@ def bench_speedup(steps: int, repeats: int, comm, halo_depths, solver_rows) -> l
         args = (local.parts, online.predictor, start, buffer, online.step_counter(0))
         best, median = time_per_step(lambda p=program, a=args: jax.block_until_ready(p(*a)), n_cycles * cycle)
         rows.append({"kind": "speedup", "method": name, "steps": n_cycles * cycle, "us_per_step_best": best,
-                     "us_per_step_median": median, "n_s": predictor.n_s,
+                     "us_per_step_median": median, "n_s": predictor.n_s, "refill_calls": predictor.refill_calls,
                      "architecture": architecture_to_dict(predictor.arch)})
     synchronized = min(solver_rows, key=lambda r: r["us_per_step_best"])
     for row in rows:
@@ -320,11 +353,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--sizes", type=int, nargs="+", default=[12, 120, 1002, 12000],
                         help="interface sizes in doubles (default: %(default)s)")
     parser.add_argument("--steps", type=int, default=2000, help="scan steps per timing (default: %(default)s)")
-    parser.add_argument("--solver-steps", type=int, default=3200,
-                        help="cantilever steps per timing (default: %(default)s; a multiple of "
-                             "every --halo-depths)")
-    parser.add_argument("--halo-depths", type=int, nargs="*", default=[1, 4, 16, 64],
-                        help="deep-halo depths to time (default: %(default)s)")
+    parser.add_argument("--case", choices=("cantilever", "vessel"), default="cantilever",
+                        help="the mesh of the solver and speed-up rows (default: %(default)s)")
+    parser.add_argument("--solver-steps", type=int, default=None,
+                        help="solver steps per timing (default: 3200 on the cantilever, one refill cycle of "
+                             "20 000 on the vessel; a multiple of every --halo-depths)")
+    parser.add_argument("--halo-depths", type=int, nargs="*", default=None,
+                        help="deep-halo depths to time (default: 1 4 16 64 on the cantilever, 1 2 4 8 on the "
+                             "vessel)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats (default: %(default)s)")
     parser.add_argument("--cpu-collectives", choices=("gloo", "mpi"), default="gloo",
                         help="JAX's own collectives between the CPU processes: gloo (the full comparison), or "
@@ -333,9 +369,15 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", default=None, help="output (default: benchmarks/results/sync.json, with "
                         "--cpu-collectives mpi sync_cpu_mpi.json)")
     args = parser.parse_args(argv)
+    vessel = args.case == "vessel"
+    if args.solver_steps is None:
+        args.solver_steps = 20000 if vessel else 3200
+    if args.halo_depths is None:
+        args.halo_depths = [1, 2, 4, 8] if vessel else [1, 4, 16, 64]
     if args.json is None:
-        args.json = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                 "sync.json" if args.cpu_collectives == "gloo" else "sync_cpu_mpi.json")
+        name = "sync_vessel.json" if vessel else ("sync.json" if args.cpu_collectives == "gloo"
+                                                  else "sync_cpu_mpi.json")
+        args.json = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", name)
 
     if args.cpu_collectives == "mpi":
         return bench_cpu_mpi(args, argv)
@@ -348,10 +390,12 @@ def main(argv=None) -> dict:
             raise SystemExit("run under MPI with 2 or more ranks: mpiexec -n 2 python "
                              "benchmarks/bench_sync.py")
         comm = multiprocess.world().Dup()
+        problem = case_problem(args.case)
         rows = bench_collectives(args.sizes, args.steps, args.repeats, comm)
-        solver_rows = bench_solver(args.solver_steps, args.repeats, comm)
+        solver_rows = bench_solver(args.solver_steps, args.repeats, comm, problem)
         rows += solver_rows
-        rows += bench_speedup(args.solver_steps, args.repeats, comm, args.halo_depths, solver_rows)
+        rows += bench_speedup(args.solver_steps, args.repeats, comm, args.halo_depths, solver_rows, args.case,
+                              problem)
         nosync = next(r for r in rows if r["method"] == "nosync")
         for row in solver_rows:
             del row["final"]
@@ -360,12 +404,13 @@ def main(argv=None) -> dict:
             row["us_per_exchange_median"] = row["us_per_step_median"] - nosync["us_per_step_median"]
         import jaxsync
 
-        checks = model_check(rows, jaxsync.partition(jaxsync.cantilever().mesh, n_proc))
+        checks = model_check(rows, jaxsync.partition(problem.mesh, n_proc))
         from mpi4py import MPI
 
         hosts = sorted(set(comm.allgather(socket.gethostname())))
         result = {
             "benchmark": "per-step synchronization between processes",
+            "case": args.case, "n_dofs": int(problem.n_dofs),
             "processes": n_proc, "hosts": hosts, "devices_per_process": len(jax.local_devices()),
             "jax": jax.__version__, "mpi4py": __import__("mpi4py").__version__,
             "mpi4jax": (__import__("mpi4jax").__version__ if multiprocess.mpi4jax_available() else None),

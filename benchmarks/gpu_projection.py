@@ -2,7 +2,7 @@
 they do not. A cost-model calculation from measured figures: nothing is timed here.
 
     python benchmarks/gpu_projection.py [--out-dir benchmarks/results]
-        [--stand-in-elements 80000] [--max-parts 64] [--floor-us 10]
+        [--stand-in-elements 80000] [--max-parts 64] [--floor-us 10] [--refill-calls 16]
 
 Case: the paper-size coronary vessel of the demo (generated tree, 380 825 tetrahedra,
 273 576 dofs, float64), partitioned as in the scenarios below.
@@ -38,17 +38,23 @@ scenario, the break-even t_d (the largest surrogate cost per step at which the l
 method still wins) and the flop rate a GPU would have to sustain to reach it, and shows
 the surrogate's step at its CPU rate (a reference, not a GPU figure): t_d = the
 surrogate's flops per step / R_cpu, with R_cpu = the LSTM's refill flops over its
-measured 0.960 s (about 58 GFlop/s). Flops per refill (n_s windows):
+measured 0.960 s (about 58 GFlop/s, a call of all n_s = 1 000 windows; a call of 16
+windows uses the cores less well, so the CPU-rate column is a lower bound there).
+
+A refill evaluates ``--refill-calls`` windows (default 16, the smooth refill that
+:class:`jaxsync.surrogate.Surrogate` runs: :data:`jaxsync.surrogate.DEFAULT_REFILL_SAMPLES`
+applications estimate the block means its curve goes through; ``--refill-calls 1000``:
+the paper's raw refill, every application), and serves n_s n_f steps. Flops per window:
 
 * LSTM: :func:`jaxsync.perf.roofline.surrogate_flop_breakdown` (n_dof D, n_H 32, 2
   bidirectional encoder layers, decoder, dense layer, normalization, mask);
 * linear: 2 n_p D r + 2 r n_f D (the two factors of W) + n_f D (bias) + 2 D (n_p + n_f)
   (normalization) + n_f D (mask) per window, rank r = the training windows (722: the
-  least-squares fit keeps every input direction above round-off).
+  largest rank a fit can give).
 
 At the vessel's interface the linear map (r = 722 directions over 46 200 inputs) costs
 2.4 times the LSTM's flops; on the cantilever's 12 dofs it costs 38 times less per step
-(measured, ``bench_surrogates.json``). The per-step cost is that of the GPU's widest part
+(measured with every window, ``bench_surrogates.json``). The per-step cost is that of the GPU's widest part
 (D(p) shared dofs); on one GPU the 11 parts' refills, padded to the widest, add up. A
 refill is one batched call whose dependent chain (the LSTM's 2 x 2 x n_p encoder and n_f
 decoder cell steps) is spread over n_s n_f = 20 000 steps: a few us of launch latency per
@@ -132,6 +138,7 @@ from jaxsync.perf.costmodel import (  # noqa: E402
     sync_time,
 )
 from jaxsync.perf.roofline import surrogate_flop_breakdown  # noqa: E402
+from jaxsync.surrogate import DEFAULT_REFILL_SAMPLES  # noqa: E402
 from jaxsync.surrogate.models import LSTMArchitecture  # noqa: E402
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -240,28 +247,32 @@ def read_cantilever_context(path: str = SURROGATES_JSON):
 
 # --------------------------------------------------------------------------- surrogate cost
 
-def lstm_flops_per_step(n_dof: int, vessel: dict) -> float:
-    """Flops of the LSTM's refill per solver step (one part, its n_dof shared dofs)."""
+def lstm_flops_per_step(n_dof: int, vessel: dict, calls: int) -> float:
+    """Flops of the LSTM's refill of ``calls`` windows per solver step (one part, its
+    n_dof shared dofs; the refill serves n_s n_f steps)."""
     arch = LSTMArchitecture(n_dof=int(n_dof), n_hidden=vessel["n_hidden"], n_layers=vessel["n_layers"],
                             n_past=vessel["n_past"], n_future=vessel["n_future"])
-    return sum(surrogate_flop_breakdown(arch, vessel["n_s"]).values()) / (vessel["n_s"] * vessel["n_future"])
+    return sum(surrogate_flop_breakdown(arch, int(calls)).values()) / (vessel["n_s"] * vessel["n_future"])
 
 
-def linear_flops_per_step(n_dof: int, vessel: dict) -> float:
-    """Flops of the linear surrogate's refill per solver step (module docstring)."""
+def linear_flops_per_step(n_dof: int, vessel: dict, calls: int) -> float:
+    """Flops of the linear surrogate's refill of ``calls`` windows per solver step (module
+    docstring)."""
     d, r = int(n_dof), vessel["n_train_windows"]
     n_p, n_f = vessel["n_past"], vessel["n_future"]
     per_window = 2 * n_p * d * r + 2 * r * n_f * d + n_f * d + 2 * d * (n_p + n_f) + n_f * d
-    return per_window / n_f  # n_s windows serve n_s n_f steps
+    return per_window * int(calls) / (vessel["n_s"] * n_f)  # one refill serves n_s n_f steps
 
 
 FLOPS = {"linear": linear_flops_per_step, "lstm": lstm_flops_per_step}
 
 
 def cpu_rate(vessel: dict) -> float:
-    """R_cpu [flop/s]: the LSTM refill's flops over its measured CPU time."""
+    """R_cpu [flop/s]: the LSTM refill's flops over its measured CPU time (a refill of
+    all n_s windows, as it was measured)."""
     steps = vessel["n_s"] * vessel["n_future"]
-    return lstm_flops_per_step(vessel["shared_dofs_max"], vessel) * steps / vessel["refill_seconds_widest_alone"]
+    return (lstm_flops_per_step(vessel["shared_dofs_max"], vessel, vessel["n_s"]) * steps
+            / vessel["refill_seconds_widest_alone"])
 
 
 # --------------------------------------------------------------------------- stand-in
@@ -346,7 +357,7 @@ def exchange(s: Scenario, pattern, n_vector: int, c: float, n_fit: int) -> dict:
 
 
 def project_scenario(s: Scenario, site: dict, vessel: dict, c: float, d_ref: int, t_0: float,
-                     r_cpu: float) -> dict:
+                     r_cpu: float, calls: int) -> dict:
     """One row: exact methods, surrogates and break-even costs [us]."""
     t_1 = GIVEN["single_device_step_us"]
     if s.gpus == 1:
@@ -379,7 +390,7 @@ def project_scenario(s: Scenario, site: dict, vessel: dict, c: float, d_ref: int
     break_even_best = best - t_c
     surrogates = {}
     for name, flops_of in FLOPS.items():
-        flops = parts_per_gpu * flops_of(width, vessel)
+        flops = parts_per_gpu * flops_of(width, vessel, calls)
         t_d = 1e6 * flops / r_cpu
         proj = project(1e-6 * t_c, 1e-6 * t_d, sync["pattern"], [sync["link"]], algorithm=ALGORITHM).rows[0]
         surrogates[name] = {
@@ -439,6 +450,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-parts", type=int, default=64, help="leave out the scenarios with more parts")
     ap.add_argument("--floor-us", type=float, default=10.0, help="t_0, the per-step floor of a small mesh [us]")
     ap.add_argument("--vessel-json", default=VESSEL_JSON, help="paper_vessel.py --size paper output")
+    ap.add_argument("--refill-calls", type=int, default=DEFAULT_REFILL_SAMPLES,
+                    help="network calls (windows) per refill: the smooth refill's samples (default %(default)s), "
+                         "or n_s for the paper's raw refill")
     args = ap.parse_args(argv)
     start = time.perf_counter()
     vessel, notes = read_vessel(args.vessel_json)
@@ -446,7 +460,8 @@ def main(argv=None) -> int:
     site = stand_in(args.stand_in_elements, [REFERENCE_PARTS] + [s.parts for s in scenarios])
     c = vessel["n_interface"] / site["partitions"][REFERENCE_PARTS]["n_interface"]
     r_cpu = cpu_rate(vessel)
-    rows = [project_scenario(s, site, vessel, c, vessel["shared_dofs_max"], args.floor_us, r_cpu)
+    calls = min(args.refill_calls, vessel["n_s"])
+    rows = [project_scenario(s, site, vessel, c, vessel["shared_dofs_max"], args.floor_us, r_cpu, calls)
             for s in scenarios]
     for p, v in site["partitions"].items():
         notes += [f"stand-in, {p} parts: {n}" for n in v["notes"]]
@@ -461,8 +476,9 @@ def main(argv=None) -> int:
             "cpu_rate_source": (f"the LSTM's refill of the widest part (n_dof {d_ref}, n_H {vessel['n_hidden']}, "
                                 f"n_s {vessel['n_s']}) alone, {vessel['refill_seconds_widest_alone']:.3f} s on a "
                                 f"2-core CPU ({vessel['source']})"),
-            "flops_per_step_per_part": {n: f(d_ref, vessel) for n, f in FLOPS.items()},
-            "t_d_cpu_us_per_part": {n: 1e6 * f(d_ref, vessel) / r_cpu for n, f in FLOPS.items()},
+            "refill_calls": calls,
+            "flops_per_step_per_part": {n: f(d_ref, vessel, calls) for n, f in FLOPS.items()},
+            "t_d_cpu_us_per_part": {n: 1e6 * f(d_ref, vessel, calls) / r_cpu for n, f in FLOPS.items()},
             "linear_rank": vessel["n_train_windows"],
             "cantilever_context": read_cantilever_context()},
         "stand_in": {"generator": f"jaxsync.coronary_mesh(target_elements={args.stand_in_elements})",

@@ -99,7 +99,10 @@ for all steps) and w_h T times; the decoder's w_d, w_h, b and the dense w, b F t
 plus the input buffer n_s T D, mean and std 2 D, mask D and output n_s F D values in the
 solver's float64. Intermediate activations (projections, hidden sequences, states) are
 not counted: they are small and stay in cache for the paper's sizes. Per solver step:
-divide by the n_s n_f steps one prediction serves (:func:`surrogate_step_cost`).
+divide by the n_s n_f steps one prediction serves (:func:`surrogate_step_cost`). The
+smooth refill that :class:`jaxsync.surrogate.Surrogate` runs by default evaluates 16 of
+the n_s windows (:func:`jaxsync.surrogate.refill_block_means`): count it with
+``calls=16``.
 
 Achieved rates (:func:`achieved`), computed from given times and peaks (this module
 only counts; the machine's rates are measured by :func:`jaxsync.perf.measure.copy_bandwidth`
@@ -412,9 +415,19 @@ def surrogate_costs(arch, n_s: int, masked: bool = True, io_bytes_per_value: int
     return StageCost("t_d", cost.bytes, cost.flops)
 
 
-def surrogate_step_cost(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8) -> StageCost:
-    """:func:`surrogate_costs` spread over the n_s n_f solver steps one prediction serves."""
-    return surrogate_costs(arch, n_s, masked, io_bytes_per_value).scaled(1.0 / (n_s * arch.n_future))
+def surrogate_step_cost(arch, n_s: int, masked: bool = True, io_bytes_per_value: int = 8,
+                        calls: int | None = None) -> StageCost:
+    """:func:`surrogate_costs` of one refill spread over the n_s n_f solver steps it serves.
+
+    Args:
+        calls: the network applications (windows) one refill evaluates: n_s (None, the
+            default: the paper's raw refill) or a smooth refill's
+            :attr:`jaxsync.surrogate.Surrogate.refill_calls` (16 by default,
+            :data:`jaxsync.surrogate.DEFAULT_REFILL_SAMPLES`).
+    """
+    windows = n_s if calls is None else _count(calls, "calls", 1)
+    return surrogate_costs(arch, windows, masked, io_bytes_per_value).scaled(1.0 / (_count(n_s, "n_s", 1)
+                                                                                    * arch.n_future))
 
 
 # ----------------------------------------------------------------------------- roofline

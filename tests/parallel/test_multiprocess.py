@@ -267,6 +267,28 @@ def test_bench_sync_measures_zeta_and_checks_the_cost_model_with_real_processes(
     assert "zeta" in out.stdout and "cost model" in out.stdout and "us/exchange" in out.stdout
 
 
+@pytest.mark.slow  # the vessel and a 20 000-step refill cycle per timing; the cantilever test above is the fast one
+@pytest.mark.mpi
+@needs_mpiexec
+def test_bench_sync_times_the_vessel_demo_surrogates_between_real_processes(tmp_path):
+    """--case vessel: the vessel demo's tree, one part per process, its surrogates at
+    n_s = 1 000 with the default smooth refill (16 network calls) and with every
+    application (1 000)."""
+    bench = os.path.join(os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__)))), "benchmarks",
+                         "bench_sync.py")
+    path = tmp_path / "sync_vessel.json"
+    out = _mpiexec(sys.executable, bench, "--case", "vessel", "--sizes", "12", "--steps", "20", "--repeats", "1",
+                   "--halo-depths", "1", "--json", str(path))
+    assert out.returncode == 0, out.stderr
+    result = json.loads(path.read_text())
+    assert result["case"] == "vessel" and result["n_dofs"] > 3000
+    speedup = {r["method"]: r for r in result["rows"] if r["kind"] == "speedup"}
+    assert {"nosync", "halo-1", "avoid-lstm-vessel-demo", "avoid-lstm-all", "avoid-linear"} == set(speedup)
+    assert speedup["avoid-lstm-vessel-demo"]["refill_calls"] == 16 and speedup["avoid-lstm-all"]["refill_calls"] == 1000
+    assert speedup["avoid-lstm-vessel-demo"]["steps"] == 20000  # one refill cycle, n_s n_f
+    assert speedup["halo-1"]["max_rel_diff_vs_psum"] < 1e-12  # deep halos are exact
+
+
 @pytest.mark.mpi
 @needs_mpiexec
 def test_failing_rank_ends_the_cli_run(tmp_path):

@@ -215,6 +215,13 @@ def test_surrogate_counts_from_the_parameter_shapes(layers, q, masked, dtype):
     step = surrogate_step_cost(arch, n_s, masked)
     assert step.flops == pytest.approx(flops / (n_s * arch.n_future))
     assert step.bytes == pytest.approx(nbytes / (n_s * arch.n_future))
+    # a smooth refill of 2 network calls: 2 windows' cost over the same n_s n_f steps
+    _, flops_2, nbytes_2 = shape_count(params, arch, 2, masked)
+    sampled = surrogate_step_cost(arch, n_s, masked, calls=2)
+    assert sampled.flops == pytest.approx(flops_2 / (n_s * arch.n_future)) and sampled.flops < step.flops
+    assert sampled.bytes == pytest.approx(nbytes_2 / (n_s * arch.n_future))
+    with pytest.raises(ProblemError, match="calls must be an integer >= 1"):
+        surrogate_step_cost(arch, n_s, masked, calls=0)
 
 
 def test_surrogate_matmul_flops_by_hand():
