@@ -34,7 +34,7 @@ the cost model (:mod:`jaxsync.perf.costmodel`, ``gpu_projection.py``) carries t_
 other interconnects.
 
 Usage: python benchmarks/bench_predicted_step.py [--quick] [--surrogates lstm lstm-all lstm-bare linear]
-       [--highway-rank 80] [--linear-rank 80] [--repeats 5]
+       [--highway-rank 108] [--linear-rank 108] [--repeats 5]
        [--out benchmarks/results/predicted_step.json]
 ``--quick``: the coarse cantilever on 2 parts, n_s = 10, one repeat (what the tests run).
 """
@@ -110,8 +110,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true", help="the cantilever, n_s = 10, one repeat")
     parser.add_argument("--surrogates", nargs="+", choices=SURROGATES, default=list(SURROGATES))
-    parser.add_argument("--highway-rank", type=int, default=80, help="the LSTM's highway directions")
-    parser.add_argument("--linear-rank", type=int, default=80, help="the linear map's directions")
+    parser.add_argument("--highway-rank", type=int, default=108,
+                        help="the LSTM's highway directions (default: what the vessel demo's fit keeps)")
+    parser.add_argument("--linear-rank", type=int, default=108, help="the linear map's directions")
     parser.add_argument("--repeats", type=int, default=None, help="timed calls per program (default 5; --quick 1)")
     parser.add_argument("--out", default=DEFAULT_OUT, help="result JSON (default %(default)s)")
     args = parser.parse_args(argv)
