@@ -8,7 +8,8 @@ unsynchronized steps and one batched refill prediction per part, no collective) 
 timed round-robin in the same run, so zeta = t_t / t_t' compares the synchronization-
 avoiding solver with the synchronized baseline at its best. The per-part stages t_e, t_m,
 t_s, t_d, t_o and the max-average rows (paper Table 2) come with it. The surrogates are
-untrained replicas of the chosen architecture (a network's cost does not depend on its
+untrained replicas of the chosen architecture, each refill evaluating every one of the n_s
+applications (`refill_samples=None`, the paper's refill; a network's cost does not depend on its
 weights; accuracy is what `jaxsync demo` and `paper_cantilever.py` measure).
 
 Deep halos (:mod:`jaxsync.parallel.exchange`), the exact communication-avoiding scheme, are
@@ -130,15 +131,17 @@ def scenario_configs(quick):
 def run_config(cfg, bandwidth, peak_flops, repeats, stage_repeats):
     problem, n_parts = cfg["problem"], cfg["n_parts"]
     part = x_slabs(problem.mesh, n_parts) if cfg["cut"] == "x" else jaxsync.partition(problem.mesh, n_parts)
+    # every one of the n_s applications per refill, as the paper's refill (the default smooth
+    # refill evaluates DEFAULT_REFILL_SAMPLES of them: bench_predicted_step.py times both)
     predictor = Surrogate.initialized(part, N_S, n_hidden=cfg["n_hidden"], n_layers=2,
-                                               n_past=N_P, n_future=N_F)
+                                      n_past=N_P, n_future=N_F).with_refill_samples(None)
     start = time.perf_counter()
     report = speedup_breakdown(problem, part, predictor, mode=cfg["mode"], repeats=repeats, stage_repeats=stage_repeats,
                                syncs=(jaxsync.Psum(cfg["devices"]), jaxsync.Ppermute(cfg["devices"])),
                                halo_depths=HALO_DEPTHS)
     top = report.synchronized.max_average
     costs = roofline.step_costs_for(problem, part, mode=cfg["mode"])[top.part]
-    costs = dict(costs, t_d=roofline.surrogate_step_cost(predictor.arch, N_S))
+    costs = dict(costs, t_d=roofline.surrogate_step_cost(predictor.arch, N_S, calls=predictor.refill_calls))
     times = {"t_e": top.t_e, "t_m": top.t_m, "t_s": report.t_s, "t_o": top.t_o,
              "t_d": report.avoiding.rows[top.part].t_d}
     points = roofline.achieved_stages(costs, times, bandwidth, peak_flops)
