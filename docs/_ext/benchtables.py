@@ -230,8 +230,9 @@ def r_speedup() -> Rendered:
     return Rendered(tables, ["speedup.json"], recorded(d.get("machine"), devices=d.get("devices", "").split(":")[0]))
 
 
-def r_sync() -> Rendered:
-    d = load("sync.json")
+def r_sync(path: str = "sync.json") -> Rendered:
+    d = load(path)
+    case = "vessel" if d.get("case") == "vessel" else "cantilever"
     coll: dict[int, dict] = {}
     methods: list[str] = []
     for r in d["rows"]:
@@ -244,12 +245,14 @@ def r_sync() -> Rendered:
         for n, c in sorted(coll.items())]
     solver = {r["method"]: r for r in d["rows"] if r["kind"] == "solver"}
     if solver:
-        rows.append(["cantilever step, synchronized"] + [
+        rows.append([f"{case} step, synchronized"] + [
             f"{num(solver[m]['us_per_step_best'])} / {num(solver[m]['us_per_step_median'])}" if m in solver else "-"
             for m in methods])
     t1 = Table(["what"] + methods, rows, "Microseconds per step, best / median, slowest rank")
     names = {"nosync": "no synchronization (the floor)", "avoid-lstm-paper": "avoiding, the paper's LSTM",
-             "avoid-lstm-default": "avoiding, the default LSTM", "avoid-linear": "avoiding, linear surrogate"}
+             "avoid-lstm-default": "avoiding, the default LSTM", "avoid-linear": "avoiding, linear surrogate",
+             "avoid-lstm-vessel-demo": "avoiding, the vessel demo's LSTM",
+             "avoid-lstm-all": "avoiding, the same LSTM evaluating every application"}
     rows2 = []
     baseline = None
     for r in d["rows"]:
@@ -261,11 +264,13 @@ def r_sync() -> Rendered:
             name = f"deep halos, k = {r['method'].split('-', 1)[1]} (exact)"
         arch = r.get("architecture") or {}
         if arch:
-            name += " (" + ", ".join(f"{k} {arch[k]}" for k in ("n_hidden", "rank") if k in arch) + \
-                    (f", n_s {r['n_s']}" if r.get("n_s") else "") + ")"
+            name += " (" + ", ".join(f"{k} {arch[k]}" for k in ("n_hidden", "rank", "highway_rank")
+                                     if arch.get(k)) + \
+                    (f", n_s {r['n_s']}" if r.get("n_s") else "") + \
+                    (f", {r['refill_calls']} network calls per refill" if r.get("refill_calls") else "") + ")"
         rows2.append([name, f"{num(r['us_per_step_best'])} / {num(r['us_per_step_median'])}", num(r.get("zeta"), 3)])
     t2 = Table(["program", "us per step (best / median)", f"zeta against {baseline or 'the best synchronized step'}"],
-               rows2, "The cantilever's chunks on the same processes")
+               rows2, f"The {case}'s chunks on the same processes")
     rows3 = [[c["method"], num(c["latency_us"]), num(c["bandwidth_GBps"]), num(c["predicted_us"]),
               num(c["measured_us"]), f"{100 * c['relative_error']:+.0f} %"] for c in d.get("model_check", [])]
     t3 = Table(["transport", "latency [us]", "bandwidth [GB/s]", "predicted t_s [us]", "measured t_s [us]", "error"],
@@ -273,7 +278,11 @@ def r_sync() -> Rendered:
     rec = recorded({"cores": d.get("cpu_count"), "jax": d.get("jax"), "load_average": d.get("load_average")})
     rec = ", ".join(filter(None, [f"{d.get('processes')} processes on {len(d.get('hosts', []))} host(s)",
                                   " ".join(d.get("mpi_library", "").replace("Version:", "").split()), rec]))
-    return Rendered([t1, t2, t3], ["sync.json"], rec)
+    return Rendered([t1, t2, t3], [path], rec)
+
+
+def r_sync_vessel() -> Rendered:
+    return r_sync("sync_vessel.json")
 
 
 def r_regime_map() -> Rendered:
@@ -954,6 +963,7 @@ RENDERERS = {
     "distributed": r_distributed,
     "speedup": r_speedup,
     "sync": r_sync,
+    "sync-vessel": r_sync_vessel,
     "regime-map": r_regime_map,
     "gpu-projection": r_gpu_projection,
     "surrogates": r_surrogates,
