@@ -139,10 +139,10 @@ def _network_outputs(params, arch, mean, std, buffer, n_s, load_parameter, dof_m
     ``applications`` (static indices; None: all n_s), in the network's dtype."""
     _check_buffer(arch, buffer, n_s)
     n_past = arch.n_past
-    z = normalize(buffer, mean[None], std[None]).astype(arch.dtype)  # mean, std: one row for all steps
-    windows = refill_windows(z, n_s, n_past)  # (n_s, n_p, n_dof), rows N_p^i
-    if applications is not None:
+    windows = refill_windows(buffer, n_s, n_past)  # (n_s, n_p, n_dof), rows N_p^i
+    if applications is not None:  # chosen before normalizing: only their rows are read
         windows = windows[applications]
+    windows = normalize(windows, mean[None, None], std[None, None]).astype(arch.dtype)  # every row alike
     if loads is None:
         return jax.vmap(lambda x: forward(params, arch, x, load_parameter, dof_mask, compute_dtype))(windows)
     expected = (n_s * (n_past + arch.n_future), arch.n_load)
